@@ -1,0 +1,169 @@
+"""CAN database (DBC) and object dictionaries (EDS) of the drive link, and codecs built from them.
+
+``control.dbc`` describes every frame on the control bus, ``truth.dbc`` the emulator's
+ground-truth side channel.  ``controller.eds`` and ``drive.eds`` are the two nodes'
+CANopen object dictionaries; a test checks that their PDO mappings agree with the DBC.
+
+Frame layouts are never re-typed in code: :class:`FrameCodec` compiles a
+``struct`` format from the cantools message definition at start-up (about 10x faster
+than ``cantools.Message.encode`` on the 1 kHz path) and is tested against cantools.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from functools import cache
+from importlib import resources
+from pathlib import Path
+from typing import Literal
+
+import cantools
+from cantools.database.can import Message
+
+BusName = Literal["control", "truth"]
+NodeName = Literal["controller", "drive"]
+
+#: python-can channel numbers used for the two buses in traces (BLF/ASC store them 1-based).
+CHANNEL_NUMBER: dict[str, int] = {"control": 0, "truth": 1}
+
+
+def _data_dir() -> Path:
+    return Path(str(resources.files(__name__)))
+
+
+def dbc_path(bus: BusName) -> Path:
+    """Path of the DBC file describing ``bus``."""
+    return _data_dir() / f"{bus}.dbc"
+
+
+def eds_path(node: NodeName) -> Path:
+    """Path of the EDS (object dictionary) of ``node``."""
+    return _data_dir() / f"{node}.eds"
+
+
+@cache
+def database(bus: BusName) -> cantools.database.can.Database:
+    """The cantools database of ``bus`` (loaded once per process)."""
+    if bus not in CHANNEL_NUMBER:
+        raise ValueError(f"unknown bus {bus!r} (known: {', '.join(CHANNEL_NUMBER)})")
+    return cantools.database.load_file(str(dbc_path(bus)))
+
+
+_INT_CODES = {(8, False): "B", (8, True): "b", (16, False): "H", (16, True): "h",
+              (32, False): "I", (32, True): "i", (64, False): "Q", (64, True): "q"}
+_FLOAT_CODES = {32: "f", 64: "d"}
+
+
+class FrameCodec:
+    """Fast encoder/decoder for one DBC message, compiled from its cantools definition.
+
+    Supports the layouts this project's DBCs use: little-endian signals that start
+    on a byte boundary and are 8/16/32/64 bits wide (integers, optionally scaled) or
+    IEEE floats.  Any other layout raises ``ValueError`` at start-up; it is never
+    silently mis-packed.  Values are physical (scale and offset applied).  Integer
+    signals saturate at their raw range when encoding, like a firmware would clamp
+    before writing a mailbox.
+    """
+
+    __slots__ = ("_int_raw", "_offsets", "_scales", "_struct", "frame_id", "is_extended_id",
+                 "length", "message", "name", "signal_names")
+
+    def __init__(self, message: Message) -> None:
+        self.message = message
+        self.name: str = message.name
+        self.frame_id: int = message.frame_id
+        self.is_extended_id: bool = message.is_extended_frame
+        self.length: int = message.length
+        if message.is_multiplexed():
+            raise ValueError(f"{message.name}: multiplexed messages have no compiled codec")
+        signals = sorted(message.signals, key=lambda s: s.start)
+        fmt = "<"
+        pos = 0
+        int_raw: list[tuple[int, int] | None] = []
+        for sig in signals:
+            if sig.byte_order != "little_endian" or sig.start % 8:
+                raise ValueError(f"{message.name}.{sig.name}: only byte-aligned little-endian "
+                                 "signals are compiled")
+            byte = sig.start // 8
+            if byte < pos:
+                raise ValueError(f"{message.name}.{sig.name}: overlaps the previous signal")
+            fmt += "x" * (byte - pos)
+            if sig.is_float:
+                code = _FLOAT_CODES.get(sig.length)
+                int_raw.append(None)
+            else:
+                code = _INT_CODES.get((sig.length, sig.is_signed))
+                lo = -(1 << (sig.length - 1)) if sig.is_signed else 0
+                hi = (1 << (sig.length - 1)) - 1 if sig.is_signed else (1 << sig.length) - 1
+                int_raw.append((lo, hi))
+            if code is None:
+                raise ValueError(f"{message.name}.{sig.name}: {sig.length}-bit signals are not "
+                                 "compiled")
+            fmt += code
+            pos = byte + sig.length // 8
+        if pos > message.length:
+            raise ValueError(f"{message.name}: signals exceed the {message.length}-byte payload")
+        fmt += "x" * (message.length - pos)
+        self._struct = struct.Struct(fmt)
+        self.signal_names: tuple[str, ...] = tuple(s.name for s in signals)
+        self._scales = tuple(float(s.scale) for s in signals)
+        self._offsets = tuple(float(s.offset) for s in signals)
+        self._int_raw = tuple(int_raw)
+
+    def encode(self, *values: float) -> bytes:
+        """Pack physical values given in ``signal_names`` order."""
+        raws = []
+        for value, scale, offset, limits in zip(values, self._scales, self._offsets,
+                                                 self._int_raw):
+            raw = (value - offset) / scale
+            if limits is not None:
+                if raw != raw:
+                    raise ValueError(f"{self.name}: cannot encode NaN into an integer signal")
+                lo, hi = limits
+                raw = lo if raw <= lo else hi if raw >= hi else round(raw)
+            raws.append(raw)
+        if len(raws) != len(self._scales):
+            raise ValueError(f"{self.name}: expected {len(self._scales)} values, got {len(values)}")
+        return self._struct.pack(*raws)
+
+    def decode(self, data: bytes | bytearray) -> tuple[float, ...]:
+        """Unpack physical values in ``signal_names`` order; integers stay ``int`` when unscaled."""
+        if len(data) != self.length:
+            raise ValueError(f"{self.name}: expected {self.length} data bytes, got {len(data)}")
+        raws = self._struct.unpack(data)
+        return tuple(raw if (scale == 1.0 and offset == 0.0) else raw * scale + offset
+                     for raw, scale, offset in zip(raws, self._scales, self._offsets))
+
+    def decode_dict(self, data: bytes | bytearray) -> dict[str, float]:
+        return dict(zip(self.signal_names, self.decode(data)))
+
+
+@cache
+def codec(bus: BusName, message_name: str) -> FrameCodec:
+    """The compiled codec of ``message_name`` in ``bus``'s DBC."""
+    try:
+        message = database(bus).get_message_by_name(message_name)
+    except KeyError:
+        raise ValueError(f"no message {message_name!r} in {bus}.dbc") from None
+    return FrameCodec(message)
+
+
+def frame_id(bus: BusName, message_name: str) -> int:
+    return codec(bus, message_name).frame_id
+
+
+def worst_case_frame_bits(length: int, extended: bool = False) -> int:
+    """Worst-case bits on the wire of a classical CAN data frame incl. 3-bit interframe space.
+
+    Base frame: 47 + 8n bits plus at most floor((34 + 8n - 1) / 4) stuff bits (the
+    34 stuffable header/CRC bits and 8n data bits); extended frame: 67 + 8n plus
+    floor((54 + 8n - 1) / 4).  See DESIGN.md, "Frame budget".
+    """
+    if extended:
+        return 67 + 8 * length + (54 + 8 * length - 1) // 4
+    return 47 + 8 * length + (34 + 8 * length - 1) // 4
+
+
+def is_finite(*values: float) -> bool:
+    return all(math.isfinite(v) for v in values)

@@ -1,0 +1,1 @@
+"""Ported controller firmware: the 1 kHz interrupt handler of the first seed, stage by stage."""

@@ -1,0 +1,1 @@
+"""Drive emulator: servo amplifier, harmonic drive, flexible joint and sensors."""

@@ -1,0 +1,63 @@
+"""The 12-bit, +/-10 V converters between the firmware and the drive.
+
+The seed's DSP board (DT1401 A/D, DAC0 to the MAX-100 servo amplifier; seed 000,
+listing A.1, ``DT1401Read`` / ``write_dac0``) works in volts; on the CAN link the
+drive transmits ADC counts and receives DAC counts.  This module is the one place
+that defines how counts and volts relate, so both nodes agree by construction.
+
+A converter with ``bits`` bits and full scale ``full_scale_V`` has the two's
+complement code range ``[-2**(bits-1), 2**(bits-1) - 1]`` and an LSB of
+``full_scale_V / 2**(bits-1)``.  Conversions saturate at the code range.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Converter:
+    """A bipolar converter: 12 bits and +/-10 V as on the seed's DT1401 board."""
+
+    bits: int = 12
+    full_scale_V: float = 10.0
+
+    def __post_init__(self) -> None:
+        if not 2 <= self.bits <= 16:
+            raise ValueError(f"converter bits must be 2..16 (a 16-bit CAN signal), got {self.bits}")
+        if not self.full_scale_V > 0:
+            raise ValueError(f"converter full_scale_V must be > 0, got {self.full_scale_V}")
+
+    @property
+    def code_min(self) -> int:
+        return -(1 << (self.bits - 1))
+
+    @property
+    def code_max(self) -> int:
+        return (1 << (self.bits - 1)) - 1
+
+    @property
+    def lsb_V(self) -> float:
+        return self.full_scale_V / (1 << (self.bits - 1))
+
+    def to_counts(self, volts: float) -> int:
+        """Quantize (round to nearest) and saturate a voltage to a code."""
+        if volts != volts:  # NaN never reaches the hardware as a number
+            return 0
+        code = round(volts / self.lsb_V)
+        if code > self.code_max:
+            return self.code_max
+        if code < self.code_min:
+            return self.code_min
+        return code
+
+    def to_volts(self, counts: int) -> float:
+        """The voltage a code stands for (codes outside the range are clipped)."""
+        if counts > self.code_max:
+            counts = self.code_max
+        elif counts < self.code_min:
+            counts = self.code_min
+        return counts * self.lsb_V
+
+    def saturated(self, counts: int) -> bool:
+        return counts >= self.code_max or counts <= self.code_min
