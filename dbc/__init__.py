@@ -11,8 +11,8 @@ than ``cantools.Message.encode`` on the 1 kHz path) and is tested against cantoo
 
 from __future__ import annotations
 
-import math
 import struct
+from collections.abc import Callable
 from functools import cache
 from importlib import resources
 from pathlib import Path
@@ -50,8 +50,16 @@ def database(bus: BusName) -> cantools.database.can.Database:
     return cantools.database.load_file(str(dbc_path(bus)))
 
 
-_INT_CODES = {(8, False): "B", (8, True): "b", (16, False): "H", (16, True): "h",
-              (32, False): "I", (32, True): "i", (64, False): "Q", (64, True): "q"}
+_INT_CODES = {
+    (8, False): "B",
+    (8, True): "b",
+    (16, False): "H",
+    (16, True): "h",
+    (32, False): "I",
+    (32, True): "i",
+    (64, False): "Q",
+    (64, True): "q",
+}
 _FLOAT_CODES = {32: "f", 64: "d"}
 
 
@@ -66,8 +74,20 @@ class FrameCodec:
     before writing a mailbox.
     """
 
-    __slots__ = ("_int_raw", "_offsets", "_scales", "_struct", "frame_id", "is_extended_id",
-                 "length", "message", "name", "signal_names")
+    __slots__ = (
+        "_int_raw",
+        "_offsets",
+        "_scales",
+        "_struct",
+        "decode",
+        "encode",
+        "frame_id",
+        "is_extended_id",
+        "length",
+        "message",
+        "name",
+        "signal_names",
+    )
 
     def __init__(self, message: Message) -> None:
         self.message = message
@@ -83,8 +103,10 @@ class FrameCodec:
         int_raw: list[tuple[int, int] | None] = []
         for sig in signals:
             if sig.byte_order != "little_endian" or sig.start % 8:
-                raise ValueError(f"{message.name}.{sig.name}: only byte-aligned little-endian "
-                                 "signals are compiled")
+                raise ValueError(
+                    f"{message.name}.{sig.name}: only byte-aligned little-endian "
+                    "signals are compiled"
+                )
             byte = sig.start // 8
             if byte < pos:
                 raise ValueError(f"{message.name}.{sig.name}: overlaps the previous signal")
@@ -98,8 +120,9 @@ class FrameCodec:
                 hi = (1 << (sig.length - 1)) - 1 if sig.is_signed else (1 << sig.length) - 1
                 int_raw.append((lo, hi))
             if code is None:
-                raise ValueError(f"{message.name}.{sig.name}: {sig.length}-bit signals are not "
-                                 "compiled")
+                raise ValueError(
+                    f"{message.name}.{sig.name}: {sig.length}-bit signals are not compiled"
+                )
             fmt += code
             pos = byte + sig.length // 8
         if pos > message.length:
@@ -110,33 +133,55 @@ class FrameCodec:
         self._scales = tuple(float(s.scale) for s in signals)
         self._offsets = tuple(float(s.offset) for s in signals)
         self._int_raw = tuple(int_raw)
+        self._compile()
 
-    def encode(self, *values: float) -> bytes:
-        """Pack physical values given in ``signal_names`` order."""
-        raws = []
-        for value, scale, offset, limits in zip(values, self._scales, self._offsets,
-                                                 self._int_raw):
-            raw = (value - offset) / scale
+    def _compile(self) -> None:
+        """Generate straight-line encode/decode functions for this layout.
+
+        The generated code only inlines the scale, offset and saturation limits read from
+        the DBC above; it is equivalent to the generic loop it replaces (and tested
+        against cantools), about twice as fast on the 1 kHz path.
+        """
+        names = [f"v{i}" for i in range(len(self._scales))]
+        enc = [f"def encode({', '.join(names)}):"]
+        dec = [
+            "def decode(data):",
+            "    if len(data) != length:",
+            "        raise ValueError(f'{name}: expected {length} data bytes, got {len(data)}')",
+            f"    {', '.join(names)}{',' if len(names) == 1 else ''} = unpack(data)",
+        ]
+        out = []
+        for v, scale, offset, limits in zip(
+            names, self._scales, self._offsets, self._int_raw, strict=True
+        ):
+            trivial = scale == 1.0 and offset == 0.0
+            if not trivial:
+                enc.append(f"    {v} = ({v} - {offset!r}) * {1.0 / scale!r}")
             if limits is not None:
-                if raw != raw:
-                    raise ValueError(f"{self.name}: cannot encode NaN into an integer signal")
                 lo, hi = limits
-                raw = lo if raw <= lo else hi if raw >= hi else round(raw)
-            raws.append(raw)
-        if len(raws) != len(self._scales):
-            raise ValueError(f"{self.name}: expected {len(self._scales)} values, got {len(values)}")
-        return self._struct.pack(*raws)
-
-    def decode(self, data: bytes | bytearray) -> tuple[float, ...]:
-        """Unpack physical values in ``signal_names`` order; integers stay ``int`` when unscaled."""
-        if len(data) != self.length:
-            raise ValueError(f"{self.name}: expected {self.length} data bytes, got {len(data)}")
-        raws = self._struct.unpack(data)
-        return tuple(raw if (scale == 1.0 and offset == 0.0) else raw * scale + offset
-                     for raw, scale, offset in zip(raws, self._scales, self._offsets))
+                enc.append(f"    if {v} != {v}: raise ValueError(nan_message)")
+                enc.append(
+                    f"    {v} = {lo} if {v} <= {lo} else {hi} if {v} >= {hi} else round({v})"
+                )
+            out.append(v if trivial else f"{v} * {scale!r} + {offset!r}")
+        enc.append(f"    return pack({', '.join(names)})")
+        dec.append(f"    return ({', '.join(out)}{',' if len(out) == 1 else ''})")
+        namespace = {
+            "pack": self._struct.pack,
+            "unpack": self._struct.unpack,
+            "length": self.length,
+            "name": self.name,
+            "nan_message": f"{self.name}: cannot encode NaN into an integer signal",
+        }
+        exec("\n".join(enc) + "\n\n" + "\n".join(dec), namespace)
+        #: Pack physical values given in ``signal_names`` order into the payload.
+        self.encode: Callable[..., bytes] = namespace["encode"]
+        #: Unpack a payload into physical values in ``signal_names`` order (unscaled
+        #: integers stay ``int``).
+        self.decode: Callable[[bytes | bytearray], tuple[float, ...]] = namespace["decode"]
 
     def decode_dict(self, data: bytes | bytearray) -> dict[str, float]:
-        return dict(zip(self.signal_names, self.decode(data)))
+        return dict(zip(self.signal_names, self.decode(data), strict=True))
 
 
 @cache
@@ -163,7 +208,3 @@ def worst_case_frame_bits(length: int, extended: bool = False) -> int:
     if extended:
         return 67 + 8 * length + (54 + 8 * length - 1) // 4
     return 47 + 8 * length + (34 + 8 * length - 1) // 4
-
-
-def is_finite(*values: float) -> bool:
-    return all(math.isfinite(v) for v in values)

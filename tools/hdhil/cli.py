@@ -20,7 +20,7 @@ class UserError(Exception):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from hdhil import dump, run
+    from hdhil import bench, dump, run
 
     parser = argparse.ArgumentParser(
         prog="hdhil",
@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
         "harmonic-drive joints over CAN.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for module in (run, dump):
+    for module in (run, dump, bench):
         module.register(sub)
     return parser
 

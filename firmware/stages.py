@@ -1,0 +1,213 @@
+"""The pure stages of the 1 kHz interrupt handler ``c_int10`` (seed 000, listing A.1).
+
+Seed: ``/work/shared/seeds/000_ae0a3dbe24949b7c.txt``, Appendix A.1 ``free_kalman.c``.
+Each function or class here ports one line (or one helper function) of ``c_int10``;
+none touches a bus, a clock or any global state.  The torque-ripple Kalman filter is
+in :mod:`firmware.ripple`, the sequencing of the stages in :mod:`firmware.isr`.
+
+The listing computes in 32-bit ``float`` on a TMS320C30; the port uses Python floats
+(IEEE double), so results agree with the listing to single precision, not bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+
+from scipy import signal
+
+from firmware.config import Calibration, ReferenceConfig, Wave
+from hdhil.converter import Converter
+
+__all__ = [
+    "Differentiator",
+    "ReferenceGenerator",
+    "adc_read",
+    "calibrate",
+    "dac_write",
+    "expected_torque",
+    "filtered_torque",
+    "torque_error",
+]
+
+
+def adc_read(torque: int, tacho: int, current: int, adc: Converter) -> tuple[float, float, float]:
+    """ADC counts to volts: ``(torque_V, tacho_V, current_V)``.
+
+    Ports ``DT1401Read(str_ch, end_ch, a2dsamples)`` and the channel picks
+    ``Tacho = a2dsamples[DT140X_CH4]; MotorCurrOut = a2dsamples[DT140X_CH5];
+    Torque = a2dsamples[DT140X_CH6]`` (seed 000, listing A.1, ``c_int10``).  On the
+    DT1401 the driver returns volts; on our CAN link the drive sends counts, which
+    ``adc`` (12 bit, +/-10 V) turns back into volts.
+    """
+    return adc.to_volts(torque), adc.to_volts(tacho), adc.to_volts(current)
+
+
+def calibrate(
+    torque_V: float, tacho_V: float, current_V: float, cal: Calibration
+) -> tuple[float, float, float]:
+    """Volts to physical units: ``(T_meas [Nm], vel [rad/s], current [A])``.
+
+    Ports ``vel = Tacho * volt2radps`` and ``T_meas = Torque * volt2Nm`` (seed 000,
+    listing A.1, ``c_int10``; gains 56.2565 rad/s/V and 6.6 Nm/V, Table 1).  The
+    torque offset is subtracted before scaling (not in the listing).  The listing
+    logs ``MotorCurrOut`` in volts; ``cal.volt2amp`` (default 1) scales it to amperes.
+    """
+    T_meas = (torque_V - cal.torque_offset_V) * cal.volt2Nm
+    vel = tacho_V * cal.volt2radps
+    current = current_V * cal.volt2amp
+    return T_meas, vel, current
+
+
+class Differentiator:
+    """Band-limited differentiator, velocity to acceleration (listing ``Diff_filter``).
+
+    Seed 000, listing A.1, ``Diff_filter``: "Discretized Differentiator Filter
+    H(s) = s / (0.005 s + 1), discretized by tustin method for Ts = 1 ms", with
+    ``nd = {181.818181818182, -181.818181818182}``, ``dd = {1.0, -0.81818181818182}``
+    and the difference equation ``a = nd[0]*v + nd[1]*v_1 - dd[1]*a_1``.
+
+    Here the coefficients come from ``scipy.signal.bilinear`` for any τ and Ts
+    (at τ = 5 ms, Ts = 1 ms they are the listing's).  The state ``v_1``, ``a_1``
+    starts at 0 like the listing's globals ``float v_1 = 0.0, a_1 = 0.0``; note that
+    the first call therefore sees a step from 0 to the first velocity.
+    """
+
+    __slots__ = ("a_1", "dd", "nd", "v_1")
+
+    def __init__(self, tau_s: float = 0.005, sample_period_s: float = 1e-3) -> None:
+        if not (math.isfinite(tau_s) and tau_s > 0):
+            raise ValueError(f"tau_s must be a finite number > 0, got {tau_s!r}")
+        if not (math.isfinite(sample_period_s) and sample_period_s > 0):
+            raise ValueError(
+                f"sample_period_s must be a finite number > 0, got {sample_period_s!r}"
+            )
+        # H(s) = s / (tau s + 1): numerator [1, 0], denominator [tau, 1]; Tustin at fs = 1/Ts.
+        b, a = signal.bilinear([1.0, 0.0], [tau_s, 1.0], fs=1.0 / sample_period_s)
+        self.nd: tuple[float, float] = (float(b[0] / a[0]), float(b[1] / a[0]))
+        self.dd: tuple[float, float] = (1.0, float(a[1] / a[0]))
+        self.v_1 = 0.0
+        self.a_1 = 0.0
+
+    def step(self, v: float) -> float:
+        """One sample: ``a = nd[0]*v + nd[1]*v_1 - dd[1]*a_1; v_1 = v; a_1 = a``."""
+        a = self.nd[0] * v + self.nd[1] * self.v_1 - self.dd[1] * self.a_1
+        self.v_1 = v
+        self.a_1 = a
+        return a
+
+    def reset(self) -> None:
+        """Back to the listing's initial state ``v_1 = a_1 = 0``."""
+        self.v_1 = 0.0
+        self.a_1 = 0.0
+
+
+def expected_torque(acc: float, J_load: float, gear_ratio: float) -> float:
+    """The crude expected torque: the load's inertial torque.
+
+    Ports ``T_mod = J_load * acc / Gain`` (seed 000, listing A.1, ``c_int10``;
+    §4: "the expected torque can be estimated simply by the inertial part of the
+    output torque which is the load inertia multiplied to the load acceleration").
+    ``acc`` is the motor acceleration, so ``acc / gear_ratio`` is the load's.
+    """
+    return J_load * acc / gear_ratio
+
+
+def torque_error(T_meas: float, T_expected: float) -> float:
+    """The Kalman filter's measurement y(k) = T_meas(k) − T_exp(k) (seed 000, §4 text
+    under Eq. 6; listing A.1 ``Delta_T = T_meas - T_mod``)."""
+    return T_meas - T_expected
+
+
+def filtered_torque(T_meas: float, ripple_predicted: float) -> float:
+    """The ripple-free torque, ``Torque_f = T_meas - T_ripple`` (seed 000, listing A.1).
+
+    ``ripple_predicted`` is the ripple the Kalman filter predicted for this sample
+    at the previous interrupt (prediction-type filter, Eq. 8; listing comment
+    "Finding torque ripple for next iteration: Prediction-Type KF").
+    """
+    return T_meas - ripple_predicted
+
+
+class ReferenceGenerator:
+    """The reference voltage for the servo amplifier at sample k (t = k·Ts).
+
+    Ports ``ref_fl = reference_generation(wavetype)`` (seed 000, listing A.1,
+    ``c_int10``; parameters from the ``main()`` mailboxes).  The body of
+    ``reference_generation`` (``servo_refgen.h``) is NOT printed in the seed, so
+    these definitions are ours, with b = bias, A = amplitude, f = frequency,
+    p = frac(f t) the phase in cycles:
+
+    - NONE:     b (the listing's default ``wavetype = 0``, "no wave generation")
+    - SINE:     b + A sin(2π f t)
+    - SQUARE:   b + A if p < duty else b − A
+    - TRIANGLE: b + A·tri(p), tri rising from 0 at p = 0 to +1 at p = 1/4, falling to
+      −1 at p = 3/4 and back to 0 at p = 1 (in phase with the sine)
+    - SAWTOOTH: b + A (2p − 1)
+    - STEP:     b for t < step_time, b + A from then on.  The step sample is the
+      first k with k·Ts >= step_time (to within 1e-9 of a sample, so that 0.1 s at
+      1 ms steps at k = 100 despite rounding).
+    """
+
+    __slots__ = (
+        "_amplitude",
+        "_bias",
+        "_duty",
+        "_f_ts",
+        "_k_step",
+        "_wave",
+        "cfg",
+        "sample_period_s",
+    )
+
+    def __init__(self, cfg: ReferenceConfig, sample_period_s: float) -> None:
+        if not (math.isfinite(sample_period_s) and sample_period_s > 0):
+            raise ValueError(
+                f"sample_period_s must be a finite number > 0, got {sample_period_s!r}"
+            )
+        self.cfg = cfg
+        self.sample_period_s = sample_period_s
+        self._wave = Wave(cfg.wave)
+        self._bias = cfg.bias_V
+        self._amplitude = cfg.amplitude_V
+        self._duty = cfg.duty
+        self._f_ts = cfg.frequency_Hz * sample_period_s  # cycles per sample
+        self._k_step = math.ceil(round(cfg.step_time_s / sample_period_s, 9))
+
+    def phase(self, k: int) -> float:
+        """p = frac(f·t) at sample k, in [0, 1)."""
+        cycles = k * self._f_ts
+        return cycles - math.floor(cycles)
+
+    def value(self, k: int) -> float:
+        """Reference voltage at sample ``k`` (t = k·Ts)."""
+        wave = self._wave
+        b = self._bias
+        if wave is Wave.NONE:
+            return b
+        A = self._amplitude
+        if wave is Wave.STEP:
+            return b if k < self._k_step else b + A
+        if wave is Wave.SINE:
+            return b + A * math.sin(2.0 * math.pi * k * self._f_ts)
+        p = self.phase(k)
+        if wave is Wave.SQUARE:
+            return b + A if p < self._duty else b - A
+        if wave is Wave.TRIANGLE:
+            if p < 0.25:
+                tri = 4.0 * p
+            elif p < 0.75:
+                tri = 2.0 - 4.0 * p
+            else:
+                tri = 4.0 * p - 4.0
+            return b + A * tri
+        # Wave.SAWTOOTH
+        return b + A * (2.0 * p - 1.0)
+
+
+def dac_write(volts: float, dac: Converter) -> int:
+    """The DAC code for a voltage: quantize (nearest) and saturate.
+
+    Ports ``write_dac0(ref_fl)`` (seed 000, listing A.1, ``c_int10``; "floatV for
+    MAX-100 servo").  On our link the code travels in the command frame; NaN gives 0.
+    """
+    return dac.to_counts(volts)

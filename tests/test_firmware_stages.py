@@ -1,0 +1,288 @@
+"""Tests of the pure firmware stages (firmware/stages.py) and their configuration
+(firmware/config.py), ported from seed 000, listing A.1 ``c_int10``."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from firmware.config import (
+    LISTING_A2_RIPPLE,
+    Calibration,
+    FirmwareConfig,
+    Oscillator,
+    ReferenceConfig,
+    RippleFilterConfig,
+    Wave,
+)
+from firmware.stages import (
+    Differentiator,
+    ReferenceGenerator,
+    adc_read,
+    calibrate,
+    dac_write,
+    expected_torque,
+    filtered_torque,
+    torque_error,
+)
+from hdhil.converter import Converter
+from hdhil.dataconf import ConfigError, from_dict, to_dict
+
+LSB = 10.0 / 2048  # 12-bit, +/-10 V
+
+
+# --------------------------------------------------------------------- differentiator
+def test_differentiator_coefficients_equal_the_listing_at_1ms() -> None:
+    # Seed 000, listing A.1, Diff_filter: nd = {181.818181818182, -181.818181818182},
+    # dd = {1.00000000000000, -0.81818181818182}.
+    d = Differentiator(tau_s=0.005, sample_period_s=1e-3)
+    expected_nd = (181.818181818182, -181.818181818182)
+    expected_dd = (1.0, -0.81818181818182)
+    for got, want in zip(d.nd + d.dd, expected_nd + expected_dd, strict=True):
+        assert got == pytest.approx(want, rel=1e-9)
+
+
+def test_differentiator_coefficients_follow_tustin_for_other_periods() -> None:
+    # Tustin of s/(tau s + 1): nd0 = 2/(2 tau + T), dd1 = (T - 2 tau)/(T + 2 tau).
+    # tau = 4 ms, T = 1 ms: nd0 = 2/0.009 = 222.2..., dd1 = -0.007/0.009 = -0.7777...
+    d = Differentiator(tau_s=0.004, sample_period_s=1e-3)
+    assert d.nd[0] == pytest.approx(2 / 0.009, rel=1e-12)
+    assert d.nd[1] == pytest.approx(-2 / 0.009, rel=1e-12)
+    assert d.dd[1] == pytest.approx(-7 / 9, rel=1e-12)
+
+
+def test_differentiator_step_response() -> None:
+    # Unit step from the zero state: a(0) = nd0, then a(k) = -dd1 * a(k-1) (v constant);
+    # its area sum(a) * T is the size of the step, 1 rad/s.
+    d = Differentiator(0.005, 1e-3)
+    out = [d.step(1.0) for _ in range(400)]
+    assert out[0] == pytest.approx(181.818181818182, rel=1e-12)
+    for k in range(1, 10):
+        assert out[k] == pytest.approx(181.818181818182 * (9 / 11) ** k, rel=1e-9)
+    assert sum(out) * 1e-3 == pytest.approx(1.0, rel=1e-9)
+
+
+def test_differentiator_ramp_converges_to_slope() -> None:
+    a0 = 37.5  # rad/s^2
+    T = 1e-3
+    d = Differentiator(0.005, T)
+    out = [d.step(a0 * k * T) for k in range(300)]
+    assert out[-1] == pytest.approx(a0, rel=1e-9)
+    assert abs(out[20] - a0) > 1e-3 * a0  # and it did take a while (time constant 5 ms)
+
+
+def test_differentiator_reset_and_state() -> None:
+    d = Differentiator()
+    first = d.step(2.0)
+    d.step(3.0)
+    d.reset()
+    assert d.step(2.0) == first
+
+
+def test_differentiator_rejects_bad_parameters() -> None:
+    with pytest.raises(ValueError, match="tau_s"):
+        Differentiator(tau_s=0.0)
+    with pytest.raises(ValueError, match="sample_period_s"):
+        Differentiator(sample_period_s=float("nan"))
+
+
+# --------------------------------------------------------------------- converters
+def test_adc_read_counts_to_volts() -> None:
+    adc = Converter()
+    torque_V, tacho_V, current_V = adc_read(1024, -2048, 1, adc)
+    assert torque_V == pytest.approx(5.0)
+    assert tacho_V == pytest.approx(-10.0)
+    assert current_V == pytest.approx(LSB)
+    # out-of-range codes are clipped to the converter's range
+    assert adc_read(5000, -5000, 2047, adc) == pytest.approx((2047 * LSB, -10.0, 2047 * LSB))
+
+
+def test_dac_write_quantizes_and_saturates() -> None:
+    dac = Converter()
+    assert dac_write(10.5, dac) == 2047
+    assert dac_write(-12.0, dac) == -2048
+    assert dac_write(LSB, dac) == 1
+    assert dac_write(-LSB, dac) == -1
+    assert dac_write(0.4 * LSB, dac) == 0
+    assert dac_write(0.6 * LSB, dac) == 1
+    assert dac_write(2.5, dac) == 512
+    assert dac_write(float("nan"), dac) == 0
+
+
+def test_dac_adc_round_trip_within_half_lsb() -> None:
+    conv = Converter()
+    for v in (-9.99, -3.3, -0.001, 0.0, 0.7, 4.2, 9.99):
+        back = adc_read(dac_write(v, conv), 0, 0, conv)[0]
+        assert abs(back - v) <= LSB / 2 + 1e-12
+
+
+# --------------------------------------------------------------------- calibration
+def test_calibrate_with_seed_gains_from_counts() -> None:
+    cal = Calibration()
+    torque_V, tacho_V, current_V = adc_read(1024, 512, -256, Converter())
+    T_meas, vel, current = calibrate(torque_V, tacho_V, current_V, cal)
+    assert T_meas == pytest.approx(5.0 * 6.6)  # 1024 counts = 5 V; Table 1: 6.60 Nm/V
+    assert vel == pytest.approx(2.5 * 56.2565)  # 512 counts = 2.5 V; listing volt2radps
+    assert current == pytest.approx(-1.25)  # volt2amp = 1 keeps the listing's volts
+
+
+def test_calibrate_subtracts_torque_offset_before_scaling() -> None:
+    cal = Calibration(volt2Nm=6.6, torque_offset_V=0.1, volt2amp=2.0)
+    T_meas, vel, current = calibrate(1.1, -1.0, 0.5, cal)
+    assert T_meas == pytest.approx(6.6)
+    assert vel == pytest.approx(-56.2565)
+    assert current == pytest.approx(1.0)
+
+
+# --------------------------------------------------------------------- torque algebra
+def test_expected_torque_error_and_filtered_torque() -> None:
+    # T_mod = J_load * acc / Gain = 1.725e-2 * 1000 / 100 = 0.1725 Nm
+    assert expected_torque(1000.0, 1.725e-2, 100.0) == pytest.approx(0.1725)
+    assert torque_error(2.0, 0.1725) == pytest.approx(1.8275)
+    assert filtered_torque(2.0, 0.5) == pytest.approx(1.5)
+    assert filtered_torque(2.0, -0.5) == pytest.approx(2.5)
+
+
+# --------------------------------------------------------------------- reference
+def _ref(**kw: float | Wave) -> ReferenceGenerator:
+    return ReferenceGenerator(ReferenceConfig(**kw), 1e-3)  # type: ignore[arg-type]
+
+
+def test_reference_none_is_bias_only() -> None:
+    g = _ref(wave=Wave.NONE, bias_V=1.5, amplitude_V=3.0)
+    assert [g.value(k) for k in (0, 1, 250, 12345)] == [1.5] * 4
+
+
+def test_reference_sine() -> None:
+    g = _ref(wave=Wave.SINE, bias_V=0.5, amplitude_V=2.0, frequency_Hz=2.0)
+    # f = 2 Hz: a quarter period is 125 samples
+    assert g.value(0) == pytest.approx(0.5)
+    assert g.value(125) == pytest.approx(2.5)
+    assert g.value(250) == pytest.approx(0.5, abs=1e-12)
+    assert g.value(375) == pytest.approx(-1.5)
+    assert g.value(50) == pytest.approx(0.5 + 2.0 * math.sin(2 * math.pi * 2.0 * 0.05))
+
+
+def test_reference_square_with_duty() -> None:
+    g = _ref(wave=Wave.SQUARE, bias_V=1.0, amplitude_V=2.0, frequency_Hz=1.0, duty=0.25)
+    assert g.value(0) == pytest.approx(3.0)
+    assert g.value(249) == pytest.approx(3.0)
+    assert g.value(251) == pytest.approx(-1.0)
+    assert g.value(999) == pytest.approx(-1.0)
+    assert g.value(1000) == pytest.approx(3.0)  # next period
+    assert g.value(1100) == pytest.approx(3.0)
+
+
+def test_reference_triangle() -> None:
+    g = _ref(wave=Wave.TRIANGLE, bias_V=0.0, amplitude_V=4.0, frequency_Hz=1.0)
+    # tri(p): 0 at p=0, +1 at 1/4, 0 at 1/2, -1 at 3/4; p = k/1000
+    expected = {0: 0.0, 100: 1.6, 250: 4.0, 400: 1.6, 500: 0.0, 750: -4.0, 900: -1.6, 1250: 4.0}
+    for k, v in expected.items():
+        assert g.value(k) == pytest.approx(v, abs=1e-9), k
+
+
+def test_reference_sawtooth() -> None:
+    g = _ref(wave=Wave.SAWTOOTH, bias_V=1.0, amplitude_V=1.0, frequency_Hz=4.0)
+    # f = 4 Hz: period 250 samples; 2p - 1 from -1 to 1
+    assert g.value(0) == pytest.approx(0.0)
+    assert g.value(125) == pytest.approx(1.0)
+    assert g.value(200) == pytest.approx(1.6)
+    assert g.value(250) == pytest.approx(0.0)
+
+
+def test_reference_step() -> None:
+    g = _ref(wave=Wave.STEP, bias_V=-1.0, amplitude_V=3.0, step_time_s=0.1)
+    assert g.value(0) == -1.0
+    assert g.value(99) == -1.0
+    assert g.value(100) == pytest.approx(2.0)
+    assert g.value(5000) == pytest.approx(2.0)
+    g0 = _ref(wave=Wave.STEP, amplitude_V=3.0, step_time_s=0.0)
+    assert g0.value(0) == pytest.approx(3.0)
+
+
+# --------------------------------------------------------------------- config
+@pytest.mark.parametrize(
+    ("build", "field_name"),
+    [
+        (lambda: ReferenceConfig(frequency_Hz=0.0), "frequency_Hz"),
+        (lambda: ReferenceConfig(duty=1.5), "duty"),
+        (lambda: ReferenceConfig(step_time_s=-1.0), "step_time_s"),
+        (lambda: ReferenceConfig(bias_V=float("inf")), "bias_V"),
+        (lambda: Calibration(volt2Nm=0.0), "volt2Nm"),
+        (lambda: Calibration(volt2radps=float("nan")), "volt2radps"),
+        (lambda: Oscillator(source="load"), "source"),  # type: ignore[arg-type]
+        (lambda: Oscillator(multiple=-2.0), "multiple"),
+        (lambda: Oscillator(q=-1.0), "q"),
+        (lambda: RippleFilterConfig(oscillators=()), "oscillators"),
+        (lambda: RippleFilterConfig(r=0.0), "r"),
+        (lambda: RippleFilterConfig(p0=-1.0), "p0"),
+        (lambda: FirmwareConfig(sample_period_s=0.0), "sample_period_s"),
+        (lambda: FirmwareConfig(sample_period_s=2.0), "sample_period_s"),
+        (lambda: FirmwareConfig(num_samples=-1), "num_samples"),
+        (lambda: FirmwareConfig(J_load=0.0), "J_load"),
+        (lambda: FirmwareConfig(gear_ratio=-100.0), "gear_ratio"),
+        (lambda: FirmwareConfig(diff_tau_s=0.0), "diff_tau_s"),
+    ],
+)
+def test_config_rejects_out_of_range_values(build, field_name: str) -> None:
+    with pytest.raises(ValueError, match=field_name):
+        build()
+
+
+def test_config_defaults_carry_the_seed_values() -> None:
+    cfg = FirmwareConfig()
+    gen = ReferenceGenerator(cfg.reference, cfg.sample_period_s)
+    assert gen.value(123) == 0.0  # wavetype = 0: bias only, Nbias = 0
+    d = Differentiator(cfg.diff_tau_s, cfg.sample_period_s)
+    assert d.nd[0] == pytest.approx(181.818181818182, rel=1e-9)
+    assert [(o.source, o.multiple, o.q) for o in cfg.ripple.oscillators] == [
+        ("motor", 2.0, 1e3),
+        ("motor", 4.0, 1e3),
+    ]
+    assert cfg.ripple.order == 4
+    assert expected_torque(100.0, cfg.J_load, cfg.gear_ratio) == pytest.approx(1.725e-2)
+
+
+def test_from_dict_builds_nested_config() -> None:
+    cfg = from_dict(
+        FirmwareConfig,
+        {
+            "sample_period_s": 0.002,
+            "num_samples": 5000,
+            "reference": {"wave": "step", "amplitude_V": 1.0, "step_time_s": 0.25},
+            "calibration": {"torque_offset_V": 0.02},
+            "ripple": {
+                "oscillators": [
+                    {"source": "motor", "multiple": 2},
+                    {"source": "output", "multiple": 1.0, "q": 5e-2},
+                ],
+                "r": 2.0,
+            },
+            "dac": {"bits": 16},
+        },
+    )
+    assert cfg.reference.wave is Wave.STEP
+    assert cfg.ripple.oscillators == LISTING_A2_RIPPLE.oscillators
+    assert isinstance(cfg.ripple.oscillators, tuple)
+    assert cfg.dac.code_max == 32767
+    assert cfg.adc.code_max == 2047
+    assert cfg.calibration.volt2Nm == 6.6
+    # the plain-data form goes back to the same config
+    assert from_dict(FirmwareConfig, to_dict(cfg)) == cfg
+
+
+def test_from_dict_accepts_wave_by_number() -> None:
+    cfg = from_dict(ReferenceConfig, {"wave": 2})
+    assert cfg.wave is Wave.SQUARE
+
+
+def test_from_dict_unknown_key_and_bad_values() -> None:
+    with pytest.raises(ConfigError, match=r"reference\.amplitude"):
+        from_dict(FirmwareConfig, {"reference": {"amplitude": 1.0}})
+    with pytest.raises(ConfigError, match="duty"):
+        from_dict(FirmwareConfig, {"reference": {"duty": 2.0}})
+    with pytest.raises(ConfigError, match="wave"):
+        from_dict(FirmwareConfig, {"reference": {"wave": "cosine"}})
+    with pytest.raises(ConfigError, match="source"):
+        from_dict(FirmwareConfig, {"ripple": {"oscillators": [{"source": "load"}]}})

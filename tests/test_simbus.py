@@ -1,0 +1,98 @@
+"""The simulated-time bus: python-can plug-in, ordering, timing model, isolation."""
+
+from __future__ import annotations
+
+import can
+import pytest
+
+from hdhil.busload import schedule_load
+from hdhil.simbus import SimClock
+
+
+@pytest.fixture
+def pair():
+    clock = SimClock()
+    a = can.Bus(interface="simbus", channel="t-pair", clock=clock)
+    b = can.Bus(interface="simbus", channel="t-pair")
+    yield clock, a, b
+    a.shutdown()
+    b.shutdown()
+
+
+def _frame(can_id: int, n: int) -> can.Message:
+    return can.Message(arbitration_id=can_id, data=bytes(range(n)), is_extended_id=False)
+
+
+def test_frames_arrive_in_order_with_serialised_timestamps(pair):
+    clock, a, b = pair
+    clock.now = 0.010
+    a.send(_frame(0x80, 1))
+    a.send(_frame(0x182, 8))
+    first, second = b.recv(0), b.recv(0)
+    assert b.recv(0) is None
+    assert (first.arbitration_id, second.arbitration_id) == (0x80, 0x182)
+    # 65 bits then 135 bits at 1 Mbit/s, back to back from 10 ms.
+    assert first.timestamp == pytest.approx(0.010 + 65e-6)
+    assert second.timestamp == pytest.approx(0.010 + 200e-6)
+    assert bytes(second.data) == bytes(range(8))
+
+
+def test_sender_does_not_receive_its_own_frames_unless_asked():
+    a = can.Bus(interface="simbus", channel="t-own", receive_own_messages=True)
+    b = can.Bus(interface="simbus", channel="t-own")
+    try:
+        a.send(_frame(0x1, 0))
+        assert a.recv(0) is not None
+        b.send(_frame(0x2, 0))
+        assert a.recv(0).arbitration_id == 0x2
+        assert b.recv(0).arbitration_id == 0x1
+        assert b.recv(0) is None
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
+def test_channels_are_isolated_and_removed_on_shutdown():
+    a = can.Bus(interface="simbus", channel="t-iso-1")
+    b = can.Bus(interface="simbus", channel="t-iso-2")
+    a.send(_frame(0x5, 1))
+    assert b.recv(0) is None
+    a.shutdown()
+    b.shutdown()
+    c = can.Bus(interface="simbus", channel="t-iso-1")
+    assert c.frames_sent == 0
+    c.shutdown()
+
+
+def test_zero_bitrate_stamps_with_the_clock():
+    clock = SimClock(1.5)
+    a = can.Bus(interface="simbus", channel="t-zero", bitrate=0, clock=clock)
+    b = can.Bus(interface="simbus", channel="t-zero")
+    a.send(_frame(0x7, 8))
+    assert b.recv(0).timestamp == 1.5
+    a.shutdown()
+    b.shutdown()
+
+
+def test_a_channel_cannot_be_joined_with_another_clock():
+    a = can.Bus(interface="simbus", channel="t-clock", clock=SimClock())
+    with pytest.raises(ValueError, match="another clock"):
+        can.Bus(interface="simbus", channel="t-clock", clock=SimClock())
+    a.shutdown()
+
+
+def test_blocking_receive_times_out():
+    a = can.Bus(interface="simbus", channel="t-block")
+    assert a.recv(0.01) is None
+    a.shutdown()
+
+
+def test_control_schedule_fits_the_budget():
+    load = schedule_load("control", 1_000_000, 1e-3)
+    names = {name for name, _, _ in load.frames}
+    assert {"SYNC", "DRIVE_TPDO1", "DRIVE_RPDO1", "CTRL_TPDO1"} <= names
+    # 65 (SYNC) + 135 (8 B) + 105 (5 B) + 135 (8 B) us per 1 ms cycle.
+    assert load.worst_case_load == pytest.approx((65 + 135 + 105 + 135) / 1000)
+    assert load.fits()
+    # The same schedule at 500 kbit/s needs twice the time: over budget.
+    assert not schedule_load("control", 500_000, 1e-3).fits()

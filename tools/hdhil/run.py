@@ -1,0 +1,318 @@
+"""``hdhil run``: a full emulated run in one process, lockstep on the simulated bus.
+
+Three nodes share two python-can channels and nothing else:
+
+- the controller (:class:`firmware.controller.ControllerNode`) on the control bus,
+- the drive emulator (:class:`hostsim.drive.DriveNode`) on the control bus, publishing
+  ground truth on the truth channel,
+- the host tap (:class:`hdhil.trace.BusTap`) listening on both: trace writer, frame
+  counter and the scorer that compares telemetry with truth.
+
+Lockstep (DESIGN.md): SYNC k is sent at simulated time k*Ts; every node then handles what
+the bus delivers until the cycle is quiet, and SYNC k+1 follows at once.  The result is
+deterministic and bit-identical for a given seed, and as fast as the host allows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+
+from firmware.config import FirmwareConfig
+from firmware.controller import ControllerNode
+from hdhil.busload import LOAD_LIMIT, schedule_load
+from hdhil.dataconf import ConfigError, from_dict
+from hdhil.dbc import CHANNEL_NUMBER, database
+from hdhil.score import TorqueScorer
+from hdhil.simbus import SimClock
+from hdhil.trace import BusTap, FrameCounter, open_writer
+from hostsim.drive import DriveConfig, DriveNode
+from hostsim.plant import Plant
+from hostsim.scenario import Scenario, list_scenarios, load_scenario
+
+_run_ids = itertools.count(1)
+
+
+@dataclass
+class RunResult:
+    """What a run did, every figure computed from the run itself."""
+
+    scenario: str
+    seed: int
+    interface: str
+    actuation: str
+    cycles: int
+    sample_period_s: float
+    simulated_s: float
+    wall_s: float
+    interrupted: bool
+    frames: dict[str, int]
+    frames_total: int
+    worst_case_load: float
+    bitrate: int
+    torque: dict[str, float]
+    velocity_final: float
+    velocity_peak: float
+    trace: str | None
+    controller: dict[str, Any] = field(default_factory=dict)
+    drive: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def real_time_factor(self) -> float:
+        return self.simulated_s / self.wall_s if self.wall_s > 0 else float("inf")
+
+    def as_dict(self) -> dict[str, Any]:
+        d = dict(self.__dict__)
+        d["real_time_factor"] = self.real_time_factor
+        return d
+
+
+class _VelocityWatch(can.Listener):
+    """Final and peak |motor velocity| as the controller reported it in telemetry."""
+
+    def __init__(self) -> None:
+        from hdhil.dbc import codec
+
+        self._codec = codec("control", "CTRL_TPDO1")
+        self._key = (self._codec.frame_id, False)
+        self.final = 0.0
+        self.peak = 0.0
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if (msg.arbitration_id, msg.is_extended_id) == self._key and len(msg.data) == 8:
+            v = self._codec.decode(msg.data)[2]
+            self.final = v
+            if abs(v) > abs(self.peak):
+                self.peak = v
+
+
+def _frame_names() -> dict[tuple[int, int], str]:
+    names = {}
+    for bus, channel in CHANNEL_NUMBER.items():
+        for msg in database(bus).messages:
+            names[(channel, msg.frame_id)] = f"{bus} 0x{msg.frame_id:03X} {msg.name}"
+    return names
+
+
+def run_lockstep(
+    scenario: Scenario,
+    duration_s: float | None = None,
+    seed: int | None = None,
+    trace: Path | None = None,
+    interface: str = "simbus",
+    actuation: str = "next-sync",
+    bitrate: int = 1_000_000,
+) -> RunResult:
+    """Run ``scenario`` in lockstep and return the scored result."""
+    fw_config = from_dict(FirmwareConfig, scenario.firmware, "firmware")
+    Ts = fw_config.sample_period_s
+    duration = scenario.duration_s if duration_s is None else duration_s
+    if not duration > 0:
+        raise ConfigError(f"duration must be > 0 s, got {duration}")
+    seed = scenario.seed if seed is None else seed
+    cycles = round(duration / Ts)
+    if fw_config.num_samples:
+        cycles = min(cycles, fw_config.num_samples)
+    load = schedule_load("control", bitrate, Ts)
+    if load.worst_case_load > 1.0:
+        raise ConfigError(
+            f"the cyclic schedule needs {load.worst_case_load:.0%} of a "
+            f"{bitrate} bit/s bus at {Ts * 1e3:g} ms: it cannot run"
+        )
+    drive_config = DriveConfig(sample_period_s=Ts, actuation=actuation)  # type: ignore[arg-type]
+
+    run_id = next(_run_ids)
+    clock = SimClock()
+    if interface == "simbus":
+
+        def make_bus(name: str, rate: int) -> can.BusABC:
+            return can.Bus(
+                interface="simbus", channel=f"hdhil-{run_id}-{name}", bitrate=rate, clock=clock
+            )
+    elif interface == "virtual":
+
+        def make_bus(name: str, rate: int) -> can.BusABC:
+            return can.Bus(interface="virtual", channel=f"hdhil-{run_id}-{name}")
+    else:
+        raise ConfigError(f"in-process runs use interface 'simbus' or 'virtual', not {interface!r}")
+
+    buses: list[can.BusABC] = []
+    listeners: list[can.Listener] = []
+    interrupted = False
+    done = 0
+    wall = 0.0
+    try:
+        buses += [
+            make_bus("control", bitrate),
+            make_bus("control", bitrate),
+            make_bus("truth", 0),
+            make_bus("control", bitrate),
+            make_bus("truth", 0),
+        ]
+        ctrl_bus, drive_bus, truth_bus, tap_control, tap_truth = buses
+        controller = ControllerNode(ctrl_bus, fw_config)
+        drive = DriveNode(drive_bus, Plant(scenario.plant, seed), drive_config, truth_bus=truth_bus)
+        counter = FrameCounter()
+        scorer = TorqueScorer()
+        velocity = _VelocityWatch()
+        listeners += [counter, scorer, velocity]
+        if trace is not None:
+            listeners.insert(0, open_writer(trace))
+        tap = BusTap(
+            {CHANNEL_NUMBER["control"]: tap_control, CHANNEL_NUMBER["truth"]: tap_truth}, listeners
+        )
+        wall0 = time.perf_counter()
+        try:
+            for k in range(cycles):
+                clock.now = k * Ts
+                controller.send_sync()
+                while drive.poll() + controller.poll() + tap.poll():
+                    pass
+                done = k + 1
+        except KeyboardInterrupt:
+            interrupted = True
+        wall = time.perf_counter() - wall0
+        tap.poll()
+    finally:
+        # Close the trace (flush, valid file) and release the buses whatever happened.
+        for listener in listeners:
+            listener.stop()
+        for bus in buses:
+            bus.shutdown()
+
+    names = _frame_names()
+    frames = {
+        names.get(key, f"channel {key[0]} 0x{key[1]:X}"): n
+        for key, n in sorted(counter.counts.items())
+    }
+    return RunResult(
+        scenario=scenario.name,
+        seed=seed,
+        interface=interface,
+        actuation=actuation,
+        cycles=done,
+        sample_period_s=Ts,
+        simulated_s=done * Ts,
+        wall_s=wall,
+        interrupted=interrupted,
+        frames=frames,
+        frames_total=counter.total,
+        worst_case_load=load.worst_case_load,
+        bitrate=bitrate,
+        torque=scorer.result().as_dict(),
+        velocity_final=velocity.final,
+        velocity_peak=velocity.peak,
+        trace=str(trace) if trace is not None else None,
+        controller={
+            "syncs_sent": controller.diagnostics.syncs_sent,
+            "sensor_frames": controller.diagnostics.sensor_frames,
+            "malformed_frames": controller.diagnostics.malformed_frames,
+            "unknown_frames": sum(controller.diagnostics.unknown_frames.values()),
+            "kalman_skipped": controller.isr.chain.kalman.skipped,
+        },
+        drive={
+            "syncs": drive.diagnostics.syncs,
+            "commands": drive.diagnostics.commands,
+            "malformed_frames": drive.diagnostics.malformed_frames,
+            "unknown_frames": sum(drive.diagnostics.unknown_frames.values()),
+        },
+    )
+
+
+def format_result(r: RunResult) -> str:
+    t = r.torque
+    lines = [
+        f"hdhil run: scenario {r.scenario}, seed {r.seed}, lockstep on {r.interface}"
+        f" ({r.actuation} actuation)" + ("  [INTERRUPTED]" if r.interrupted else ""),
+        f"  simulated time     {r.simulated_s:.3f} s ({r.cycles} cycles of "
+        f"{r.sample_period_s * 1e3:g} ms)",
+        f"  wall time          {r.wall_s:.3f} s",
+        f"  real-time factor   {r.real_time_factor:.1f}x",
+        f"  motor velocity     final {r.velocity_final:.1f} rad/s, peak {r.velocity_peak:.1f} rad/s"
+        " (telemetry)",
+        "  frames on the buses:",
+    ]
+    lines += [f"    {name:<34} {n:>8}" for name, n in r.frames.items()]
+    lines.append(f"    {'total':<34} {r.frames_total:>8}")
+    verdict = "ok" if r.worst_case_load <= LOAD_LIMIT else "OVER the 60 % budget"
+    lines.append(
+        f"  control bus load   {r.worst_case_load:.1%} worst case at "
+        f"{r.bitrate / 1e6:g} Mbit/s ({verdict})"
+    )
+    if t["samples"]:
+        lines.append(
+            f"  torque vs truth    {t['samples']} samples: RMS true torque {t['rms_true']:.4f} Nm;"
+            f" RMS error raw {t['rms_error_raw']:.4f} Nm, filtered {t['rms_error_filtered']:.4f}"
+            f" Nm ({t['filtered_to_raw']:.1%} of raw)"
+        )
+    else:
+        lines.append("  torque vs truth    no telemetry/truth pairs were seen")
+    if r.trace:
+        lines.append(f"  trace              {r.trace} ({r.frames_total} frames)")
+    return "\n".join(lines)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run",
+        help="run a scenario end to end on the in-process bus",
+        description="Run the firmware against the drive emulator over CAN in "
+        "one process (lockstep, simulated time), log a trace and score the "
+        "filtered torque against ground truth.",
+    )
+    p.add_argument(
+        "--scenario",
+        default="free-motion",
+        help=f"scenario name or TOML file (shipped: {', '.join(list_scenarios())})",
+    )
+    p.add_argument(
+        "--duration", type=float, default=None, help="simulated seconds (default: the scenario's)"
+    )
+    p.add_argument("--seed", type=int, default=None, help="noise seed (default: the scenario's)")
+    p.add_argument(
+        "--trace",
+        default="hdhil-run.blf",
+        help="trace file; format from the extension: .blf .asc .log .csv .trc "
+        "(default: %(default)s; '' for none)",
+    )
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument(
+        "--actuation",
+        choices=("next-sync", "immediate"),
+        default="next-sync",
+        help="when the drive applies a command (default: %(default)s)",
+    )
+    p.add_argument(
+        "--interface",
+        choices=("simbus", "virtual"),
+        default="simbus",
+        help="in-process bus (default: %(default)s)",
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from hdhil.cli import UserError
+
+    scenario = load_scenario(args.scenario)
+    trace = Path(args.trace) if args.trace else None
+    try:
+        result = run_lockstep(
+            scenario, args.duration, args.seed, trace, args.interface, args.actuation
+        )
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    if args.json:
+        json.dump(result.as_dict(), sys.stdout, indent=2)
+        print()
+    else:
+        print(format_result(result))
+    return 130 if result.interrupted else 0
