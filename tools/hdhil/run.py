@@ -18,8 +18,12 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import signal
 import sys
+import threading
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -56,6 +60,7 @@ class RunResult:
     interrupted: bool
     frames: dict[str, int]
     frames_total: int
+    frames_sent: dict[str, int]
     worst_case_load: float
     bitrate: int
     torque: dict[str, float]
@@ -102,16 +107,68 @@ def _frame_names() -> dict[tuple[int, int], str]:
     return names
 
 
+#: A cycle that has not completed after this long (wall time) means a silent peer.
+CYCLE_TIMEOUT_S = 1.0
+
+
+class SilentPeerError(ConfigError):
+    """A node did not answer within the cycle timeout."""
+
+
+def _complete_cycle(
+    k: int, controller: ControllerNode, drive: DriveNode, tap: BusTap, simulated: bool
+) -> None:
+    """Let the nodes handle cycle k's frames until the drive holds the command of cycle k.
+
+    On the simulated bus delivery is immediate: pump until every queue is empty.  On a
+    real interface frames take time to come back, so wait (briefly sleeping) until the
+    drive has received cycle k's command, with a timeout that names the silent node.
+    """
+    while drive.poll() + controller.poll() + tap.poll():
+        pass
+    if simulated:
+        return
+    deadline = time.monotonic() + CYCLE_TIMEOUT_S
+    while drive.diagnostics.commands <= k:
+        if drive.poll() + controller.poll() + tap.poll():
+            continue
+        if time.monotonic() > deadline:
+            who = (
+                "the drive sent no sensor frame"
+                if controller.diagnostics.sensor_frames <= k
+                else "the controller's command never reached the drive"
+            )
+            raise SilentPeerError(f"cycle {k}: {who} within {CYCLE_TIMEOUT_S:g} s")
+        time.sleep(50e-6)
+    tap.poll()
+
+
+def _frames_sent(control: can.BusABC, truth: can.BusABC) -> dict[str, int]:
+    """Frames each channel carried, as counted by the bus itself (simbus only)."""
+    return {
+        name: bus.frames_sent
+        for name, bus in (("control", control), ("truth", truth))
+        if hasattr(bus, "frames_sent")
+    }
+
+
 def run_lockstep(
     scenario: Scenario,
     duration_s: float | None = None,
     seed: int | None = None,
     trace: Path | None = None,
-    interface: str = "simbus",
+    interface: str | None = "simbus",
     actuation: str = "next-sync",
     bitrate: int = 1_000_000,
+    channel: str | None = None,
+    stop_requested: Callable[[], bool] | None = None,
 ) -> RunResult:
-    """Run ``scenario`` in lockstep and return the scored result."""
+    """Run ``scenario`` in lockstep and return the scored result.
+
+    ``stop_requested`` is polled at every cycle boundary; when it returns True the run
+    ends there, after the cycle's frames are all handled and logged (how Ctrl-C and
+    SIGTERM end a run without losing a frame).
+    """
     fw_config = from_dict(FirmwareConfig, scenario.firmware, "firmware")
     Ts = fw_config.sample_period_s
     duration = scenario.duration_s if duration_s is None else duration_s
@@ -131,35 +188,45 @@ def run_lockstep(
 
     run_id = next(_run_ids)
     clock = SimClock()
-    if interface == "simbus":
+    simulated = interface == "simbus"
 
-        def make_bus(name: str, rate: int) -> can.BusABC:
+    def control_bus() -> can.BusABC:
+        if simulated:
             return can.Bus(
-                interface="simbus", channel=f"hdhil-{run_id}-{name}", bitrate=rate, clock=clock
+                interface="simbus",
+                channel=channel or f"hdhil-{run_id}-control",
+                bitrate=bitrate,
+                clock=clock,
             )
-    elif interface == "virtual":
+        if interface == "virtual":
+            return can.Bus(interface="virtual", channel=channel or f"hdhil-{run_id}-control")
+        try:
+            # Any python-can interface; None falls back to python-can's configuration
+            # (~/can.conf, CAN_INTERFACE / CAN_CHANNEL environment variables).
+            return can.Bus(interface=interface, channel=channel, bitrate=bitrate)
+        except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
+            raise ConfigError(
+                f"cannot open the control bus ({interface} {channel}): {exc}"
+            ) from None
 
-        def make_bus(name: str, rate: int) -> can.BusABC:
-            return can.Bus(interface="virtual", channel=f"hdhil-{run_id}-{name}")
-    else:
-        raise ConfigError(f"in-process runs use interface 'simbus' or 'virtual', not {interface!r}")
+    def truth_bus() -> can.BusABC:
+        # Ground truth is simulation-only: it stays in-process whatever the control bus is.
+        return can.Bus(interface="simbus", channel=f"hdhil-{run_id}-truth", bitrate=0, clock=clock)
 
     buses: list[can.BusABC] = []
     listeners: list[can.Listener] = []
     interrupted = False
     done = 0
     wall = 0.0
+    frames_sent: dict[str, int] = {}
     try:
-        buses += [
-            make_bus("control", bitrate),
-            make_bus("control", bitrate),
-            make_bus("truth", 0),
-            make_bus("control", bitrate),
-            make_bus("truth", 0),
-        ]
-        ctrl_bus, drive_bus, truth_bus, tap_control, tap_truth = buses
+        for make in (control_bus, control_bus, truth_bus, control_bus, truth_bus):
+            buses.append(make())
+        ctrl_bus, drive_bus, drive_truth, tap_control, tap_truth = buses
         controller = ControllerNode(ctrl_bus, fw_config)
-        drive = DriveNode(drive_bus, Plant(scenario.plant, seed), drive_config, truth_bus=truth_bus)
+        drive = DriveNode(
+            drive_bus, Plant(scenario.plant, seed), drive_config, truth_bus=drive_truth
+        )
         counter = FrameCounter()
         scorer = TorqueScorer()
         velocity = _VelocityWatch()
@@ -172,15 +239,18 @@ def run_lockstep(
         wall0 = time.perf_counter()
         try:
             for k in range(cycles):
+                if stop_requested is not None and stop_requested():
+                    interrupted = True
+                    break
                 clock.now = k * Ts
                 controller.send_sync()
-                while drive.poll() + controller.poll() + tap.poll():
-                    pass
+                _complete_cycle(k, controller, drive, tap, simulated)
                 done = k + 1
         except KeyboardInterrupt:
             interrupted = True
         wall = time.perf_counter() - wall0
         tap.poll()
+        frames_sent = _frames_sent(ctrl_bus, drive_truth)
     finally:
         # Close the trace (flush, valid file) and release the buses whatever happened.
         for listener in listeners:
@@ -196,7 +266,7 @@ def run_lockstep(
     return RunResult(
         scenario=scenario.name,
         seed=seed,
-        interface=interface,
+        interface=interface or "python-can configuration",
         actuation=actuation,
         cycles=done,
         sample_period_s=Ts,
@@ -205,6 +275,7 @@ def run_lockstep(
         interrupted=interrupted,
         frames=frames,
         frames_total=counter.total,
+        frames_sent=frames_sent,
         worst_case_load=load.worst_case_load,
         bitrate=bitrate,
         torque=scorer.result().as_dict(),
@@ -292,11 +363,41 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--interface",
-        choices=("simbus", "virtual"),
         default="simbus",
-        help="in-process bus (default: %(default)s)",
+        help="python-can interface of the control bus: simbus (simulated time, default), "
+        "virtual, socketcan, pcan, kvaser, vector, udp_multicast, ...; 'config' reads "
+        "python-can's configuration file or CAN_INTERFACE",
+    )
+    p.add_argument(
+        "--channel",
+        default=None,
+        help="python-can channel of the control bus (e.g. vcan0, can0, PCAN_USBBUS1)",
+    )
+    p.add_argument(
+        "--bitrate", type=int, default=1_000_000, help="control bus bit rate (default: %(default)s)"
     )
     p.set_defaults(func=run)
+
+
+@contextmanager
+def stop_on_signals() -> Iterator[threading.Event]:
+    """Turn the first SIGINT/SIGTERM into a stop request (the run ends cleanly at the next
+    cycle boundary, trace closed); a second SIGINT interrupts at once."""
+    stop = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def request_stop(signum: int, frame: object) -> None:
+        stop.set()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -305,9 +406,19 @@ def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     trace = Path(args.trace) if args.trace else None
     try:
-        result = run_lockstep(
-            scenario, args.duration, args.seed, trace, args.interface, args.actuation
-        )
+        interface = None if args.interface == "config" else args.interface
+        with stop_on_signals() as stop:
+            result = run_lockstep(
+                scenario,
+                args.duration,
+                args.seed,
+                trace,
+                interface,
+                args.actuation,
+                args.bitrate,
+                args.channel,
+                stop_requested=stop.is_set,
+            )
     except ValueError as exc:
         raise UserError(str(exc)) from None
     if args.json:

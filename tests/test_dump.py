@@ -1,0 +1,639 @@
+"""Tests of ``hdhil dump``: reading traces of every format, decoding, CSV, stats, damage."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import math
+import os
+import re
+import stat
+import threading
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from hdhil import dump
+from hdhil.cli import main
+from hdhil.dbc import database
+
+CTRL = database("control")
+TRUTH = database("truth")
+FORMATS = [".blf", ".asc", ".log", ".csv", ".trc"]
+UNKNOWN_ID = 0x7EF
+UNKNOWN_DATA = bytes.fromhex("DEADBEEF")
+
+
+def _msg(t: float, name: str, values: dict[str, float], channel: int | None) -> can.Message:
+    db = TRUTH if name.startswith("TRUTH") else CTRL
+    m = db.get_message_by_name(name)
+    return can.Message(
+        timestamp=t,
+        arbitration_id=m.frame_id,
+        is_extended_id=m.is_extended_frame,
+        data=m.encode(values),
+        channel=channel,
+        is_rx=True,
+    )
+
+
+def cycle_values(k: int) -> dict[str, dict[str, float]]:
+    """Physical values sent in cycle ``k`` (within each signal's range)."""
+    return {
+        "SYNC": {"sync_counter": k % 240 + 1},
+        "DRIVE_TPDO1": {
+            "ADC_torque": (37 * k) % 4000 - 2000,
+            "ADC_tacho": -k % 2000,
+            "ADC_current": 5,
+            "ENC_count": (13 * k) % 65536,
+        },
+        "CTRL_TPDO1": {
+            "T_meas": 0.013 * k - 5.0,
+            "T_filtered": -0.007 * k + 1.0,
+            "velocity": 0.37 * (k % 1000) - 100.0,
+            "current": 0.0011 * k,
+        },
+        "TRUTH_TORQUE": {"T_true": 1.1 + 0.001 * k, "T_ripple": -0.25 * math.sin(k)},
+    }
+
+
+def make_frames(cycles: int, extras: bool = True) -> list[can.Message]:
+    """``cycles`` 1 kHz cycles of SYNC, DRIVE_TPDO1, CTRL_TPDO1 (control) and TRUTH_TORQUE
+    (truth); with ``extras`` one unknown-ID frame and one malformed CTRL_TPDO1 in cycle 1."""
+    frames = []
+    for k in range(cycles):
+        t = k * 1e-3
+        values = cycle_values(k)
+        frames.append(_msg(t, "SYNC", values["SYNC"], 0))
+        frames.append(_msg(t + 100e-6, "DRIVE_TPDO1", values["DRIVE_TPDO1"], 0))
+        frames.append(_msg(t + 250e-6, "CTRL_TPDO1", values["CTRL_TPDO1"], 0))
+        frames.append(_msg(t + 300e-6, "TRUTH_TORQUE", values["TRUTH_TORQUE"], 1))
+        if extras and k == 1:
+            frames.append(
+                can.Message(
+                    timestamp=t + 400e-6,
+                    arbitration_id=UNKNOWN_ID,
+                    is_extended_id=False,
+                    data=UNKNOWN_DATA,
+                    channel=0,
+                )
+            )
+            frames.append(
+                can.Message(
+                    timestamp=t + 500e-6,
+                    arbitration_id=0x181,
+                    is_extended_id=False,
+                    data=bytes(range(5)),
+                    channel=0,
+                )
+            )
+    return frames
+
+
+def write_trace(path: Path, frames: list[can.Message]) -> Path:
+    with can.Logger(str(path)) as writer:
+        for msg in frames:
+            writer.on_message_received(msg)
+    return path
+
+
+def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
+    rc = main(["dump", *[str(a) for a in argv]])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+SUMMARY = re.compile(
+    r"(\d+) frames: (\d+) decoded, (\d+) unknown, (\d+) malformed, (\d+) error, (\d+) remote"
+)
+
+
+def summary_counts(text: str) -> tuple[int, ...]:
+    match = SUMMARY.search(text)
+    assert match, text
+    return tuple(int(g) for g in match.groups())
+
+
+# ------------------------------------------------------------------------------ table
+
+
+def test_table_shows_decoded_signals_unknown_and_malformed(tmp_path, capsys):
+    trace = write_trace(tmp_path / "t.blf", make_frames(5))
+    rc, out, err = run_cli(capsys, trace)
+    assert rc == 0, err
+    assert err == ""
+    lines = out.splitlines()
+    ctrl = [line for line in lines if "CTRL_TPDO1" in line and "T_meas=" in line]
+    assert len(ctrl) == 5
+    # cycle 0: T_meas = -5.000, T_filtered = 1.000, velocity = -100.00, current = 0.000
+    assert "T_meas=-5.000 Nm" in ctrl[0]
+    assert "T_filtered=1.000 Nm" in ctrl[0]
+    assert "velocity=-100.00 rad/s" in ctrl[0]
+    assert "current=0.000 A" in ctrl[0]
+    assert "control" in ctrl[0] and " 181 " in ctrl[0]
+    truth = [line for line in lines if "TRUTH_TORQUE" in line]
+    assert len(truth) == 5 and "T_true=1.1 Nm" in truth[0] and "truth" in truth[0]
+    assert "001F0001" in truth[0]
+    unknown = [line for line in lines if "UNKNOWN" in line]
+    assert len(unknown) == 1 and "7EF" in unknown[0] and "DE AD BE EF" in unknown[0]
+    malformed = [line for line in lines if "MALFORMED" in line]
+    assert len(malformed) == 1 and "00 01 02 03 04" in malformed[0]
+    assert re.match(r"\s+0\.001500\s", malformed[0])  # time with 6 decimals
+    assert summary_counts(lines[-1]) == (22, 20, 1, 1, 0, 0)
+    assert "duration 0.004300 s" in lines[-1]
+
+
+def test_error_and_remote_frames_are_flagged(tmp_path, capsys):
+    frames = make_frames(2, extras=False)
+    frames.append(can.Message(timestamp=0.0025, is_error_frame=True, channel=0))
+    frames.append(
+        can.Message(
+            timestamp=0.0026,
+            arbitration_id=0x181,
+            is_extended_id=False,
+            is_remote_frame=True,
+            dlc=8,
+            channel=0,
+        )
+    )
+    for suffix in (".blf", ".asc"):
+        trace = write_trace(tmp_path / f"t{suffix}", frames)
+        rc, out, _ = run_cli(capsys, trace)
+        assert rc == 0
+        assert "ERROR FRAME" in out
+        assert re.search(r"181\s+CTRL_TPDO1\s+REMOTE", out)
+        assert summary_counts(out) == (10, 8, 0, 0, 1, 1)
+
+
+def test_limit_prints_n_frames_but_counts_all(tmp_path, capsys):
+    trace = write_trace(tmp_path / "t.blf", make_frames(50))
+    rc, out, _ = run_cli(capsys, trace, "--limit", "7")
+    assert rc == 0
+    lines = out.splitlines()
+    assert len(lines) == 1 + 7 + 1  # header, frames, summary
+    assert summary_counts(lines[-1])[0] == 202
+    assert "7 shown" in lines[-1]
+
+
+def test_id_filter_by_name_and_hex(tmp_path, capsys):
+    trace = write_trace(tmp_path / "t.csv", make_frames(10))
+    rc, out, _ = run_cli(capsys, trace, "--id", "TRUTH_TORQUE", "--id", "0x7ef")
+    assert rc == 0
+    body = out.splitlines()[1:-1]
+    assert len(body) == 11
+    assert all("TRUTH_TORQUE" in line or "UNKNOWN" in line for line in body)
+    assert "11 selected by --id" in out
+    rc, out, err = run_cli(capsys, trace, "--id", "NOPE!")
+    assert rc == 2 and "--id" in err
+
+
+# ------------------------------------------------------------------ formats round trip
+
+
+@pytest.mark.parametrize("suffix", FORMATS)
+def test_every_format_round_trips(tmp_path, suffix):
+    cycles = 30
+    frames = make_frames(cycles)
+    trace = write_trace(tmp_path / f"trace{suffix}", frames)
+    decoded: dict[str, list[dump.DecodedFrame]] = {}
+    kinds: dict[dump.FrameKind, int] = {}
+    with dump.read_trace(trace) as result:
+        for msg in result:
+            frame = dump.classify_frame(msg)
+            kinds[frame.kind] = kinds.get(frame.kind, 0) + 1
+            if dump.decode_frame(msg) is not None:
+                decoded.setdefault(frame.message, []).append(frame)
+    assert not result.damage
+    assert result.frame_count == len(frames)
+    assert kinds == {
+        dump.FrameKind.DECODED: 4 * cycles,
+        dump.FrameKind.UNKNOWN: 1,
+        dump.FrameKind.MALFORMED: 1,
+    }
+    for name in ("SYNC", "DRIVE_TPDO1", "CTRL_TPDO1", "TRUTH_TORQUE"):
+        got = decoded[name]
+        assert len(got) == cycles
+        message = (TRUTH if name.startswith("TRUTH") else CTRL).get_message_by_name(name)
+        sent_times = [
+            m.timestamp
+            for m in frames
+            if m.arbitration_id == message.frame_id and len(m.data) == message.length
+        ]
+        for k, frame in enumerate(got):
+            assert frame.bus == ("truth" if name.startswith("TRUTH") else "control")
+            assert frame.time == pytest.approx(sent_times[k], abs=2e-6)
+            for signal in message.signals:
+                sent = cycle_values(k)[name][signal.name]
+                value = frame.signals[signal.name]
+                if signal.is_float:
+                    assert value == pytest.approx(float(np.float32(sent)), rel=1e-7)
+                else:
+                    assert abs(value - sent) <= signal.scale / 2 + 1e-9, (name, signal.name)
+
+
+def test_gzip_compressed_trace(tmp_path, capsys):
+    plain = write_trace(tmp_path / "t.asc", make_frames(5))
+    packed = tmp_path / "t.asc.gz"
+    packed.write_bytes(gzip.compress(plain.read_bytes()))
+    rc, out, _ = run_cli(capsys, packed)
+    assert rc == 0
+    assert summary_counts(out) == (22, 20, 1, 1, 0, 0)
+
+
+# -------------------------------------------------------------------------------- CSV
+
+
+def test_csv_output(tmp_path, capsys):
+    cycles = 20
+    trace = write_trace(tmp_path / "t.blf", make_frames(cycles))
+    out_csv = tmp_path / "out.csv"
+    rc, out, err = run_cli(capsys, trace, "--csv", out_csv)
+    assert rc == 0
+    assert out == ""
+    assert summary_counts(err) == (4 * cycles + 2, 4 * cycles, 1, 1, 0, 0)
+    assert not (tmp_path / "out.csv.tmp").exists()
+    rows = out_csv.read_text().splitlines()
+    header = rows[0].split(",")
+    assert header[:3] == ["time", "bus", "id"]
+    for column in (
+        "CTRL_TPDO1.T_meas",
+        "CTRL_TPDO1.T_filtered",
+        "CTRL_TPDO1.velocity",
+        "TRUTH_TORQUE.T_true",
+        "SYNC.sync_counter",
+    ):
+        assert column in header
+    assert len(rows) - 1 == 4 * cycles  # one row per decoded frame, unknown/malformed left out
+    table = [dict(zip(header, row.split(","), strict=True)) for row in rows[1:]]
+    ctrl = [r for r in table if r["CTRL_TPDO1.T_meas"]]
+    assert len(ctrl) == cycles
+    k = 7
+    expected = cycle_values(k)["CTRL_TPDO1"]
+    assert float(ctrl[k]["time"]) == pytest.approx(k * 1e-3 + 250e-6, abs=1e-9)
+    assert ctrl[k]["bus"] == "control" and ctrl[k]["id"] == "0x181"
+    assert float(ctrl[k]["CTRL_TPDO1.T_meas"]) == pytest.approx(expected["T_meas"], abs=0.002)
+    assert float(ctrl[k]["CTRL_TPDO1.velocity"]) == pytest.approx(expected["velocity"], abs=0.005)
+    assert ctrl[k]["TRUTH_TORQUE.T_true"] == ""  # other messages' cells stay empty
+    truth = [r for r in table if r["TRUTH_TORQUE.T_true"]]
+    # float32 signals are written as the shortest text that reads back to the same float32
+    assert np.float32(truth[k]["TRUTH_TORQUE.T_true"]) == np.float32(1.1 + 0.001 * k)
+    assert truth[k]["id"] == "0x001F0001" and truth[k]["bus"] == "truth"
+
+
+def test_csv_is_not_left_half_written(tmp_path, capsys, monkeypatch):
+    trace = write_trace(tmp_path / "t.blf", make_frames(20))
+    out_csv = tmp_path / "out.csv"
+    original = dump._CsvOut.add
+    calls = {"n": 0}
+
+    def failing_add(self, frame):
+        calls["n"] += 1
+        if calls["n"] == 30:
+            raise KeyboardInterrupt
+        original(self, frame)
+
+    monkeypatch.setattr(dump._CsvOut, "add", failing_add)
+    rc, _, err = run_cli(capsys, trace, "--csv", out_csv)
+    assert rc == 130 and "interrupted" in err
+    assert not out_csv.exists()
+    assert not (tmp_path / "out.csv.tmp").exists()
+
+
+def test_csv_to_stdout_and_to_a_fifo(tmp_path, capsys):
+    trace = write_trace(tmp_path / "t.asc", make_frames(10))
+    rc, out, err = run_cli(capsys, trace, "--csv", "-")
+    assert rc == 0
+    rows = out.splitlines()
+    assert rows[0].startswith("time,bus,id,") and len(rows) == 1 + 40
+    assert "wrote 40 rows to stdout" in err
+    # a FIFO is written in place, never replaced by a renamed regular file
+    fifo = tmp_path / "pipe.csv"
+    os.mkfifo(fifo)
+    received: list[bytes] = []
+    reader = threading.Thread(target=lambda: received.append(fifo.read_bytes()), daemon=True)
+    reader.start()
+    rc, _, _ = run_cli(capsys, trace, "--csv", fifo)
+    reader.join(timeout=10)
+    assert rc == 0
+    assert stat.S_ISFIFO(fifo.stat().st_mode)
+    assert received and received[0].decode().splitlines() == rows
+
+
+def test_csv_refuses_to_overwrite_the_trace(tmp_path, capsys):
+    trace = write_trace(tmp_path / "t.csv", make_frames(3))
+    before = trace.read_bytes()
+    rc, _, err = run_cli(capsys, trace, "--csv", trace)
+    assert rc == 2 and "overwrite" in err
+    assert trace.read_bytes() == before
+
+
+# ------------------------------------------------------------------------------ stats
+
+
+def schedule(cycles: int, jitter_s: np.ndarray | None = None) -> list[can.Message]:
+    """SYNC (1 byte) + three 8-byte frames per 1 ms cycle on the control bus."""
+    frames = []
+    for k in range(cycles):
+        t = k * 1e-3 + (0.0 if jitter_s is None else float(jitter_s[k]))
+        frames.append(_msg(t, "SYNC", {"sync_counter": 1}, 0))
+        for i, name in enumerate(("DRIVE_TPDO1", "CTRL_TPDO1")):
+            values = {s.name: 0 for s in CTRL.get_message_by_name(name).signals}
+            frames.append(_msg(t + (i + 1) * 100e-6, name, values, 0))
+        frames.append(
+            can.Message(
+                timestamp=t + 300e-6,
+                arbitration_id=0x281,
+                is_extended_id=False,
+                data=bytes(8),
+                channel=0,
+            )
+        )
+    return frames
+
+
+def test_stats_of_1khz_schedule():
+    stats = dump.compute_stats(schedule(1000), bitrate=1_000_000)
+    assert stats["frames"] == 4000 and stats["unknown"] == 1000
+    by_id = {s["id"]: s for s in stats["ids"]}
+    assert set(by_id) == {0x80, 0x181, 0x182, 0x281}
+    for s in by_id.values():
+        assert s["count"] == 1000
+        assert s["rate_hz"] == pytest.approx(1000.0, rel=1e-9)
+        assert s["period_ms"] == pytest.approx(1.0, rel=1e-9)
+        assert s["jitter_std_us"] == pytest.approx(0.0, abs=1e-6)
+        assert s["jitter_max_us"] == pytest.approx(0.0, abs=1e-6)
+    assert by_id[0x80]["worst_case_bits"] == 65 and by_id[0x80]["frame_time_us"] == 65.0
+    assert by_id[0x181]["worst_case_bits"] == 135 and by_id[0x181]["payload_bytes"] == 8
+    assert by_id[0x281]["name"] is None
+    control = stats["buses"]["control"]
+    assert control["load_percent"] == pytest.approx((65 + 3 * 135) / 1000 * 100, rel=1e-9)
+    assert control["frames"] == 4000
+    assert control["unknown_ids"] == 1 and control["unknown_frames"] == 1000
+    assert control["duration"] == pytest.approx(0.999 + 300e-6)
+    assert not control["over_limit"]
+    slow = dump.compute_stats(schedule(100), bitrate=500_000)
+    assert slow["buses"]["control"]["load_percent"] == pytest.approx(94.0)
+    assert slow["buses"]["control"]["over_limit"]
+
+
+def test_stats_jitter_matches_numpy():
+    rng = np.random.default_rng(7)
+    jitter = rng.normal(0.0, 20e-6, 500)
+    stats = dump.compute_stats(schedule(500, jitter))
+    sync = next(s for s in stats["ids"] if s["name"] == "SYNC")
+    times = np.arange(500) * 1e-3 + jitter
+    periods = np.diff(times)
+    assert sync["period_ms"] == pytest.approx(periods.mean() * 1e3, rel=1e-9)
+    assert sync["jitter_std_us"] == pytest.approx(periods.std() * 1e6, rel=1e-6)
+    expected_max = np.max(np.abs(periods - periods.mean())) * 1e6
+    assert sync["jitter_max_us"] == pytest.approx(expected_max, rel=1e-6)
+    assert sync["jitter_std_us"] > 20.0  # differences of two N(0, 20 us) draws
+
+
+def test_stats_cli_text_and_json(tmp_path, capsys):
+    trace = write_trace(tmp_path / "s.blf", schedule(200) + make_frames(3)[-1:])
+    rc, out, _ = run_cli(capsys, trace, "--stats")
+    assert rc == 0
+    assert re.search(r"bus control: .* worst-case load 47\.0 % of 1000 kbit/s", out)
+    assert re.search(r"control\s+080\s+SYNC\s+200\s+1000\.00", out)
+    assert "unknown IDs 1 (200 frames)" in out
+    rc, out, err = run_cli(capsys, trace, "--json", "--bitrate", "500000")
+    assert rc == 0
+    data = json.loads(out)
+    assert data["bitrate"] == 500_000
+    assert data["buses"]["control"]["load_percent"] == pytest.approx(94.0, rel=1e-3)
+    assert data["buses"]["truth"]["frames"] == 1
+    assert data["damage"] == [] and data["trace"].endswith("s.blf")
+    assert {"id", "id_hex", "name", "count", "rate_hz", "jitter_std_us", "load_percent"} <= set(
+        data["ids"][0]
+    )
+    assert summary_counts(err)[0] == 801
+
+
+# -------------------------------------------------------------------------- bad files
+
+
+def _bad_files(tmp_path: Path) -> dict[str, Path]:
+    files = {
+        "missing": tmp_path / "missing.blf",
+        "directory": tmp_path / "dir.blf",
+        "empty_blf": tmp_path / "empty.blf",
+        "empty_csv": tmp_path / "empty.csv",
+        "text_as_blf": tmp_path / "text.blf",
+        "random_blf": tmp_path / "random.blf",
+        "random_csv": tmp_path / "random.csv",
+        "text_as_asc": tmp_path / "text.asc",
+        "header_only_csv": tmp_path / "header.csv",
+        "unsupported": tmp_path / "trace.txt",
+    }
+    files["directory"].mkdir()
+    files["empty_blf"].write_bytes(b"")
+    files["empty_csv"].write_bytes(b"")
+    files["text_as_blf"].write_text("this is not a BLF file\n" * 20)
+    random = np.random.default_rng(1).integers(0, 256, 4096, dtype=np.uint8).tobytes()
+    files["random_blf"].write_bytes(random)
+    files["random_csv"].write_bytes(random)
+    files["text_as_asc"].write_text("hello\nworld\n")
+    files["header_only_csv"].write_text(dump._CSV_HEADER)
+    files["unsupported"].write_text("0.0 1 181 Rx d 8 00 00 00 00 00 00 00 00\n")
+    return files
+
+
+@pytest.mark.parametrize(
+    "kind",
+    [
+        "missing",
+        "directory",
+        "empty_blf",
+        "empty_csv",
+        "text_as_blf",
+        "random_blf",
+        "random_csv",
+        "text_as_asc",
+        "header_only_csv",
+        "unsupported",
+    ],
+)
+def test_bad_files_are_a_one_line_error(tmp_path, capsys, kind):
+    path = _bad_files(tmp_path)[kind]
+    rc, _, err = run_cli(capsys, path)
+    assert rc == 2
+    assert "Traceback" not in err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("hdhil: error: ")
+    assert str(path) in lines[0]
+    with pytest.raises(dump.TraceError):
+        dump.read_trace(path)
+
+
+# ----------------------------------------------------------------------- damaged files
+
+
+WARNING = re.compile(
+    r"^hdhil: warning: (?P<path>\S+): damaged after frame (?P<n>\d+) \(t=(?P<t>[\d.]+)s\): "
+    r"(?P<reason>.+)$"
+)
+
+
+def _warnings(err: str) -> list[re.Match[str]]:
+    matches = [WARNING.match(line) for line in err.splitlines()]
+    assert all(matches), err
+    return matches  # type: ignore[return-value]
+
+
+def test_truncated_blf(tmp_path, capsys):
+    frames = make_frames(2000, extras=False)
+    trace = write_trace(tmp_path / "t.blf", frames)
+    data = trace.read_bytes()
+    cut = tmp_path / "cut.blf"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    rc, out, err = run_cli(capsys, cut)
+    assert rc == 1
+    (warning,) = _warnings(err)
+    assert "file truncated" in warning["reason"]
+    total, decoded, *_ = summary_counts(out)
+    assert 0 < total < len(frames) and decoded == total
+    assert int(warning["n"]) == total
+    last_line = out.splitlines()[-2]
+    assert float(warning["t"]) == pytest.approx(float(last_line.split()[0]), abs=1e-6)
+    assert sum("T_meas=" in line for line in out.splitlines()) > 0
+
+
+def test_corrupted_blf_container(tmp_path, capsys):
+    trace = write_trace(tmp_path / "t.blf", make_frames(3000, extras=False))
+    data = bytearray(trace.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 64] = bytes(b ^ 0x55 for b in data[middle : middle + 64])
+    trace.write_bytes(bytes(data))
+    rc, out, err = run_cli(capsys, trace)
+    assert rc == 1
+    warnings = _warnings(err)
+    assert len(warnings) == 1
+    total = summary_counts(out)[0]
+    assert 0 < total < 12000 and int(warnings[0]["n"]) == total
+
+
+def test_blf_never_closed_by_its_writer(tmp_path, capsys):
+    """A logger that died: containers were flushed but the header was never finalised."""
+    path = tmp_path / "crashed.blf"
+    frames = make_frames(4000, extras=False)
+    writer = can.BLFWriter(str(path))
+    for msg in frames:
+        writer.on_message_received(msg)
+    writer.file.flush()  # what reached the disk; no stop(): the header keeps its placeholder
+    rc, out, err = run_cli(capsys, path, "--limit", "0")
+    writer.stop()
+    assert rc == 1
+    (warning,) = _warnings(err)
+    assert "never finalised" in warning["reason"]
+    assert 0 < summary_counts(out)[0] < len(frames)
+
+
+def test_cut_gzip_stream(tmp_path, capsys):
+    plain = write_trace(tmp_path / "t.log", make_frames(3000, extras=False))
+    packed = gzip.compress(plain.read_bytes())
+    cut = tmp_path / "t.log.gz"
+    cut.write_bytes(packed[: len(packed) // 2])
+    rc, out, err = run_cli(capsys, cut, "--limit", "0")
+    assert rc == 1
+    (warning,) = _warnings(err)
+    assert "EOFError" in warning["reason"] and "line" not in warning["reason"]
+    assert 0 < summary_counts(out)[0] < 12000
+
+
+def _corrupt_line(path: Path, index: int, replacement: str) -> None:
+    lines = path.read_text().splitlines(keepends=True)
+    lines[index] = replacement
+    path.write_text("".join(lines))
+
+
+@pytest.mark.parametrize(
+    ("suffix", "replacement"),
+    [
+        (".asc", " 1.000100 1  181             Rx   d 8 ZZ 00 7D 00 00 00 64 00\n"),
+        (".asc", "this line is garbage\n"),  # the ASC reader would skip it silently
+        (".csv", "0.5,0x181,0,0\n"),
+        (".csv", "0.5,0x18Z,0,0,0,8,AAAAAAAAAAA=\n"),
+        (".log", "(0.5) can0 18X#00\n"),
+        (".trc", "garbage in a trc file\n"),
+    ],
+)
+def test_corrupted_line_in_text_trace(tmp_path, capsys, suffix, replacement):
+    frames = make_frames(500, extras=False)
+    trace = write_trace(tmp_path / f"t{suffix}", frames)
+    lines = trace.read_text().splitlines()
+    index = len(lines) // 2
+    _corrupt_line(trace, index, replacement)
+    rc, out, err = run_cli(capsys, trace)
+    assert rc == 1
+    (warning,) = _warnings(err)
+    assert f"line {index + 1}:" in warning["reason"] and "resumed" in warning["reason"]
+    total = summary_counts(out)[0]
+    assert total == len(frames) - 1  # only the corrupted line is lost
+    assert 0 < int(warning["n"]) < total
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".asc", ".log", ".trc"])
+def test_text_trace_cut_mid_line(tmp_path, capsys, suffix):
+    frames = make_frames(300, extras=False)
+    trace = write_trace(tmp_path / f"t{suffix}", frames)
+    text = trace.read_bytes()
+    cut = int(len(text) * 0.6)
+    while text[cut - 1 : cut] in (b"\n", b"\r"):
+        cut -= 3  # make sure the cut is inside a line
+    trace.write_bytes(text[:cut])
+    rc, out, err = run_cli(capsys, trace)
+    assert rc == 1
+    warnings = _warnings(err)
+    assert len(warnings) == 1
+    total = summary_counts(out)[0]
+    assert 0 < total < len(frames)
+
+
+def test_many_damaged_lines_stop_reading(tmp_path):
+    trace = write_trace(tmp_path / "t.csv", make_frames(400, extras=False))
+    lines = trace.read_text().splitlines(keepends=True)
+    for i in range(100, 400):
+        lines[i] = "broken\n"
+    trace.write_text("".join(lines))
+    with dump.read_trace(trace) as result:
+        count = sum(1 for _ in result)
+    assert count == 99
+    assert len(result.damage) == dump.MAX_DAMAGE + 1
+    assert "stopped reading" in result.damage[-1].reason
+
+
+def test_clean_read_has_no_damage_and_streams(tmp_path):
+    trace = write_trace(tmp_path / "t.log", make_frames(10))
+    result = dump.read_trace(trace)
+    first = next(iter(result))
+    assert first.channel == 0 and first.arbitration_id == 0x80
+    rest = list(result)
+    assert len(rest) == 41 and result.frame_count == 42
+    assert not result.damaged
+    truth = [m for m in rest if m.is_extended_id]
+    assert truth and all(m.channel == 1 for m in truth)
+
+
+# ---------------------------------------------------------------------------- decoding
+
+
+def test_decode_frame_api():
+    msg = _msg(0.5, "CTRL_TPDO1", cycle_values(3)["CTRL_TPDO1"], None)
+    frame = dump.decode_frame(msg)
+    assert frame is not None
+    assert frame.message == "CTRL_TPDO1" and frame.bus == "control" and frame.id_text == "181"
+    assert frame.signals["T_meas"] == pytest.approx(0.013 * 3 - 5.0, abs=0.002)
+    unknown = can.Message(arbitration_id=0x181, is_extended_id=True, data=bytes(8))
+    assert dump.decode_frame(unknown) is None
+    assert dump.classify_frame(unknown).kind is dump.FrameKind.UNKNOWN
+    assert dump.classify_frame(unknown).bus == "?"
+    short = can.Message(arbitration_id=0x181, is_extended_id=False, data=bytes(7), channel=0)
+    assert dump.decode_frame(short) is None
+    assert dump.classify_frame(short).kind is dump.FrameKind.MALFORMED
+    truth_on_control = _msg(0.0, "TRUTH_TORQUE", {"T_true": 1.0, "T_ripple": 0.0}, 0)
+    frame = dump.classify_frame(truth_on_control)
+    assert frame.kind is dump.FrameKind.DECODED and frame.on_wrong_bus
+    assert "WRONG BUS" in dump.default_decoder().describe(frame)
