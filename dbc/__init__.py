@@ -194,6 +194,16 @@ def codec(bus: BusName, message_name: str) -> FrameCodec:
     return FrameCodec(message)
 
 
+@cache
+def known_frames(bus: BusName) -> frozenset[tuple[int, bool]]:
+    """``(frame_id, is_extended_id)`` of every message in ``bus``'s DBC.
+
+    A node ignores known frames that are not addressed to it; anything else is unknown
+    and counted in its diagnostics.
+    """
+    return frozenset((m.frame_id, m.is_extended_frame) for m in database(bus).messages)
+
+
 def frame_id(bus: BusName, message_name: str) -> int:
     return codec(bus, message_name).frame_id
 

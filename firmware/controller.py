@@ -24,7 +24,7 @@ import can
 
 from firmware.config import FirmwareConfig
 from firmware.isr import AdcSample, InterruptHandler
-from hdhil.dbc import codec
+from hdhil.dbc import codec, known_frames
 
 #: CiA 402 controlword "enable operation" (switch on, enable voltage, quick stop off,
 #: enable operation).  The drive amplifier follows the DAC command only while enabled.
@@ -74,6 +74,7 @@ class ControllerNode:
             dlc=self._telemetry.length,
             check=False,
         )
+        self._known = known_frames("control")
         self._handlers = {(self._sensor.frame_id, False): self._on_sensor_frame}
 
     @property
@@ -89,9 +90,10 @@ class ControllerNode:
         self.diagnostics.syncs_sent += 1
 
     def on_message(self, msg: can.Message) -> None:
-        handler = self._handlers.get((msg.arbitration_id, msg.is_extended_id))
+        key = (msg.arbitration_id, msg.is_extended_id)
+        handler = self._handlers.get(key)
         if handler is None:
-            if msg.arbitration_id != self._sync.frame_id and not msg.is_error_frame:
+            if key not in self._known and not msg.is_error_frame:
                 unknown = self.diagnostics.unknown_frames
                 unknown[msg.arbitration_id] = unknown.get(msg.arbitration_id, 0) + 1
             return

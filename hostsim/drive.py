@@ -25,7 +25,7 @@ from typing import Literal
 
 import can
 
-from hdhil.dbc import codec
+from hdhil.dbc import codec, known_frames
 from hostsim.plant import Plant
 
 TWO_PI = 2.0 * math.pi
@@ -95,6 +95,7 @@ class DriveNode:
             can.Message(arbitration_id=c.frame_id, is_extended_id=True, dlc=c.length, check=False)
             for c in self._truth_codecs
         )
+        self._known = known_frames("control")
         self._handlers = {
             (self._sync.frame_id, False): self._on_sync,
             (self._command.frame_id, False): self._on_command,
@@ -106,9 +107,10 @@ class DriveNode:
         return self._active_V if self._enabled else 0.0
 
     def on_message(self, msg: can.Message) -> None:
-        handler = self._handlers.get((msg.arbitration_id, msg.is_extended_id))
+        key = (msg.arbitration_id, msg.is_extended_id)
+        handler = self._handlers.get(key)
         if handler is None:
-            if not msg.is_error_frame:
+            if key not in self._known and not msg.is_error_frame:
                 unknown = self.diagnostics.unknown_frames
                 unknown[msg.arbitration_id] = unknown.get(msg.arbitration_id, 0) + 1
             return

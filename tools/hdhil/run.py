@@ -80,25 +80,6 @@ class RunResult:
         return d
 
 
-class _VelocityWatch(can.Listener):
-    """Final and peak |motor velocity| as the controller reported it in telemetry."""
-
-    def __init__(self) -> None:
-        from hdhil.dbc import codec
-
-        self._codec = codec("control", "CTRL_TPDO1")
-        self._key = (self._codec.frame_id, False)
-        self.final = 0.0
-        self.peak = 0.0
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if (msg.arbitration_id, msg.is_extended_id) == self._key and len(msg.data) == 8:
-            v = self._codec.decode(msg.data)[2]
-            self.final = v
-            if abs(v) > abs(self.peak):
-                self.peak = v
-
-
 def _frame_names() -> dict[tuple[int, int], str]:
     names = {}
     for bus, channel in CHANNEL_NUMBER.items():
@@ -197,6 +178,7 @@ def run_lockstep(
                 channel=channel or f"hdhil-{run_id}-control",
                 bitrate=bitrate,
                 clock=clock,
+                trace_channel=CHANNEL_NUMBER["control"],
             )
         if interface == "virtual":
             return can.Bus(interface="virtual", channel=channel or f"hdhil-{run_id}-control")
@@ -211,7 +193,13 @@ def run_lockstep(
 
     def truth_bus() -> can.BusABC:
         # Ground truth is simulation-only: it stays in-process whatever the control bus is.
-        return can.Bus(interface="simbus", channel=f"hdhil-{run_id}-truth", bitrate=0, clock=clock)
+        return can.Bus(
+            interface="simbus",
+            channel=f"hdhil-{run_id}-truth",
+            bitrate=0,
+            clock=clock,
+            trace_channel=CHANNEL_NUMBER["truth"],
+        )
 
     buses: list[can.BusABC] = []
     listeners: list[can.Listener] = []
@@ -229,8 +217,7 @@ def run_lockstep(
         )
         counter = FrameCounter()
         scorer = TorqueScorer()
-        velocity = _VelocityWatch()
-        listeners += [counter, scorer, velocity]
+        listeners += [counter, scorer]
         if trace is not None:
             listeners.insert(0, open_writer(trace))
         tap = BusTap(
@@ -279,8 +266,8 @@ def run_lockstep(
         worst_case_load=load.worst_case_load,
         bitrate=bitrate,
         torque=scorer.result().as_dict(),
-        velocity_final=velocity.final,
-        velocity_peak=velocity.peak,
+        velocity_final=scorer.velocity_final,
+        velocity_peak=scorer.velocity_peak,
         trace=str(trace) if trace is not None else None,
         controller={
             "syncs_sent": controller.diagnostics.syncs_sent,

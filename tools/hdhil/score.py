@@ -63,15 +63,21 @@ class TorqueScorer(can.Listener):
         self._sum_filt2 = 0.0
         self._max_raw = 0.0
         self._max_filt = 0.0
+        #: Last and largest-magnitude motor velocity the telemetry reported (rad/s).
+        self.velocity_final = 0.0
+        self.velocity_peak = 0.0
 
     def on_message_received(self, msg: can.Message) -> None:
         key = (msg.arbitration_id, msg.is_extended_id)
         if key == self._truth_key and len(msg.data) == self._truth.length:
             self._T_true = self._truth.decode(msg.data)[0]
         elif key == self._tele_key and len(msg.data) == self._tele.length:
+            T_meas, T_filtered, velocity, _current = self._tele.decode(msg.data)
+            self.velocity_final = velocity
+            if abs(velocity) > abs(self.velocity_peak):
+                self.velocity_peak = velocity
             if self._T_true is None or msg.timestamp < self.skip_s:
                 return
-            T_meas, T_filtered, _vel, _cur = self._tele.decode(msg.data)
             T_true = self._T_true
             e_raw = T_meas - T_true
             e_filt = T_filtered - T_true

@@ -17,6 +17,9 @@ end of its transmission, which lasts its worst-case bit count (DESIGN.md frame b
 the maximum number of stuff bits) at the channel's bit rate.  ``bitrate=0`` turns the timing
 off (frames are stamped with the clock's time), used for the ground-truth side channel.
 
+``trace_channel``: the channel number received frames carry (``msg.channel``), e.g. the
+trace channel of the bus; by default the channel name.
+
 Delivery: one immutable-by-convention :class:`can.Message` per sent frame is queued for
 every other bus on the channel (and for the sender when ``receive_own_messages``).
 Receivers must not mutate received messages.
@@ -43,10 +46,11 @@ class SimClock:
 
 
 class _Channel:
-    __slots__ = ("bitrate", "buses", "busy_until", "clock", "frames", "lock", "name")
+    __slots__ = ("bitrate", "buses", "busy_until", "clock", "frames", "label", "lock", "name")
 
-    def __init__(self, name: str, clock: SimClock, bitrate: int) -> None:
+    def __init__(self, name: str, clock: SimClock, bitrate: int, label: str | int) -> None:
         self.name = name
+        self.label = label
         self.clock = clock
         self.bitrate = bitrate
         self.busy_until = 0.0
@@ -68,6 +72,7 @@ class SimBus(can.BusABC):
         bitrate: int = 1_000_000,
         receive_own_messages: bool = False,
         clock: SimClock | None = None,
+        trace_channel: int | None = None,
         **kwargs: Any,
     ) -> None:
         name = str(channel)
@@ -76,7 +81,8 @@ class SimBus(can.BusABC):
         with _channels_lock:
             ch = _channels.get(name)
             if ch is None:
-                ch = _Channel(name, clock or SimClock(), bitrate)
+                label = name if trace_channel is None else trace_channel
+                ch = _Channel(name, clock or SimClock(), bitrate, label)
                 _channels[name] = ch
             elif clock is not None and clock is not ch.clock:
                 raise ValueError(f"simbus channel {name!r} already runs on another clock")
@@ -85,6 +91,8 @@ class SimBus(can.BusABC):
         self._queue: deque[can.Message] = deque()
         self._ready = threading.Condition(ch.lock)
         self._receive_own = receive_own_messages
+        self._waiting = False
+        self._bits_cache: dict[tuple[int, bool], float] = {}
         self.channel_info = f"simbus channel {name!r} at {ch.bitrate} bit/s"
         super().__init__(channel=name, **kwargs)
 
@@ -99,10 +107,14 @@ class SimBus(can.BusABC):
 
     def frame_time(self, msg: can.Message) -> float:
         """Seconds the frame occupies the wire (worst-case stuffing), 0 without timing."""
-        if not self._ch.bitrate:
-            return 0.0
         length = 0 if msg.is_remote_frame else len(msg.data)
-        return worst_case_frame_bits(length, msg.is_extended_id) / self._ch.bitrate
+        key = (length, msg.is_extended_id)
+        seconds = self._bits_cache.get(key)
+        if seconds is None:
+            bitrate = self._ch.bitrate
+            seconds = worst_case_frame_bits(*key) / bitrate if bitrate else 0.0
+            self._bits_cache[key] = seconds
+        return seconds
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         ch = self._ch
@@ -119,14 +131,15 @@ class SimBus(can.BusABC):
                 is_error_frame=msg.is_error_frame,
                 dlc=msg.dlc,
                 data=bytes(msg.data),
-                channel=ch.name,
+                channel=ch.label,
                 is_rx=True,
                 check=False,
             )
             for bus in ch.buses:
                 if bus is not self or self._receive_own:
                     bus._queue.append(delivered)
-                    bus._ready.notify()
+                    if bus._waiting:
+                        bus._ready.notify()
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         """Next received frame; without receive filters this skips python-can's generic
@@ -144,7 +157,11 @@ class SimBus(can.BusABC):
         if timeout == 0:
             return None, False
         with self._ready:
-            self._ready.wait_for(lambda: bool(queue), timeout)
+            self._waiting = True
+            try:
+                self._ready.wait_for(lambda: bool(queue), timeout)
+            finally:
+                self._waiting = False
             return (queue.popleft() if queue else None), False
 
     def pending(self) -> int:

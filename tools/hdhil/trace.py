@@ -56,8 +56,9 @@ class BusTap:
     """Drains listen-only buses and hands each frame, channel-stamped, to listeners.
 
     ``buses`` maps a channel number to the bus that listens on it.  The frame handed on is
-    a fresh :class:`can.Message` carrying that channel number (received frames are shared
-    between receivers and are never modified).
+    the received frame itself when it already carries that channel number (``simbus`` with
+    ``trace_channel``), else a fresh :class:`can.Message` carrying it (received frames are
+    shared between receivers and are never modified).
     """
 
     def __init__(self, buses: dict[int, can.BusABC], listeners: Iterable[can.Listener]) -> None:
@@ -82,6 +83,10 @@ class BusTap:
         batch.sort(key=_timestamp)
         callbacks = self._callbacks
         for _, channel, msg in batch:
+            if msg.channel == channel:
+                for callback in callbacks:
+                    callback(msg)
+                continue
             stamped = can.Message(
                 timestamp=msg.timestamp,
                 arbitration_id=msg.arbitration_id,
