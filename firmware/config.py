@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from hdhil.converter import Converter
+from hdhil.dataconf import check_fields
 
 __all__ = [
     "LISTING_A1_RIPPLE",
@@ -37,21 +38,6 @@ __all__ = [
     "RippleFilterConfig",
     "Wave",
 ]
-
-
-def _finite(name: str, value: float) -> None:
-    if not math.isfinite(value):
-        raise ValueError(f"{name} must be a finite number, got {value!r}")
-
-
-def _positive(name: str, value: float) -> None:
-    if not (math.isfinite(value) and value > 0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-
-
-def _nonzero(name: str, value: float) -> None:
-    if not (math.isfinite(value) and value != 0):
-        raise ValueError(f"{name} must be a finite, non-zero number, got {value!r}")
 
 
 class Wave(enum.IntEnum):
@@ -94,9 +80,7 @@ class ReferenceConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.wave, Wave):
             raise ValueError(f"reference.wave must be one of {[w.name.lower() for w in Wave]}")
-        _finite("reference.bias_V", self.bias_V)
-        _finite("reference.amplitude_V", self.amplitude_V)
-        _positive("reference.frequency_Hz", self.frequency_Hz)
+        check_fields(self, {"bias_V": "finite", "amplitude_V": "finite", "frequency_Hz": ">0"})
         if not (math.isfinite(self.duty) and 0.0 <= self.duty <= 1.0):
             raise ValueError(f"reference.duty must be within [0, 1], got {self.duty!r}")
         if not (math.isfinite(self.step_time_s) and self.step_time_s >= 0.0):
@@ -129,10 +113,10 @@ class Calibration:
     torque_offset_V: float = 0.0
 
     def __post_init__(self) -> None:
-        _nonzero("calibration.volt2Nm", self.volt2Nm)
-        _nonzero("calibration.volt2radps", self.volt2radps)
-        _nonzero("calibration.volt2amp", self.volt2amp)
-        _finite("calibration.torque_offset_V", self.torque_offset_V)
+        check_fields(
+            self,
+            {"volt2Nm": "!=0", "volt2radps": "!=0", "volt2amp": "!=0", "torque_offset_V": "finite"},
+        )
 
 
 @dataclass(frozen=True)
@@ -155,7 +139,7 @@ class Oscillator:
     def __post_init__(self) -> None:
         if self.source not in ("motor", "output"):
             raise ValueError(f"oscillator.source must be 'motor' or 'output', got {self.source!r}")
-        _positive("oscillator.multiple", self.multiple)
+        check_fields(self, {"multiple": ">0"})
         if not (math.isfinite(self.q) and self.q >= 0.0):
             raise ValueError(f"oscillator.q must be a finite number >= 0, got {self.q!r}")
 
@@ -182,8 +166,7 @@ class RippleFilterConfig:
         for i, osc in enumerate(self.oscillators):
             if not isinstance(osc, Oscillator):
                 raise ValueError(f"ripple.oscillators[{i}] must be an Oscillator, got {osc!r}")
-        _positive("ripple.r", self.r)
-        _positive("ripple.p0", self.p0)
+        check_fields(self, {"r": ">0", "p0": ">0"})
 
     @property
     def order(self) -> int:
@@ -247,9 +230,7 @@ class FirmwareConfig:
             raise ValueError(
                 f"num_samples must be >= 0 (0 = run until stopped), got {self.num_samples!r}"
             )
-        _positive("J_load", self.J_load)
-        _positive("gear_ratio", self.gear_ratio)
-        _positive("diff_tau_s", self.diff_tau_s)
+        check_fields(self, {"J_load": ">0", "gear_ratio": ">0", "diff_tau_s": ">0"})
         for name, expected in (
             ("reference", ReferenceConfig),
             ("calibration", Calibration),

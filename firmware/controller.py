@@ -18,13 +18,14 @@ or a real drive on SocketCAN/PCAN/Kvaser.  It never subscribes to ground truth.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import can
 
 from firmware.config import FirmwareConfig
 from firmware.isr import AdcSample, InterruptHandler
-from hdhil.dbc import codec, known_frames
+from hdhil.dbc import codec
+from hdhil.node import CanNode
 
 #: CiA 402 controlword "enable operation" (switch on, enable voltage, quick stop off,
 #: enable operation).  The drive amplifier follows the DAC command only while enabled.
@@ -39,16 +40,15 @@ class ControllerDiagnostics:
     sensor_frames: int = 0
     commands_sent: int = 0
     malformed_frames: int = 0
-    unknown_frames: dict[int, int] = field(default_factory=dict)
 
 
-class ControllerNode:
+class ControllerNode(CanNode):
     """SYNC producer and torque-sensing firmware (CANopen node-ID 1)."""
 
     def __init__(self, bus: can.BusABC, config: FirmwareConfig, sync_overflow: int = 240) -> None:
         if not 2 <= sync_overflow <= 240:
             raise ValueError(f"SYNC counter overflow must be 2..240 (CiA 301), got {sync_overflow}")
-        self.bus = bus
+        super().__init__(bus)
         self.config = config
         self.isr = InterruptHandler(config)
         self.diagnostics = ControllerDiagnostics()
@@ -74,8 +74,7 @@ class ControllerNode:
             dlc=self._telemetry.length,
             check=False,
         )
-        self._known = known_frames("control")
-        self._handlers = {(self._sensor.frame_id, False): self._on_sensor_frame}
+        self.handle(self._sensor.frame_id, self._on_sensor_frame)
 
     @property
     def done(self) -> bool:
@@ -88,25 +87,6 @@ class ControllerNode:
         self._sync_msg.data = self._sync.encode(self._sync_counter)
         self.bus.send(self._sync_msg)
         self.diagnostics.syncs_sent += 1
-
-    def on_message(self, msg: can.Message) -> None:
-        key = (msg.arbitration_id, msg.is_extended_id)
-        handler = self._handlers.get(key)
-        if handler is None:
-            if key not in self._known and not msg.is_error_frame:
-                unknown = self.diagnostics.unknown_frames
-                unknown[msg.arbitration_id] = unknown.get(msg.arbitration_id, 0) + 1
-            return
-        handler(msg)
-
-    def poll(self) -> int:
-        """Handle every frame waiting on the bus without blocking; returns how many."""
-        n = 0
-        recv = self.bus.recv
-        while (msg := recv(0)) is not None:
-            self.on_message(msg)
-            n += 1
-        return n
 
     def _on_sensor_frame(self, msg: can.Message) -> None:
         if msg.is_remote_frame or len(msg.data) != self._sensor.length:

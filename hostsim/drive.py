@@ -20,12 +20,13 @@ whatever produces SYNC, including real firmware.  Ground truth goes to a separat
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import can
 
-from hdhil.dbc import codec, known_frames
+from hdhil.dbc import codec
+from hdhil.node import CanNode
 from hostsim.plant import Plant
 
 TWO_PI = 2.0 * math.pi
@@ -55,10 +56,9 @@ class DriveDiagnostics:
     syncs: int = 0
     commands: int = 0
     malformed_frames: int = 0
-    unknown_frames: dict[int, int] = field(default_factory=dict)
 
 
-class DriveNode:
+class DriveNode(CanNode):
     """Drive emulator node (CANopen node-ID 2): amplifier, harmonic drive, sensors."""
 
     def __init__(
@@ -68,7 +68,7 @@ class DriveNode:
         config: DriveConfig | None = None,
         truth_bus: can.BusABC | None = None,
     ) -> None:
-        self.bus = bus
+        super().__init__(bus)
         self.truth_bus = truth_bus
         self.plant = plant
         self.config = config or DriveConfig()
@@ -95,34 +95,13 @@ class DriveNode:
             can.Message(arbitration_id=c.frame_id, is_extended_id=True, dlc=c.length, check=False)
             for c in self._truth_codecs
         )
-        self._known = known_frames("control")
-        self._handlers = {
-            (self._sync.frame_id, False): self._on_sync,
-            (self._command.frame_id, False): self._on_command,
-        }
+        self.handle(self._sync.frame_id, self._on_sync)
+        self.handle(self._command.frame_id, self._on_command)
 
     @property
     def amplifier_input_V(self) -> float:
         """The voltage the amplifier follows now (0 V while not enabled)."""
         return self._active_V if self._enabled else 0.0
-
-    def on_message(self, msg: can.Message) -> None:
-        key = (msg.arbitration_id, msg.is_extended_id)
-        handler = self._handlers.get(key)
-        if handler is None:
-            if key not in self._known and not msg.is_error_frame:
-                unknown = self.diagnostics.unknown_frames
-                unknown[msg.arbitration_id] = unknown.get(msg.arbitration_id, 0) + 1
-            return
-        handler(msg)
-
-    def poll(self) -> int:
-        n = 0
-        recv = self.bus.recv
-        while (msg := recv(0)) is not None:
-            self.on_message(msg)
-            n += 1
-        return n
 
     def _on_sync(self, msg: can.Message) -> None:
         if self.diagnostics.syncs:

@@ -43,6 +43,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from hdhil.converter import Converter
+from hdhil.dataconf import check_fields
 
 __all__ = [
     "AmplifierConfig",
@@ -58,24 +59,6 @@ __all__ = [
 TWO_PI = 2.0 * math.pi
 ENCODER_MODULUS = 1 << 16  # 16-bit wrapping quadrature counter (seed 000: short pcsample)
 _NOISE_BLOCK = 4096  # standard normals drawn from the generator at a time
-
-
-def _check(obj: object, rules: dict[str, str]) -> None:
-    """Validate float/int fields of a config dataclass; raise ValueError naming the field.
-
-    ``rules`` maps field name to one of ``">0"``, ``">=0"`` or ``"finite"``.
-    """
-    cls = type(obj).__name__
-    for name, rule in rules.items():
-        value = getattr(obj, name)
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ValueError(f"{cls}.{name} must be a number, got {value!r}")
-        if not math.isfinite(value):
-            raise ValueError(f"{cls}.{name} must be finite, got {value!r}")
-        if rule == ">0" and not value > 0:
-            raise ValueError(f"{cls}.{name} must be > 0, got {value!r}")
-        if rule == ">=0" and not value >= 0:
-            raise ValueError(f"{cls}.{name} must be >= 0, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -98,7 +81,7 @@ class AmplifierConfig:
     torque_constant_Nm_per_A: float = 0.06
 
     def __post_init__(self) -> None:
-        _check(
+        check_fields(
             self,
             {
                 "gain_A_per_V": ">0",
@@ -157,7 +140,7 @@ class DriveTrainConfig:
     coulomb_load: float = 0.05
 
     def __post_init__(self) -> None:
-        _check(
+        check_fields(
             self,
             {
                 "gear_ratio": ">0",
@@ -212,7 +195,7 @@ class RippleConfig:
     misalignment_phase_rad: float = 0.0
 
     def __post_init__(self) -> None:
-        _check(
+        check_fields(
             self,
             {
                 "amp2_Nm": ">=0",
@@ -254,7 +237,7 @@ class SensorConfig:
     encoder_counts_per_rev: int = 8000
 
     def __post_init__(self) -> None:
-        _check(
+        check_fields(
             self,
             {
                 "volt2Nm": ">0",

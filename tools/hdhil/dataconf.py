@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 import types
 import typing
 from typing import Any, TypeVar
@@ -135,3 +136,28 @@ def to_dict(obj: Any) -> Any:
     if isinstance(obj, (list, tuple)):
         return [to_dict(v) for v in obj]
     return obj
+
+
+_RULES = {
+    "finite": ("be finite", lambda v: True),
+    ">0": ("be > 0", lambda v: v > 0),
+    ">=0": ("be >= 0", lambda v: v >= 0),
+    "!=0": ("be non-zero", lambda v: v != 0),
+}
+
+
+def check_fields(obj: object, rules: dict[str, str]) -> None:
+    """Validate numeric fields of a config dataclass in ``__post_init__``.
+
+    ``rules`` maps a field name to ``"finite"``, ``">0"``, ``">=0"`` or ``"!=0"`` (every
+    rule implies a finite number).  Raises ``ValueError`` naming ``Class.field``, which
+    ``from_dict`` turns into a one-line ``ConfigError`` naming the key.
+    """
+    cls = type(obj).__name__
+    for name, rule in rules.items():
+        value = getattr(obj, name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{cls}.{name} must be a number, got {value!r}")
+        what, ok = _RULES[rule]
+        if not (math.isfinite(value) and ok(value)):
+            raise ValueError(f"{cls}.{name} must {what} (and finite), got {value!r}")

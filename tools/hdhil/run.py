@@ -273,14 +273,14 @@ def run_lockstep(
             "syncs_sent": controller.diagnostics.syncs_sent,
             "sensor_frames": controller.diagnostics.sensor_frames,
             "malformed_frames": controller.diagnostics.malformed_frames,
-            "unknown_frames": sum(controller.diagnostics.unknown_frames.values()),
+            "unknown_frames": sum(controller.unknown_frames.values()),
             "kalman_skipped": controller.isr.chain.kalman.skipped,
         },
         drive={
             "syncs": drive.diagnostics.syncs,
             "commands": drive.diagnostics.commands,
             "malformed_frames": drive.diagnostics.malformed_frames,
-            "unknown_frames": sum(drive.diagnostics.unknown_frames.values()),
+            "unknown_frames": sum(drive.unknown_frames.values()),
         },
     )
 

@@ -1,0 +1,50 @@
+"""What every CAN node here shares: frame dispatch and non-blocking polling.
+
+A node registers a handler per ``(frame_id, is_extended_id)``.  Frames of the bus's DBC
+that are not addressed to it are ignored; anything else (an identifier the DBC does not
+know) is counted in ``unknown_frames``.  Nodes only ever use the python-can ``BusABC``
+API, so they run on ``simbus``, ``virtual``, SocketCAN or a real adapter alike.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import can
+
+from hdhil.dbc import BusName, known_frames
+
+Handler = Callable[[can.Message], None]
+
+
+class CanNode:
+    """Dispatches received frames of one bus to handlers."""
+
+    def __init__(self, bus: can.BusABC, bus_name: BusName = "control") -> None:
+        self.bus = bus
+        self.unknown_frames: dict[int, int] = {}
+        self._known = known_frames(bus_name)
+        self._handlers: dict[tuple[int, bool], Handler] = {}
+
+    def handle(self, frame_id: int, handler: Handler, extended: bool = False) -> None:
+        """Route frames with this identifier to ``handler``."""
+        self._handlers[(frame_id, extended)] = handler
+
+    def on_message(self, msg: can.Message) -> None:
+        key = (msg.arbitration_id, msg.is_extended_id)
+        handler = self._handlers.get(key)
+        if handler is not None:
+            handler(msg)
+        elif key not in self._known and not msg.is_error_frame:
+            self.unknown_frames[msg.arbitration_id] = (
+                self.unknown_frames.get(msg.arbitration_id, 0) + 1
+            )
+
+    def poll(self) -> int:
+        """Handle every frame waiting on the bus without blocking; returns how many."""
+        n = 0
+        recv = self.bus.recv
+        while (msg := recv(0)) is not None:
+            self.on_message(msg)
+            n += 1
+        return n
