@@ -9,6 +9,7 @@ become a one-line ``hdhil: error: ...`` on stderr with exit code 2, never a trac
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from collections.abc import Sequence
 
@@ -19,16 +20,24 @@ class UserError(Exception):
     """A mistake the user can fix: reported as one line, exit code 2."""
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from hdhil import bench, dump, run
+#: Subcommand modules, in the order ``hdhil --help`` lists them.
+COMMANDS = ("run", "dump", "filter_cmd", "evaluate", "tune", "plot", "calibrate", "design", "bench")
 
+
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="hdhil",
         description="Hardware-in-the-loop emulator for joint-torque sensing and control of "
         "harmonic-drive joints over CAN.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for module in (run, dump, bench):
+    for name in COMMANDS:
+        try:
+            module = importlib.import_module(f"hdhil.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"hdhil.{name}":
+                raise
+            continue
         module.register(sub)
     return parser
 
