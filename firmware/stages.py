@@ -20,7 +20,9 @@ from hdhil.converter import Converter
 
 __all__ = [
     "Differentiator",
+    "EncoderUnwrap",
     "ReferenceGenerator",
+    "VelocityIntegrator",
     "adc_read",
     "calibrate",
     "dac_write",
@@ -70,6 +72,10 @@ class Differentiator:
     (at τ = 5 ms, Ts = 1 ms they are the listing's).  The state ``v_1``, ``a_1``
     starts at 0 like the listing's globals ``float v_1 = 0.0, a_1 = 0.0``; note that
     the first call therefore sees a step from 0 to the first velocity.
+
+    Robustness (not in the listing): a non-finite velocity (possible in recorded data,
+    never from the ADC) returns NaN and leaves the state alone, so one bad sample
+    cannot poison every later acceleration.
     """
 
     __slots__ = ("a_1", "dd", "nd", "v_1")
@@ -90,6 +96,8 @@ class Differentiator:
 
     def step(self, v: float) -> float:
         """One sample: ``a = nd[0]*v + nd[1]*v_1 - dd[1]*a_1; v_1 = v; a_1 = a``."""
+        if not math.isfinite(v):
+            return math.nan
         a = self.nd[0] * v + self.nd[1] * self.v_1 - self.dd[1] * self.a_1
         self.v_1 = v
         self.a_1 = a
@@ -99,6 +107,97 @@ class Differentiator:
         """Back to the listing's initial state ``v_1 = a_1 = 0``."""
         self.v_1 = 0.0
         self.a_1 = 0.0
+
+
+class EncoderUnwrap:
+    """Unwraps the 16-bit wrapping encoder count (listing ``pcsample``) into a count that
+    keeps growing: the motor angle for the recommended ripple filter.
+
+    Seed 000, listing A.1, ``c_int10``: ``copy(PB_LAT_RD_ADDR, &pcsample, ...)`` reads
+    the quadrature decoder's 16-bit count and ``pcsample &= 0x0000ffff`` stores it; the
+    listing never unwraps it.  Unwrapping is ours: each sample adds the difference of
+    successive counts taken as a signed 16-bit number (int16 arithmetic), so crossing
+    65535 -> 0 forwards or 0 -> 65535 backwards adds +1 or -1.
+
+    Limit: the motor must move less than 32768 counts per sample (half the counter
+    range); faster motion aliases.  With 8000 counts per revolution at 1 ms that is
+    4.1 revolutions per sample, 25 700 rad/s, far above any harmonic drive's motor.
+
+    The first count is taken as it is (0..65535), so if the drive counts from 0 at
+    power-on and has not wrapped yet, ``count * 2 pi / counts_per_rev`` is the true motor
+    angle; any other constant offset only rotates the learned ripple coefficients.
+    The count is a Python int (exact forever).
+    """
+
+    __slots__ = ("_last", "count")
+
+    BITS = 16
+    _MASK = (1 << BITS) - 1
+    _HALF = 1 << (BITS - 1)
+
+    def __init__(self) -> None:
+        self.count = 0
+        self._last: int | None = None
+
+    def step(self, raw: int) -> int:
+        """One sample: the raw count (only its low 16 bits are used) to the unwrapped
+        count."""
+        raw &= self._MASK
+        last = self._last
+        if last is None:
+            self.count = raw
+        else:
+            delta = (raw - last) & self._MASK
+            if delta >= self._HALF:
+                delta -= 1 << self.BITS
+            self.count += delta
+        self._last = raw
+        return self.count
+
+    def reset(self) -> None:
+        """Forget the history: the next count starts the unwrapped count afresh."""
+        self.count = 0
+        self._last = None
+
+
+class VelocityIntegrator:
+    """Motor angle integrated from the tachometer velocity: the fallback phase source of
+    the recommended ripple filter for data without an encoder (not in the seed).
+
+    Trapezoidal rule, φ(0) = 0, φ(k) = φ(k−1) + Ts (ω(k) + ω(k−1)) / 2.  It needs only
+    the velocity measured up to k, so φ(k) is available at k.  (The paper filter's
+    oscillators advance by ω(k)·Ts from k to k+1, i.e. forward Euler.)  A non-finite
+    velocity is skipped: φ is held and the last finite velocity kept.  The angle
+    inherits the tachometer's errors: its noise integrates into a random walk and a
+    quantisation bias (0.27 rad/s per ADC count on the seed's channel) into a phase
+    drift, which the filter has to follow by adapting its coefficients.
+    """
+
+    __slots__ = ("_half_Ts", "_last", "angle")
+
+    def __init__(self, sample_period_s: float) -> None:
+        if not (math.isfinite(sample_period_s) and sample_period_s > 0):
+            raise ValueError(
+                f"sample_period_s must be a finite number > 0, got {sample_period_s!r}"
+            )
+        self._half_Ts = 0.5 * sample_period_s
+        self.angle = 0.0
+        self._last: float | None = None
+
+    def step(self, velocity: float) -> float:
+        """One sample: motor velocity (rad/s) to motor angle (rad)."""
+        if not math.isfinite(velocity):
+            return self.angle
+        last = self._last
+        if last is not None:
+            self.angle += self._half_Ts * (velocity + last)
+        self._last = velocity
+        return self.angle
+
+    def reset(self) -> None:
+        """Back to φ = 0 with no history."""
+        self.angle = 0.0
+        self._last = None
 
 
 def expected_torque(acc: float, J_load: float, gear_ratio: float) -> float:

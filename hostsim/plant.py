@@ -9,10 +9,12 @@ Signal chain (seed 000, listing A.1: ``write_dac0`` drives the MAX-100 servo
 amplifier, ``DT1401Read`` samples tacho, current monitor and torque bridge,
 ``pcsample`` is the quadrature count)::
 
-    V_dac --amplifier--> i --Kt--> motor torque --harmonic drive--> load
+    V_dac --amplifier--> i --Kt--> motor torque --harmonic drive--> load <-- tau_l
                                     (two-mass flexible joint, seed 003 Eq. 1)
-    T_true + T_ripple --bridge amp--> ADC_torque ; omega_m --tacho--> ADC_tacho
-    i --monitor--> ADC_current ; theta_m --quadrature--> ENC_count
+    T_true + mesh ripple + misalignment --gauges, bridge, amplifier--> ADC_torque
+        (hostsim.bridge: seed 000 §2, Eqs. 1-4; + wave-generator residual at 2 beta)
+    omega_m --tacho--> ADC_tacho ; i --monitor--> ADC_current
+    theta_m --quadrature--> ENC_count
 
 Conventions (all angles in rad, all velocities in rad/s, all torques in Nm):
 
@@ -32,28 +34,52 @@ Conventions (all angles in rad, all velocities in rad/s, all torques in Nm):
   load equation of Eq. 1 reads ``J_l ddq_l = T_true + tau_l + tau_g``, which is what
   the seed-000 firmware assumes when it models the free-motion torque as
   ``J_load * acc / Gain`` (listing A.1, ``T_mod``).
+* The external load torque ``tau_l`` (seed 003 Eq. 1) is the sum of the value held
+  with :meth:`Plant.set_load_torque` and the profile of :class:`LoadTorqueConfig`,
+  which the plant evaluates itself from its own clock at every sub-step.
+
+Ground truth of the torque measurement (the split the scorer relies on)::
+
+    V_torque = (T_true + T_ripple) / volt2Nm_true + torque_offset_V + noise
+    T_ripple = mesh + misalignment + bridge modulation + gauge nonlinearity + hysteresis
+
+``volt2Nm_true`` is the emulated sensor's true gain (``BridgeConfig.volt2Nm``, 6.62 Nm/V
+by default).  ``T_true + T_ripple`` is therefore the noise- and offset-free reading of
+a perfectly calibrated firmware, and ``T_ripple`` everything the gauges add to the
+transmitted torque.  A firmware that still assumes the seed's 6.6 Nm/V reads
+``(T_true + T_ripple) * 6.6 / 6.62``: that gain error is the firmware's calibration
+error (removed by ``hdhil calibrate``), not part of the ripple.
 """
 
 from __future__ import annotations
 
+import bisect
+import itertools
 import math
 from dataclasses import dataclass, field
+from typing import Literal, NamedTuple
 
 import numpy as np
 from scipy.linalg import expm
 
 from hdhil.converter import Converter
 from hdhil.dataconf import check_fields
+from hostsim.bridge import BridgeConfig, GaugeHysteresis, StrainGaugeBridge
 
 __all__ = [
     "AmplifierConfig",
+    "BridgeConfig",
     "DriveTrainConfig",
+    "LoadTorqueConfig",
     "Plant",
     "PlantConfig",
     "RippleConfig",
+    "RippleParts",
     "SensorConfig",
     "continuous_model",
     "discrete_model",
+    "steady_state_motor_velocity",
+    "steady_state_volts",
 ]
 
 TWO_PI = 2.0 * math.pi
@@ -164,23 +190,28 @@ class DriveTrainConfig:
 
 @dataclass(frozen=True)
 class RippleConfig:
-    """Torque ripple and misalignment torque seen by the flexspline strain gauges.
+    """Gear-meshing ripple and misalignment torque picked up by the flexspline gauges.
 
-    ``T_ripple = amp2 sin(2 theta_motor + phase2) + amp4 sin(4 theta_motor + phase4)
-    + (misalignment_pp / 2) sin(theta_output + misalignment_phase)``
+    ``mesh = amp2 sin(2 theta_motor + phase2) + amp4 sin(4 theta_motor + phase4)``
+    ``misalignment = (misalignment_pp / 2) sin(theta_output + misalignment_phase)``
 
-    * 2x and 4x MOTOR angle: gear meshing in two zones plus the bridge modulation
-      ``Psi_0 sin(2 beta)`` of the elliptical flexspline (seed 000 §2 Eq. 2 and §4;
-      Fig. 8: peaks at 312 and 624 rad/s at 156 rad/s).
+    * 2x and 4x MOTOR angle: gear meshing in two zones (seed 000 §4: "a real torque
+      oscillation ... twice the motor velocity, for the gear teeth in harmonic drives
+      are meshing in two zones"; Fig. 8: peaks at 312 and 624 rad/s at 156 rad/s).
+      The sensor's own 2x modulation (§2 Eq. 2) is NOT here: it comes out of the
+      gauge model (:class:`hostsim.bridge.StrainGaugeBridge`, ``PlantConfig.bridge``).
     * OUTPUT angle: misalignment of drive shaft and load (seed 000 §5: frequency
       equals the output shaft velocity; 10 Nm p-p before re-assembly, < 2 Nm after).
+      A side load that the sensor picks up ("many torque sensors exhibit the limitation
+      of being sensitive to the torques applied on the direction perpendicular to their
+      axis of measurement", §5): measurement path, like the meshing ripple.
 
-    Modelling choice: the ripple is superimposed on the transmitted torque at the
-    gauges (the measurement path) and does not drive the mechanics.  Seed 000 §4
-    says part of it is a real torque oscillation; leaving it out of the dynamics keeps
-    the ground truth exactly separable, ``T_meas_clean = T_true + T_ripple``, which is
-    what the Kalman filter is scored against.  Being locked to angle, it is also
-    present (as a static, position-dependent offset) at standstill.
+    Modelling choice: both are added to the torque the gauges see (the measurement
+    path) and do not drive the mechanics.  Seed 000 §4 says the meshing ripple is a
+    real torque oscillation; leaving it out of the dynamics keeps the ground truth
+    exactly separable, ``T_meas_clean = T_true + T_ripple`` (see the module
+    docstring), which is what the Kalman filter is scored against.  Being locked to
+    angle, both are also present (as static, position-dependent offsets) at standstill.
 
     Default amplitudes (0.6 Nm and 0.25 Nm, about 19 and 8 LSB of the 12-bit torque
     channel at 6.6 Nm/V) and phases are chosen to look like seed 000 Fig. 8/9; the
@@ -208,13 +239,105 @@ class RippleConfig:
         )
 
 
+LoadKind = Literal["none", "constant", "square", "sine", "steps"]
+
+
+@dataclass(frozen=True)
+class LoadTorqueConfig:
+    """External torque on the output, ``tau_l + tau_g`` of seed 003 Eq. 1, as a profile.
+
+    Positive drives the load forward (a negative torque brakes a forward-running
+    load).  The plant evaluates it from its own clock at the start of every
+    sub-step and holds it over the sub-step; it adds to the value held with
+    :meth:`Plant.set_load_torque`.  With ``f = frequency_Hz``, ``t' = t − start_s``
+    and ``p = frac(f t')``:
+
+    - ``none``: 0 (the default; free motion).
+    - ``constant``: ``bias_Nm`` from ``start_s`` on.
+    - ``square``: ``bias_Nm + amplitude_Nm`` while ``p < duty``, else
+      ``bias_Nm − amplitude_Nm``, from ``start_s`` on.
+    - ``sine``: ``bias_Nm + amplitude_Nm sin(2 pi f t')`` from ``start_s`` on.
+    - ``steps``: ``step_values_Nm[i]`` from ``step_times_s[i]`` (absolute times,
+      strictly increasing) until the next step; 0 before the first.  Ignores
+      ``bias_Nm``, ``amplitude_Nm``, ``frequency_Hz``, ``duty`` and ``start_s``.
+
+    All kinds are 0 before ``start_s``.
+    """
+
+    kind: LoadKind = "none"
+    bias_Nm: float = 0.0
+    amplitude_Nm: float = 0.0
+    frequency_Hz: float = 1.0
+    duty: float = 0.5
+    start_s: float = 0.0
+    step_times_s: tuple[float, ...] = ()
+    step_values_Nm: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("none", "constant", "square", "sine", "steps"):
+            raise ValueError(
+                "LoadTorqueConfig.kind must be one of none, constant, square, sine, steps, "
+                f"got {self.kind!r}"
+            )
+        check_fields(
+            self,
+            {"bias_Nm": "finite", "amplitude_Nm": "finite", "frequency_Hz": ">0",
+             "duty": ">=0", "start_s": ">=0"},
+        )  # fmt: skip
+        if self.duty > 1.0:
+            raise ValueError(f"LoadTorqueConfig.duty must be within [0, 1], got {self.duty!r}")
+        times, values = self.step_times_s, self.step_values_Nm
+        for name, seq in (("step_times_s", times), ("step_values_Nm", values)):
+            if not isinstance(seq, tuple) or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                for v in seq
+            ):
+                raise ValueError(f"LoadTorqueConfig.{name} must be a list of numbers, got {seq!r}")
+        if self.kind == "steps":
+            if not times or len(times) != len(values):
+                raise ValueError(
+                    "LoadTorqueConfig: kind 'steps' needs step_times_s and step_values_Nm of "
+                    f"the same non-zero length, got {len(times)} and {len(values)}"
+                )
+            if times[0] < 0 or any(b <= a for a, b in itertools.pairwise(times)):
+                raise ValueError(
+                    "LoadTorqueConfig.step_times_s must be >= 0 and strictly increasing, "
+                    f"got {list(times)}"
+                )
+        elif times or values:
+            raise ValueError(
+                f"LoadTorqueConfig: step_times_s / step_values_Nm are for kind 'steps', "
+                f"not {self.kind!r}"
+            )
+
+    def value(self, t: float) -> float:
+        """The load torque at time ``t`` (s), in Nm."""
+        kind = self.kind
+        if kind == "none":
+            return 0.0
+        if kind == "steps":
+            k = bisect.bisect_right(self.step_times_s, t)
+            return self.step_values_Nm[k - 1] if k else 0.0
+        if t < self.start_s:
+            return 0.0
+        if kind == "constant":
+            return self.bias_Nm
+        tp = t - self.start_s
+        if kind == "sine":
+            return self.bias_Nm + self.amplitude_Nm * math.sin(TWO_PI * self.frequency_Hz * tp)
+        cycles = self.frequency_Hz * tp
+        p = cycles - math.floor(cycles)
+        return self.bias_Nm + (self.amplitude_Nm if p < self.duty else -self.amplitude_Nm)
+
+
 @dataclass(frozen=True)
 class SensorConfig:
     """Analog sensors ahead of the 12-bit ADC, and the motor encoder.
 
-    * Torque: strain-gauge bridge through its amplifier (gain 1000, 10 V supply, seed
-      000 §2), ``V = (T_true + T_ripple) / volt2Nm + torque_offset_V + noise``;
-      ``volt2Nm`` 6.6 Nm/V is seed 000 Table 1.
+    * Torque: the strain-gauge bridge through its amplifier (``PlantConfig.bridge``,
+      seed 000 §2), ``V = (T_true + T_ripple) / volt2Nm_true + torque_offset_V +
+      noise`` (see the module docstring); ``torque_offset_V`` is the bridge
+      amplifier's electrical zero offset.
     * Tachometer on the motor: ``V = omega_motor / volt2radps + noise``; 56.2565 rad/s
       per V is seed 000 listing A.1 (``volt2radps``).
     * Amplifier current monitor: ``V = i / current_monitor_A_per_V + noise``
@@ -227,7 +350,6 @@ class SensorConfig:
     white and Gaussian; representative values, not from the seeds.
     """
 
-    volt2Nm: float = 6.6
     torque_offset_V: float = 0.0
     torque_noise_Nm: float = 0.02
     volt2radps: float = 56.2565
@@ -240,7 +362,6 @@ class SensorConfig:
         check_fields(
             self,
             {
-                "volt2Nm": ">0",
                 "torque_offset_V": "finite",
                 "torque_noise_Nm": ">=0",
                 "volt2radps": ">0",
@@ -260,16 +381,20 @@ class SensorConfig:
 class PlantConfig:
     """Everything the drive emulator's physics needs; buildable with ``dataconf.from_dict``.
 
-    ``adc`` converts the three analog sensor voltages to counts, ``dac`` is the
-    converter the drive node uses to turn received DAC counts into the amplifier
-    voltage (``dac.to_volts``) before calling :meth:`Plant.advance`.  ``substeps`` is
-    the number of internal integration steps per :meth:`Plant.advance` call.
+    ``bridge`` is the strain-gauge torque sensor (:mod:`hostsim.bridge`), ``load`` the
+    external load-torque profile.  ``adc`` converts the three analog sensor voltages
+    to counts, ``dac`` is the converter the drive node uses to turn received DAC
+    counts into the amplifier voltage (``dac.to_volts``) before calling
+    :meth:`Plant.advance`.  ``substeps`` is the number of internal integration steps
+    per :meth:`Plant.advance` call.
     """
 
     amplifier: AmplifierConfig = field(default_factory=AmplifierConfig)
     drivetrain: DriveTrainConfig = field(default_factory=DriveTrainConfig)
     ripple: RippleConfig = field(default_factory=RippleConfig)
+    bridge: BridgeConfig = field(default_factory=BridgeConfig)
     sensors: SensorConfig = field(default_factory=SensorConfig)
+    load: LoadTorqueConfig = field(default_factory=LoadTorqueConfig)
     adc: Converter = field(default_factory=Converter)
     dac: Converter = field(default_factory=Converter)
     substeps: int = 4
@@ -279,7 +404,9 @@ class PlantConfig:
             ("amplifier", AmplifierConfig),
             ("drivetrain", DriveTrainConfig),
             ("ripple", RippleConfig),
+            ("bridge", BridgeConfig),
             ("sensors", SensorConfig),
+            ("load", LoadTorqueConfig),
             ("adc", Converter),
             ("dac", Converter),
         ):
@@ -288,6 +415,49 @@ class PlantConfig:
         s = self.substeps
         if isinstance(s, bool) or not isinstance(s, int) or not 1 <= s <= 10_000:
             raise ValueError(f"PlantConfig.substeps must be an integer 1..10000, got {s!r}")
+
+
+def steady_state_motor_velocity(cfg: PlantConfig, volts: float, load_Nm: float = 0.0) -> float:
+    """Motor velocity (rad/s) the plant settles to at a constant amplifier input.
+
+    Torque balance at the output (seed 003 Eq. 1 with all accelerations zero and the
+    Coulomb friction as a sign function)::
+
+        N Kt i + tau_l = (b_m + b_l) w_out + (C_m + C_l) sign(w_out),  i = clip(g V)
+
+    0 when the drive cannot break away.  ``load_Nm`` is a constant external torque.
+    """
+    d, a = cfg.drivetrain, cfg.amplifier
+    i = max(-a.current_limit_A, min(a.current_limit_A, a.gain_A_per_V * volts))
+    drive = d.gear_ratio * a.torque_constant_Nm_per_A * i + load_Nm
+    coulomb = d.coulomb_motor + d.coulomb_load
+    if abs(drive) <= coulomb:
+        return 0.0
+    return d.gear_ratio * (drive - math.copysign(coulomb, drive)) / (d.b_motor + d.b_load)
+
+
+def steady_state_volts(cfg: PlantConfig, motor_velocity: float, load_Nm: float = 0.0) -> float:
+    """The amplifier input that holds ``motor_velocity`` (rad/s) in steady state.
+
+    The inverse of :func:`steady_state_motor_velocity` (ignoring the current limit).
+    """
+    d, a = cfg.drivetrain, cfg.amplifier
+    w_out = motor_velocity / d.gear_ratio
+    coulomb = (d.coulomb_motor + d.coulomb_load) * (
+        math.copysign(1.0, w_out) if w_out != 0 else 0.0
+    )
+    torque = (d.b_motor + d.b_load) * w_out + coulomb - load_Nm
+    return torque / (d.gear_ratio * a.torque_constant_Nm_per_A * a.gain_A_per_V)
+
+
+class RippleParts(NamedTuple):
+    """The parts of ``Plant.T_ripple`` (Nm); see the module docstring."""
+
+    mesh: float  #: gear meshing, 2x and 4x motor angle (RippleConfig)
+    misalignment: float  #: side load at the output angle (RippleConfig)
+    modulation: float  #: wave-generator residual of the bridge at 2 beta (BridgeConfig)
+    nonlinearity: float  #: cubic gauge nonlinearity (BridgeConfig)
+    hysteresis: float  #: gauge hysteresis (BridgeConfig)
 
 
 def continuous_model(cfg: PlantConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -361,6 +531,11 @@ class Plant:
     ``h`` and applied as unrolled float arithmetic; the Coulomb friction (tanh) and
     the external load torque are held constant over each sub-step at their values at
     its start.  With Coulomb friction off the result is exact for any ``substeps``.
+
+    The torque sensor is evaluated once per :meth:`advance` (and by
+    :meth:`hold_locked`): :attr:`T_ripple` and the gauge hysteresis state are updated
+    from the state at the end of the step.  The wave generator's angle relative to the
+    gauges is :attr:`beta` (see there).
     """
 
     def __init__(self, cfg: PlantConfig, seed: int = 0) -> None:
@@ -386,12 +561,20 @@ class Plant:
         self._i = 0.0
         self._ql = 0.0
         self._tau_load = 0.0
+        self._profile = None if cfg.load.kind == "none" else cfg.load.value
+        self._const_loads = (0.0,) * self._substeps
         # sensors
         s = cfg.sensors
+        self.bridge = StrainGaugeBridge(cfg.bridge)
+        self._volt2Nm = cfg.bridge.volt2Nm
+        self._hysteresis = GaugeHysteresis(cfg.bridge.hysteresis_Nm, cfg.bridge.hysteresis_span_Nm)
+        self._parts = RippleParts(0.0, 0.0, 0.0, 0.0, 0.0)
+        self._T_ripple = 0.0
+        self._update_sensor()
         self._rng = np.random.Generator(np.random.PCG64(seed))
         self._noise: list[float] = []
         self._noise_pos = 0
-        self._sig_torque_V = s.torque_noise_Nm / s.volt2Nm
+        self._sig_torque_V = s.torque_noise_Nm / self._volt2Nm
         self._sig_tacho_V = s.tacho_noise_radps / s.volt2radps
         self._sig_current_V = s.current_noise_A / s.current_monitor_A_per_V
         self._cpr_per_rad = s.encoder_counts_per_rev / TWO_PI
@@ -405,11 +588,34 @@ class Plant:
         if not math.isfinite(torque_Nm):
             raise ValueError(f"load torque must be finite, got {torque_Nm!r}")
         self._tau_load = float(torque_Nm)
+        self._const_loads = (self._tau_load,) * self._substeps
 
     @property
     def load_torque(self) -> float:
-        """The external load torque set with :meth:`set_load_torque` (Nm, output)."""
-        return self._tau_load
+        """The external load torque now (Nm, output): the value held with
+        :meth:`set_load_torque` plus the :class:`LoadTorqueConfig` profile at :attr:`time`."""
+        profile = self._profile
+        return self._tau_load + (0.0 if profile is None else profile(self._t))
+
+    def hold_locked(self, theta_motor: float, torque_Nm: float) -> None:
+        """Static state of the calibration rig (seed 000 §3): wave generator locked.
+
+        The motor shaft (wave generator) is held at ``theta_motor`` (rad, unwrapped)
+        and the flexspline carries ``torque_Nm`` (an arm and weight on the output):
+        twist ``torque_Nm / k_flex``, output angle ``theta_motor / N - twist``, all
+        velocities and the current zero.  The torque sensor is updated as by
+        :meth:`advance` (the gauge hysteresis follows the torque monotonically from its
+        previous value); :attr:`time` does not move.  The next :meth:`advance` starts
+        from this state with the lock released.
+        """
+        if not (math.isfinite(theta_motor) and math.isfinite(torque_Nm)):
+            raise ValueError(
+                f"hold_locked needs finite numbers, got {theta_motor!r}, {torque_Nm!r}"
+            )
+        self._d = torque_Nm / self.cfg.drivetrain.k_flex
+        self._ql = theta_motor / self._n - self._d
+        self._wm = self._wl = self._i = 0.0
+        self._update_sensor()
 
     def _map(self, dt: float) -> tuple[float, ...]:
         m = self._maps.get(dt)
@@ -455,10 +661,17 @@ class Plant:
         lu *= i_cmd
         qu *= i_cmd
         iu *= i_cmd
-        cm, cl, inv_eps, tau_load = self._cm, self._cl, self._inv_eps, self._tau_load
+        cm, cl, inv_eps = self._cm, self._cl, self._inv_eps
+        profile = self._profile
+        if profile is None:
+            loads = self._const_loads
+        else:  # the environment is plant physics: evaluated from the plant's own clock
+            h = dt / self._substeps
+            t0, tau = self._t, self._tau_load
+            loads = tuple(tau + profile(t0 + j * h) for j in range(self._substeps))
         tanh = math.tanh
         d, wm, wl, i, q_out = self._d, self._wm, self._wl, self._i, self._ql
-        for _ in range(self._substeps):
+        for tau_load in loads:
             tm = -cm * tanh(wm * inv_eps)
             tl = tau_load - cl * tanh(wl * inv_eps)
             d, wm, wl, q_out, i = (
@@ -473,6 +686,30 @@ class Plant:
         t = self._t + y
         self._t_carry = (t - self._t) - y
         self._t = t
+        self._update_sensor()
+
+    def _update_sensor(self) -> None:
+        """Everything the gauges add to ``T_true`` at the present state (``T_ripple``).
+
+        Mesh ripple and misalignment (:class:`RippleConfig`) are torques the gauges
+        see; the gauge nonlinearity and hysteresis act on their sum with ``T_true``;
+        the bridge's wave-generator residual (seed 000 §2 Eqs. 1-4) depends on
+        :attr:`beta` only.  All as torque-equivalents at the true gain.
+        """
+        r = self.cfg.ripple
+        th_m = self._n * (self._ql + self._d)
+        q_l = self._ql
+        mesh = r.amp2_Nm * math.sin(2.0 * th_m + r.phase2_rad) + r.amp4_Nm * math.sin(
+            4.0 * th_m + r.phase4_rad
+        )
+        mis = 0.5 * r.misalignment_pp_Nm * math.sin(q_l + r.misalignment_phase_rad)
+        torsion = self.T_true + mesh + mis
+        hyst = self._hysteresis.update(torsion)
+        bridge = self.bridge
+        nl = bridge.nonlinearity_Nm(torsion)
+        mod = bridge.modulation_V(th_m + q_l) * self._volt2Nm
+        self._parts = RippleParts(mesh, mis, mod, nl, hyst)
+        self._T_ripple = mesh + mis + mod + nl + hyst
 
     # ------------------------------------------------------------------ sensors
     def sample(self) -> tuple[int, int, int, int]:
@@ -496,7 +733,7 @@ class Plant:
         s = self.cfg.sensors
         to_counts = self.cfg.adc.to_counts
         torque_V = (
-            (self.T_true + self.T_ripple) / s.volt2Nm
+            (self.T_true + self._T_ripple) / self._volt2Nm
             + s.torque_offset_V
             + self._sig_torque_V * n_torque
         )
@@ -523,14 +760,39 @@ class Plant:
 
     @property
     def T_ripple(self) -> float:
-        """Ripple + misalignment torque added at the gauges (Nm); see :class:`RippleConfig`."""
-        r = self.cfg.ripple
-        th_m = self.theta_motor_unwrapped
-        return (
-            r.amp2_Nm * math.sin(2.0 * th_m + r.phase2_rad)
-            + r.amp4_Nm * math.sin(4.0 * th_m + r.phase4_rad)
-            + 0.5 * r.misalignment_pp_Nm * math.sin(self._ql + r.misalignment_phase_rad)
-        )
+        """Everything the torque sensor adds to ``T_true`` (Nm), noise and offset aside.
+
+        ``T_true + T_ripple`` is the sensor's noise- and offset-free reading at its true
+        gain (``BridgeConfig.volt2Nm``); :attr:`ripple_parts` splits it up.
+        """
+        return self._T_ripple
+
+    @property
+    def ripple_parts(self) -> RippleParts:
+        """:attr:`T_ripple` by origin: mesh, misalignment, bridge modulation, gauge
+        nonlinearity and hysteresis (Nm; they sum to ``T_ripple``)."""
+        return self._parts
+
+    @property
+    def torque_V_clean(self) -> float:
+        """The bridge amplifier's output without noise and offset (V)."""
+        return (self.T_true + self._T_ripple) / self._volt2Nm
+
+    @property
+    def beta(self) -> float:
+        """Angle of the wave generator relative to the gauges (rad, unwrapped).
+
+        ``beta = theta_motor + theta_output``.  The gauges sit on the flexspline, which
+        carries the output.  In a cup-type harmonic drive with the circular spline fixed
+        (seed 000 §1) the flexspline turns AGAINST the wave generator, at 1/N of its
+        speed; the plant's convention (positive motor -> positive output, module
+        docstring) hides that reversal, so relative to the gauges the wave generator
+        turns by ``theta_motor + theta_output``, i.e. (N + 1) / N times the motor angle.
+        The bridge's residual modulation is at ``2 beta`` (seed 000 §2, Eqs. 2-3):
+        1.01 x the 2x meshing frequency for N = 100, which the seed does not resolve
+        ("also twice the motor speed", §4).
+        """
+        return self._n * (self._ql + self._d) + self._ql
 
     @property
     def theta_motor_unwrapped(self) -> float:

@@ -3,22 +3,31 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
 
 from firmware.config import (
+    LISTING_A1_RIPPLE,
     LISTING_A2_RIPPLE,
+    RECOMMENDED_RIPPLE,
+    RECOMMENDED_SECTION5_RIPPLE,
+    SECTION5_RIPPLE,
     Calibration,
     FirmwareConfig,
     Oscillator,
     ReferenceConfig,
     RippleFilterConfig,
     Wave,
+    paper_config,
+    recommended_config,
 )
 from firmware.stages import (
     Differentiator,
+    EncoderUnwrap,
     ReferenceGenerator,
+    VelocityIntegrator,
     adc_read,
     calibrate,
     dac_write,
@@ -78,6 +87,15 @@ def test_differentiator_reset_and_state() -> None:
     d.step(3.0)
     d.reset()
     assert d.step(2.0) == first
+
+
+def test_differentiator_skips_a_non_finite_velocity() -> None:
+    d, clean = Differentiator(), Differentiator()
+    d.step(1.0)
+    clean.step(1.0)
+    assert math.isnan(d.step(float("nan")))
+    assert math.isnan(d.step(float("inf")))
+    assert d.step(2.0) == clean.step(2.0)  # the state was left alone
 
 
 def test_differentiator_rejects_bad_parameters() -> None:
@@ -214,9 +232,16 @@ def test_reference_step() -> None:
         (lambda: Oscillator(source="load"), "source"),  # type: ignore[arg-type]
         (lambda: Oscillator(multiple=-2.0), "multiple"),
         (lambda: Oscillator(q=-1.0), "q"),
+        (lambda: Oscillator(q=float("inf")), "q"),
         (lambda: RippleFilterConfig(oscillators=()), "oscillators"),
         (lambda: RippleFilterConfig(r=0.0), "r"),
         (lambda: RippleFilterConfig(p0=-1.0), "p0"),
+        (lambda: RippleFilterConfig(mode="kalman"), "mode"),  # type: ignore[arg-type]
+        (lambda: RippleFilterConfig(phase_source="gps"), "phase_source"),  # type: ignore[arg-type]
+        (lambda: RippleFilterConfig(residual_q=-1.0), "residual_q"),
+        (lambda: RippleFilterConfig(standstill_radps=float("nan")), "standstill_radps"),
+        (lambda: Calibration(encoder_counts_per_rev=0), "encoder_counts_per_rev"),
+        (lambda: Calibration(encoder_counts_per_rev=8000.5), "encoder_counts_per_rev"),
         (lambda: FirmwareConfig(sample_period_s=0.0), "sample_period_s"),
         (lambda: FirmwareConfig(sample_period_s=2.0), "sample_period_s"),
         (lambda: FirmwareConfig(num_samples=-1), "num_samples"),
@@ -236,12 +261,51 @@ def test_config_defaults_carry_the_seed_values() -> None:
     assert gen.value(123) == 0.0  # wavetype = 0: bias only, Nbias = 0
     d = Differentiator(cfg.diff_tau_s, cfg.sample_period_s)
     assert d.nd[0] == pytest.approx(181.818181818182, rel=1e-9)
+    assert expected_torque(100.0, cfg.J_load, cfg.gear_ratio) == pytest.approx(1.725e-2)
+    assert cfg.calibration.encoder_counts_per_rev == 8000  # the emulator's default
+    # the default filter is the recommended one, on the paper's harmonics
+    assert cfg.ripple == RECOMMENDED_RIPPLE
+    assert cfg.ripple.mode == "recommended" and cfg.ripple.phase_source == "encoder"
     assert [(o.source, o.multiple, o.q) for o in cfg.ripple.oscillators] == [
+        ("motor", 2.0, 3e-6),
+        ("motor", 4.0, 3e-6),
+    ]
+    assert cfg.ripple.r == 5e-4 and cfg.ripple.p0 == 1.0
+    assert cfg.ripple.residual_q == 1e-3 and cfg.ripple.standstill_radps == 2.0
+    assert cfg.ripple.order == 4 and cfg.ripple.n_states == 5
+    # the paper filter with the same harmonics is exactly listing A.1
+    paper = paper_config(cfg)
+    assert paper.ripple == LISTING_A1_RIPPLE
+    assert [(o.source, o.multiple, o.q) for o in paper.ripple.oscillators] == [
         ("motor", 2.0, 1e3),
         ("motor", 4.0, 1e3),
     ]
-    assert cfg.ripple.order == 4
-    assert expected_torque(100.0, cfg.J_load, cfg.gear_ratio) == pytest.approx(1.725e-2)
+    assert paper.ripple.r == 1.0 and paper.ripple.p0 == 1.0 and paper.ripple.n_states == 4
+    assert dataclasses.replace(paper, ripple=cfg.ripple) == cfg  # nothing else changed
+
+
+def test_mode_defaults_fill_unset_tuning() -> None:
+    paper = RippleFilterConfig(
+        oscillators=(Oscillator("motor", 2.0), Oscillator("output", 1.0)), mode="paper"
+    )
+    assert paper == LISTING_A2_RIPPLE  # q: 1e3 motor, 5e-2 output; R = 1
+    rec = RippleFilterConfig(oscillators=(Oscillator("motor", 2.0), Oscillator("motor", 4.0, 7e-6)))
+    assert [o.q for o in rec.oscillators] == [3e-6, 7e-6]  # an explicit q is kept
+    assert RippleFilterConfig(r=2.0).r == 2.0
+    # q 1e-4 for an output harmonic; p0 25 Nm^2 with one (seed 000 §5: up to 5 Nm)
+    assert [o.q for o in RECOMMENDED_SECTION5_RIPPLE.oscillators] == [3e-6, 3e-6, 1e-4]
+    assert RECOMMENDED_SECTION5_RIPPLE.p0 == 25.0 and RECOMMENDED_RIPPLE.p0 == 1.0
+    assert SECTION5_RIPPLE.p0 == 1.0  # listing: P = I
+    assert RippleFilterConfig(oscillators=(Oscillator("output", 1.0),), p0=4.0).p0 == 4.0
+
+
+def test_paper_and_recommended_config_switch_modes_keeping_the_harmonics() -> None:
+    s5 = FirmwareConfig(ripple=RECOMMENDED_SECTION5_RIPPLE)
+    assert paper_config(s5).ripple == SECTION5_RIPPLE
+    assert recommended_config(paper_config(s5)) == s5
+    tuned = FirmwareConfig(ripple=dataclasses.replace(LISTING_A1_RIPPLE, r=3.0))
+    assert paper_config(tuned) is tuned  # already paper: kept as it is
+    assert recommended_config(FirmwareConfig()) == FirmwareConfig()
 
 
 def test_from_dict_builds_nested_config() -> None:
@@ -251,8 +315,9 @@ def test_from_dict_builds_nested_config() -> None:
             "sample_period_s": 0.002,
             "num_samples": 5000,
             "reference": {"wave": "step", "amplitude_V": 1.0, "step_time_s": 0.25},
-            "calibration": {"torque_offset_V": 0.02},
+            "calibration": {"torque_offset_V": 0.02, "encoder_counts_per_rev": 4096},
             "ripple": {
+                "mode": "paper",
                 "oscillators": [
                     {"source": "motor", "multiple": 2},
                     {"source": "output", "multiple": 1.0, "q": 5e-2},
@@ -263,13 +328,34 @@ def test_from_dict_builds_nested_config() -> None:
         },
     )
     assert cfg.reference.wave is Wave.STEP
+    assert cfg.ripple.mode == "paper"
     assert cfg.ripple.oscillators == LISTING_A2_RIPPLE.oscillators
     assert isinstance(cfg.ripple.oscillators, tuple)
     assert cfg.dac.code_max == 32767
     assert cfg.adc.code_max == 2047
     assert cfg.calibration.volt2Nm == 6.6
+    assert cfg.calibration.encoder_counts_per_rev == 4096
     # the plain-data form goes back to the same config
     assert from_dict(FirmwareConfig, to_dict(cfg)) == cfg
+    assert from_dict(FirmwareConfig, to_dict(FirmwareConfig())) == FirmwareConfig()
+
+
+def test_from_dict_recommended_mode_keys() -> None:
+    cfg = from_dict(
+        FirmwareConfig,
+        {
+            "ripple": {
+                "mode": "recommended",
+                "phase_source": "tacho",
+                "residual_q": 5e-3,
+                "standstill_radps": 1.0,
+                "oscillators": [{"source": "motor", "multiple": 2}, {"multiple": 4, "q": 1e-6}],
+            }
+        },
+    )
+    assert cfg.ripple.phase_source == "tacho"
+    assert (cfg.ripple.residual_q, cfg.ripple.standstill_radps) == (5e-3, 1.0)
+    assert [o.q for o in cfg.ripple.oscillators] == [3e-6, 1e-6]
 
 
 def test_from_dict_accepts_wave_by_number() -> None:
@@ -286,3 +372,65 @@ def test_from_dict_unknown_key_and_bad_values() -> None:
         from_dict(FirmwareConfig, {"reference": {"wave": "cosine"}})
     with pytest.raises(ConfigError, match="source"):
         from_dict(FirmwareConfig, {"ripple": {"oscillators": [{"source": "load"}]}})
+    with pytest.raises(ConfigError, match=r"ripple\.mode"):
+        from_dict(FirmwareConfig, {"ripple": {"mode": "papr"}})
+    with pytest.raises(ConfigError, match=r"ripple\.phase_source"):
+        from_dict(FirmwareConfig, {"ripple": {"phase_source": "hall"}})
+
+
+# --------------------------------------------------------------------- encoder unwrap
+def test_encoder_unwrap_follows_counts_and_starts_at_the_first_count() -> None:
+    u = EncoderUnwrap()
+    assert u.step(1234) == 1234
+    assert u.step(1300) == 1300
+    assert u.step(1200) == 1200  # backwards
+    assert u.step(1200 + 65536) == 1200  # only the low 16 bits count
+
+
+@pytest.mark.parametrize("step_counts", [1, 199, 8000, 32767, -1, -199, -8000, -32767])
+def test_encoder_unwrap_across_wraps_in_both_directions(step_counts: int) -> None:
+    u = EncoderUnwrap()
+    start = 64536 if step_counts > 0 else 1000  # 1000 counts before the wrap
+    true = start
+    for _ in range(2000):  # wraps 65535 -> 0 (forwards) or 0 -> 65535 (backwards)
+        assert u.step(true % 65536) == true
+        true += step_counts
+    assert true // 65536 != start // 65536  # it did cross the wrap
+
+
+def test_encoder_unwrap_crossing_the_wrap_exactly() -> None:
+    u = EncoderUnwrap()
+    assert [u.step(c) for c in (65534, 65535, 0, 1, 0, 65535, 65534)] == [
+        65534,
+        65535,
+        65536,
+        65537,
+        65536,
+        65535,
+        65534,
+    ]
+    u.reset()
+    assert u.step(5) == 5
+
+
+def test_encoder_unwrap_aliases_beyond_half_the_counter() -> None:
+    # the documented limit: 32768 counts or more per sample cannot be told from backwards
+    u = EncoderUnwrap()
+    u.step(0)
+    assert u.step(32768) == -32768
+
+
+# --------------------------------------------------------------------- tacho integrator
+def test_velocity_integrator_is_trapezoidal_and_skips_non_finite() -> None:
+    vi = VelocityIntegrator(1e-3)
+    assert vi.step(10.0) == 0.0
+    assert vi.step(20.0) == pytest.approx(0.015)
+    assert vi.step(float("nan")) == pytest.approx(0.015)
+    assert vi.step(20.0) == pytest.approx(0.035)
+    # a ramp is integrated exactly: angle = a t^2 / 2
+    vi.reset()
+    for k in range(1001):
+        angle = vi.step(50.0 * k * 1e-3)
+    assert angle == pytest.approx(25.0, rel=1e-12)
+    with pytest.raises(ValueError, match="sample_period_s"):
+        VelocityIntegrator(0.0)

@@ -8,13 +8,15 @@ import math
 import numpy as np
 import pytest
 
-from firmware.config import FirmwareConfig, ReferenceConfig, Wave
+from firmware.config import FirmwareConfig, ReferenceConfig, Wave, paper_config
 from firmware.isr import AdcSample, InterruptHandler, IsrOutput, TorqueFilterChain
-from firmware.ripple import RippleKalman
+from firmware.ripple import HarmonicKalman, RippleKalman
 from firmware.stages import Differentiator
 from hdhil.converter import Converter
 
 LSB = 10.0 / 2048
+PAPER = paper_config(FirmwareConfig())  # listing A.1
+RECOMMENDED = FirmwareConfig()  # the default
 
 
 def _samples(n: int, seed: int = 0) -> list[AdcSample]:
@@ -30,36 +32,77 @@ def _samples(n: int, seed: int = 0) -> list[AdcSample]:
     ]
 
 
-def test_chain_follows_the_listing_order() -> None:
-    cfg = FirmwareConfig()
+def test_default_is_the_recommended_filter_and_paper_is_listing_a1() -> None:
+    assert isinstance(TorqueFilterChain(RECOMMENDED).kalman, HarmonicKalman)
+    assert isinstance(TorqueFilterChain(PAPER).kalman, RippleKalman)
+
+
+def test_paper_chain_follows_the_listing_order() -> None:
+    cfg = PAPER
     chain = TorqueFilterChain(cfg)
     diff = Differentiator(cfg.diff_tau_s, cfg.sample_period_s)
     kalman = RippleKalman(cfg.ripple, cfg.sample_period_s, cfg.gear_ratio)
     rng = np.random.default_rng(5)
     previous_prediction = 0.0  # listing: float T_ripple = 0.0;
-    for _ in range(50):
+    for k in range(50):
         T_meas, vel = float(rng.normal(1.0, 0.3)), float(rng.normal(120.0, 10.0))
-        acc, T_exp, dT, T_f, nxt = chain.step(T_meas, vel)
+        acc, T_exp, dT, T_f, ripple = chain.step(T_meas, vel, 12345 * k)  # encoder ignored
         assert acc == diff.step(vel)
         assert T_exp == pytest.approx(1.725e-2 * acc / 100.0)
         assert dT == pytest.approx(T_meas - T_exp)
-        assert T_f == pytest.approx(T_meas - previous_prediction)
-        assert nxt == kalman.step(dT, vel)
+        assert ripple == previous_prediction  # Torque_f = T_meas - T_ripple (previous)
+        assert T_f == T_meas - previous_prediction
+        nxt = kalman.step(dT, vel)  # T_ripple = Kalman(Delta_T, vel, sample_period)
+        assert chain.T_ripple == nxt
         previous_prediction = nxt
 
 
-def test_chain_first_filtered_torque_is_the_measurement() -> None:
-    chain = TorqueFilterChain(FirmwareConfig())
-    _, _, _, T_f, nxt = chain.step(3.25, 100.0)
-    assert T_f == 3.25
-    assert nxt != 0.0
+def test_recommended_chain_subtracts_the_ripple_at_the_measured_angle() -> None:
+    cfg = RECOMMENDED
+    chain = TorqueFilterChain(cfg)
+    kalman = HarmonicKalman(cfg.ripple, cfg.gear_ratio)
+    diff = Differentiator(cfg.diff_tau_s, cfg.sample_period_s)
+    rad_per_count = 2 * math.pi / cfg.calibration.encoder_counts_per_rev
+    rng = np.random.default_rng(6)
+    count = 65000  # wraps within the run
+    for _ in range(300):
+        T_meas, vel = float(rng.normal(1.0, 0.3)), float(rng.normal(120.0, 10.0))
+        count += 150
+        acc, T_exp, dT, T_f, ripple = chain.step(T_meas, vel, count % 65536)
+        assert acc == diff.step(vel)
+        assert dT == T_meas - T_exp
+        angle = count * rad_per_count  # the unwrapped count, started at the first count
+        assert chain.angle == pytest.approx(angle, rel=1e-12)
+        assert ripple == kalman.step(dT, vel, chain.angle)
+        assert T_f == T_meas - ripple
+
+
+def test_recommended_chain_needs_the_encoder_unless_phase_from_tacho() -> None:
+    chain = TorqueFilterChain(RECOMMENDED)
+    with pytest.raises(ValueError, match="encoder"):
+        chain.step(1.0, 100.0)
+    ripple = dataclasses.replace(RECOMMENDED.ripple, phase_source="tacho")
+    tacho = TorqueFilterChain(dataclasses.replace(RECOMMENDED, ripple=ripple))
+    tacho.step(1.0, 100.0)
+    tacho.step(1.0, 100.0)
+    assert tacho.angle == pytest.approx(100.0 * 1e-3)  # trapezoidal integral of the tacho
+
+
+@pytest.mark.parametrize("cfg", [PAPER, RECOMMENDED], ids=["paper", "recommended"])
+def test_chain_first_filtered_torque_is_the_measurement(cfg: FirmwareConfig) -> None:
+    chain = TorqueFilterChain(cfg)
+    _, _, _, T_f, ripple = chain.step(3.25, 100.0, 0)
+    assert T_f == 3.25 and ripple == 0.0
+    chain.step(3.0, 100.0, 25)
     chain.reset()
-    assert chain.step(3.25, 100.0)[3] == 3.25
+    assert chain.step(3.25, 100.0, 0)[3] == 3.25
 
 
-def test_handler_outputs_are_consistent_with_the_stages() -> None:
-    cfg = FirmwareConfig(
-        reference=ReferenceConfig(wave=Wave.SINE, bias_V=1.0, amplitude_V=2.0, frequency_Hz=5.0)
+@pytest.mark.parametrize("cfg", [PAPER, RECOMMENDED], ids=["paper", "recommended"])
+def test_handler_outputs_are_consistent_with_the_stages(cfg: FirmwareConfig) -> None:
+    cfg = dataclasses.replace(
+        cfg,
+        reference=ReferenceConfig(wave=Wave.SINE, bias_V=1.0, amplitude_V=2.0, frequency_Hz=5.0),
     )
     isr = InterruptHandler(cfg)
     previous_ripple = 0.0
@@ -71,28 +114,30 @@ def test_handler_outputs_are_consistent_with_the_stages() -> None:
         assert out.current == pytest.approx(s.current * LSB)
         assert out.T_expected == pytest.approx(1.725e-2 * out.acceleration / 100.0)
         assert out.delta_T == pytest.approx(out.T_meas - out.T_expected)
-        assert out.T_filtered == pytest.approx(out.T_meas - previous_ripple)
+        assert out.T_filtered == out.T_meas - out.ripple
+        if cfg.ripple.mode == "paper":
+            assert out.ripple == previous_ripple  # predicted at the previous interrupt
+            previous_ripple = isr.chain.T_ripple
         ref = 1.0 + 2.0 * math.sin(2 * math.pi * 5.0 * k * 1e-3)
         assert out.reference_V == pytest.approx(ref)
         assert out.dac_counts == round(ref / LSB)
         assert out.encoder == (17 * k) & 0xFFFF
-        previous_ripple = out.ripple_next
     assert isr.samplecount == 120
 
 
-def test_handler_is_the_chain_on_calibrated_signals() -> None:
+@pytest.mark.parametrize("cfg", [PAPER, RECOMMENDED], ids=["paper", "recommended"])
+def test_handler_is_the_chain_on_calibrated_signals(cfg: FirmwareConfig) -> None:
     # the offline path (chain over calibrated values) gives the online numbers exactly
-    cfg = FirmwareConfig()
     isr = InterruptHandler(cfg)
     chain = TorqueFilterChain(cfg)
     for s in _samples(60, seed=1):
         out = isr(s)
-        assert chain.step(out.T_meas, out.velocity) == (
+        assert chain.step(out.T_meas, out.velocity, s.encoder) == (
             out.acceleration,
             out.T_expected,
             out.delta_T,
             out.T_filtered,
-            out.ripple_next,
+            out.ripple,
         )
 
 
@@ -156,22 +201,29 @@ def test_reset_starts_over() -> None:
     assert again == first
 
 
-def test_handler_cancels_ripple_from_adc_counts() -> None:
-    # Free motion at 156 rad/s with a meshing ripple on the bridge: the filtered torque
-    # keeps far less ripple than the measured one (seed 000, Fig. 9).
-    cfg = FirmwareConfig()
+def _free_motion_at_constant_speed(cfg: FirmwareConfig, n: int) -> tuple[list, list]:
+    """Free motion at 156 rad/s with a meshing ripple on the bridge: the drive's counts
+    (torque, tacho, encoder) into the handler; returns (T_meas, T_filtered)."""
     isr = InterruptHandler(cfg)
     adc = cfg.adc
     vel = 156.0
     tacho = adc.to_counts(vel / 56.2565)
     vel_q = adc.to_volts(tacho) * 56.2565
     meas, filt = [], []
-    for k in range(3000):
+    for k in range(n):
         theta = vel_q * k * 1e-3
         ripple_Nm = 0.8 * math.sin(2 * theta) + 0.3 * math.sin(4 * theta + 0.5)
-        out = isr(AdcSample(adc.to_counts(ripple_Nm / 6.6), tacho, 0, 0))
+        encoder = math.floor(theta * 8000 / (2 * math.pi)) % 65536
+        out = isr(AdcSample(adc.to_counts(ripple_Nm / 6.6), tacho, 0, encoder))
         meas.append(out.T_meas)
         filt.append(out.T_filtered)
+    return meas, filt
+
+
+@pytest.mark.parametrize("cfg", [PAPER, RECOMMENDED], ids=["paper", "recommended"])
+def test_handler_cancels_ripple_from_adc_counts(cfg: FirmwareConfig) -> None:
+    # seed 000, Fig. 9: the filtered torque keeps far less ripple than the measured one
+    meas, filt = _free_motion_at_constant_speed(cfg, 3000)
     rms_meas = float(np.sqrt(np.mean(np.square(meas[-1000:]))))
     rms_filt = float(np.sqrt(np.mean(np.square(filt[-1000:]))))
     assert rms_meas > 0.5

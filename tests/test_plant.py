@@ -11,19 +11,24 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from hdhil.dataconf import ConfigError, from_dict
+from hostsim.bridge import BridgeConfig
 from hostsim.plant import (
     AmplifierConfig,
     DriveTrainConfig,
+    LoadTorqueConfig,
     Plant,
     PlantConfig,
     RippleConfig,
     SensorConfig,
+    steady_state_motor_velocity,
+    steady_state_volts,
 )
 from hostsim.scenario import load_scenario
 
 LSB = 10.0 / 2048  # 12-bit, +/-10 V (the converter spec shared with the firmware)
 QUIET = SensorConfig(torque_noise_Nm=0.0, tacho_noise_radps=0.0, current_noise_A=0.0)
 NO_RIPPLE = RippleConfig(amp2_Nm=0.0, amp4_Nm=0.0, misalignment_pp_Nm=0.0)
+TRUE_GAIN = BridgeConfig().volt2Nm  # the emulated sensor's true Nm/V (6.62, not the seed's 6.6)
 
 
 def make(
@@ -32,6 +37,8 @@ def make(
     drivetrain: dict | None = None,
     ripple: dict | None = None,
     sensors: dict | None = None,
+    bridge: BridgeConfig | None = None,
+    load: dict | None = None,
     substeps: int = 4,
     seed: int = 0,
 ) -> Plant:
@@ -40,7 +47,9 @@ def make(
         amplifier=replace(AmplifierConfig(), **(amplifier or {})),
         drivetrain=replace(DriveTrainConfig(), **(drivetrain or {})),
         ripple=replace(RippleConfig(), **(ripple or {})),
+        bridge=bridge or BridgeConfig(),
         sensors=replace(QUIET, **(sensors or {})),
+        load=LoadTorqueConfig(**(load or {})),
         substeps=substeps,
     )
     return Plant(cfg, seed=seed)
@@ -75,7 +84,13 @@ def test_plant_config_builds_from_nested_dict() -> None:
         (AmplifierConfig, "current_lag_s", -1e-4),
         (AmplifierConfig, "current_limit_A", float("nan")),
         (RippleConfig, "amp2_Nm", -0.5),
-        (SensorConfig, "volt2Nm", 0.0),
+        (BridgeConfig, "volt2Nm", 0.0),
+        (BridgeConfig, "hysteresis_span_Nm", 0.0),
+        (BridgeConfig, "position_error_deg", (0.5,) * 7),
+        (BridgeConfig, "sensitivity_error", (0.0,) * 7 + (-0.9,)),
+        (LoadTorqueConfig, "frequency_Hz", 0.0),
+        (LoadTorqueConfig, "duty", 1.5),
+        (LoadTorqueConfig, "kind", "ramp"),
         (SensorConfig, "encoder_counts_per_rev", 0),
         (PlantConfig, "substeps", 0),
     ],
@@ -345,7 +360,8 @@ def test_adc_counts_follow_the_calibrations_with_noise_off() -> None:
     for k in range(600):
         plant.advance(0.0 if k < 50 else 0.654296875, 1e-3)
         torque, tacho, current, _ = plant.sample()
-        expected = round(((plant.T_true + plant.T_ripple) / 6.6 + 0.25) / LSB)
+        # the sensor's TRUE gain (BridgeConfig.volt2Nm), not the seed's 6.6
+        expected = round(((plant.T_true + plant.T_ripple) / TRUE_GAIN + 0.25) / LSB)
         assert torque == expected
         assert tacho == round(plant.omega_motor / 56.2565 / LSB)
         assert current == round(plant.current / 1.0 / LSB)
@@ -424,7 +440,7 @@ def test_torque_ripple_peaks_at_2x_4x_motor_and_1x_output_velocity() -> None:
         counts[k] = plant.sample()[0]
         w_m[k] = plant.omega_motor
     assert np.ptp(w_m) < 1e-3 * np.mean(w_m)  # constant speed
-    torque = counts * LSB * 6.6
+    torque = counts * LSB * TRUE_GAIN
     spectrum = np.abs(np.fft.rfft((torque - torque.mean()) * np.hanning(n)))
     freqs = 2 * np.pi * np.fft.rfftfreq(n, 1e-3)  # rad/s
     wm = float(np.mean(w_m))
@@ -444,19 +460,36 @@ def test_torque_ripple_peaks_at_2x_4x_motor_and_1x_output_velocity() -> None:
     assert a1 < 0.05 * a4
 
 
-def test_ripple_is_locked_to_motor_and_output_angles() -> None:
-    plant = make(ripple={"misalignment_pp_Nm": 1.5, "misalignment_phase_rad": -0.3})
+@pytest.mark.parametrize("perfect_bridge", [True, False])
+def test_ripple_is_locked_to_motor_and_output_angles(perfect_bridge: bool) -> None:
+    """Mesh ripple at 2x/4x motor angle, misalignment at the output angle; with a
+    perfect bridge that is all of T_ripple, otherwise the gauge parts add to it."""
+    plant = make(
+        ripple={"misalignment_pp_Nm": 1.5, "misalignment_phase_rad": -0.3},
+        bridge=BridgeConfig.perfect() if perfect_bridge else BridgeConfig(),
+    )
     r = plant.cfg.ripple
     for _ in range(7):
         run(plant, 0.5, 0.0371)
         th, tho = plant.theta_motor, plant.theta_output
         assert 0.0 <= th < 2 * math.pi and 0.0 <= tho < 2 * math.pi
-        expected = (
-            r.amp2_Nm * math.sin(2 * th + r.phase2_rad)
-            + r.amp4_Nm * math.sin(4 * th + r.phase4_rad)
-            + 0.75 * math.sin(tho + r.misalignment_phase_rad)
+        mesh = r.amp2_Nm * math.sin(2 * th + r.phase2_rad) + r.amp4_Nm * math.sin(
+            4 * th + r.phase4_rad
         )
-        assert plant.T_ripple == pytest.approx(expected, abs=1e-9)
+        mis = 0.75 * math.sin(tho + r.misalignment_phase_rad)
+        parts = plant.ripple_parts
+        assert parts.mesh == pytest.approx(mesh, abs=1e-9)
+        assert parts.misalignment == pytest.approx(mis, abs=1e-9)
+        assert plant.T_ripple == pytest.approx(sum(parts), abs=1e-12)
+        gauges = parts.modulation + parts.nonlinearity + parts.hysteresis
+        if perfect_bridge:
+            assert abs(gauges) < 1e-12  # exact cancellation up to rounding (Eq. 3)
+            assert plant.T_ripple == pytest.approx(mesh + mis, abs=1e-9)
+        else:
+            assert parts.modulation == pytest.approx(
+                plant.bridge.modulation_Nm(plant.beta), abs=1e-12
+            )
+            assert 0.0 < abs(gauges) < 0.2
 
 
 # --------------------------------------------------------------------------- noise
@@ -489,8 +522,171 @@ def test_noise_has_the_configured_standard_deviation_in_physical_units() -> None
         quiet.advance(0.654296875, 1e-3)
         noisy.advance(0.654296875, 1e-3)
         q, n = quiet.sample(), noisy.sample()
-        diffs_t.append((n[0] - q[0]) * LSB * 6.6)
+        diffs_t.append((n[0] - q[0]) * LSB * TRUE_GAIN)
         diffs_v.append((n[1] - q[1]) * LSB * 56.2565)
     assert np.std(diffs_t) == pytest.approx(1.0, rel=0.05)
     assert np.std(diffs_v) == pytest.approx(2.0, rel=0.05)
     assert abs(np.mean(diffs_t)) < 0.05
+
+
+# --------------------------------------------------------------------------- bridge in the plant
+
+
+def test_bridge_modulation_is_locked_to_twice_the_relative_wave_generator_angle() -> None:
+    """Seed 000 §2: the gauges' residual is at 2 beta, beta = theta_m + theta_out.
+
+    Mesh ripple, gauge nonlinearity and hysteresis off: the torque reading minus
+    T_true is then exactly a cos 2 beta + b sin 2 beta, with the bridge's amplitude; a
+    fit at 2 theta_motor alone (what the seed cannot tell apart) leaves a residual.
+    """
+    bridge = BridgeConfig(nonlinearity=0.0, hysteresis_Nm=0.0)
+    plant = make(ripple={"amp2_Nm": 0.0, "amp4_Nm": 0.0}, bridge=bridge)
+    run(plant, 0.654296875, 1.0)
+    betas, motor, extra = [], [], []
+    for _ in range(3000):
+        plant.advance(0.654296875, 1e-3)
+        betas.append(plant.beta)
+        motor.append(plant.theta_motor_unwrapped)
+        extra.append(plant.torque_V_clean * TRUE_GAIN - plant.T_true)
+    betas_a, y = np.array(betas), np.array(extra)
+    assert np.allclose(betas_a, np.array(motor) * 1.01 + 0.0, rtol=0, atol=1e-3 * betas_a.max())
+
+    def fit(angle: np.ndarray) -> tuple[float, float]:
+        basis = np.column_stack([np.cos(2 * angle), np.sin(2 * angle)])
+        coef, *_ = np.linalg.lstsq(basis, y, rcond=None)
+        return float(np.hypot(*coef)), float(np.max(np.abs(basis @ coef - y)))
+
+    amp, worst = fit(betas_a)
+    assert amp == pytest.approx(plant.bridge.modulation_amplitude_Nm, rel=1e-9)
+    assert worst < 1e-9
+    _, worst_motor = fit(np.array(motor))
+    assert worst_motor > 0.5 * amp  # 2 theta_motor is not the sensor's angle
+
+
+def test_hold_locked_is_the_calibration_rigs_static_state() -> None:
+    plant = make()
+    run(plant, 0.654296875, 0.3)
+    d = plant.cfg.drivetrain
+    theta_m = 123.4
+    plant.hold_locked(theta_m, 25.0)
+    assert plant.T_true == pytest.approx(25.0, rel=1e-12)
+    assert plant.theta_motor_unwrapped == pytest.approx(theta_m, rel=1e-12)
+    assert plant.theta_output_unwrapped == pytest.approx(theta_m / d.gear_ratio - 25.0 / d.k_flex)
+    assert plant.omega_motor == plant.omega_output == plant.current == 0.0
+    assert plant.beta == pytest.approx(theta_m + plant.theta_output_unwrapped)
+    t = plant.time
+    torque, tacho, current, _ = plant.sample()
+    assert plant.time == t and tacho == 0 and current == 0
+    assert torque == round((25.0 + plant.T_ripple) / TRUE_GAIN / LSB)
+    with pytest.raises(ValueError):
+        plant.hold_locked(float("nan"), 1.0)
+
+
+def test_gauge_hysteresis_makes_the_reading_lag_the_load() -> None:
+    """Loading then unloading to the same torque: the unloading reading is higher."""
+    plant = make(bridge=BridgeConfig.perfect(hysteresis_Nm=0.05, hysteresis_span_Nm=0.5))
+    plant.hold_locked(0.0, -10.0)
+    plant.hold_locked(0.0, 5.0)  # rising
+    rising = plant.T_ripple
+    plant.hold_locked(0.0, 10.0)
+    plant.hold_locked(0.0, 5.0)  # falling
+    falling = plant.T_ripple
+    mesh = plant.ripple_parts.mesh
+    assert rising - mesh == pytest.approx(-0.05, rel=1e-3)
+    assert falling - mesh == pytest.approx(+0.05, rel=1e-3)
+
+
+# --------------------------------------------------------------------------- load torque
+
+
+@pytest.mark.parametrize(
+    ("cfg", "expected"),
+    [
+        ({}, {0.0: 0.0, 1.0: 0.0}),
+        ({"kind": "constant", "bias_Nm": -2.0, "start_s": 0.5}, {0.4: 0.0, 0.5: -2.0, 9.0: -2.0}),
+        (
+            {"kind": "square", "bias_Nm": 1.0, "amplitude_Nm": 3.0, "frequency_Hz": 2.0},
+            {0.0: 4.0, 0.2: 4.0, 0.25: -2.0, 0.49: -2.0, 0.5: 4.0, 1.3: -2.0},
+        ),
+        (
+            {"kind": "square", "amplitude_Nm": 1.0, "duty": 0.25, "start_s": 1.0},
+            {0.9: 0.0, 1.0: 1.0, 1.2: 1.0, 1.3: -1.0},
+        ),
+        (
+            {"kind": "sine", "bias_Nm": 0.5, "amplitude_Nm": 2.0, "frequency_Hz": 0.5},
+            {0.0: 0.5, 0.5: 2.5, 1.5: -1.5},
+        ),
+        (
+            {"kind": "steps", "step_times_s": (1.0, 2.0, 2.5), "step_values_Nm": (-1.0, 0.5, 0)},
+            {0.0: 0.0, 0.999: 0.0, 1.0: -1.0, 2.1: 0.5, 2.5: 0.0, 10.0: 0.0},
+        ),
+    ],
+)
+def test_load_profiles(cfg: dict, expected: dict[float, float]) -> None:
+    load = from_dict(LoadTorqueConfig, cfg)
+    for t, value in expected.items():
+        assert load.value(t) == pytest.approx(value, abs=1e-12), t
+
+
+@pytest.mark.parametrize(
+    ("cfg", "match"),
+    [
+        ({"kind": "steps"}, "same non-zero length"),
+        ({"kind": "steps", "step_times_s": [1.0, 2.0], "step_values_Nm": [1.0]}, "same"),
+        ({"kind": "steps", "step_times_s": [1.0, 1.0], "step_values_Nm": [1, 2]}, "increasing"),
+        ({"kind": "sine", "step_times_s": [1.0], "step_values_Nm": [1.0]}, "kind 'steps'"),
+        ({"kind": "ramp"}, "must be one of"),
+        ({"kind": "sine", "frequency_Hz": -1.0}, "frequency_Hz"),
+        ({"start_s": -0.1}, "start_s"),
+        ({"step_values_Nm": ["x"]}, "expected a number"),
+    ],
+)
+def test_load_config_errors_are_one_line(cfg: dict, match: str) -> None:
+    with pytest.raises(ConfigError, match=match) as info:
+        from_dict(PlantConfig, {"load": cfg})
+    assert "\n" not in str(info.value)
+
+
+def test_plant_evaluates_the_load_profile_from_its_own_clock() -> None:
+    """A square load equals the same torque switched by hand at the same instants."""
+    square = {"kind": "square", "bias_Nm": -0.5, "amplitude_Nm": 1.0, "frequency_Hz": 5.0}
+    auto = make(load=square, substeps=4)
+    manual = make(substeps=4)
+    profile = auto.cfg.load
+    for k in range(1500):
+        assert auto.load_torque == pytest.approx(profile.value(auto.time))
+        manual.set_load_torque(profile.value(k * 1e-3))  # 0.1 s half periods: on the grid
+        auto.advance(0.654296875, 1e-3)
+        manual.advance(0.654296875, 1e-3)
+        assert auto.T_true == manual.T_true
+    assert auto.omega_motor == manual.omega_motor > 0
+
+
+def test_load_profile_switches_inside_a_period_at_the_sub_step() -> None:
+    """A step at 2.5 ms, advanced in 1 ms periods of 4 sub-steps: it acts from 2.5 ms."""
+    steps = {"kind": "steps", "step_times_s": (0.0025,), "step_values_Nm": (2.0,)}
+    coarse = make(load=steps, substeps=4)
+    fine = make(substeps=1)
+    for k in range(40):
+        fine.set_load_torque(2.0 if k >= 10 else 0.0)
+        fine.advance(0.0, 2.5e-4)
+        if k % 4 == 3:
+            coarse.advance(0.0, 1e-3)
+            assert coarse.T_true == pytest.approx(fine.T_true, rel=1e-9, abs=1e-12)
+    assert abs(coarse.T_true) > 0.5
+
+
+def test_set_load_torque_adds_to_the_profile() -> None:
+    plant = make(load={"kind": "constant", "bias_Nm": 1.0})
+    plant.set_load_torque(0.25)
+    assert plant.load_torque == 1.25
+
+
+@pytest.mark.parametrize(("volts", "load"), [(0.654296875, 0.0), (0.5, -0.5), (-0.8, 0.3)])
+def test_steady_state_relation_matches_the_simulation(volts: float, load: float) -> None:
+    plant = make(load={"kind": "constant", "bias_Nm": load})
+    run(plant, volts, 3.0)
+    w = steady_state_motor_velocity(plant.cfg, volts, load)
+    assert plant.omega_motor == pytest.approx(w, rel=2e-3)
+    assert steady_state_volts(plant.cfg, w, load) == pytest.approx(volts, rel=1e-9)
+    assert steady_state_motor_velocity(plant.cfg, 0.1) == 0.0  # below breakaway

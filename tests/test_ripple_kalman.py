@@ -23,7 +23,7 @@ GEAR = 100.0
 
 
 def one_block(q: float = 0.5, r: float = 1.0, p0: float = 1.0) -> RippleKalman:
-    cfg = RippleFilterConfig(oscillators=(Oscillator("motor", 2.0, q),), r=r, p0=p0)
+    cfg = RippleFilterConfig(oscillators=(Oscillator("motor", 2.0, q),), r=r, p0=p0, mode="paper")
     return RippleKalman(cfg, T, GEAR)
 
 
@@ -189,7 +189,9 @@ def test_matches_the_listing_loop_for_loop(cfg: RippleFilterConfig, a2: bool) ->
 
 
 def test_output_block_frequency_uses_gear_ratio() -> None:
-    cfg = RippleFilterConfig(oscillators=(Oscillator("motor", 2.0), Oscillator("output", 3.0)))
+    cfg = RippleFilterConfig(
+        oscillators=(Oscillator("motor", 2.0), Oscillator("output", 3.0)), mode="paper"
+    )
     kf = RippleKalman(cfg, T, gear_ratio=50.0)
     kf.step(0.0, 200.0)
     phi = kf.phi
@@ -295,3 +297,27 @@ def test_covariance_stays_bounded_and_symmetric_over_a_long_run() -> None:
     assert np.all(np.isfinite(P))
     np.testing.assert_allclose(P, P.T, rtol=1e-9, atol=1e-9)
     assert np.all(np.linalg.eigvalsh((P + P.T) / 2) > 0)
+
+
+def test_paper_presets_are_the_listings() -> None:
+    # Listing A.1: Q = 1000 I, R = 1, P = I, 2x and 4x; A.2: Q[2][2] = Q[3][3] = 5e-2, 1x output.
+    assert LISTING_A1_RIPPLE.mode == LISTING_A2_RIPPLE.mode == SECTION5_RIPPLE.mode == "paper"
+    assert [(o.source, o.multiple, o.q) for o in LISTING_A1_RIPPLE.oscillators] == [
+        ("motor", 2.0, 1e3),
+        ("motor", 4.0, 1e3),
+    ]
+    assert [(o.source, o.multiple, o.q) for o in LISTING_A2_RIPPLE.oscillators] == [
+        ("motor", 2.0, 1e3),
+        ("output", 1.0, 5e-2),
+    ]
+    assert SECTION5_RIPPLE.order == 6
+    for cfg in (LISTING_A1_RIPPLE, LISTING_A2_RIPPLE, SECTION5_RIPPLE):
+        assert cfg.r == 1.0 and cfg.p0 == 1.0
+    kf = RippleKalman(LISTING_A1_RIPPLE, T, GEAR)
+    np.testing.assert_array_equal(kf.Q, 1e3 * np.eye(4))
+    np.testing.assert_array_equal(kf.C, [1.0, 0.0, 1.0, 0.0])
+
+
+def test_paper_filter_refuses_a_recommended_config() -> None:
+    with pytest.raises(ValueError, match="paper"):
+        RippleKalman(RippleFilterConfig(), T, GEAR)

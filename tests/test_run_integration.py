@@ -180,3 +180,19 @@ def test_ctrl_c_leaves_a_valid_trace(tmp_path, suffix, signame):
     assert result["interrupted"] and 0 < result["cycles"] < 600_000
     frames = _decoded(trace)
     assert len(frames) == sum(result["frames_sent"].values()) == result["frames_total"]
+
+
+def test_run_uses_the_calibrated_gain(tmp_path, capsys):
+    """hdhil calibrate --out FILE, then hdhil run --calibration FILE: T_meas gets the gain."""
+    cal = tmp_path / "cal.toml"
+    assert main(["calibrate", "--out", str(cal)]) == 0
+    capsys.readouterr()
+    args = ["run", "--duration", "0.3", "--trace", "", "--json", "--no-evaluate"]
+    assert main(args) == 0
+    before = json.loads(capsys.readouterr().out)
+    assert main([*args, "--calibration", str(cal)]) == 0
+    after = json.loads(capsys.readouterr().out)
+    # The emulator's true sensor gain is not the nominal 6.6 Nm/V the firmware assumes;
+    # with the calibrated gain the measured torque's error against truth changes.
+    assert after["torque"]["rms_error_raw"] != before["torque"]["rms_error_raw"]
+    assert main([*args, "--calibration", str(tmp_path / "missing.toml")]) == 2

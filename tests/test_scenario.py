@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import math
 import shutil
+from functools import cache
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from hdhil.dataconf import ConfigError
-from hostsim.plant import PlantConfig
+from firmware.config import FirmwareConfig
+from firmware.stages import ReferenceGenerator
+from hdhil.dataconf import ConfigError, from_dict
+from hostsim.plant import Plant, PlantConfig, steady_state_motor_velocity
 from hostsim.scenario import Scenario, list_scenarios, load_scenario
 
 SHIPPED = Path(__file__).resolve().parents[1] / "hostsim" / "scenarios"
@@ -28,7 +33,7 @@ def write(tmp_path: Path, text: str, name: str = "s.toml") -> Path:
 
 def test_list_scenarios_names_every_shipped_file() -> None:
     names = list_scenarios()
-    assert "free-motion" in names
+    assert {"free-motion", "misalignment", "speed-chirp", "torque-steps"} <= set(names)
     assert names == sorted(p.stem for p in SHIPPED.glob("*.toml"))
 
 
@@ -153,5 +158,134 @@ def test_bad_header(tmp_path: Path, header: str, match: str) -> None:
 
 def test_override_with_bad_value_is_reported() -> None:
     one_line_error(
-        "free-motion", {"plant": {"sensors": {"volt2Nm": 0}}}, match=r"volt2Nm must be > 0"
+        "free-motion", {"plant": {"bridge": {"volt2Nm": 0}}}, match=r"volt2Nm must be > 0"
     )
+
+
+# --------------------------------------------------------------------------- shipped physics
+
+
+def test_every_shipped_firmware_table_is_valid_firmware_configuration() -> None:
+    for name in list_scenarios():
+        scn = load_scenario(name)
+        from_dict(FirmwareConfig, scn.firmware, "firmware")
+        assert scn.description, name
+
+
+class Trace:
+    """Plant-only run of a scenario (no CAN): the firmware's reference through the DAC,
+    held over each sample period; arrays per 1 ms sample."""
+
+    def __init__(self, name: str, dt: float = 1e-3) -> None:
+        self.scn = scn = load_scenario(name)
+        fw = from_dict(FirmwareConfig, scn.firmware, "firmware")
+        ref = ReferenceGenerator(fw.reference, fw.sample_period_s)
+        plant = Plant(scn.plant, seed=scn.seed)
+        dac, adc = scn.plant.dac, scn.plant.adc
+        per = round(fw.sample_period_s / dt)
+        n = round(scn.duration_s / fw.sample_period_s)
+        cols = ("t", "w_m", "w_out", "th_out", "T_true", "T_meas", "mis", "i", "load")
+        self.__dict__.update({c: np.empty(n * per if c == "T_true" else n) for c in cols})
+        self.t_fine = np.empty(n * per)
+        gain = scn.plant.bridge.volt2Nm
+        for k in range(n):
+            volts = dac.to_volts(dac.to_counts(ref.value(k)))
+            for j in range(per):
+                plant.advance(volts, dt)
+                self.T_true[k * per + j] = plant.T_true
+                self.t_fine[k * per + j] = plant.time
+            self.t[k] = plant.time
+            self.w_m[k] = plant.omega_motor
+            self.w_out[k] = plant.omega_output
+            self.th_out[k] = plant.theta_output_unwrapped
+            self.T_meas[k] = adc.to_volts(plant.sample()[0]) * gain
+            self.mis[k] = plant.ripple_parts.misalignment
+            self.i[k] = plant.current
+            self.load[k] = plant.load_torque
+        self.plant = plant
+
+
+@cache
+def trace(name: str, dt: float = 1e-3) -> Trace:
+    return Trace(name, dt)
+
+
+def test_misalignment_scenario_fig_10() -> None:
+    """Constant ~156 rad/s after a short acceleration, >= 3 output revolutions, expected
+    torque constant, measured torque sinusoidal at the output angle with 10 Nm p-p."""
+    tr = trace("misalignment")
+    late = tr.t > 1.0
+    assert tr.scn.duration_s >= 15.0
+    assert np.mean(tr.w_m[late]) == pytest.approx(156.0, abs=4.0)
+    assert np.ptp(tr.w_m[late]) < 0.01 * 156
+    assert tr.th_out[-1] > 3 * 2 * math.pi
+    assert np.ptp(tr.T_true[late]) < 0.1  # the true (expected) torque is constant
+    # the measurement: fit DC + sinusoid at the output angle (+ nothing else)
+    th, y = tr.th_out[late], tr.T_meas[late]
+    basis = np.column_stack([np.ones_like(th), np.cos(th), np.sin(th)])
+    coef, *_ = np.linalg.lstsq(basis, y, rcond=None)
+    assert 2 * math.hypot(coef[1], coef[2]) == pytest.approx(10.0, abs=0.1)
+    # it is at the output velocity: the spectral line sits at mean(w_out)
+    spec = np.abs(np.fft.rfft((y - y.mean()) * np.hanning(len(y)), n=1 << 18))
+    freqs = 2 * math.pi * np.fft.rfftfreq(1 << 18, 1e-3)
+    band = freqs < 20.0
+    peak = freqs[band][np.argmax(spec[band])]
+    assert peak == pytest.approx(np.mean(tr.w_out[late]), rel=0.03)
+    assert 4.0 < np.ptp(tr.mis) / 2 <= 5.0 + 1e-9
+
+
+def test_speed_chirp_sweeps_20_to_200_rad_s_and_back() -> None:
+    tr = trace("speed-chirp")
+    after = tr.t > 1.0
+    w = tr.w_m[after]
+    t = tr.t[after]
+    assert np.max(w) == pytest.approx(200.0, abs=6.0)
+    assert np.min(w) == pytest.approx(20.0, abs=4.0)
+    assert t[np.argmax(w)] == pytest.approx(5.0, abs=0.5)
+    assert t[np.argmin(w)] == pytest.approx(15.0, abs=0.5)
+    bias = from_dict(FirmwareConfig, tr.scn.firmware).reference.bias_V
+    assert w[-1] == pytest.approx(steady_state_motor_velocity(tr.scn.plant, bias), rel=0.05)
+    assert np.max(np.abs(tr.i)) < tr.scn.plant.amplifier.current_limit_A
+
+    # the ripple line sweeps with the speed: the 2x peak of the measured torque
+    def line(t0: float) -> tuple[float, float]:
+        sel = (tr.t > t0 - 0.25) & (tr.t < t0 + 0.25)
+        y = tr.T_meas[sel]
+        spec = np.abs(np.fft.rfft((y - y.mean()) * np.hanning(len(y)), n=1 << 14))
+        f = 2 * math.pi * np.fft.rfftfreq(1 << 14, 1e-3)
+        return float(f[np.argmax(spec)]), float(np.mean(tr.w_m[sel]))
+
+    for t0 in (5.0, 10.0, 14.0):
+        peak, speed = line(t0)
+        assert peak == pytest.approx(2 * speed, rel=0.05), t0
+
+
+def test_torque_steps_show_in_the_true_torque_with_flexspline_ringing() -> None:
+    """Load steps make T_true step (~-d tau, most at once) and ring at the flexspline
+    mode; the motor keeps running (no stall, current far from its limit)."""
+    tr = trace("torque-steps", 1e-4)
+    scn = tr.scn
+    load = scn.plant.load
+    d = scn.plant.drivetrain
+    assert load.kind == "steps" and len(load.step_times_s) >= 4
+    assert len({abs(b - a) for a, b in zip((0.0, *load.step_values_Nm[:-1]),
+                                           load.step_values_Nm, strict=True)}) >= 3  # fmt: skip
+    running = tr.t > 0.9
+    assert np.min(tr.w_m[running]) > 90.0
+    assert np.max(tr.w_m[running]) < 180.0
+    assert np.max(np.abs(tr.i)) < 0.2 * scn.plant.amplifier.current_limit_A
+    omega_n = d.natural_frequency_radps
+    prev = 0.0
+    for t_step, value in zip(load.step_times_s, load.step_values_Nm, strict=True):
+        k = round(t_step / 1e-4)
+        before = np.mean(tr.T_true[k - 500 : k - 10])
+        after = np.mean(tr.T_true[k + 300 : k + 600])  # ringing gone (~6 ms decay)
+        jump = after - before
+        assert jump == pytest.approx(-(value - prev), rel=0.1)
+        ring = tr.T_true[k : k + 300] - after
+        overshoot = -np.sign(value - prev) * ring
+        assert np.max(overshoot) > 0.25 * abs(jump)  # rings past the new level
+        crossings = np.flatnonzero(np.diff(np.sign(ring)) != 0)
+        period = 2 * np.mean(np.diff(crossings[:4])) * 1e-4
+        assert 2 * math.pi / period == pytest.approx(omega_n, rel=0.1)
+        prev = value

@@ -16,6 +16,7 @@ deterministic and bit-identical for a given seed, and as fast as the host allows
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import json
 import signal
@@ -33,8 +34,10 @@ import can
 from firmware.config import FirmwareConfig
 from firmware.controller import ControllerNode
 from hdhil.busload import LOAD_LIMIT, schedule_load
-from hdhil.dataconf import ConfigError, from_dict
+from hdhil.dataconf import ConfigError, from_dict, merge
 from hdhil.dbc import CHANNEL_NUMBER, database
+from hdhil.evaluate import RecordingListener, format_evaluation
+from hdhil.evaluate import evaluate as evaluate_recording
 from hdhil.score import TorqueScorer
 from hdhil.simbus import SimClock
 from hdhil.trace import BusTap, FrameCounter, open_writer
@@ -67,6 +70,7 @@ class RunResult:
     velocity_final: float
     velocity_peak: float
     trace: str | None
+    evaluation: dict[str, Any] | None = None
     controller: dict[str, Any] = field(default_factory=dict)
     drive: dict[str, Any] = field(default_factory=dict)
 
@@ -124,6 +128,22 @@ def _complete_cycle(
     tap.poll()
 
 
+def read_toml(path: Path) -> dict[str, Any]:
+    """A TOML override file as nested dicts, with one-line errors."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib  # type: ignore[no-redef]
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"override file not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read override file {path}: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
+
+
 def _frames_sent(control: can.BusABC, truth: can.BusABC) -> dict[str, int]:
     """Frames each channel carried, as counted by the bus itself (simbus only)."""
     return {
@@ -143,12 +163,19 @@ def run_lockstep(
     bitrate: int = 1_000_000,
     channel: str | None = None,
     stop_requested: Callable[[], bool] | None = None,
+    evaluate: bool = True,
+    evaluate_skip_s: float = 0.0,
 ) -> RunResult:
     """Run ``scenario`` in lockstep and return the scored result.
 
     ``stop_requested`` is polled at every cycle boundary; when it returns True the run
     ends there, after the cycle's frames are all handled and logged (how Ctrl-C and
     SIGTERM end a run without losing a frame).
+
+    ``evaluate`` records every cycle (96 bytes per cycle) and, after the run, scores the
+    firmware's filter against truth side by side with the paper/recommended Kalman modes
+    and the baselines (:mod:`hdhil.evaluate`).  Without it memory stays flat and only the
+    streaming RMS score is kept.
     """
     fw_config = from_dict(FirmwareConfig, scenario.firmware, "firmware")
     Ts = fw_config.sample_period_s
@@ -207,6 +234,7 @@ def run_lockstep(
     done = 0
     wall = 0.0
     frames_sent: dict[str, int] = {}
+    recorder: RecordingListener | None = None
     try:
         for make in (control_bus, control_bus, truth_bus, control_bus, truth_bus):
             buses.append(make())
@@ -218,6 +246,9 @@ def run_lockstep(
         counter = FrameCounter()
         scorer = TorqueScorer()
         listeners += [counter, scorer]
+        if evaluate:
+            recorder = RecordingListener(Ts)
+            listeners.append(recorder)
         if trace is not None:
             listeners.insert(0, open_writer(trace))
         tap = BusTap(
@@ -245,6 +276,11 @@ def run_lockstep(
         for bus in buses:
             bus.shutdown()
 
+    evaluation = (
+        evaluate_recording(recorder.recording, fw_config, evaluate_skip_s)
+        if recorder is not None and not interrupted
+        else None
+    )
     names = _frame_names()
     frames = {
         names.get(key, f"channel {key[0]} 0x{key[1]:X}"): n
@@ -269,6 +305,7 @@ def run_lockstep(
         velocity_final=scorer.velocity_final,
         velocity_peak=scorer.velocity_peak,
         trace=str(trace) if trace is not None else None,
+        evaluation=evaluation,
         controller={
             "syncs_sent": controller.diagnostics.syncs_sent,
             "sensor_frames": controller.diagnostics.sensor_frames,
@@ -313,6 +350,8 @@ def format_result(r: RunResult) -> str:
         )
     else:
         lines.append("  torque vs truth    no telemetry/truth pairs were seen")
+    if r.evaluation is not None:
+        lines.append(format_evaluation(r.evaluation))
     if r.trace:
         lines.append(f"  trace              {r.trace} ({r.frames_total} frames)")
     return "\n".join(lines)
@@ -342,6 +381,34 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(default: %(default)s; '' for none)",
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument(
+        "--calibration",
+        type=Path,
+        default=None,
+        help="calibration file written by `hdhil calibrate --out` (the firmware uses its gain)",
+    )
+    p.add_argument(
+        "--no-evaluate",
+        dest="evaluate",
+        action="store_false",
+        help="skip the side-by-side evaluation against truth (keeps memory flat on long runs)",
+    )
+    p.add_argument(
+        "--skip",
+        type=float,
+        default=None,
+        help="seconds at the start left out of the evaluation (default: the scenario's "
+        "evaluate_from_s; the whole-run RMS figure is printed as well)",
+    )
+    p.add_argument(
+        "--override",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="TOML file deep-merged into the scenario, e.g. [firmware.ripple] written by "
+        "`hdhil tune --out` (repeatable)",
+    )
     p.add_argument(
         "--actuation",
         choices=("next-sync", "immediate"),
@@ -390,7 +457,15 @@ def stop_on_signals() -> Iterator[threading.Event]:
 def run(args: argparse.Namespace) -> int:
     from hdhil.cli import UserError
 
-    scenario = load_scenario(args.scenario)
+    overrides: dict[str, Any] = {}
+    for path in args.override:
+        overrides = merge(overrides, read_toml(path))
+    scenario = load_scenario(args.scenario, overrides or None)
+    if args.calibration is not None:
+        from hdhil.calibrate import load_calibration
+
+        firmware = merge(scenario.firmware, load_calibration(args.calibration))
+        scenario = dataclasses.replace(scenario, firmware=firmware)
     trace = Path(args.trace) if args.trace else None
     try:
         interface = None if args.interface == "config" else args.interface
@@ -405,6 +480,8 @@ def run(args: argparse.Namespace) -> int:
                 args.bitrate,
                 args.channel,
                 stop_requested=stop.is_set,
+                evaluate=args.evaluate,
+                evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,
             )
     except ValueError as exc:
         raise UserError(str(exc)) from None

@@ -1,0 +1,36 @@
+"""Evaluation metrics on signals with known answers, and the evaluation of a real run."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hdhil.evaluate import estimate_lag, harmonic_amplitude
+
+
+def test_harmonic_amplitude_recovers_each_component():
+    t = np.arange(20000) * 1e-3
+    theta = 150.0 * t + 0.3 * np.sin(t)  # a motor angle with a slowly varying speed
+    error = (0.6 * np.sin(2 * theta + 0.4) + 0.25 * np.cos(4 * theta + 1.3)
+             + 0.1 + 0.02 * np.random.default_rng(1).standard_normal(t.size))  # fmt: skip
+    mask = np.ones(t.size, dtype=bool)
+    assert harmonic_amplitude(error, theta, 2.0, mask) == pytest.approx(0.6, rel=0.01)
+    assert harmonic_amplitude(error, theta, 4.0, mask) == pytest.approx(0.25, rel=0.02)
+    assert harmonic_amplitude(error, theta, 3.0, mask) < 0.01
+    assert math.isnan(harmonic_amplitude(error, theta, 2.0, np.zeros(t.size, dtype=bool)))
+
+
+@pytest.mark.parametrize("delay", [0.0, 3.0, 7.4, 22.5])
+def test_lag_recovers_a_known_delay(delay):
+    t = np.arange(6000) * 1e-3
+    truth = 3.0 * np.sign(np.sin(2 * np.pi * 1.0 * t))  # 1 Hz torque steps of +-3 Nm
+    truth = np.convolve(truth, np.ones(5) / 5, mode="same")  # a few ms of rise time
+    delayed = np.interp(t - delay * 1e-3, t, truth)
+    assert estimate_lag(delayed, truth, 1e-3) == pytest.approx(delay, abs=0.3)
+
+
+def test_lag_is_undefined_without_torque_variation():
+    flat = np.full(5000, 0.1)
+    assert estimate_lag(flat, flat, 1e-3) is None

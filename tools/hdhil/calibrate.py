@@ -1,0 +1,217 @@
+"""``hdhil calibrate``: the torque-sensor calibration of seed 000 §3 on the emulated drive.
+
+Runs the arm-and-weight experiment of :mod:`hostsim.calibration` (wave generator
+locked, known torques loaded and unloaded in both directions, at several flexspline
+positions, low range and full range) on the drive of a scenario, and prints a result
+in the form of seed 000 Table 1: the gain (mean of the experiments' least-squares
+slopes) and the consistency measure (standard deviation / mean).  Because this is an
+emulator it also prints the sensor's true gain and the calibration error.
+
+``--out FILE`` writes the result as a firmware override::
+
+    [firmware.calibration]
+    volt2Nm = 6.6229...
+
+(TOML; JSON ``{"firmware": {"calibration": {"volt2Nm": ...}}}`` when FILE ends in
+``.json``), which :func:`load_calibration` reads back as the table to merge into a
+scenario's ``[firmware]`` table, so the firmware uses the calibrated gain.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from hdhil.cli import UserError
+from hdhil.dataconf import ConfigError, from_dict
+from hostsim.calibration import CalibrationResult, CalibrationRig, calibrate
+from hostsim.scenario import list_scenarios, load_scenario
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
+
+__all__ = ["format_result", "load_calibration", "register", "run", "write_calibration"]
+
+#: The calibration error the emulated experiment should stay within (README goal).
+GOAL = 0.01
+
+
+def _is_json(path: Path) -> bool:
+    return path.suffix.lower() == ".json"
+
+
+def write_calibration(path: str | Path, result: CalibrationResult, scenario: str = "") -> None:
+    """Write ``{firmware: {calibration: {volt2Nm: gain}}}`` to ``path`` (JSON if it ends
+    in ``.json``, TOML otherwise)."""
+    path = Path(path)
+    gain = result.gain_Nm_per_V
+    if _is_json(path):
+        text = json.dumps({"firmware": {"calibration": {"volt2Nm": gain}}}, indent=2) + "\n"
+    else:
+        text = (
+            "# hdhil calibrate: arm-and-weight calibration of the torque sensor (seed 000 §3)\n"
+            f"# scenario {scenario or '-'}, seed {result.seed}, "
+            f"{len(result.experiments)} experiments, "
+            f"consistency {100 * result.consistency:.2f} %\n"
+            "[firmware.calibration]\n"
+            f"volt2Nm = {gain!r}\n"
+        )
+    try:
+        path.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+def load_calibration(path: str | Path) -> dict[str, Any]:
+    """Read a calibration file; return the firmware override table.
+
+    The file (TOML, or JSON if it ends in ``.json``) must hold exactly one table,
+    ``[firmware.calibration]``, with keys of the firmware's calibration
+    (:class:`firmware.config.Calibration`: ``volt2Nm``, ``volt2radps``, ...).  The
+    return value is ``{"calibration": {...}}``, ready to deep-merge into a scenario's
+    ``[firmware]`` table (``hdhil.dataconf.merge``).  Every mistake raises
+    :class:`hdhil.cli.UserError` with a one-line message naming the file.
+    """
+    from firmware.config import Calibration
+
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise UserError(f"calibration file not found: {path}") from None
+    except OSError as exc:
+        raise UserError(f"cannot read calibration file {path}: {exc.strerror or exc}") from None
+    try:
+        text = raw.decode("utf-8")
+        data = json.loads(text) if _is_json(path) else tomllib.loads(text)
+    except UnicodeDecodeError:
+        raise UserError(f"{path}: not a text file") from None
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{path}: invalid JSON: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"{path}: invalid TOML: {exc}") from None
+    expected = "expected only a [firmware.calibration] table"
+    if not isinstance(data, dict) or set(data) != {"firmware"}:
+        keys = ", ".join(sorted(data)) if isinstance(data, dict) else type(data).__name__
+        raise UserError(f"{path}: {expected}, found: {keys or 'nothing'}")
+    firmware = data["firmware"]
+    if not isinstance(firmware, dict) or set(firmware) != {"calibration"}:
+        keys = ", ".join(sorted(firmware)) if isinstance(firmware, dict) else repr(firmware)
+        raise UserError(f"{path}: {expected}, found firmware: {keys or 'nothing'}")
+    table = firmware["calibration"]
+    if not isinstance(table, dict) or not table:
+        raise UserError(f"{path}: [firmware.calibration] must be a non-empty table")
+    try:
+        from_dict(Calibration, table, "firmware.calibration")
+    except ConfigError as exc:
+        raise UserError(f"{path}: {exc}") from None
+    return {"calibration": dict(table)}
+
+
+def format_result(result: CalibrationResult, scenario: str = "") -> str:
+    """The Table-1-like text report."""
+    rig = result.rig
+    lines = [
+        "hdhil calibrate: arm-and-weight calibration of the torque sensor (seed 000 §3)",
+        f"  drive of scenario {scenario or '-'}, seed {result.seed}; wave generator locked;",
+        f"  loading 0 -> +max -> 0 -> -max -> 0 in {rig.steps} weights per direction, "
+        f"{rig.samples} ADC samples averaged per load",
+        "",
+        "  exp  pos  flexspline   beta   range  weight/step     gain      offset  residual",
+        "             (deg)      (deg)   (Nm)     (kg)       (Nm/V)      (V)    (Nm rms)",
+    ]
+    for e in result.experiments:
+        lines.append(
+            f"  {e.index:>3}  {e.position:>3}  {e.flexspline_deg:>9.1f}  {e.beta_deg:>6.1f}"
+            f"  {e.range_Nm:>6.1f}  {e.mass_per_step_kg:>10.3f}  {e.gain_Nm_per_V:>9.4f}"
+            f"  {e.offset_V:>+9.4f}  {e.residual_rms_Nm:>8.4f}"
+        )
+    verdict = "within" if abs(result.error) <= GOAL else "OUTSIDE"
+    lines += [
+        "",
+        "  Torque sensor gain    Consistency measure   (seed 000 Table 1: 6.60 Nm/V, 2 %)",
+        f"  {result.gain_Nm_per_V:.3f} Nm/V           {100 * result.consistency:.2f} %",
+        "",
+        f"  emulator's true gain {result.true_gain_Nm_per_V:.4f} Nm/V: calibration error "
+        f"{100 * result.error:+.3f} % ({verdict} the {100 * GOAL:g} % goal)",
+    ]
+    return "\n".join(lines)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "calibrate",
+        help="calibrate the emulated torque sensor (arm and weights, seed 000 §3)",
+        description="Emulate the torque-sensor calibration of seed 000 §3 on a scenario's "
+        "drive: wave generator locked, known torques loaded and unloaded in both directions "
+        "at several flexspline positions, low range (5 Nm) and full range (40 Nm).  Prints "
+        "the gain (mean of the least-squares slopes), the consistency measure (std / mean) "
+        "and, since this is an emulator, the sensor's true gain and the error.",
+    )
+    p.add_argument(
+        "--scenario",
+        default="free-motion",
+        help="scenario name or TOML file whose drive is calibrated "
+        f"(default: %(default)s; shipped: {', '.join(list_scenarios())})",
+    )
+    p.add_argument("--seed", type=int, default=None, help="noise seed (default: the scenario's)")
+    p.add_argument(
+        "--positions",
+        type=int,
+        default=CalibrationRig.positions,
+        help="flexspline positions; two experiments each (default: %(default)s)",
+    )
+    p.add_argument(
+        "--samples",
+        type=int,
+        default=CalibrationRig.samples,
+        help="ADC samples averaged per load step (default: %(default)s)",
+    )
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument(
+        "--out",
+        metavar="FILE",
+        default=None,
+        help="write the calibrated gain as a firmware override ([firmware.calibration] "
+        "volt2Nm; JSON if FILE ends in .json, else TOML)",
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    scenario = load_scenario(args.scenario)
+    seed = scenario.seed if args.seed is None else args.seed
+    if seed < 0:
+        raise UserError(f"--seed must be >= 0, got {seed}")
+    try:
+        rig = CalibrationRig(positions=args.positions, samples=args.samples)
+    except ValueError as exc:
+        msg = str(exc).replace("CalibrationRig.", "--")
+        raise UserError(msg) from None
+    result = calibrate(scenario.plant, rig, seed)
+    if not math.isfinite(result.gain_Nm_per_V):
+        raise UserError("the calibration gave no finite gain (is the torque channel saturated?)")
+    if args.out:
+        write_calibration(args.out, result, scenario.name)
+    if args.json:
+        out = result.as_dict()
+        out.update(
+            scenario=scenario.name,
+            consistency_pct=100 * result.consistency,
+            error_pct=100 * result.error,
+            within_goal=abs(result.error) <= GOAL,
+            out=args.out,
+        )
+        print(json.dumps(out, indent=2))
+    else:
+        print(format_result(result, scenario.name))
+        if args.out:
+            gain = result.gain_Nm_per_V
+            print(f"  wrote {args.out}: [firmware.calibration] volt2Nm = {gain:.6g}")
+    return 0

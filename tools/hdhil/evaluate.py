@@ -1,0 +1,375 @@
+"""Evaluation against ground truth: the firmware's filter side by side with alternatives.
+
+A :class:`Recording` is what was on the buses, one row per control cycle: the drive's raw
+sensor frame (ADC counts and encoder), the controller's telemetry, and the emulator's
+truth for the same sample instant.  It is built by :class:`RecordingListener`, a python-can
+listener, either live during ``hdhil run`` or from a trace file, so both are evaluated by
+the same code.
+
+:func:`evaluate` scores candidates on the same samples:
+
+- ``raw``: the calibrated measurement, no filtering;
+- ``firmware``: the filtered torque the controller reported in its telemetry;
+- the two Kalman filter modes, re-run offline through the firmware's own
+  :class:`firmware.isr.TorqueFilterChain` on the recorded counts (paper mode is listing A.1
+  / the 6th-order model of seed 000 §5; recommended mode is the angle-locked filter);
+- baselines: the listing's 2nd-order Butterworth low-pass at several cut-offs (revision note
+  "01/11/95 hdt Butterworth filter for torque") and a notch bank tracking 2x/4x motor
+  velocity.
+
+Metrics, each against the emulator's true transmitted torque ``T_true``:
+
+- RMS error, also as a fraction of the raw RMS error;
+- amplitude of the error at each ripple harmonic (2x and 4x the motor angle, 1x the
+  output angle), found by demodulating with the true angle over the samples where the
+  motor turns. This gives the reduction in dB against raw; at 1x output it is also
+  reported as the residual misalignment peak-to-peak;
+- lag: the delay d minimising the mean of (x(k) − T_true(k − d))², refined between
+  samples by a parabola through the minimum. It is reported only when the true torque
+  varies enough for a delay to be defined (e.g. the ``torque-steps`` scenario).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import json
+import math
+import sys
+from array import array
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+
+from firmware.baselines import ButterworthLowPass, TrackingNotchBank
+from firmware.config import FirmwareConfig, paper_config, recommended_config
+from firmware.isr import TorqueFilterChain
+from firmware.stages import adc_read, calibrate
+from hdhil.dbc import codec
+
+#: Recording columns, in order.
+COLUMNS = (
+    "adc_torque", "adc_tacho", "adc_current", "encoder",
+    "T_meas_tele", "T_filtered_tele", "velocity_tele",
+    "T_true", "T_ripple", "theta_motor", "omega_motor", "theta_output",
+)  # fmt: skip
+
+#: Butterworth cut-offs (Hz) evaluated as baselines.
+BUTTERWORTH_CUTOFFS_HZ = (10.0, 20.0, 50.0, 100.0)
+#: Harmonics scored: (label, source, multiple).
+HARMONICS = (("2x motor", "motor", 2.0), ("4x motor", "motor", 4.0), ("1x output", "output", 1.0))
+#: Below this motor speed (rad/s) a sample is not used for harmonic amplitudes.
+MIN_SPEED_RADPS = 5.0
+#: Largest delay searched for the lag (samples).
+MAX_LAG_SAMPLES = 60
+
+
+class Recording:
+    """Per-cycle columns of a run (``array('d')``, 8 bytes per value)."""
+
+    def __init__(self, sample_period_s: float) -> None:
+        self.sample_period_s = sample_period_s
+        self._cols = {name: array("d") for name in COLUMNS}
+
+    def __len__(self) -> int:
+        return len(self._cols["adc_torque"])
+
+    def column(self, name: str) -> np.ndarray:
+        return np.frombuffer(self._cols[name], dtype=np.float64)
+
+    def append_row(self, values: tuple[float, ...]) -> None:
+        for col, value in zip(self._cols.values(), values, strict=True):
+            col.append(value)
+
+    def set_last(self, name: str, value: float) -> None:
+        col = self._cols[name]
+        if col:
+            col[-1] = value
+
+
+class RecordingListener(can.Listener):
+    """Builds a :class:`Recording` from control-bus and truth frames (live or from a trace).
+
+    A row opens at each drive sensor frame (``DRIVE_TPDO1``, sampled at t(k)) with the latest
+    truth (sent by the drive at the same SYNC, for the same instant); the controller's
+    telemetry that follows fills the row's telemetry columns.
+    """
+
+    def __init__(self, sample_period_s: float) -> None:
+        self.recording = Recording(sample_period_s)
+        self._sensor = codec("control", "DRIVE_TPDO1")
+        self._tele = codec("control", "CTRL_TPDO1")
+        self._truth_torque = codec("truth", "TRUTH_TORQUE")
+        self._truth_motor = codec("truth", "TRUTH_MOTOR")
+        self._truth_output = codec("truth", "TRUTH_OUTPUT")
+        self._truth = [math.nan] * 5  # T_true, T_ripple, theta_m, omega_m, theta_out
+        self._dispatch = {
+            (self._sensor.frame_id, False): self._on_sensor,
+            (self._tele.frame_id, False): self._on_telemetry,
+            (self._truth_torque.frame_id, True): self._on_truth_torque,
+            (self._truth_motor.frame_id, True): self._on_truth_motor,
+            (self._truth_output.frame_id, True): self._on_truth_output,
+        }
+
+    def on_message_received(self, msg: can.Message) -> None:
+        handler = self._dispatch.get((msg.arbitration_id, msg.is_extended_id))
+        if handler is not None and not msg.is_remote_frame and not msg.is_error_frame:
+            with contextlib.suppress(ValueError):  # wrong length: malformed, not a sample
+                handler(msg.data)
+
+    def _on_sensor(self, data: bytes) -> None:
+        torque, tacho, current, encoder = self._sensor.decode(data)
+        t = self._truth
+        self.recording.append_row(
+            (torque, tacho, current, encoder, math.nan, math.nan, math.nan,
+             t[0], t[1], t[2], t[3], t[4])
+        )  # fmt: skip
+
+    def _on_telemetry(self, data: bytes) -> None:
+        T_meas, T_filtered, velocity, _current = self._tele.decode(data)
+        rec = self.recording
+        rec.set_last("T_meas_tele", T_meas)
+        rec.set_last("T_filtered_tele", T_filtered)
+        rec.set_last("velocity_tele", velocity)
+
+    def _on_truth_torque(self, data: bytes) -> None:
+        self._truth[0], self._truth[1] = self._truth_torque.decode(data)
+
+    def _on_truth_motor(self, data: bytes) -> None:
+        self._truth[2], self._truth[3] = self._truth_motor.decode(data)
+
+    def _on_truth_output(self, data: bytes) -> None:
+        self._truth[4] = self._truth_output.decode(data)[0]
+
+
+def recording_from_trace(path: Path, sample_period_s: float = 1e-3) -> tuple[Recording, str]:
+    """Read a trace into a recording; returns it and a damage description ('' if clean)."""
+    from hdhil.dump import read_trace
+
+    listener = RecordingListener(sample_period_s)
+    with read_trace(path) as trace:
+        for msg in trace:
+            listener.on_message_received(msg)
+        damage = "; ".join(d.describe(str(path)) for d in trace.damage)
+    return listener.recording, damage
+
+
+@dataclass(frozen=True)
+class CandidateScore:
+    name: str
+    rms_error: float
+    rms_ratio: float
+    harmonics: dict[str, float]  # amplitude of the error at each harmonic (Nm)
+    reduction_dB: dict[str, float]  # vs raw
+    misalignment_pp: float
+    lag_ms: float | None
+
+
+def _unwrap_angle(wrapped: np.ndarray) -> np.ndarray:
+    return np.unwrap(wrapped)
+
+
+def harmonic_amplitude(
+    error: np.ndarray, angle: np.ndarray, multiple: float, mask: np.ndarray
+) -> float:
+    """Amplitude of the component of ``error`` at ``multiple`` × ``angle`` (demodulation)."""
+    if not mask.any():
+        return math.nan
+    e = error[mask] - error[mask].mean()
+    z = np.exp(-1j * multiple * angle[mask])
+    return float(2.0 * abs(np.mean(e * z)))
+
+
+def estimate_lag(x: np.ndarray, truth: np.ndarray, sample_period_s: float) -> float | None:
+    """Delay (ms) of ``x`` behind ``truth``: argmin over d of mean (x(k) − truth(k−d))²."""
+    n = len(x)
+    if n < 4 * MAX_LAG_SAMPLES or np.var(truth) < 1e-2:
+        return None
+    lags = np.arange(0, MAX_LAG_SAMPLES + 1)
+    costs = np.array([np.mean((x[MAX_LAG_SAMPLES:] - truth[MAX_LAG_SAMPLES - d : n - d]) ** 2)
+                      for d in lags])  # fmt: skip
+    i = int(np.argmin(costs))
+    shift = 0.0
+    if 0 < i < len(lags) - 1:
+        c0, c1, c2 = costs[i - 1], costs[i], costs[i + 1]
+        denom = c0 - 2 * c1 + c2
+        if denom > 0:
+            shift = 0.5 * (c0 - c2) / denom
+    return float((lags[i] + shift) * sample_period_s * 1e3)
+
+
+def _offline_chain(
+    cfg: FirmwareConfig, T_meas: np.ndarray, velocity: np.ndarray, encoder: np.ndarray
+) -> np.ndarray:
+    """The firmware's own filter chain over recorded samples; returns T_filtered."""
+    chain = TorqueFilterChain(cfg)
+    step = chain.step
+    out = np.empty_like(T_meas)
+    for k, (T, v, e) in enumerate(
+        zip(T_meas.tolist(), velocity.tolist(), encoder.astype(np.int64).tolist(), strict=True)
+    ):
+        out[k] = step(T, v, e)[3]
+    return out
+
+
+def calibrated_signals(rec: Recording, cfg: FirmwareConfig) -> tuple[np.ndarray, np.ndarray]:
+    """T_meas and motor velocity from the recorded counts, through the firmware's stages."""
+    T_meas = np.empty(len(rec))
+    vel = np.empty(len(rec))
+    for k, (q, tq, cu) in enumerate(
+        zip(
+            rec.column("adc_torque").astype(np.int64).tolist(),
+            rec.column("adc_tacho").astype(np.int64).tolist(),
+            rec.column("adc_current").astype(np.int64).tolist(),
+            strict=True,
+        )
+    ):
+        T_meas[k], vel[k], _ = calibrate(*adc_read(q, tq, cu, cfg.adc), cfg.calibration)
+    return T_meas, vel
+
+
+def candidate_signals(rec: Recording, cfg: FirmwareConfig) -> dict[str, np.ndarray]:
+    """Every candidate's torque estimate over the recording, keyed by display name."""
+    T_meas, vel = calibrated_signals(rec, cfg)
+    encoder = rec.column("encoder")
+    Ts = cfg.sample_period_s
+    mode = cfg.ripple.mode
+    signals = {"raw": T_meas, f"firmware ({mode})": rec.column("T_filtered_tele")}
+    paper = paper_config(cfg)
+    recommended = recommended_config(cfg)
+    signals[f"kalman paper ({paper.ripple.order}th order)"] = _offline_chain(
+        paper, T_meas, vel, encoder
+    )
+    signals[f"kalman recommended ({len(recommended.ripple.oscillators)} harmonics)"] = (
+        _offline_chain(recommended, T_meas, vel, encoder)
+    )
+    for fc in BUTTERWORTH_CUTOFFS_HZ:
+        if fc < 0.5 / Ts:
+            signals[f"butterworth {fc:g} Hz"] = ButterworthLowPass(fc, Ts).filter(T_meas)
+    signals["notch bank 2x/4x"] = TrackingNotchBank((2.0, 4.0), Ts).filter(T_meas, vel)
+    return signals
+
+
+def evaluate(rec: Recording, cfg: FirmwareConfig, skip_s: float = 0.0) -> dict[str, Any]:
+    """Score every candidate against truth; returns a JSON-ready dict."""
+    n = len(rec)
+    T_true = rec.column("T_true")
+    valid = np.isfinite(T_true)
+    if n == 0 or not valid.any():
+        return {"samples": 0, "candidates": []}
+    signals = candidate_signals(rec, cfg)
+    k0 = min(n, round(skip_s / cfg.sample_period_s))
+    window = np.zeros(n, dtype=bool)
+    window[k0:] = True
+    window &= valid
+    if not window.any():
+        return {"samples": 0, "skip_s": skip_s, "candidates": []}
+    theta_m = _unwrap_angle(rec.column("theta_motor"))
+    theta_o = _unwrap_angle(rec.column("theta_output"))
+    turning = window & (np.abs(rec.column("omega_motor")) > MIN_SPEED_RADPS)
+    angles = {"motor": theta_m, "output": theta_o}
+
+    scores = []
+    raw_rms = raw_harm = None
+    for name, x in signals.items():
+        ok = window & np.isfinite(x)
+        err = x - T_true
+        rms = float(np.sqrt(np.mean(err[ok] ** 2))) if ok.any() else math.nan
+        harm = {label: harmonic_amplitude(err, angles[src], mult, turning & ok)
+                for label, src, mult in HARMONICS}  # fmt: skip
+        if raw_rms is None:
+            raw_rms, raw_harm = rms, harm
+        reduction = {label: (20 * math.log10(raw_harm[label] / a) if a > 0 else math.inf)
+                     for label, a in harm.items()}  # fmt: skip
+        lag = estimate_lag(
+            np.where(ok, x, 0.0)[k0:], np.where(ok, T_true, 0.0)[k0:], cfg.sample_period_s
+        )
+        scores.append(CandidateScore(
+            name=name, rms_error=rms, rms_ratio=rms / raw_rms if raw_rms else math.nan,
+            harmonics=harm, reduction_dB=reduction,
+            misalignment_pp=2.0 * harm["1x output"], lag_ms=lag,
+        ))  # fmt: skip
+    return {
+        "samples": int(window.sum()),
+        "skip_s": skip_s,
+        "rms_true": float(np.sqrt(np.mean(T_true[window] ** 2))),
+        "true_ripple": {
+            label: harmonic_amplitude(rec.column("T_ripple"), angles[src], mult, turning)
+            for label, src, mult in HARMONICS
+        },
+        "candidates": [dataclasses.asdict(s) for s in scores],
+    }
+
+
+def _fmt(v: float | None, spec: str) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "—"
+    if isinstance(v, float) and math.isinf(v):
+        return "∞"
+    return format(v, spec)
+
+
+def format_evaluation(ev: dict[str, Any]) -> str:
+    if not ev.get("samples"):
+        start = f" after {ev['skip_s']:g} s" if ev.get("skip_s") else ""
+        return f"  evaluation: no samples with ground truth{start} (run longer or use --skip)"
+    lines = [
+        f"  evaluation vs truth ({ev['samples']} samples after {ev['skip_s']:g} s; "
+        f"RMS true torque {ev['rms_true']:.4f} Nm)",
+        f"    {'candidate':<34} {'RMS err/Nm':>10} {'% raw':>7} {'2x dB':>7} {'4x dB':>7} "
+        f"{'mis p-p/Nm':>10} {'lag/ms':>7}",
+    ]
+    for c in ev["candidates"]:
+        red = c["reduction_dB"]
+        lines.append(
+            f"    {c['name']:<34} {_fmt(c['rms_error'], '10.4f')} "
+            f"{_fmt(100 * c['rms_ratio'], '7.1f')} {_fmt(red['2x motor'], '7.1f')} "
+            f"{_fmt(red['4x motor'], '7.1f')} {_fmt(c['misalignment_pp'], '10.3f')} "
+            f"{_fmt(c['lag_ms'], '7.2f')}"
+        )
+    lines.append(
+        "    (dB: reduction of the error's harmonic amplitude against raw; "
+        "mis p-p: residual at 1x output angle)"
+    )
+    return "\n".join(lines)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "evaluate",
+        help="score the filters against ground truth in a trace",
+        description="Re-run the firmware's filter chain and the baselines on a "
+        "recorded run and score them against the emulator's ground truth.",
+    )
+    p.add_argument("trace", type=Path, help="trace written by hdhil run")
+    p.add_argument(
+        "--scenario",
+        default=None,
+        help="scenario whose firmware configuration was used (default: defaults)",
+    )
+    p.add_argument("--skip", type=float, default=0.0, help="seconds left out at the start")
+    p.add_argument("--json", action="store_true", help="print the evaluation as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from hdhil.dataconf import from_dict
+    from hostsim.scenario import load_scenario
+
+    fw = (from_dict(FirmwareConfig, load_scenario(args.scenario).firmware, "firmware")
+          if args.scenario else FirmwareConfig())  # fmt: skip
+    rec, damage = recording_from_trace(args.trace, fw.sample_period_s)
+    ev = evaluate(rec, fw, args.skip)
+    if args.json:
+        json.dump(ev, sys.stdout, indent=2)
+        print()
+    else:
+        print(format_evaluation(ev))
+    if damage:
+        print(f"hdhil: warning: {damage}", file=sys.stderr)
+        return 1
+    return 0

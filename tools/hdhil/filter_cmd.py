@@ -1,0 +1,421 @@
+"""``hdhil filter INPUT --out OUT.csv``: run the firmware's torque filter offline.
+
+The filtering is the firmware's own code, not a copy: each sample goes through
+:class:`firmware.isr.TorqueFilterChain` (differentiator, expected torque, ripple Kalman
+filter in the configured mode), so the output is what the controller would compute
+on the same samples.
+
+Inputs:
+
+- a **signal CSV**: a header line with the columns ``time``, ``T_meas`` (Nm) and
+  ``velocity`` (motor velocity, rad/s), optionally ``encoder`` (the 16-bit motor
+  encoder count); other columns are ignored.  Without an ``encoder`` column the
+  recommended filter takes its harmonic phase from the integrated velocity
+  (``phase_source = "tacho"``).  Non-finite values (``nan``, ``inf``) are passed to
+  the filter, which skips and counts them; anything else that is not a number is an
+  error naming the line.
+- a **trace** written by ``hdhil run`` (``.blf``, ``.asc``, ``.log``, ``.csv``, ``.trc``,
+  optionally ``.gz``; a ``.csv`` is a trace when its header is python-can's): the
+  drive's ``DRIVE_TPDO1`` frames, i.e. the raw ADC counts and encoder count the
+  firmware received, go through the firmware's interrupt handler
+  (:class:`firmware.isr.InterruptHandler`: ADC read, calibration, the same chain), so
+  the result is exactly what the firmware computed, given the same configuration.
+  ``time`` is the frame's timestamp.
+
+Output: a CSV with exactly the columns ``time,T_meas,acceleration,T_expected,ripple,
+T_filtered`` (``T_filtered = T_meas - ripple``), numbers in Python's shortest
+round-trip form.  The file is written to a temporary name and renamed at the end, so
+a failed run leaves no half-written output.
+
+Configuration: the default :class:`firmware.config.FirmwareConfig` (recommended
+filter), ``--config FILE.toml`` (a scenario file, whose ``[firmware...]`` tables are
+used, or a file holding the firmware tables at top level), ``--paper`` for the seed's
+filter (:func:`firmware.config.paper_config`).
+
+Exit codes: 0 done; 1 the trace is damaged (everything readable was filtered); 2 a
+user error (one line on stderr).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import dataclasses
+import gzip
+import math
+import os
+import sys
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, TextIO
+
+from firmware.config import FirmwareConfig, paper_config
+from firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
+from hdhil.cli import UserError
+from hdhil.dataconf import ConfigError, from_dict
+
+#: Output columns, in order.
+OUTPUT_COLUMNS = ("time", "T_meas", "acceleration", "T_expected", "ripple", "T_filtered")
+#: Required columns of a signal CSV.
+REQUIRED_COLUMNS = ("time", "T_meas", "velocity")
+#: Trace formats (``hdhil.dump.READERS``), without importing python-can up front.
+TRACE_EXTENSIONS = (".blf", ".asc", ".log", ".csv", ".trc")
+_CAN_CSV_HEADER = "timestamp,arbitration_id"
+
+__all__ = [
+    "OUTPUT_COLUMNS",
+    "REQUIRED_COLUMNS",
+    "FilterSummary",
+    "filter_signal_csv",
+    "filter_trace",
+    "load_firmware_config",
+    "register",
+    "run",
+]
+
+
+# ------------------------------------------------------------------------ configuration
+def load_firmware_config(path: str | os.PathLike[str] | None) -> FirmwareConfig:
+    """The firmware configuration from a TOML file (``None``: the defaults).
+
+    A file with a ``firmware`` table (a scenario file) contributes that table; any other
+    file is read as the firmware tables themselves.
+    """
+    if path is None:
+        return FirmwareConfig()
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # pragma: no cover - Python 3.10
+        import tomli as tomllib
+    p = Path(path)
+    try:
+        with p.open("rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise UserError(f"--config {p}: no such file") from None
+    except IsADirectoryError:
+        raise UserError(f"--config {p}: is a directory") from None
+    except OSError as exc:
+        raise UserError(f"--config {p}: cannot read ({exc.strerror or exc})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"--config {p}: not valid TOML: {exc}") from None
+    table: Any = data.get("firmware", data)
+    if not isinstance(table, dict):
+        raise UserError(f"--config {p}: [firmware] must be a table")
+    try:
+        return from_dict(FirmwareConfig, table, "firmware")
+    except ConfigError as exc:
+        raise ConfigError(f"--config {p}: {exc}") from None
+
+
+# ------------------------------------------------------------------------------ output
+class _CsvTarget:
+    """The output CSV: a temporary file renamed into place by :meth:`commit`."""
+
+    def __init__(self, target: str, source: Path) -> None:
+        self.label = "stdout" if target == "-" else target
+        self._tmp: Path | None = None
+        if target == "-":
+            self.file: TextIO = sys.stdout
+            self._path: Path | None = None
+        else:
+            out = Path(target)
+            if out.is_dir():
+                raise UserError(f"--out {out}: is a directory")
+            parent = out.parent if str(out.parent) else Path(".")
+            if not parent.is_dir():
+                raise UserError(f"--out {out}: directory {parent} does not exist")
+            with contextlib.suppress(OSError):
+                if out.exists() and out.resolve() == source.resolve():
+                    raise UserError(f"--out {out}: would overwrite the input")
+            try:
+                fd, name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent)
+            except OSError as exc:
+                raise UserError(f"--out {out}: cannot write ({exc.strerror or exc})") from None
+            self._tmp = Path(name)
+            self._path = out
+            self.file = open(fd, "w", newline="", encoding="utf-8")  # noqa: SIM115
+        self.writer = csv.writer(self.file, lineterminator="\n")
+        self.writer.writerow(OUTPUT_COLUMNS)
+
+    def commit(self) -> None:
+        try:
+            if self._path is None:
+                self.file.flush()
+                return
+            self.file.close()
+            os.replace(self._tmp, self._path)  # type: ignore[arg-type]
+        except OSError as exc:
+            self.abort()
+            raise UserError(f"--out {self.label}: cannot write ({exc.strerror or exc})") from None
+
+    def abort(self) -> None:
+        if self._path is None:
+            return
+        with contextlib.suppress(OSError):
+            self.file.close()
+        if self._tmp is not None:
+            with contextlib.suppress(OSError):
+                self._tmp.unlink()
+
+
+# ------------------------------------------------------------------------------- input
+def _split_suffix(path: Path) -> tuple[str, bool]:
+    suffixes = [s.lower() for s in path.suffixes]
+    if suffixes and suffixes[-1] == ".gz":
+        return (suffixes[-2] if len(suffixes) >= 2 else ""), True
+    return (suffixes[-1] if suffixes else ""), False
+
+
+def _open_text(path: Path, compressed: bool) -> TextIO:
+    if compressed:
+        return gzip.open(path, "rt", encoding="utf-8", errors="replace", newline="")
+    return open(path, encoding="utf-8", errors="replace", newline="")
+
+
+def _check_input(path: Path) -> tuple[str, bool]:
+    """``(format, compressed)`` of an existing, readable, supported input."""
+    if not path.exists():
+        raise UserError(f"{path}: no such file")
+    if path.is_dir():
+        raise UserError(f"{path}: is a directory")
+    fmt, compressed = _split_suffix(path)
+    if fmt not in TRACE_EXTENSIONS:
+        raise UserError(
+            f"{path}: unsupported input format {fmt or '(no extension)'!r}; use a .csv with "
+            f"columns {','.join(REQUIRED_COLUMNS)}[,encoder] or a trace "
+            f"({', '.join(TRACE_EXTENSIONS)}, optionally .gz)"
+        )
+    if not os.access(path, os.R_OK):
+        raise UserError(f"{path}: permission denied")
+    return fmt, compressed
+
+
+def _is_can_csv(path: Path, compressed: bool) -> bool:
+    """A ``.csv`` whose first line is python-can's trace header."""
+    try:
+        with _open_text(path, compressed) as fh:
+            first = fh.readline()
+    except (OSError, EOFError) as exc:
+        raise UserError(f"{path}: cannot read ({exc})") from None
+    return first.lstrip("\ufeff").strip().replace(" ", "").startswith(_CAN_CSV_HEADER)
+
+
+class FilterSummary:
+    """What a filter run did (for the summary line and for library callers)."""
+
+    def __init__(self, cfg: FirmwareConfig, phase: str, source: str) -> None:
+        self.cfg = cfg
+        self.phase = phase
+        self.source = source
+        self.samples = 0
+        self.skipped = 0
+        self.covariance_resets = 0
+        self.malformed_frames = 0
+        self.damage: list[str] = []
+
+    def line(self, out_label: str) -> str:
+        ripple = self.cfg.ripple
+        what = f"{ripple.mode} filter, {len(ripple.oscillators)} harmonics"
+        if ripple.mode == "recommended":
+            what += f", phase from {self.phase}"
+        parts = [
+            f"{self.samples} samples from {self.source}",
+            f"{self.skipped} skipped (non-finite)",
+        ]
+        if ripple.mode == "recommended":
+            parts.append(f"{self.covariance_resets} covariance resets")
+        if self.malformed_frames:
+            parts.append(f"{self.malformed_frames} malformed DRIVE_TPDO1 frames ignored")
+        return f"hdhil filter: {', '.join(parts)} ({what}); wrote {out_label}"
+
+
+def _number(text: str, column: str, where: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise UserError(f"{where}: column {column!r}: not a number: {text.strip()!r}") from None
+
+
+def _count(text: str, where: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not value.is_integer():
+        raise UserError(f"{where}: column 'encoder': not an integer count: {text.strip()!r}")
+    return int(value)
+
+
+def filter_signal_csv(
+    path: Path, compressed: bool, cfg: FirmwareConfig, writer: Any
+) -> FilterSummary:
+    """Filter a signal CSV through :class:`TorqueFilterChain`, writing output rows."""
+    label = str(path)
+    with _open_text(path, compressed) as fh:
+        reader = csv.reader(fh)
+        try:
+            header = next(reader)
+        except StopIteration:
+            raise UserError(f"{label}: empty file (expected a header line)") from None
+        except csv.Error as exc:
+            raise UserError(f"{label}:1: {exc}") from None
+        names = [h.strip().lstrip("\ufeff") for h in header]
+        missing = [c for c in REQUIRED_COLUMNS if c not in names]
+        if missing:
+            raise UserError(
+                f"{label}: missing column(s) {', '.join(missing)} "
+                f"(header: {','.join(names) or '(empty)'})"
+            )
+        i_time, i_T, i_vel = (names.index(c) for c in REQUIRED_COLUMNS)
+        i_enc = names.index("encoder") if "encoder" in names else None
+        phase = cfg.ripple.phase_source
+        if i_enc is None and cfg.ripple.mode == "recommended" and phase == "encoder":
+            cfg = _with_tacho_phase(cfg)
+            phase = "tacho (no encoder column)"
+        width = len(names)
+        chain = TorqueFilterChain(cfg)
+        step = chain.step
+        writerow = writer.writerow
+        summary = FilterSummary(cfg, phase, "signal CSV")
+        n = 0
+        line = 1
+        try:
+            for row in reader:
+                line = reader.line_num
+                if not row or (len(row) == 1 and not row[0].strip()):
+                    continue  # blank line
+                if len(row) != width:
+                    raise UserError(f"{label}:{line}: expected {width} fields, got {len(row)}")
+                try:
+                    t = float(row[i_time])
+                    T = float(row[i_T])
+                    v = float(row[i_vel])
+                except ValueError:
+                    where = f"{label}:{line}"
+                    for i, name in ((i_time, "time"), (i_T, "T_meas"), (i_vel, "velocity")):
+                        _number(row[i], name, where)
+                    raise  # pragma: no cover - one of the three raised
+                enc = None if i_enc is None else _count(row[i_enc], f"{label}:{line}")
+                acc, T_exp, _dT, T_f, ripple = step(T, v, enc)
+                writerow((t, T, acc, T_exp, ripple, T_f))
+                n += 1
+        except csv.Error as exc:
+            raise UserError(f"{label}:{line}: {exc}") from None
+    if n == 0:
+        raise UserError(f"{label}: no samples (only a header line)")
+    summary.samples = n
+    _collect(summary, chain)
+    return summary
+
+
+def _with_tacho_phase(cfg: FirmwareConfig) -> FirmwareConfig:
+    return dataclasses.replace(cfg, ripple=dataclasses.replace(cfg.ripple, phase_source="tacho"))
+
+
+def _collect(summary: FilterSummary, chain: TorqueFilterChain) -> None:
+    summary.skipped = chain.kalman.skipped
+    summary.covariance_resets = getattr(chain.kalman, "covariance_resets", 0)
+
+
+def _sensor_frames(path: Path, summary: FilterSummary) -> Iterator[tuple[float, tuple[int, ...]]]:
+    """``(timestamp, (torque, tacho, current, encoder))`` of every DRIVE_TPDO1 frame."""
+    from hdhil.dbc import codec
+    from hdhil.dump import read_trace
+
+    sensor = codec("control", "DRIVE_TPDO1")
+    frame_id = sensor.frame_id
+    length = sensor.length
+    decode = sensor.decode
+    trace = read_trace(path)
+    with trace:
+        for msg in trace:
+            if msg.arbitration_id != frame_id or msg.is_extended_id:
+                continue
+            if msg.is_remote_frame or msg.is_error_frame or len(msg.data) != length:
+                summary.malformed_frames += 1
+                continue
+            yield msg.timestamp, decode(msg.data)  # type: ignore[misc]
+    summary.damage = [d.describe(trace.path) for d in trace.damage]
+
+
+def filter_trace(path: Path, cfg: FirmwareConfig, writer: Any) -> FilterSummary:
+    """Filter the DRIVE_TPDO1 frames of a trace through the firmware's interrupt
+    handler (ADC read, calibration, :class:`TorqueFilterChain`), writing output rows."""
+    isr = InterruptHandler(cfg)
+    summary = FilterSummary(cfg, cfg.ripple.phase_source, "DRIVE_TPDO1 frames")
+    writerow = writer.writerow
+    n = 0
+    for t, (torque, tacho, current, encoder) in _sensor_frames(path, summary):
+        out = isr(AdcSample(torque, tacho, current, encoder))
+        writerow((t, out.T_meas, out.acceleration, out.T_expected, out.ripple, out.T_filtered))
+        n += 1
+    if n == 0:
+        raise UserError(f"{path}: no DRIVE_TPDO1 frames (drive sensor frames) in the trace")
+    summary.samples = n
+    _collect(summary, isr.chain)
+    return summary
+
+
+# -------------------------------------------------------------------------------- CLI
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "filter",
+        help="run the firmware's torque filter offline over a signal CSV or a trace",
+        description="Run the firmware's torque filter chain (differentiator, expected "
+        "torque, ripple Kalman filter) offline.  INPUT is a CSV with columns "
+        "time,T_meas,velocity[,encoder] or a trace written by 'hdhil run' (its DRIVE_TPDO1 "
+        "frames are filtered exactly as the firmware did).  Output columns: "
+        + ",".join(OUTPUT_COLUMNS)
+        + ".",
+    )
+    parser.add_argument("input", metavar="INPUT", help="signal CSV or trace file")
+    parser.add_argument(
+        "--out", required=True, metavar="OUT.csv", help="output CSV ('-' for stdout)"
+    )
+    parser.add_argument(
+        "--paper",
+        action="store_true",
+        help="use the seed's paper filter (listing A.1 for the default harmonics) instead "
+        "of the recommended one",
+    )
+    parser.add_argument(
+        "--config",
+        metavar="FILE.toml",
+        help="firmware configuration: a scenario file ([firmware...] tables) or the "
+        "firmware tables at top level",
+    )
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Filter ``args.input`` into ``args.out``; 0 done, 1 damaged trace (2 via UserError)."""
+    path = Path(args.input)
+    fmt, compressed = _check_input(path)
+    cfg = load_firmware_config(args.config)
+    if args.paper:
+        cfg = paper_config(cfg)
+    is_trace = fmt != ".csv" or _is_can_csv(path, compressed)
+    target = _CsvTarget(args.out, path)
+    try:
+        if is_trace:
+            summary = filter_trace(path, cfg, target.writer)
+        else:
+            summary = filter_signal_csv(path, compressed, cfg, target.writer)
+        target.commit()
+    except BaseException:
+        target.abort()
+        raise
+    print(summary.line(target.label), file=sys.stderr)
+    for damage in summary.damage[:5]:
+        print(f"hdhil: warning: {damage}", file=sys.stderr)
+    if len(summary.damage) > 5:
+        more = len(summary.damage) - 5
+        print(f"hdhil: warning: {path}: {more} more damaged spots", file=sys.stderr)
+    return 1 if summary.damage else 0
