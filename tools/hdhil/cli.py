@@ -21,7 +21,18 @@ class UserError(Exception):
 
 
 #: Subcommand modules, in the order ``hdhil --help`` lists them.
-COMMANDS = ("run", "dump", "filter_cmd", "evaluate", "tune", "plot", "calibrate", "design", "bench")
+COMMANDS = (
+    "run",
+    "dump",
+    "filter_cmd",
+    "evaluate",
+    "tune",
+    "plot",
+    "calibrate",
+    "design",
+    "identify",
+    "bench",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -202,7 +202,7 @@ def estimate_lag(x: np.ndarray, truth: np.ndarray, sample_period_s: float) -> fl
     return float((lags[i] + shift) * sample_period_s * 1e3)
 
 
-def _offline_chain(
+def offline_chain(
     cfg: FirmwareConfig, T_meas: np.ndarray, velocity: np.ndarray, encoder: np.ndarray
 ) -> np.ndarray:
     """The firmware's own filter chain over recorded samples; returns T_filtered."""
@@ -241,11 +241,11 @@ def candidate_signals(rec: Recording, cfg: FirmwareConfig) -> dict[str, np.ndarr
     signals = {"raw": T_meas, f"firmware ({mode})": rec.column("T_filtered_tele")}
     paper = paper_config(cfg)
     recommended = recommended_config(cfg)
-    signals[f"kalman paper ({paper.ripple.order}th order)"] = _offline_chain(
+    signals[f"kalman paper ({paper.ripple.order}th order)"] = offline_chain(
         paper, T_meas, vel, encoder
     )
     signals[f"kalman recommended ({len(recommended.ripple.oscillators)} harmonics)"] = (
-        _offline_chain(recommended, T_meas, vel, encoder)
+        offline_chain(recommended, T_meas, vel, encoder)
     )
     for fc in BUTTERWORTH_CUTOFFS_HZ:
         if fc < 0.5 / Ts:

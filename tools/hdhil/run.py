@@ -19,6 +19,7 @@ import argparse
 import dataclasses
 import itertools
 import json
+import math
 import signal
 import sys
 import threading
@@ -30,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import can
+import numpy as np
 
 from firmware.config import FirmwareConfig
 from firmware.controller import ControllerNode
@@ -142,6 +144,29 @@ def read_toml(path: Path) -> dict[str, Any]:
         raise ConfigError(f"cannot read override file {path}: {exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: invalid TOML: {exc}") from None
+
+
+def _controller_diagnostics(controller: ControllerNode) -> dict[str, Any]:
+    """The controller's counters and the health of its filter's covariance."""
+    d = controller.diagnostics
+    kalman = controller.isr.chain.kalman
+    P = np.asarray(kalman.P)
+    finite = bool(np.all(np.isfinite(P)))
+    return {
+        "syncs_sent": d.syncs_sent,
+        "sensor_frames": d.sensor_frames,
+        "malformed_frames": d.malformed_frames,
+        "unknown_frames": sum(controller.unknown_frames.values()),
+        "filter_mode": controller.config.ripple.mode,
+        "filter_states": int(P.shape[0]),
+        "kalman_skipped": kalman.skipped,
+        "covariance_resets": getattr(kalman, "covariance_resets", 0),
+        "covariance_finite": finite,
+        "covariance_min_eigenvalue": (
+            float(np.linalg.eigvalsh((P + P.T) / 2).min()) if finite else math.nan
+        ),
+        "covariance_asymmetry": float(np.abs(P - P.T).max()) if finite else math.nan,
+    }
 
 
 def _frames_sent(control: can.BusABC, truth: can.BusABC) -> dict[str, int]:
@@ -301,18 +326,12 @@ def run_lockstep(
         frames_sent=frames_sent,
         worst_case_load=load.worst_case_load,
         bitrate=bitrate,
-        torque=scorer.result().as_dict(),
+        torque={**scorer.result().as_dict(), "rms_filtered_per_minute": scorer.block_rms},
         velocity_final=scorer.velocity_final,
         velocity_peak=scorer.velocity_peak,
         trace=str(trace) if trace is not None else None,
         evaluation=evaluation,
-        controller={
-            "syncs_sent": controller.diagnostics.syncs_sent,
-            "sensor_frames": controller.diagnostics.sensor_frames,
-            "malformed_frames": controller.diagnostics.malformed_frames,
-            "unknown_frames": sum(controller.unknown_frames.values()),
-            "kalman_skipped": controller.isr.chain.kalman.skipped,
-        },
+        controller=_controller_diagnostics(controller),
         drive={
             "syncs": drive.diagnostics.syncs,
             "commands": drive.diagnostics.commands,

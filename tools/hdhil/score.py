@@ -48,8 +48,14 @@ class TorqueScorer(can.Listener):
     the filter's start-up transient.  The default scores everything.
     """
 
-    def __init__(self, skip_s: float = 0.0) -> None:
+    def __init__(self, skip_s: float = 0.0, block_s: float = 60.0) -> None:
         self.skip_s = skip_s
+        #: RMS filtered error per ``block_s`` of telemetry time (whether it drifts).
+        self.block_s = block_s
+        self.block_rms: list[float] = []
+        self._block_sum = 0.0
+        self._block_n = 0
+        self._block_end = block_s
         tele = codec("control", "CTRL_TPDO1")
         truth = codec("truth", "TRUTH_TORQUE")
         self._tele_key = (tele.frame_id, False)
@@ -87,8 +93,21 @@ class TorqueScorer(can.Listener):
             self._sum_filt2 += e_filt * e_filt
             self._max_raw = max(self._max_raw, abs(e_raw))
             self._max_filt = max(self._max_filt, abs(e_filt))
+            if msg.timestamp >= self._block_end:
+                self._close_block()
+                while msg.timestamp >= self._block_end:
+                    self._block_end += self.block_s
+            self._block_sum += e_filt * e_filt
+            self._block_n += 1
+
+    def _close_block(self) -> None:
+        if self._block_n:
+            self.block_rms.append(math.sqrt(self._block_sum / self._block_n))
+        self._block_sum = 0.0
+        self._block_n = 0
 
     def result(self) -> TorqueScore:
+        """Totals so far; full blocks only in ``block_rms`` (a partial last block is left out)."""
         n = self.n
         if not n:
             return TorqueScore(0, math.nan, math.nan, math.nan, math.nan, math.nan)

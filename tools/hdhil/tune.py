@@ -48,7 +48,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -103,12 +103,7 @@ LOG10_BOUNDS: dict[str, tuple[float, float]] = {
     "r": (-8.0, 1.0),
 }
 #: Display names of the parameters.
-LABELS = {
-    "q_motor": "q motor harmonics",
-    "q_output": "q output harmonics",
-    "residual_q": "residual_q",
-    "r": "r",
-}
+LABELS = {"q_motor": "q motor", "q_output": "q output", "residual_q": "residual_q", "r": "r"}
 #: Nelder-Mead stops when the simplex is this small (decades) and the objective this flat
 #: (nats per sample).
 XATOL_DECADES = 0.01
@@ -207,6 +202,20 @@ def mean_nll(e: np.ndarray, S: np.ndarray, start: int = 0, stop: int | None = No
     return float(np.mean(0.5 * (np.log(2.0 * math.pi * S) + e * e / S)))
 
 
+def innovation_stats(e: np.ndarray, S: np.ndarray, start: int, stop: int) -> dict[str, float]:
+    """Diagnostics over samples ``start:stop``: the innovations' RMS (Nm) and their mean
+    normalised square e²/S, which is 1 for a filter whose S matches its actual errors
+    (> 1: overconfident, << 1: the filter claims far more uncertainty than it has)."""
+    e, S = e[start:stop], S[start:stop]
+    ok = np.isfinite(e) & np.isfinite(S) & (S > 0)
+    if not ok.any():
+        return {"rms": math.nan, "nis": math.nan}
+    return {
+        "rms": float(np.sqrt(np.mean(e[ok] ** 2))),
+        "nis": float(np.mean(e[ok] ** 2 / S[ok])),
+    }
+
+
 # ------------------------------------------------------------------------- parameters
 def parameter_names(ripple: RippleFilterConfig) -> tuple[str, ...]:
     """The tuned parameters for this harmonic set, in search order."""
@@ -250,8 +259,9 @@ def with_tuning(ripple: RippleFilterConfig, values: dict[str, float]) -> RippleF
 @dataclass
 class TuneResult:
     """The outcome of a tuning run; ``loglik_*`` are log-likelihoods per sample (nats),
-    the window is samples ``window[0]:window[1]``, ``rms`` holds the RMS error vs truth
-    (Nm) of raw / paper / default / tuned when the trace has truth, else is None."""
+    the window is samples ``window[0]:window[1]``; ``innovations`` holds
+    :func:`innovation_stats` of paper / default / tuned; ``rms`` the RMS error vs truth
+    (Nm) of raw / paper / default / tuned when the trace has truth, else None."""
 
     parameters: tuple[str, ...]
     default: dict[str, float]
@@ -267,6 +277,7 @@ class TuneResult:
     wall_s: float
     converged: bool
     message: str
+    innovations: dict[str, dict[str, float]]
     rms: dict[str, float] | None = None
 
     @property
@@ -284,6 +295,7 @@ class TuneResult:
                 "default": self.loglik_default,
                 "tuned": self.loglik_tuned,
             },
+            "innovations": self.innovations,
             "improvement_over_paper": self.loglik_tuned - self.loglik_paper,
             "improvement_over_default": self.loglik_tuned - self.loglik_default,
             "window_samples": list(self.window),
@@ -298,7 +310,7 @@ class TuneResult:
 
 
 def _window(n: int, sample_period_s: float, skip_s: float, max_window: int) -> tuple[int, int]:
-    k0 = int(round(skip_s / sample_period_s))
+    k0 = round(skip_s / sample_period_s)
     k1 = min(n, k0 + max_window)
     if k1 - k0 < MIN_WINDOW_SAMPLES:
         raise UserError(
@@ -327,7 +339,6 @@ def tune_signals(
     skip_s: float = SKIP_S,
     max_evals: int = DEFAULT_MAX_EVALS,
     max_window: int = MAX_WINDOW_SAMPLES,
-    progress: Callable[[int, float], None] | None = None,
 ) -> TuneResult:
     """Tune the recommended filter on calibrated samples (T_meas in Nm, velocity in rad/s,
     raw 16-bit encoder counts), starting from ``cfg``'s recommended tuning."""
@@ -347,7 +358,7 @@ def tune_signals(
     )  # fmt: skip
 
     def values_of(x: np.ndarray) -> dict[str, float]:
-        return {name: float(10.0 ** v) for name, v in zip(names, x, strict=True)}
+        return {name: float(10.0**v) for name, v in zip(names, x, strict=True)}
 
     evaluations = 0
 
@@ -356,11 +367,10 @@ def tune_signals(
         evaluations += 1
         e, S = recommended_innovations(inputs, with_tuning(ripple0, values_of(x)), gear, k1)
         value = mean_nll(e, S, k0, k1)
-        if progress is not None:
-            progress(evaluations, -value)
         return value if math.isfinite(value) else 1e300
 
-    nll_default = mean_nll(*recommended_innovations(inputs, ripple0, gear, k1), k0, k1)
+    e_default, S_default = recommended_innovations(inputs, ripple0, gear, k1)
+    nll_default = mean_nll(e_default, S_default, k0, k1)
     result = minimize(
         objective,
         x0,
@@ -386,7 +396,14 @@ def tune_signals(
         for o in paper.oscillators
     }
     paper_values["r"] = float(paper.r)  # type: ignore[arg-type]
-    nll_paper = mean_nll(*paper_innovations(T_meas, velocity, cfg, k1), k0, k1)
+    e_paper, S_paper = paper_innovations(T_meas, velocity, cfg, k1)
+    nll_paper = mean_nll(e_paper, S_paper, k0, k1)
+    e_tuned, S_tuned = recommended_innovations(inputs, tuned_ripple, gear, k1)
+    innovations = {
+        "paper": innovation_stats(e_paper, S_paper, k0, k1),
+        "default": innovation_stats(e_default, S_default, k0, k1),
+        "tuned": innovation_stats(e_tuned, S_tuned, k0, k1),
+    }
 
     return TuneResult(
         parameters=names,
@@ -403,6 +420,7 @@ def tune_signals(
         wall_s=time.perf_counter() - t_start,
         converged=bool(result.success),
         message=str(result.message),
+        innovations=innovations,
     )
 
 
@@ -416,7 +434,7 @@ def tune_recording(
 ) -> TuneResult:
     """Tune on a :class:`hdhil.evaluate.Recording` (its ``DRIVE_TPDO1`` columns only);
     then, if it has ground truth, add the RMS check (:attr:`TuneResult.rms`)."""
-    from hdhil.evaluate import _offline_chain, calibrated_signals
+    from hdhil.evaluate import calibrated_signals, offline_chain
 
     if len(rec) == 0:
         raise UserError("no DRIVE_TPDO1 frames (drive sensor frames) in the trace: nothing to tune")
@@ -432,9 +450,9 @@ def tune_recording(
         tuned_cfg = dataclasses.replace(recommended_config(cfg), ripple=result.tuned_ripple)
         candidates = {
             "raw": T_meas,
-            "paper": _offline_chain(paper_config(cfg), T_meas, velocity, encoder),
-            "default": _offline_chain(recommended_config(cfg), T_meas, velocity, encoder),
-            "tuned": _offline_chain(tuned_cfg, T_meas, velocity, encoder),
+            "paper": offline_chain(paper_config(cfg), T_meas, velocity, encoder),
+            "default": offline_chain(recommended_config(cfg), T_meas, velocity, encoder),
+            "tuned": offline_chain(tuned_cfg, T_meas, velocity, encoder),
         }
         result.rms = {
             name: float(np.sqrt(np.mean((x[k0:k1] - T_true[k0:k1])[truth] ** 2)))
@@ -451,40 +469,36 @@ def _toml_float(value: float) -> str:
 
 def ripple_toml(ripple: RippleFilterConfig, comments: Sequence[str] = ()) -> str:
     """``ripple`` as a scenario-file ``[firmware.ripple]`` table; parses to
-    ``{"firmware": {"ripple": {...}}}`` for ``load_scenario(..., overrides=...)``."""
-    lines = [f"# {c}".rstrip() for text in comments for c in text.splitlines()]
-    lines += [
-        "",
-        "[firmware.ripple]",
-        f'mode = "{ripple.mode}"',
-        f"r = {_toml_float(ripple.r)}                      # tuned".rstrip(),  # type: ignore[arg-type]
-        f"residual_q = {_toml_float(ripple.residual_q)}             # tuned",
-        f"p0 = {_toml_float(ripple.p0)}                     # held fixed",  # type: ignore[arg-type]
-        f'phase_source = "{ripple.phase_source}"    # held fixed',
-        f"standstill_radps = {_toml_float(ripple.standstill_radps)}       # held fixed",
+    ``{"firmware": {"ripple": {...}}}`` for ``load_scenario(..., overrides=...)``.
+
+    The tuned values and the ones held fixed while tuning are all written, so merging the
+    file over any scenario with the same harmonics gives exactly the tuned filter."""
+    rows: list[tuple[str, str]] = [
+        ("", ""),
+        ("[firmware.ripple]", ""),
+        (f'mode = "{ripple.mode}"', ""),
+        (f"r = {_toml_float(ripple.r)}", "tuned"),  # type: ignore[arg-type]
+        (f"residual_q = {_toml_float(ripple.residual_q)}", "tuned"),
+        (f"p0 = {_toml_float(ripple.p0)}", "held fixed"),  # type: ignore[arg-type]
+        (f'phase_source = "{ripple.phase_source}"', "held fixed"),
+        (f"standstill_radps = {_toml_float(ripple.standstill_radps)}", "held fixed"),
     ]
     for o in ripple.oscillators:
-        lines += [
-            "",
-            "[[firmware.ripple.oscillators]]",
-            f'source = "{o.source}"',
-            f"multiple = {_toml_float(o.multiple)}",
-            f"q = {_toml_float(o.q)}                    # tuned",  # type: ignore[arg-type]
+        rows += [
+            ("", ""),
+            ("[[firmware.ripple.oscillators]]", ""),
+            (f'source = "{o.source}"', ""),
+            (f"multiple = {_toml_float(o.multiple)}", ""),
+            (f"q = {_toml_float(o.q)}", "tuned"),  # type: ignore[arg-type]
         ]
-    return "\n".join(_align_comments(lines)) + "\n"
+    width = max(len(code) for code, note in rows if note)
+    lines = [f"# {line}".rstrip() for text in comments for line in text.splitlines()]
+    lines += [f"{code:<{width}}  # {note}" if note else code for code, note in rows]
+    return "\n".join(lines) + "\n"
 
 
-def _align_comments(lines: list[str]) -> list[str]:
-    """Line up trailing ``# ...`` comments of key = value lines."""
-    split = [(line.split("  #")[0].rstrip(), line.split("  #", 1)[1].strip())
-             if "  #" in line and not line.startswith("#") else (line, None)
-             for line in lines]  # fmt: skip
-    width = max((len(code) for code, note in split if note is not None), default=0)
-    return [code if note is None else f"{code:<{width}}  # {note}" for code, note in split]
-
-
-def write_toml(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` (a ``.toml`` file in an existing directory)."""
+def check_out(path: Path) -> None:
+    """``--out`` must be a ``.toml`` file in an existing directory (checked before tuning)."""
     if path.suffix.lower() != ".toml":
         raise UserError(f"--out {path}: must be a .toml file")
     if path.is_dir():
@@ -492,6 +506,11 @@ def write_toml(path: Path, text: str) -> None:
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
         raise UserError(f"--out {path}: directory {parent} does not exist")
+
+
+def write_toml(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` (see :func:`check_out`)."""
+    check_out(path)
     try:
         path.write_text(text, encoding="utf-8")
     except OSError as exc:
@@ -508,16 +527,17 @@ def format_result(res: TuneResult, label: str) -> str:
     k0, k1 = res.window
     names = ("q_motor", "q_output", "residual_q", "r")
     shown = [n for n in names if n in res.parameters or (n in res.paper and n != "residual_q")]
-    head = "".join(f"{LABELS[n]:>20}" for n in shown)
+    head = "".join(f"{LABELS[n]:>11}" for n in shown)
     rms_head = "  RMS vs truth/Nm" if res.rms else ""
+    status = "converged" if res.converged else "budget used up before convergence"
     lines = [
         f"hdhil tune: {label}",
         f"  likelihood window  {res.samples} samples, {k0 * Ts:.3f}-{k1 * Ts:.3f} s "
         f"(the first {k0 * Ts:g} s skipped: filter start-up)",
         f"  optimiser          Nelder-Mead on log10 parameters: {res.evaluations} "
-        f"evaluations, {res.wall_s:.1f} s wall ({'converged' if res.converged else res.message})",
+        f"evaluations, {res.wall_s:.1f} s wall ({status})",
         "",
-        f"  {'tuning':<10}{head}  {'loglik/sample':>13}{rms_head}",
+        f"  {'tuning':<8}{head}  {'loglik/sample':>13}  {'e RMS/Nm':>8}  {'e²/S':>8}{rms_head}",
     ]
     rows = (
         ("paper", res.paper, res.loglik_paper),
@@ -525,12 +545,14 @@ def format_result(res: TuneResult, label: str) -> str:
         ("tuned", res.tuned, res.loglik_tuned),
     )
     for name, values, ll in rows:
-        cells = "".join(f"{_g(values.get(n)):>20}" for n in shown)
+        cells = "".join(f"{_g(values.get(n)):>11}" for n in shown)
+        inn = res.innovations[name]
         rms = f"  {res.rms[name]:16.4f}" if res.rms else ""
-        lines.append(f"  {name:<10}{cells}  {ll:13.4f}{rms}")
+        lines.append(f"  {name:<8}{cells}  {ll:13.4f}  {inn['rms']:8.4f}  {inn['nis']:8.3g}{rms}")
     lines += [
-        "  (q: random-walk variance per step, Nm²; r: measurement variance, Nm²; paper: the "
-        "listing A.1 filter's Q and R, its own innovations, S = R + C P Cᵀ)",
+        "  (q: random-walk variance per step, Nm²; r: measurement variance, Nm²;",
+        "   paper: the listing A.1 filter's Q and R, its own innovations, S = R + C P Cᵀ;",
+        "   e RMS: innovation RMS; e²/S: mean normalised innovation square, 1 when S is right)",
         "",
         f"  improvement over the paper's tuning   {res.loglik_tuned - res.loglik_paper:+.4f} "
         f"nats/sample ({(res.loglik_tuned - res.loglik_paper) * res.samples:+.1f} in total)",
@@ -540,8 +562,8 @@ def format_result(res: TuneResult, label: str) -> str:
     if res.rms:
         r = res.rms
         lines.append(
-            f"  check vs ground truth (NOT used by the tuner), RMS error over the window: raw "
-            f"{r['raw']:.4f}, paper {r['paper']:.4f}, default {r['default']:.4f}, "
+            "  check vs ground truth (NOT used by the tuner), RMS error over the window:\n"
+            f"    raw {r['raw']:.4f}, paper {r['paper']:.4f}, default {r['default']:.4f}, "
             f"tuned {r['tuned']:.4f} Nm"
         )
     else:
@@ -567,18 +589,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="scenario whose firmware configuration (harmonics, calibration) the trace was "
         "recorded with (default: the firmware defaults)",
     )
-    p.add_argument("--out", type=Path, default=None, help="write [firmware.ripple] to FILE.toml")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        metavar="FILE.toml",
+        help="write the tuned [firmware.ripple] table (scenario layout) to FILE.toml",
+    )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument(
         "--max-evals",
         type=int,
         default=DEFAULT_MAX_EVALS,
+        metavar="N",
         help=f"budget of likelihood evaluations (default {DEFAULT_MAX_EVALS})",
     )
     p.add_argument(
         "--skip",
         type=float,
         default=SKIP_S,
+        metavar="S",
         help=f"seconds left out of the likelihood at the start (default {SKIP_S:g})",
     )
     p.set_defaults(func=run)
@@ -594,8 +624,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--max-evals must be >= 1, got {args.max_evals}")
     if not (math.isfinite(args.skip) and args.skip >= 0):
         raise UserError(f"--skip must be a finite number >= 0, got {args.skip}")
-    if args.out is not None and args.out.suffix.lower() != ".toml":
-        raise UserError(f"--out {args.out}: must be a .toml file")
+    if args.out is not None:
+        check_out(args.out)
     scenario = load_scenario(args.scenario) if args.scenario else None
     fw = from_dict(FirmwareConfig, scenario.firmware, "firmware") if scenario else FirmwareConfig()
     rec, damage = recording_from_trace(args.trace, fw.sample_period_s)
