@@ -40,10 +40,12 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
+from firmware.lqg import ControlLaw, Feedforward, JointParams, LqgWeights, ObserverMethod
 from hdhil.converter import Converter
 from hdhil.dataconf import check_fields
 
 __all__ = [
+    "JTF1_FF_TRACKING",
     "LISTING_A1_RIPPLE",
     "LISTING_A2_RIPPLE",
     "PAPER_P0",
@@ -61,8 +63,11 @@ __all__ = [
     "RECOMMENDED_STANDSTILL_RADPS",
     "SECTION5_RIPPLE",
     "Calibration",
+    "ControlConfig",
+    "DesiredTorqueConfig",
     "FilterMode",
     "FirmwareConfig",
+    "Law",
     "Oscillator",
     "PhaseSource",
     "ReferenceConfig",
@@ -91,6 +96,7 @@ class Wave(enum.IntEnum):
     TRIANGLE = 3
     STEP = 4
     SAWTOOTH = 5
+    CHIRP = 6  # linear frequency sweep (seed 003 Fig. 5: identification by a chirp)
 
 
 @dataclass(frozen=True)
@@ -104,6 +110,11 @@ class ReferenceConfig:
     The listing's global default ``duty = 1.0`` makes a square wave constant; we use
     0.5 (a symmetric square wave) as default.  The listing's ``freq = 0`` default is
     replaced by 1 Hz because the frequency must be > 0 here.
+
+    ``chirp_end_Hz`` and ``chirp_duration_s`` (not in the seeds) are for ``wave =
+    "chirp"`` only: a linear sweep from ``frequency_Hz`` to ``chirp_end_Hz`` over
+    ``chirp_duration_s``, repeated (seed 003 Fig. 5: "obtained experimentally by
+    commanding tau_m with a chirp function").
     """
 
     wave: Wave = Wave.NONE
@@ -112,11 +123,14 @@ class ReferenceConfig:
     frequency_Hz: float = 1.0
     duty: float = 0.5
     step_time_s: float = 0.0
+    chirp_end_Hz: float = 10.0
+    chirp_duration_s: float = 10.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.wave, Wave):
             raise ValueError(f"reference.wave must be one of {[w.name.lower() for w in Wave]}")
         check_fields(self, {"bias_V": "finite", "amplitude_V": "finite", "frequency_Hz": ">0"})
+        check_fields(self, {"chirp_end_Hz": ">0", "chirp_duration_s": ">0"})
         if not (math.isfinite(self.duty) and 0.0 <= self.duty <= 1.0):
             raise ValueError(f"reference.duty must be within [0, 1], got {self.duty!r}")
         if not (math.isfinite(self.step_time_s) and self.step_time_s >= 0.0):
@@ -421,6 +435,189 @@ RECOMMENDED_SECTION5_RIPPLE = RippleFilterConfig(
 )
 
 
+class Law(enum.IntEnum):
+    """Which torque-control law the interrupt runs (seed 003 §IV, Fig. 7).
+
+    A plain integer code, so that a later SDO write (UNSIGNED8) can select it; in a
+    scenario file it is written by name (``law = "jtf1"``).
+
+    - ``NONE`` (0, the default): no torque control; the handler generates the
+      reference voltage of seed 000 (``reference_generation`` → ``write_dac0``), exactly
+      as before.
+    - ``JTF1`` (1): seed 003 Eq. 4, the LQG regulator (k1..k4 from the LQ design).
+    - ``JTF1_FF`` (2): Eq. 4 with the desired-torque-derivative feedforward of §IV
+      ("more demanding applications": ``e2 = τs' − τsD'`` and the gain k5 on ``τsD'``).
+    - ``JTF2`` (3): PD JTF of refs. [17, 18], ``k3 = 0``, ``k4 = 1 + Jm/Jl``.
+    - ``JTF3`` (4): PD JTF of refs. [19, 20], ``k3 = 0``, ``k4 = 1``.
+    """
+
+    NONE = 0
+    JTF1 = 1
+    JTF1_FF = 2
+    JTF2 = 3
+    JTF3 = 4
+
+    @property
+    def control_law(self) -> ControlLaw | None:
+        """The :class:`firmware.lqg.ControlLaw` this code selects (None for ``NONE``)."""
+        return None if self is Law.NONE else ControlLaw(self.name.lower())
+
+
+@dataclass(frozen=True)
+class DesiredTorqueConfig:
+    """The desired sensor torque ``τsD`` as a waveform (seed 003 §VI: ``τsD = 20
+    sin(0.4 π t)`` Nm, the default).
+
+    The default amplitude is **-20 Nm**: the configuration is in the product sign (see
+    below) and the seed's ``τs`` is ``-T``, so ``T_D = -20 sin(0.4 π t)`` is the seed's
+    ``τsD = +20 sin(0.4 π t)``.  The sign matters relative to the link motion of the §VI
+    scenario (``θl = 20° sin 2πt``, angles have the same sign in both conventions): the
+    two error components add differently (JTF2: 5.4 Nm max |e| as the seed, 5.8 Nm with
+    the sign flipped; :mod:`firmware.tracking`).
+
+    The waves are the reference generator's (:class:`firmware.stages.ReferenceGenerator`,
+    :class:`Wave`) with the same parameters, in Nm instead of volts: ``bias_Nm`` b,
+    ``amplitude_Nm`` A, ``frequency_Hz`` f, ``duty``, ``step_time_s``, and for a chirp
+    ``chirp_end_Hz``, ``chirp_duration_s`` (e.g. a closed-loop sweep).  Torques are in the
+    product convention (positive when the motor drives the load, like ``T_meas``; see
+    :mod:`firmware.isr` for the mapping to the seed's ``τs``).  The derivative ``τsD'``
+    (feedforward of ``JTF1_FF`` and the one-sample prediction) is the central difference
+    of the wave over ±1 sample, exact to 2.6e-7 relative for the default sine; for the
+    discontinuous waves (square, step) it is an impulse of 2 samples.
+    """
+
+    wave: Wave = Wave.SINE
+    bias_Nm: float = 0.0
+    amplitude_Nm: float = -20.0
+    frequency_Hz: float = 0.2
+    duty: float = 0.5
+    step_time_s: float = 0.0
+    chirp_end_Hz: float = 10.0
+    chirp_duration_s: float = 10.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.wave, Wave):
+            raise ValueError(f"desired.wave must be one of {[w.name.lower() for w in Wave]}")
+        self.reference()  # same ranges as the reference generator's
+
+    def reference(self) -> ReferenceConfig:
+        """The same wave as a :class:`ReferenceConfig` (numbers in Nm, not V)."""
+        return ReferenceConfig(
+            wave=self.wave,
+            bias_V=self.bias_Nm,
+            amplitude_V=self.amplitude_Nm,
+            frequency_Hz=self.frequency_Hz,
+            duty=self.duty,
+            step_time_s=self.step_time_s,
+            chirp_end_Hz=self.chirp_end_Hz,
+            chirp_duration_s=self.chirp_duration_s,
+        )
+
+
+ControlFeedback = Literal["T_meas", "T_filtered"]
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    """Joint-torque control of seed 003 in the interrupt handler (:mod:`firmware.isr`).
+
+    With ``law = NONE`` (the default) nothing here is used and the firmware behaves as
+    the seed-000 port always did.  With a law, the handler's "reference generation"
+    stage runs the LQG regulator of seed 003 (observer Eq. 8 + law Eq. 4) on the
+    measured torque and writes the motor torque command to the DAC.  The design (LQ
+    gains, Kalman gain, discrete observer) is computed once, when the handler is built,
+    by :func:`firmware.lqg.design_lqg` from the fields below; no gain is hard-coded.
+
+    - ``law``: :class:`Law` (plain integer code, SDO-writable later).
+    - ``joint``: Jm, Jl, k, c for the design (seed 003 §I-II: 2.5, 0.7, 6300, 11.8).
+    - ``weights``: q1, q2, W, V (seed 003 §VI: 500, 0.1, 0.12, 1e4).
+    - ``feedforward``: how k3, k4, k5 are chosen, ``lq`` (Friedland's LQ gains, the
+      seed's numbers) or ``exact`` (zero static error, ``G0 = B⁺E``).
+    - ``observer``: discretisation of Eq. 8 (``zoh-kalman`` or ``zoh-observer``).
+    - ``delay_samples`` / ``predict``: the command computed at sample k acts from
+      t(k + delay_samples): 1 for the synchronous RPDO (``--actuation next-sync``), 0
+      for ``immediate``; ``predict`` applies Eq. 4 to the one-step prediction
+      (:class:`firmware.lqg.LqgController`).
+    - ``feedback``: the torque the regulator measures: ``T_meas`` (default, seed 003:
+      the LQG's own Kalman filter does the filtering) or ``T_filtered`` (after the
+      seed-000 ripple filter, for a joint with angle-locked torque ripple).
+    - ``desired``: ``τsD`` (:class:`DesiredTorqueConfig`).
+    - ``torque_per_volt``: the actuator calibration, output-referred motor torque per
+      DAC volt (Nm/V).  It **must match the drive** (``hostsim``:
+      ``PlantConfig.torque_per_volt = gear_ratio · Kt · gain_A_per_V``); the default 6.0
+      is the default plant's 100 · 0.06 Nm/A · 1 A/V.  Negative for an inverted drive.
+    - ``torque_limit_Nm``: motor torque limit (output-referred); the command is clipped
+      to it and to the DAC range (±10 V · ``torque_per_volt``).  Default 36 Nm, the
+      default plant's current limit (6 A · 0.06 Nm/A · 100).
+    """
+
+    law: Law = Law.NONE
+    joint: JointParams = field(default_factory=JointParams)
+    weights: LqgWeights = field(default_factory=LqgWeights)
+    feedforward: Feedforward = Feedforward.LQ
+    observer: ObserverMethod = ObserverMethod.ZOH_KALMAN
+    delay_samples: int = 1
+    predict: bool = True
+    feedback: ControlFeedback = "T_meas"
+    desired: DesiredTorqueConfig = field(default_factory=DesiredTorqueConfig)
+    torque_per_volt: float = 6.0
+    torque_limit_Nm: float = 36.0
+
+    def __post_init__(self) -> None:
+        for name, expected in (
+            ("law", Law),
+            ("joint", JointParams),
+            ("weights", LqgWeights),
+            ("feedforward", Feedforward),
+            ("observer", ObserverMethod),
+            ("desired", DesiredTorqueConfig),
+        ):
+            if not isinstance(getattr(self, name), expected):
+                raise ValueError(f"control.{name} must be a {expected.__name__}")
+        d = self.delay_samples
+        if isinstance(d, bool) or d not in (0, 1):
+            raise ValueError(f"control.delay_samples must be 0 or 1, got {d!r}")
+        if not isinstance(self.predict, bool):
+            raise ValueError(f"control.predict must be true or false, got {self.predict!r}")
+        if self.feedback not in ("T_meas", "T_filtered"):
+            raise ValueError(
+                f"control.feedback must be 'T_meas' or 'T_filtered', got {self.feedback!r}"
+            )
+        check_fields(self, {"torque_per_volt": "!=0", "torque_limit_Nm": ">0"})
+
+    @property
+    def active(self) -> bool:
+        """True when a control law runs (``law`` is not ``NONE``)."""
+        return self.law is not Law.NONE
+
+
+#: JTF1 + feedforward tuned for the seed-003 §VI tracking scenario (link moved as
+#: ``θl = 20° sin 2πt``, ``τsD = 20 sin 0.4πt``), max |e| <= 0.3 Nm
+#: (:mod:`firmware.tracking`, where the numbers and the reasons are).  The seed's LQ
+#: loop gains k1, k2 (q1 = 500, q2 = 0.1) are kept; three things change, and each is
+#: needed:
+#:
+#: - ``JTF1_FF``: the seed's own ``τsD'`` feedforward (§IV, "more demanding
+#:   applications");
+#: - ``feedforward = exact``: zero-static-error gains on the exogenous inputs (k3 =
+#:   -Jm/Jl, k4 = 1 + Jm/Jl, k5 = Jm c/(J k)) instead of the LQ compromise, which
+#:   leaves -4 % of τsD and +3 % of τlgd as a static error;
+#: - ``V = 1e7`` (seed: 1e4): a faster observer of the exogenous torque τlgd, whose
+#:   Wiener-process model lags a moving link by ~17 ms x τlgd' at V = 1e4.
+#:
+#: The price is precision (seed §V: larger V/W is "more accurate but less precise"):
+#: with the seed's sensor noise (W = 0.12 Nm² per sample) the noise part of e is
+#: about twice the seed design's and the command noise reaches a 150 Nm torque limit.
+#: A tuning for the noise-free §VI scenario (the seed's simulation), not for a noisy
+#: joint.  ``torque_per_volt`` and ``torque_limit_Nm`` are the defaults; set them to
+#: the drive's.
+JTF1_FF_TRACKING = ControlConfig(
+    law=Law.JTF1_FF,
+    weights=LqgWeights(V=1e7),
+    feedforward=Feedforward.EXACT,
+)
+
+
 @dataclass(frozen=True)
 class FirmwareConfig:
     """Everything the ported interrupt handler needs (seed 000, listing A.1).
@@ -436,6 +633,8 @@ class FirmwareConfig:
       gives the same configuration with the paper filter (:data:`LISTING_A1_RIPPLE`
       for the default harmonics).
     - ``adc`` / ``dac``: the DT1401's 12-bit, +/-10 V converters.
+    - ``control``: seed 003's joint-torque control (:class:`ControlConfig`); off by
+      default (``law = none``), in which case the handler is the seed-000 port unchanged.
     """
 
     sample_period_s: float = 1e-3
@@ -448,6 +647,7 @@ class FirmwareConfig:
     ripple: RippleFilterConfig = field(default_factory=RippleFilterConfig)
     adc: Converter = field(default_factory=Converter)
     dac: Converter = field(default_factory=Converter)
+    control: ControlConfig = field(default_factory=ControlConfig)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.sample_period_s) and 0.0 < self.sample_period_s <= 1.0):
@@ -467,6 +667,7 @@ class FirmwareConfig:
             ("ripple", RippleFilterConfig),
             ("adc", Converter),
             ("dac", Converter),
+            ("control", ControlConfig),
         ):
             if not isinstance(getattr(self, name), expected):
                 raise ValueError(f"{name} must be a {expected.__name__}")

@@ -28,6 +28,38 @@ the encoder count the listing reads, as the motor angle: see
 
 The firmware never sees ground truth: its only input is :class:`AdcSample`, the raw
 counts of the drive's sensor frame.
+
+Torque control (seed 003, ``/work/shared/seeds/003_cab3072408ebe226.txt``)
+--------------------------------------------------------------------------
+With a control law configured (:class:`firmware.config.ControlConfig`, ``law`` other
+than ``none``) the line ``ref_fl = reference_generation(wavetype)`` becomes the LQG
+joint-torque regulator of seed 003 (:class:`TorqueControl`): the observer of Eq. 8
+and the law of Eq. 4 (JTF1, JTF1 with the ``τsD'`` feedforward of §IV, JTF2, JTF3) run
+on the calibrated measured torque ``T_meas``; the motor torque command is converted to
+DAC volts with the actuator calibration ``torque_per_volt``, clipped at the torque
+limit and the DAC range, and the torque the DAC really outputs is reported back to the
+observer (``LqgController.set_applied``).  The regulator's Kalman filter takes over the
+ripple filter's role for the control: its estimate ``τ̂s`` is what the telemetry sends
+as the filtered torque.  The ripple filter still runs (its ``T_filtered`` stays in
+:class:`IsrOutput`, its state stays warm, and ``feedback = "T_filtered"`` can feed it to
+the regulator on a joint with angle-locked ripple); it costs ~9 µs per sample.
+
+Sign mapping, the one place where it happens (:data:`SENSOR_TORQUE_SIGN`):
+
+================================  =====================  ==========================
+quantity                          product convention     seed 003 / firmware.lqg
+================================  =====================  ==========================
+sensor torque, its derivative     ``T`` (= T_meas)       ``τs = -T``
+desired sensor torque             ``T_D`` (config)       ``τsD = -T_D``
+motor torque command              ``τm``                 ``τm`` (same sign)
+exogenous torque on the link      ``τlgd``               ``τlgd`` (same sign)
+tracking error (estimated)        ``e = T̂ - T_D``        ``τ̂s - τsD = -e``
+================================  =====================  ==========================
+
+Product convention: a torque is positive when the motor drives the load forward (the
+emulator's ``T_true``, the telemetry, the DBC).  Seed 003 counts the sensor torque the
+other way (``τs = k (θl - θm)``, §II); torques acting on the motor or on the link
+(``τm``, ``τd``, ``τl``, ``τg``) are positive forward in both.
 """
 
 from __future__ import annotations
@@ -36,6 +68,7 @@ import math
 from dataclasses import dataclass
 
 from firmware.config import FirmwareConfig
+from firmware.lqg import LqgController, LqgDesign, design_lqg
 from firmware.ripple import HarmonicKalman, RippleKalman
 from firmware.stages import (
     Differentiator,
@@ -50,7 +83,17 @@ from firmware.stages import (
     torque_error,
 )
 
-__all__ = ["AdcSample", "InterruptHandler", "IsrOutput", "TorqueFilterChain"]
+__all__ = [
+    "SENSOR_TORQUE_SIGN",
+    "AdcSample",
+    "InterruptHandler",
+    "IsrOutput",
+    "TorqueControl",
+    "TorqueFilterChain",
+]
+
+#: Seed 003's sensor torque per product-convention torque: ``τs = -T`` (module docstring).
+SENSOR_TORQUE_SIGN = -1.0
 
 
 @dataclass(frozen=True)
@@ -76,6 +119,16 @@ class IsrOutput:
     filter made at k − 1 (listing ``T_ripple``), in recommended mode the learned ripple
     map at the angle measured at k.  ``encoder`` is the pulse count masked to 16 bits
     (listing ``pcsample &= 0x0000ffff``), so in 0..65535.  Units: Nm, rad/s, A, rad/s².
+
+    Torque control (seed 003, only with a control law; 0 otherwise), all in the product
+    convention (module docstring): ``tau_s_hat`` / ``dtau_s_hat`` the observer's
+    sensor torque and its derivative (Nm, Nm/s), ``tau_lgd_hat`` the exogenous torque
+    ``τlgd = τl + τg − τd Jl/Jm`` (Nm), ``tau_sD`` / ``dtau_sD`` the desired torque and
+    its derivative, ``e_hat = tau_s_hat − tau_sD``, ``tau_m_request`` the law's motor
+    torque (Nm, output-referred) and ``tau_m_cmd`` the torque the DAC code stands for
+    (after the torque limit, the DAC range and quantisation), ``saturated`` whether
+    the two differ by more than half a DAC step.  ``reference_V`` is then the DAC
+    voltage before quantisation.
     """
 
     samplecount: int = 0
@@ -90,6 +143,15 @@ class IsrOutput:
     T_filtered: float = 0.0
     ripple: float = 0.0
     encoder: int = 0
+    tau_s_hat: float = 0.0
+    dtau_s_hat: float = 0.0
+    tau_lgd_hat: float = 0.0
+    tau_sD: float = 0.0
+    dtau_sD: float = 0.0
+    e_hat: float = 0.0
+    tau_m_request: float = 0.0
+    tau_m_cmd: float = 0.0
+    saturated: bool = False
 
 
 class TorqueFilterChain:
@@ -178,6 +240,90 @@ class TorqueFilterChain:
         self.angle = 0.0
 
 
+class TorqueControl:
+    """The LQG joint-torque regulator of seed 003 as the handler's torque-control stage.
+
+    Built once from :class:`firmware.config.ControlConfig`: :func:`firmware.lqg.design_lqg`
+    computes the LQ gains (Eqs. 4, 6), the Kalman gain (Eq. 8) and the discrete
+    observer at the sample period; :class:`firmware.lqg.LqgController` runs them.  Per
+    sample (:meth:`__call__`):
+
+    1. ``τsD`` at k from the desired-torque wave, ``τsD'`` by the central difference
+       over k ± 1 (the wave is known ahead);
+    2. observer update and Eq. 4 on the measured torque, mapped to the seed's sign
+       (module docstring): ``τm = LqgController.step(-T, -T_D, -T_D')``;
+    3. ``τm`` clipped at ``torque_limit_Nm``, converted to volts (``τm /
+       torque_per_volt``) and to the DAC code (rounding, saturation at the code range);
+    4. the torque that code stands for, ``to_volts(code) · torque_per_volt``, is reported
+       to the observer (``set_applied``): the observer is fed the torque the drive
+       really applies, saturated and quantised;
+    5. the outputs (:class:`IsrOutput`) in the product convention.
+
+    Args:
+        cfg: the firmware configuration; ``cfg.control.law`` must not be ``none``.
+    """
+
+    def __init__(self, cfg: FirmwareConfig) -> None:
+        c = cfg.control
+        law = c.law.control_law
+        if law is None:
+            raise ValueError("TorqueControl needs a control law (control.law is 'none')")
+        self.cfg = c
+        self.design: LqgDesign = design_lqg(
+            c.joint,
+            c.weights,
+            Ts=cfg.sample_period_s,
+            method=c.observer,
+            feedforward=c.feedforward,
+        )
+        self.controller = LqgController(
+            self.design, law, delay_samples=c.delay_samples, predict=c.predict
+        )
+        self.desired = ReferenceGenerator(c.desired.reference(), cfg.sample_period_s)
+        self._half_fs = 0.5 / cfg.sample_period_s
+        self._dac = cfg.dac
+        self._tpv = c.torque_per_volt
+        self._limit = c.torque_limit_Nm
+        self._half_lsb_Nm = 0.5 * cfg.dac.lsb_V * abs(c.torque_per_volt) * (1.0 + 1e-9)
+        #: Samples whose command was clipped (torque limit or DAC range) since the reset.
+        self.saturations = 0
+
+    def reset(self) -> None:
+        """Observer back to rest (all estimates 0), saturation counter cleared."""
+        self.controller.reset()
+        self.saturations = 0
+
+    def __call__(self, k: int, T: float, out: IsrOutput) -> None:
+        """Sample ``k`` with measured torque ``T`` (Nm, product convention): runs the
+        regulator and writes the command and estimates into ``out``."""
+        desired = self.desired.value
+        T_D = desired(k)
+        dT_D = (desired(k + 1) - desired(k - 1)) * self._half_fs
+        s = SENSOR_TORQUE_SIGN
+        ctrl = self.controller
+        request = ctrl.step(s * T, s * T_D, s * dT_D)
+        limit = self._limit
+        tau = limit if request > limit else -limit if request < -limit else request
+        volts = tau / self._tpv
+        counts = self._dac.to_counts(volts)
+        applied = self._dac.to_volts(counts) * self._tpv
+        ctrl.set_applied(applied)
+        saturated = abs(applied - request) > self._half_lsb_Nm
+        if saturated:
+            self.saturations += 1
+        out.reference_V = volts
+        out.dac_counts = counts
+        out.tau_s_hat = T_hat = s * ctrl.tau_s_hat
+        out.dtau_s_hat = s * ctrl.tau_s_dot_hat
+        out.tau_lgd_hat = ctrl.tau_lgd_hat
+        out.tau_sD = T_D
+        out.dtau_sD = dT_D
+        out.e_hat = T_hat - T_D
+        out.tau_m_request = request
+        out.tau_m_cmd = applied
+        out.saturated = saturated
+
+
 class InterruptHandler:
     """``c_int10``: one call per sample period, :class:`AdcSample` in, :class:`IsrOutput`
     out.
@@ -185,12 +331,18 @@ class InterruptHandler:
     The returned :class:`IsrOutput` is one preallocated object, overwritten by every
     call (as the listing's locals are); copy it (``dataclasses.replace`` or
     ``dataclasses.astuple``) to keep a sample.
+
+    With a control law (``cfg.control.law`` not ``none``) :attr:`control` is the
+    :class:`TorqueControl` stage and replaces ``reference_generation``; otherwise it is
+    None and the handler is the seed-000 port as before.
     """
 
     def __init__(self, cfg: FirmwareConfig) -> None:
         self.cfg = cfg
         self.chain = TorqueFilterChain(cfg)
         self.reference = ReferenceGenerator(cfg.reference, cfg.sample_period_s)
+        self.control = TorqueControl(cfg) if cfg.control.active else None
+        self._feedback_filtered = cfg.control.feedback == "T_filtered"
         self.samplecount = 0  # listing: int samplecount = 0;
         self._out = IsrOutput()
 
@@ -205,7 +357,9 @@ class InterruptHandler:
     @property
     def startup_dac_counts(self) -> int:
         """The code to output before the first interrupt (listing ``main``:
-        ``write_dac0( Vbias )``)."""
+        ``write_dac0( Vbias )``; with a control law, zero torque)."""
+        if self.control is not None:
+            return dac_write(0.0, self.cfg.dac)
         return dac_write(self.cfg.reference.bias_V, self.cfg.dac)
 
     @property
@@ -218,6 +372,8 @@ class InterruptHandler:
         """Back to power-on state (samplecount 0, filters cleared).  The output object
         is kept (it is overwritten by the next call)."""
         self.chain.reset()
+        if self.control is not None:
+            self.control.reset()
         self.samplecount = 0
 
     def __call__(self, sample: AdcSample) -> IsrOutput:
@@ -230,16 +386,20 @@ class InterruptHandler:
         # acc = Diff_filter(vel); T_mod; Delta_T; Torque_f; T_ripple = Kalman(...);
         # (recommended mode: the motor angle from pcsample, the drive's encoder count)
         acc, T_mod, Delta_T, Torque_f, ripple = self.chain.step(T_meas, vel, sample.encoder)
-        # ref_fl = reference_generation(wavetype);
-        ref_fl = self.reference.value(k)
-        # write_dac0( ref_fl );
-        dac_counts = dac_write(ref_fl, cfg.dac)
+        out = self._out
+        control = self.control
+        if control is None:
+            # ref_fl = reference_generation(wavetype);
+            ref_fl = self.reference.value(k)
+            # write_dac0( ref_fl );
+            out.dac_counts = dac_write(ref_fl, cfg.dac)
+            out.reference_V = ref_fl
+        else:
+            # seed 003: LQG torque control on the measured torque -> write_dac0(tau_m / Nm per V)
+            control(k, Torque_f if self._feedback_filtered else T_meas, out)
 
         # copy(&T_meas ...); copy(&vel ...); copy(&MotorCurrOut ...); copy(&Torque_f ...);
-        out = self._out
         out.samplecount = k
-        out.dac_counts = dac_counts
-        out.reference_V = ref_fl
         out.T_meas = T_meas
         out.velocity = vel
         out.current = current

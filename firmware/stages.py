@@ -242,6 +242,12 @@ class ReferenceGenerator:
     - TRIANGLE: b + A·tri(p), tri rising from 0 at p = 0 to +1 at p = 1/4, falling to
       −1 at p = 3/4 and back to 0 at p = 1 (in phase with the sine)
     - SAWTOOTH: b + A (2p − 1)
+    - CHIRP:    b + A sin(2π (f t' + (f1 − f) t'² / (2 T))), t' = t mod T: a linear
+      sweep from f = ``frequency_Hz`` to f1 = ``chirp_end_Hz`` over T =
+      ``chirp_duration_s``, then again from f (continuous when (f + f1) T / 2 is a
+      whole number of cycles).  Starts at b with a rising slope, like the sine.  Seed
+      003 Fig. 5 identifies the joint "by commanding tau_m with a chirp function"; the
+      seed gives no sweep parameters.  Both frequencies must lie below Nyquist.
     - STEP:     b for t < step_time, b + A from then on.  The step sample is the
       first k with k·Ts >= step_time (to within 1e-9 of a sample, so that 0.1 s at
       1 ms steps at k = 100 despite rounding).
@@ -250,6 +256,7 @@ class ReferenceGenerator:
     __slots__ = (
         "_amplitude",
         "_bias",
+        "_chirp",
         "_duty",
         "_f_ts",
         "_k_step",
@@ -271,6 +278,18 @@ class ReferenceGenerator:
         self._duty = cfg.duty
         self._f_ts = cfg.frequency_Hz * sample_period_s  # cycles per sample
         self._k_step = math.ceil(round(cfg.step_time_s / sample_period_s, 9))
+        # chirp: (f0, (f1 - f0) / (2 T), T)
+        self._chirp = (
+            cfg.frequency_Hz,
+            (cfg.chirp_end_Hz - cfg.frequency_Hz) / (2.0 * cfg.chirp_duration_s),
+            cfg.chirp_duration_s,
+        )
+        nyquist = 0.5 / sample_period_s
+        if self._wave is Wave.CHIRP and max(cfg.frequency_Hz, cfg.chirp_end_Hz) >= nyquist:
+            raise ValueError(
+                f"reference: a chirp up to {max(cfg.frequency_Hz, cfg.chirp_end_Hz):g} Hz "
+                f"does not fit below the {nyquist:g} Hz Nyquist frequency"
+            )
 
     def phase(self, k: int) -> float:
         """p = frac(f·t) at sample k, in [0, 1)."""
@@ -288,6 +307,10 @@ class ReferenceGenerator:
             return b if k < self._k_step else b + A
         if wave is Wave.SINE:
             return b + A * math.sin(2.0 * math.pi * k * self._f_ts)
+        if wave is Wave.CHIRP:
+            f0, half_rate, period = self._chirp
+            t = math.fmod(k * self.sample_period_s, period)
+            return b + A * math.sin(2.0 * math.pi * t * (f0 + half_rate * t))
         p = self.phase(k)
         if wave is Wave.SQUARE:
             return b + A if p < self._duty else b - A

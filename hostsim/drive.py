@@ -14,7 +14,11 @@ Delays this gives for a command computed from the sample at t(k):
 
 The plant clock is the SYNC count times the sample period, so the drive stays in step with
 whatever produces SYNC, including real firmware.  Ground truth goes to a separate bus
-(``truth.dbc``), never to the control bus.
+(``truth.dbc``), never to the control bus: every SYNC, right after the sensor TPDO,
+``TRUTH_TORQUE`` (torque and ripple), ``TRUTH_MOTION`` (angles and velocities) and
+``TRUTH_JOINT`` (``tau_ext = tau_l + tau_g`` and ``tau_d`` of seed 003 Eq. 1, ``tau_m``
+acting and commanded), all sampled at
+t(k) like the sensors.
 """
 
 from __future__ import annotations
@@ -82,8 +86,8 @@ class DriveNode(CanNode):
         self._command = codec("control", "DRIVE_RPDO1")
         self._truth_codecs = (
             codec("truth", "TRUTH_TORQUE"),
-            codec("truth", "TRUTH_MOTOR"),
-            codec("truth", "TRUTH_OUTPUT"),
+            codec("truth", "TRUTH_MOTION"),
+            codec("truth", "TRUTH_JOINT"),
         )
         self._sensor_msg = can.Message(
             arbitration_id=self._sensor.frame_id,
@@ -127,12 +131,17 @@ class DriveNode(CanNode):
 
     def _publish_truth(self) -> None:
         p = self.plant
-        torque, motor, output = self._truth_codecs
-        m_torque, m_motor, m_output = self._truth_msgs
+        torque, motion, joint = self._truth_codecs
+        m_torque, m_motion, m_joint = self._truth_msgs
         m_torque.data = torque.encode(p.T_true, p.T_ripple)
-        m_motor.data = motor.encode(p.theta_motor, p.omega_motor)
-        m_output.data = output.encode(p.theta_output, p.omega_output)
+        m_motion.data = motion.encode(p.theta_motor, p.theta_output, p.omega_motor, p.omega_output)
+        m_joint.data = joint.encode(
+            p.external_torque,
+            p.motor_disturbance,
+            p.motor_torque_output,
+            p.motor_torque_command_output,
+        )
         send = self.truth_bus.send
         send(m_torque)
-        send(m_motor)
-        send(m_output)
+        send(m_motion)
+        send(m_joint)

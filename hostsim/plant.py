@@ -26,17 +26,55 @@ Conventions (all angles in rad, all velocities in rad/s, all torques in Nm):
   **reduced to the output shaft** exactly as seed 003 Eq. 1, with the reduced motor
   angle ``q_m = theta_motor / N`` (N = gear ratio, ideal lossless transmission, so
   the motor torque reduced to the output is ``N * Kt * i``).
-* ``T_true`` is the torque the flexspline transmits to the load, positive when the
-  motor drives the load forward: ``T_true = k (q_m - q_l) + c (dq_m - dq_l)``.
-  Seed 003 defines the sensor torque with the opposite sign,
-  ``tau_s = k (theta_l - theta_m)``; for the spring part ``T_true = -tau_s``, and
-  in full ``T_true = -(tau_s + c (dtheta_l - dtheta_m))``.  With that sign the
-  load equation of Eq. 1 reads ``J_l ddq_l = T_true + tau_l + tau_g``, which is what
-  the seed-000 firmware assumes when it models the free-motion torque as
-  ``J_load * acc / Gain`` (listing A.1, ``T_mod``).
+* ``T_transmitted`` is the torque the flexspline transmits to the load, positive when
+  the motor drives the load forward: ``k (q_m - q_l) + c (dq_m - dq_l)``.  Seed 003
+  defines the sensor torque with the opposite sign, ``tau_s = k (theta_l -
+  theta_m)``: ``T_spring = k (q_m - q_l) = -tau_s`` and ``T_transmitted = -(tau_s + c
+  (dtheta_l - dtheta_m))``.  With that sign the load equation of Eq. 1 reads
+  ``J_l ddq_l = T_transmitted + tau_l + tau_g`` (the output bearings' friction, not in
+  the seed, counts as part of ``tau_l``), which is what the seed-000 firmware
+  assumes when it models the free-motion torque as ``J_load * acc / Gain`` (listing
+  A.1, ``T_mod``).
+* ``T_true`` is the torque an ideal torque sensor reads (what the scorer compares the
+  firmware's torque with): ``T_transmitted`` by default (the flexspline gauges of seed
+  000), or ``T_spring = -tau_s`` with ``SensorConfig.torque_measures = "spring"`` (seed
+  003's sensor torque, the variable of its Eq. 2).
 * The external load torque ``tau_l`` (seed 003 Eq. 1) is the sum of the value held
   with :meth:`Plant.set_load_torque` and the profile of :class:`LoadTorqueConfig`,
   which the plant evaluates itself from its own clock at every sub-step.
+* External torques keep their sign between the plant and seed 003 (both count angles
+  and torques positive forward, on both shafts); only the sensor torque flips.  The
+  seed's ``tau_d`` (motor disturbance), ``tau_l`` (environment) and ``tau_g``
+  (gravity) are :attr:`Plant.motor_disturbance`, :attr:`Plant.environment_torque` and
+  :attr:`Plant.gravity_torque` as they are.
+
+The flexible joint of seed 003 (Vertechy et al., §I-II, Eqs. 1-2, Fig. 4)
+--------------------------------------------------------------------------
+The same model serves the seed-003 exoskeleton joint (AG1): ``J_motor`` 2.5,
+``J_load`` 0.7 kg m², ``k_flex`` 6300 Nm/rad, ``c_flex`` 11.8 Nm s/rad, gear ratio 100
+(natural frequency ``sqrt(k/J) / 2 pi`` = 17.08 Hz with ``J = J_m J_l / (J_m + J_l)``,
+damping ratio ``c / (2 sqrt(k J))`` = 0.1005).  What that joint adds, each independent
+of the harmonic-drive ripple model (ripple, bridge modulation and misalignment can be
+on or off with any of them):
+
+* a prescribed link trajectory (:class:`LinkMotionConfig`, seed 003 §VI
+  ``theta_l = 20 sin(2 pi t) deg``): the environment moves the link with infinite
+  impedance, the motor side integrates against the spring/damper, and the torque the
+  environment must apply is truth (:attr:`Plant.external_torque`);
+* gravity on the link (:class:`GravityConfig`, ``tau_g = mgl sin(theta_l + offset)``);
+* the motor disturbance friction of seed 003 §VI, mapped onto ``coulomb_motor`` /
+  ``friction_smoothing`` / ``b_motor`` (see :class:`DriveTrainConfig`);
+* a torque sensor that measures the spring torque only, as the seed defines it
+  (``SensorConfig.torque_measures = "spring"``, ``tau_s = k (theta_l - theta_m)``),
+  with the seed's noise variance W = 0.12 Nm² (``torque_noise_Nm = sqrt(0.12)``);
+* the motor torque saturation (the amplifier's current limit) and the output torque
+  per DAC volt, :attr:`PlantConfig.torque_per_volt` (the firmware's actuator
+  calibration must hold the same number).
+
+Truth for the joint-torque control work: :attr:`Plant.external_torque` (``tau_l +
+tau_g`` of seed 003 Eq. 1, i.e. ``J_l ddq_l - T_transmitted``),
+:attr:`Plant.motor_disturbance` (``tau_d``), :attr:`Plant.motor_torque_output`
+(``tau_m``) and :attr:`Plant.motor_torque_command_output`.
 
 Ground truth of the torque measurement (the split the scorer relies on)::
 
@@ -70,6 +108,8 @@ __all__ = [
     "AmplifierConfig",
     "BridgeConfig",
     "DriveTrainConfig",
+    "GravityConfig",
+    "LinkMotionConfig",
     "LoadTorqueConfig",
     "Plant",
     "PlantConfig",
@@ -78,6 +118,7 @@ __all__ = [
     "SensorConfig",
     "continuous_model",
     "discrete_model",
+    "prescribed_model",
     "steady_state_motor_velocity",
     "steady_state_volts",
 ]
@@ -152,6 +193,28 @@ class DriveTrainConfig:
     * ``J_load`` 1.725e-2 kg m²: seed 000 listing A.1 (``J_load``).
     * ``b_load`` 0.01 Nm s/rad and ``coulomb_load`` 0.05 Nm: output bearings of the
       free-motion test stand; representative, not from the seeds.
+
+    The seed-003 joint (§I: "motor shaft inertia reduced to the joint output shaft
+    J_m = 2.5 Kgm²", "overall joint torsional stiffness ... k = 6.3 kNm/rad", rigid
+    link J_l = 0.7 Kgm²; §II: c = 11.8 Nms/rad) is ``J_motor = 2.5``, ``J_load =
+    0.7``, ``k_flex = 6300``, ``c_flex = 11.8``, ``gear_ratio = 100`` (§I).  Its motor
+    disturbance friction (§VI, the "experimentally determined motor friction torque
+    model") is printed garbled, ``tau_d = [-13.7 sign(w)(1 + tanh(|w|/2) - 4)]/2``;
+    read literally it is 20.6 Nm at rest falling to 13.7 Nm, *aiding* the motion.
+    What it must be, from the seed's own numbers (``max(tau_s^D + tau_d) ≈ 33.7 Nm``
+    with ``tau_s^D`` ≤ 20 Nm), is a friction opposing the motion whose magnitude tops
+    out at 13.7 Nm, smooth through zero velocity, with a velocity scale of 2 rad/s
+    (the ``|w|/2``).  (Moving the bracket, ``-13.7 sign(w) (1 + tanh(|w|/2 - 4)) / 2``,
+    also tops out at 13.7 Nm, but as a smooth step centred at |w| = 8 rad/s that
+    vanishes near rest, which no friction does; we do not take that reading.)  The
+    tanh Coulomb model here is the reading we take:
+    ``tau_d = -13.7 tanh(dq_m / eps)``, i.e. ``coulomb_motor = 13.7``, ``b_motor =
+    0``, with ``eps = friction_smoothing``.  The seed's w is the motor velocity
+    reduced to the output (§II: all quantities reduced to the output link), so the
+    literal scale is ``eps = 2`` rad/s; read at the motor shaft (a saturation at
+    2 rad/s of the motor, 0.02 rad/s at the output, the usual width of a Coulomb
+    friction) it is ``eps = 0.02``.  Scenarios state which one they use.  Note that
+    ``friction_smoothing`` also sets the width of the load-side Coulomb term.
     """
 
     gear_ratio: float = 100.0
@@ -186,6 +249,22 @@ class DriveTrainConfig:
     def natural_frequency_radps(self) -> float:
         """Undamped flexspline mode ``sqrt(k (1/J_m + 1/J_l))`` in rad/s (seed 003 Eq. 2)."""
         return math.sqrt(self.k_flex * (1.0 / self.J_motor + 1.0 / self.J_load))
+
+    @property
+    def natural_frequency_Hz(self) -> float:
+        """``sqrt(k/J) / 2 pi`` in Hz: seed 003 §II "≈ 17 Hz" (17.08 Hz for AG1)."""
+        return self.natural_frequency_radps / TWO_PI
+
+    @property
+    def reduced_inertia(self) -> float:
+        """``J = J_m J_l / (J_m + J_l)`` in kg m² (seed 003, below Eq. 2)."""
+        return self.J_motor * self.J_load / (self.J_motor + self.J_load)
+
+    @property
+    def damping_ratio(self) -> float:
+        """Damping ratio of the joint mode of seed 003 Eq. 2, ``c / (2 sqrt(k J))``
+        (spring/damper only; motor and load friction not included)."""
+        return self.c_flex / (2.0 * math.sqrt(self.k_flex * self.reduced_inertia))
 
 
 @dataclass(frozen=True)
@@ -330,6 +409,110 @@ class LoadTorqueConfig:
         return self.bias_Nm + (self.amplitude_Nm if p < self.duty else -self.amplitude_Nm)
 
 
+LinkMotionKind = Literal["none", "hold", "sine"]
+
+
+@dataclass(frozen=True)
+class LinkMotionConfig:
+    """A prescribed trajectory of the output link (seed 003 §VI simulation conditions).
+
+    Seed 003 §VI: "the controller attempts to track tau_s^D while the output link is
+    moved according to a given trajectory", ``theta_l = 20 sin(2 pi t)`` deg.  The
+    environment has infinite impedance: with a kind other than ``none`` the load angle
+    and velocity follow the prescription exactly, whatever the joint does, and the
+    motor side integrates against the spring/damper (seed 003 Eq. 1, first line, with
+    ``theta_l(t)`` an input).  With ``A = amplitude_deg``, ``f = frequency_Hz``,
+    ``theta_0 = offset_deg`` (all converted to rad), at the plant's time t:
+
+    - ``none``: the link is free (the default): it obeys Eq. 1, second line.
+    - ``hold``: ``theta_l = theta_0`` (link clamped, e.g. a user gripping the handle).
+    - ``sine``: ``theta_l = theta_0 + A sin(2 pi f t)`` (seed 003 §VI: A = 20°, f = 1 Hz).
+
+    The torque the environment applies to impose it is truth:
+    :attr:`Plant.environment_torque` (``tau_l``) and :attr:`Plant.external_torque`
+    (``tau_l + tau_g = J_l ddtheta_l - T_transmitted``).  At t = 0 the motor starts
+    where a rigid joint would be: no twist, and moving with the link's initial velocity
+    (so a sine does not begin with a velocity jump across the damper).
+
+    The discretisation is exact: the sine comes from a harmonic exosystem integrated
+    with the joint in the same matrix exponential (:func:`prescribed_model`), so the
+    only sub-step-dependent part is the motor's Coulomb friction, as in free motion.
+    """
+
+    kind: LinkMotionKind = "none"
+    amplitude_deg: float = 0.0
+    frequency_Hz: float = 1.0
+    offset_deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("none", "hold", "sine"):
+            raise ValueError(
+                f"LinkMotionConfig.kind must be one of none, hold, sine, got {self.kind!r}"
+            )
+        check_fields(
+            self, {"amplitude_deg": "finite", "frequency_Hz": ">0", "offset_deg": "finite"}
+        )
+
+    @property
+    def active(self) -> bool:
+        """True when the link follows the prescription (kind other than ``none``)."""
+        return self.kind != "none"
+
+    @property
+    def amplitude_rad(self) -> float:
+        """Amplitude in rad (0 for ``hold`` and ``none``)."""
+        return math.radians(self.amplitude_deg) if self.kind == "sine" else 0.0
+
+    @property
+    def omega_radps(self) -> float:
+        """Angular frequency ``2 pi f`` in rad/s."""
+        return TWO_PI * self.frequency_Hz
+
+    def angle(self, t: float) -> float:
+        """Prescribed link angle (rad) at time ``t`` (s)."""
+        return math.radians(self.offset_deg) + self.amplitude_rad * math.sin(self.omega_radps * t)
+
+    def velocity(self, t: float) -> float:
+        """Prescribed link velocity (rad/s) at time ``t``."""
+        w = self.omega_radps
+        return self.amplitude_rad * w * math.cos(w * t)
+
+    def acceleration(self, t: float) -> float:
+        """Prescribed link acceleration (rad/s²) at time ``t``."""
+        w = self.omega_radps
+        return -self.amplitude_rad * w * w * math.sin(w * t)
+
+
+@dataclass(frozen=True)
+class GravityConfig:
+    """Gravity on the output link, ``tau_g`` of seed 003 Eq. 1.
+
+    ``tau_g = mgl_Nm * sin(theta_l + offset_deg)`` (Nm at the output, positive forward),
+    with ``mgl_Nm`` the link's mass x g x distance of its centre of mass from the axis.
+    ``offset_deg`` is the link's angle from the upright position at ``theta_l = 0``: 0
+    puts the unstable equilibrium at ``theta_l = 0`` (gravity pushes away from it),
+    180 makes ``theta_l = 0`` the hanging position (``tau_g = -mgl sin theta_l``,
+    restoring).  Default 0 Nm: seed 003 §VI, "the joint axis is vertical so that tau_g
+    = 0".  In free motion it is held over each sub-step (like the Coulomb friction);
+    with a prescribed link motion it changes only :attr:`Plant.environment_torque`.
+    """
+
+    mgl_Nm: float = 0.0
+    offset_deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        check_fields(self, {"mgl_Nm": "finite", "offset_deg": "finite"})
+
+    def torque(self, theta_l: float) -> float:
+        """``tau_g`` (Nm) at link angle ``theta_l`` (rad)."""
+        if self.mgl_Nm == 0.0:
+            return 0.0
+        return self.mgl_Nm * math.sin(theta_l + math.radians(self.offset_deg))
+
+
+TorqueMeasurand = Literal["transmitted", "spring"]
+
+
 @dataclass(frozen=True)
 class SensorConfig:
     """Analog sensors ahead of the 12-bit ADC, and the motor encoder.
@@ -347,7 +530,19 @@ class SensorConfig:
       a 16-bit wrapping count (seed 000 listing: ``short pcsample``).
 
     Noise standard deviations are in physical units (Nm, rad/s at the motor, A),
-    white and Gaussian; representative values, not from the seeds.
+    white and Gaussian, one independent draw per sample; representative values, not
+    from the seeds, except for seed 003's torque sensor: "torque sensor variance W =
+    0.12 Nm (measured with the motor driver turned on)" (§I; the unit is Nm², a
+    variance, as its use in the Kalman filter of Eq. 8 shows) is
+    ``torque_noise_Nm = sqrt(0.12) = 0.3464`` Nm per sample.  The seed measured it on
+    the sampled signal, so it is a per-sample variance here, at the 1 kHz sample rate.
+
+    ``torque_measures``: what the ideal torque sensor reads, :attr:`Plant.T_true`.
+    ``"transmitted"`` (default): the flexspline torque ``k (q_m - q_l) + c (dq_m -
+    dq_l)``, spring and damper (the flexspline gauges of seed 000).  ``"spring"``: the
+    spring torque ``k (q_m - q_l) = -tau_s`` only, the sensor torque of seed 003
+    (§II: ``tau_s = k (theta_l - theta_m)``; the variable of Eq. 2, so the joint
+    response is exactly the second-order system the seed identifies in Fig. 5).
     """
 
     torque_offset_V: float = 0.0
@@ -357,8 +552,14 @@ class SensorConfig:
     current_monitor_A_per_V: float = 1.0
     current_noise_A: float = 0.0
     encoder_counts_per_rev: int = 8000
+    torque_measures: TorqueMeasurand = "transmitted"
 
     def __post_init__(self) -> None:
+        if self.torque_measures not in ("transmitted", "spring"):
+            raise ValueError(
+                "SensorConfig.torque_measures must be 'transmitted' or 'spring', "
+                f"got {self.torque_measures!r}"
+            )
         check_fields(
             self,
             {
@@ -382,7 +583,9 @@ class PlantConfig:
     """Everything the drive emulator's physics needs; buildable with ``dataconf.from_dict``.
 
     ``bridge`` is the strain-gauge torque sensor (:mod:`hostsim.bridge`), ``load`` the
-    external load-torque profile.  ``adc`` converts the three analog sensor voltages
+    external load-torque profile, ``link`` a prescribed link trajectory (exclusive with
+    a ``load`` profile: an infinitely stiff environment absorbs any load torque),
+    ``gravity`` the gravity torque on the link.  ``adc`` converts the three analog sensor voltages
     to counts, ``dac`` is the converter the drive node uses to turn received DAC
     counts into the amplifier voltage (``dac.to_volts``) before calling
     :meth:`Plant.advance`.  ``substeps`` is the number of internal integration steps
@@ -398,6 +601,8 @@ class PlantConfig:
     adc: Converter = field(default_factory=Converter)
     dac: Converter = field(default_factory=Converter)
     substeps: int = 4
+    link: LinkMotionConfig = field(default_factory=LinkMotionConfig)
+    gravity: GravityConfig = field(default_factory=GravityConfig)
 
     def __post_init__(self) -> None:
         for name, cls in (
@@ -409,12 +614,37 @@ class PlantConfig:
             ("load", LoadTorqueConfig),
             ("adc", Converter),
             ("dac", Converter),
+            ("link", LinkMotionConfig),
+            ("gravity", GravityConfig),
         ):
             if not isinstance(getattr(self, name), cls):
                 raise ValueError(f"PlantConfig.{name} must be a {cls.__name__}")
         s = self.substeps
         if isinstance(s, bool) or not isinstance(s, int) or not 1 <= s <= 10_000:
             raise ValueError(f"PlantConfig.substeps must be an integer 1..10000, got {s!r}")
+        if self.link.active and self.load.kind != "none":
+            raise ValueError(
+                f"PlantConfig: a prescribed link motion (link.kind = {self.link.kind!r}) "
+                f"leaves no room for a load-torque profile (load.kind = {self.load.kind!r})"
+            )
+
+    @property
+    def torque_per_volt(self) -> float:
+        """Motor torque at the output per amplifier input volt (Nm/V): ``N Kt g``.
+
+        ``gear_ratio * torque_constant_Nm_per_A * gain_A_per_V``: the steady-state
+        output-referred motor torque (``tau_m`` of seed 003 Eq. 1) per DAC volt, below
+        the current limit.  A firmware that commands torque through the DAC needs the
+        same constant as its actuator calibration.
+        """
+        a = self.amplifier
+        return self.drivetrain.gear_ratio * a.torque_constant_Nm_per_A * a.gain_A_per_V
+
+    @property
+    def max_motor_torque_Nm(self) -> float:
+        """Motor torque saturation at the output (Nm): ``N Kt current_limit_A``."""
+        a = self.amplifier
+        return self.drivetrain.gear_ratio * a.torque_constant_Nm_per_A * a.current_limit_A
 
 
 def steady_state_motor_velocity(cfg: PlantConfig, volts: float, load_Nm: float = 0.0) -> float:
@@ -508,17 +738,64 @@ def discrete_model(cfg: PlantConfig, h: float) -> tuple[np.ndarray, np.ndarray]:
     ``expm([[A, B], [0, 0]] h) = [[Ad, Bd], [0, I]]`` (the augmented-matrix trick).
     With an ideal amplifier (no lag) the current after the step is ``i_cmd``.
     """
-    a, b = continuous_model(cfg)
+    return _zoh(*continuous_model(cfg), h, current_row=3, ideal_amplifier=_no_lag(cfg))
+
+
+def prescribed_model(cfg: PlantConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Motor side of seed 003 Eq. 1 against a prescribed link (:class:`LinkMotionConfig`).
+
+    State ``z = [d, w_m, i, s, co]``: twist ``d = q_m - q_l`` (output-referred), reduced
+    motor velocity, motor current and the exosystem ``s = sin(w t)``, ``co = cos(w t)``
+    that generates the link motion, ``q_l = q_0 + A s``, ``dq_l = A w co``.  Input ``u =
+    [i_cmd, tau_m_nl]`` (commanded current, non-linear motor torque at the output)::
+
+        d'   = w_m - A w co
+        w_m' = (N Kt i - b_m w_m - k d - c (w_m - A w co) + tau_m_nl) / J_m
+        s'   = w co,   co' = -w s
+
+    The exosystem makes the zero-order-hold discretisation exact for the sine (and
+    trivially for ``hold``, A = 0).  Current row as in :func:`continuous_model`.
+    """
+    dt_cfg, amp, link = cfg.drivetrain, cfg.amplifier, cfg.link
+    jm, k, c = dt_cfg.J_motor, dt_cfg.k_flex, dt_cfg.c_flex
+    kt_out = dt_cfg.gear_ratio * amp.torque_constant_Nm_per_A
+    a_w = link.amplitude_rad * link.omega_radps  # link velocity amplitude
+    a = np.zeros((5, 5))
+    b = np.zeros((5, 2))
+    a[0, 1], a[0, 4] = 1.0, -a_w
+    a[1, 0] = -k / jm
+    a[1, 1] = -(dt_cfg.b_motor + c) / jm
+    a[1, 4] = c * a_w / jm
+    b[1, 1] = 1.0 / jm
+    if amp.current_lag_s > 0.0:
+        a[1, 2] = kt_out / jm
+        a[2, 2] = -1.0 / amp.current_lag_s
+        b[2, 0] = 1.0 / amp.current_lag_s
+    else:
+        b[1, 0] = kt_out / jm
+    a[3, 4], a[4, 3] = link.omega_radps, -link.omega_radps
+    return a, b
+
+
+def _no_lag(cfg: PlantConfig) -> bool:
+    return cfg.amplifier.current_lag_s == 0.0
+
+
+def _zoh(
+    a: np.ndarray, b: np.ndarray, h: float, current_row: int, ideal_amplifier: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """``expm([[A, B], [0, 0]] h) = [[Ad, Bd], [0, I]]``; with an ideal amplifier the
+    current after the step is ``i_cmd`` (input 0)."""
     n, m = b.shape
     aug = np.zeros((n + m, n + m))
     aug[:n, :n] = a
     aug[:n, n:] = b
     e = expm(aug * h)
     ad, bd = e[:n, :n].copy(), e[:n, n:].copy()
-    if cfg.amplifier.current_lag_s == 0.0:
-        ad[3, :] = 0.0
-        bd[3, :] = 0.0
-        bd[3, 0] = 1.0
+    if ideal_amplifier:
+        ad[current_row, :] = 0.0
+        bd[current_row, :] = 0.0
+        bd[current_row, 0] = 1.0
     return ad, bd
 
 
@@ -531,6 +808,10 @@ class Plant:
     ``h`` and applied as unrolled float arithmetic; the Coulomb friction (tanh) and
     the external load torque are held constant over each sub-step at their values at
     its start.  With Coulomb friction off the result is exact for any ``substeps``.
+    Gravity (:class:`GravityConfig`) is held over each sub-step like the Coulomb
+    friction.  With a prescribed link motion (:class:`LinkMotionConfig`) the map is
+    :func:`prescribed_model`'s (motor side and the link's exosystem, exact), and the
+    link angle and velocity are set from the prescription at the end of each step.
 
     The torque sensor is evaluated once per :meth:`advance` (and by
     :meth:`hold_locked`): :attr:`T_ripple` and the gauge hysteresis state are updated
@@ -560,11 +841,21 @@ class Plant:
         self._wl = 0.0
         self._i = 0.0
         self._ql = 0.0
+        self._i_cmd = 0.0
         self._tau_load = 0.0
         self._profile = None if cfg.load.kind == "none" else cfg.load.value
         self._const_loads = (0.0,) * self._substeps
+        # gravity and prescribed link motion (seed 003)
+        self._mgl = cfg.gravity.mgl_Nm
+        self._g_off = math.radians(cfg.gravity.offset_deg)
+        self._link = cfg.link if cfg.link.active else None
+        if self._link is not None:
+            # t = 0: a rigid joint moving with the link (no twist, no velocity jump)
+            self._ql = self._link.angle(0.0)
+            self._wl = self._wm = self._link.velocity(0.0)
         # sensors
         s = cfg.sensors
+        self._spring_only = s.torque_measures == "spring"
         self.bridge = StrainGaugeBridge(cfg.bridge)
         self._volt2Nm = cfg.bridge.volt2Nm
         self._hysteresis = GaugeHysteresis(cfg.bridge.hysteresis_Nm, cfg.bridge.hysteresis_span_Nm)
@@ -581,9 +872,12 @@ class Plant:
 
     # ------------------------------------------------------------------ dynamics
     def set_load_torque(self, torque_Nm: float) -> None:
-        """External torque on the load, ``tau_l + tau_g`` of seed 003 Eq. 1 (Nm, output).
+        """External torque on the load, ``tau_l`` of seed 003 Eq. 1 (Nm, output).
 
-        Positive drives the load forward.  Held until changed; 0 is free motion.
+        Positive drives the load forward.  Held until changed; 0 is free motion.  Adds
+        to the gravity torque (:class:`GravityConfig`).  With a prescribed link motion
+        it has no effect: the environment imposes the link's motion whatever torque
+        anyone else applies.
         """
         if not math.isfinite(torque_Nm):
             raise ValueError(f"load torque must be finite, got {torque_Nm!r}")
@@ -612,6 +906,8 @@ class Plant:
             raise ValueError(
                 f"hold_locked needs finite numbers, got {theta_motor!r}, {torque_Nm!r}"
             )
+        if self._link is not None:
+            raise ValueError("hold_locked: the link already follows a prescribed motion")
         self._d = torque_Nm / self.cfg.drivetrain.k_flex
         self._ql = theta_motor / self._n - self._d
         self._wm = self._wl = self._i = 0.0
@@ -620,14 +916,26 @@ class Plant:
     def _map(self, dt: float) -> tuple[float, ...]:
         m = self._maps.get(dt)
         if m is None:
-            ad, bd = discrete_model(self.cfg, dt / self._substeps)
-            # rows d, w_m, w_l, q_l depend on (d, w_m, w_l, i) and (i_cmd, tau_m, tau_l);
-            # row i depends on i and i_cmd only.
+            h = dt / self._substeps
             coeffs: list[float] = []
-            for r in (0, 1, 2, 4):
-                coeffs += [float(ad[r, j]) for j in range(4)]
-                coeffs += [float(bd[r, j]) for j in range(3)]
-            coeffs += [float(ad[3, 3]), float(bd[3, 0])]
+            if self._link is None:
+                ad, bd = discrete_model(self.cfg, h)
+                # rows d, w_m, w_l, q_l depend on (d, w_m, w_l, i) and (i_cmd, tau_m,
+                # tau_l); row i depends on i and i_cmd only.
+                for r in (0, 1, 2, 4):
+                    coeffs += [float(ad[r, j]) for j in range(4)]
+                    coeffs += [float(bd[r, j]) for j in range(3)]
+                coeffs += [float(ad[3, 3]), float(bd[3, 0])]
+            else:
+                a, b = prescribed_model(self.cfg)
+                ad, bd = _zoh(a, b, h, current_row=2, ideal_amplifier=_no_lag(self.cfg))
+                # rows d, w_m depend on (d, w_m, i, s, co) and (i_cmd, tau_m); row i on
+                # i and i_cmd; rows s, co are the exosystem's rotation by w h.
+                for r in (0, 1):
+                    coeffs += [float(ad[r, j]) for j in range(5)]
+                    coeffs += [float(bd[r, j]) for j in range(2)]
+                coeffs += [float(ad[2, 2]), float(bd[2, 0])]
+                coeffs += [float(ad[3, 3]), float(ad[3, 4]), float(ad[4, 3]), float(ad[4, 4])]
             m = tuple(coeffs)
             if len(self._maps) >= 16:  # a caller with ever-changing dt: do not grow
                 self._maps.clear()
@@ -641,6 +949,9 @@ class Plant:
         """
         if not dt > 0.0 or volts != volts:
             raise ValueError(f"advance needs dt > 0 and a number of volts, got {volts!r}, {dt!r}")
+        if self._link is not None:
+            self._advance_prescribed(volts, dt)
+            return
         (
             dd, dm, dl, di, du, dtm, dtl,
             md, mm, ml, mi, mu, mtm, mtl,
@@ -650,11 +961,7 @@ class Plant:
         ) = self._map(dt)  # fmt: skip
         # coefficient <row><column>: rows d (twist), m (w_m), l (w_l), q (q_l), i (current);
         # columns d, m, l, i (state), u (i_cmd), tm / tl (motor / load non-linear torque)
-        i_cmd = self._gain * volts
-        if i_cmd > self._ilim:
-            i_cmd = self._ilim
-        elif i_cmd < -self._ilim:
-            i_cmd = -self._ilim
+        i_cmd = self._command_current(volts)
         # constant-over-the-step input terms
         du *= i_cmd
         mu *= i_cmd
@@ -669,11 +976,14 @@ class Plant:
             h = dt / self._substeps
             t0, tau = self._t, self._tau_load
             loads = tuple(tau + profile(t0 + j * h) for j in range(self._substeps))
-        tanh = math.tanh
+        tanh, sin = math.tanh, math.sin
+        mgl, g_off = self._mgl, self._g_off
         d, wm, wl, i, q_out = self._d, self._wm, self._wl, self._i, self._ql
         for tau_load in loads:
             tm = -cm * tanh(wm * inv_eps)
             tl = tau_load - cl * tanh(wl * inv_eps)
+            if mgl:
+                tl += mgl * sin(q_out + g_off)
             d, wm, wl, q_out, i = (
                 dd * d + dm * wm + dl * wl + di * i + du + dtm * tm + dtl * tl,
                 md * d + mm * wm + ml * wl + mi * i + mu + mtm * tm + mtl * tl,
@@ -682,10 +992,62 @@ class Plant:
                 ii * i + iu,
             )
         self._d, self._wm, self._wl, self._i, self._ql = d, wm, wl, i, q_out
+        self._tick(dt)
+        self._update_sensor()
+
+    def _command_current(self, volts: float) -> float:
+        """The amplifier's current command for ``volts``, clipped at its current limit."""
+        i_cmd = self._gain * volts
+        if i_cmd > self._ilim:
+            i_cmd = self._ilim
+        elif i_cmd < -self._ilim:
+            i_cmd = -self._ilim
+        self._i_cmd = i_cmd
+        return i_cmd
+
+    def _tick(self, dt: float) -> None:
+        """Advance the clock by ``dt`` (Kahan-compensated sum)."""
         y = dt - self._t_carry
         t = self._t + y
         self._t_carry = (t - self._t) - y
         self._t = t
+
+    def _advance_prescribed(self, volts: float, dt: float) -> None:
+        """:meth:`advance` with the link on its prescribed trajectory (:func:`prescribed_model`).
+
+        The exosystem ``(s, co)`` starts each step from the plant's clock, so the link
+        phase never drifts; the link angle and velocity are set from the prescription
+        at the end of the step.
+        """
+        (
+            dd, dm, di, ds, dc, du, dtm,
+            md, mm, mi, ms, mc, mu, mtm,
+            ii, iu,
+            ss, sc, cs, cc,
+        ) = self._map(dt)  # fmt: skip
+        i_cmd = self._command_current(volts)
+        du *= i_cmd
+        mu *= i_cmd
+        iu *= i_cmd
+        cm, inv_eps, tanh = self._cm, self._inv_eps, math.tanh
+        link = self._link
+        assert link is not None
+        phase = link.omega_radps * self._t
+        sn, co = math.sin(phase), math.cos(phase)
+        d, wm, i = self._d, self._wm, self._i
+        for _ in range(self._substeps):
+            tm = -cm * tanh(wm * inv_eps)
+            d, wm, i, sn, co = (
+                dd * d + dm * wm + di * i + ds * sn + dc * co + du + dtm * tm,
+                md * d + mm * wm + mi * i + ms * sn + mc * co + mu + mtm * tm,
+                ii * i + iu,
+                ss * sn + sc * co,
+                cs * sn + cc * co,
+            )
+        self._d, self._wm, self._i = d, wm, i
+        self._tick(dt)
+        self._ql = link.angle(self._t)
+        self._wl = link.velocity(self._t)
         self._update_sensor()
 
     def _update_sensor(self) -> None:
@@ -750,13 +1112,28 @@ class Plant:
 
     @property
     def T_true(self) -> float:
-        """Transmitted flexspline torque ``k (q_m - q_l) + c (dq_m - dq_l)`` (Nm, output).
+        """The torque an ideal torque sensor reads (Nm, output): noise- and ripple-free.
 
-        Positive when the motor drives the load forward; ``-tau_s`` of seed 003 for
-        the spring part (see the module docstring).  Noise- and ripple-free.
+        :attr:`T_transmitted` (default) or, with ``SensorConfig.torque_measures =
+        "spring"``, :attr:`T_spring`.  Positive when the motor drives the load forward
+        (see the module docstring for seed 003's opposite sign).
         """
         dt_cfg = self.cfg.drivetrain
+        if self._spring_only:
+            return dt_cfg.k_flex * self._d
         return dt_cfg.k_flex * self._d + dt_cfg.c_flex * (self._wm - self._wl)
+
+    @property
+    def T_transmitted(self) -> float:
+        """Torque the joint transmits to the link, ``k (q_m - q_l) + c (dq_m - dq_l)``
+        (Nm, output): ``-(tau_s + c (dtheta_l - dtheta_m))`` in seed 003's terms."""
+        dt_cfg = self.cfg.drivetrain
+        return dt_cfg.k_flex * self._d + dt_cfg.c_flex * (self._wm - self._wl)
+
+    @property
+    def T_spring(self) -> float:
+        """Spring torque ``k (q_m - q_l)`` (Nm, output): ``-tau_s`` of seed 003 §II."""
+        return self.cfg.drivetrain.k_flex * self._d
 
     @property
     def T_ripple(self) -> float:
@@ -833,3 +1210,79 @@ class Plant:
     def motor_torque(self) -> float:
         """Electromagnetic motor torque ``Kt i`` in Nm at the MOTOR shaft (x N at the output)."""
         return self.cfg.amplifier.torque_constant_Nm_per_A * self._i
+
+    # ------------------------------------------------------------------ seed-003 truth
+    @property
+    def motor_torque_output(self) -> float:
+        """Motor torque reduced to the output, ``N Kt i`` (Nm): ``tau_m`` of seed 003
+        Eq. 1 as it acts (after the current lag and the current limit)."""
+        return self._n * self.cfg.amplifier.torque_constant_Nm_per_A * self._i
+
+    @property
+    def motor_torque_command_output(self) -> float:
+        """The motor torque the amplifier is commanded, ``N Kt clip(g V)`` (Nm, output):
+        the DAC command of the last :meth:`advance` times :attr:`PlantConfig.torque_per_volt`,
+        limited at :attr:`PlantConfig.max_motor_torque_Nm`."""
+        return self._n * self.cfg.amplifier.torque_constant_Nm_per_A * self._i_cmd
+
+    @property
+    def motor_disturbance(self) -> float:
+        """``tau_d`` of seed 003 Eq. 1 (Nm, output): every torque on the motor inertia
+        except ``tau_m`` and the joint's, ``-b_m dq_m - C_m tanh(dq_m / eps)`` (the
+        motor friction, :class:`DriveTrainConfig`).  Same sign in the seed and here."""
+        d = self.cfg.drivetrain
+        return -d.b_motor * self._wm - self._cm * math.tanh(self._wm * self._inv_eps)
+
+    @property
+    def gravity_torque(self) -> float:
+        """``tau_g`` of seed 003 Eq. 1 at the present link angle (Nm, :class:`GravityConfig`)."""
+        return self.cfg.gravity.torque(self._ql)
+
+    @property
+    def load_friction_torque(self) -> float:
+        """The output bearings' friction on the link, ``-b_l dq_l - C_l tanh(dq_l / eps)``
+        (Nm).  Seed 003 has no such term: it belongs to its ``tau_l``."""
+        d = self.cfg.drivetrain
+        return -d.b_load * self._wl - self._cl * math.tanh(self._wl * self._inv_eps)
+
+    @property
+    def link_acceleration(self) -> float:
+        """Link angular acceleration ``ddtheta_l`` (rad/s²) at :attr:`time`.
+
+        Free link: ``(T_transmitted + tau_l + tau_g + friction) / J_l`` (seed 003 Eq. 1,
+        second line); prescribed link: the prescription's.
+        """
+        if self._link is not None:
+            return self._link.acceleration(self._t)
+        return (
+            self.T_transmitted + self.load_torque + self.gravity_torque + self.load_friction_torque
+        ) / self.cfg.drivetrain.J_load
+
+    @property
+    def external_torque(self) -> float:
+        """All torque on the link except the joint's (Nm): ``tau_l + tau_g`` of seed 003.
+
+        ``J_l ddtheta_l - T_transmitted``, i.e. in seed 003's terms (Eq. 1, second line)
+        ``tau_l + tau_g = J_l ddtheta_l + k (theta_l - theta_m) + c (dtheta_l -
+        dtheta_m)``.  The plant's and the seed's external torques have the same sign.
+        The output-bearing friction (:attr:`load_friction_torque`, not in the seed)
+        counts as part of ``tau_l``.  This is what the seed-003 Kalman filter
+        estimates as ``tau_lg`` (and, with ``tau_d``, ``tau_lgd = tau_lg - tau_d
+        J_l / J_m``).
+        """
+        if self._link is not None:
+            return self.cfg.drivetrain.J_load * self._link.acceleration(self._t) - (
+                self.T_transmitted
+            )
+        return self.load_torque + self.gravity_torque + self.load_friction_torque
+
+    @property
+    def environment_torque(self) -> float:
+        """``tau_l`` of seed 003 Eq. 1 (Nm): the torque the environment applies to the link.
+
+        Free link: :attr:`load_torque`.  Prescribed link: what it takes to impose the
+        motion, ``J_l ddtheta_l - T_transmitted - tau_g - friction``.
+        """
+        if self._link is not None:
+            return self.external_torque - self.gravity_torque - self.load_friction_torque
+        return self.load_torque

@@ -90,3 +90,23 @@ def test_node_ids_in_dbc_match_the_pdo_cob_ids():
     assert db.get_message_by_name("DRIVE_TPDO1").frame_id == 0x180 + node_ids["DRIVE"]
     assert db.get_message_by_name("CTRL_TPDO1").frame_id == 0x180 + node_ids["CONTROLLER"]
     assert db.get_message_by_name("DRIVE_RPDO1").frame_id == 0x200 + node_ids["DRIVE"]
+
+
+def test_control_telemetry_pdo_is_tpdo2_of_the_controller_and_invalid_by_default():
+    """CTRL_TPDO2 (seed 003 torque control): COB-ID 0x280 + node-ID (pre-defined TPDO2),
+    mapped from object 0x2002 in the controller's EDS, not valid (COB-ID bit 31) in the
+    default configuration, which runs no control law."""
+    msg = database("control").get_message_by_name("CTRL_TPDO2")
+    assert msg.frame_id == 0x280 + NODE_IDS["CONTROLLER"]
+    assert msg.senders == ["CONTROLLER"]
+    od = _od("CONTROLLER")
+    comm = next(
+        i for i in range(0x1800, 0x1A00) if i in od and od[i][1].default & 0x7FF == msg.frame_id
+    )
+    assert od[comm][1].default & 0x80000000, "TPDO for CTRL_TPDO2 must default to not valid"
+    for idx in range(0x1800, 0x1A00):  # the other PDOs are valid
+        if idx in od and idx != comm:
+            assert not od[idx][1].default & 0x80000000
+    mapped = [od[comm + 0x200][s].default >> 16 for s in range(1, 5)]
+    assert mapped == [0x2002] * 4
+    assert [od[0x2002][s].name for s in range(1, 5)] == [s.name for s in msg.signals]

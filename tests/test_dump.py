@@ -134,7 +134,7 @@ def test_table_shows_decoded_signals_unknown_and_malformed(tmp_path, capsys):
     assert "current=0.000 A" in ctrl[0]
     assert "control" in ctrl[0] and " 181 " in ctrl[0]
     truth = [line for line in lines if "TRUTH_TORQUE" in line]
-    assert len(truth) == 5 and "T_true=1.1 Nm" in truth[0] and "truth" in truth[0]
+    assert len(truth) == 5 and "T_true=1.100000 Nm" in truth[0] and "truth" in truth[0]
     assert "001F0001" in truth[0]
     unknown = [line for line in lines if "UNKNOWN" in line]
     assert len(unknown) == 1 and "7EF" in unknown[0] and "DE AD BE EF" in unknown[0]
@@ -344,7 +344,7 @@ def schedule(cycles: int, jitter_s: np.ndarray | None = None) -> list[can.Messag
         frames.append(
             can.Message(
                 timestamp=t + 300e-6,
-                arbitration_id=0x281,
+                arbitration_id=0x381,
                 is_extended_id=False,
                 data=bytes(8),
                 channel=0,
@@ -357,7 +357,7 @@ def test_stats_of_1khz_schedule():
     stats = dump.compute_stats(schedule(1000), bitrate=1_000_000)
     assert stats["frames"] == 4000 and stats["unknown"] == 1000
     by_id = {s["id"]: s for s in stats["ids"]}
-    assert set(by_id) == {0x80, 0x181, 0x182, 0x281}
+    assert set(by_id) == {0x80, 0x181, 0x182, 0x381}
     for s in by_id.values():
         assert s["count"] == 1000
         assert s["rate_hz"] == pytest.approx(1000.0, rel=1e-9)
@@ -366,7 +366,7 @@ def test_stats_of_1khz_schedule():
         assert s["jitter_max_us"] == pytest.approx(0.0, abs=1e-6)
     assert by_id[0x80]["worst_case_bits"] == 65 and by_id[0x80]["frame_time_us"] == 65.0
     assert by_id[0x181]["worst_case_bits"] == 135 and by_id[0x181]["payload_bytes"] == 8
-    assert by_id[0x281]["name"] is None
+    assert by_id[0x381]["name"] is None
     control = stats["buses"]["control"]
     assert control["load_percent"] == pytest.approx((65 + 3 * 135) / 1000 * 100, rel=1e-9)
     assert control["frames"] == 4000

@@ -1,4 +1,5 @@
-"""Tests of the ported interrupt body (firmware/isr.py; seed 000, listing A.1 ``c_int10``)."""
+"""Tests of the ported interrupt body (firmware/isr.py; seed 000, listing A.1 ``c_int10``),
+and of its seed-003 torque-control stage."""
 
 from __future__ import annotations
 
@@ -8,8 +9,25 @@ import math
 import numpy as np
 import pytest
 
-from firmware.config import FirmwareConfig, ReferenceConfig, Wave, paper_config
+from firmware.config import (
+    ControlConfig,
+    DesiredTorqueConfig,
+    FirmwareConfig,
+    Law,
+    ReferenceConfig,
+    Wave,
+    paper_config,
+)
 from firmware.isr import AdcSample, InterruptHandler, IsrOutput, TorqueFilterChain
+from firmware.lqg import (
+    ControlLaw,
+    Feedforward,
+    JointParams,
+    LqgController,
+    LqgWeights,
+    design_lq,
+    design_lqg,
+)
 from firmware.ripple import HarmonicKalman, RippleKalman
 from firmware.stages import Differentiator
 from hdhil.converter import Converter
@@ -228,3 +246,191 @@ def test_handler_cancels_ripple_from_adc_counts(cfg: FirmwareConfig) -> None:
     rms_filt = float(np.sqrt(np.mean(np.square(filt[-1000:]))))
     assert rms_meas > 0.5
     assert rms_filt < 0.1 * rms_meas
+
+
+# ----------------------------------------------------------------------------- torque control
+# Seed 003 (LQG joint-torque control) in the handler: firmware/isr.py TorqueControl.
+
+CONTROL_FIELDS = (
+    "tau_s_hat",
+    "dtau_s_hat",
+    "tau_lgd_hat",
+    "tau_sD",
+    "dtau_sD",
+    "e_hat",
+    "tau_m_request",
+    "tau_m_cmd",
+)
+
+
+def _control_cfg(**control) -> FirmwareConfig:
+    control.setdefault("law", Law.JTF1)
+    return FirmwareConfig(control=ControlConfig(**control))
+
+
+def test_default_config_runs_no_control_law() -> None:
+    cfg = FirmwareConfig()
+    assert cfg.control.law is Law.NONE and not cfg.control.active
+    isr = InterruptHandler(cfg)
+    assert isr.control is None
+    for s in _samples(20):
+        out = isr(s)
+        assert all(getattr(out, name) == 0.0 for name in CONTROL_FIELDS)
+        assert out.saturated is False
+
+
+@pytest.mark.parametrize("law", [Law.JTF1, Law.JTF1_FF, Law.JTF2, Law.JTF3])
+@pytest.mark.parametrize("delay, predict", [(1, True), (1, False), (0, False)])
+def test_handler_commands_through_the_designs_gains(law: Law, delay: int, predict: bool) -> None:
+    """The handler's command is LqgController's on -T_meas (seed sign), with the design
+    computed from the configuration, and the DAC code is that torque over Nm per volt."""
+    weights = LqgWeights(q1=800.0, V=3e4)
+    cfg = _control_cfg(
+        law=law,
+        weights=weights,
+        feedforward=Feedforward.EXACT,
+        delay_samples=delay,
+        predict=predict,
+        torque_per_volt=200.0,  # +/-2000 Nm at the DAC: random torques never saturate
+        torque_limit_Nm=2000.0,
+        desired=DesiredTorqueConfig(amplitude_Nm=8.0, frequency_Hz=3.0, bias_Nm=1.0),
+    )
+    isr = InterruptHandler(cfg)
+    assert isr.control is not None
+    design = isr.control.design
+    assert design.gains == design_lq(JointParams(), weights, feedforward=Feedforward.EXACT)
+    assert design.weights == weights
+    ref = LqgController(
+        design_lqg(weights=weights, feedforward=Feedforward.EXACT),
+        law.control_law,
+        delay_samples=delay,
+        predict=predict,
+    )
+    lsb_Nm = LSB * 200.0
+    for k, s in enumerate(_samples(200, seed=3)):
+        out = isr(s)
+        t = k * 1e-3
+        T_D = 1.0 + 8.0 * math.sin(2 * math.pi * 3.0 * t)
+        dT_D = 8.0 * 2 * math.pi * 3.0 * math.cos(2 * math.pi * 3.0 * t)
+        assert out.tau_sD == pytest.approx(T_D, abs=1e-12)
+        assert out.dtau_sD == pytest.approx(dT_D, rel=1e-4)
+        request = ref.step(-out.T_meas, -out.tau_sD, -out.dtau_sD)
+        assert out.tau_m_request == pytest.approx(request, rel=1e-12, abs=1e-9)
+        assert out.dac_counts == round(request / 200.0 / LSB)
+        assert out.tau_m_cmd == pytest.approx(out.dac_counts * lsb_Nm)
+        ref.set_applied(out.dac_counts * lsb_Nm)
+        assert (out.tau_s_hat, out.dtau_s_hat) == (-ref.tau_s_hat, -ref.tau_s_dot_hat)
+        assert out.tau_lgd_hat == ref.tau_lgd_hat
+        assert out.e_hat == out.tau_s_hat - out.tau_sD
+        assert not out.saturated
+
+
+def test_gains_follow_the_configuration_not_constants() -> None:
+    a = InterruptHandler(_control_cfg()).control
+    b = InterruptHandler(_control_cfg(weights=LqgWeights(q1=2000.0))).control
+    c = InterruptHandler(_control_cfg(joint=JointParams(Jl=1.4))).control
+    assert a is not None and b is not None and c is not None
+    assert a.design.gains.k1 == pytest.approx(-18.25, abs=0.01)  # seed 003 §VI: -18.3
+    assert b.design.gains.k1 < a.design.gains.k1 < 0
+    assert c.design.gains.k3 != a.design.gains.k3
+    assert a.controller.law is ControlLaw.JTF1
+
+
+def test_sign_mapping_product_convention() -> None:
+    """Product sign: T positive when the motor drives the load.  Torque below the desired
+    torque -> the motor pushes forward; the estimates come back in the product sign."""
+    cfg = _control_cfg(
+        law=Law.JTF3,
+        desired=DesiredTorqueConfig(wave=Wave.NONE, bias_Nm=10.0),
+        torque_per_volt=20.0,
+        torque_limit_Nm=150.0,
+    )
+    isr = InterruptHandler(cfg)
+    counts_3Nm = round(3.0 / 6.6 / LSB)  # a steady 3 Nm (< 10 Nm desired)
+    for _ in range(1500):  # the observer settles (its poles, and the law's loop through it)
+        out = isr(AdcSample(counts_3Nm, 0, 0, 0))
+    assert out.tau_s_hat == pytest.approx(out.T_meas, abs=1e-6) and out.T_meas > 2.9
+    assert out.tau_sD == 10.0 and out.e_hat == pytest.approx(out.T_meas - 10.0, abs=1e-3)
+    assert out.tau_m_request > 0 and out.dac_counts > 0
+    # the seed's own law in its own sign: tau_s = -3, tau_sD = -10, JTF3 (k3 = 0, k4 = 1)
+    g = isr.control.design.gains_for(ControlLaw.JTF3)
+    seed_eq4 = -(g.k1 * (-out.T_meas - -10.0) + g.k4 * -10.0)
+    assert out.tau_m_request == pytest.approx(seed_eq4, rel=1e-3)
+    # the disturbance estimate keeps the seed's sign: at rest Eq. 2 gives
+    # (k/J) tau_s = (k/Jl) tau_lgd - (k/Jm) tau_m  ->  tau_lgd = Jl (tau_s/J + tau_m/Jm)
+    p = JointParams()
+    tau_lgd = p.Jl * (-out.T_meas / p.J + out.tau_m_cmd / p.Jm)
+    assert out.tau_lgd_hat == pytest.approx(tau_lgd, abs=1e-6)
+
+
+def test_command_saturates_at_the_torque_limit_and_reports_it() -> None:
+    cfg = _control_cfg(
+        desired=DesiredTorqueConfig(wave=Wave.NONE, bias_Nm=30.0),
+        torque_per_volt=20.0,
+        torque_limit_Nm=25.0,
+    )
+    isr = InterruptHandler(cfg)
+    ref = LqgController(design_lqg(), ControlLaw.JTF1)
+    for _ in range(50):
+        out = isr(AdcSample(0, 0, 0, 0))
+        request = ref.step(-out.T_meas, -30.0)
+        assert out.tau_m_request == pytest.approx(request)
+        assert out.saturated and abs(out.tau_m_request) > 25.0
+        assert out.dac_counts == round(25.0 / 20.0 / LSB)  # 256 counts = 1.25 V
+        assert out.tau_m_cmd == pytest.approx(256 * LSB * 20.0) and out.tau_m_cmd <= 25.0
+        ref.set_applied(out.tau_m_cmd)  # the observer is told the clipped torque
+    assert isr.control.saturations == 50
+    isr.reset()
+    assert isr.control.saturations == 0 and isr.control.controller.estimate == (0.0, 0.0, 0.0)
+
+
+def test_command_saturates_at_the_dac_range() -> None:
+    # 1 Nm/V: the +/-10 V DAC only reaches +/-10 Nm, below the 150 Nm torque limit
+    cfg = _control_cfg(
+        desired=DesiredTorqueConfig(wave=Wave.NONE, bias_Nm=-30.0),
+        torque_per_volt=1.0,
+        torque_limit_Nm=150.0,
+    )
+    isr = InterruptHandler(cfg)
+    out = isr(AdcSample(0, 0, 0, 0))
+    assert out.tau_m_request < -10.0
+    assert out.dac_counts == -2048 and out.tau_m_cmd == -10.0 and out.saturated
+    assert isr.control.controller._last_cmd == -10.0  # set_applied got the DAC's torque
+
+
+def test_inverted_actuator_calibration_flips_the_dac_code_only() -> None:
+    plain = InterruptHandler(_control_cfg(torque_per_volt=20.0, torque_limit_Nm=150.0))
+    inverted = InterruptHandler(_control_cfg(torque_per_volt=-20.0, torque_limit_Nm=150.0))
+    for s in _samples(30, seed=4):
+        a, b = dataclasses.replace(plain(s)), inverted(s)
+        assert b.dac_counts == -a.dac_counts
+        assert b.tau_m_cmd == pytest.approx(a.tau_m_cmd)
+
+
+def test_feedback_from_the_ripple_filtered_torque() -> None:
+    cfg = dataclasses.replace(
+        _control_cfg(feedback="T_filtered"), ripple=dataclasses.replace(RECOMMENDED.ripple)
+    )
+    isr = InterruptHandler(cfg)
+    ref = LqgController(design_lqg(), ControlLaw.JTF1)
+    for s in _samples(80, seed=5):
+        out = isr(s)
+        assert out.T_filtered != out.T_meas or out.ripple == 0.0
+        request = ref.step(-out.T_filtered, -out.tau_sD, -out.dtau_sD)
+        ref.set_applied(out.tau_m_cmd)
+        assert out.tau_m_request == pytest.approx(request)
+
+
+def test_startup_command_is_zero_torque_with_a_law() -> None:
+    cfg = dataclasses.replace(_control_cfg(), reference=ReferenceConfig(wave=Wave.NONE, bias_V=2.0))
+    assert InterruptHandler(cfg).startup_dac_counts == 0
+    assert InterruptHandler(FirmwareConfig(reference=cfg.reference)).startup_dac_counts == 410
+
+
+def test_ripple_filter_keeps_running_under_control() -> None:
+    """With a law the ripple filter's output stays what it is without one."""
+    plain = InterruptHandler(FirmwareConfig())
+    controlled = InterruptHandler(_control_cfg())
+    for s in _samples(100, seed=6):
+        a, b = dataclasses.replace(plain(s)), controlled(s)
+        assert (b.T_meas, b.T_filtered, b.ripple) == (a.T_meas, a.T_filtered, a.ripple)

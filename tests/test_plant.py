@@ -690,3 +690,57 @@ def test_steady_state_relation_matches_the_simulation(volts: float, load: float)
     assert plant.omega_motor == pytest.approx(w, rel=2e-3)
     assert steady_state_volts(plant.cfg, w, load) == pytest.approx(volts, rel=1e-9)
     assert steady_state_motor_velocity(plant.cfg, 0.1) == 0.0  # below breakaway
+
+
+# --------------------------------------------------------------------------- regression
+
+#: Recorded with the plant before the seed-003 extensions (link motion, gravity, spring
+#: sensing, joint truth): the harmonic-drive scenarios must not change.  Final T_true,
+#: T_ripple, motor velocity, output angle and the sums of the four sensor readings after
+#: 3 s of a step plus a slow sine at the amplifier, noise seed 7.
+GOLDEN = {
+    "free-motion": (
+        0.017589705633993206,
+        -0.006963281785952173,
+        136.5882504849543,
+        4.414813698492904,
+        (8296, 1607477, 398776, 91041589),
+    ),
+    "torque-steps": (
+        0.7570637476011716,
+        0.651394054673026,
+        100.12839405323058,
+        3.678289279782762,
+        (50377, 1339276, 398776, 90435109),
+    ),
+    "misalignment": (
+        0.017589705633993206,
+        -4.905198963232401,
+        136.5882504849543,
+        4.414813698492904,
+        (95486, 1607477, 398776, 91041589),
+    ),
+}
+
+
+@pytest.mark.parametrize("name", sorted(GOLDEN))
+def test_harmonic_drive_scenarios_are_unchanged(name: str) -> None:
+    plant = Plant(load_scenario(name).plant, 7)
+    totals = [0, 0, 0, 0]
+    for k in range(3000):
+        plant.advance(0.654296875 * (k >= 50) + 0.2 * math.sin(0.01 * k), 1e-3)
+        totals = [a + b for a, b in zip(totals, plant.sample(), strict=True)]
+    t_true, t_ripple, omega, theta, sums = GOLDEN[name]
+    assert plant.T_true == pytest.approx(t_true, rel=1e-9, abs=1e-12)
+    assert plant.T_ripple == pytest.approx(t_ripple, rel=1e-9, abs=1e-12)
+    assert plant.omega_motor == pytest.approx(omega, rel=1e-9)
+    assert plant.theta_output_unwrapped == pytest.approx(theta, rel=1e-9)
+    assert tuple(totals) == sums
+    # and the new truth of a free, gravity-free link without a load profile
+    d = plant.cfg.drivetrain
+    assert plant.T_true == plant.T_transmitted
+    assert plant.external_torque == pytest.approx(plant.load_torque + plant.load_friction_torque)
+    assert plant.motor_disturbance == pytest.approx(
+        -d.b_motor * plant.omega_motor / d.gear_ratio
+        - d.coulomb_motor * math.tanh(plant.omega_motor / d.gear_ratio / d.friction_smoothing)
+    )

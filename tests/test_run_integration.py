@@ -39,8 +39,8 @@ def test_two_second_lockstep_run_over_the_bus(free_motion, tmp_path):
         "DRIVE_RPDO1",
         "CTRL_TPDO1",
         "TRUTH_TORQUE",
-        "TRUTH_MOTOR",
-        "TRUTH_OUTPUT",
+        "TRUTH_MOTION",
+        "TRUTH_JOINT",
     ):
         assert by_name[name] == 2000, name
     assert r.controller["sensor_frames"] == 2000
@@ -90,7 +90,8 @@ def test_sync_counter_and_command_cycle_count_up(free_motion, tmp_path):
     assert counters[240] == 1  # CiA 301 overflow value 240 wraps to 1
     assert cycles[:3] == [0, 1, 2] and cycles[256] == 0
     times = [t for ch, i, _, t, _ in frames if ch == 0 and i == sync.frame_id]
-    assert times[1] - times[0] == pytest.approx(1e-3)
+    # SYNCs start 1 ms apart; their ends differ by the stuff bits of the counter byte.
+    assert times[1] - times[0] == pytest.approx(1e-3, abs=10e-6)
 
 
 def test_command_is_applied_one_period_later_with_synchronous_actuation(free_motion):

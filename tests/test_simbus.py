@@ -6,13 +6,14 @@ import can
 import pytest
 
 from hdhil.busload import schedule_load
+from hdhil.canbits import frame_bits
 from hdhil.simbus import SimClock
 
 
 @pytest.fixture
 def pair():
     clock = SimClock()
-    a = can.Bus(interface="simbus", channel="t-pair", clock=clock)
+    a = can.Bus(interface="simbus", channel="t-pair", clock=clock, timing="worst-case")
     b = can.Bus(interface="simbus", channel="t-pair")
     yield clock, a, b
     a.shutdown()
@@ -35,6 +36,54 @@ def test_frames_arrive_in_order_with_serialised_timestamps(pair):
     assert first.timestamp == pytest.approx(0.010 + 65e-6)
     assert second.timestamp == pytest.approx(0.010 + 200e-6)
     assert bytes(second.data) == bytes(range(8))
+
+
+def test_exact_timing_uses_the_real_stuff_bits():
+    clock = SimClock(0.5)
+    a = can.Bus(interface="simbus", channel="t-exact", clock=clock)
+    b = can.Bus(interface="simbus", channel="t-exact")
+    try:
+        a.send(_frame(0x182, 8))
+        got = b.recv(0)
+        bits = frame_bits(0x182, False, False, bytes(range(8)))
+        assert bits < 135  # fewer than the worst case for this payload
+        assert got.timestamp == pytest.approx(0.5 + bits * 1e-6)
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
+def test_simultaneous_requests_arbitrate_by_identifier():
+    clock = SimClock()
+    a = can.Bus(interface="simbus", channel="t-arb", clock=clock, timing="worst-case")
+    b = can.Bus(interface="simbus", channel="t-arb")
+    c = can.Bus(interface="simbus", channel="t-arb")
+    try:
+        a.send(_frame(0x202, 5))  # requested first, but a higher identifier
+        b.send(_frame(0x181, 8))
+        a.send(_frame(0x7FF, 0))
+        order = [c.recv(0) for _ in range(3)]
+        assert [m.arbitration_id for m in order] == [0x181, 0x202, 0x7FF]
+        assert order[0].timestamp == pytest.approx(135e-6)
+        assert order[1].timestamp == pytest.approx((135 + 105) * 1e-6)
+    finally:
+        for bus in (a, b, c):
+            bus.shutdown()
+
+
+def test_a_node_cannot_answer_before_it_received_the_frame():
+    clock = SimClock()
+    a = can.Bus(interface="simbus", channel="t-causal", clock=clock, timing="worst-case")
+    b = can.Bus(interface="simbus", channel="t-causal")
+    try:
+        a.send(_frame(0x80, 1))  # the SYNC: delivered at 65 us
+        sync = b.recv(0)
+        b.send(_frame(0x182, 8))  # the answer is requested when b received the SYNC
+        answer = a.recv(0)
+        assert answer.timestamp == pytest.approx(sync.timestamp + 135e-6)
+    finally:
+        a.shutdown()
+        b.shutdown()
 
 
 def test_sender_does_not_receive_its_own_frames_unless_asked():
@@ -90,9 +139,11 @@ def test_blocking_receive_times_out():
 def test_control_schedule_fits_the_budget():
     load = schedule_load("control", 1_000_000, 1e-3)
     names = {name for name, _, _ in load.frames}
-    assert {"SYNC", "DRIVE_TPDO1", "DRIVE_RPDO1", "CTRL_TPDO1"} <= names
-    # 65 (SYNC) + 135 (8 B) + 105 (5 B) + 135 (8 B) us per 1 ms cycle.
-    assert load.worst_case_load == pytest.approx((65 + 135 + 105 + 135) / 1000)
+    assert names == {"SYNC", "DRIVE_TPDO1", "DRIVE_RPDO1", "CTRL_TPDO1", "CTRL_TPDO2"}
+    # 65 (SYNC) + 135 (8 B) + 105 (5 B) + 135 (8 B) + 135 (8 B, control law telemetry)
+    # us per 1 ms cycle: the worst case counts CTRL_TPDO2 although it is only sent with a
+    # control law active.
+    assert load.worst_case_load == pytest.approx((65 + 135 + 105 + 135 + 135) / 1000)
     assert load.fits()
     # The same schedule at 500 kbit/s needs twice the time: over budget.
     assert not schedule_load("control", 500_000, 1e-3).fits()

@@ -104,15 +104,13 @@ class RecordingListener(can.Listener):
         self._sensor = codec("control", "DRIVE_TPDO1")
         self._tele = codec("control", "CTRL_TPDO1")
         self._truth_torque = codec("truth", "TRUTH_TORQUE")
-        self._truth_motor = codec("truth", "TRUTH_MOTOR")
-        self._truth_output = codec("truth", "TRUTH_OUTPUT")
+        self._truth_motion = codec("truth", "TRUTH_MOTION")
         self._truth = [math.nan] * 5  # T_true, T_ripple, theta_m, omega_m, theta_out
         self._dispatch = {
             (self._sensor.frame_id, False): self._on_sensor,
             (self._tele.frame_id, False): self._on_telemetry,
             (self._truth_torque.frame_id, True): self._on_truth_torque,
-            (self._truth_motor.frame_id, True): self._on_truth_motor,
-            (self._truth_output.frame_id, True): self._on_truth_output,
+            (self._truth_motion.frame_id, True): self._on_truth_motion,
         }
 
     def on_message_received(self, msg: can.Message) -> None:
@@ -139,11 +137,9 @@ class RecordingListener(can.Listener):
     def _on_truth_torque(self, data: bytes) -> None:
         self._truth[0], self._truth[1] = self._truth_torque.decode(data)
 
-    def _on_truth_motor(self, data: bytes) -> None:
-        self._truth[2], self._truth[3] = self._truth_motor.decode(data)
-
-    def _on_truth_output(self, data: bytes) -> None:
-        self._truth[4] = self._truth_output.decode(data)[0]
+    def _on_truth_motion(self, data: bytes) -> None:
+        theta_m, theta_o, omega_m, _omega_o = self._truth_motion.decode(data)
+        self._truth[2], self._truth[3], self._truth[4] = theta_m, omega_m, theta_o
 
 
 def recording_from_trace(path: Path, sample_period_s: float = 1e-3) -> tuple[Recording, str]:

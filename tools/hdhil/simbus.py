@@ -11,11 +11,20 @@ just the same::
     a = can.Bus(interface="simbus", channel="control", clock=clock)
     b = can.Bus(interface="simbus", channel="control", clock=clock)
 
-Timing model: frames are serialised on the channel.  A frame sent at simulated time ``t``
-starts when the wire is free (``max(t, busy_until)``) and is delivered, timestamped, at the
-end of its transmission, which lasts its worst-case bit count (DESIGN.md frame budget, with
-the maximum number of stuff bits) at the channel's bit rate.  ``bitrate=0`` turns the timing
-off (frames are stamped with the clock's time), used for the ground-truth side channel.
+Timing model: frames are serialised on the channel like on a real wire.
+
+- A node requests a frame at the clock's time, or at the time it last received a frame if
+  that is later (it cannot answer a frame before receiving it); nodes compute in zero
+  simulated time.
+- When the wire becomes free, every frame requested by then competes and the lowest
+  identifier wins arbitration; a frame is delivered, timestamped, at the end of its
+  transmission.
+- A frame's duration is its exact bit count at the bit rate (``timing="exact"``,
+  default: CRC and the real stuff bits, :mod:`hdhil.canbits`) or its worst case
+  (``timing="worst-case"``, DESIGN.md's budget).  ``bitrate=0`` turns timing off (frames
+  are stamped with the clock's time), used for the ground-truth side channel.
+- Requested frames are scheduled when a receiver next polls, so all requests made at
+  one instant take part in the arbitration.
 
 ``trace_channel``: the channel number received frames carry (``msg.channel``), e.g. the
 trace channel of the bus; by default the channel name.
@@ -33,6 +42,7 @@ from typing import Any
 
 import can
 
+from hdhil.canbits import frame_bits
 from hdhil.dbc import worst_case_frame_bits
 
 
@@ -46,17 +56,73 @@ class SimClock:
 
 
 class _Channel:
-    __slots__ = ("bitrate", "buses", "busy_until", "clock", "frames", "label", "lock", "name")
+    __slots__ = ("bitrate", "buses", "busy_until", "clock", "frames", "label", "lock", "name",
+                 "pending", "seq", "timing")  # fmt: skip
 
-    def __init__(self, name: str, clock: SimClock, bitrate: int, label: str | int) -> None:
+    def __init__(self, name: str, clock: SimClock, bitrate: int, label: str | int,
+                 timing: str) -> None:  # fmt: skip
         self.name = name
         self.label = label
         self.clock = clock
         self.bitrate = bitrate
+        self.timing = timing if bitrate else "none"
         self.busy_until = 0.0
         self.buses: list[SimBus] = []
         self.frames = 0
         self.lock = threading.Lock()
+        # Frames requested but not yet on the wire: (request time, id, sequence, sender, msg).
+        self.pending: list[tuple[float, int, int, SimBus, can.Message]] = []
+        self.seq = 0
+
+    def bits(self, msg: can.Message) -> int:
+        length = 0 if msg.is_remote_frame else len(msg.data)
+        if self.timing == "exact" and not msg.is_error_frame:
+            return frame_bits(msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+                              bytes(msg.data))  # fmt: skip
+        return worst_case_frame_bits(length, msg.is_extended_id)
+
+    def flush(self) -> None:
+        """Put every requested frame on the wire, in bus order (caller holds the lock).
+
+        When the wire becomes free, every frame requested by then competes and the lowest
+        identifier wins arbitration (an extended frame loses to a base frame with the same
+        11 leading bits); if none is waiting, the earliest request goes next.
+        """
+        pending = self.pending
+        while pending:
+            free = self.busy_until
+            ready = [p for p in pending if p[0] <= free]
+            if ready:
+                item = min(ready, key=_arbitration_key)
+                start = free
+            else:
+                item = min(pending, key=_request_key)
+                start = item[0]
+            pending.remove(item)
+            _, _, _, sender, msg = item
+            end = start + (self.bits(msg) / self.bitrate if self.timing != "none" else 0.0)
+            self.busy_until = end
+            self.frames += 1
+            msg.timestamp = end  # the sender's private snapshot becomes the received frame
+            for bus in self.buses:
+                if bus is not sender or bus._receive_own:
+                    bus._queue.append(msg)
+                    bus._last_rx = end
+                    if bus._waiting:
+                        bus._ready.notify()
+
+
+def _arbitration_key(item: tuple[float, int, int, SimBus, can.Message]) -> tuple[int, int]:
+    msg = item[4]
+    # Arbitration compares the identifier bits on the wire: the 11 base bits first, then
+    # (extended frames) SRR/IDE recessive, then the 18 extension bits.
+    if msg.is_extended_id:
+        return ((msg.arbitration_id >> 18) << 1 | 1) << 18 | (msg.arbitration_id & 0x3FFFF), item[2]
+    return (msg.arbitration_id << 1) << 18, item[2]
+
+
+def _request_key(item: tuple[float, int, int, SimBus, can.Message]) -> tuple[float, int]:
+    return item[0], item[2]
 
 
 _channels: dict[str, _Channel] = {}
@@ -73,6 +139,7 @@ class SimBus(can.BusABC):
         receive_own_messages: bool = False,
         clock: SimClock | None = None,
         trace_channel: int | None = None,
+        timing: str = "exact",
         **kwargs: Any,
     ) -> None:
         name = str(channel)
@@ -82,7 +149,11 @@ class SimBus(can.BusABC):
             ch = _channels.get(name)
             if ch is None:
                 label = name if trace_channel is None else trace_channel
-                ch = _Channel(name, clock or SimClock(), bitrate, label)
+                if timing not in ("exact", "worst-case"):
+                    raise ValueError(
+                        f"simbus timing must be 'exact' or 'worst-case', got {timing!r}"
+                    )
+                ch = _Channel(name, clock or SimClock(), bitrate, label, timing)
                 _channels[name] = ch
             elif clock is not None and clock is not ch.clock:
                 raise ValueError(f"simbus channel {name!r} already runs on another clock")
@@ -92,7 +163,7 @@ class SimBus(can.BusABC):
         self._ready = threading.Condition(ch.lock)
         self._receive_own = receive_own_messages
         self._waiting = False
-        self._bits_cache: dict[tuple[int, bool], float] = {}
+        self._last_rx = 0.0
         self.channel_info = f"simbus channel {name!r} at {ch.bitrate} bit/s"
         super().__init__(channel=name, **kwargs)
 
@@ -106,44 +177,42 @@ class SimBus(can.BusABC):
         return self._ch.frames
 
     def frame_time(self, msg: can.Message) -> float:
-        """Seconds the frame occupies the wire (worst-case stuffing), 0 without timing."""
-        length = 0 if msg.is_remote_frame else len(msg.data)
-        key = (length, msg.is_extended_id)
-        seconds = self._bits_cache.get(key)
-        if seconds is None:
-            bitrate = self._ch.bitrate
-            seconds = worst_case_frame_bits(*key) / bitrate if bitrate else 0.0
-            self._bits_cache[key] = seconds
-        return seconds
+        """Seconds the frame occupies the wire under this channel's timing, 0 without timing."""
+        ch = self._ch
+        return ch.bits(msg) / ch.bitrate if ch.timing != "none" else 0.0
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        """Request transmission.  The request time is the clock's time, or later if this
+        node has received a frame since (it cannot answer a frame before receiving it)."""
         ch = self._ch
+        # A private snapshot: callers may reuse their Message object for the next frame.
+        frame = can.Message(
+            arbitration_id=msg.arbitration_id,
+            is_extended_id=msg.is_extended_id,
+            is_remote_frame=msg.is_remote_frame,
+            is_error_frame=msg.is_error_frame,
+            dlc=msg.dlc,
+            data=bytes(msg.data),
+            channel=ch.label,
+            is_rx=True,
+            check=False,
+        )
         with ch.lock:
-            start = ch.clock.now if ch.clock.now > ch.busy_until else ch.busy_until
-            end = start + self.frame_time(msg)
-            ch.busy_until = end
-            ch.frames += 1
-            delivered = can.Message(
-                timestamp=end,
-                arbitration_id=msg.arbitration_id,
-                is_extended_id=msg.is_extended_id,
-                is_remote_frame=msg.is_remote_frame,
-                is_error_frame=msg.is_error_frame,
-                dlc=msg.dlc,
-                data=bytes(msg.data),
-                channel=ch.label,
-                is_rx=True,
-                check=False,
-            )
+            now = ch.clock.now
+            requested = self._last_rx if self._last_rx > now else now
+            ch.seq += 1
+            ch.pending.append((requested, frame.arbitration_id, ch.seq, self, frame))
             for bus in ch.buses:
-                if bus is not self or self._receive_own:
-                    bus._queue.append(delivered)
-                    if bus._waiting:
-                        bus._ready.notify()
+                if bus._waiting:
+                    bus._ready.notify()
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         """Next received frame; without receive filters this skips python-can's generic
         filter loop (the 1 kHz path polls with ``timeout=0`` several times a cycle)."""
+        ch = self._ch
+        if ch.pending:
+            with ch.lock:
+                ch.flush()
         if self._filters is None and self._queue:
             return self._queue.popleft()
         if timeout == 0 and self._filters is None:
@@ -156,16 +225,25 @@ class SimBus(can.BusABC):
             return queue.popleft(), False
         if timeout == 0:
             return None, False
+        ch = self._ch
         with self._ready:
             self._waiting = True
             try:
-                self._ready.wait_for(lambda: bool(queue), timeout)
+
+                def arrived() -> bool:
+                    if ch.pending:
+                        ch.flush()
+                    return bool(queue)
+
+                self._ready.wait_for(arrived, timeout)
             finally:
                 self._waiting = False
             return (queue.popleft() if queue else None), False
 
     def pending(self) -> int:
-        """Frames waiting in this bus's receive queue."""
+        """Frames waiting in this bus's receive queue (after scheduling requested frames)."""
+        with self._ch.lock:
+            self._ch.flush()
         return len(self._queue)
 
     def shutdown(self) -> None:

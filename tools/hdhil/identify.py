@@ -1,0 +1,694 @@
+"""``hdhil identify TRACE``: the flexible joint's resonance from an open-loop chirp.
+
+Seed 003 (Vertechy et al., ``/work/shared/seeds/003_cab3072408ebe226.txt``) §II, Fig. 5:
+"the spectrum of the joint sensor torque tau_s in response to the motor torque command
+tau_m (both reduced to the output shaft) ... is obtained experimentally by commanding
+tau_m with a chirp function.  As (2) predicts, the test-rig possesses a marked natural
+frequency at sqrt(k/J)/2 pi ≈ 17 Hz.  ... use of the Half-Power Bandwidth method returns
+c = 11.8 Nms/rad as the overall damping coefficient of the flexible joint (this value
+has also been validated via the Logarithmic Decrement method)."
+
+With the link free, Eq. 2 gives the sensor torque's response to the motor torque as a
+second-order system (plant sign, ``T = -tau_s``)::
+
+    T / tau_m = K wn² / (s² + 2 zeta wn s + wn²),   K = J / J_m = J_l / (J_m + J_l),
+    wn² = k / J,   2 zeta wn = c / J,   J = J_m J_l / (J_m + J_l)
+
+What this command does, on a trace of ``hdhil run --scenario chirp`` (or any trace with
+the drive's sensor and command frames):
+
+1. Signals, one value per control cycle: the sensor torque from ``DRIVE_TPDO1``
+   ``ADC_torque`` through the firmware's own ADC conversion and calibration
+   (``[firmware.calibration] volt2Nm``), and the motor torque command from
+   ``DRIVE_RPDO1`` ``DAC_cmd`` through the DAC conversion times the actuator's output
+   torque per volt (the scenario's :attr:`hostsim.plant.PlantConfig.torque_per_volt`,
+   or ``--torque-per-volt``), 0 while the controlword does not enable the drive.  The
+   command of cycle k is paired with the sample of cycle k: the actuation delay (one or
+   two samples) changes the phase of H, not its magnitude.
+2. Frequency response ``H1 = Pxy / Pxx`` (Welch: :func:`scipy.signal.csd` /
+   :func:`scipy.signal.welch`, Hann segments of ``--segment`` s, 75 % overlap).  The
+   overlap matters for a single sweep: each frequency is then excited in several
+   segments, so the segment boundaries do not bias H (with 50 % the peak moved by up
+   to 3 %).  Only the excited band (Pxx at least 5 % of its maximum) is used.
+3. Half-power bandwidth (the seed's method): peak |H| (parabola through the three
+   highest bins of log |H|), the frequencies f1 < f2 where |H| falls to peak / sqrt(2)
+   (linear interpolation between bins), and
+
+   - as the seed uses it: ``fn = f_peak``, ``zeta = (f2 - f1) / (2 fn)``;
+   - exact for the second-order system above (recommended; the classic form reads the
+     peak of |H|, which lies at ``wn sqrt(1 - 2 zeta²)``, about 1 % below fn at zeta
+     = 0.1, and overestimates zeta by about 2 %): with ``R = (f2² - f1²) / (f2² + f1²)``,
+     ``s = R / sqrt(1 + R²) = 2 zeta sqrt(1 - zeta²)``, ``zeta² = (1 - sqrt(1 - s²)) /
+     2`` and ``fn² = (f1² + f2²) / (2 (1 - 2 zeta²))``.
+
+4. Logarithmic decrement (the seed's cross-check), on the impulse response: the
+   inverse FFT of H, band-passed by a Gaussian window centred on the peak (standard
+   deviation one half-power bandwidth), taken one-sided so the result is the analytic
+   signal.  A band-pass is needed because H is only known in the excited band; the
+   window's own time response is a Gaussian pulse, so three of its standard deviations
+   after the envelope's peak the response is the mode's free decay.  Its successive
+   positive peaks (down to 3 % of the largest) give ``delta`` (least-squares slope of
+   ln(peak) against the peak index), ``zeta = delta / sqrt(4 pi² + delta²)``, the
+   damped frequency ``fd`` from the peak spacing and ``fn = fd / sqrt(1 - zeta²)``:
+   independent of the half-power figures.  On the exact H of the seed joint this
+   returns zeta to 0.1 % for widths of 0.75 to 1.5 bandwidths (2: +1.5 %, the window
+   then reaches the band's low edge); on a Welch estimate it reads about 2 % high (the
+   segment window smooths H, which shortens the decay).
+5. Damping coefficient ``c = 2 zeta wn J`` (``c/J = 2 zeta wn``) with ``J = J_m J_l /
+   (J_m + J_l)`` from the known inertias (seed 003 §I: J_m = 2.5 and J_l = 0.7 kg m²;
+   default: the scenario's ``J_motor``/``J_load``, or ``--inertias``), and the
+   stiffness ``k = J wn²``.  Also reported: the static gain ``K = peak |H| x 2 zeta
+   sqrt(1 - zeta²)``, which should be ``J_l / (J_m + J_l)`` if both calibrations
+   (sensor and actuator) are right.
+
+The emulator knows its joint, so the scenario's model values (fn, zeta, c) are printed
+beside the identified ones; a real drive's trace has no such truth.  User mistakes (no
+trace, no command frames, too short, no resonance in the excited band) are one-line
+errors, exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import signal
+
+from firmware.config import FirmwareConfig
+from firmware.stages import adc_read, calibrate
+from hdhil.cli import UserError
+from hdhil.dataconf import from_dict
+from hdhil.dbc import codec
+from hostsim.plant import PlantConfig
+from hostsim.scenario import list_scenarios, load_scenario
+
+__all__ = [
+    "DEFAULT_SEGMENT_S",
+    "ChirpData",
+    "FrequencyResponse",
+    "HalfPower",
+    "Identification",
+    "LogDecrement",
+    "chirp_data_from_trace",
+    "format_identification",
+    "frequency_response",
+    "half_power",
+    "identify",
+    "log_decrement",
+    "make_figure",
+    "model_values",
+]
+
+#: Welch segment length (s): 4.1 s at 1 kHz (4096 samples) resolves 0.24 Hz, a
+#: fourteenth of the seed joint's 3.4 Hz half-power bandwidth.
+DEFAULT_SEGMENT_S = 4.096
+#: Welch segment overlap (fraction of a segment).
+OVERLAP = 0.75
+#: The excited band: bins where the command's spectrum is at least this fraction of its peak.
+BAND_FRACTION = 0.05
+#: Band-pass for the impulse response: Gaussian std in multiples of the half-power bandwidth.
+BANDPASS_WIDTHS = 1.0
+#: Log decrement: peaks start this many Gaussian time constants after the envelope's peak.
+SETTLE_SIGMAS = 3.0
+#: Log decrement: peaks down to this fraction of the largest envelope value, at most MAX_PEAKS.
+PEAK_FLOOR = 0.03
+MAX_PEAKS = 10
+#: CiA 402 controlword bits that enable the drive (as hostsim.drive).
+_ENABLE_MASK = 0x000F
+
+
+# ----------------------------------------------------------------------------- signals
+
+
+@dataclass(frozen=True)
+class ChirpData:
+    """Per-cycle signals of a trace: motor torque command ``u`` and sensor torque ``y``
+    (Nm at the output), sampled every ``sample_period_s``."""
+
+    u: np.ndarray
+    y: np.ndarray
+    sample_period_s: float
+    torque_saturated: int = 0  #: torque samples at the ADC's end codes
+    damage: str = ""  #: description of trace damage ('' if clean)
+
+    def __len__(self) -> int:
+        return len(self.y)
+
+
+def chirp_data_from_trace(
+    path: Path, firmware: FirmwareConfig, torque_per_volt: float
+) -> ChirpData:
+    """Read a trace into (command, sensor torque) pairs, one per control cycle.
+
+    Sensor torque: ``DRIVE_TPDO1.ADC_torque`` -> volts (firmware ADC) -> Nm (firmware
+    calibration).  Command: ``DRIVE_RPDO1.DAC_cmd`` of the same cycle -> volts (firmware
+    DAC) x ``torque_per_volt``; 0 while the controlword does not enable the drive.
+    Cycles without a command (the trace's last, typically) are dropped.
+    """
+    from hdhil.dump import read_trace
+
+    sensor = codec("control", "DRIVE_TPDO1")
+    command = codec("control", "DRIVE_RPDO1")
+    adc, dac, cal = firmware.adc, firmware.dac, firmware.calibration
+    ys: list[float] = []
+    us: list[float] = []
+    saturated = 0
+    commands = 0
+    with read_trace(path) as trace:
+        for msg in trace:
+            if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+                continue
+            if msg.arbitration_id == sensor.frame_id:
+                with contextlib.suppress(ValueError):
+                    counts = sensor.decode(msg.data)[0]
+                    torque_V = adc_read(counts, 0, 0, adc)[0]
+                    ys.append(calibrate(torque_V, 0.0, 0.0, cal)[0])
+                    us.append(math.nan)
+                    saturated += adc.saturated(counts)
+            elif msg.arbitration_id == command.frame_id and us:
+                with contextlib.suppress(ValueError):
+                    counts, controlword, _cycle = command.decode(msg.data)
+                    enabled = (controlword & _ENABLE_MASK) == _ENABLE_MASK
+                    us[-1] = dac.to_volts(counts) * torque_per_volt if enabled else 0.0
+                    commands += 1
+        damage = "; ".join(d.describe(str(path)) for d in trace.damage)
+    if not ys:
+        raise UserError(f"{path}: no DRIVE_TPDO1 frames (drive sensor frames): nothing to identify")
+    if not commands:
+        raise UserError(
+            f"{path}: no DRIVE_RPDO1 frames (motor commands): the input of the frequency "
+            "response is missing"
+        )
+    u = np.asarray(us)
+    keep = np.isfinite(u)
+    return ChirpData(
+        u=u[keep],
+        y=np.asarray(ys)[keep],
+        sample_period_s=firmware.sample_period_s,
+        torque_saturated=saturated,
+        damage=damage,
+    )
+
+
+# ----------------------------------------------------------------------------- analysis
+
+
+@dataclass(frozen=True)
+class FrequencyResponse:
+    """Welch H1 estimate: frequencies (Hz), ``H = Pxy / Pxx``, ``Pxx`` and the coherence;
+    ``band`` is the (first, last) index of the excited band."""
+
+    f: np.ndarray
+    H: np.ndarray
+    pxx: np.ndarray
+    coherence: np.ndarray
+    band: tuple[int, int]
+    nperseg: int
+    fs: float
+
+    @property
+    def magnitude(self) -> np.ndarray:
+        return np.abs(self.H)
+
+
+def frequency_response(
+    u: np.ndarray, y: np.ndarray, fs: float, segment_s: float = DEFAULT_SEGMENT_S
+) -> FrequencyResponse:
+    """``H1 = Pxy / Pxx`` of ``y`` against ``u`` (Welch, Hann, 75 % overlap)."""
+    nperseg = round(segment_s * fs)
+    if nperseg < 16:
+        raise UserError(f"--segment {segment_s:g} s is {nperseg} samples: too short")
+    if len(u) < nperseg:
+        raise UserError(
+            f"trace too short: {len(u)} samples ({len(u) / fs:.3g} s), a {segment_s:g} s "
+            f"segment needs {nperseg} (a shorter --segment gives a coarser resolution)"
+        )
+    if not np.ptp(u) > 0.0:
+        raise UserError("the motor torque command does not vary: nothing to identify")
+    kw = {"fs": fs, "window": "hann", "nperseg": nperseg, "noverlap": round(OVERLAP * nperseg)}
+    f, pxx = signal.welch(u, **kw)
+    _, pxy = signal.csd(u, y, **kw)
+    _, coh = signal.coherence(u, y, **kw)
+    excited = np.flatnonzero(pxx >= BAND_FRACTION * pxx.max())
+    lo, hi = int(excited[0]), int(excited[-1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        H = np.where(pxx > 0.0, pxy / pxx, np.nan)
+    return FrequencyResponse(f, H, pxx, coh, (lo, hi), nperseg, fs)
+
+
+@dataclass(frozen=True)
+class HalfPower:
+    """Half-power bandwidth results (Hz, dimensionless).
+
+    ``fn_Hz``/``zeta``: the classic reading (fn = peak frequency, zeta = (f2 − f1) / 2 fn);
+    ``fn_exact_Hz``/``zeta_exact``: exact for a second-order system (module docstring).
+    """
+
+    f_peak_Hz: float
+    peak_gain: float
+    f1_Hz: float
+    f2_Hz: float
+    fn_Hz: float
+    zeta: float
+    fn_exact_Hz: float
+    zeta_exact: float
+
+    @property
+    def bandwidth_Hz(self) -> float:
+        return self.f2_Hz - self.f1_Hz
+
+
+def _crossing(f: np.ndarray, mag: np.ndarray, j: int, level: float) -> float:
+    """Frequency between bins j and j+1 where ``mag`` crosses ``level`` (linear)."""
+    m0, m1 = mag[j], mag[j + 1]
+    return float(f[j] + (level - m0) * (f[j + 1] - f[j]) / (m1 - m0))
+
+
+def half_power(fr: FrequencyResponse) -> HalfPower:
+    """The seed's half-power bandwidth method on ``fr`` (seed 003 §II)."""
+    f, mag = fr.f, fr.magnitude
+    lo, hi = fr.band
+    i = lo + int(np.nanargmax(mag[lo : hi + 1]))
+    if not lo < i < hi:
+        raise UserError(
+            f"no resonance peak inside the excited band {f[lo]:.3g}-{f[hi]:.3g} Hz "
+            f"(|H| is largest at its edge, {f[i]:.3g} Hz)"
+        )
+    a, b, c = np.log(mag[i - 1 : i + 2])
+    curvature = a - 2.0 * b + c
+    offset = 0.5 * (a - c) / curvature if curvature < 0 else 0.0
+    f_peak = float(f[i] + offset * (f[1] - f[0]))
+    peak = float(math.exp(b - 0.25 * (a - c) * offset))
+    level = peak / math.sqrt(2.0)
+    j = i
+    while j > lo and mag[j] >= level:
+        j -= 1
+    k = i
+    while k < hi and mag[k] >= level:
+        k += 1
+    if mag[j] >= level or mag[k] >= level:
+        raise UserError(
+            f"the resonance at {f_peak:.3g} Hz does not fall to half power inside the "
+            f"excited band {f[lo]:.3g}-{f[hi]:.3g} Hz: sweep a wider band"
+        )
+    f1 = _crossing(f, mag, j, level)
+    f2 = _crossing(f, mag, k - 1, level)
+    zeta = (f2 - f1) / (2.0 * f_peak)
+    # exact for K wn² / (s² + 2 zeta wn s + wn²): R = 2 zeta sqrt(1 - zeta²) / (1 - 2 zeta²)
+    r = (f2 * f2 - f1 * f1) / (f2 * f2 + f1 * f1)
+    s2 = r * r / (1.0 + r * r)
+    zeta_exact = math.sqrt(0.5 * (1.0 - math.sqrt(1.0 - s2)))
+    fn_exact = math.sqrt((f1 * f1 + f2 * f2) / (2.0 * (1.0 - 2.0 * zeta_exact**2)))
+    return HalfPower(f_peak, peak, f1, f2, f_peak, zeta, fn_exact, zeta_exact)
+
+
+@dataclass(frozen=True)
+class LogDecrement:
+    """Logarithmic decrement of the band-passed impulse response.
+
+    ``t``/``h``: the analytic impulse response (normalised, envelope peak 1) for plots;
+    ``peak_t``/``peak_x``: the positive peaks of its real part that were used.
+    """
+
+    delta: float
+    zeta: float
+    fd_Hz: float
+    fn_Hz: float
+    peaks: int
+    t: np.ndarray = field(repr=False)
+    h: np.ndarray = field(repr=False)
+    peak_t: np.ndarray = field(repr=False)
+    peak_x: np.ndarray = field(repr=False)
+
+
+def log_decrement(fr: FrequencyResponse, hp: HalfPower) -> LogDecrement:
+    """The seed's logarithmic-decrement cross-check, on the impulse response from H."""
+    f, n, fs = fr.f, fr.nperseg, fr.fs
+    lo, hi = fr.band
+    width = BANDPASS_WIDTHS * hp.bandwidth_Hz
+    window = np.exp(-0.5 * ((f - hp.f_peak_Hz) / width) ** 2)
+    window[:lo] = 0.0
+    window[hi + 1 :] = 0.0
+    spectrum = np.zeros(n, dtype=complex)
+    spectrum[: len(f)] = np.nan_to_num(fr.H) * window
+    analytic = np.fft.ifft(spectrum)[: n // 2]
+    envelope = np.abs(analytic)
+    scale = float(envelope.max())
+    if not scale > 0.0:
+        raise UserError("the impulse response is zero: no log decrement")
+    h = analytic / scale
+    t = np.arange(len(h)) / fs
+    start = t[int(np.argmax(envelope))] + SETTLE_SIGMAS / (2.0 * math.pi * width)
+    x = h.real
+    found, _ = signal.find_peaks(x)
+    used = [p for p in found if t[p] >= start]
+    peaks: list[int] = []
+    for p in used:
+        if x[p] < PEAK_FLOOR or len(peaks) == MAX_PEAKS:
+            break
+        peaks.append(p)
+    if len(peaks) < 3:
+        raise UserError(
+            f"only {len(peaks)} decay peaks above {PEAK_FLOOR:.0%} in the impulse response: "
+            "the resonance is too damped (or too noisy) for a logarithmic decrement"
+        )
+    idx = np.arange(len(peaks))
+    peak_x = x[peaks]
+    peak_t = t[peaks]
+    delta = float(-np.polyfit(idx, np.log(peak_x), 1)[0])
+    period = float(np.polyfit(idx, peak_t, 1)[0])
+    zeta = delta / math.hypot(2.0 * math.pi, delta)
+    fd = 1.0 / period
+    fn = fd / math.sqrt(1.0 - zeta * zeta)
+    return LogDecrement(delta, zeta, fd, fn, len(peaks), t, h, peak_t, peak_x)
+
+
+@dataclass(frozen=True)
+class Identification:
+    """Everything ``hdhil identify`` finds, plus the model values when known."""
+
+    samples: int
+    sample_period_s: float
+    band_Hz: tuple[float, float]
+    resolution_Hz: float
+    J_motor: float
+    J_load: float
+    half_power: HalfPower
+    log_decrement: LogDecrement
+    coherence_at_peak: float
+    response: FrequencyResponse = field(repr=False)
+    torque_saturated: int = 0
+    model: dict[str, float] | None = None  #: the scenario's fn_Hz, zeta, c, k, gain
+
+    @property
+    def J(self) -> float:
+        """``J = J_m J_l / (J_m + J_l)`` (seed 003, below Eq. 2)."""
+        return self.J_motor * self.J_load / (self.J_motor + self.J_load)
+
+    def damping(self, fn_Hz: float, zeta: float) -> float:
+        """``c = 2 zeta wn J`` (Nm s/rad)."""
+        return 2.0 * zeta * 2.0 * math.pi * fn_Hz * self.J
+
+    def stiffness(self, fn_Hz: float) -> float:
+        """``k = J wn²`` (Nm/rad)."""
+        return self.J * (2.0 * math.pi * fn_Hz) ** 2
+
+    @property
+    def static_gain(self) -> float:
+        """``K = peak |H| x 2 zeta sqrt(1 - zeta²)`` (exact half-power zeta)."""
+        z = self.half_power.zeta_exact
+        return self.half_power.peak_gain * 2.0 * z * math.sqrt(1.0 - z * z)
+
+    def methods(self) -> dict[str, dict[str, float]]:
+        """fn, zeta, c and k by method: ``half_power`` (the seed's reading),
+        ``half_power_exact`` (recommended) and ``log_decrement``."""
+        hp, ld = self.half_power, self.log_decrement
+        out = {}
+        for name, fn, zeta in (
+            ("half_power", hp.fn_Hz, hp.zeta),
+            ("half_power_exact", hp.fn_exact_Hz, hp.zeta_exact),
+            ("log_decrement", ld.fn_Hz, ld.zeta),
+        ):
+            out[name] = {
+                "fn_Hz": fn,
+                "zeta": zeta,
+                "c_Nms_per_rad": self.damping(fn, zeta),
+                "k_Nm_per_rad": self.stiffness(fn),
+            }
+        return out
+
+    def as_dict(self) -> dict[str, Any]:
+        hp = asdict(self.half_power)
+        ld = self.log_decrement
+        return {
+            "samples": self.samples,
+            "duration_s": self.samples * self.sample_period_s,
+            "band_Hz": list(self.band_Hz),
+            "resolution_Hz": self.resolution_Hz,
+            "J_motor": self.J_motor,
+            "J_load": self.J_load,
+            "J": self.J,
+            "half_power_points": {
+                key: hp[key] for key in ("f_peak_Hz", "peak_gain", "f1_Hz", "f2_Hz")
+            },
+            "log_decrement_detail": {
+                "delta": ld.delta,
+                "fd_Hz": ld.fd_Hz,
+                "peaks": ld.peaks,
+            },
+            "methods": self.methods(),
+            "static_gain": self.static_gain,
+            "coherence_at_peak": self.coherence_at_peak,
+            "torque_saturated": self.torque_saturated,
+            "model": self.model,
+        }
+
+
+def identify(
+    data: ChirpData,
+    J_motor: float,
+    J_load: float,
+    segment_s: float = DEFAULT_SEGMENT_S,
+    model: dict[str, float] | None = None,
+) -> Identification:
+    """Frequency response, half-power bandwidth and log decrement of ``data``."""
+    if not (J_motor > 0 and J_load > 0):
+        raise UserError(f"inertias must be > 0, got J_m = {J_motor!r}, J_l = {J_load!r}")
+    fs = 1.0 / data.sample_period_s
+    fr = frequency_response(data.u, data.y, fs, segment_s)
+    hp = half_power(fr)
+    ld = log_decrement(fr, hp)
+    i_peak = int(np.argmin(np.abs(fr.f - hp.f_peak_Hz)))
+    lo, hi = fr.band
+    return Identification(
+        samples=len(data),
+        sample_period_s=data.sample_period_s,
+        band_Hz=(float(fr.f[lo]), float(fr.f[hi])),
+        resolution_Hz=float(fr.f[1] - fr.f[0]),
+        J_motor=J_motor,
+        J_load=J_load,
+        half_power=hp,
+        log_decrement=ld,
+        coherence_at_peak=float(fr.coherence[i_peak]),
+        response=fr,
+        torque_saturated=data.torque_saturated,
+        model=model,
+    )
+
+
+def model_values(plant: PlantConfig) -> dict[str, float]:
+    """The scenario's joint: fn (Hz), zeta, c, k and the static gain J_l / (J_m + J_l)."""
+    d = plant.drivetrain
+    return {
+        "fn_Hz": d.natural_frequency_Hz,
+        "zeta": d.damping_ratio,
+        "c_Nms_per_rad": d.c_flex,
+        "k_Nm_per_rad": d.k_flex,
+        "static_gain": d.J_load / (d.J_motor + d.J_load),
+    }
+
+
+# ----------------------------------------------------------------------------- output
+
+
+def format_identification(ident: Identification, source: str = "") -> str:
+    """The human-readable summary."""
+    hp = ident.half_power
+    ld = ident.log_decrement
+    lines = [
+        f"identify {source}".rstrip(),
+        f"  samples            {ident.samples} ({ident.samples * ident.sample_period_s:.3g} s), "
+        f"excited band {ident.band_Hz[0]:.2f}-{ident.band_Hz[1]:.2f} Hz, "
+        f"resolution {ident.resolution_Hz:.3f} Hz",
+        f"  peak               {hp.peak_gain:.4g} at {hp.f_peak_Hz:.3f} Hz "
+        f"(coherence {ident.coherence_at_peak:.3f})",
+        f"  half-power points  f1 {hp.f1_Hz:.3f} Hz, f2 {hp.f2_Hz:.3f} Hz "
+        f"(bandwidth {hp.bandwidth_Hz:.3f} Hz)",
+        f"  log decrement      delta {ld.delta:.4f} over {ld.peaks} peaks, fd {ld.fd_Hz:.3f} Hz",
+        f"  J = Jm Jl/(Jm+Jl)  {ident.J:.4f} kg m² (Jm {ident.J_motor:g}, Jl {ident.J_load:g})",
+        "",
+        f"  {'method':<28} {'fn [Hz]':>9} {'zeta':>8} {'c [Nms/rad]':>12} {'k [Nm/rad]':>11}",
+    ]
+    labels = {
+        "half_power": "half-power (fn = peak)",
+        "half_power_exact": "half-power, exact 2nd order",
+        "log_decrement": "logarithmic decrement",
+    }
+    model = ident.model
+    for name, v in ident.methods().items():
+        lines.append(
+            f"  {labels[name]:<28} {v['fn_Hz']:>9.3f} {v['zeta']:>8.4f} "
+            f"{v['c_Nms_per_rad']:>12.2f} {v['k_Nm_per_rad']:>11.0f}"
+        )
+    if model is not None:
+        lines.append(
+            f"  {'scenario model':<28} {model['fn_Hz']:>9.3f} {model['zeta']:>8.4f} "
+            f"{model['c_Nms_per_rad']:>12.2f} {model['k_Nm_per_rad']:>11.0f}"
+        )
+        lines.append("")
+        for name, v in ident.methods().items():
+            lines.append(
+                f"  {labels[name]:<28} error fn {_pct(v['fn_Hz'], model['fn_Hz'])}, "
+                f"c {_pct(v['c_Nms_per_rad'], model['c_Nms_per_rad'])}"
+            )
+    lines.append("")
+    static = f"  static gain K      {ident.static_gain:.4f}"
+    if model is not None:
+        static += f" (model J_l/(J_m+J_l) = {model['static_gain']:.4f})"
+    lines.append(static)
+    ratio = ld.zeta / hp.zeta_exact
+    lines.append(f"  cross-check        log decrement / half-power (exact) zeta = {ratio:.3f}")
+    if ident.torque_saturated:
+        lines.append(
+            f"  warning            {ident.torque_saturated} torque samples at the ADC's "
+            "end codes: the response was clipped"
+        )
+    return "\n".join(lines)
+
+
+def _pct(value: float, reference: float) -> str:
+    return f"{100.0 * (value / reference - 1.0):+6.2f} %"
+
+
+def make_figure(ident: Identification, title: str = "") -> Any:
+    """Bode magnitude (seed 003 Fig. 5) with the peak and half-power points, and the
+    band-passed impulse response with the peaks of the logarithmic decrement."""
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import FuncFormatter
+
+    hp, ld, fr = ident.half_power, ident.log_decrement, ident.response
+    lo, hi = fr.band
+    f = fr.f[lo : hi + 1]
+    mag_dB = 20.0 * np.log10(fr.magnitude[lo : hi + 1])
+    fig = Figure(figsize=(9, 8), layout="constrained")
+    ax, ax2 = fig.subplots(2, 1, height_ratios=(3, 2))
+    ax.semilogx(f, mag_dB, color="C0", lw=1.2, label="|H1| = |Pxy / Pxx| (Welch)")
+    fn, zeta = hp.fn_exact_Hz, hp.zeta_exact
+    r = f / fn
+    fit = ident.static_gain / np.abs(1.0 - r * r + 2j * zeta * r)
+    ax.semilogx(f, 20.0 * np.log10(fit), "--", color="C7", lw=1.0, label="2nd-order fit")
+    peak_dB = 20.0 * math.log10(hp.peak_gain)
+    ax.plot([hp.f_peak_Hz], [peak_dB], "o", color="C3", label=f"peak {hp.f_peak_Hz:.2f} Hz")
+    ax.axhline(peak_dB - 10.0 * math.log10(2.0), color="C1", lw=0.8, ls=":")
+    ax.plot(
+        [hp.f1_Hz, hp.f2_Hz],
+        [peak_dB - 10.0 * math.log10(2.0)] * 2,
+        "s",
+        color="C1",
+        label=f"half power {hp.f1_Hz:.2f} / {hp.f2_Hz:.2f} Hz",
+    )
+    c = ident.damping(fn, zeta)
+    ax.set_title(
+        title
+        or f"sensor torque / motor torque command: fn {fn:.2f} Hz, zeta {zeta:.4f}, "
+        f"c {c:.2f} Nms/rad"
+    )
+    ax.set_xlabel("frequency [Hz]")
+    ax.set_ylabel("magnitude [dB]")
+    plain = FuncFormatter(lambda v, _pos: f"{v:g}")
+    ax.xaxis.set_major_formatter(plain)
+    ax.xaxis.set_minor_formatter(plain)
+    ax.tick_params(axis="x", which="minor", labelsize=7)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="lower left")
+    shown = ld.t <= min(ld.t[-1], (ld.peak_t[-1] if len(ld.peak_t) else 0.5) * 1.5 + 0.05)
+    ax2.plot(
+        ld.t[shown], ld.h.real[shown], color="C0", lw=1.0, label="impulse response (band-passed)"
+    )
+    ax2.plot(ld.t[shown], np.abs(ld.h[shown]), color="C7", lw=0.8, ls="--", label="envelope")
+    ax2.plot(ld.peak_t, ld.peak_x, "o", color="C3", label=f"log decrement {ld.delta:.3f}")
+    ax2.set_title(f"logarithmic decrement: zeta {ld.zeta:.4f}, fd {ld.fd_Hz:.2f} Hz")
+    ax2.set_xlabel("time [s]")
+    ax2.set_ylabel("normalised")
+    ax2.grid(True, alpha=0.3)
+    ax2.legend(loc="upper right")
+    return fig
+
+
+# ----------------------------------------------------------------------------- CLI
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "identify",
+        help="natural frequency and damping of the joint from a chirp trace (seed 003 Fig. 5)",
+        description="Estimate the frequency response sensor torque / motor torque command "
+        "(Welch H1) from a trace of an open-loop chirp (hdhil run --scenario chirp), and the "
+        "joint's natural frequency, damping ratio and damping coefficient by the half-power "
+        "bandwidth method, cross-checked by the logarithmic decrement (seed 003 §II).",
+    )
+    p.add_argument("trace", type=Path, help="trace written by hdhil run")
+    p.add_argument(
+        "--scenario",
+        default="chirp",
+        help="scenario of the run: firmware calibration, DAC, actuator torque per volt, "
+        f"inertias (default: %(default)s; shipped: {', '.join(list_scenarios())})",
+    )
+    p.add_argument(
+        "--torque-per-volt",
+        type=float,
+        default=None,
+        metavar="NM_PER_V",
+        help="motor torque at the output per DAC volt (default: the scenario's)",
+    )
+    p.add_argument(
+        "--inertias",
+        type=float,
+        nargs=2,
+        default=None,
+        metavar=("JM", "JL"),
+        help="motor and link inertia reduced to the output, kg m² (default: the scenario's)",
+    )
+    p.add_argument(
+        "--segment",
+        type=float,
+        default=DEFAULT_SEGMENT_S,
+        metavar="S",
+        help="Welch segment length in s (default: %(default)s)",
+    )
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument("--plot", type=Path, default=None, metavar="FIG", help="write the Bode plot")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    scenario = load_scenario(args.scenario)
+    firmware = from_dict(FirmwareConfig, scenario.firmware, "firmware")
+    plant = scenario.plant
+    per_volt = plant.torque_per_volt if args.torque_per_volt is None else args.torque_per_volt
+    if not (math.isfinite(per_volt) and per_volt != 0.0):
+        raise UserError(f"--torque-per-volt must be a non-zero number, got {per_volt!r}")
+    jm, jl = (
+        (plant.drivetrain.J_motor, plant.drivetrain.J_load)
+        if args.inertias is None
+        else tuple(args.inertias)
+    )
+    if args.plot is not None and args.plot.suffix.lower() not in (".png", ".pdf", ".svg"):
+        raise UserError(f"--plot {args.plot}: use a .png, .pdf or .svg file name")
+    data = chirp_data_from_trace(args.trace, firmware, per_volt)
+    ident = identify(data, jm, jl, args.segment, model_values(plant))
+    if args.plot is not None:
+        try:
+            make_figure(ident).savefig(args.plot, dpi=100)
+        except OSError as exc:
+            raise UserError(f"cannot write {args.plot}: {exc.strerror or exc}") from None
+    if args.json:
+        out = ident.as_dict()
+        out.update(trace=str(args.trace), scenario=scenario.name, plot=args.plot and str(args.plot))
+        json.dump(out, sys.stdout, indent=2)
+        print()
+    else:
+        print(format_identification(ident, f"{args.trace} (scenario {scenario.name})"))
+        if args.plot is not None:
+            print(f"  plot               {args.plot}")
+    if data.damage:
+        print(f"hdhil: warning: {data.damage}", file=sys.stderr)
+        return 1
+    return 0
