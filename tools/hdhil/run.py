@@ -33,14 +33,14 @@ from typing import Any
 import can
 import numpy as np
 
-from firmware.config import FirmwareConfig
+from firmware.config import FirmwareConfig, Law
 from firmware.controller import ControllerNode
 from hdhil.busload import LOAD_LIMIT, schedule_load
 from hdhil.dataconf import ConfigError, from_dict, merge
 from hdhil.dbc import CHANNEL_NUMBER, database
 from hdhil.evaluate import RecordingListener, format_evaluation
 from hdhil.evaluate import evaluate as evaluate_recording
-from hdhil.score import TorqueScorer
+from hdhil.score import TorqueScorer, TrackingScorer
 from hdhil.simbus import SimClock
 from hdhil.trace import BusTap, FrameCounter, open_writer
 from hostsim.drive import DriveConfig, DriveNode
@@ -73,6 +73,7 @@ class RunResult:
     velocity_peak: float
     trace: str | None
     evaluation: dict[str, Any] | None = None
+    tracking: dict[str, Any] | None = None
     controller: dict[str, Any] = field(default_factory=dict)
     drive: dict[str, Any] = field(default_factory=dict)
 
@@ -260,6 +261,7 @@ def run_lockstep(
     wall = 0.0
     frames_sent: dict[str, int] = {}
     recorder: RecordingListener | None = None
+    tracking: TrackingScorer | None = None
     try:
         for make in (control_bus, control_bus, truth_bus, control_bus, truth_bus):
             buses.append(make())
@@ -271,6 +273,10 @@ def run_lockstep(
         counter = FrameCounter()
         scorer = TorqueScorer()
         listeners += [counter, scorer]
+        control = fw_config.control
+        if control.law != Law.NONE:
+            tracking = TrackingScorer(control.joint.Jl / control.joint.Jm, evaluate_skip_s)
+            listeners.append(tracking)
         if evaluate:
             recorder = RecordingListener(Ts)
             listeners.append(recorder)
@@ -331,6 +337,11 @@ def run_lockstep(
         velocity_peak=scorer.velocity_peak,
         trace=str(trace) if trace is not None else None,
         evaluation=evaluation,
+        tracking=(
+            {"law": fw_config.control.law.name.lower(), **tracking.result().as_dict()}
+            if tracking is not None
+            else None
+        ),
         controller=_controller_diagnostics(controller),
         drive={
             "syncs": drive.diagnostics.syncs,
@@ -369,11 +380,60 @@ def format_result(r: RunResult) -> str:
         )
     else:
         lines.append("  torque vs truth    no telemetry/truth pairs were seen")
+    if r.tracking is not None:
+        lines.append(format_tracking([r.tracking]))
     if r.evaluation is not None:
         lines.append(format_evaluation(r.evaluation))
     if r.trace:
         lines.append(f"  trace              {r.trace} ({r.frames_total} frames)")
     return "\n".join(lines)
+
+
+#: The laws ``--compare-laws`` runs, as ``[firmware.control]`` overrides: the seed's three
+#: (seed 003 §IV: JTF1 = Eq. 4 with the LQ design, JTF2 k3 = 0, k4 = 1 + Jm/Jl, JTF3
+#: k3 = 0, k4 = 1) and JTF1 with desired-torque-derivative feedforward tuned for the
+#: tracking scenario (:data:`firmware.config.JTF1_FF_TRACKING`: exact feedforward gains,
+#: V = 1e7).
+COMPARED_LAWS: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("JTF1", {"law": "jtf1"}),
+    ("JTF2", {"law": "jtf2"}),
+    ("JTF3", {"law": "jtf3"}),
+    ("JTF1 + feedforward", {"law": "jtf1_ff", "feedforward": "exact", "weights": {"V": 1e7}}),
+)
+
+
+def format_tracking(rows: list[dict[str, Any]]) -> str:
+    lines = [
+        "  torque tracking vs truth (e = T_true − T_desired)",
+        f"    {'law':<22} {'max |e|/Nm':>10} {'RMS e/Nm':>9} {'RMS τlgd err/Nm':>16} "
+        f"{'samples':>8}",
+    ]
+    for r in rows:
+        lines.append(
+            f"    {r['law']:<22} {r['max_abs_error']:10.3f} {r['rms_error']:9.3f} "
+            f"{r['rms_disturbance_error']:16.3f} {r['samples']:8d}"
+        )
+    return "\n".join(lines)
+
+
+def compare_laws(scenario: Scenario, **kwargs: Any) -> list[dict[str, Any]]:
+    """Run ``scenario`` once per law of :data:`COMPARED_LAWS`, each closed over the bus."""
+    rows = []
+    trace: Path | None = kwargs.pop("trace", None)
+    for label, control in COMPARED_LAWS:
+        firmware = merge(scenario.firmware, {"control": control})
+        law_trace = (
+            trace.with_name(f"{trace.stem}-{control['law']}{trace.suffix}") if trace else None
+        )
+        r = run_lockstep(dataclasses.replace(scenario, firmware=firmware), trace=law_trace,
+                         evaluate=False, **kwargs)  # fmt: skip
+        if r.tracking is None:
+            raise ConfigError(f"{scenario.name}: no tracking telemetry for {label}")
+        rows.append({**r.tracking, "law": label, "trace": str(law_trace) if law_trace else None,
+                     "real_time_factor": r.real_time_factor})  # fmt: skip
+        if r.interrupted:
+            break
+    return rows
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -405,6 +465,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=Path,
         default=None,
         help="calibration file written by `hdhil calibrate --out` (the firmware uses its gain)",
+    )
+    p.add_argument(
+        "--compare-laws",
+        action="store_true",
+        help="run the scenario once per control law (JTF1, JTF2, JTF3, JTF1 + feedforward) "
+        "and print the tracking table (traces get the law in their name)",
     )
     p.add_argument(
         "--no-evaluate",
@@ -489,6 +555,26 @@ def run(args: argparse.Namespace) -> int:
     try:
         interface = None if args.interface == "config" else args.interface
         with stop_on_signals() as stop:
+            if args.compare_laws:
+                rows = compare_laws(
+                    scenario,
+                    duration_s=args.duration,
+                    seed=args.seed,
+                    trace=trace,
+                    interface=interface,
+                    actuation=args.actuation,
+                    bitrate=args.bitrate,
+                    channel=args.channel,
+                    stop_requested=stop.is_set,
+                    evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,
+                )
+                if args.json:
+                    json.dump({"scenario": scenario.name, "laws": rows}, sys.stdout, indent=2)
+                    print()
+                else:
+                    print(f"hdhil run --compare-laws: scenario {scenario.name}")
+                    print(format_tracking(rows))
+                return 130 if stop.is_set() else 0
             result = run_lockstep(
                 scenario,
                 args.duration,

@@ -119,3 +119,76 @@ class TorqueScorer(can.Listener):
             max_error_raw=self._max_raw,
             max_error_filtered=self._max_filt,
         )
+
+
+@dataclass(frozen=True)
+class TrackingScore:
+    """Joint-torque tracking against truth (seed 003 §VI): e = T_true − T_desired."""
+
+    samples: int
+    max_abs_error: float
+    rms_error: float
+    rms_disturbance_error: float  # estimated tau_lgd vs its truth
+
+    def as_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+class TrackingScorer(can.Listener):
+    """Tracking error of a torque control law, from the buses.
+
+    Pairs the controller's ``CTRL_TPDO2`` (desired torque ``tau_sD`` and the estimated
+    lumped disturbance ``tau_lgd_hat``) with the truth of the same sample instant
+    (``TRUTH_TORQUE.T_true``, ``TRUTH_JOINT.tau_ext`` and ``tau_d``).  The true lumped
+    disturbance of seed 003 Eq. 3 is tau_lgd = tau_l + tau_g − tau_d·Jl/Jm, so
+    ``jl_over_jm`` is the joint's inertia ratio.  Only telemetry at or after ``skip_s``
+    counts.
+    """
+
+    def __init__(self, jl_over_jm: float, skip_s: float = 0.0) -> None:
+        self.skip_s = skip_s
+        self.jl_over_jm = jl_over_jm
+        self._tele = codec("control", "CTRL_TPDO2")
+        self._truth = codec("truth", "TRUTH_TORQUE")
+        self._joint = codec("truth", "TRUTH_JOINT")
+        self._keys = {
+            (self._tele.frame_id, False): self._on_tele,
+            (self._truth.frame_id, True): self._on_truth,
+            (self._joint.frame_id, True): self._on_joint,
+        }
+        self._T_true: float | None = None
+        self._tau_lgd: float | None = None
+        self.n = 0
+        self._sum_e2 = 0.0
+        self._sum_d2 = 0.0
+        self._max_e = 0.0
+
+    def on_message_received(self, msg: can.Message) -> None:
+        handler = self._keys.get((msg.arbitration_id, msg.is_extended_id))
+        if handler is not None and len(msg.data) == 8:
+            handler(msg)
+
+    def _on_truth(self, msg: can.Message) -> None:
+        self._T_true = self._truth.decode(msg.data)[0]
+
+    def _on_joint(self, msg: can.Message) -> None:
+        tau_ext, tau_d, _tau_m, _tau_m_cmd = self._joint.decode(msg.data)
+        self._tau_lgd = tau_ext - tau_d * self.jl_over_jm
+
+    def _on_tele(self, msg: can.Message) -> None:
+        if self._T_true is None or self._tau_lgd is None or msg.timestamp < self.skip_s:
+            return
+        _dtau, tau_lgd_hat, tau_sD, _e_hat = self._tele.decode(msg.data)
+        e = self._T_true - tau_sD
+        d = tau_lgd_hat - self._tau_lgd
+        self.n += 1
+        self._sum_e2 += e * e
+        self._sum_d2 += d * d
+        self._max_e = max(self._max_e, abs(e))
+
+    def result(self) -> TrackingScore:
+        n = self.n
+        if not n:
+            return TrackingScore(0, math.nan, math.nan, math.nan)
+        return TrackingScore(n, self._max_e, math.sqrt(self._sum_e2 / n),
+                             math.sqrt(self._sum_d2 / n))  # fmt: skip
