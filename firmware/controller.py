@@ -1,4 +1,4 @@
-"""The controller node: the ported interrupt handler behind a CAN link.
+"""The controller node: the ported interrupt handler behind a CANopen link.
 
 On the seed's DSP a hardware timer fired ``c_int10`` every sample period (seed 000,
 listing A.1, ``t1_schedule_intr(c_int10, sample_period)``).  Over CAN the timer becomes
@@ -16,108 +16,652 @@ With a torque-control law active (seed 003, :class:`firmware.config.ControlConfi
 filter's torque, and a second telemetry frame ``CTRL_TPDO2`` (0x281) follows with
 ``τ̂s'``, ``τ̂lgd``, ``τsD`` and the estimated error ``e``.  Without a law ``CTRL_TPDO2`` is
 not sent at all: the PDO is not valid, as CANopen marks it with bit 31 of its COB-ID
-(``dbc/controller.eds`` object 0x1802 defaults to 0x80000281), and the bus carries
-exactly the seed-000 schedule.  Worst-case control-bus load: 44 % without, 57.5 % with
-a law (``CTRL_TPDO2`` adds 135 µs per 1 ms cycle at 1 Mbit/s).
+(``dbc/controller.eds`` object 0x1802 defaults to 0x80000281, and the node keeps that bit
+in step with the law), and the bus carries exactly the seed-000 schedule.  Worst-case
+control-bus load: 44 % without, 57.5 % with a law.
 
-This module only moves frames: every computation is in :mod:`firmware.isr` and its stages.
-It uses nothing but a python-can bus, so the same node drives the emulator on ``simbus``
-or a real drive on SocketCAN/PCAN/Kvaser.  It never subscribes to ground truth.
+CANopen roles (CiA 301, :mod:`hdhil.canopen_services`)
+------------------------------------------------------
+The controller is node-ID 1: an NMT slave itself (boot-up 0x701, heartbeat producer 0x701
+every 100 ms, SDO server on 0x601/0x581, EMCY producer 0x081) and the NMT master, SYNC
+producer and CiA 402 controlling device of the drive (node-ID 2, heartbeat consumer with
+250 ms).  The runner drives it without threads::
+
+    controller.boot(now)                   # boot-up 0x701, wait for the drive's boot-up
+    every cycle k (now = k * Ts):
+        controller.tick(now)               # heartbeats, timeouts, sequencer, new parameters
+        if controller.boot_error: fail with it (one line)
+        if controller.phase in ("stopped", "safe"): end the run
+        controller.send_sync()             # False when no SYNC went out
+        poll the nodes until the cycle's frames are handled
+
+Phases (:class:`Phase`, the ``phase`` property) and what goes on the bus:
+
+============  ==================================================  ======  ============
+phase         what happens                                        SYNC    DRIVE_RPDO1
+============  ==================================================  ======  ============
+wait-boot     PRE-OPERATIONAL, waiting for the drive's boot-up    yes     no
+starting      drive NMT-started, CiA 402 walk (controlword)       yes     DAC 0 + cw
+operational   the interrupt handler runs on every sensor frame    yes     DAC + 0x000F
+stopping      CiA 402 walk back (0x0007, then 0x0006)             yes     DAC 0 + cw
+stopped       drive sent to PRE-OPERATIONAL, controller too       no      no
+safe          fault: the drive is no longer commanded             no      no
+============  ==================================================  ======  ============
+
+On entering "safe" from a commanding phase the controller stops commanding at once (no
+further RPDO, no SYNC) and sends NMT "enter pre-operational" for the drive: a CiA 402
+drive reacts to leaving OPERATIONAL with its abort-connection option (0x6007: fault,
+disable voltage or quick stop), which is the one torque-off path that works whether the
+drive takes its RPDO over on receipt or at the next SYNC (none follows).  A last
+"disable voltage" RPDO would not help: sent at the same instant, the NMT frame (identifier
+0) wins arbitration and the drive, already pre-operational, drops the PDO.  The controller
+goes PRE-OPERATIONAL itself, so its heartbeat reports it.  SDO and heartbeat keep running
+in "stopped" and "safe"; both are final: **recovery is a restart** (a new node and
+``boot``).  Heartbeats and the SDO server run in every phase.
+
+Start-up (CiA 301 §7.3.2 NMT, CiA 402 PDS state machine): on the drive's boot-up (or its
+heartbeat, if it booted before the controller) the controller sends NMT "start remote
+node" (0x000: 01 02), enters OPERATIONAL itself and walks the drive's state machine with
+the controlword of ``DRIVE_RPDO1`` (sent on every sensor frame, DAC 0):
+
+==========================  ==================  ==========================================
+drive state (statusword)    controlword sent    note
+==========================  ==================  ==========================================
+unknown, NOT READY, SWITCH  0x0006 shutdown     transition 2
+ON DISABLED
+READY TO SWITCH ON          0x0007 switch on    transition 3
+SWITCHED ON                 0x000F enable op.   transition 4
+OPERATION ENABLED           0x000F              phase "operational"
+QUICK STOP ACTIVE           0x0000              disable voltage (transition 12), walk again
+FAULT REACTION ACTIVE       unchanged           wait for FAULT
+FAULT                       0x0080 fault reset  rising edge of bit 7 (transition 15), then
+                                                walk again; **one** fault reset per node:
+                                                a second fault, or a refused reset, -> safe
+==========================  ==================  ==========================================
+
+The statusword comes in ``DRIVE_TPDO2`` (0x282, event-driven; RPDO2 of the controller,
+object 0x2011).  An event-driven PDO is sent on change only, so right after NMT start the
+controller also reads the drive's 0x6041 once by SDO (expedited upload on 0x602/0x582):
+a drive that comes up in FAULT is fault-reset from the first command on.  A walk step
+that sees no statusword for ``STATUSWORD_TIMEOUT_S`` (20 ms) counts as a missed
+statusword: the controller re-sends NMT start (start-up only) and reads 0x6041 by SDO
+again, which recovers a lost event-driven PDO.  The whole walk must finish within
+``WALK_TIMEOUT_S`` (1 s): a start-up that does not ends in "safe", a stop that does not
+ends in "stopped" anyway (counted in ``stop_timeouts``).
+
+Timing in lockstep (boot-ups at t = 0; ``diagnostics.startup_cycles`` counts the SYNCs
+from NMT start to OPERATION ENABLED).  The drive's boot-up is handled in cycle 0 (NMT
+start, SDO read of the statusword).  A drive that applies the controlword on receipt
+(``hostsim.drive`` with ``actuation = "immediate"``) answers each step in the same cycle:
+the walk takes the SYNCs of cycles 1, 2, 3 (0x0006, 0x0007, 0x000F), and the first
+operational sample, ``samplecount = 0``, is cycle 4.  A drive that takes the whole RPDO
+over at the next SYNC (``"next-sync"``, the default: CiA 301 synchronous RPDO) changes
+state at SYNC k+1 and its statusword follows its sensor frame, so each step takes two
+cycles: 6 SYNCs, first sample in cycle 7.  The stop takes 2 (immediate) or 3 (next-sync)
+cycles.
+
+Stop (``request_stop()``, or automatically once ``num_samples`` interrupts have run, as the
+listing's ``main`` leaves its loop and writes DAC 0): controlword 0x0007 "disable
+operation" (transition 5), then 0x0006 "shutdown" (transition 6), then NMT "enter
+pre-operational" (0x80) for the drive (it keeps its heartbeat and SDO server, so it can
+still be inspected, but takes no PDOs), and the controller goes PRE-OPERATIONAL: "stopped".
+
+Faults: the drive's heartbeat times out (250 ms, monitored from its first heartbeat; the
+check runs in ``tick``, so it is detected within one tick): EMCY 0x8130 with the drive's
+node-ID in manufacturer byte 0, phase "safe".  In "operational", ``sensor_hold_cycles``
+SYNCs in a row without a sensor frame: the drive holds the last command until then (the
+controller sends nothing without a sensor frame), then EMCY 0x8250 "RPDO timeout"
+(manufacturer bytes: the drive's node-ID and the number of SYNCs) and "safe".  A boot-up
+of the drive while it is commanded (it was reset) and NMT commands from another master
+that take the controller out of OPERATIONAL (or reset it) also lead to "safe".
+
+Live parameters (SDO)
+---------------------
+The controller's object dictionary holds the firmware parameters (objects 0x2400-0x2430,
+:data:`PARAMETERS`); the scenario's configuration is written into it when the node is
+built, so an SDO upload returns what runs (REAL32: to float32 precision, and the firmware
+then runs with the value the OD holds).  A download passes the checks of
+:class:`hdhil.canopen_services.CanopenServices` (type and length 0x06070012/13, access
+0x06010002, range from the EDS 0x06090031/32, unknown object 0x06020000) and then this
+node's: the new :class:`firmware.config.FirmwareConfig` must build (``dataclasses.replace``;
+0x06090030 otherwise), and ``q_i`` of a harmonic that is not configured aborts with
+0x08000022.  An aborted write changes nothing.  Accepted writes are applied at the next
+cycle boundary (``tick`` or ``send_sync``, whichever comes first):
+
+- reference generator (0x2400): rebuilt; the wave continues at the present sample index;
+- ``num_samples`` (0x2401:1): the new limit counts from the first operational sample;
+- ripple filter (0x2410): the filter chain is rebuilt, **the ripple Kalman filter
+  restarts** from P0 (its learned ripple is lost); the differentiator and the encoder
+  unwrapping carry over.  Writing ``mode`` gives the mode's default tuning for the same
+  harmonics (:func:`firmware.config.paper_config` / ``recommended_config``), and the OD's
+  r, residual_q and q_i are updated to it;
+- control law (0x2420:1): the LQG stage is rebuilt (observer from rest); ``CTRL_TPDO2``
+  is sent only while a law is active and 0x1802:1 bit 31 follows; the desired torque's
+  amplitude/frequency only swap the desired-torque generator;
+- calibration (0x2430): used from the next sample on.
+
+0x1006 (communication cycle period) holds the running period and 0x1019 the SYNC counter
+overflow; neither can be changed over SDO (abort 0x08000022): the runner paces the
+cycle and the drive's SYNC consumer expects the overflow.  PDO-mapped process data (ADC
+counts, telemetry) is not mirrored into the OD; the
+controlword (0x6040) and the drive's statusword (0x2011) are, when they change.
+
+This module only moves frames and sequences the link: every computation is in
+:mod:`firmware.isr` and its stages.  It uses nothing but a python-can bus, so the same
+node drives the emulator on ``simbus`` or a real drive on SocketCAN/PCAN/Kvaser.  It never
+subscribes to ground truth.  PDO COB-IDs come from ``control.dbc`` (pre-defined connection
+set of nodes 1 and 2); other node-IDs move only the CiA 301 service frames.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
+import enum
+import math
+import struct
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
 
 import can
 
-from firmware.config import FirmwareConfig
-from firmware.isr import AdcSample, InterruptHandler
-from hdhil.dbc import codec
+from firmware.config import FirmwareConfig, Law, Wave, paper_config, recommended_config
+from firmware.isr import AdcSample, InterruptHandler, TorqueControl, TorqueFilterChain
+from firmware.stages import ReferenceGenerator
+from hdhil.canopen_services import (
+    ABORT_DEVICE_STATE,
+    ABORT_INVALID_VALUE,
+    SDO_RX_BASE,
+    SDO_TX_BASE,
+    CanopenServices,
+    EmcyCode,
+    NmtCommand,
+    NmtState,
+    ResetKind,
+)
+from hdhil.dbc import codec, eds_path
 from hdhil.node import CanNode
+from hostsim.cia402 import CONTROLWORD, CW_FAULT_RESET, Command, State, state_from_statusword
+
+__all__ = [
+    "CONTROLWORD_ENABLE_OPERATION",
+    "PARAMETERS",
+    "ControllerDiagnostics",
+    "ControllerNode",
+    "Parameter",
+    "Phase",
+    "PhaseChange",
+]
 
 #: CiA 402 controlword "enable operation" (switch on, enable voltage, quick stop off,
 #: enable operation).  The drive amplifier follows the DAC command only while enabled.
-CONTROLWORD_ENABLE_OPERATION = 0x000F
+CONTROLWORD_ENABLE_OPERATION = CONTROLWORD[Command.ENABLE_OPERATION]
+_SHUTDOWN = CONTROLWORD[Command.SHUTDOWN]  # 0x0006
+_SWITCH_ON = CONTROLWORD[Command.SWITCH_ON]  # 0x0007, also "disable operation"
+_DISABLE_VOLTAGE = CONTROLWORD[Command.DISABLE_VOLTAGE]  # 0x0000
+_FAULT_RESET = CONTROLWORD[Command.FAULT_RESET]  # 0x0080
+
+#: The drive's statusword object, read by SDO when an event-driven statusword went missing.
+_STATUSWORD_INDEX = 0x6041
+
+
+class Phase(str, enum.Enum):
+    """The controller's link phase (module docstring, table "Phases")."""
+
+    WAIT_BOOT = "wait-boot"
+    STARTING = "starting"
+    OPERATIONAL = "operational"
+    STOPPING = "stopping"
+    STOPPED = "stopped"
+    SAFE = "safe"
+
+    def __str__(self) -> str:
+        return self.value
+
+
+#: Phases in which the controller commands the drive (sends DRIVE_RPDO1).
+_COMMANDING = frozenset({Phase.STARTING, Phase.OPERATIONAL, Phase.STOPPING})
+#: Final phases: no SYNC, no PDO; only a restart leaves them.
+_FINAL = frozenset({Phase.STOPPED, Phase.SAFE})
+
+
+class PhaseChange(NamedTuple):
+    """One entry of the phase history: when (the latest ``tick``/``boot`` time, s), the
+    new phase and why."""
+
+    time_s: float
+    phase: Phase
+    reason: str
 
 
 @dataclass
 class ControllerDiagnostics:
-    """Counters a user reads to see what the link did (never reset during a run)."""
+    """What the node did (never reset during a run).
+
+    The CiA 301 counters of the services (EMCY sent/received) are copied here at every
+    ``tick``.  Times are the ``now`` of the latest ``tick``/``boot`` (cycle starts).
+    """
 
     syncs_sent: int = 0
+    #: Sensor frames handled in any commanding phase (the walk's too).
     sensor_frames: int = 0
+    #: DRIVE_RPDO1 frames sent (walk and operation).
     commands_sent: int = 0
     malformed_frames: int = 0
     control_frames_sent: int = 0
+    #: PDOs received while the controller may not process them (NMT state, phase).
+    pdos_ignored: int = 0
+    phase_history: list[PhaseChange] = field(default_factory=list)
+    #: When the drive's boot-up (or first sign of life) was seen; None before.
+    boot_time_s: float | None = None
+    #: When the drive first reported OPERATION ENABLED.
+    operational_at_s: float | None = None
+    #: SYNCs sent from NMT start of the drive until it reported OPERATION ENABLED.
+    startup_cycles: int | None = None
+    statusword_frames: int = 0
+    #: Walk steps that waited ``STATUSWORD_TIMEOUT_S`` without a statusword.
+    statusword_timeouts: int = 0
+    #: Statusword reads by SDO (0x6041 of the drive) and their answers / aborts.
+    statusword_sdo_reads: int = 0
+    statusword_sdo_answers: int = 0
+    sdo_aborts: int = 0
+    invalid_statuswords: int = 0
+    fault_resets: int = 0
+    #: A stop that the drive did not confirm within ``WALK_TIMEOUT_S``.
+    stop_timeouts: int = 0
+    heartbeat_losses: int = 0
+    heartbeat_lost_at_s: float | None = None
+    #: Operational SYNC cycles without a sensor frame, in total and the longest run.
+    sensor_frames_missed: int = 0
+    sensor_hold_longest: int = 0
+    emcy_sent: int = 0
+    emcy_received: int = 0
+    #: Accepted SDO writes of firmware parameters, and what they rebuilt.
+    parameter_writes: int = 0
+    parameter_updates_applied: int = 0
+    filter_restarts: int = 0
+    control_rebuilds: int = 0
+    safe_reason: str | None = None
+
+
+# ------------------------------------------------------------------ parameters (OD)
+
+
+class _NotApplicable(Exception):
+    """The object exists but means nothing in the running configuration (abort 0x08000022)."""
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One firmware parameter in the controller's OD (``index:sub``) and how it maps to
+    :class:`FirmwareConfig`: ``get`` reads it, ``put`` returns a config with the new
+    value (None: read-only).  ``stage`` says what must be rebuilt when it changes."""
+
+    index: int
+    sub: int
+    name: str
+    get: Callable[[FirmwareConfig], Any]
+    put: Callable[[FirmwareConfig, Any], FirmwareConfig] | None
+    stage: str
+
+
+_replace = dataclasses.replace
+
+
+def _reference(sub: int, name: str, convert: Callable[[Any], Any] = float) -> Parameter:
+    return Parameter(
+        0x2400,
+        sub,
+        name,
+        lambda c: getattr(c.reference, name),
+        lambda c, v: _replace(c, reference=_replace(c.reference, **{name: convert(v)})),
+        "reference",
+    )
+
+
+def _set_mode(c: FirmwareConfig, v: int) -> FirmwareConfig:
+    return paper_config(c) if v == 0 else recommended_config(c)
+
+
+def _ripple(name: str) -> Parameter:
+    sub = {"r": 2, "residual_q": 3}[name]
+    return Parameter(
+        0x2410,
+        sub,
+        name,
+        lambda c: getattr(c.ripple, name),
+        lambda c, v: _replace(c, ripple=_replace(c.ripple, **{name: float(v)})),
+        "filter",
+    )
+
+
+def _harmonic_q(i: int) -> Parameter:
+    def get(c: FirmwareConfig) -> float:
+        osc = c.ripple.oscillators
+        return float(osc[i].q) if i < len(osc) else 0.0  # type: ignore[arg-type]
+
+    def put(c: FirmwareConfig, v: float) -> FirmwareConfig:
+        osc = list(c.ripple.oscillators)
+        if i >= len(osc):
+            raise _NotApplicable
+        osc[i] = _replace(osc[i], q=float(v))
+        return _replace(c, ripple=_replace(c.ripple, oscillators=tuple(osc)))
+
+    return Parameter(0x2410, 5 + i, f"q_{i + 1}", get, put, "filter")
+
+
+def _desired(sub: int, name: str) -> Parameter:
+    return Parameter(
+        0x2420,
+        sub,
+        f"desired_{name}",
+        lambda c: getattr(c.control.desired, name),
+        lambda c, v: _replace(
+            c, control=_replace(c.control, desired=_replace(c.control.desired, **{name: float(v)}))
+        ),
+        "desired",
+    )
+
+
+def _calibration(sub: int, name: str) -> Parameter:
+    return Parameter(
+        0x2430,
+        sub,
+        name,
+        lambda c: getattr(c.calibration, name),
+        lambda c, v: _replace(c, calibration=_replace(c.calibration, **{name: float(v)})),
+        "calibration",
+    )
+
+
+#: The firmware parameters in the controller's OD (``dbc/controller.eds``), in OD order.
+PARAMETERS: tuple[Parameter, ...] = (
+    _reference(1, "wave", Wave),
+    _reference(2, "bias_V"),
+    _reference(3, "amplitude_V"),
+    _reference(4, "frequency_Hz"),
+    _reference(5, "duty"),
+    _reference(6, "step_time_s"),
+    _reference(7, "chirp_end_Hz"),
+    _reference(8, "chirp_duration_s"),
+    Parameter(
+        0x2401,
+        1,
+        "num_samples",
+        lambda c: c.num_samples,
+        lambda c, v: _replace(c, num_samples=int(v)),
+        "run",
+    ),
+    Parameter(0x2401, 2, "sample_period_s", lambda c: c.sample_period_s, None, "run"),
+    Parameter(
+        0x2410,
+        1,
+        "mode",
+        lambda c: 0 if c.ripple.mode == "paper" else 1,
+        _set_mode,
+        "filter",
+    ),
+    _ripple("r"),
+    _ripple("residual_q"),
+    Parameter(0x2410, 4, "harmonics", lambda c: len(c.ripple.oscillators), None, "filter"),
+    *(_harmonic_q(i) for i in range(4)),
+    Parameter(
+        0x2420,
+        1,
+        "law",
+        lambda c: int(c.control.law),
+        lambda c, v: _replace(c, control=_replace(c.control, law=Law(v))),
+        "control",
+    ),
+    _desired(2, "amplitude_Nm"),
+    _desired(3, "frequency_Hz"),
+    _calibration(1, "volt2Nm"),
+    _calibration(2, "volt2radps"),
+)
+
+
+def _seconds(t: float) -> str:
+    """2.0 -> "2.0", 0.25 -> "0.25" (as a user would write the timeout)."""
+    return f"{t:.1f}" if round(t, 1) == t else f"{t:g}"
+
+
+# ------------------------------------------------------------------------- the node
 
 
 class ControllerNode(CanNode):
-    """SYNC producer and torque-sensing firmware (CANopen node-ID 1)."""
+    """SYNC producer, NMT master, CiA 402 controlling device and torque-sensing firmware
+    (CANopen node-ID 1).  See the module docstring for the phases and timings.
 
-    def __init__(self, bus: can.BusABC, config: FirmwareConfig, sync_overflow: int = 240) -> None:
+    Args:
+        bus: the control bus (any python-can bus).
+        config: the firmware configuration (the scenario's); written into the OD.
+        sync_overflow: SYNC counter overflow, object 0x1019 (CiA 301: 2..240 here).
+        node_id: this node's CANopen node-ID.
+        drive_node_id: the drive's node-ID (NMT, heartbeat consumer, SDO client).
+        heartbeat_ms: heartbeat producer time (0x1017).
+        drive_heartbeat_timeout_ms: heartbeat consumer time for the drive (0x1016:1).
+        boot_timeout_s: how long ``boot`` waits for the drive's boot-up.
+        sensor_hold_cycles: SYNCs without a sensor frame tolerated in "operational".
+    """
+
+    #: A walk step without statusword for this long reads the statusword by SDO.
+    STATUSWORD_TIMEOUT_S = 0.02
+    #: A start-up or stop walk must be done within this time.
+    WALK_TIMEOUT_S = 1.0
+    #: Automatic fault resets per node lifetime (CiA 402 transition 15).
+    MAX_FAULT_RESETS = 1
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        config: FirmwareConfig,
+        sync_overflow: int = 240,
+        *,
+        node_id: int = 1,
+        drive_node_id: int = 2,
+        heartbeat_ms: int = 100,
+        drive_heartbeat_timeout_ms: int = 250,
+        boot_timeout_s: float = 2.0,
+        sensor_hold_cycles: int = 10,
+    ) -> None:
         if not 2 <= sync_overflow <= 240:
             raise ValueError(f"SYNC counter overflow must be 2..240 (CiA 301), got {sync_overflow}")
+        if not 1 <= drive_node_id <= 127 or drive_node_id == node_id:
+            raise ValueError(f"drive node-ID must be 1..127 and not {node_id}, got {drive_node_id}")
+        if not (math.isfinite(boot_timeout_s) and boot_timeout_s > 0):
+            raise ValueError(f"boot timeout must be > 0 s, got {boot_timeout_s}")
+        if isinstance(sensor_hold_cycles, bool) or not (
+            isinstance(sensor_hold_cycles, int) and sensor_hold_cycles >= 1
+        ):
+            raise ValueError(
+                f"sensor_hold_cycles must be an integer >= 1, got {sensor_hold_cycles}"
+            )
         super().__init__(bus)
         self.config = config
         self.isr = InterruptHandler(config)
         self.diagnostics = ControllerDiagnostics()
         self.sync_overflow = sync_overflow
-        self._sync_counter = 0
+        self.node_id = node_id
+        self.drive_node_id = drive_node_id
+        self.boot_timeout_s = boot_timeout_s
+        self.sensor_hold_cycles = sensor_hold_cycles
+        #: Why the drive never booted (one line for the user); None otherwise.
+        self.boot_error: str | None = None
+
+        self.services = CanopenServices(
+            bus,
+            node_id,
+            eds_path("controller"),
+            heartbeat_producer_ms=heartbeat_ms,
+            heartbeat_consumers={drive_node_id: drive_heartbeat_timeout_ms},
+        )
+        self._period_us = round(config.sample_period_s * 1e6)
+        self._store_comm_values()
+        self._sync = self.services.make_sync_producer()
+        self._store_config(config)
+        self._register_parameters()
+        self.services.add_validator(0x1006, 0, self._check_cycle_period)
+        self.services.on_boot(self._on_boot)
+        self.services.on_heartbeat_lost(self._on_heartbeat_lost)
+        self.services.on_state_change(self._on_nmt_state)
+        self.services.on_reset(self._on_reset)
+
+        self._phase = Phase.WAIT_BOOT
+        self._now = 0.0
+        self._controlword = _SHUTDOWN
+        self._cw_sends = 0  # RPDOs sent with the present controlword
+        self._drive_state: State | None = None
+        self._statusword: int | None = None
+        self._phase_cycles = 0
+        self._quiet_cycles = 0  # walk cycles since the last statusword
+        self._nmt_start_syncs = 0
+        self._sensor_seen = True
+        self._missing_sensor = 0
+        self._own_nmt = False
+        self._sdo_pending = False
+        self._pending: FirmwareConfig | None = None
+        self._staged: tuple[int, int, Any, FirmwareConfig] | None = None
+        self._prebuilt_control: tuple[Any, TorqueControl] | None = None
         self._cycle = 0
-        self._sync = codec("control", "SYNC")
+        Ts = config.sample_period_s
+        self._statusword_timeout_cycles = max(1, math.ceil(self.STATUSWORD_TIMEOUT_S / Ts - 1e-9))
+        self._walk_timeout_cycles = max(1, math.ceil(self.WALK_TIMEOUT_S / Ts - 1e-9))
+
         self._sensor = codec("control", "DRIVE_TPDO1")
         self._command = codec("control", "DRIVE_RPDO1")
         self._telemetry = codec("control", "CTRL_TPDO1")
         self._control_telemetry = codec("control", "CTRL_TPDO2")
-        self._sync_msg = can.Message(
-            arbitration_id=self._sync.frame_id, is_extended_id=False, data=bytearray(1), check=False
+        self._status = codec("control", "DRIVE_TPDO2")
+        self._status_field = (
+            self._status.signal_names.index("statusword")
+            if "statusword" in self._status.signal_names
+            else 0
         )
-        self._command_msg = can.Message(
-            arbitration_id=self._command.frame_id,
-            is_extended_id=False,
-            dlc=self._command.length,
-            check=False,
-        )
-        self._telemetry_msg = can.Message(
-            arbitration_id=self._telemetry.frame_id,
-            is_extended_id=False,
-            dlc=self._telemetry.length,
-            check=False,
-        )
-        self._control_msg = can.Message(
-            arbitration_id=self._control_telemetry.frame_id,
-            is_extended_id=False,
-            dlc=self._control_telemetry.length,
-            check=False,
+        self._command_msg = self._message(self._command.frame_id, self._command.length)
+        self._telemetry_msg = self._message(self._telemetry.frame_id, self._telemetry.length)
+        self._control_msg = self._message(
+            self._control_telemetry.frame_id, self._control_telemetry.length
         )
         #: CTRL_TPDO2 is valid (sent) only while a control law runs (COB-ID bit 31 clear).
         self.control_pdo_valid = config.control.active
+        self._store_control_pdo_validity()
         self.handle(self._sensor.frame_id, self._on_sensor_frame)
+        self.handle(self._status.frame_id, self._on_statusword_frame)
+        self.handle(SDO_TX_BASE + drive_node_id, self._on_sdo_response)
+
+    @staticmethod
+    def _message(frame_id: int, length: int) -> can.Message:
+        return can.Message(arbitration_id=frame_id, is_extended_id=False, dlc=length, check=False)
+
+    # ------------------------------------------------------------------ public API
+
+    @property
+    def phase(self) -> Phase:
+        """The link phase: "wait-boot", "starting", "operational", "stopping", "stopped"
+        or "safe" (a ``str`` enum, so ``node.phase == "operational"`` works)."""
+        return self._phase
 
     @property
     def done(self) -> bool:
         """True once ``num_samples`` interrupts have run (listing: ``samplecount < numsamples``)."""
         return self.isr.done
 
-    def send_sync(self) -> None:
-        """Start a cycle: SYNC with the CiA 301 counter (1..overflow, then wraps to 1)."""
-        self._sync_counter = self._sync_counter % self.sync_overflow + 1
-        self._sync_msg.data = self._sync.encode(self._sync_counter)
-        self.bus.send(self._sync_msg)
+    @property
+    def drive_state(self) -> State | None:
+        """The drive's CiA 402 state from its latest statusword (None before the first)."""
+        return self._drive_state
+
+    @property
+    def controlword(self) -> int:
+        """The controlword the next DRIVE_RPDO1 carries."""
+        return self._controlword
+
+    def boot(self, now: float) -> None:
+        """Power-on (CiA 301 §7.3.2.2): boot-up message 0x701, PRE-OPERATIONAL, and, as NMT
+        master, start waiting ``boot_timeout_s`` for the drive's boot-up."""
+        self._now = now
+        self.services.boot(now)
+        self.services.expect_boot(self.drive_node_id, now, self.boot_timeout_s)
+        self._set_phase(Phase.WAIT_BOOT, "power on: waiting for the drive's boot-up")
+
+    def tick(self, now: float) -> None:
+        """Once per cycle, before polling: heartbeat producer and consumer (may enter
+        "safe"), parameters written last cycle, the drive's boot-up wait and its timeout."""
+        self._now = now
+        self.services.tick(now)
+        self._apply_pending()
+        if self._phase is Phase.WAIT_BOOT and self.services.state is not NmtState.INITIALISING:
+            drive = self.drive_node_id
+            if self.services.boot_seen(drive) or self.services.remote_state(drive) is not None:
+                self._start_drive()
+            elif drive in self.services.boot_timed_out(now):
+                self.boot_error = (
+                    f"drive (node {drive}) sent no boot-up within "
+                    f"{_seconds(self.boot_timeout_s)} s: check power, node-ID and bit rate"
+                )
+                self._enter_safe(self.boot_error)
+        counters = self.services.counters
+        self.diagnostics.emcy_sent = counters.emcy_sent
+        self.diagnostics.emcy_received = counters.emcy_received
+
+    def send_sync(self) -> bool:
+        """Start a cycle: SYNC with the CiA 301 counter (1..overflow, then 1 again).
+
+        Sent in every phase but "stopped" and "safe", and only in an NMT state that allows
+        it (not before ``boot``).  At this cycle boundary the node also applies new
+        parameters, checks the sensor hold ("operational") and the walk's statusword
+        timeouts ("starting"/"stopping").  Returns True if a SYNC went out.
+        """
+        self._apply_pending()
+        phase = self._phase
+        if phase is Phase.OPERATIONAL:
+            if not self._sensor_hold_ok():
+                return False
+        elif phase is Phase.STARTING or phase is Phase.STOPPING:
+            self._walk_watchdog()
+            if self._phase in _FINAL:
+                return False
+        elif phase in _FINAL:
+            return False
+        if not self.services.send_sync():
+            return False
+        self._sensor_seen = False
         self.diagnostics.syncs_sent += 1
+        return True
+
+    def request_stop(self, reason: str = "stop requested") -> None:
+        """Walk the drive back (controlword 0x0007, then 0x0006), then NMT pre-operational
+        for the drive: phase "stopping", then "stopped".  No effect once stopping."""
+        phase = self._phase
+        if phase is Phase.WAIT_BOOT:
+            self._set_phase(Phase.STOPPED, f"{reason} before the drive booted")
+        elif phase is Phase.STARTING or phase is Phase.OPERATIONAL:
+            self._set_phase(Phase.STOPPING, reason)
+            self._sequence()
+
+    # ------------------------------------------------------------------- frames
+
+    def on_message(self, msg: can.Message) -> None:
+        """CiA 301 service frames go to the services first; SYNC/PDOs to the handlers."""
+        if not self.services.handle(msg):
+            super().on_message(msg)
 
     def _on_sensor_frame(self, msg: can.Message) -> None:
         if msg.is_remote_frame or len(msg.data) != self._sensor.length:
             self.diagnostics.malformed_frames += 1
             return
-        torque, tacho, current, encoder = self._sensor.decode(msg.data)
+        phase = self._phase
+        if phase not in _COMMANDING or not self.services.pdo_allowed:
+            self.diagnostics.pdos_ignored += 1
+            return
+        self._sensor_seen = True
         self.diagnostics.sensor_frames += 1
+        if phase is not Phase.OPERATIONAL:
+            self._send_command(self.isr.shutdown_dac_counts, self._controlword)
+            return
+        torque, tacho, current, encoder = self._sensor.decode(msg.data)
         out = self.isr(AdcSample(torque=torque, tacho=tacho, current=current, encoder=encoder))
-        self._command_msg.data = self._command.encode(
-            out.dac_counts, CONTROLWORD_ENABLE_OPERATION, self._cycle & 0xFF
-        )
-        self.bus.send(self._command_msg)
+        self._send_command(out.dac_counts, CONTROLWORD_ENABLE_OPERATION)
         if self.control_pdo_valid:
             self._telemetry_msg.data = self._telemetry.encode(
                 out.T_meas, out.tau_s_hat, out.velocity, out.current
@@ -133,5 +677,400 @@ class ControllerNode(CanNode):
                 out.T_meas, out.T_filtered, out.velocity, out.current
             )
             self.bus.send(self._telemetry_msg)
+        if self.isr.done:
+            self.request_stop(f"num_samples = {self.config.num_samples} reached")
+
+    def _send_command(self, dac_counts: int, controlword: int) -> None:
+        self._command_msg.data = self._command.encode(dac_counts, controlword, self._cycle & 0xFF)
+        self.bus.send(self._command_msg)
         self.diagnostics.commands_sent += 1
+        self._cw_sends += 1
         self._cycle += 1
+
+    def _on_statusword_frame(self, msg: can.Message) -> None:
+        if msg.is_remote_frame or len(msg.data) != self._status.length:
+            self.diagnostics.malformed_frames += 1
+            return
+        if self._phase not in _COMMANDING or not self.services.pdo_allowed:
+            self.diagnostics.pdos_ignored += 1
+            return
+        self.diagnostics.statusword_frames += 1
+        self._on_statusword(int(self._status.decode(msg.data)[self._status_field]))
+
+    def _on_sdo_response(self, msg: can.Message) -> None:
+        """Answer to the statusword read (expedited upload, CiA 301 §7.2.4.3.6)."""
+        data = msg.data
+        if not self._sdo_pending or len(data) != 8:
+            return
+        index, sub = struct.unpack_from("<HB", data, 1)
+        if (index, sub) != (_STATUSWORD_INDEX, 0):
+            return
+        self._sdo_pending = False
+        if data[0] == 0x80:
+            self.diagnostics.sdo_aborts += 1
+        elif data[0] & 0xE2 == 0x42:  # upload response, expedited
+            self.diagnostics.statusword_sdo_answers += 1
+            if self._phase in _COMMANDING:
+                self._on_statusword(int.from_bytes(data[4:6], "little"))
+
+    def _on_statusword(self, statusword: int) -> None:
+        self._statusword = statusword
+        self._quiet_cycles = 0
+        self._store(0x2011, 0, statusword)
+        try:
+            self._drive_state = state_from_statusword(statusword)
+        except ValueError:
+            self.diagnostics.invalid_statuswords += 1
+            return
+        self._sequence()
+
+    # ---------------------------------------------------------------- sequencer
+
+    def _set_controlword(self, controlword: int) -> None:
+        if controlword != self._controlword:
+            self._controlword = controlword
+            self._cw_sends = 0
+            self._store(0x6040, 0, controlword)
+
+    def _sequence(self) -> None:
+        """The CiA 402 walk: the next controlword (or phase) for the drive's state."""
+        state = self._drive_state
+        phase = self._phase
+        if phase is Phase.OPERATIONAL:
+            if state is State.OPERATION_ENABLED:
+                return
+            if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                if self.diagnostics.fault_resets < self.MAX_FAULT_RESETS:
+                    self._set_phase(Phase.STARTING, self._fault_text("drive fault") + ": reset")
+                    self._sequence()
+                else:
+                    self._enter_safe(self._fault_text("drive fault again after a fault reset"))
+                return
+            self._enter_safe(
+                f"drive (node {self.drive_node_id}) left OPERATION ENABLED on its own: "
+                f"{self._state_text()}"
+            )
+        elif phase is Phase.STARTING:
+            self._walk_up(state)
+        elif phase is Phase.STOPPING:
+            if state is State.OPERATION_ENABLED:
+                self._set_controlword(_SWITCH_ON)  # disable operation (transition 5)
+            elif state is State.SWITCHED_ON or state is None:
+                self._set_controlword(_SHUTDOWN)  # transition 6
+            elif state is not State.FAULT_REACTION_ACTIVE:
+                self._finish_stop(f"drive stopped: {self._state_text()}")
+
+    def _walk_up(self, state: State | None) -> None:
+        if state is None or state in (State.NOT_READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED):
+            self._set_controlword(_SHUTDOWN)  # transition 2
+        elif state is State.READY_TO_SWITCH_ON:
+            self._set_controlword(_SWITCH_ON)  # transition 3
+        elif state is State.SWITCHED_ON:
+            self._set_controlword(CONTROLWORD_ENABLE_OPERATION)  # transition 4
+        elif state is State.OPERATION_ENABLED:
+            self._enter_operational()
+        elif state is State.QUICK_STOP_ACTIVE:
+            self._set_controlword(_DISABLE_VOLTAGE)  # transition 12
+        elif state is State.FAULT:
+            if self._controlword & CW_FAULT_RESET:
+                if self._cw_sends:  # reset sent, drive still in FAULT: refused
+                    self._enter_safe(self._fault_text("drive refused the fault reset"))
+            elif self.diagnostics.fault_resets < self.MAX_FAULT_RESETS:
+                self.diagnostics.fault_resets += 1
+                self._set_controlword(_FAULT_RESET)  # rising edge of bit 7 (transition 15)
+            else:
+                self._enter_safe(self._fault_text("drive fault again after a fault reset"))
+        # FAULT REACTION ACTIVE: wait for FAULT with the controlword unchanged.
+
+    def _fault_text(self, what: str) -> str:
+        return f"{what} ({self._state_text()})"
+
+    def _state_text(self) -> str:
+        state = self._drive_state
+        name = state.name.replace("_", " ") if state is not None else "unknown"
+        sw = self._statusword
+        return f"{name}, statusword 0x{sw:04X}" if sw is not None else name
+
+    def _start_drive(self) -> None:
+        """NMT start of the drive, controller OPERATIONAL, walk from "shutdown"."""
+        drive = self.drive_node_id
+        boot = self.services.boot_times.get(drive)
+        self.diagnostics.boot_time_s = self._now if boot is None else boot
+        how = "boot-up" if boot is not None else "heartbeat (booted earlier)"
+        self.services.nmt_command(NmtCommand.START, drive)
+        self._enter_nmt(NmtState.OPERATIONAL)
+        self._drive_state = None
+        self._set_controlword(_SHUTDOWN)
+        self._nmt_start_syncs = self.diagnostics.syncs_sent
+        self._set_phase(Phase.STARTING, f"{how} of drive (node {drive}): NMT start")
+        # Event-driven PDOs are sent on change only: read the present state once.
+        self._read_statusword()
+
+    def _enter_operational(self) -> None:
+        d = self.diagnostics
+        self._set_controlword(CONTROLWORD_ENABLE_OPERATION)
+        if d.operational_at_s is None:
+            d.operational_at_s = self._now
+            d.startup_cycles = d.syncs_sent - self._nmt_start_syncs
+        self._sensor_seen = True
+        self._missing_sensor = 0
+        self._set_phase(Phase.OPERATIONAL, "drive reports OPERATION ENABLED")
+
+    def _finish_stop(self, reason: str) -> None:
+        self.services.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL, self.drive_node_id)
+        self._set_phase(Phase.STOPPED, f"{reason}; drive NMT pre-operational")
+        self._enter_nmt(NmtState.PRE_OPERATIONAL)
+
+    def _walk_watchdog(self) -> None:
+        """At each SYNC of a walk: SDO read of a missing statusword, walk timeout."""
+        self._phase_cycles += 1
+        self._quiet_cycles += 1
+        if self._phase_cycles >= self._walk_timeout_cycles:
+            what = f"within {_seconds(self.WALK_TIMEOUT_S)} s ({self._state_text()})"
+            if self._phase is Phase.STARTING:
+                self._enter_safe(
+                    f"drive (node {self.drive_node_id}) did not reach OPERATION ENABLED {what}"
+                )
+            else:
+                self.diagnostics.stop_timeouts += 1
+                self._finish_stop(f"drive did not confirm the stop {what}")
+            return
+        if self._quiet_cycles >= self._statusword_timeout_cycles:
+            self._quiet_cycles = 0
+            self.diagnostics.statusword_timeouts += 1
+            if self._phase is Phase.STARTING:
+                self.services.nmt_command(NmtCommand.START, self.drive_node_id)
+            self._read_statusword()
+
+    def _read_statusword(self) -> None:
+        """SDO expedited upload request for the drive's 0x6041 (CiA 301 §7.2.4.3.5)."""
+        request = struct.pack("<BHB4x", 0x40, _STATUSWORD_INDEX, 0)
+        self.bus.send(
+            can.Message(
+                arbitration_id=SDO_RX_BASE + self.drive_node_id,
+                is_extended_id=False,
+                data=request,
+                check=False,
+            )
+        )
+        self._sdo_pending = True
+        self.diagnostics.statusword_sdo_reads += 1
+
+    def _sensor_hold_ok(self) -> bool:
+        """Sensor hold in "operational": False (and "safe") after ``sensor_hold_cycles``
+        SYNCs in a row without a sensor frame."""
+        if self._sensor_seen:
+            self._missing_sensor = 0
+            return True
+        self._missing_sensor += 1
+        d = self.diagnostics
+        d.sensor_frames_missed += 1
+        d.sensor_hold_longest = max(d.sensor_hold_longest, self._missing_sensor)
+        if self._missing_sensor < self.sensor_hold_cycles:
+            return True
+        n = self._missing_sensor
+        self._enter_safe(
+            f"no sensor frame from drive (node {self.drive_node_id}) for {n} SYNCs",
+            EmcyCode.RPDO_TIMEOUT,
+            bytes((self.drive_node_id, min(n, 255))),
+        )
+        return False
+
+    # ------------------------------------------------------------ phases, faults
+
+    def _set_phase(self, phase: Phase, reason: str) -> None:
+        self._phase = phase
+        self._phase_cycles = 0
+        self._quiet_cycles = 0
+        self.diagnostics.phase_history.append(PhaseChange(self._now, phase, reason))
+
+    def _enter_nmt(self, state: NmtState) -> None:
+        """The controller changes its own NMT state (not a command from another master)."""
+        if self.services.state is NmtState.INITIALISING or self.services.state is state:
+            return
+        self._own_nmt = True
+        try:
+            self.services.enter_state(state)
+        finally:
+            self._own_nmt = False
+
+    def _enter_safe(self, reason: str, emcy: int | None = None, manufacturer: bytes = b"") -> None:
+        """Stop commanding the drive for good (module docstring, phase "safe")."""
+        if self._phase is Phase.SAFE:
+            return
+        if emcy is not None:
+            self.services.emcy(emcy, manufacturer=manufacturer)
+        if self._phase in _COMMANDING and self.services.state is NmtState.OPERATIONAL:
+            self.services.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL, self.drive_node_id)
+        self.diagnostics.safe_reason = reason
+        self._set_phase(Phase.SAFE, reason)
+        if self.services.state is NmtState.OPERATIONAL:
+            self._enter_nmt(NmtState.PRE_OPERATIONAL)
+        self.diagnostics.emcy_sent = self.services.counters.emcy_sent
+
+    def _on_boot(self, node_id: int) -> None:
+        if node_id != self.drive_node_id:
+            return
+        if self._phase is Phase.WAIT_BOOT and self.services.state is not NmtState.INITIALISING:
+            self._start_drive()
+        elif self._phase in _COMMANDING:
+            self._enter_safe(
+                f"drive (node {node_id}) sent a boot-up while {self._phase}: it was reset"
+            )
+
+    def _on_heartbeat_lost(self, node_id: int) -> None:
+        if node_id != self.drive_node_id:
+            return
+        monitor = self.services.monitored[node_id]
+        d = self.diagnostics
+        d.heartbeat_losses += 1
+        d.heartbeat_lost_at_s = monitor.lost_at
+        if self._phase not in _FINAL:
+            self._enter_safe(
+                f"heartbeat of drive (node {node_id}) lost: none for "
+                f"{monitor.timeout_s * 1e3:g} ms, detected at {monitor.lost_at:.3f} s"
+            )
+
+    def _on_nmt_state(self, old: NmtState, new: NmtState) -> None:
+        """NMT commands from another master that take the controller out of service."""
+        if self._own_nmt or self._phase in _FINAL or new is NmtState.INITIALISING:
+            return
+        monitor = self.services.monitored.get(self.drive_node_id)
+        if monitor is not None and monitor.status == "lost" and monitor.lost_at == self._now:
+            return  # 0x1029 error behaviour on heartbeat loss: _on_heartbeat_lost follows
+        if new is NmtState.STOPPED or (old is NmtState.OPERATIONAL and self._phase in _COMMANDING):
+            self._enter_safe(f"NMT {new.name} commanded by another master")
+
+    def _on_reset(self, kind: ResetKind) -> None:
+        """NMT reset of the controller by another master: OD values back to what the node
+        runs (the EDS defaults would not be), then "safe"."""
+        self._store_comm_values()
+        self._sync.configure(overflow=self.sync_overflow, cob_id=self._sync.cob_id)
+        if kind == "node":
+            self._store_config(self._pending or self.config)
+        self._store_control_pdo_validity()
+        if self._phase not in _FINAL:
+            self._enter_safe(f"NMT reset ({kind}) of the controller by another master")
+
+    # ---------------------------------------------------------------- OD values
+
+    def _store(self, index: int, sub: int, value: Any) -> None:
+        """Write an OD value as the application (no SDO checks, no callbacks)."""
+        var = self.services.od[index]
+        if sub or not hasattr(var, "encode_raw"):
+            var = var[sub]
+        self.services.node.data_store.setdefault(index, {})[sub] = var.encode_raw(value)
+
+    def _store_comm_values(self) -> None:
+        """0x1006 = the sample period (µs) and 0x1019 = the SYNC counter overflow."""
+        self._store(0x1006, 0, self._period_us)
+        self._store(0x1019, 0, self.sync_overflow)
+
+    def _store_config(self, cfg: FirmwareConfig) -> None:
+        for p in PARAMETERS:
+            self._store(p.index, p.sub, p.get(cfg))
+
+    def _store_control_pdo_validity(self) -> None:
+        cob = self.services.read(0x1802, 1)
+        cob = cob & ~0x80000000 if self.control_pdo_valid else cob | 0x80000000
+        self._store(0x1802, 1, cob)
+
+    def _check_cycle_period(self, value: int) -> int | None:
+        """0x1006 holds the running period: the runner paces the cycle.  Refusing 0 also
+        keeps 0x1019 fixed (CiA 301: writable only while 0x1006 is 0), which the drive's
+        SYNC consumer is configured with."""
+        return None if value == self._period_us else ABORT_DEVICE_STATE
+
+    # ---------------------------------------------------------- live parameters
+
+    def _register_parameters(self) -> None:
+        for p in PARAMETERS:
+            if p.put is None:
+                continue
+            self.services.add_validator(p.index, p.sub, self._validator(p))
+            self.services.on_write(p.index, p.sub, self._writer(p))
+
+    def _validator(self, p: Parameter) -> Callable[[Any], int | None]:
+        def validate(value: Any) -> int | None:
+            base = self._pending or self.config
+            assert p.put is not None
+            try:
+                candidate = p.put(base, value)
+                self._check_buildable(base, candidate)
+            except _NotApplicable:
+                return ABORT_DEVICE_STATE
+            except (ValueError, ArithmeticError, TypeError):
+                return ABORT_INVALID_VALUE
+            self._staged = (p.index, p.sub, value, candidate)
+            return None
+
+        return validate
+
+    def _writer(self, p: Parameter) -> Callable[[Any], None]:
+        def write(value: Any) -> None:
+            staged = self._staged
+            self._staged = None
+            if staged is None or staged[:3] != (p.index, p.sub, value):  # pragma: no cover
+                assert p.put is not None
+                staged = (p.index, p.sub, value, p.put(self._pending or self.config, value))
+            candidate = staged[3]
+            self._pending = candidate
+            self.diagnostics.parameter_writes += 1
+            if p.stage == "filter":  # mode writes change r/q: the OD follows at once
+                self._store_config(candidate)
+
+        return write
+
+    def _check_buildable(self, base: FirmwareConfig, new: FirmwareConfig) -> None:
+        """Raise if the stages of ``new`` that differ from ``base`` cannot be built.
+
+        The LQG design (seconds of linear algebra at worst) is built here once and kept
+        for the cycle boundary, so a design that fails aborts the SDO write instead."""
+        Ts = new.sample_period_s
+        if new.reference != base.reference:
+            ReferenceGenerator(new.reference, Ts)
+        if new.control.desired != base.control.desired:
+            ReferenceGenerator(new.control.desired.reference(), Ts)
+        if new.control.law != base.control.law and new.control.active:
+            self._prebuilt_control = (new.control, TorqueControl(new))
+
+    def _apply_pending(self) -> None:
+        """Swap the changed stages in at the cycle boundary (module docstring)."""
+        new = self._pending
+        if new is None:
+            return
+        self._pending = None
+        old = self.config
+        isr = self.isr
+        Ts = new.sample_period_s
+        d = self.diagnostics
+        self.config = isr.cfg = new
+        if new.reference != old.reference:
+            isr.reference = ReferenceGenerator(new.reference, Ts)
+        if new.ripple != old.ripple:
+            previous = isr.chain
+            chain = TorqueFilterChain(new)
+            chain.differentiator = previous.differentiator
+            chain.encoder = previous.encoder
+            chain.integrator = previous.integrator
+            chain.angle = previous.angle
+            isr.chain = chain
+            d.filter_restarts += 1
+        else:
+            isr.chain.cfg = new
+        if new.control != old.control:
+            prebuilt, self._prebuilt_control = self._prebuilt_control, None
+            if not new.control.active:
+                isr.control = None
+            elif isr.control is None or new.control.law != old.control.law:
+                if prebuilt is not None and prebuilt[0] == new.control:
+                    isr.control = prebuilt[1]
+                else:
+                    isr.control = TorqueControl(new)
+                d.control_rebuilds += 1
+            else:  # same law, new desired torque: the observer keeps its state
+                isr.control.cfg = new.control
+                isr.control.desired = ReferenceGenerator(new.control.desired.reference(), Ts)
+            self.control_pdo_valid = new.control.active
+            self._store_control_pdo_validity()
+        d.parameter_updates_applied += 1

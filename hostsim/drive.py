@@ -1,7 +1,7 @@
-"""The drive node: the plant emulator behind the drive's synchronous PDOs.
+"""The drive node: the plant emulator behind a CiA 301 / CiA 402 CANopen device.
 
 Timing (DESIGN.md, "Timing semantics"): on SYNC k the drive integrates the plant from
-t(k-1) to t(k) holding the command active since SYNC k-1 (zero-order hold), samples its
+t(k-1) to t(k) holding the amplifier input set at SYNC k-1 (zero-order hold), samples its
 sensors at t(k), sends the sensor TPDO and the ground-truth frames, then activates the
 command latched during cycle k-1 (CiA 301 synchronous RPDO, "actuate at next SYNC").
 With ``actuation="immediate"`` a command is active as soon as it is received instead.
@@ -12,39 +12,208 @@ Delays this gives for a command computed from the sample at t(k):
 - ``immediate``: applied from t(k), i.e. the seed's DSP case (``write_dac0`` at the end of
   the interrupt) with the compute and bus latency neglected.
 
-The plant clock is the SYNC count times the sample period, so the drive stays in step with
-whatever produces SYNC, including real firmware.  Ground truth goes to a separate bus
-(``truth.dbc``), never to the control bus: every SYNC, right after the sensor TPDO,
-``TRUTH_TORQUE`` (torque and ripple), ``TRUTH_MOTION`` (angles and velocities) and
-``TRUTH_JOINT`` (``tau_ext = tau_l + tau_g`` and ``tau_d`` of seed 003 Eq. 1, ``tau_m``
-acting and commanded), all sampled at
-t(k) like the sensors.
+Ground truth goes to a separate bus (``truth.dbc``), never to the control bus: every SYNC
+in OPERATIONAL, right after the sensor TPDO, ``TRUTH_TORQUE`` (torque and ripple),
+``TRUTH_MOTION`` (angles and velocities) and ``TRUTH_JOINT`` (``tau_ext = tau_l + tau_g``
+and ``tau_d`` of seed 003 Eq. 1, ``tau_m`` acting and commanded), all sampled at t(k)
+like the sensors.
+
+The CANopen device (node-ID 2, ``dbc/drive.eds``)
+-------------------------------------------------
+The CiA 301 services (NMT slave, heartbeat producer and consumer, EMCY producer, checked
+SDO server) are :class:`hdhil.canopen_services.CanopenServices`; the CiA 402 power drive
+system is :class:`hostsim.cia402.DriveStateMachine`.  This module wires them to the
+frames and the plant, and holds no physics itself.  Every received frame goes through
+``services.handle`` first, timed with the ``now`` of the latest :meth:`DriveNode.tick`.
+
+**Power-on and NMT** (CiA 301 §7.3.2).  :meth:`DriveNode.boot` sends the boot-up message
+(0x702, data 00) and enters PRE-OPERATIONAL; the CiA 402 self-initialisation completes at
+once (transition 1: NOT READY TO SWITCH ON -> SWITCH ON DISABLED).  What each NMT state
+allows (CiA 301 table "NMT states and communication objects"):
+
+=================  ===================================================================
+NMT state          drive behaviour
+=================  ===================================================================
+INITIALISING       before ``boot`` only: nothing is sent, frames are not processed
+PRE-OPERATIONAL    SDO, EMCY, heartbeat; no PDOs: no sensor TPDO, no statusword TPDO,
+                   no truth frames, received DRIVE_RPDO1 frames are ignored
+OPERATIONAL        everything; entering it sends the statusword TPDO once
+STOPPED            heartbeat and NMT only (no SDO answers, no EMCY frames)
+=================  ===================================================================
+
+The plant is physics: it advances on **every** SYNC in every NMT state (the network being
+pre-operational does not stop the motor), with the amplifier input that the CiA 402
+state allows (0 V unless OPERATION ENABLED), and the sensors are sampled every SYNC too
+(the noise sequence of a seed does not depend on the NMT history).  Only publishing is
+gated by NMT.  The plant clock is the SYNC counter: a SYNC that follows a counter jump
+(missed SYNCs, CiA 301 SYNC counter 1..overflow) advances the plant by the missed periods
+as well, so it stays in step with the SYNC producer; a counter that restarts at 1 (the
+producer restarted) is not a jump.  The very first SYNC only marks t(0).
+
+Leaving OPERATIONAL (NMT stop, enter pre-operational, a reset) is a lost connection for
+CiA 402: commands only arrive by PDO, and PDOs stop outside OPERATIONAL.  The drive reacts
+as its abort connection option code 0x6007 says (CiA 402-2): 2 (default) "disable
+voltage" (the last command is dropped, SWITCH ON DISABLED), 3 "quick stop", 1 "fault
+signal" (fault and EMCY 0x8100 "communication - generic", cleared when OPERATIONAL is
+entered again), 0 "no action" (the last command stays until the command hold below
+faults the drive).  An NMT reset node brings the
+application back to power-on: a new CiA 402 machine (SWITCH ON DISABLED), no command, the
+emulator parameters (0x2300) back to the values the plant was built with, errors cleared.
+An NMT reset communication restores 0x1000-0x1FFF only (CiA 301 §7.3.2.2.2).
+
+**CiA 402** (CiA 402-2, "PDS finite state automaton").  The controlword of DRIVE_RPDO1
+drives ``DriveStateMachine.apply_controlword`` with the same timing as the DAC command: at
+the next SYNC with synchronous actuation (the whole synchronous RPDO is actuated at SYNC,
+CiA 301 §7.2.2.2), on receipt with immediate actuation.  The usual walk is shutdown 0x06
+-> switch on 0x07 -> enable operation 0x0F; 0x80 (rising edge) resets a fault.  The
+amplifier follows the DAC command only in OPERATION ENABLED in mode CST (0x6060 = 10;
+``DriveStateMachine.torque_output``), ramps it down during a quick stop or fault reaction
+with a ramp time (``DriveConfig.quick_stop_time_s``, 0 = torque off at once), and gets
+0 V otherwise.  Quick stop behaviour follows 0x605A, the fault reaction 0x605E (0 =
+disable drive function; 1-4 = ramp over ``quick_stop_time_s``).
+
+When the amplifier input changes: at each SYNC, after the plant step and the sample,
+the drive sets the input for the step that starts there from the CiA 402 state at that
+moment.  A state change between two SYNCs (a tick that detects a heartbeat loss, an NMT
+command, an SDO write) therefore takes effect at the next SYNC, at most one period later;
+in lockstep, where the tick at t(k) runs just before SYNC k, a fault detected by that tick
+removes the torque from exactly t(k).  With immediate actuation a received command sets
+the input of the running step at once (controlword and DAC alike).
+
+**Statusword** (0x6041) goes out in ``DRIVE_TPDO2`` (COB-ID 0x282, TPDO2 0x1801/0x1A01),
+event-driven (transmission type 255): when it differs from the last one sent, and once on
+entering OPERATIONAL, at most once per inhibit time (0x1801 sub 3, 10 x 100 us = 1 ms): a
+change inside the inhibit time is sent at the first tick or frame after it.  Bits 7
+(warning: a sensor ADC channel saturated) and 11 (internal limit active: the amplifier at
+its current limit) are set by this node.
+
+**Heartbeat** (CiA 301 §7.2.8.3.2): producer 0x1017 = ``heartbeat_ms`` (100 ms); the
+consumer 0x1016 monitors the controller (node-ID 1) with ``controller_heartbeat_timeout_ms``
+(250 ms), from its first heartbeat on.  On a loss: EMCY 0x8130 (manufacturer byte 0 = the
+lost node-ID), and a CiA 402 fault (0x603F = 0x8130; FAULT REACTION ACTIVE -> FAULT, torque
+off) that cannot be reset while the heartbeat is missing.  Recovery: the heartbeat
+resumes (EMCY 0x0000), then the controller sends a fault reset (0x80 edge) and walks the
+drive up again.
+
+**Command hold**: while OPERATION ENABLED, a SYNC cycle in which no DRIVE_RPDO1 arrived
+keeps the previous command (zero-order hold).  At the SYNC that ends the
+``command_hold_cycles``-th consecutive cycle without one, the drive faults with EMCY 0x8250
+"RPDO timeout" (manufacturer byte 0 = the number of cycles) and 0x603F = 0x8250, in place
+of activating that cycle's command: with synchronous actuation the last command stays
+active for ``command_hold_cycles`` periods in all.  We chose a fault over a quick stop
+because a lost command stream is a communication error the controller must acknowledge
+(fault reset), as for a lost heartbeat.  The next DRIVE_RPDO1 clears the EMCY (0x0000).
+SYNC counter jumps are counted as missed SYNCs, commands arriving more than one period
+after their SYNC as late commands (:class:`hdhil.canopen_services.SyncMonitor`).
+
+**Other EMCY** (once on the rising edge, EMCY 0x0000 when the condition goes away):
+0x7300 "sensor error" when an ADC channel sits at a code limit (manufacturer byte 0 = the
+channel: 1 torque, 2 tacho, 3 current, the sub-indices of 0x2100); 0x2310 "continuous
+over current" when the amplifier's current command sits at its current limit.
+
+**SDO**: the checked server of ``CanopenServices`` (types, lengths, access, LowLimit /
+HighLimit of the EDS, with CiA 301 abort codes; a refused write changes nothing).  Live
+values are read from the node: 0x6041 statusword, 0x6040 controlword (as last applied),
+0x6061 mode display, 0x603F error code, 0x2100 ADC counts and 0x2101 encoder count of the
+latest sample.  Writable application objects:
+
+- 0x2300 "Emulator" (REAL32): 1 ``ripple_amp2_Nm``, 2 ``ripple_amp4_Nm`` (0..10 Nm),
+  3 ``misalignment_pp_Nm`` (0..20 Nm), 4 ``torque_noise_Nm`` (0..5 Nm), 5
+  ``tacho_noise_radps`` (0..10 rad/s), 6 ``load_torque_Nm`` (-100..100 Nm, the external
+  torque the plant holds, :meth:`hostsim.plant.Plant.set_load_torque`).  Their power-on
+  values are the plant's configuration.  A write is applied at the next SYNC, before the
+  plant step: the plant's frozen configuration is rebuilt with ``dataclasses.replace``
+  and swapped in, so the step ending at that SYNC and its sample use the new values.
+- 0x6040 controlword: an SDO write is applied at once, like an immediate RPDO.
+- 0x6007 abort connection option code (0..3), 0x605A quick stop option code (0..8),
+  0x605E fault reaction option code (0..4), 0x6060 modes of operation (0 or 10, else
+  abort 0x06090030).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from dataclasses import dataclass
-from typing import Literal
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal
 
 import can
 
-from hdhil.dbc import codec
+from hdhil.canopen_services import (
+    ABORT_INVALID_VALUE,
+    TIME_EPSILON,
+    CanopenServices,
+    EmcyCode,
+    NmtState,
+    ResetKind,
+    SyncMonitor,
+)
+from hdhil.dbc import codec, eds_path
 from hdhil.node import CanNode
-from hostsim.plant import Plant
+from hostsim.cia402 import CONTROLWORD, SUPPORTED_MODES, Command, DriveStateMachine, State
+from hostsim.plant import Plant, PlantConfig
 
-TWO_PI = 2.0 * math.pi
+#: Object indices the node serves (CiA 301 / CiA 402 / manufacturer area).
+OD_ABORT_CONNECTION = 0x6007
+OD_ERROR_CODE = 0x603F
+OD_CONTROLWORD = 0x6040
+OD_STATUSWORD = 0x6041
+OD_QUICK_STOP_OPTION = 0x605A
+OD_FAULT_REACTION_OPTION = 0x605E
+OD_MODES_OF_OPERATION = 0x6060
+OD_MODES_DISPLAY = 0x6061
+OD_ADC_COUNTS = 0x2100
+OD_ENCODER = 0x2101
+OD_EMULATOR = 0x2300
+OD_TPDO2_COMM = 0x1801
 
-#: CiA 402 controlword bits "switch on", "enable voltage", "quick stop", "enable operation".
-_ENABLE_MASK = 0x000F
+#: 0x2300 sub-index -> (plant sub-configuration, field); "load" is the held load torque.
+EMULATOR_KNOBS: dict[int, tuple[str, str]] = {
+    1: ("ripple", "amp2_Nm"),
+    2: ("ripple", "amp4_Nm"),
+    3: ("ripple", "misalignment_pp_Nm"),
+    4: ("sensors", "torque_noise_Nm"),
+    5: ("sensors", "tacho_noise_radps"),
+    6: ("load", "torque_Nm"),
+}
+
+#: ADC channels in DRIVE_TPDO1 order; the number is the 0x2100 sub-index and the EMCY
+#: 0x7300 manufacturer byte 0.
+ADC_CHANNELS = (1, 2, 3)
+
+
+def _check_int(obj: object, name: str, lo: int, hi: int) -> None:
+    value = getattr(obj, name)
+    if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+        raise ValueError(
+            f"{type(obj).__name__}.{name} must be an integer {lo}..{hi}, got {value!r}"
+        )
 
 
 @dataclass(frozen=True)
 class DriveConfig:
-    """How the drive node runs the plant against the bus."""
+    """How the drive node runs the plant against the bus, and its CANopen settings.
+
+    ``heartbeat_ms`` is the producer time (0x1017, 0 = off); the drive consumes the
+    heartbeat of ``controller_node_id`` with ``controller_heartbeat_timeout_ms`` (0x1016,
+    0 = not monitored).  ``command_hold_cycles`` SYNC cycles without a command in
+    OPERATION ENABLED fault the drive (0 = never).  ``sync_overflow`` is the SYNC
+    producer's counter overflow (its 0x1019; 0 = SYNC without counter).
+    ``quick_stop_time_s`` is the torque ramp-down time of a quick stop (0x605A 1-8) and
+    of a fault reaction (0x605E 1-4); 0 turns the torque off at once.
+    """
 
     sample_period_s: float = 1e-3
     actuation: Literal["next-sync", "immediate"] = "next-sync"
+    node_id: int = 2
+    heartbeat_ms: int = 100
+    controller_node_id: int = 1
+    controller_heartbeat_timeout_ms: int = 250
+    command_hold_cycles: int = 10
+    sync_overflow: int = 240
+    quick_stop_time_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0 < self.sample_period_s <= 1:
@@ -53,13 +222,71 @@ class DriveConfig:
             raise ValueError(
                 f"actuation must be 'next-sync' or 'immediate', got {self.actuation!r}"
             )
+        _check_int(self, "node_id", 1, 127)
+        _check_int(self, "controller_node_id", 1, 127)
+        if self.controller_node_id == self.node_id:
+            raise ValueError(f"DriveConfig: controller and drive share node-ID {self.node_id}")
+        _check_int(self, "heartbeat_ms", 0, 0xFFFF)
+        _check_int(self, "controller_heartbeat_timeout_ms", 0, 0xFFFF)
+        _check_int(self, "command_hold_cycles", 0, 255)
+        _check_int(self, "sync_overflow", 0, 240)
+        if self.sync_overflow == 1:
+            raise ValueError("DriveConfig.sync_overflow must be 0 or 2..240 (CiA 301 0x1019)")
+        q = self.quick_stop_time_s
+        if isinstance(q, bool) or not isinstance(q, (int, float)) or not 0 <= q < math.inf:
+            raise ValueError(f"DriveConfig.quick_stop_time_s must be >= 0 s, got {q!r}")
+
+
+@dataclass(frozen=True)
+class EmcyRecord:
+    """An error this drive signalled (``sent`` is False when NMT did not allow the frame)."""
+
+    time: float
+    code: int
+    manufacturer: bytes
+    sent: bool
 
 
 @dataclass
 class DriveDiagnostics:
+    """What the drive node did (cumulative; NMT resets do not clear it)."""
+
     syncs: int = 0
+    #: DRIVE_RPDO1 frames processed (in OPERATIONAL).
     commands: int = 0
     malformed_frames: int = 0
+    #: DRIVE_RPDO1 frames received outside OPERATIONAL (CiA 301: not processed).
+    pdos_ignored: int = 0
+    sensor_frames: int = 0
+    statusword_frames: int = 0
+    #: SYNCs missing before a received one (counter jumps).
+    missed_syncs: int = 0
+    #: SYNCs whose length or counter did not fit ``sync_overflow``.
+    sync_errors: int = 0
+    #: Commands that arrived more than one period after their SYNC.
+    late_commands: int = 0
+    #: Command-hold faults (EMCY 0x8250).
+    command_timeouts: int = 0
+    heartbeat_losses: int = 0
+    adc_saturations: int = 0
+    overcurrents: int = 0
+    nmt_resets: int = 0
+    #: EMCY error events raised by this drive (not counting the 0x0000 "cleared" frames).
+    emcy_sent: int = 0
+    emcy_log: deque[EmcyRecord] = field(default_factory=lambda: deque(maxlen=256))
+
+
+def _retune_plant(plant: Plant, cfg: PlantConfig) -> None:
+    """Swap in ``cfg``, which may differ from ``plant.cfg`` in ripple and sensor noise only.
+
+    ``Plant`` reads ``cfg.ripple`` at every sensor update but caches the noise standard
+    deviations (in volts) when it is built; those two are refreshed here with the
+    conversions of ``Plant.__init__``.  (A plant setter would be the cleaner home.)
+    """
+    plant.cfg = cfg
+    s = cfg.sensors
+    plant._sig_torque_V = s.torque_noise_Nm / cfg.bridge.volt2Nm
+    plant._sig_tacho_V = s.tacho_noise_radps / s.volt2radps
 
 
 class DriveNode(CanNode):
@@ -75,26 +302,39 @@ class DriveNode(CanNode):
         super().__init__(bus)
         self.truth_bus = truth_bus
         self.plant = plant
-        self.config = config or DriveConfig()
+        self.config = cfg = config or DriveConfig()
         self.diagnostics = DriveDiagnostics()
+        self._Ts = cfg.sample_period_s
+        self._next_sync = cfg.actuation == "next-sync"
         self._dac = plant.cfg.dac
+        self._adc = plant.cfg.adc
+        self._max_torque = plant.cfg.max_motor_torque_Nm
+        self._now = 0.0
+
+        # Command path: latched by DRIVE_RPDO1, active from the activation point.
         self._active_V = 0.0
         self._latched_V = 0.0
-        self._enabled = False
+        self._pending_cw: int | None = None
+        self._step_V = 0.0  # amplifier input over the plant step in progress
+        self._command_in_cycle = False
+        self._silent_cycles = 0
+        self._plant_started = False
+        self._sample: tuple[int, int, int, int] = (0, 0, 0, 0)
+        self._saturated: set[int] = set()
+        self._at_current_limit = False
+
+        # Frames.
         self._sync = codec("control", "SYNC")
         self._sensor = codec("control", "DRIVE_TPDO1")
         self._command = codec("control", "DRIVE_RPDO1")
+        self._status = codec("control", "DRIVE_TPDO2")
         self._truth_codecs = (
             codec("truth", "TRUTH_TORQUE"),
             codec("truth", "TRUTH_MOTION"),
             codec("truth", "TRUTH_JOINT"),
         )
-        self._sensor_msg = can.Message(
-            arbitration_id=self._sensor.frame_id,
-            is_extended_id=False,
-            dlc=self._sensor.length,
-            check=False,
-        )
+        self._sensor_msg = self._message(self._sensor.frame_id, self._sensor.length)
+        self._status_msg = self._message(self._status.frame_id, self._status.length)
         self._truth_msgs = tuple(
             can.Message(arbitration_id=c.frame_id, is_extended_id=True, dlc=c.length, check=False)
             for c in self._truth_codecs
@@ -102,32 +342,405 @@ class DriveNode(CanNode):
         self.handle(self._sync.frame_id, self._on_sync)
         self.handle(self._command.frame_id, self._on_command)
 
+        # CiA 301 services on the drive's object dictionary.
+        consumers = (
+            {cfg.controller_node_id: cfg.controller_heartbeat_timeout_ms}
+            if cfg.controller_heartbeat_timeout_ms
+            else {}
+        )
+        self.services = CanopenServices(
+            bus,
+            cfg.node_id,
+            eds_path("drive"),
+            heartbeat_producer_ms=cfg.heartbeat_ms,
+            heartbeat_consumers=consumers,
+        )
+        self._power_on_knobs = self._knob_values_of(plant)
+        self._set_knob_power_on_values()
+        self._pending_knobs: dict[int, float] = {}
+        self._register_od_callbacks()
+        services = self.services
+        services.on_state_change(self._on_nmt_state)
+        services.on_reset(self._on_nmt_reset)
+        services.on_heartbeat_lost(self._on_heartbeat_lost)
+        services.on_heartbeat_resumed(self._on_heartbeat_resumed)
+        services.on_boot(self._on_remote_boot)
+
+        self._machine = self._new_state_machine()
+        self._sync_monitor = self._new_sync_monitor()
+        self._inhibit_s = self._read_inhibit_s()
+        self._statusword_sent: int | None = None
+        self._statusword_sent_at = -math.inf
+        self._statusword_force = False
+
+    @staticmethod
+    def _message(frame_id: int, length: int) -> can.Message:
+        return can.Message(arbitration_id=frame_id, is_extended_id=False, dlc=length, check=False)
+
+    # ------------------------------------------------------------------ public API
+
+    def boot(self, now: float) -> None:
+        """Power-on: boot-up message, NMT PRE-OPERATIONAL (CiA 301 §7.3.2.2), and the CiA 402
+        self-initialisation (transition 1: NOT READY TO SWITCH ON -> SWITCH ON DISABLED)."""
+        self._now = now
+        self.services.boot(now)
+        self._machine.complete_initialisation()
+        self._step_V = self._machine.torque_output(self._active_V)
+
+    def tick(self, now: float) -> None:
+        """Advance the node's clock: heartbeat producer and consumer (CiA 301 §7.2.8.3.2),
+        and a statusword held back by the inhibit time.  Call every cycle before polling."""
+        self._now = now
+        self.services.tick(now)
+        self._flush_statusword()
+
+    def on_message(self, msg: can.Message) -> None:
+        """CANopen service frames to the services, SYNC and PDOs to this node."""
+        if self.services.handle(msg):
+            self._flush_statusword()
+            return
+        super().on_message(msg)
+
+    @property
+    def nmt_state(self) -> NmtState:
+        return self.services.state
+
+    @property
+    def drive_state(self) -> State:
+        """The CiA 402 PDS state."""
+        return self._machine.state
+
+    @property
+    def state_machine(self) -> DriveStateMachine:
+        return self._machine
+
+    @property
+    def statusword(self) -> int:
+        """Object 0x6041 now (what the next DRIVE_TPDO2 carries)."""
+        return self._machine.statusword
+
+    @property
+    def torque_enabled(self) -> bool:
+        """True only in OPERATION ENABLED (the amplifier follows the command)."""
+        return self._machine.torque_enabled
+
     @property
     def amplifier_input_V(self) -> float:
-        """The voltage the amplifier follows now (0 V while not enabled)."""
-        return self._active_V if self._enabled else 0.0
+        """The amplifier input over the plant step in progress (0 V unless enabled)."""
+        return self._step_V
+
+    # ------------------------------------------------------------------ SYNC
 
     def _on_sync(self, msg: can.Message) -> None:
-        if self.diagnostics.syncs:
-            self.plant.advance(self.amplifier_input_V, self.config.sample_period_s)
-        self.diagnostics.syncs += 1
-        self._sensor_msg.data = self._sensor.encode(*self.plant.sample())
-        self.bus.send(self._sensor_msg)
-        if self.truth_bus is not None:
-            self._publish_truth()
-        if self.config.actuation == "next-sync":
+        d = self.diagnostics
+        d.syncs += 1
+        monitor = self._sync_monitor
+        data = msg.data
+        if (
+            data
+            and len(data) == 1
+            and data[0] == 1
+            and monitor.last_counter not in (None, monitor.overflow)
+        ):
+            # CiA 301 §7.2.5: a producer (re)starting counts from 1 again; not a jump.
+            monitor.last_counter = None
+        errors = monitor.length_errors
+        missed = monitor.on_sync_frame(msg, self._now)
+        d.missed_syncs += missed
+        d.sync_errors += monitor.length_errors - errors
+
+        if self._pending_knobs:
+            self._apply_knobs()
+        plant = self.plant
+        if self._plant_started:
+            dt = (1 + missed) * self._Ts
+            plant.advance(self._step_V, dt)
+            self._machine.step(dt)
+        else:
+            self._plant_started = True
+        sample = self._sample = plant.sample()
+        if self.services.state is not NmtState.INITIALISING:
+            self._check_sensors(sample)
+        if self.services.state is NmtState.OPERATIONAL:
+            self._sensor_msg.data = self._sensor.encode(*sample)
+            self.bus.send(self._sensor_msg)
+            d.sensor_frames += 1
+            if self.truth_bus is not None:
+                self._publish_truth()
+        self._check_command_hold()
+        if self._next_sync:
             self._active_V = self._latched_V
+            if self._pending_cw is not None:
+                self._machine.apply_controlword(self._pending_cw)
+                self._pending_cw = None
+        self._step_V = self._machine.torque_output(self._active_V)
+        self._flush_statusword()
+
+    def _check_command_hold(self) -> None:
+        """Count SYNC cycles without a command while OPERATION ENABLED; fault at the limit."""
+        had_command = self._command_in_cycle
+        self._command_in_cycle = False
+        limit = self.config.command_hold_cycles
+        if had_command or not limit or self._machine.state is not State.OPERATION_ENABLED:
+            self._silent_cycles = 0
+            return
+        self._silent_cycles += 1
+        if self._silent_cycles >= limit:
+            self.diagnostics.command_timeouts += 1
+            self._emcy(EmcyCode.RPDO_TIMEOUT, bytes((min(self._silent_cycles, 255),)))
+            self._machine.fault(EmcyCode.RPDO_TIMEOUT)
+            self._silent_cycles = 0
+
+    def _check_sensors(self, sample: tuple[int, int, int, int]) -> None:
+        """EMCY 0x7300 per saturated ADC channel, 0x2310 at the current limit (edges)."""
+        saturated = self._adc.saturated
+        for channel, counts in zip(ADC_CHANNELS, sample, strict=False):
+            if saturated(counts):
+                if channel not in self._saturated:
+                    self._saturated.add(channel)
+                    self.diagnostics.adc_saturations += 1
+                    self._emcy(EmcyCode.SENSOR, bytes((channel,)))
+            elif channel in self._saturated:
+                self._saturated.discard(channel)
+                self.services.emcy_clear(EmcyCode.SENSOR, bytes((channel,)))
+        self._machine.warning = bool(self._saturated)
+        at_limit = abs(self.plant.motor_torque_command_output) >= self._max_torque * (1 - 1e-12)
+        if at_limit != self._at_current_limit:
+            self._at_current_limit = at_limit
+            self._machine.internal_limit_active = at_limit
+            if at_limit:
+                self.diagnostics.overcurrents += 1
+                self._emcy(EmcyCode.CONTINUOUS_OVER_CURRENT)
+            else:
+                self.services.emcy_clear(EmcyCode.CONTINUOUS_OVER_CURRENT)
+
+    # ------------------------------------------------------------------ command
 
     def _on_command(self, msg: can.Message) -> None:
+        d = self.diagnostics
+        if self.services.state is not NmtState.OPERATIONAL:
+            d.pdos_ignored += 1
+            return
         if msg.is_remote_frame or len(msg.data) != self._command.length:
-            self.diagnostics.malformed_frames += 1
+            d.malformed_frames += 1
             return
         dac_counts, controlword, _cycle = self._command.decode(msg.data)
-        self.diagnostics.commands += 1
-        self._enabled = (controlword & _ENABLE_MASK) == _ENABLE_MASK
+        d.commands += 1
+        if not self._sync_monitor.on_command(self._now):
+            d.late_commands += 1
+        self._command_in_cycle = True
+        self._silent_cycles = 0
+        if EmcyCode.RPDO_TIMEOUT in self.services.active_errors:
+            self.services.emcy_clear(EmcyCode.RPDO_TIMEOUT)
         self._latched_V = self._dac.to_volts(dac_counts)
-        if self.config.actuation == "immediate":
+        if self._next_sync:
+            self._pending_cw = int(controlword)
+        else:
             self._active_V = self._latched_V
+            self._machine.apply_controlword(int(controlword))
+            self._step_V = self._machine.torque_output(self._active_V)
+        self._flush_statusword()
+
+    # ------------------------------------------------------------------ statusword
+
+    def _flush_statusword(self) -> None:
+        """Send DRIVE_TPDO2 if the statusword changed (or is due after entering OPERATIONAL)
+        and the inhibit time since the last one has passed (CiA 301 §7.2.2.5)."""
+        if self.services.state is not NmtState.OPERATIONAL:
+            return
+        word = self._machine.statusword
+        if word == self._statusword_sent and not self._statusword_force:
+            return
+        if self._now - self._statusword_sent_at < self._inhibit_s - TIME_EPSILON:
+            return  # sent at the first tick or frame after the inhibit time
+        self._status_msg.data = self._status.encode(word)
+        self.bus.send(self._status_msg)
+        self._statusword_sent = word
+        self._statusword_sent_at = self._now
+        self._statusword_force = False
+        self.diagnostics.statusword_frames += 1
+
+    def _read_inhibit_s(self) -> float:
+        return self.services.read(OD_TPDO2_COMM, 3) * 100e-6
+
+    # ------------------------------------------------------------------ NMT
+
+    def _on_nmt_state(self, old: NmtState, new: NmtState) -> None:
+        if old is NmtState.OPERATIONAL:
+            self._leave_operational()
+        if new is NmtState.OPERATIONAL:
+            self._statusword_force = True
+            self.services.emcy_clear(EmcyCode.COMMUNICATION)
+
+    def _leave_operational(self) -> None:
+        """PDOs stop: react as the abort connection option code 0x6007 says (CiA 402-2)."""
+        option = self.services.read(OD_ABORT_CONNECTION)
+        if option == 0:  # no action: the command hold still faults a drive left running
+            return
+        self._pending_cw = None
+        self._latched_V = self._active_V = 0.0
+        machine = self._machine
+        if machine.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            return
+        if option == 1:
+            self._emcy(EmcyCode.COMMUNICATION)
+            machine.fault(EmcyCode.COMMUNICATION)
+        elif option == 3:
+            machine.apply_controlword(CONTROLWORD[Command.QUICK_STOP])
+        else:
+            machine.apply_controlword(CONTROLWORD[Command.DISABLE_VOLTAGE])
+
+    def _on_nmt_reset(self, kind: ResetKind) -> None:
+        """CiA 301 §7.3.2.2.2: reset node restores the application to power-on."""
+        self.diagnostics.nmt_resets += 1
+        self._inhibit_s = self._read_inhibit_s()
+        self._statusword_sent = None
+        self._statusword_sent_at = -math.inf
+        self._sync_monitor = self._new_sync_monitor()
+        if kind != "node":
+            return
+        self._machine = self._new_state_machine()
+        self._machine.complete_initialisation()
+        self._step_V = 0.0
+        self._saturated.clear()
+        self._at_current_limit = False
+        self._pending_knobs = dict(self._power_on_knobs)
+
+    def _new_sync_monitor(self) -> SyncMonitor:
+        # Counter only: the elapsed time is not trusted to count missed SYNCs, because
+        # lockstep runs on a real interface pace SYNC by the host, not by the clock.
+        return SyncMonitor(
+            period_s=None,
+            overflow=self.config.sync_overflow,
+            command_deadline_s=self._Ts,
+        )
+
+    def _on_remote_boot(self, node_id: int) -> None:
+        if node_id == self.config.controller_node_id:
+            self._sync_monitor.last_counter = None  # its SYNC counter restarts at 1
+
+    # ------------------------------------------------------------------ heartbeat
+
+    def _on_heartbeat_lost(self, node_id: int) -> None:
+        """Heartbeat consumer timeout (EMCY 0x8130 already sent by the services)."""
+        d = self.diagnostics
+        d.heartbeat_losses += 1
+        d.emcy_sent += 1
+        d.emcy_log.append(
+            EmcyRecord(self._now, EmcyCode.HEARTBEAT, bytes((node_id,)).ljust(5, b"\0"),
+                       self.services.emcy_allowed)
+        )  # fmt: skip
+        if node_id == self.config.controller_node_id:
+            self._machine.fault(EmcyCode.HEARTBEAT, persists=True)
+
+    def _on_heartbeat_resumed(self, node_id: int) -> None:
+        if node_id == self.config.controller_node_id:
+            self._machine.clear_fault_condition()
+
+    # ------------------------------------------------------------------ EMCY
+
+    def _emcy(self, code: int, manufacturer: bytes = b"") -> bool:
+        sent = self.services.emcy(code, manufacturer=manufacturer)
+        d = self.diagnostics
+        d.emcy_sent += 1
+        d.emcy_log.append(EmcyRecord(self._now, code, manufacturer.ljust(5, b"\0"), sent))
+        return sent
+
+    # ------------------------------------------------------------------ CiA 402 and OD
+
+    def _new_state_machine(self) -> DriveStateMachine:
+        read = self.services.read
+        ramp = self.config.quick_stop_time_s
+        return DriveStateMachine(
+            quick_stop_option=read(OD_QUICK_STOP_OPTION),
+            quick_stop_time_s=ramp,
+            fault_reaction_time_s=ramp if read(OD_FAULT_REACTION_OPTION) else 0.0,
+            mode=read(OD_MODES_OF_OPERATION),
+        )
+
+    def _register_od_callbacks(self) -> None:
+        s = self.services
+        s.add_validator(
+            OD_MODES_OF_OPERATION,
+            0,
+            lambda mode: None if mode in SUPPORTED_MODES else ABORT_INVALID_VALUE,
+        )
+        s.on_write(OD_MODES_OF_OPERATION, 0, lambda mode: self._machine.set_mode(mode))
+        s.on_write(OD_QUICK_STOP_OPTION, 0, self._set_quick_stop_option)
+        s.on_write(OD_FAULT_REACTION_OPTION, 0, self._set_fault_reaction_option)
+        s.on_write(OD_CONTROLWORD, 0, self._sdo_controlword)
+        for sub in EMULATOR_KNOBS:
+            s.on_write(OD_EMULATOR, sub, self._knob_writer(sub))
+        s.on_write(OD_TPDO2_COMM, 3, lambda _: setattr(self, "_inhibit_s", self._read_inhibit_s()))
+        live: dict[tuple[int, int], Callable[[], int]] = {
+            (OD_STATUSWORD, 0): lambda: self._machine.statusword,
+            (OD_CONTROLWORD, 0): lambda: self._machine.controlword,
+            (OD_MODES_DISPLAY, 0): lambda: self._machine.modes_of_operation_display,
+            (OD_ERROR_CODE, 0): lambda: self._machine.error_code,
+            (OD_ENCODER, 0): lambda: self._sample[3],
+        }
+        for i, channel in enumerate(ADC_CHANNELS):
+            live[(OD_ADC_COUNTS, channel)] = lambda i=i: self._sample[i]
+
+        def read_live(index: int, subindex: int, od: Any, **_: Any) -> int | None:
+            getter = live.get((index, subindex))
+            return None if getter is None else getter()
+
+        s.node.add_read_callback(read_live)
+
+    def _set_quick_stop_option(self, value: int) -> None:
+        self._machine.quick_stop_option = value
+
+    def _set_fault_reaction_option(self, value: int) -> None:
+        self._machine.fault_reaction_time_s = self.config.quick_stop_time_s if value else 0.0
+
+    def _sdo_controlword(self, value: int) -> None:
+        self._machine.apply_controlword(value)
+
+    # ------------------------------------------------------------------ emulator knobs
+
+    @staticmethod
+    def _knob_values_of(plant: Plant) -> dict[int, float]:
+        cfg = plant.cfg
+        values = {}
+        for sub, (section, name) in EMULATOR_KNOBS.items():
+            # The held load torque starts at 0 in a new Plant (no public getter for it).
+            values[sub] = 0.0 if section == "load" else float(getattr(getattr(cfg, section), name))
+        return values
+
+    def _set_knob_power_on_values(self) -> None:
+        """The plant's configuration becomes the default (power-on value) of 0x2300."""
+        record = self.services.od[OD_EMULATOR]
+        for sub, value in self._power_on_knobs.items():
+            record[sub].default = value
+
+    def _knob_writer(self, sub: int) -> Callable[[float], None]:
+        def write(value: float) -> None:
+            self._pending_knobs[sub] = float(value)
+
+        return write
+
+    def _apply_knobs(self) -> None:
+        """Apply the 0x2300 writes of the past cycle to the plant (before its next step)."""
+        pending, self._pending_knobs = self._pending_knobs, {}
+        plant = self.plant
+        cfg = plant.cfg
+        changes: dict[str, dict[str, float]] = {"ripple": {}, "sensors": {}}
+        for sub, value in pending.items():
+            section, name = EMULATOR_KNOBS[sub]
+            if section == "load":
+                plant.set_load_torque(value)
+            else:
+                changes[section][name] = value
+        if changes["ripple"] or changes["sensors"]:
+            new = dataclasses.replace(
+                cfg,
+                ripple=dataclasses.replace(cfg.ripple, **changes["ripple"]),
+                sensors=dataclasses.replace(cfg.sensors, **changes["sensors"]),
+            )
+            _retune_plant(plant, new)
+
+    # ------------------------------------------------------------------ truth
 
     def _publish_truth(self) -> None:
         p = self.plant

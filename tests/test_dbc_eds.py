@@ -1,8 +1,14 @@
 """The nodes' object dictionaries (EDS) and the DBC describe the same PDOs.
 
-For every PDO frame in control.dbc, the transmitting node's EDS has a TPDO and every
-receiving node's EDS an RPDO with that COB-ID, transmission type 1 (synchronous), and a
-mapping whose objects carry the DBC signals' names, widths, order and signedness.
+For every PDO frame in control.dbc (message attribute ``CANopenObject`` = "PDO"), the
+transmitting node's EDS has a TPDO and every receiving node's EDS an RPDO with that
+COB-ID, and a mapping whose objects carry the DBC signals' names, widths, order and
+signedness.  The transmission type follows the DBC's ``GenMsgSendType``: "Cyclic" is
+synchronous (type 1) on both sides; "OnChange" is event-driven (CiA 301 type 254/255) on
+both sides, with the TPDO's inhibit time (sub 3, 100 us units) equal to the DBC's
+``GenMsgDelayTime`` (ms).  The CiA 301 service frames (SYNC, NMT, heartbeat, EMCY, SDO)
+are in the DBC so that every frame on the bus decodes; they are not mapped, but their
+COB-IDs must follow the pre-defined connection set and the nodes' EDS files.
 """
 
 from __future__ import annotations
@@ -20,8 +26,11 @@ def _od(node: str) -> canopen.ObjectDictionary:
     return canopen.import_od(str(eds_path(node.lower())), NODE_IDS[node])
 
 
-def _pdos(od: canopen.ObjectDictionary, comm_base: int) -> dict[int, tuple[int, list]]:
-    """COB-ID -> (transmission type, [mapped variables]) for PDOs at comm_base.."""
+def _pdos(od: canopen.ObjectDictionary, comm_base: int) -> dict[int, tuple[int, list, int]]:
+    """COB-ID -> (transmission type, [mapped variables], inhibit time) for PDOs at comm_base..
+
+    The inhibit time (sub-index 3, 100 us units) is 0 when the record has no sub-index 3.
+    """
     out = {}
     for n in range(512):
         comm = comm_base + n
@@ -29,6 +38,7 @@ def _pdos(od: canopen.ObjectDictionary, comm_base: int) -> dict[int, tuple[int, 
             continue
         cob_id = od[comm][1].default & 0x1FFFFFFF
         ttype = od[comm][2].default
+        inhibit = od[comm][3].default if 3 in od[comm].subindices else 0
         mapping = od[comm + 0x200]
         entries = []
         for sub in range(1, mapping[0].default + 1):
@@ -40,16 +50,48 @@ def _pdos(od: canopen.ObjectDictionary, comm_base: int) -> dict[int, tuple[int, 
                 else od[index][subindex]
             )
             entries.append((var, bits))
-        out[cob_id] = (ttype, entries)
+        out[cob_id] = (ttype, entries, inhibit)
     return out
 
 
-PDO_MESSAGES = [m for m in database("control").messages if m.name != "SYNC"]
+def _attribute(message, name: str):
+    """A DBC message attribute, or the attribute's default when the message has none."""
+    attributes = message.dbc.attributes if message.dbc else {}
+    if name in attributes:
+        return attributes[name].value
+    return database("control").dbc.attribute_definitions[name].default_value
+
+
+def _canopen_object(message) -> str:
+    return _attribute(message, "CANopenObject")
+
+
+#: CiA 301 communication objects besides PDOs; these frames are never mapped.
+SERVICE_OBJECTS = {"SYNC", "NMT", "HEARTBEAT", "EMCY", "SDO"}
+PDO_MESSAGES = [m for m in database("control").messages if _canopen_object(m) == "PDO"]
+SERVICE_MESSAGES = [m for m in database("control").messages if _canopen_object(m) != "PDO"]
+#: Transmission types per DBC send type (CiA 301 §7.5.2.35/36): cyclic = synchronous every
+#: SYNC (1), on change = event-driven (254 manufacturer-specific, 255 device profile).
+TRANSMISSION_TYPES = {"Cyclic": {1}, "OnChange": {254, 255}}
+
+
+def test_every_control_frame_is_a_known_canopen_object():
+    for message in database("control").messages:
+        kind = _canopen_object(message)
+        assert kind == "PDO" or kind in SERVICE_OBJECTS, f"{message.name}: {kind!r}"
+        if kind == "PDO":
+            assert _attribute(message, "GenMsgSendType") in TRANSMISSION_TYPES, message.name
+        else:
+            # Sporadic service frames stay out of the cyclic schedule (hdhil.busload),
+            # except SYNC, which paces the cycle.
+            assert bool(message.cycle_time) == (kind == "SYNC"), message.name
 
 
 @pytest.mark.parametrize("message", PDO_MESSAGES, ids=lambda m: m.name)
 def test_pdo_mapping_matches_dbc(message):
     signals = sorted(message.signals, key=lambda s: s.start)
+    send_type = _attribute(message, "GenMsgSendType")
+    allowed = TRANSMISSION_TYPES[send_type]
     roles = [(message.senders[0], 0x1800)] + [
         (r, 0x1400)
         for r in sorted({r for s in message.signals for r in s.receivers})
@@ -59,8 +101,17 @@ def test_pdo_mapping_matches_dbc(message):
         pdos = _pdos(_od(node), base)
         kind = "TPDO" if base == 0x1800 else "RPDO"
         assert message.frame_id in pdos, f"{node} has no {kind} with COB-ID {message.frame_id:#x}"
-        ttype, entries = pdos[message.frame_id]
-        assert ttype == 1, f"{node} {kind} {message.name} is not synchronous (type 1)"
+        ttype, entries, inhibit = pdos[message.frame_id]
+        assert ttype in allowed, (
+            f"{node} {kind} {message.name}: transmission type {ttype}, the DBC says "
+            f"{send_type} (types {sorted(allowed)})"
+        )
+        if kind == "TPDO" and send_type == "OnChange":
+            delay_ms = _attribute(message, "GenMsgDelayTime")
+            assert inhibit == 10 * delay_ms, (
+                f"{node} TPDO {message.name}: inhibit time {inhibit} x 100 us, the DBC's "
+                f"GenMsgDelayTime is {delay_ms} ms"
+            )
         assert [v.name for v, _ in entries] == [s.name for s in signals]
         assert [bits for _, bits in entries] == [s.length for s in signals]
         assert [SIGNED[v.data_type] for v, _ in entries] == [s.is_signed for s in signals]
@@ -110,3 +161,48 @@ def test_control_telemetry_pdo_is_tpdo2_of_the_controller_and_invalid_by_default
     mapped = [od[comm + 0x200][s].default >> 16 for s in range(1, 5)]
     assert mapped == [0x2002] * 4
     assert [od[0x2002][s].name for s in range(1, 5)] == [s.name for s in msg.signals]
+
+
+def test_service_frames_follow_the_predefined_connection_set():
+    """NMT 0x000, EMCY 0x080 + node-ID, SDO 0x580/0x600 + node-ID, heartbeat 0x700 +
+    node-ID (CiA 301 §7.3.5 pre-defined connection set), sent by the right node."""
+    db = database("control")
+    base = {"NMT": 0x000, "EMCY": 0x080, "HEARTBEAT": 0x700}
+    SDO_SERVER = {"CTRL": "CONTROLLER", "DRIVE": "DRIVE"}  # name suffix -> SDO server
+    for message in SERVICE_MESSAGES:
+        kind = _canopen_object(message)
+        if kind == "SYNC":
+            continue
+        if kind == "NMT":
+            assert message.frame_id == 0 and message.senders == ["CONTROLLER"]
+            continue
+        if kind == "SDO":
+            server = SDO_SERVER[message.name.rsplit("_", 1)[1]]
+            node_id = NODE_IDS[server]
+            if message.name.startswith("SDO_TX"):
+                assert message.frame_id == 0x580 + node_id and message.senders == [server]
+            else:  # clients: the host tools, and the controller for the drive's server
+                assert message.frame_id == 0x600 + node_id
+                assert "HOST" in message.senders and server not in message.senders
+            assert message.length == 8
+            continue
+        (sender,) = message.senders
+        assert message.frame_id == base[kind] + NODE_IDS[sender], message.name
+    names = {m.name for m in SERVICE_MESSAGES}
+    assert {"NMT", "HEARTBEAT_CTRL", "HEARTBEAT_DRIVE", "EMCY_CTRL", "EMCY_DRIVE"} <= names
+    assert {"SDO_TX_CTRL", "SDO_RX_CTRL", "SDO_TX_DRIVE", "SDO_RX_DRIVE"} <= names
+    assert db.get_message_by_name("EMCY_DRIVE").length == 8
+
+
+def test_drive_eds_communication_objects_agree_with_the_dbc():
+    """The drive's EMCY COB-ID (0x1014), heartbeat producer (0x1017) and consumer of the
+    controller (0x1016) as the DBC frames and the drive defaults describe them."""
+    db = database("control")
+    drive = _od("DRIVE")
+    assert drive[0x1014].default == db.get_message_by_name("EMCY_DRIVE").frame_id
+    assert drive[0x1017].default == 100
+    consumer = drive[0x1016][1].default
+    assert (consumer >> 16, consumer & 0xFFFF) == (NODE_IDS["CONTROLLER"], 250)
+    statusword = db.get_message_by_name("DRIVE_TPDO2")
+    assert statusword.frame_id == 0x280 + NODE_IDS["DRIVE"]  # pre-defined TPDO2
+    assert not statusword.cycle_time  # event-driven: not in the cyclic schedule

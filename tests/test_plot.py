@@ -89,7 +89,7 @@ def traces(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
             if msg.is_extended_id:
                 continue
             no_truth(msg)
-            (sensor_only if msg.arbitration_id == 0x182 else no_sensor)(msg)
+            (sensor_only if msg.arbitration_id in (0x182, 0x282) else no_sensor)(msg)
     return out
 
 
@@ -124,8 +124,11 @@ def test_sensor_only_trace_gets_offline_filtered_torque(traces: dict[str, Path])
     full = _data(traces["mis"], "misalignment")
     sensor_only = _data(traces["sensor_only"], "misalignment")
     assert "offline" in sensor_only.filtered_label and "telemetry" in full.filtered_label
-    # Telemetry is the same filter, quantised to 0.004 Nm.
-    np.testing.assert_allclose(sensor_only.T_filtered, full.T_filtered, atol=0.0021)
+    # Telemetry is the same filter, quantised to 0.004 Nm (where the firmware ran: the
+    # last samples of the stop walk have no telemetry).
+    ran = np.isfinite(full.T_filtered)
+    assert ran.sum() >= len(ran) - 5
+    np.testing.assert_allclose(sensor_only.T_filtered[ran], full.T_filtered[ran], atol=0.0021)
 
 
 def _png_size(path: Path) -> tuple[int, int]:

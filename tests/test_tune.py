@@ -218,7 +218,9 @@ def test_cli_tunes_emulated_misalignment_and_writes_a_mergeable_toml(
     ll = res["loglik_per_sample"]
     assert ll["tuned"] >= ll["default"] >= ll["paper"]
     assert res["improvement_over_paper"] == pytest.approx(ll["tuned"] - ll["paper"])
-    assert res["window_samples"] == [200, 3000] and res["evaluations"] <= 85
+    # 3000 operational samples, plus the few of the stop walk while the drive is enabled.
+    start, end = res["window_samples"]
+    assert start == 200 and 3000 <= end <= 3005 and res["evaluations"] <= 85
     rms = res["rms_vs_truth"]  # the check the tuner did not use
     assert rms["tuned"] < rms["default"] < rms["raw"]
 

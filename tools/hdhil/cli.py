@@ -31,6 +31,7 @@ COMMANDS = (
     "calibrate",
     "design",
     "identify",
+    "netcmd",
     "bench",
 )
 

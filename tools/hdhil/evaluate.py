@@ -96,7 +96,10 @@ class RecordingListener(can.Listener):
 
     A row opens at each drive sensor frame (``DRIVE_TPDO1``, sampled at t(k)) with the latest
     truth (sent by the drive at the same SYNC, for the same instant); the controller's
-    telemetry that follows fills the row's telemetry columns.
+    telemetry that follows fills the row's telemetry columns.  When the trace carries the
+    drive's statusword (``DRIVE_TPDO2``), only samples taken while the drive was in CiA 402
+    OPERATION ENABLED are recorded: the start-up walk and the stop are not part of the
+    experiment.
     """
 
     def __init__(self, sample_period_s: float) -> None:
@@ -106,11 +109,14 @@ class RecordingListener(can.Listener):
         self._truth_torque = codec("truth", "TRUTH_TORQUE")
         self._truth_motion = codec("truth", "TRUTH_MOTION")
         self._truth = [math.nan] * 5  # T_true, T_ripple, theta_m, omega_m, theta_out
+        self._status = codec("control", "DRIVE_TPDO2")
+        self._enabled: bool | None = None  # unknown until a statusword is seen
         self._dispatch = {
             (self._sensor.frame_id, False): self._on_sensor,
             (self._tele.frame_id, False): self._on_telemetry,
             (self._truth_torque.frame_id, True): self._on_truth_torque,
             (self._truth_motion.frame_id, True): self._on_truth_motion,
+            (self._status.frame_id, False): self._on_statusword,
         }
 
     def on_message_received(self, msg: can.Message) -> None:
@@ -119,7 +125,14 @@ class RecordingListener(can.Listener):
             with contextlib.suppress(ValueError):  # wrong length: malformed, not a sample
                 handler(msg.data)
 
+    def _on_statusword(self, data: bytes) -> None:
+        (statusword,) = self._status.decode(data)
+        # CiA 402 statusword bits 0-3, 5, 6: 0b0100111 = OPERATION ENABLED.
+        self._enabled = (statusword & 0x6F) == 0x27
+
     def _on_sensor(self, data: bytes) -> None:
+        if self._enabled is False:
+            return
         torque, tacho, current, encoder = self._sensor.decode(data)
         t = self._truth
         self.recording.append_row(
@@ -128,6 +141,8 @@ class RecordingListener(can.Listener):
         )  # fmt: skip
 
     def _on_telemetry(self, data: bytes) -> None:
+        if self._enabled is False:
+            return
         T_meas, T_filtered, velocity, _current = self._tele.decode(data)
         rec = self.recording
         rec.set_last("T_meas_tele", T_meas)

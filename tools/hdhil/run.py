@@ -66,6 +66,8 @@ class RunResult:
     frames: dict[str, int]
     frames_total: int
     frames_sent: dict[str, int]
+    startup_cycles: int
+    stop_cycles: int
     worst_case_load: float
     bitrate: int
     torque: dict[str, float]
@@ -103,32 +105,39 @@ class SilentPeerError(ConfigError):
     """A node did not answer within the cycle timeout."""
 
 
-def _complete_cycle(
-    k: int, controller: ControllerNode, drive: DriveNode, tap: BusTap, simulated: bool
-) -> None:
-    """Let the nodes handle cycle k's frames until the drive holds the command of cycle k.
+def _complete_cycle(controller: ControllerNode, drive: DriveNode, tap: BusTap,
+                    simulated: bool) -> None:  # fmt: skip
+    """Let the nodes handle the current cycle's frames.
 
     On the simulated bus delivery is immediate: pump until every queue is empty.  On a
     real interface frames take time to come back, so wait (briefly sleeping) until the
-    drive has received cycle k's command, with a timeout that names the silent node.
+    controller has answered this cycle's sensor frame, with a timeout that names the
+    silent node.  During start-up (no sensor frames yet) the wait is short.
     """
+    answered = controller.diagnostics.commands_sent
     while drive.poll() + controller.poll() + tap.poll():
         pass
     if simulated:
         return
-    deadline = time.monotonic() + CYCLE_TIMEOUT_S
-    while drive.diagnostics.commands <= k:
+    operational = controller.phase == "operational"
+    deadline = time.monotonic() + (CYCLE_TIMEOUT_S if operational else 0.005)
+    while controller.diagnostics.commands_sent <= answered:
         if drive.poll() + controller.poll() + tap.poll():
             continue
         if time.monotonic() > deadline:
-            who = (
-                "the drive sent no sensor frame"
-                if controller.diagnostics.sensor_frames <= k
-                else "the controller's command never reached the drive"
-            )
-            raise SilentPeerError(f"cycle {k}: {who} within {CYCLE_TIMEOUT_S:g} s")
+            if operational:
+                raise SilentPeerError(
+                    f"the drive sent no sensor frame within {CYCLE_TIMEOUT_S:g} s of SYNC"
+                )
+            break
         time.sleep(50e-6)
     tap.poll()
+
+
+#: Cycles allowed from power-on to "operation enabled" (NMT start and the CiA 402 walk
+#: take a handful) and back to "stopped".
+MAX_STARTUP_CYCLES = 500
+MAX_STOP_CYCLES = 200
 
 
 def read_toml(path: Path) -> dict[str, Any]:
@@ -260,6 +269,7 @@ def run_lockstep(
     done = 0
     wall = 0.0
     frames_sent: dict[str, int] = {}
+    startup_cycles = stop_cycles = 0
     recorder: RecordingListener | None = None
     tracking: TrackingScorer | None = None
     try:
@@ -286,15 +296,50 @@ def run_lockstep(
             {CHANNEL_NUMBER["control"]: tap_control, CHANNEL_NUMBER["truth"]: tap_truth}, listeners
         )
         wall0 = time.perf_counter()
+        k = 0
+
+        def cycle() -> None:
+            nonlocal k
+            clock.now = k * Ts
+            now = clock.now if simulated else time.monotonic()
+            drive.tick(now)
+            controller.tick(now)
+            controller.send_sync()  # the controller decides by its phase whether SYNC goes out
+            _complete_cycle(controller, drive, tap, simulated)
+            k += 1
+
         try:
-            for k in range(cycles):
+            # Power-on: both nodes boot; the controller starts the drive (NMT) and walks it
+            # to "operation enabled" (CiA 402) over the PDOs.
+            drive.boot(0.0 if simulated else time.monotonic())
+            controller.boot(0.0 if simulated else time.monotonic())
+            while controller.phase != "operational":
+                if controller.boot_error:
+                    raise ConfigError(controller.boot_error)
+                if controller.phase == "safe" or k >= MAX_STARTUP_CYCLES:
+                    raise ConfigError(
+                        f"the drive did not reach operation enabled within {k} cycles "
+                        f"(controller phase {controller.phase}, drive {drive.drive_state})"
+                    )
+                cycle()
+            startup_cycles = k
+            # The run lasts until the interrupt has handled ``cycles`` samples.
+            while controller.isr.samplecount < cycles:
                 if stop_requested is not None and stop_requested():
                     interrupted = True
                     break
-                clock.now = k * Ts
-                controller.send_sync()
-                _complete_cycle(k, controller, drive, tap, simulated)
-                done = k + 1
+                if controller.phase != "operational":
+                    break
+                cycle()
+            done = controller.isr.samplecount
+            operation_end = k
+            # Walk the drive back (disable operation, shut down) before the buses close.
+            controller.request_stop()
+            for _ in range(MAX_STOP_CYCLES):
+                if controller.phase in ("stopped", "safe"):
+                    break
+                cycle()
+            stop_cycles = k - operation_end
         except KeyboardInterrupt:
             interrupted = True
         wall = time.perf_counter() - wall0
@@ -330,6 +375,8 @@ def run_lockstep(
         frames=frames,
         frames_total=counter.total,
         frames_sent=frames_sent,
+        startup_cycles=startup_cycles,
+        stop_cycles=stop_cycles,
         worst_case_load=load.worst_case_load,
         bitrate=bitrate,
         torque={**scorer.result().as_dict(), "rms_filtered_per_minute": scorer.block_rms},
@@ -358,7 +405,8 @@ def format_result(r: RunResult) -> str:
         f"hdhil run: scenario {r.scenario}, seed {r.seed}, lockstep on {r.interface}"
         f" ({r.actuation} actuation)" + ("  [INTERRUPTED]" if r.interrupted else ""),
         f"  simulated time     {r.simulated_s:.3f} s ({r.cycles} cycles of "
-        f"{r.sample_period_s * 1e3:g} ms)",
+        f"{r.sample_period_s * 1e3:g} ms in operation; start-up {r.startup_cycles}, "
+        f"stop {r.stop_cycles} cycles)",
         f"  wall time          {r.wall_s:.3f} s",
         f"  real-time factor   {r.real_time_factor:.1f}x",
         f"  motor velocity     final {r.velocity_final:.1f} rad/s, peak {r.velocity_peak:.1f} rad/s"

@@ -1,0 +1,92 @@
+"""Three processes over python-can's udp_multicast: emulator, firmware and logger.
+
+The processes share only the bus, inside a private network namespace created for the
+test, with loopback alone (multicast routed to ``lo``), so no frame can leave the
+machine.  Skipped, with the reason, where a namespace cannot be created (not root, no
+iproute2).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import can
+import pytest
+
+from hdhil.dbc import codec
+
+GROUP_CONTROL = "239.74.163.2"
+GROUP_TRUTH = "239.74.163.3"
+
+
+def _ip(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["ip", *args], capture_output=True, text=True, check=False)
+
+
+@pytest.fixture
+def netns():
+    if shutil.which("ip") is None:
+        pytest.skip("iproute2 ('ip') is not installed")
+    if os.geteuid() != 0:
+        pytest.skip("creating a network namespace needs root")
+    name = f"hdhil-test-{os.getpid()}"
+    made = _ip("netns", "add", name)
+    if made.returncode != 0:
+        pytest.skip(f"cannot create a network namespace: {made.stderr.strip()}")
+    try:
+        for cmd in (["link", "set", "lo", "up"], ["link", "set", "lo", "multicast", "on"],
+                    ["route", "add", "224.0.0.0/4", "dev", "lo"]):  # fmt: skip
+            r = _ip("netns", "exec", name, "ip", *cmd)
+            assert r.returncode == 0, r.stderr
+        yield name
+    finally:
+        _ip("netns", "del", name)
+
+
+def _hdhil(ns: str, *args: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        ["ip", "netns", "exec", ns, sys.executable, "-m", "hdhil", *args],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+
+
+def test_emulator_firmware_and_logger_as_three_processes(netns, tmp_path):
+    trace = tmp_path / "three.blf"
+    bus = ["--interface", "udp_multicast", "--channel", GROUP_CONTROL]
+    truth = ["--truth-interface", "udp_multicast", "--truth-channel", GROUP_TRUTH]
+    logger = _hdhil(netns, "log", str(trace), *bus, *truth)
+    emulator = _hdhil(netns, "emulate", *bus, *truth, "--scenario", "free-motion")
+    time.sleep(1.5)  # both processes up and listening before the firmware boots
+    firmware = _hdhil(netns, "firmware", *bus, "--scenario", "free-motion", "--duration", "0.6")
+    try:
+        out, err = firmware.communicate(timeout=120)
+        assert firmware.returncode == 0, err
+        fw = json.loads(out.strip().splitlines()[-1])
+        assert fw["operational_cycles"] == 600
+        assert fw["phase"] == "stopped"
+    finally:
+        for proc in (emulator, logger):
+            proc.send_signal(signal.SIGTERM)
+        outs = [proc.communicate(timeout=60) for proc in (emulator, logger)]
+        firmware.kill()
+    for proc, (_out, err) in zip((emulator, logger), outs, strict=True):
+        assert proc.returncode == 130, err
+    logged = json.loads(outs[1][0].strip().splitlines()[-1])
+    # The trace decodes, holds every frame the logger counted, and shows the loop closed.
+    with can.LogReader(str(trace)) as reader:
+        frames = list(reader)
+    assert len(frames) == logged["frames"]
+    ids = {m.arbitration_id for m in frames}
+    assert {0x080, 0x182, 0x202, 0x181, 0x701, 0x702} <= ids
+    tele = codec("control", "CTRL_TPDO1")
+    velocities = [tele.decode(m.data)[2] for m in frames
+                  if m.arbitration_id == tele.frame_id and not m.is_extended_id]  # fmt: skip
+    assert len(velocities) >= 600
+    assert velocities[-1] > 100.0  # the motor ran up under the firmware's reference
+    assert any(m.is_extended_id for m in frames)  # truth was logged on its own bus
