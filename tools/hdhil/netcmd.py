@@ -258,6 +258,9 @@ def run_sdo(args: argparse.Namespace) -> int:
             print("ok")
     except SdoError as exc:
         raise UserError(f"SDO abort 0x{exc.code:08X}: {exc.text}") from None
+    except (TypeError, ValueError, KeyError) as exc:
+        raise UserError(f"sdo {args.action} 0x{index:04X}:{sub:02X} on node {args.node}: "
+                        f"{exc}") from None  # fmt: skip
     finally:
         network.notifier.stop()
         network.bus.shutdown()
