@@ -180,7 +180,7 @@ from hdhil.canopen_services import (
     ResetKind,
 )
 from hdhil.dbc import codec, eds_path
-from hdhil.node import CanNode
+from hdhil.node import CanNode, pdo_cob_id
 from hostsim.cia402 import CONTROLWORD, CW_FAULT_RESET, Command, State, state_from_statusword
 
 __all__ = [
@@ -545,8 +545,14 @@ class ControllerNode(CanNode):
         #: CTRL_TPDO2 is valid (sent) only while a control law runs (COB-ID bit 31 clear).
         self.control_pdo_valid = config.control.active
         self._store_control_pdo_validity()
-        self.handle(self._sensor.frame_id, self._on_sensor_frame)
-        self.handle(self._status.frame_id, self._on_statusword_frame)
+        # PDO identifiers come from the object dictionary (RPDO1 0x1400, RPDO2 0x1401; the
+        # TPDOs 0x1800-0x1802), each checked against the DBC layout the node encodes with.
+        od = self.services.od
+        self.handle(pdo_cob_id(od, 0x1400, self._sensor), self._on_sensor_frame)
+        self.handle(pdo_cob_id(od, 0x1401, self._status), self._on_statusword_frame)
+        for comm_index, frame in ((0x1800, self._telemetry), (0x1801, self._command),
+                                  (0x1802, self._control_telemetry)):  # fmt: skip
+            pdo_cob_id(od, comm_index, frame)
         self.handle(SDO_TX_BASE + drive_node_id, self._on_sdo_response)
 
     @staticmethod

@@ -151,7 +151,7 @@ from hdhil.canopen_services import (
     SyncMonitor,
 )
 from hdhil.dbc import codec, eds_path
-from hdhil.node import CanNode
+from hdhil.node import CanNode, pdo_cob_id
 from hostsim.cia402 import CONTROLWORD, SUPPORTED_MODES, Command, DriveStateMachine, State
 from hostsim.plant import Plant, PlantConfig
 
@@ -339,8 +339,6 @@ class DriveNode(CanNode):
             can.Message(arbitration_id=c.frame_id, is_extended_id=True, dlc=c.length, check=False)
             for c in self._truth_codecs
         )
-        self.handle(self._sync.frame_id, self._on_sync)
-        self.handle(self._command.frame_id, self._on_command)
 
         # CiA 301 services on the drive's object dictionary.
         consumers = (
@@ -364,6 +362,13 @@ class DriveNode(CanNode):
         services.on_reset(self._on_nmt_reset)
         services.on_heartbeat_lost(self._on_heartbeat_lost)
         services.on_heartbeat_resumed(self._on_heartbeat_resumed)
+        # PDO identifiers come from the object dictionary (0x1400 RPDO1, checked against the
+        # DBC layout); the TPDOs' are checked the same way.
+        od = services.od
+        self.handle(self._sync.frame_id, self._on_sync)
+        self.handle(pdo_cob_id(od, 0x1400, self._command), self._on_command)
+        pdo_cob_id(od, 0x1800, self._sensor)
+        pdo_cob_id(od, 0x1801, self._status)
         services.on_boot(self._on_remote_boot)
 
         self._machine = self._new_state_machine()

@@ -206,3 +206,15 @@ def test_drive_eds_communication_objects_agree_with_the_dbc():
     statusword = db.get_message_by_name("DRIVE_TPDO2")
     assert statusword.frame_id == 0x280 + NODE_IDS["DRIVE"]  # pre-defined TPDO2
     assert not statusword.cycle_time  # event-driven: not in the cyclic schedule
+
+
+def test_nodes_take_pdo_identifiers_from_their_object_dictionary():
+    from hdhil.dbc import codec
+    from hdhil.node import pdo_cob_id
+
+    od = canopen.import_od(str(eds_path("drive")), 2)
+    assert pdo_cob_id(od, 0x1800, codec("control", "DRIVE_TPDO1")) == 0x182
+    assert pdo_cob_id(od, 0x1400, codec("control", "DRIVE_RPDO1")) == 0x202
+    od[0x1800][1].default = 0x183  # an object dictionary edited out of step with the DBC
+    with pytest.raises(ValueError, match="does not match DRIVE_TPDO1"):
+        pdo_cob_id(od, 0x1800, codec("control", "DRIVE_TPDO1"))

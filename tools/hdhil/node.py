@@ -12,7 +12,7 @@ from collections.abc import Callable
 
 import can
 
-from hdhil.dbc import BusName, known_frames
+from hdhil.dbc import BusName, FrameCodec, known_frames
 
 Handler = Callable[[can.Message], None]
 
@@ -48,3 +48,20 @@ class CanNode:
             self.on_message(msg)
             n += 1
         return n
+
+
+def pdo_cob_id(od: object, comm_index: int, frame: FrameCodec) -> int:
+    """The COB-ID of a PDO, read from the node's object dictionary.
+
+    ``comm_index`` is the PDO's communication parameter (0x1400.. RPDO, 0x1800.. TPDO),
+    sub-index 1 (CiA 301; bit 31 = PDO not valid, bit 30 = no RTR, 11-bit identifier).
+    The node encodes the payload with ``frame``, the DBC's layout of the same PDO; if the
+    two disagree the node refuses to start instead of talking past its peer.
+    """
+    cob_id = int(od[comm_index][1].default) & 0x7FF  # type: ignore[index]
+    if cob_id != frame.frame_id:
+        raise ValueError(
+            f"PDO 0x{comm_index:04X}: the object dictionary's COB-ID 0x{cob_id:03X} does not "
+            f"match {frame.name} (0x{frame.frame_id:03X}) in control.dbc"
+        )
+    return cob_id
