@@ -100,26 +100,63 @@ def stuff_bits(value: int, nbits: int) -> int:
     return added
 
 
-@lru_cache(maxsize=8192)
-def frame_bits(arbitration_id: int, extended: bool, remote: bool, data: bytes) -> int:
-    """Exact bits on the wire of one classical data or remote frame, incl. 3-bit IFS."""
-    n = len(data)
-    dlc = n if not remote else min(n, 8)
-    payload = b"" if remote else data
+def _stuff_table_7() -> dict[tuple[int, int], tuple[tuple[int, tuple[int, int]], ...]]:
+    """Like the byte table, for the last 7 bits of the CRC sequence."""
+    table = {}
+    for last in (0, 1):
+        for run in range(1, 5):
+            rows = []
+            for chunk in range(128):
+                state, added = (last, run), 0
+                for i in range(6, -1, -1):
+                    state, s = _stuff_step(state, (chunk >> i) & 1)
+                    added += s
+                rows.append((added, state))
+            table[(last, run)] = tuple(rows)
+    return table
+
+
+_STUFF7 = _stuff_table_7()
+
+
+@lru_cache(maxsize=4096)
+def _header(
+    arbitration_id: int, extended: bool, remote: bool, dlc: int
+) -> tuple[int, int, tuple[int, int], int]:
+    """(bits, CRC after the header, stuffing state after the header, stuff bits so far)."""
     if extended:
         base, ext = arbitration_id >> 18, arbitration_id & 0x3FFFF
         # SOF, base id, SRR=1, IDE=1, ext id, RTR, r1=0, r0=0, DLC
         header = (((((0 << 11 | base) << 2 | 0b11) << 18 | ext) << 3 | (int(remote) << 2)) << 4
                   | dlc)  # fmt: skip
-        header_bits = 1 + 11 + 2 + 18 + 3 + 4
+        nbits = 1 + 11 + 2 + 18 + 3 + 4
     else:
         # SOF, id, RTR, IDE=0, r0=0, DLC
         header = ((arbitration_id << 3 | int(remote) << 2) << 4) | dlc
-        header_bits = 1 + 11 + 3 + 4
-    crc = crc15_bytes(payload, crc15_bits(header, header_bits))
-    stream_bits = header_bits + 8 * len(payload) + 15
-    stream = ((header << (8 * len(payload))) | int.from_bytes(payload, "big")) << 15 | crc
-    return stream_bits + stuff_bits(stream, stream_bits) + 13
+        nbits = 1 + 11 + 3 + 4
+    state = (0, 1)  # SOF: a dominant 0 opens a run of 1
+    added = 0
+    for i in range(nbits - 2, -1, -1):
+        state, s = _stuff_step(state, (header >> i) & 1)
+        added += s
+    return nbits, crc15_bits(header, nbits), state, added
+
+
+@lru_cache(maxsize=8192)
+def frame_bits(arbitration_id: int, extended: bool, remote: bool, data: bytes) -> int:
+    """Exact bits on the wire of one classical data or remote frame, incl. 3-bit IFS."""
+    payload = b"" if remote else data
+    nbits, crc, state, added = _header(arbitration_id, extended, remote, min(len(data), 8))
+    table = _STUFF
+    for byte in payload:
+        n, state = table[state][byte]
+        added += n
+        crc = ((crc << 8) & 0x7FFF) ^ _CRC_TABLE[((crc >> 7) ^ byte) & 0xFF]
+    n, state = table[state][crc >> 7]  # CRC bits 14..7
+    added += n
+    n, state = _STUFF7[state][crc & 0x7F]  # CRC bits 6..0
+    added += n
+    return nbits + 8 * len(payload) + 15 + added + 13
 
 
 def frame_bits_of(msg) -> int:  # type: ignore[no-untyped-def]

@@ -91,14 +91,18 @@ class _Channel:
         pending = self.pending
         while pending:
             free = self.busy_until
-            ready = [p for p in pending if p[0] <= free]
-            if ready:
-                item = min(ready, key=_arbitration_key)
-                start = free
+            if len(pending) == 1:  # the common case: nothing to arbitrate
+                item = pending.pop()
+                start = free if item[0] <= free else item[0]
             else:
-                item = min(pending, key=_request_key)
-                start = item[0]
-            pending.remove(item)
+                ready = [p for p in pending if p[0] <= free]
+                if ready:
+                    item = min(ready, key=_arbitration_key)
+                    start = free
+                else:
+                    item = min(pending, key=_request_key)
+                    start = item[0]
+                pending.remove(item)
             _, _, _, sender, msg = item
             end = start + (self.bits(msg) / self.bitrate if self.timing != "none" else 0.0)
             self.busy_until = end
