@@ -438,6 +438,9 @@ class DriveNode(CanNode):
 
     def _on_sync(self, msg: can.Message) -> None:
         d = self.diagnostics
+        if msg.is_remote_frame:  # a remote request on 0x080 is not a SYNC (CiA 301)
+            d.malformed_frames += 1
+            return
         d.syncs += 1
         monitor = self._sync_monitor
         data = msg.data

@@ -34,3 +34,35 @@ def test_lag_recovers_a_known_delay(delay):
 def test_lag_is_undefined_without_torque_variation():
     flat = np.full(5000, 0.1)
     assert estimate_lag(flat, flat, 1e-3) is None
+
+
+def test_per_minute_blocks_count_from_the_first_frame_whatever_the_clock():
+    """Wall-clock timestamps (about 1.8e9 s) must not be walked in 60 s steps."""
+    import can
+
+    from hdhil.dbc import codec
+    from hdhil.score import TorqueScorer
+
+    tele, truth = codec("control", "CTRL_TPDO1"), codec("truth", "TRUTH_TORQUE")
+    scorer = TorqueScorer(block_s=1.0)
+    t0 = 1.8e9
+    for k in range(2500):  # 2.5 s at 1 kHz: two full blocks
+        t = t0 + k * 1e-3
+        scorer.on_message_received(
+            can.Message(
+                timestamp=t,
+                arbitration_id=truth.frame_id,
+                is_extended_id=True,
+                data=truth.encode(0.0, 0.0),
+            )
+        )
+        err = 0.1 if t - t0 < 1.0 else 0.2
+        scorer.on_message_received(
+            can.Message(
+                timestamp=t + 1e-4,
+                arbitration_id=tele.frame_id,
+                is_extended_id=False,
+                data=tele.encode(0.0, err, 0.0, 0.0),
+            )
+        )
+    assert scorer.block_rms == pytest.approx([0.1, 0.2], abs=0.003)

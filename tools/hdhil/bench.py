@@ -1,24 +1,89 @@
-"""``hdhil bench``: throughput figures, measured in the run itself, reported as medians.
+"""``hdhil bench``: throughput, compute-time and memory figures, measured in the run itself.
 
 Benchmarks are run here, never as timed unit tests: these machines are shared and
-noisy, so every figure is the median of ``--repeat`` runs and comes with its spread.
+noisy, so every throughput figure is the median of ``--repeat`` runs and comes with
+its spread, and every per-call time is a median and 99th percentile over many calls.
+
+Sections of the report (``--json`` gives the same data):
+
+- **lockstep**: real-time factor (simulated seconds per wall second) of
+  :func:`hdhil.run.run_lockstep` for free-motion (4th-order ripple model),
+  misalignment (6th order) and lqg-tracking, each with BLF logging on and off, plus
+  the reference: the same free-motion loop (same frames) on python-can's bare
+  ``virtual`` bus instead of ``simbus``;
+- **stages**: firmware compute time per call of each interrupt stage
+  (``time.perf_counter_ns`` around every call, on inputs recorded from a closed-loop
+  run of the plant and the interrupt handler without a bus), the whole interrupt, and
+  the plant step (advance + sample) the drive emulator does per cycle;
+- **filter**: offline throughput of ``hdhil filter``'s signal-CSV code path
+  (:func:`hdhil.filter_cmd.filter_signal_csv`) on a generated CSV;
+- **memory**: peak RSS of the process (``ru_maxrss``) and the resident-memory growth
+  over one long lockstep run with logging, per simulated minute.
+
+``--quick`` shrinks every section (CI and the tests); the default takes a couple of
+minutes on a 2-core machine.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import gc
 import json
+import math
+import os
+import platform
+import resource
 import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from firmware.config import FirmwareConfig, paper_config
+from firmware.isr import AdcSample, InterruptHandler, IsrOutput, TorqueControl, TorqueFilterChain
+from firmware.ripple import HarmonicKalman, RippleKalman
+from firmware.stages import Differentiator, adc_read, calibrate
+from hdhil.dataconf import from_dict
 from hdhil.run import run_lockstep
+from hostsim.plant import Plant
 from hostsim.scenario import load_scenario
 
+#: Scenarios of the lockstep section, with the order of their ripple model.
+LOCKSTEP_SCENARIOS: tuple[tuple[str, str], ...] = (
+    ("free-motion", "4th-order ripple model"),
+    ("misalignment", "6th-order ripple model"),
+    ("lqg-tracking", "LQG control (JTF1)"),
+)
 
+
+@dataclass(frozen=True)
+class BenchSettings:
+    """How much to measure.  :meth:`full` is the default, :meth:`quick` the CI version."""
+
+    mode: str
+    duration_s: float  # simulated seconds per lockstep run
+    repeat: int  # runs per lockstep / filter figure
+    virtual_duration_s: float  # the virtual bus is slower: shorter runs
+    stage_calls: int  # calls per stage timing
+    filter_rows: int  # rows of the generated signal CSV
+    memory_duration_s: float  # simulated seconds of the RSS-growth run
+
+    @classmethod
+    def full(cls, duration_s: float = 10.0, repeat: int = 3) -> BenchSettings:
+        return cls("full", duration_s, repeat, min(duration_s, 2.0), 20_000, 100_000, 120.0)
+
+    @classmethod
+    def quick(cls, duration_s: float = 0.3, repeat: int = 1) -> BenchSettings:
+        return cls("quick", duration_s, repeat, min(duration_s, 0.2), 1_000, 2_000, 3.0)
+
+
+# ------------------------------------------------------------------------ helpers
 def _median_spread(values: list[float]) -> dict[str, float]:
     return {
         "median": statistics.median(values),
@@ -28,6 +93,59 @@ def _median_spread(values: list[float]) -> dict[str, float]:
     }
 
 
+def _percentiles_us(ns: Sequence[int]) -> dict[str, float]:
+    a = np.asarray(ns, dtype=np.float64) / 1e3
+    return {
+        "median_us": float(np.median(a)),
+        "p99_us": float(np.percentile(a, 99)),
+        "calls": len(ns),
+    }
+
+
+def machine_facts() -> dict[str, Any]:
+    """CPU model, cores, Python version and platform of this machine."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        usable = os.cpu_count() or 1
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count() or 1,
+        "cores_usable": usable,
+        "python": platform.python_version(),
+        "implementation": platform.python_implementation(),
+        "platform": platform.platform(terse=True),
+    }
+
+
+def _rss_bytes() -> int:
+    """Resident set size now (``/proc/self/statm``); 0 where there is no procfs."""
+    try:
+        with open("/proc/self/statm", encoding="ascii") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+def _peak_rss_bytes() -> int:
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak if sys.platform == "darwin" else peak * 1024  # Linux: KiB
+
+
+def _firmware_config(scenario: str) -> FirmwareConfig:
+    return from_dict(FirmwareConfig, load_scenario(scenario).firmware, "firmware")
+
+
+# ----------------------------------------------------------------------- lockstep
 def bench_lockstep(
     scenario: str, duration_s: float, repeat: int, logging: bool, interface: str = "simbus"
 ) -> dict[str, Any]:
@@ -43,6 +161,7 @@ def bench_lockstep(
             factors.append(r.real_time_factor)
             cycles = r.cycles
             frames = r.frames_total
+            fw = r.controller
     stats = _median_spread(factors)
     stats.update(
         scenario=scenario,
@@ -51,38 +170,430 @@ def bench_lockstep(
         interface=interface,
         cycles=cycles,
         frames=frames,
+        frames_per_cycle=frames / cycles if cycles else math.nan,
+        filter_mode=fw.get("filter_mode"),
+        filter_states=fw.get("filter_states"),
         us_per_cycle=1e6 * duration_s / cycles / stats["median"],
     )
     return stats
 
 
-def run_benchmarks(duration_s: float = 10.0, repeat: int = 3) -> dict[str, Any]:
-    started = time.strftime("%Y-%m-%d %H:%M:%S")
-    results = {
-        "lockstep_free_motion_blf": bench_lockstep("free-motion", duration_s, repeat, True),
-        "lockstep_free_motion_nolog": bench_lockstep("free-motion", duration_s, repeat, False),
-        "lockstep_free_motion_virtual_bus": bench_lockstep(
-            "free-motion", min(duration_s, 2.0), repeat, False, interface="virtual"
-        ),
+def bench_lockstep_all(s: BenchSettings) -> list[dict[str, Any]]:
+    rows = []
+    for scenario, model in LOCKSTEP_SCENARIOS:
+        for logging in (True, False):
+            row = bench_lockstep(scenario, s.duration_s, s.repeat, logging)
+            row["model"] = model
+            rows.append(row)
+    # The reference: the same loop and frames on python-can's bare virtual bus.
+    row = bench_lockstep("free-motion", s.virtual_duration_s, s.repeat, False, "virtual")
+    row["model"] = "reference: python-can virtual bus"
+    rows.append(row)
+    return rows
+
+
+# ------------------------------------------------------------------------- stages
+@dataclass
+class Recording:
+    """Inputs recorded from a closed loop (plant + interrupt handler, no bus)."""
+
+    adc: list[tuple[int, int, int, int]]
+    plant_ns: list[int]
+
+
+def record_inputs(scenario: str, n: int) -> Recording:
+    """Run the scenario's plant and firmware for ``n`` samples in closed loop (the
+    command acts from the next sample, as with ``--actuation next-sync``) and record
+    the sensor frames' ADC counts; the plant step (advance + sample) is timed."""
+    sc = load_scenario(scenario)
+    cfg = from_dict(FirmwareConfig, sc.firmware, "firmware")
+    Ts = cfg.sample_period_s
+    plant = Plant(sc.plant, sc.seed)
+    isr = InterruptHandler(cfg)
+    to_volts = sc.plant.dac.to_volts
+    volts = to_volts(isr.startup_dac_counts)
+    advance, sample = plant.advance, plant.sample
+    clock = time.perf_counter_ns
+    adc: list[tuple[int, int, int, int]] = []
+    plant_ns: list[int] = []
+    for _ in range(n):
+        t0 = clock()
+        advance(volts, Ts)
+        s = sample()
+        t1 = clock()
+        plant_ns.append(t1 - t0)
+        adc.append(s)
+        volts = to_volts(isr(AdcSample(*s)).dac_counts)
+    return Recording(adc, plant_ns)
+
+
+def _time_each(fn: Callable[..., Any], args: Sequence[tuple[Any, ...]]) -> list[int]:
+    clock = time.perf_counter_ns
+    out = []
+    append = out.append
+    for a in args:
+        t0 = clock()
+        fn(*a)
+        t1 = clock()
+        append(t1 - t0)
+    return out
+
+
+def timer_overhead_ns(n: int) -> float:
+    """Median of back-to-back ``perf_counter_ns`` pairs: included in every stage time."""
+    return float(np.median(_time_each(lambda: None, [()] * n)))
+
+
+def _chain_signals(cfg: FirmwareConfig, adc: list[tuple[int, int, int, int]]) -> dict[str, list]:
+    """The calibrated signals and the chain's intermediate values per recorded sample."""
+    chain = TorqueFilterChain(cfg)
+    T_meas, vel, enc, delta_T, angle, T_filt = [], [], [], [], [], []
+    for torque, tacho, current, encoder in adc:
+        T, v, _ = calibrate(*adc_read(torque, tacho, current, cfg.adc), cfg.calibration)
+        _, _, dT, Tf, _ = chain.step(T, v, encoder)
+        T_meas.append(T)
+        vel.append(v)
+        enc.append(encoder)
+        delta_T.append(dT)
+        angle.append(chain.angle)
+        T_filt.append(Tf)
+    return {"T_meas": T_meas, "vel": vel, "enc": enc, "delta_T": delta_T, "angle": angle,
+            "T_filtered": T_filt}  # fmt: skip
+
+
+def _kalman_row(
+    stage: str, scenario: str, cfg: FirmwareConfig, adc: list[tuple[int, int, int, int]]
+) -> dict[str, Any]:
+    sig = _chain_signals(cfg, adc)
+    if cfg.ripple.mode == "paper":
+        kf: RippleKalman | HarmonicKalman = RippleKalman(
+            cfg.ripple, cfg.sample_period_s, cfg.gear_ratio
+        )
+        args = list(zip(sig["delta_T"], sig["vel"], strict=True))
+    else:
+        kf = HarmonicKalman(cfg.ripple, cfg.gear_ratio)
+        args = list(zip(sig["delta_T"], sig["vel"], sig["angle"], strict=True))
+    row = _percentiles_us(_time_each(kf.step, args))
+    states = int(np.asarray(kf.P).shape[0])
+    row.update(stage=stage, config=f"{scenario}, {cfg.ripple.mode}, {states} states")
+    return row
+
+
+def bench_stages(s: BenchSettings) -> dict[str, Any]:
+    """Per-call compute time of every firmware stage and of the plant step."""
+    n = s.stage_calls
+    recordings = {name: record_inputs(name, n) for name, _ in LOCKSTEP_SCENARIOS}
+    rows: list[dict[str, Any]] = []
+    gc.collect()
+
+    fm = _firmware_config("free-motion")
+    mis = _firmware_config("misalignment")
+    lqg = _firmware_config("lqg-tracking")
+    fm_adc = recordings["free-motion"].adc
+
+    # ADC read + calibration
+    adc_cfg, cal = fm.adc, fm.calibration
+
+    def adc_cal(torque: int, tacho: int, current: int, _enc: int) -> Any:
+        return calibrate(*adc_read(torque, tacho, current, adc_cfg), cal)
+
+    row = _percentiles_us(_time_each(adc_cal, fm_adc))
+    row.update(stage="ADC read + calibration", config="free-motion")
+    rows.append(row)
+
+    # differentiator
+    sig = _chain_signals(fm, fm_adc)
+    diff = Differentiator(fm.diff_tau_s, fm.sample_period_s)
+    row = _percentiles_us(_time_each(diff.step, [(v,) for v in sig["vel"]]))
+    row.update(stage="differentiator", config="free-motion")
+    rows.append(row)
+
+    # ripple Kalman filters: 4th order (free-motion) and 6th order (misalignment)
+    for scenario, cfg, order in (("free-motion", fm, "4th"), ("misalignment", mis, "6th")):
+        adc = recordings[scenario].adc
+        for variant in (cfg, paper_config(cfg)):
+            rows.append(_kalman_row(f"ripple Kalman, {order} order", scenario, variant, adc))
+
+    # LQG control stage on the lqg-tracking inputs
+    lqg_adc = recordings["lqg-tracking"].adc
+    lqg_sig = _chain_signals(lqg, lqg_adc)
+    feedback = lqg_sig["T_filtered" if lqg.control.feedback == "T_filtered" else "T_meas"]
+    control = TorqueControl(lqg)
+    out = IsrOutput()
+    row = _percentiles_us(_time_each(control, [(k, T, out) for k, T in enumerate(feedback)]))
+    row.update(stage="LQG control stage", config=f"lqg-tracking, {lqg.control.law.name}")
+    rows.append(row)
+
+    # the whole interrupt
+    for scenario, cfg in (
+        ("free-motion", fm),
+        ("free-motion", paper_config(fm)),
+        ("misalignment", mis),
+        ("misalignment", paper_config(mis)),
+        ("lqg-tracking", lqg),
+    ):
+        samples = [(AdcSample(*a),) for a in recordings[scenario].adc]
+        isr = InterruptHandler(cfg)
+        row = _percentiles_us(_time_each(isr, samples))
+        row.update(stage="whole interrupt", config=f"{scenario}, {cfg.ripple.mode}")
+        rows.append(row)
+
+    # the plant step the drive emulator does per cycle
+    for scenario, _ in LOCKSTEP_SCENARIOS:
+        row = _percentiles_us(recordings[scenario].plant_ns)
+        row.update(stage="plant step (advance + sample)", config=scenario)
+        rows.append(row)
+
+    return {"timer_overhead_us": timer_overhead_ns(n) / 1e3, "rows": rows}
+
+
+# ------------------------------------------------------------------------- filter
+def write_signal_csv(path: Path, rows: int, seed: int = 0) -> None:
+    """A signal CSV like a recorded free-motion run: ~156 rad/s motor velocity, 2x/4x
+    ripple, sensor noise, 16-bit encoder count (columns time,T_meas,velocity,encoder)."""
+    rng = np.random.default_rng(seed)
+    Ts = 1e-3
+    t = np.arange(rows) * Ts
+    vel_true = 156.0 * (1.0 - np.exp(-t / 0.19))
+    theta = np.cumsum(vel_true) * Ts
+    vel = vel_true + rng.normal(0.0, 0.05, rows)
+    T = (
+        0.07
+        + 0.6 * np.sin(2 * theta + 0.4)
+        + 0.25 * np.sin(4 * theta + 1.3)
+        + rng.normal(0.0, 0.02, rows)
+    )
+    cpr = FirmwareConfig().calibration.encoder_counts_per_rev
+    enc = np.floor(theta * cpr / (2 * np.pi)).astype(np.int64) % 65536
+    with path.open("w", encoding="utf-8") as fh:
+        fh.write("time,T_meas,velocity,encoder\n")
+        for row in zip(t.tolist(), T.tolist(), vel.tolist(), enc.tolist(), strict=True):
+            fh.write("%r,%r,%r,%d\n" % row)  # noqa: UP031
+
+
+def bench_filter(s: BenchSettings) -> list[dict[str, Any]]:
+    """Samples per second of ``hdhil filter`` on a signal CSV (reading, filtering and
+    writing the output CSV), recommended and paper mode."""
+    from hdhil.filter_cmd import OUTPUT_COLUMNS, filter_signal_csv
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "signal.csv"
+        write_signal_csv(src, s.filter_rows)
+        modes = (("recommended", FirmwareConfig()), ("paper", paper_config(FirmwareConfig())))
+        for mode, cfg in modes:
+            rates = []
+            for _ in range(s.repeat):
+                with (Path(tmp) / "out.csv").open("w", newline="", encoding="utf-8") as fh:
+                    writer = csv.writer(fh, lineterminator="\n")
+                    writer.writerow(OUTPUT_COLUMNS)
+                    t0 = time.perf_counter()
+                    summary = filter_signal_csv(src, False, cfg, writer)
+                    fh.flush()
+                    wall = time.perf_counter() - t0
+                rates.append(summary.samples / wall)
+            row = _median_spread(rates)
+            row.update(mode=mode, rows=summary.samples)
+            rows.append(row)
+    return rows
+
+
+# ------------------------------------------------------------------------- memory
+def bench_memory(s: BenchSettings, scenario: str = "misalignment") -> dict[str, Any]:
+    """RSS before, during and after one long lockstep run with BLF logging (after a
+    short warm-up run of the same kind).
+
+    The RSS is sampled every simulated second from the run's ``stop_requested`` hook
+    (polled once per cycle, outside the cycle's work).  Besides the growth over the
+    whole run, the slope over its second half (least squares) is reported: the first
+    seconds include one-off growth (allocator arenas, caches) that does not repeat.
+    """
+    sc = load_scenario(scenario)
+    every = 1000  # cycles between RSS samples (1 s at 1 kHz)
+    calls = 0
+    samples: list[tuple[int, int]] = []
+
+    def sample_rss() -> bool:
+        nonlocal calls
+        if calls % every == 0:
+            samples.append((calls, _rss_bytes()))
+        calls += 1
+        return False
+
+    with tempfile.TemporaryDirectory() as tmp:
+        warm = min(1.0, s.memory_duration_s)
+        run_lockstep(sc, duration_s=warm, trace=Path(tmp) / "warm.blf", evaluate=False)
+        gc.collect()
+        before = _rss_bytes()
+        r = run_lockstep(
+            sc,
+            duration_s=s.memory_duration_s,
+            trace=Path(tmp) / "mem.blf",
+            evaluate=False,
+            stop_requested=sample_rss,
+        )
+        gc.collect()
+        after = _rss_bytes()
+        trace_bytes = (Path(tmp) / "mem.blf").stat().st_size
+    growth = (after - before) / 2**20
+    minutes = r.simulated_s / 60.0
+    Ts = r.sample_period_s
+    half = [(k * Ts / 60.0, b / 2**20) for k, b in samples if k >= len(samples) * every / 2]
+    if len(half) >= 3:
+        slope = float(np.polyfit([m for m, _ in half], [b for _, b in half], 1)[0])
+    else:
+        slope = growth / minutes if minutes > 0 else math.nan
+    return {
+        "scenario": scenario,
+        "logging": "blf",
+        "simulated_s": r.simulated_s,
+        "wall_s": r.wall_s,
+        "real_time_factor": r.real_time_factor,
+        "frames": r.frames_total,
+        "trace_MB": trace_bytes / 2**20,
+        "rss_before_MB": before / 2**20,
+        "rss_after_MB": after / 2**20,
+        "rss_growth_MB": growth,
+        "rss_growth_MB_per_sim_minute": growth / minutes if minutes > 0 else math.nan,
+        "rss_slope_second_half_MB_per_sim_minute": slope,
+        "rss_growth_MB_per_sim_hour_extrapolated": 60.0 * slope,
+        "rss_samples": len(samples),
     }
-    return {"started": started, "python": sys.version.split()[0], "results": results}
+
+
+# ------------------------------------------------------------------------- report
+def run_benchmarks(
+    duration_s: float = 10.0, repeat: int = 3, quick: bool = False
+) -> dict[str, Any]:
+    """Every section; ``quick`` shrinks them (``duration_s`` / ``repeat`` still apply)."""
+    s = BenchSettings.quick(duration_s, repeat) if quick else BenchSettings.full(duration_s, repeat)
+    started = time.strftime("%Y-%m-%d %H:%M:%S")
+    wall0 = time.perf_counter()
+    lockstep = bench_lockstep_all(s)
+    stages = bench_stages(s)
+    filt = bench_filter(s)
+    memory = bench_memory(s)
+    memory["peak_rss_MB"] = _peak_rss_bytes() / 2**20
+    return {
+        "started": started,
+        "mode": s.mode,
+        "machine": machine_facts(),
+        "settings": {
+            "duration_s": s.duration_s,
+            "repeat": s.repeat,
+            "virtual_duration_s": s.virtual_duration_s,
+            "stage_calls": s.stage_calls,
+            "filter_rows": s.filter_rows,
+            "memory_duration_s": s.memory_duration_s,
+        },
+        "lockstep": lockstep,
+        "stages": stages,
+        "filter": filt,
+        "memory": memory,
+        "wall_s": time.perf_counter() - wall0,
+    }
+
+
+def _table(header: Sequence[str], rows: list[Sequence[str]], right: Sequence[bool]) -> list[str]:
+    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(header)]
+
+    def line(cells: Sequence[str]) -> str:
+        return "| " + " | ".join(
+            c.rjust(w) if r else c.ljust(w) for c, w, r in zip(cells, widths, right, strict=True)
+        ) + " |"  # fmt: skip
+
+    rule = "| " + " | ".join(("-" * (w - 1) + ":") if r else "-" * w
+                              for w, r in zip(widths, right, strict=True)) + " |"  # fmt: skip
+    return [line(header), rule, *(line(r) for r in rows)]
 
 
 def format_bench(report: dict[str, Any]) -> str:
-    lines = [f"hdhil bench ({report['started']}, Python {report['python']}; medians)"]
-    for name, r in report["results"].items():
-        lines.append(
-            f"  {name:<36} {r['median']:6.1f}x real time  "
-            f"({r['us_per_cycle']:.0f} us/cycle; min {r['min']:.1f}x, max {r['max']:.1f}x, "
-            f"{r['runs']} runs of {r['duration_s']:g} s)"
-        )
+    m, st = report["machine"], report["settings"]
+    lines = [
+        f"hdhil bench ({report['mode']} run, {report['started']}, {report['wall_s']:.0f} s)",
+        f"machine: {m['cpu']}, {m['cores']} cores ({m['cores_usable']} usable), "
+        f"{m['implementation']} {m['python']}, {m['platform']}",
+        "",
+        f"Lockstep real-time factor (simulated s per wall s; median of {st['repeat']} runs of "
+        f"{st['duration_s']:g} s, virtual bus {st['virtual_duration_s']:g} s)",
+    ]
+    rows = [
+        [
+            r["scenario"],
+            r["model"],
+            f"{r['filter_mode']} ({r['filter_states']} st.)",
+            "BLF" if r["logging"] else "off",
+            r["interface"],
+            f"{r['median']:.1f}x",
+            f"{r['min']:.1f}-{r['max']:.1f}x",
+            f"{r['us_per_cycle']:.0f}",
+            f"{r['frames_per_cycle']:.1f}",
+        ]
+        for r in report["lockstep"]
+    ]
+    lines += _table(
+        ["scenario", "model", "filter", "log", "bus", "RTF", "min-max", "us/cycle", "frames/cycle"],
+        rows,
+        [False] * 5 + [True] * 4,
+    )
+    stg = report["stages"]
+    lines += [
+        "",
+        f"Firmware compute per call ({st['stage_calls']} calls on recorded closed-loop "
+        f"inputs; includes {stg['timer_overhead_us'] * 1e3:.0f} ns timer overhead)",
+    ]
+    rows = [
+        [r["stage"], r["config"], f"{r['median_us']:.2f}", f"{r['p99_us']:.2f}"]
+        for r in stg["rows"]
+    ]
+    lines += _table(["stage", "config", "median us", "p99 us"], rows, [False, False, True, True])
+    lines += [
+        "",
+        f"Offline `hdhil filter` (signal CSV, {st['filter_rows']} rows, read + filter + write)",
+    ]
+    rows = [
+        [r["mode"], f"{r['median']:,.0f}", f"{r['min']:,.0f}-{r['max']:,.0f}", str(r["runs"])]
+        for r in report["filter"]
+    ]
+    lines += _table(["mode", "samples/s", "min-max", "runs"], rows, [False, True, True, True])
+    mem = report["memory"]
+    lines += ["", "Memory"]
+    rows = [
+        ["peak RSS (ru_maxrss, whole benchmark)", f"{mem['peak_rss_MB']:.1f} MB"],
+        [
+            f"RSS growth over a {mem['simulated_s']:g} s {mem['scenario']} run, BLF logging "
+            f"({mem['frames']} frames, {mem['trace_MB']:.1f} MB trace, "
+            f"{mem['real_time_factor']:.1f}x)",
+            f"{mem['rss_growth_MB']:+.2f} MB ({mem['rss_before_MB']:.1f} -> "
+            f"{mem['rss_after_MB']:.1f} MB)",
+        ],
+        ["  per simulated minute, whole run", f"{mem['rss_growth_MB_per_sim_minute']:+.2f} MB"],
+        [
+            "  per simulated minute, second half (least squares)",
+            f"{mem['rss_slope_second_half_MB_per_sim_minute']:+.2f} MB",
+        ],
+        [
+            "  second-half slope extrapolated to 1 h (goal < 20 MB)",
+            f"{mem['rss_growth_MB_per_sim_hour_extrapolated']:+.1f} MB",
+        ],
+    ]
+    lines += _table(["figure", "value"], rows, [False, True])
     return "\n".join(lines)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="measure throughput (real-time factors, medians)")
-    p.add_argument("--duration", type=float, default=10.0, help="simulated seconds per run")
-    p.add_argument("--repeat", type=int, default=3, help="runs per figure (median reported)")
+    p = sub.add_parser(
+        "bench", help="measure throughput, per-stage compute time and memory (medians)"
+    )
+    p.add_argument(
+        "--duration", type=float, default=None,
+        help="simulated seconds per lockstep run (default 10, --quick 0.3)",
+    )  # fmt: skip
+    p.add_argument(
+        "--repeat", type=int, default=None,
+        help="runs per figure, median reported (default 3, --quick 1)",
+    )  # fmt: skip
+    p.add_argument("--quick", action="store_true", help="a short version of every section (CI)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=run)
 
@@ -90,9 +601,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from hdhil.cli import UserError
 
-    if args.duration <= 0 or args.repeat < 1:
+    quick = bool(getattr(args, "quick", False))
+    duration = args.duration if args.duration is not None else (0.3 if quick else 10.0)
+    repeat = args.repeat if args.repeat is not None else (1 if quick else 3)
+    if not duration > 0 or repeat < 1:
         raise UserError("--duration must be > 0 and --repeat >= 1")
-    report = run_benchmarks(args.duration, args.repeat)
+    report = run_benchmarks(duration, repeat, quick=quick)
     if args.json:
         json.dump(report, sys.stdout, indent=2)
         print()

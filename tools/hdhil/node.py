@@ -2,8 +2,10 @@
 
 A node registers a handler per ``(frame_id, is_extended_id)``.  Frames of the bus's DBC
 that are not addressed to it are ignored; anything else (an identifier the DBC does not
-know) is counted in ``unknown_frames``.  Nodes only ever use the python-can ``BusABC``
-API, so they run on ``simbus``, ``virtual``, SocketCAN or a real adapter alike.
+know) is counted in ``unknown_frames``.  Error frames are never data: they are counted in
+``error_frames`` and go to no handler, whatever identifier they carry.  Nodes only ever
+use the python-can ``BusABC`` API, so they run on ``simbus``, ``virtual``, SocketCAN or
+a real adapter alike.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ class CanNode:
     def __init__(self, bus: can.BusABC, bus_name: BusName = "control") -> None:
         self.bus = bus
         self.unknown_frames: dict[int, int] = {}
+        self.error_frames = 0
         self._known = known_frames(bus_name)
         self._handlers: dict[tuple[int, bool], Handler] = {}
 
@@ -31,11 +34,14 @@ class CanNode:
         self._handlers[(frame_id, extended)] = handler
 
     def on_message(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self.error_frames += 1
+            return
         key = (msg.arbitration_id, msg.is_extended_id)
         handler = self._handlers.get(key)
         if handler is not None:
             handler(msg)
-        elif key not in self._known and not msg.is_error_frame:
+        elif key not in self._known:
             self.unknown_frames[msg.arbitration_id] = (
                 self.unknown_frames.get(msg.arbitration_id, 0) + 1
             )

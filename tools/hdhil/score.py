@@ -55,6 +55,7 @@ class TorqueScorer(can.Listener):
         self.block_rms: list[float] = []
         self._block_sum = 0.0
         self._block_n = 0
+        self._block_start: float | None = None
         self._block_end = block_s
         tele = codec("control", "CTRL_TPDO1")
         truth = codec("truth", "TRUTH_TORQUE")
@@ -93,10 +94,13 @@ class TorqueScorer(can.Listener):
             self._sum_filt2 += e_filt * e_filt
             self._max_raw = max(self._max_raw, abs(e_raw))
             self._max_filt = max(self._max_filt, abs(e_filt))
-            if msg.timestamp >= self._block_end:
+            if self._block_start is None:  # blocks count from the first scored frame
+                self._block_start = msg.timestamp
+                self._block_end = msg.timestamp + self.block_s
+            elif msg.timestamp >= self._block_end:
                 self._close_block()
-                while msg.timestamp >= self._block_end:
-                    self._block_end += self.block_s
+                passed = (msg.timestamp - self._block_start) // self.block_s
+                self._block_end = self._block_start + (passed + 1) * self.block_s
             self._block_sum += e_filt * e_filt
             self._block_n += 1
 
