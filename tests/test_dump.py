@@ -637,3 +637,31 @@ def test_decode_frame_api():
     frame = dump.classify_frame(truth_on_control)
     assert frame.kind is dump.FrameKind.DECODED and frame.on_wrong_bus
     assert "WRONG BUS" in dump.default_decoder().describe(frame)
+
+
+def test_stats_report_actual_load_and_cycle_counter_gaps(tmp_path, capsys):
+    """A run's trace with frames removed: the counters' gaps show exactly what is missing."""
+    from hdhil.run import run_lockstep
+    from hostsim.scenario import load_scenario
+
+    full = tmp_path / "full.blf"
+    run_lockstep(load_scenario("free-motion"), duration_s=0.5, trace=full, evaluate=False)
+    with can.LogReader(str(full)) as reader:
+        frames = list(reader)
+    syncs = [i for i, m in enumerate(frames) if m.arbitration_id == 0x080 and not m.is_extended_id]
+    cmds = [i for i, m in enumerate(frames) if m.arbitration_id == 0x202 and not m.is_extended_id]
+    drop = {syncs[100], syncs[101], syncs[300], cmds[50], cmds[51], cmds[52], cmds[400]}
+    cut = tmp_path / "cut.blf"
+    with can.Logger(str(cut)) as writer:
+        for i, m in enumerate(frames):
+            if i not in drop:
+                writer(m)
+    assert main(["dump", str(full), "--stats", "--json"]) == 0
+    clean = json.loads(capsys.readouterr().out)
+    assert main(["dump", str(cut), "--stats", "--json"]) == 0
+    gaps = json.loads(capsys.readouterr().out)["counter_gaps"]
+    assert clean["counter_gaps"]["SYNC.sync_counter"] == {"gaps": 0, "missing": 0, "repeats": 0}
+    assert gaps["SYNC.sync_counter"] == {"gaps": 2, "missing": 3, "repeats": 0}
+    assert gaps["DRIVE_RPDO1.cycle"] == {"gaps": 2, "missing": 4, "repeats": 0}
+    control = clean["buses"]["control"]
+    assert 0 < control["actual_load_percent"] < control["load_percent"]

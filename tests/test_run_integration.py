@@ -200,3 +200,39 @@ def test_run_uses_the_calibrated_gain(tmp_path, capsys):
     # with the calibrated gain the measured torque's error against truth changes.
     assert after["torque"]["rms_error_raw"] != before["torque"]["rms_error_raw"]
     assert main([*args, "--calibration", str(tmp_path / "missing.toml")]) == 2
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".log"])
+def test_sigkill_loses_at_most_the_last_second_of_a_line_based_trace(tmp_path, suffix):
+    """After SIGKILL nothing can flush: what was written 1 s before the kill is all there."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from hdhil.dump import read_trace
+
+    def last_time(path) -> tuple[int, float]:
+        with read_trace(path) as trace:
+            times = [m.timestamp for m in trace]
+        return len(times), times[-1]
+
+    trace = tmp_path / f"killed{suffix}"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "hdhil", "run", "--duration", "600", "--trace", str(trace),
+         "--no-evaluate"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while not trace.exists() or trace.stat().st_size < 100_000:
+            assert time.monotonic() < deadline, "the run never wrote its trace"
+            time.sleep(0.05)
+        before_n, before_t = last_time(trace)
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        proc.kill()
+    after_n, after_t = last_time(trace)
+    assert after_n >= before_n and after_t >= before_t

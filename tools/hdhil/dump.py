@@ -65,8 +65,9 @@ from cantools.database.can import Database
 from cantools.database.can import Message as DbcMessage
 
 from hdhil.busload import LOAD_LIMIT
+from hdhil.canbits import frame_bits
 from hdhil.cli import UserError
-from hdhil.dbc import CHANNEL_NUMBER, database, worst_case_frame_bits
+from hdhil.dbc import CHANNEL_NUMBER, codec, database, worst_case_frame_bits
 
 #: Reader class per (lower-case) file extension.
 READERS: dict[str, type[can.io.generic.MessageReader]] = {
@@ -810,6 +811,7 @@ class _BusStats:
     frames: int = 0
     first: float = math.inf
     last: float = -math.inf
+    actual_bits: int = 0
     unknown_frames: int = 0
     unknown_ids: set[tuple[bool, int]] = field(default_factory=set)
     malformed: int = 0
@@ -837,6 +839,38 @@ class StatsAccumulator:
         self.counts = {kind: 0 for kind in FrameKind}
         self.first = math.inf
         self.last = -math.inf
+        # Cycle counters whose gaps show lost frames: (name, signal index, modulus).
+        self._counters = {
+            (codec("control", "SYNC").frame_id, False): ("SYNC.sync_counter", 0, 240),
+            (codec("control", "DRIVE_RPDO1").frame_id, False): ("DRIVE_RPDO1.cycle", 2, 256),
+        }
+        self._counter_codecs = {key: codec("control", name.split(".")[0])
+                                for key, (name, *_rest) in self._counters.items()}  # fmt: skip
+        self._last_count: dict[str, int] = {}
+        self.gaps: dict[str, dict[str, int]] = {
+            name: {"gaps": 0, "missing": 0, "repeats": 0}
+            for name, *_rest in self._counters.values()
+        }
+
+    def _count(self, frame: DecodedFrame) -> None:
+        key = (frame.arbitration_id, frame.is_extended_id)
+        name, index, modulus = self._counters[key]
+        try:
+            value = int(self._counter_codecs[key].decode(frame.data)[index])
+        except ValueError:
+            return
+        last = self._last_count.get(name)
+        self._last_count[name] = value
+        if last is None:
+            return
+        # Works for both counters: SYNC runs 1..240 and wraps to 1, so (value - last) mod
+        # 240 is 1 across the wrap as well; the command's cycle counter runs mod 256.
+        step = (value - last) % modulus
+        if step == 0:
+            self.gaps[name]["repeats"] += 1
+        elif step != 1:
+            self.gaps[name]["gaps"] += 1
+            self.gaps[name]["missing"] += step - 1
 
     def add(self, frame: DecodedFrame | can.Message) -> None:
         if isinstance(frame, can.Message):
@@ -873,6 +907,11 @@ class StatsAccumulator:
             )
         payload = 0 if frame.kind is FrameKind.REMOTE else len(frame.data)
         stats.add(t, payload, frame.kind is FrameKind.MALFORMED)
+        remote = frame.kind is FrameKind.REMOTE
+        ident = (frame.arbitration_id, frame.is_extended_id)
+        bus.actual_bits += frame_bits(*ident, remote, bytes(frame.data[:8]))
+        if frame.kind is FrameKind.DECODED and ident in self._counters:
+            self._count(frame)
 
     def result(self) -> dict[str, Any]:
         """The statistics as a JSON-ready dict.
@@ -894,6 +933,8 @@ class StatsAccumulator:
 
         ``buses``: per bus label: ``duration`` (s, first to last frame of that bus),
         ``frames``, ``load_percent`` (worst-case load, sum over its identifiers),
+        ``actual_load_percent`` (the frames' exact bits incl. real stuff bits,
+        :mod:`hdhil.canbits`, over the duration),
         ``over_limit`` (load above ``load_limit_percent``), ``unknown_ids`` (distinct),
         ``unknown_frames``, ``malformed``, ``error_frames``, ``remote_frames``.
         """
@@ -936,10 +977,14 @@ class StatsAccumulator:
         for name in sorted(self._buses, key=_bus_sort_key):
             b = self._buses[name]
             load = loads.get(name, 0.0)
+            span = b.last - b.first
             buses[name] = {
-                "duration": b.last - b.first,
+                "duration": span,
                 "frames": b.frames,
                 "load_percent": load,
+                "actual_load_percent": (
+                    b.actual_bits / self.bitrate / span * 100.0 if span > 0 else None
+                ),
                 "over_limit": load > LOAD_LIMIT * 100.0,
                 "unknown_ids": len(b.unknown_ids),
                 "unknown_frames": b.unknown_frames,
@@ -958,6 +1003,9 @@ class StatsAccumulator:
             "duration": self.last - self.first if any_frames else None,
             "ids": ids,
             "buses": buses,
+            # Gaps in the cycle counters (lost frames): per counter, the number of jumps and
+            # of counts missing: SYNC.sync_counter (CiA 301, 1..240), DRIVE_RPDO1.cycle.
+            "counter_gaps": self.gaps,
         }
 
 
@@ -1006,7 +1054,13 @@ def format_stats(stats: Mapping[str, Any]) -> str:
             extras.append(f"remote frames {b['remote_frames']}")
         lines.append(
             f"bus {bus}: {b['duration']:.6f} s, {b['frames']} frames, worst-case load "
-            f"{b['load_percent']:.1f} % of {kbit:g} kbit/s{flag}; {', '.join(extras)}"
+            f"{b['load_percent']:.1f} % of {kbit:g} kbit/s{flag}, actual "
+            f"{_fmt(b.get('actual_load_percent'), '.1f')} %; {', '.join(extras)}"
+        )
+    for counter, g in stats.get("counter_gaps", {}).items():
+        lines.append(
+            f"cycle counter {counter}: {g['gaps']} gaps ({g['missing']} counts missing), "
+            f"{g['repeats']} repeats"
         )
     return "\n".join(lines)
 
