@@ -102,6 +102,7 @@ from scipy.linalg import expm
 
 from hdhil.converter import Converter
 from hdhil.dataconf import check_fields
+from hdhil.faults import SensorHook
 from hostsim.bridge import BridgeConfig, GaugeHysteresis, StrainGaugeBridge
 
 __all__ = [
@@ -819,9 +820,12 @@ class Plant:
     gauges is :attr:`beta` (see there).
     """
 
-    def __init__(self, cfg: PlantConfig, seed: int = 0) -> None:
+    def __init__(self, cfg: PlantConfig, seed: int = 0, faults: SensorHook | None = None) -> None:
         self.cfg = cfg
         self.seed = seed
+        #: Sensor-fault hook (:meth:`hdhil.faults.FaultInjector.sensors`) applied to every
+        #: :meth:`sample`; None = healthy sensors.
+        self.faults = faults
         dt_cfg = cfg.drivetrain
         self._n = dt_cfg.gear_ratio
         self._substeps = cfg.substeps
@@ -1085,6 +1089,9 @@ class Plant:
         blocks of 4096 and scaled by the configured standard deviations.  Every call
         consumes exactly three (torque, tacho, current) even when a deviation is 0, so
         a given seed gives the same noise sequence whatever the noise settings.
+
+        With :attr:`faults` set, the counts then pass through the sensor faults (stuck,
+        saturated, encoder glitches, tacho spikes; :mod:`hdhil.faults`).
         """
         pos = self._noise_pos
         if pos + 3 > len(self._noise):
@@ -1102,7 +1109,11 @@ class Plant:
         tacho_V = self._n * self._wm / s.volt2radps + self._sig_tacho_V * n_tacho
         current_V = self._i / s.current_monitor_A_per_V + self._sig_current_V * n_current
         enc = math.floor(self.theta_motor_unwrapped * self._cpr_per_rad) % ENCODER_MODULUS
-        return to_counts(torque_V), to_counts(tacho_V), to_counts(current_V), enc
+        counts = to_counts(torque_V), to_counts(tacho_V), to_counts(current_V), enc
+        if self.faults is not None:
+            adc = self.cfg.adc
+            return self.faults.apply(self._t, counts, adc.code_min, adc.code_max, adc.lsb_V)
+        return counts
 
     # ------------------------------------------------------------------ truth
     @property

@@ -19,6 +19,10 @@ Layout of a scenario file::
     step_times_s = [1.0, 2.0]
     step_values_Nm = [-1.0, 0.0]
 
+    [faults]                   # optional: injected faults (hdhil.faults.FaultConfig)
+    seed = 3
+    control = { loss_rate = 0.05, jitter_us = 200.0 }
+
     [firmware.reference]       # optional: passed through as a raw dict; the runner
     wave = "step"              # validates it with the firmware's own config class
 
@@ -45,6 +49,7 @@ from pathlib import Path
 from typing import Any
 
 from hdhil.dataconf import ConfigError, from_dict, merge
+from hdhil.faults import FaultConfig
 from hostsim.plant import PlantConfig
 
 if sys.version_info >= (3, 11):
@@ -54,7 +59,7 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 
 __all__ = ["Scenario", "list_scenarios", "load_scenario", "scenario_from_dict"]
 
-_TOP_LEVEL = ("scenario", "plant", "firmware")
+_TOP_LEVEL = ("scenario", "plant", "firmware", "faults")
 
 
 @dataclass(frozen=True)
@@ -76,6 +81,8 @@ class Scenario:
     #: no causal filter can separate from true torque).  The whole-run figure is always
     #: reported too.
     evaluate_from_s: float = 0.0
+    #: Injected faults (the optional ``[faults]`` table); None = a healthy setup.
+    faults: FaultConfig | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip():
@@ -143,6 +150,12 @@ def scenario_from_dict(data: dict[str, Any], source: str = "scenario") -> Scenar
         firmware = data.get("firmware", {})
         if not isinstance(firmware, dict):
             raise ConfigError(f"firmware: expected a table, got {firmware!r}")
+        faults_data = data.get("faults")
+        faults = None
+        if faults_data is not None:
+            if not isinstance(faults_data, dict):
+                raise ConfigError(f"faults: expected a table, got {faults_data!r}")
+            faults = from_dict(FaultConfig, faults_data, "faults")
         return Scenario(
             name=header.name,
             description=header.description,
@@ -151,6 +164,7 @@ def scenario_from_dict(data: dict[str, Any], source: str = "scenario") -> Scenar
             plant=plant,
             firmware=firmware,
             evaluate_from_s=header.evaluate_from_s,
+            faults=faults,
         )
     except ConfigError as exc:
         raise ConfigError(f"{source}: {exc}") from None

@@ -26,6 +26,11 @@ Timing model: frames are serialised on the channel like on a real wire.
 - Requested frames are scheduled when a receiver next polls, so all requests made at
   one instant take part in the arbitration.
 
+``faults``: a :class:`hdhil.faults.ChannelFaults` hook
+(``FaultInjector.channel("control")``) makes the channel lossy, late, noisy
+(:mod:`hdhil.faults`); any bus of the channel may pass it.  Without one the channel keeps
+its fault-free path.
+
 ``trace_channel``: the channel number received frames carry (``msg.channel``), e.g. the
 trace channel of the bus; by default the channel name.
 
@@ -38,12 +43,15 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 
 from hdhil.canbits import frame_bits
 from hdhil.dbc import worst_case_frame_bits
+
+if TYPE_CHECKING:
+    from hdhil.faults import ChannelFaults
 
 
 class SimClock:
@@ -56,8 +64,8 @@ class SimClock:
 
 
 class _Channel:
-    __slots__ = ("bitrate", "buses", "busy_until", "clock", "frames", "label", "lock", "name",
-                 "pending", "seq", "timing")  # fmt: skip
+    __slots__ = ("bitrate", "buses", "busy_until", "clock", "faults", "frames", "label", "lock",
+                 "name", "pending", "seq", "timing")  # fmt: skip
 
     def __init__(self, name: str, clock: SimClock, bitrate: int, label: str | int,
                  timing: str) -> None:  # fmt: skip
@@ -73,6 +81,8 @@ class _Channel:
         # Frames requested but not yet on the wire: (request time, id, sequence, sender, msg).
         self.pending: list[tuple[float, int, int, SimBus, can.Message]] = []
         self.seq = 0
+        #: Fault injection hook (:class:`hdhil.faults.ChannelFaults`); None = a clean link.
+        self.faults: ChannelFaults | None = None
 
     def bits(self, msg: can.Message) -> int:
         length = 0 if msg.is_remote_frame else len(msg.data)
@@ -88,6 +98,9 @@ class _Channel:
         identifier wins arbitration (an extended frame loses to a base frame with the same
         11 leading bits); if none is waiting, the earliest request goes next.
         """
+        if self.faults is not None:
+            self._flush_faulty(self.faults)
+            return
         pending = self.pending
         while pending:
             free = self.busy_until
@@ -112,6 +125,47 @@ class _Channel:
                 if bus is not sender or bus._receive_own:
                     bus._queue.append(msg)
                     bus._last_rx = end
+                    if bus._waiting:
+                        bus._ready.notify()
+
+    def _next(self) -> tuple[float, tuple[float, int, int, SimBus, can.Message]]:
+        pending = self.pending
+        free = self.busy_until
+        ready = [p for p in pending if p[0] <= free]
+        if ready:
+            item = min(ready, key=_arbitration_key)
+            start = free
+        else:
+            item = min(pending, key=_request_key)
+            start = item[0]
+        pending.remove(item)
+        return start, item
+
+    def _flush_faulty(self, faults: ChannelFaults) -> None:
+        """:meth:`flush` through the fault hook: frames of a silent/bus-off sender never
+        reach the wire; the others may be lost, delayed, duplicated, reordered,
+        corrupted, resized or followed by an error frame.  Deliveries of one flush go
+        out in timestamp order."""
+        out: list[tuple[float, int, SimBus, can.Message]] = []
+        n = 0
+        while self.pending:
+            start, (_, _, _, sender, msg) = self._next()
+            if faults.blocked(msg, start):
+                continue
+            frame_s = self.bits(msg) / self.bitrate if self.timing != "none" else 0.0
+            end = start + frame_s
+            self.frames += 1
+            delivered, self.busy_until = faults.transmit(msg, end, frame_s)
+            for m in delivered:
+                out.append((m.timestamp, n, sender, m))
+                n += 1
+        out.sort(key=lambda d: (d[0], d[1]))
+        for t, _, sender, msg in out:
+            for bus in self.buses:
+                if bus is not sender or bus._receive_own:
+                    bus._queue.append(msg)
+                    if t > bus._last_rx:
+                        bus._last_rx = t
                     if bus._waiting:
                         bus._ready.notify()
 
@@ -144,6 +198,7 @@ class SimBus(can.BusABC):
         clock: SimClock | None = None,
         trace_channel: int | None = None,
         timing: str = "exact",
+        faults: ChannelFaults | None = None,
         **kwargs: Any,
     ) -> None:
         name = str(channel)
@@ -161,6 +216,10 @@ class SimBus(can.BusABC):
                 _channels[name] = ch
             elif clock is not None and clock is not ch.clock:
                 raise ValueError(f"simbus channel {name!r} already runs on another clock")
+            if faults is not None:
+                if ch.faults is not None and ch.faults is not faults:
+                    raise ValueError(f"simbus channel {name!r} already has other faults")
+                ch.faults = faults
             ch.buses.append(self)
         self._ch = ch
         self._queue: deque[can.Message] = deque()

@@ -1,0 +1,449 @@
+"""Fault injection: a lossy, late, noisy CAN link and misbehaving sensors, reproducibly.
+
+A :class:`FaultConfig` (frozen dataclasses, the ``[faults]`` table of a scenario, built
+with :func:`hdhil.dataconf.from_dict`) describes what goes wrong; a :class:`FaultInjector`
+makes it happen from a seed and records every fault in a :class:`FaultLog`::
+
+    injector = FaultInjector(from_dict(FaultConfig, {"control": {"loss_rate": 0.05}}))
+    bus = can.Bus(interface="simbus", channel="control", clock=clock,
+                  faults=injector.channel("control"))
+    plant = Plant(cfg, seed, faults=injector.sensors())
+    ...
+    injector.summary()  # {"loss": 97, ...}
+
+Bus faults act inside :meth:`hdhil.simbus._Channel.flush`, so every node sees them
+exactly as it would see a bad link; sensor faults act at the end of
+:meth:`hostsim.plant.Plant.sample`.  ``channel()``/``sensors()`` return ``None`` when
+nothing is configured, and the bus and plant keep their fault-free fast path.
+
+Timing model of the bus faults (the simulated bus delivers a frame, timestamped at the
+end of its transmission, as soon as a receiver polls):
+
+- ``loss_rate`` / bursts: the frame goes on the wire (it takes its time) but no node
+  receives it.
+- ``silence`` / ``bus_off``: the node's frames never reach the wire (no wire time).
+  A sender is identified by the COB-IDs it transmits: ``node = n`` stands for the
+  CANopen identifiers of node n (EMCY/TPDO1-4/SDO response/heartbeat: 0x080+n, 0x180+n,
+  0x280+n, 0x380+n, 0x480+n, 0x580+n, 0x700+n); ``ids`` lists identifiers explicitly
+  (e.g. the controller's SYNC 0x080 and its RPDOs).
+- ``delay_us`` + uniform ``jitter_us``: added to the delivery timestamp (and so to the
+  time a receiver may answer); deliveries scheduled by one flush are handed out in
+  timestamp order, so a jittered frame can be overtaken.
+- ``duplicate_rate``: the frame is sent twice (the copy takes wire time again).
+- ``reorder_rate``: the frame is held back and delivered right after the next frame of
+  the channel (the two swap timestamps, so receive times stay monotonic).
+- ``corrupt_rate``: one random payload bit flipped (an error the CRC missed);
+  ``dlc_rate``: the payload truncated or extended by 1-8 bytes (random bytes);
+  ``error_frame_rate``: a python-can error frame follows the frame.
+
+Every fault is one :class:`FaultRecord` in the log; nothing is injected unrecorded.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import random
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any, Literal
+
+import can
+
+__all__ = [
+    "BusFaults",
+    "ChannelFaults",
+    "FaultConfig",
+    "FaultInjector",
+    "FaultLog",
+    "FaultRecord",
+    "NodeWindow",
+    "SensorFaults",
+    "SensorHook",
+    "SensorWindow",
+    "node_ids",
+]
+
+#: Function codes a CANopen node transmits with its node-ID added (EMCY, TPDO1-4, SDO
+#: response, heartbeat).
+_NODE_FUNCTIONS = (0x080, 0x180, 0x280, 0x380, 0x480, 0x580, 0x700)
+
+
+def node_ids(node: int) -> frozenset[int]:
+    """The COB-IDs CANopen node ``node`` transmits (its default communication objects)."""
+    return frozenset(base + node for base in _NODE_FUNCTIONS)
+
+
+def _rate(obj: object, name: str) -> None:
+    value = getattr(obj, name)
+    if not (isinstance(value, (int, float)) and 0.0 <= value <= 1.0):
+        raise ValueError(f"{type(obj).__name__}.{name} must be a probability in [0, 1], "
+                         f"got {value!r}")  # fmt: skip
+
+
+def _nonneg(obj: object, name: str, allow_inf: bool = False) -> None:
+    value = getattr(obj, name)
+    ok = isinstance(value, (int, float)) and value >= 0
+    if ok and not allow_inf:
+        ok = math.isfinite(value)
+    if not ok:
+        raise ValueError(f"{type(obj).__name__}.{name} must be >= 0, got {value!r}")
+
+
+@dataclass(frozen=True)
+class NodeWindow:
+    """A node that stops transmitting: from ``start_s`` for ``duration_s`` (``inf`` =
+    for good).  The node is ``node`` (its CANopen COB-IDs) and/or the ``ids`` listed."""
+
+    start_s: float
+    duration_s: float = math.inf
+    node: int = 0
+    ids: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        _nonneg(self, "start_s")
+        _nonneg(self, "duration_s", allow_inf=True)
+        if not 0 <= self.node <= 127:
+            raise ValueError(
+                f"NodeWindow.node must be a node-ID 1..127 (0 = none), got {self.node}"
+            )
+        if self.node == 0 and not self.ids:
+            raise ValueError("NodeWindow needs a node or ids")
+        for i in self.ids:
+            if not 0 <= i < (1 << 29):
+                raise ValueError(f"NodeWindow.ids: not a CAN identifier: {i!r}")
+
+    @property
+    def cob_ids(self) -> frozenset[int]:
+        return (node_ids(self.node) if self.node else frozenset()) | frozenset(self.ids)
+
+    def active(self, t: float) -> bool:
+        return self.start_s <= t < self.start_s + self.duration_s
+
+
+@dataclass(frozen=True)
+class BusFaults:
+    """What goes wrong on one CAN channel (see the module docstring for the model)."""
+
+    loss_rate: float = 0.0
+    burst_every_s: float = 0.0
+    burst_len_frames: int = 0
+    delay_us: float = 0.0
+    jitter_us: float = 0.0
+    duplicate_rate: float = 0.0
+    reorder_rate: float = 0.0
+    corrupt_rate: float = 0.0
+    dlc_rate: float = 0.0
+    error_frame_rate: float = 0.0
+    silence: tuple[NodeWindow, ...] = ()
+    bus_off: tuple[NodeWindow, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in ("loss_rate", "duplicate_rate", "reorder_rate", "corrupt_rate",
+                     "dlc_rate", "error_frame_rate"):  # fmt: skip
+            _rate(self, name)
+        for name in ("burst_every_s", "delay_us", "jitter_us"):
+            _nonneg(self, name)
+        _nonneg(self, "burst_len_frames")
+        if (self.burst_every_s > 0) != (self.burst_len_frames > 0):
+            raise ValueError("BusFaults.burst_len_frames and burst_every_s go together "
+                             "(both > 0 or both 0)")  # fmt: skip
+
+    @property
+    def enabled(self) -> bool:
+        return self != BusFaults()
+
+
+SensorChannel = Literal["torque", "tacho", "current", "encoder"]
+_SENSOR_INDEX = {"torque": 0, "tacho": 1, "current": 2, "encoder": 3}
+
+
+@dataclass(frozen=True)
+class SensorWindow:
+    """A sensor channel misbehaving from ``start_s`` for ``duration_s``.  ``level`` is
+    for saturation only: the top (``max``) or bottom (``min``) code."""
+
+    channel: SensorChannel
+    start_s: float
+    duration_s: float = math.inf
+    level: Literal["max", "min"] = "max"
+
+    def __post_init__(self) -> None:
+        if self.channel not in _SENSOR_INDEX:
+            raise ValueError(f"SensorWindow.channel must be one of {list(_SENSOR_INDEX)}, "
+                             f"got {self.channel!r}")  # fmt: skip
+        _nonneg(self, "start_s")
+        _nonneg(self, "duration_s", allow_inf=True)
+
+    def active(self, t: float) -> bool:
+        return self.start_s <= t < self.start_s + self.duration_s
+
+
+@dataclass(frozen=True)
+class SensorFaults:
+    """Faults of the drive's sensors, applied to :meth:`hostsim.plant.Plant.sample`.
+
+    ``stuck``: the channel holds the count it had when the fault began.  ``saturated``:
+    the analog channel reads the converter's code limit (the encoder has none: not
+    allowed).  ``encoder_glitch_rate`` (per sample): the count jumps by
+    ``±encoder_glitch_counts`` (persistently, a lost/gained count burst).
+    ``tacho_spike_rate`` (per sample): ``tacho_spike_V`` (random sign) added to one
+    tacho sample.
+    """
+
+    stuck: tuple[SensorWindow, ...] = ()
+    saturated: tuple[SensorWindow, ...] = ()
+    encoder_glitch_rate: float = 0.0
+    encoder_glitch_counts: int = 0
+    tacho_spike_rate: float = 0.0
+    tacho_spike_V: float = 0.0
+
+    def __post_init__(self) -> None:
+        _rate(self, "encoder_glitch_rate")
+        _rate(self, "tacho_spike_rate")
+        _nonneg(self, "encoder_glitch_counts")
+        _nonneg(self, "tacho_spike_V")
+        for w in self.saturated:
+            if w.channel == "encoder":
+                raise ValueError("SensorFaults.saturated: the encoder has no code limit")
+
+    @property
+    def enabled(self) -> bool:
+        return self != SensorFaults()
+
+
+@dataclass(frozen=True)
+class FaultConfig:
+    """All injected faults of a run (the ``[faults]`` table); ``seed`` makes them
+    reproducible: the same seed gives the same faults at the same frames."""
+
+    seed: int = 0
+    control: BusFaults = field(default_factory=BusFaults)
+    truth: BusFaults = field(default_factory=BusFaults)
+    sensors: SensorFaults = field(default_factory=SensorFaults)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"FaultConfig.seed must be an integer >= 0, got {self.seed!r}")
+
+    @property
+    def enabled(self) -> bool:
+        return self.control.enabled or self.truth.enabled or self.sensors.enabled
+
+
+@dataclass(frozen=True)
+class FaultRecord:
+    """One injected fault: simulated time, channel (or ``plant``), kind, frame ID
+    (``None`` for sensor faults) and details."""
+
+    time: float
+    channel: str
+    kind: str
+    frame_id: int | None
+    details: dict[str, Any]
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"time": self.time, "channel": self.channel, "kind": self.kind,
+                "frame_id": self.frame_id, "details": self.details}  # fmt: skip
+
+
+class FaultLog:
+    """Every injected fault, in memory (``records``) and optionally as JSON lines."""
+
+    def __init__(self, path: str | Path | None = None, keep: bool = True) -> None:
+        self.records: list[FaultRecord] = []
+        self.counts: Counter[str] = Counter()
+        self._keep = keep
+        self._fh: IO[str] | None = (
+            Path(path).open("w", encoding="utf-8") if path is not None else None  # noqa: SIM115
+        )
+
+    def record(self, time: float, channel: str, kind: str, frame_id: int | None,
+               **details: Any) -> None:  # fmt: skip
+        rec = FaultRecord(time, channel, kind, frame_id, details)
+        self.counts[kind] += 1
+        if self._keep:
+            self.records.append(rec)
+        if self._fh is not None:
+            self._fh.write(json.dumps(rec.as_dict(), sort_keys=True) + "\n")
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+
+def _rng(seed: int, where: str, kind: str) -> random.Random:
+    # One generator per channel and kind: enabling one fault does not move another's.
+    return random.Random(f"hdhil-faults:{seed}:{where}:{kind}")
+
+
+class ChannelFaults:
+    """The bus-fault hook of one simbus channel (``SimBus(..., faults=...)``)."""
+
+    def __init__(self, cfg: BusFaults, name: str, seed: int, log: FaultLog) -> None:
+        self.cfg = cfg
+        self.name = name
+        self.log = log
+        r = {k: _rng(seed, name, k) for k in ("loss", "delay", "duplicate", "reorder",
+                                               "corrupt", "dlc", "error_frame")}  # fmt: skip
+        self._r = r
+        self._next_burst = cfg.burst_every_s if cfg.burst_len_frames else math.inf
+        self._burst_left = 0
+        self._silence = [(w, w.cob_ids) for w in cfg.silence]
+        self._bus_off = [(w, w.cob_ids) for w in cfg.bus_off]
+        self._held: can.Message | None = None  # a frame waiting to be reordered
+
+    def blocked(self, msg: can.Message, t: float) -> bool:
+        """True when the sender of ``msg`` is silent or bus-off at ``t`` (frame dropped
+        before the wire; logged)."""
+        for kind, windows in (("silence", self._silence), ("bus_off", self._bus_off)):
+            for w, ids in windows:
+                if msg.arbitration_id in ids and w.active(t):
+                    self.log.record(t, self.name, kind, msg.arbitration_id)
+                    return True
+        return False
+
+    def transmit(self, msg: can.Message, end: float, frame_s: float
+                 ) -> tuple[list[can.Message], float]:  # fmt: skip
+        """The frames receivers get for ``msg`` sent on the wire until ``end`` (each
+        with its delivery timestamp), and the time the wire is busy until."""
+        cfg, r, log, name = self.cfg, self._r, self.log, self.name
+        fid = msg.arbitration_id
+        busy = end
+        if cfg.burst_len_frames:
+            if end >= self._next_burst:
+                self._burst_left = cfg.burst_len_frames
+                while self._next_burst <= end:
+                    self._next_burst += cfg.burst_every_s
+            if self._burst_left:
+                self._burst_left -= 1
+                log.record(end, name, "burst_loss", fid)
+                return [], busy
+        if cfg.loss_rate and r["loss"].random() < cfg.loss_rate:
+            log.record(end, name, "loss", fid)
+            return [], busy
+        if cfg.corrupt_rate and r["corrupt"].random() < cfg.corrupt_rate and msg.data:
+            data = bytearray(msg.data)
+            bit = r["corrupt"].randrange(8 * len(data))
+            data[bit >> 3] ^= 1 << (bit & 7)
+            log.record(end, name, "corrupt", fid, bit=bit)
+            msg = _copy(msg, bytes(data))
+        if cfg.dlc_rate and r["dlc"].random() < cfg.dlc_rate:
+            n = len(msg.data)
+            choices = [k for k in range(9) if k != n]
+            k = r["dlc"].choice(choices)
+            data = bytes(msg.data[:k]) + bytes(r["dlc"].randrange(256) for _ in range(k - n))
+            log.record(end, name, "wrong_dlc", fid, dlc=n, new_dlc=k)
+            msg = _copy(msg, data)
+        if cfg.delay_us or cfg.jitter_us:
+            extra = (cfg.delay_us + cfg.jitter_us * r["delay"].random()) * 1e-6
+            if extra > 0:
+                log.record(end, name, "delay", fid, delay_us=extra * 1e6)
+                end += extra
+        msg.timestamp = end
+        out = [msg]
+        if cfg.duplicate_rate and r["duplicate"].random() < cfg.duplicate_rate:
+            dup = _copy(msg, bytes(msg.data))
+            busy += frame_s
+            dup.timestamp = end + frame_s
+            log.record(end, name, "duplicate", fid)
+            out.append(dup)
+        if cfg.error_frame_rate and r["error_frame"].random() < cfg.error_frame_rate:
+            err = can.Message(is_error_frame=True, arbitration_id=0, dlc=0, channel=msg.channel,
+                              is_rx=True, timestamp=out[-1].timestamp, check=False)  # fmt: skip
+            log.record(end, name, "error_frame", fid)
+            out.append(err)
+        if cfg.reorder_rate:
+            held = self._held
+            if held is not None:
+                # The held frame comes after this one: swap their stamps.
+                self._held = None
+                held.timestamp, out[0].timestamp = out[0].timestamp, held.timestamp
+                out.insert(1, held)
+            elif r["reorder"].random() < cfg.reorder_rate:
+                self._held = out.pop(0)
+                log.record(end, name, "reorder", fid)
+        return out, busy
+
+
+def _copy(msg: can.Message, data: bytes) -> can.Message:
+    return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+                       is_remote_frame=msg.is_remote_frame, dlc=len(data), data=data,
+                       channel=msg.channel, is_rx=True, timestamp=msg.timestamp,
+                       check=False)  # fmt: skip
+
+
+class SensorHook:
+    """The sensor-fault hook of a plant (``Plant(..., faults=...)``)."""
+
+    def __init__(self, cfg: SensorFaults, seed: int, log: FaultLog) -> None:
+        self.cfg = cfg
+        self.log = log
+        self._r_enc = _rng(seed, "plant", "encoder_glitch")
+        self._r_tacho = _rng(seed, "plant", "tacho_spike")
+        self._held: dict[int, int] = {}  # stuck windows (index) -> held count
+        self._enc_offset = 0
+
+    def apply(self, t: float, sample: tuple[int, int, int, int], code_min: int, code_max: int,
+              lsb_V: float) -> tuple[int, int, int, int]:  # fmt: skip
+        cfg, log = self.cfg, self.log
+        out = list(sample)
+        if cfg.encoder_glitch_rate and self._r_enc.random() < cfg.encoder_glitch_rate:
+            jump = cfg.encoder_glitch_counts * (1 if self._r_enc.random() < 0.5 else -1)
+            self._enc_offset += jump
+            log.record(t, "plant", "encoder_glitch", None, counts=jump)
+        if self._enc_offset:
+            out[3] = (out[3] + self._enc_offset) % 65536
+        if cfg.tacho_spike_rate and self._r_tacho.random() < cfg.tacho_spike_rate:
+            spike = cfg.tacho_spike_V * (1 if self._r_tacho.random() < 0.5 else -1)
+            out[1] = min(code_max, max(code_min, out[1] + round(spike / lsb_V)))
+            log.record(t, "plant", "tacho_spike", None, volts=spike)
+        for w in cfg.saturated:
+            if w.active(t):
+                i = _SENSOR_INDEX[w.channel]
+                out[i] = code_max if w.level == "max" else code_min
+                log.record(t, "plant", "saturated", None, sensor=w.channel, count=out[i])
+        for k, w in enumerate(cfg.stuck):
+            i = _SENSOR_INDEX[w.channel]
+            if w.active(t):
+                held = self._held.setdefault(k, out[i])
+                out[i] = held
+                log.record(t, "plant", "stuck", None, sensor=w.channel, count=held)
+            else:
+                self._held.pop(k, None)
+        return out[0], out[1], out[2], out[3]
+
+
+class FaultInjector:
+    """Builds the hooks of a :class:`FaultConfig` and keeps their common log."""
+
+    def __init__(self, config: FaultConfig, log: FaultLog | None = None) -> None:
+        self.config = config
+        self.log = log if log is not None else FaultLog()
+        self._channels: dict[str, ChannelFaults] = {}
+        self._sensors: SensorHook | None = None
+
+    def channel(self, role: Literal["control", "truth"]) -> ChannelFaults | None:
+        """The hook for the ``control`` or ``truth`` channel; None without faults there.
+        Every bus of the channel may pass it (it is the same object)."""
+        cfg: BusFaults = getattr(self.config, role)
+        if not cfg.enabled:
+            return None
+        hook = self._channels.get(role)
+        if hook is None:
+            hook = self._channels[role] = ChannelFaults(cfg, role, self.config.seed, self.log)
+        return hook
+
+    def sensors(self) -> SensorHook | None:
+        """The plant's sensor-fault hook; None without sensor faults."""
+        if not self.config.sensors.enabled:
+            return None
+        if self._sensors is None:
+            self._sensors = SensorHook(self.config.sensors, self.config.seed, self.log)
+        return self._sensors
+
+    def summary(self) -> dict[str, int]:
+        """Injected faults per kind."""
+        return dict(sorted(self.log.counts.items()))
