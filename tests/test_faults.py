@@ -327,3 +327,22 @@ def test_free_motion_with_5_percent_loss_and_200us_jitter(monkeypatch):
     again, inj2 = _lockstep(monkeypatch, lossy, seed=0)
     assert again.torque == r.torque and inj2.summary() == s  # bit-identical
     assert [x.as_dict() for x in inj2.log.records] == [x.as_dict() for x in inj.log.records]
+
+
+def test_run_cli_injects_faults_from_an_override_and_logs_them(tmp_path, capsys):
+    """hdhil run --override FILE with a [faults] table: faults act, are logged and counted."""
+    import json
+
+    from hdhil.cli import main
+
+    faults = tmp_path / "lossy.toml"
+    faults.write_text("[faults]\nseed = 3\n[faults.control]\nloss_rate = 0.05\njitter_us = 200.0\n")
+    log = tmp_path / "faults.jsonl"
+    args = ["run", "--duration", "0.5", "--trace", "", "--no-evaluate", "--json"]
+    assert main([*args, "--override", str(faults), "--fault-log", str(log)]) == 0
+    lossy = json.loads(capsys.readouterr().out)
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    assert lossy["faults"]["loss"] > 0 and lossy["faults"]["delay"] > 0
+    assert len(records) == sum(lossy["faults"].values())
+    assert main(args) == 0
+    assert json.loads(capsys.readouterr().out)["faults"] is None

@@ -40,6 +40,8 @@ from hdhil.dataconf import ConfigError, from_dict, merge
 from hdhil.dbc import CHANNEL_NUMBER, database
 from hdhil.evaluate import RecordingListener, format_evaluation
 from hdhil.evaluate import evaluate as evaluate_recording
+from hdhil.faults import FaultInjector, FaultLog
+from hdhil.realtime import RealtimeLoop, WallClock, format_realtime
 from hdhil.score import TorqueScorer, TrackingScorer
 from hdhil.simbus import SimClock
 from hdhil.trace import BusTap, FrameCounter, open_writer
@@ -76,8 +78,10 @@ class RunResult:
     trace: str | None
     evaluation: dict[str, Any] | None = None
     tracking: dict[str, Any] | None = None
+    faults: dict[str, int] | None = None
     controller: dict[str, Any] = field(default_factory=dict)
     drive: dict[str, Any] = field(default_factory=dict)
+    realtime: dict[str, Any] | None = None
 
     @property
     def real_time_factor(self) -> float:
@@ -200,6 +204,8 @@ def run_lockstep(
     stop_requested: Callable[[], bool] | None = None,
     evaluate: bool = True,
     evaluate_skip_s: float = 0.0,
+    fault_log: Path | None = None,
+    realtime: bool = False,
 ) -> RunResult:
     """Run ``scenario`` in lockstep and return the scored result.
 
@@ -211,6 +217,10 @@ def run_lockstep(
     firmware's filter against truth side by side with the paper/recommended Kalman modes
     and the baselines (:mod:`hdhil.evaluate`).  Without it memory stays flat and only the
     streaming RMS score is kept.
+
+    ``realtime`` paces SYNC by the wall clock at the sample period instead of running as
+    fast as possible, and reports jitter, latency and deadline misses
+    (:mod:`hdhil.realtime`).
     """
     fw_config = from_dict(FirmwareConfig, scenario.firmware, "firmware")
     Ts = fw_config.sample_period_s
@@ -230,8 +240,15 @@ def run_lockstep(
     drive_config = DriveConfig(sample_period_s=Ts, actuation=actuation)  # type: ignore[arg-type]
 
     run_id = next(_run_ids)
-    clock = SimClock()
+    # Injected faults (the scenario's [faults] table), reproducible by their seed and logged.
+    injector = (
+        FaultInjector(scenario.faults, FaultLog(fault_log)) if scenario.faults is not None else None
+    )
+    control_faults = injector.channel("control") if injector is not None else None
+    truth_faults = injector.channel("truth") if injector is not None else None
+    clock = WallClock() if realtime else SimClock()
     simulated = interface == "simbus"
+    pacer = RealtimeLoop(Ts) if realtime else None
 
     def control_bus() -> can.BusABC:
         if simulated:
@@ -241,6 +258,7 @@ def run_lockstep(
                 bitrate=bitrate,
                 clock=clock,
                 trace_channel=CHANNEL_NUMBER["control"],
+                faults=control_faults,
             )
         if interface == "virtual":
             return can.Bus(interface="virtual", channel=channel or f"hdhil-{run_id}-control")
@@ -261,6 +279,7 @@ def run_lockstep(
             bitrate=0,
             clock=clock,
             trace_channel=CHANNEL_NUMBER["truth"],
+            faults=truth_faults,
         )
 
     buses: list[can.BusABC] = []
@@ -278,7 +297,10 @@ def run_lockstep(
         ctrl_bus, drive_bus, drive_truth, tap_control, tap_truth = buses
         controller = ControllerNode(ctrl_bus, fw_config)
         drive = DriveNode(
-            drive_bus, Plant(scenario.plant, seed), drive_config, truth_bus=drive_truth
+            drive_bus,
+            Plant(scenario.plant, seed, faults=injector.sensors() if injector else None),
+            drive_config,
+            truth_bus=drive_truth,
         )
         counter = FrameCounter()
         scorer = TorqueScorer()
@@ -295,24 +317,35 @@ def run_lockstep(
         tap = BusTap(
             {CHANNEL_NUMBER["control"]: tap_control, CHANNEL_NUMBER["truth"]: tap_truth}, listeners
         )
+        if pacer is not None:
+            pacer.instrument(controller)
+            pacer.enter()
         wall0 = time.perf_counter()
         k = 0
 
         def cycle() -> None:
             nonlocal k
-            clock.now = k * Ts
+            if pacer is not None:
+                pacer.wait(k)  # wall clock: the simbus clock reads real time by itself
+            else:
+                clock.now = k * Ts
             now = clock.now if simulated else time.monotonic()
             drive.tick(now)
             controller.tick(now)
             controller.send_sync()  # the controller decides by its phase whether SYNC goes out
             _complete_cycle(controller, drive, tap, simulated)
+            if pacer is not None:
+                pacer.end_cycle()
             k += 1
 
         try:
+            if pacer is not None:
+                assert isinstance(clock, WallClock)
+                clock.restart(pacer.start())
             # Power-on: both nodes boot; the controller starts the drive (NMT) and walks it
             # to "operation enabled" (CiA 402) over the PDOs.
-            drive.boot(0.0 if simulated else time.monotonic())
-            controller.boot(0.0 if simulated else time.monotonic())
+            drive.boot(clock.now if simulated else time.monotonic())
+            controller.boot(clock.now if simulated else time.monotonic())
             while controller.phase != "operational":
                 if controller.boot_error:
                     raise ConfigError(controller.boot_error)
@@ -323,6 +356,8 @@ def run_lockstep(
                     )
                 cycle()
             startup_cycles = k
+            if pacer is not None:
+                pacer.recording = True  # statistics cover the cycles in operation
             # The run lasts until the interrupt has handled ``cycles`` samples.
             while controller.isr.samplecount < cycles:
                 if stop_requested is not None and stop_requested():
@@ -333,6 +368,8 @@ def run_lockstep(
                 cycle()
             done = controller.isr.samplecount
             operation_end = k
+            if pacer is not None:
+                pacer.recording = False
             # Walk the drive back (disable operation, shut down) before the buses close.
             controller.request_stop()
             for _ in range(MAX_STOP_CYCLES):
@@ -342,6 +379,9 @@ def run_lockstep(
             stop_cycles = k - operation_end
         except KeyboardInterrupt:
             interrupted = True
+        finally:
+            if pacer is not None:
+                pacer.exit()
         wall = time.perf_counter() - wall0
         tap.poll()
         frames_sent = _frames_sent(ctrl_bus, drive_truth)
@@ -351,6 +391,8 @@ def run_lockstep(
             listener.stop()
         for bus in buses:
             bus.shutdown()
+        if injector is not None:
+            injector.log.close()  # every injected fault is on disk
 
     evaluation = (
         evaluate_recording(recorder.recording, fw_config, evaluate_skip_s)
@@ -384,6 +426,7 @@ def run_lockstep(
         velocity_peak=scorer.velocity_peak,
         trace=str(trace) if trace is not None else None,
         evaluation=evaluation,
+        faults=injector.summary() if injector is not None else None,
         tracking=(
             {"law": fw_config.control.law.name.lower(), **tracking.result().as_dict()}
             if tracking is not None
@@ -396,13 +439,15 @@ def run_lockstep(
             "malformed_frames": drive.diagnostics.malformed_frames,
             "unknown_frames": sum(drive.unknown_frames.values()),
         },
+        realtime=pacer.result() if pacer is not None else None,
     )
 
 
 def format_result(r: RunResult) -> str:
     t = r.torque
     lines = [
-        f"hdhil run: scenario {r.scenario}, seed {r.seed}, lockstep on {r.interface}"
+        f"hdhil run: scenario {r.scenario}, seed {r.seed}, "
+        f"{'real time' if r.realtime is not None else 'lockstep'} on {r.interface}"
         f" ({r.actuation} actuation)" + ("  [INTERRUPTED]" if r.interrupted else ""),
         f"  simulated time     {r.simulated_s:.3f} s ({r.cycles} cycles of "
         f"{r.sample_period_s * 1e3:g} ms in operation; start-up {r.startup_cycles}, "
@@ -428,10 +473,15 @@ def format_result(r: RunResult) -> str:
         )
     else:
         lines.append("  torque vs truth    no telemetry/truth pairs were seen")
+    if r.faults is not None:
+        injected = ", ".join(f"{kind} {n}" for kind, n in r.faults.items()) or "none"
+        lines.append(f"  faults injected    {injected}")
     if r.tracking is not None:
         lines.append(format_tracking([r.tracking]))
     if r.evaluation is not None:
         lines.append(format_evaluation(r.evaluation))
+    if r.realtime is not None:
+        lines.append(format_realtime(r.realtime))
     if r.trace:
         lines.append(f"  trace              {r.trace} ({r.frames_total} frames)")
     return "\n".join(lines)
@@ -515,6 +565,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="calibration file written by `hdhil calibrate --out` (the firmware uses its gain)",
     )
     p.add_argument(
+        "--fault-log",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write every injected fault (the scenario's [faults] table) as JSON lines",
+    )
+    p.add_argument(
         "--compare-laws",
         action="store_true",
         help="run the scenario once per control law (JTF1, JTF2, JTF3, JTF1 + feedforward) "
@@ -562,6 +619,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--bitrate", type=int, default=1_000_000, help="control bus bit rate (default: %(default)s)"
+    )
+    p.add_argument(
+        "--realtime",
+        action="store_true",
+        help="pace SYNC by the wall clock at the sample period (sleep, then spin) instead "
+        "of lockstep as fast as possible; reports SYNC jitter, sensor-to-command latency, "
+        "interrupt compute time and deadline misses (also under 'realtime' in --json)",
     )
     p.set_defaults(func=run)
 
@@ -615,6 +679,7 @@ def run(args: argparse.Namespace) -> int:
                     channel=args.channel,
                     stop_requested=stop.is_set,
                     evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,
+                    realtime=args.realtime,
                 )
                 if args.json:
                     json.dump({"scenario": scenario.name, "laws": rows}, sys.stdout, indent=2)
@@ -635,6 +700,8 @@ def run(args: argparse.Namespace) -> int:
                 stop_requested=stop.is_set,
                 evaluate=args.evaluate,
                 evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,
+                realtime=args.realtime,
+                fault_log=args.fault_log,
             )
     except ValueError as exc:
         raise UserError(str(exc)) from None
