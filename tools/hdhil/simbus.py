@@ -103,19 +103,12 @@ class _Channel:
             return
         pending = self.pending
         while pending:
-            free = self.busy_until
             if len(pending) == 1:  # the common case: nothing to arbitrate
                 item = pending.pop()
+                free = self.busy_until
                 start = free if item[0] <= free else item[0]
             else:
-                ready = [p for p in pending if p[0] <= free]
-                if ready:
-                    item = min(ready, key=_arbitration_key)
-                    start = free
-                else:
-                    item = min(pending, key=_request_key)
-                    start = item[0]
-                pending.remove(item)
+                start, item = self._next()
             _, _, _, sender, msg = item
             end = start + (self.bits(msg) / self.bitrate if self.timing != "none" else 0.0)
             self.busy_until = end
@@ -129,6 +122,9 @@ class _Channel:
                         bus._ready.notify()
 
     def _next(self) -> tuple[float, tuple[float, int, int, SimBus, can.Message]]:
+        """Take the frame that goes on the wire next, and when it starts: when the wire
+        frees up, the lowest identifier among the frames requested by then wins
+        arbitration; if none is waiting, the earliest request goes next."""
         pending = self.pending
         free = self.busy_until
         ready = [p for p in pending if p[0] <= free]
