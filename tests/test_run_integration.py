@@ -236,3 +236,17 @@ def test_sigkill_loses_at_most_the_last_second_of_a_line_based_trace(tmp_path, s
         proc.kill()
     after_n, after_t = last_time(trace)
     assert after_n >= before_n and after_t >= before_t
+
+
+def test_logger_drops_no_frame_over_a_60_s_full_rate_run(free_motion, tmp_path):
+    """Issue: the logger never drops a frame; count check over 60 s at the full 1 kHz rate."""
+    trace = tmp_path / "minute.blf"
+    r = run_lockstep(free_motion, duration_s=60.0, trace=trace, evaluate=False)
+    assert r.cycles == 60_000
+    with can.LogReader(str(trace)) as reader:
+        per_channel = {0: 0, 1: 0}
+        for msg in reader:
+            per_channel[msg.channel] += 1
+    assert per_channel[CHANNEL_NUMBER["control"]] == r.frames_sent["control"]
+    assert per_channel[CHANNEL_NUMBER["truth"]] == r.frames_sent["truth"]
+    assert sum(per_channel.values()) == r.frames_total > 7 * 60_000
