@@ -180,9 +180,6 @@ class FrameCodec:
         #: integers stay ``int``).
         self.decode: Callable[[bytes | bytearray], tuple[float, ...]] = namespace["decode"]
 
-    def decode_dict(self, data: bytes | bytearray) -> dict[str, float]:
-        return dict(zip(self.signal_names, self.decode(data), strict=True))
-
 
 @cache
 def codec(bus: BusName, message_name: str) -> FrameCodec:

@@ -48,13 +48,6 @@ def crc15_bits(value: int, nbits: int, crc: int = 0) -> int:
     return crc
 
 
-def crc15_bytes(data: bytes, crc: int) -> int:
-    """Continue a CRC-15/CAN over whole bytes (table-driven)."""
-    for byte in data:
-        crc = ((crc << 8) & 0x7FFF) ^ _CRC_TABLE[((crc >> 7) ^ byte) & 0xFF]
-    return crc
-
-
 def _stuff_step(state: tuple[int, int], bit: int) -> tuple[tuple[int, int], int]:
     last, run = state
     if bit == last:
@@ -82,22 +75,6 @@ def _stuff_table() -> dict[tuple[int, int], tuple[tuple[int, tuple[int, int]], .
 
 
 _STUFF = _stuff_table()
-
-
-def stuff_bits(value: int, nbits: int) -> int:
-    """Number of stuff bits the ``nbits``-bit stream ``value`` (MSB first) needs."""
-    # The first bit (SOF, dominant 0) opens a run of 1.
-    state = ((value >> (nbits - 1)) & 1, 1)
-    remaining = nbits - 1
-    added = 0
-    while remaining >= 8:
-        remaining -= 8
-        n, state = _STUFF[state][(value >> remaining) & 0xFF]
-        added += n
-    for i in range(remaining - 1, -1, -1):
-        state, s = _stuff_step(state, (value >> i) & 1)
-        added += s
-    return added
 
 
 def _stuff_table_7() -> dict[tuple[int, int], tuple[tuple[int, tuple[int, int]], ...]]:
@@ -157,9 +134,3 @@ def frame_bits(arbitration_id: int, extended: bool, remote: bool, data: bytes) -
     n, state = _STUFF7[state][crc & 0x7F]  # CRC bits 6..0
     added += n
     return nbits + 8 * len(payload) + 15 + added + 13
-
-
-def frame_bits_of(msg) -> int:  # type: ignore[no-untyped-def]
-    """:func:`frame_bits` of a :class:`can.Message`."""
-    return frame_bits(msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
-                      bytes(msg.data))  # fmt: skip

@@ -235,11 +235,6 @@ class SimBus(can.BusABC):
         """Frames sent on the whole channel since it was created."""
         return self._ch.frames
 
-    def frame_time(self, msg: can.Message) -> float:
-        """Seconds the frame occupies the wire under this channel's timing, 0 without timing."""
-        ch = self._ch
-        return ch.bits(msg) / ch.bitrate if ch.timing != "none" else 0.0
-
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Request transmission.  The request time is the clock's time, or later if this
         node has received a frame since (it cannot answer a frame before receiving it)."""
