@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import can
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from hdhil.busload import schedule_load
 from hdhil.canbits import frame_bits
-from hdhil.simbus import SimClock
+from hdhil.simbus import _MESSAGE_FIELDS, SimClock, _snapshot, _snapshot_checked, _snapshot_fast
 
 
 @pytest.fixture
@@ -147,3 +149,38 @@ def test_control_schedule_fits_the_budget():
     assert load.fits()
     # The same schedule at 500 kbit/s needs twice the time: over budget.
     assert not schedule_load("control", 500_000, 1e-3).fits()
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    can_id=st.integers(0, 0x1FFFFFFF),
+    extended=st.booleans(),
+    remote=st.booleans(),
+    error=st.booleans(),
+    data=st.binary(max_size=8),
+    fd=st.booleans(),
+)
+def test_the_received_copy_equals_a_constructed_message(can_id, extended, remote, error, data, fd):
+    """The bus's field-by-field copy of a sent frame is what Message's constructor makes."""
+    msg = can.Message(
+        arbitration_id=can_id if extended else can_id & 0x7FF,
+        is_extended_id=extended,
+        is_remote_frame=remote,
+        is_error_frame=error,
+        data=data,
+        dlc=len(data),
+        is_fd=fd,
+        bitrate_switch=fd,
+        check=False,
+    )
+    fast, checked = _snapshot_fast(msg, 3), _snapshot_checked(msg, 3)
+    assert {f: getattr(fast, f) for f in _MESSAGE_FIELDS} == {
+        f: getattr(checked, f) for f in _MESSAGE_FIELDS
+    }
+    # A private copy: the sender may reuse its (bytearray) payload for the next frame.
+    assert isinstance(fast.data, bytes) and fast.data is not msg.data
+
+
+def test_the_fast_copy_is_used_only_while_it_covers_every_message_field():
+    fields = set(can.Message.__slots__) - {"__weakref__"}
+    assert (_snapshot is _snapshot_fast) == (fields == _MESSAGE_FIELDS)

@@ -12,7 +12,7 @@ complement code range ``[-2**(bits-1), 2**(bits-1) - 1]`` and an LSB of
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 
 @dataclass(frozen=True)
@@ -21,24 +21,19 @@ class Converter:
 
     bits: int = 12
     full_scale_V: float = 10.0
+    #: Derived once (the conversions run several times per 1 kHz cycle).
+    code_min: int = field(init=False, repr=False, compare=False)
+    code_max: int = field(init=False, repr=False, compare=False)
+    lsb_V: float = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not 2 <= self.bits <= 16:
             raise ValueError(f"converter bits must be 2..16 (a 16-bit CAN signal), got {self.bits}")
         if not self.full_scale_V > 0:
             raise ValueError(f"converter full_scale_V must be > 0, got {self.full_scale_V}")
-
-    @property
-    def code_min(self) -> int:
-        return -(1 << (self.bits - 1))
-
-    @property
-    def code_max(self) -> int:
-        return (1 << (self.bits - 1)) - 1
-
-    @property
-    def lsb_V(self) -> float:
-        return self.full_scale_V / (1 << (self.bits - 1))
+        object.__setattr__(self, "code_min", -(1 << (self.bits - 1)))
+        object.__setattr__(self, "code_max", (1 << (self.bits - 1)) - 1)
+        object.__setattr__(self, "lsb_V", self.full_scale_V / (1 << (self.bits - 1)))
 
     def to_counts(self, volts: float) -> int:
         """Quantize (round to nearest) and saturate a voltage to a code."""

@@ -128,9 +128,10 @@ def merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
 
 
 def to_dict(obj: Any) -> Any:
-    """The plain-data form of a config tree (enums by lower-case name)."""
+    """The plain-data form of a config tree (enums by lower-case name); fields derived in
+    ``__post_init__`` (``init=False``) are left out, so ``from_dict`` takes it back."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj) if f.init}
     if isinstance(obj, enum.Enum):
         return obj.name.lower()
     if isinstance(obj, (list, tuple)):

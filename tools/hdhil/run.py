@@ -32,6 +32,7 @@ from typing import Any
 
 import can
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from firmware.config import FirmwareConfig, Law
 from firmware.controller import ControllerNode
@@ -44,7 +45,7 @@ from hdhil.faults import FaultInjector, FaultLog
 from hdhil.realtime import RealtimeLoop, WallClock, format_realtime
 from hdhil.score import TorqueScorer, TrackingScorer
 from hdhil.simbus import SimClock
-from hdhil.trace import BusTap, FrameCounter, open_writer
+from hdhil.trace import BusTap, FrameCounter, WriterProcess
 from hostsim.drive import DriveConfig, DriveNode
 from hostsim.plant import Plant
 from hostsim.scenario import Scenario, list_scenarios, load_scenario
@@ -282,6 +283,11 @@ def run_lockstep(
             faults=truth_faults,
         )
 
+    # One BLAS thread for the run: the matrices here are at most 7x7, so BLAS threads
+    # only spin and take the core the trace writer runs on; and a thread pool created
+    # under SCHED_FIFO on one pinned CPU (OpenBLAS restarts its pool lazily after the
+    # writer's fork) starves its own workers and livelocks the real-time loop.
+    blas = threadpool_limits(limits=1)
     buses: list[can.BusABC] = []
     listeners: list[can.Listener] = []
     interrupted = False
@@ -313,7 +319,7 @@ def run_lockstep(
             recorder = RecordingListener(Ts)
             listeners.append(recorder)
         if trace is not None:
-            listeners.insert(0, open_writer(trace))
+            listeners.insert(0, WriterProcess(trace))
         tap = BusTap(
             {CHANNEL_NUMBER["control"]: tap_control, CHANNEL_NUMBER["truth"]: tap_truth}, listeners
         )
@@ -387,12 +393,15 @@ def run_lockstep(
         frames_sent = _frames_sent(ctrl_bus, drive_truth)
     finally:
         # Close the trace (flush, valid file) and release the buses whatever happened.
-        for listener in listeners:
-            listener.stop()
-        for bus in buses:
-            bus.shutdown()
-        if injector is not None:
-            injector.log.close()  # every injected fault is on disk
+        try:
+            for listener in listeners:
+                listener.stop()
+        finally:
+            for bus in buses:
+                bus.shutdown()
+            if injector is not None:
+                injector.log.close()  # every injected fault is on disk
+            blas.restore_original_limits()
 
     evaluation = (
         evaluate_recording(recorder.recording, fw_config, evaluate_skip_s)

@@ -1,0 +1,94 @@
+"""The trace writer process: same file as python-can's writer, nothing lost, clear errors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import can
+import pytest
+
+from hdhil.trace import BATCH_FRAMES, WriterProcess, open_writer
+
+
+def _frames(n: int) -> list[can.Message]:
+    return [
+        can.Message(
+            timestamp=i * 1e-4,
+            arbitration_id=0x1F0001 if i % 3 == 0 else 0x182,
+            is_extended_id=i % 3 == 0,
+            data=bytes((i + k) & 0xFF for k in range(i % 9)),
+            channel=1 if i % 3 == 0 else 0,
+            is_rx=True,
+        )
+        for i in range(n)
+    ]
+
+
+def _read(path: Path) -> list[tuple]:
+    with can.LogReader(str(path)) as reader:
+        return [
+            (round(m.timestamp, 6), m.arbitration_id, m.is_extended_id, bytes(m.data), m.channel)
+            for m in reader
+        ]
+
+
+@pytest.mark.parametrize("suffix", [".blf", ".asc", ".log", ".trc"])
+def test_the_writer_process_writes_what_python_cans_writer_writes(tmp_path, suffix):
+    frames = _frames(3 * BATCH_FRAMES + 17)  # full batches and a partial one
+    direct, background = tmp_path / f"direct{suffix}", tmp_path / f"background{suffix}"
+    writer = open_writer(direct)
+    for m in frames:
+        writer.on_message_received(m)
+    writer.stop()
+    proc = WriterProcess(background)
+    for m in frames:
+        proc.on_message_received(m)
+    proc.stop()
+    assert proc.sent == len(frames)
+    assert _read(background) == _read(direct)
+    assert len(_read(background)) == len(frames)
+
+
+def test_an_unwritable_trace_is_refused_before_the_run(tmp_path):
+    (tmp_path / "dir.blf").mkdir()
+    with pytest.raises(ValueError, match="cannot write trace"):
+        WriterProcess(tmp_path / "dir.blf")  # a directory: the child cannot open it
+    with pytest.raises(ValueError, match="does not exist"):
+        WriterProcess(tmp_path / "missing" / "x.blf")
+    with pytest.raises(ValueError, match="unsupported trace format"):
+        WriterProcess(tmp_path / "x.txt")
+
+
+def test_the_file_is_closed_and_complete_when_the_run_is_killed(tmp_path):
+    """SIGKILL of the run: the child still writes every batch handed over and closes the
+    BLF file properly (a BLF written in-process would be left without its final header)."""
+    trace = tmp_path / "killed.blf"
+    script = textwrap.dedent(f"""
+        import os, signal, can
+        from pathlib import Path
+        from hdhil.trace import BATCH_FRAMES, WriterProcess
+        w = WriterProcess(Path({str(trace)!r}))
+        for i in range(2 * BATCH_FRAMES):
+            w.on_message_received(can.Message(timestamp=i * 1e-3, arbitration_id=0x80,
+                                              data=bytes([i & 0xFF]), channel=0))
+        os.kill(os.getpid(), signal.SIGKILL)
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], timeout=60)
+    assert proc.returncode == -9
+    # The child finishes on end of input; give it time to write and close the file.
+    expected = [bytes([i & 0xFF]) for i in range(2 * BATCH_FRAMES)]
+    deadline = time.monotonic() + 30
+    frames: list[tuple] = []
+    while time.monotonic() < deadline:
+        try:
+            frames = _read(trace)
+        except Exception:  # still being written
+            frames = []
+        if len(frames) == len(expected):
+            break
+        time.sleep(0.1)
+    assert [f[3] for f in frames] == expected
