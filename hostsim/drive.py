@@ -124,6 +124,21 @@ latest sample.  Writable application objects:
   values are the plant's configuration.  A write is applied at the next SYNC, before the
   plant step: the plant's frozen configuration is rebuilt with ``dataclasses.replace``
   and swapped in, so the step ending at that SYNC and its sample use the new values.
+- 0x2310 "Fault injection" (:mod:`hdhil.faults`), applied at the next SYNC like 0x2300:
+  1 ``tacho_spike_rate`` (REAL32, 0..1 per sample), 2 ``tacho_spike_V`` (0..20 V),
+  3 ``encoder_glitch_rate`` (0..1 per sample), 4 ``encoder_glitch_counts`` (UNSIGNED16);
+  channel masks (UNSIGNED8, bit 0 torque, 1 tacho, 2 current, 3 encoder) 5
+  ``stuck_mask`` (the channel holds its count from the next sample on), 6
+  ``saturated_max_mask`` and 7 ``saturated_min_mask`` (an ADC channel at its top or
+  bottom code; the encoder has none, and a channel in both masks is refused with abort
+  0x06090030); 8 ``silence_ms`` (UNSIGNED16): from the next SYNC the drive transmits
+  nothing for that long (PDOs, heartbeat, EMCY, SDO answers; a write during the silence
+  is applied but not answered; 0 ends it), so the controller's sensor hold and heartbeat
+  consumer react as to a drive that fell off the bus.  Power-on values: the plant's
+  configured sensor faults (``[faults.sensors]``), no mask, no silence.  The faults are
+  drawn from the run's fault seed and every one is recorded in its fault log (a
+  silenced frame as ``silence`` on ``control``).  Nothing is installed while nothing is
+  switched on: the plant keeps its fault-free path and the bus its own ``send``.
 - 0x6040 controlword: an SDO write is applied at once, like an immediate RPDO.
 - 0x6007 abort connection option code (0..3), 0x605A quick stop option code (0..8),
   0x605E fault reaction option code (0..4), 0x6060 modes of operation (0 or 10, else

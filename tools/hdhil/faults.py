@@ -91,6 +91,7 @@ __all__ = [
     "SensorHook",
     "SensorWindow",
     "TransmitSilence",
+    "check_node_transmit_faults",
     "node_ids",
     "parse_fault_flags",
     "with_fault_flags",
@@ -568,7 +569,7 @@ class FaultyTransmitBus:
     from the next ``send``/``recv`` (the node's loop calls ``recv`` at least every few
     milliseconds; a ``recv`` never blocks past a queued frame's time); a reordered frame
     goes out after the next one.  A node cannot transmit error frames (its CAN controller
-    raises them), so ``error_frame_rate`` is refused (:func:`node_transmit_faults`).
+    raises them), so ``error_frame_rate`` is refused (:func:`check_node_transmit_faults`).
 
     Everything else (``recv``, ``shutdown``, ``channel_info``, ...) is the wrapped bus.
     """
@@ -626,10 +627,9 @@ class FaultyTransmitBus:
             self.bus.send(heapq.heappop(self._due)[2])
 
 
-def node_transmit_faults(config: FaultConfig, role: Literal["control", "truth"]
-                         ) -> BusFaults:  # fmt: skip
-    """The faults of channel ``role`` a single node can put on its own transmissions
-    (:class:`FaultyTransmitBus`); ``ConfigError`` for the ones it cannot."""
+def check_node_transmit_faults(config: FaultConfig, role: Literal["control", "truth"]) -> None:
+    """``ConfigError`` if channel ``role`` has faults a single node cannot put on its own
+    transmissions (:class:`FaultyTransmitBus`)."""
     cfg: BusFaults = getattr(config, role)
     if cfg.error_frame_rate:
         raise ConfigError(
@@ -637,7 +637,6 @@ def node_transmit_faults(config: FaultConfig, role: Literal["control", "truth"]
             "controller raises them): set it to 0 here, and inject them on the simulated "
             "bus with hdhil run"
         )
-    return cfg
 
 
 class TransmitSilence:

@@ -50,7 +50,7 @@ from hdhil.faults import (
     FaultInjector,
     FaultLog,
     FaultyTransmitBus,
-    node_transmit_faults,
+    check_node_transmit_faults,
     parse_fault_flags,
     with_fault_flags,
 )
@@ -120,7 +120,7 @@ def _fault_injector(
     config = with_fault_flags(faults, args.fault) or FaultConfig()
     for role in ("control", "truth"):
         if role in acts_on:
-            node_transmit_faults(config, role)  # type: ignore[arg-type]
+            check_node_transmit_faults(config, role)  # type: ignore[arg-type]
     try:
         log = FaultLog(args.fault_log, keep=False)
     except OSError as exc:
