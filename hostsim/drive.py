@@ -124,6 +124,21 @@ latest sample.  Writable application objects:
   values are the plant's configuration.  A write is applied at the next SYNC, before the
   plant step: the plant's frozen configuration is rebuilt with ``dataclasses.replace``
   and swapped in, so the step ending at that SYNC and its sample use the new values.
+- 0x2310 "Fault injection" (:mod:`hdhil.faults`), applied at the next SYNC like 0x2300:
+  1 ``tacho_spike_rate`` (REAL32, 0..1 per sample), 2 ``tacho_spike_V`` (0..20 V),
+  3 ``encoder_glitch_rate`` (0..1 per sample), 4 ``encoder_glitch_counts`` (UNSIGNED16);
+  channel masks (UNSIGNED8, bit 0 torque, 1 tacho, 2 current, 3 encoder) 5
+  ``stuck_mask`` (the channel holds its count from the next sample on), 6
+  ``saturated_max_mask`` and 7 ``saturated_min_mask`` (an ADC channel at its top or
+  bottom code; the encoder has none, and a channel in both masks is refused with abort
+  0x06090030); 8 ``silence_ms`` (UNSIGNED16): from the next SYNC the drive transmits
+  nothing for that long (PDOs, heartbeat, EMCY, SDO answers; a write during the silence
+  is applied but not answered; 0 ends it), so the controller's sensor hold and heartbeat
+  consumer react as to a drive that fell off the bus.  Power-on values: the plant's
+  configured sensor faults (``[faults.sensors]``), no mask, no silence.  The faults are
+  drawn from the run's fault seed and every one is recorded in its fault log (a
+  silenced frame as ``silence`` on ``control``).  Nothing is installed while nothing is
+  switched on: the plant keeps its fault-free path and the bus its own ``send``.
 - 0x6040 controlword: an SDO write is applied at once, like an immediate RPDO.
 - 0x6007 abort connection option code (0..3), 0x605A quick stop option code (0..8),
   0x605E fault reaction option code (0..4), 0x6060 modes of operation (0 or 10, else
@@ -151,6 +166,15 @@ from hdhil.canopen_services import (
     SyncMonitor,
 )
 from hdhil.dbc import codec, eds_path
+from hdhil.faults import (
+    FaultConfig,
+    FaultInjector,
+    FaultLog,
+    SensorFaults,
+    SensorHook,
+    SensorWindow,
+    TransmitSilence,
+)
 from hdhil.node import CanNode, pdo_cob_id
 from hostsim.cia402 import CONTROLWORD, SUPPORTED_MODES, Command, DriveStateMachine, State
 from hostsim.plant import Plant, PlantConfig
@@ -167,6 +191,7 @@ OD_MODES_DISPLAY = 0x6061
 OD_ADC_COUNTS = 0x2100
 OD_ENCODER = 0x2101
 OD_EMULATOR = 0x2300
+OD_FAULTS = 0x2310
 OD_TPDO2_COMM = 0x1801
 
 #: 0x2300 sub-index -> (plant sub-configuration, field); "load" is the held load torque.
@@ -178,6 +203,24 @@ EMULATOR_KNOBS: dict[int, tuple[str, str]] = {
     5: ("sensors", "tacho_noise_radps"),
     6: ("load", "torque_Nm"),
 }
+
+#: 0x2310 sub-index -> the :class:`hdhil.faults.SensorFaults` field it sets.
+FAULT_FIELDS: dict[int, str] = {
+    1: "tacho_spike_rate",
+    2: "tacho_spike_V",
+    3: "encoder_glitch_rate",
+    4: "encoder_glitch_counts",
+}
+#: 0x2310 channel masks: sub-index -> (fault, saturation level).
+FAULT_MASKS: dict[int, tuple[str, str]] = {
+    5: ("stuck", "max"),
+    6: ("saturated", "max"),
+    7: ("saturated", "min"),
+}
+#: 0x2310 sub-index of the drive's silence (ms).
+FAULT_SILENCE_MS = 8
+#: Bit n of a 0x2310 channel mask is sensor channel n (DRIVE_TPDO1 order).
+MASK_CHANNELS = ("torque", "tacho", "current", "encoder")
 
 #: ADC channels in DRIVE_TPDO1 order; the number is the 0x2100 sub-index and the EMCY
 #: 0x7300 manufacturer byte 0.
@@ -298,7 +341,11 @@ class DriveNode(CanNode):
         plant: Plant,
         config: DriveConfig | None = None,
         truth_bus: can.BusABC | None = None,
+        faults: FaultInjector | None = None,
     ) -> None:
+        """``faults`` is the run's fault injector, the one whose ``sensors()`` hook the
+        plant has (if any): its seed and log serve the faults switched on through object
+        0x2310.  Without one the drive keeps its own (seed 0; the plant's hook's log)."""
         super().__init__(bus)
         self.truth_bus = truth_bus
         self.plant = plant
@@ -353,9 +400,28 @@ class DriveNode(CanNode):
             heartbeat_producer_ms=cfg.heartbeat_ms,
             heartbeat_consumers=consumers,
         )
-        self._power_on_knobs = self._knob_values_of(plant)
+        # Fault injection through object 0x2310 (reproducible by the injector's seed, every
+        # fault in its log): sensor faults switched over the plant's configured ones, and
+        # the drive's own silence on the control bus.
+        hook = plant.faults
+        if faults is None:
+            faults = FaultInjector(
+                FaultConfig(sensors=hook.cfg) if hook is not None else FaultConfig(),
+                hook.log if hook is not None else FaultLog(keep=False),
+            )
+        self.faults = faults
+        self._sensor_hook: SensorHook | None = hook
+        self._base_sensor_faults = hook.cfg if hook is not None else faults.config.sensors
+        self._mask_windows: dict[tuple[int, str], SensorWindow] = {}
+        self._silence = TransmitSilence(bus, faults.log, "control", lambda: self._now)
+
+        # 0x2300 and 0x2310: (index, sub) -> power-on value; writes wait for the next SYNC.
+        self._power_on_knobs = self._knob_values_of(plant) | self._fault_power_on_values()
+        self._fault_values = {
+            sub: value for (index, sub), value in self._power_on_knobs.items() if index == OD_FAULTS
+        }
         self._set_knob_power_on_values()
-        self._pending_knobs: dict[int, float] = {}
+        self._pending_knobs: dict[tuple[int, int], float] = {}
         self._register_od_callbacks()
         services = self.services
         services.on_state_change(self._on_nmt_state)
@@ -612,6 +678,7 @@ class DriveNode(CanNode):
         self._step_V = 0.0
         self._saturated.clear()
         self._at_current_limit = False
+        self._silence.stop()  # the boot-up message goes out
         self._pending_knobs = dict(self._power_on_knobs)
 
     def _new_sync_monitor(self) -> SyncMonitor:
@@ -678,7 +745,18 @@ class DriveNode(CanNode):
         s.on_write(OD_FAULT_REACTION_OPTION, 0, self._set_fault_reaction_option)
         s.on_write(OD_CONTROLWORD, 0, self._sdo_controlword)
         for sub in EMULATOR_KNOBS:
-            s.on_write(OD_EMULATOR, sub, self._knob_writer(sub))
+            s.on_write(OD_EMULATOR, sub, self._knob_writer(OD_EMULATOR, sub))
+        for sub in (*FAULT_FIELDS, *FAULT_MASKS, FAULT_SILENCE_MS):
+            s.on_write(OD_FAULTS, sub, self._knob_writer(OD_FAULTS, sub))
+        # A channel saturates at one end: refuse a mask overlapping the other end's.
+        for sub, other in ((6, 7), (7, 6)):
+            s.add_validator(
+                OD_FAULTS,
+                sub,
+                lambda mask, other=other: (
+                    ABORT_INVALID_VALUE if mask & s.read(OD_FAULTS, other) else None
+                ),
+            )
         s.on_write(OD_TPDO2_COMM, 3, lambda _: setattr(self, "_inhibit_s", self._read_inhibit_s()))
         live: dict[tuple[int, int], Callable[[], int]] = {
             (OD_STATUSWORD, 0): lambda: self._machine.statusword,
@@ -708,29 +786,52 @@ class DriveNode(CanNode):
     # ------------------------------------------------------------------ emulator knobs
 
     @staticmethod
-    def _knob_values_of(plant: Plant) -> dict[int, float]:
+    def _knob_values_of(plant: Plant) -> dict[tuple[int, int], float]:
         cfg = plant.cfg
         values = {}
         for sub, (section, name) in EMULATOR_KNOBS.items():
             # The held load torque starts at 0 in a new Plant (no public getter for it).
-            values[sub] = 0.0 if section == "load" else float(getattr(getattr(cfg, section), name))
+            value = 0.0 if section == "load" else float(getattr(getattr(cfg, section), name))
+            values[(OD_EMULATOR, sub)] = value
+        return values
+
+    def _fault_power_on_values(self) -> dict[tuple[int, int], float]:
+        """0x2310 at power-on: the configured sensor faults' rates and sizes, no channel
+        masked, no silence."""
+        base = self._base_sensor_faults
+        values: dict[tuple[int, int], float] = {
+            (OD_FAULTS, sub): getattr(base, name) for sub, name in FAULT_FIELDS.items()
+        }
+        for sub in (*FAULT_MASKS, FAULT_SILENCE_MS):
+            values[(OD_FAULTS, sub)] = 0
         return values
 
     def _set_knob_power_on_values(self) -> None:
-        """The plant's configuration becomes the default (power-on value) of 0x2300."""
-        record = self.services.od[OD_EMULATOR]
-        for sub, value in self._power_on_knobs.items():
-            record[sub].default = value
+        """The plant's configuration becomes the default (power-on value) of 0x2300 and
+        0x2310."""
+        od = self.services.od
+        for (index, sub), value in self._power_on_knobs.items():
+            od[index][sub].default = value
 
-    def _knob_writer(self, sub: int) -> Callable[[float], None]:
+    def _knob_writer(self, index: int, sub: int) -> Callable[[float], None]:
         def write(value: float) -> None:
-            self._pending_knobs[sub] = float(value)
+            self._pending_knobs[(index, sub)] = float(value) if index == OD_EMULATOR else value
 
         return write
 
     def _apply_knobs(self) -> None:
-        """Apply the 0x2300 writes of the past cycle to the plant (before its next step)."""
+        """Apply the 0x2300 and 0x2310 writes of the past cycle (before the plant's next
+        step)."""
         pending, self._pending_knobs = self._pending_knobs, {}
+        emulator = {sub: v for (index, sub), v in pending.items() if index == OD_EMULATOR}
+        faults = {sub: v for (index, sub), v in pending.items() if index == OD_FAULTS}
+        if emulator:
+            self._apply_emulator_knobs(emulator)
+        if faults:
+            self._apply_fault_switches(faults)
+
+    def _apply_emulator_knobs(self, pending: dict[int, float]) -> None:
+        """0x2300: the plant's ripple, sensor noise and load torque."""
         plant = self.plant
         cfg = plant.cfg
         changes: dict[str, dict[str, float]] = {"ripple": {}, "sensors": {}}
@@ -747,6 +848,60 @@ class DriveNode(CanNode):
                 sensors=dataclasses.replace(cfg.sensors, **changes["sensors"]),
             )
             _retune_plant(plant, new)
+
+    # ------------------------------------------------------------------ fault injection
+
+    def _apply_fault_switches(self, changes: dict[int, Any]) -> None:
+        """0x2310: start or end a silence; switch the plant's sensor faults.  The faults
+        act from the sample that ends the plant step starting now; the sensor hook is
+        installed only while some sensor fault is configured (none: the plant's
+        fault-free path)."""
+        if FAULT_SILENCE_MS in changes:
+            self._silence.start(changes.pop(FAULT_SILENCE_MS) * 1e-3)
+        if not changes:
+            return
+        self._fault_values.update(changes)
+        cfg = self._switched_sensor_faults()
+        hook = self._sensor_hook
+        if hook is None:
+            if not cfg.enabled:
+                return
+            hook = self._sensor_hook = self.faults.sensors(always=True)
+            assert hook is not None
+        hook.reconfigure(cfg)
+        self.plant.faults = hook if cfg.enabled else None
+
+    def _switched_sensor_faults(self) -> SensorFaults:
+        """The configured sensor faults with 0x2310's rates and sizes, plus one window per
+        masked channel from now on (a channel that stays masked keeps its window, so a
+        stuck channel keeps its count)."""
+        values = self._fault_values
+        start = self.plant.time
+        windows: dict[tuple[int, str], SensorWindow] = {}
+        for sub, (_, level) in FAULT_MASKS.items():
+            for bit, channel in enumerate(MASK_CHANNELS):
+                if int(values[sub]) >> bit & 1:
+                    key = (sub, channel)
+                    windows[key] = self._mask_windows.get(key) or SensorWindow(
+                        channel,  # type: ignore[arg-type]
+                        start_s=start,
+                        level=level,  # type: ignore[arg-type]
+                    )
+        self._mask_windows = windows
+        base = self._base_sensor_faults
+        stuck = tuple(w for (sub, _), w in windows.items() if FAULT_MASKS[sub][0] == "stuck")
+        saturated = tuple(w for (sub, _), w in windows.items() if FAULT_MASKS[sub][0] != "stuck")
+        return dataclasses.replace(
+            base,
+            stuck=base.stuck + stuck,
+            saturated=base.saturated + saturated,
+            **{name: values[sub] for sub, name in FAULT_FIELDS.items()},
+        )
+
+    @property
+    def silent(self) -> bool:
+        """True while a silence written to 0x2310 sub 8 lasts (the drive sends nothing)."""
+        return self._silence.active and self._now < self._silence.until
 
     # ------------------------------------------------------------------ truth
 

@@ -37,19 +37,46 @@ end of its transmission, as soon as a receiver polls):
   ``error_frame_rate``: a python-can error frame follows the frame.
 
 Every fault is one :class:`FaultRecord` in the log; nothing is injected unrecorded.
+
+Other ways in, besides the ``[faults]`` table:
+
+- ``--fault KEY=VALUE`` on the command line (:func:`parse_fault_flags`,
+  :func:`with_fault_flags`): the TOML keys of the table, dotted (``control.loss_rate=0.05``,
+  ``seed=3``, ``'control.silence=[{node=2,start_s=1,duration_s=0.5}]'``), each value a
+  TOML value, merged over the scenario's table (a flag wins) and validated by the same
+  dataclasses.
+- A node in a process of its own (``hdhil emulate``/``firmware`` on any python-can
+  interface) puts its *own* transmissions through a channel's faults
+  (:class:`FaultyTransmitBus`), timed from the node's start on the monotonic clock.
+- The drive's object 0x2310 "Fault injection" (:mod:`hostsim.drive`) switches sensor faults
+  at run time (:meth:`SensorHook.reconfigure`) and silences the drive for a while
+  (:class:`TransmitSilence`).
 """
 
 from __future__ import annotations
 
+import heapq
+import itertools
 import json
 import math
 import random
+import re
+import sys
+import time
 from collections import Counter
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Literal
 
 import can
+
+from hdhil.dataconf import ConfigError, from_dict, merge, to_dict
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
 
 __all__ = [
     "BusFaults",
@@ -58,16 +85,24 @@ __all__ = [
     "FaultInjector",
     "FaultLog",
     "FaultRecord",
+    "FaultyTransmitBus",
     "NodeWindow",
     "SensorFaults",
     "SensorHook",
     "SensorWindow",
+    "TransmitSilence",
+    "check_node_transmit_faults",
     "node_ids",
+    "parse_fault_flags",
+    "with_fault_flags",
 ]
 
 #: Function codes a CANopen node transmits with its node-ID added (EMCY, TPDO1-4, SDO
 #: response, heartbeat).
 _NODE_FUNCTIONS = (0x080, 0x180, 0x280, 0x380, 0x480, 0x580, 0x700)
+
+#: Tolerance of time comparisons (s): k * Ts and a sum of periods may differ by rounding.
+_TIME_EPSILON = 1e-9
 
 
 def node_ids(node: int) -> frozenset[int]:
@@ -282,12 +317,16 @@ def _rng(seed: int, where: str, kind: str) -> random.Random:
 class ChannelFaults:
     """The bus-fault hook of one simbus channel (``SimBus(..., faults=...)``)."""
 
-    def __init__(self, cfg: BusFaults, name: str, seed: int, log: FaultLog) -> None:
+    def __init__(self, cfg: BusFaults, name: str, seed: int, log: FaultLog,
+                 stream: str = "") -> None:  # fmt: skip
+        """``stream`` separates the random draws of hooks that share a seed and a channel
+        name (the transmissions of two nodes in two processes); "" in lockstep."""
         self.cfg = cfg
         self.name = name
         self.log = log
-        r = {k: _rng(seed, name, k) for k in ("loss", "delay", "duplicate", "reorder",
-                                               "corrupt", "dlc", "error_frame")}  # fmt: skip
+        where = f"{stream}:{name}" if stream else name
+        r = {k: _rng(seed, where, k) for k in ("loss", "delay", "duplicate", "reorder",
+                                                "corrupt", "dlc", "error_frame")}  # fmt: skip
         self._r = r
         self._next_burst = cfg.burst_every_s if cfg.burst_len_frames else math.inf
         self._burst_left = 0
@@ -383,8 +422,19 @@ class SensorHook:
         self.log = log
         self._r_enc = _rng(seed, "plant", "encoder_glitch")
         self._r_tacho = _rng(seed, "plant", "tacho_spike")
-        self._held: dict[int, int] = {}  # stuck windows (index) -> held count
+        self._held: dict[SensorWindow, int] = {}  # active stuck windows -> held count
         self._enc_offset = 0
+
+    def reconfigure(self, cfg: SensorFaults) -> None:
+        """Switch to ``cfg`` from the next sample on (the drive's object 0x2310).
+
+        The random streams go on where they are, so a run that switches at the same
+        samples gets the same faults; the encoder's accumulated glitch offset stays (the
+        lost counts are lost); a stuck window that is still configured keeps its count.
+        """
+        self.cfg = cfg
+        for w in [w for w in self._held if w not in cfg.stuck]:
+            del self._held[w]
 
     def apply(self, t: float, sample: tuple[int, int, int, int], code_min: int, code_max: int,
               lsb_V: float) -> tuple[int, int, int, int]:  # fmt: skip
@@ -405,23 +455,26 @@ class SensorHook:
                 i = _SENSOR_INDEX[w.channel]
                 out[i] = code_max if w.level == "max" else code_min
                 log.record(t, "plant", "saturated", None, sensor=w.channel, count=out[i])
-        for k, w in enumerate(cfg.stuck):
+        for w in cfg.stuck:
             i = _SENSOR_INDEX[w.channel]
             if w.active(t):
-                held = self._held.setdefault(k, out[i])
+                held = self._held.setdefault(w, out[i])
                 out[i] = held
                 log.record(t, "plant", "stuck", None, sensor=w.channel, count=held)
             else:
-                self._held.pop(k, None)
+                self._held.pop(w, None)
         return out[0], out[1], out[2], out[3]
 
 
 class FaultInjector:
     """Builds the hooks of a :class:`FaultConfig` and keeps their common log."""
 
-    def __init__(self, config: FaultConfig, log: FaultLog | None = None) -> None:
+    def __init__(self, config: FaultConfig, log: FaultLog | None = None, stream: str = "") -> None:
+        """``stream`` names the node whose transmissions the channel hooks fault, when each
+        node runs in a process of its own (see :class:`ChannelFaults`)."""
         self.config = config
         self.log = log if log is not None else FaultLog()
+        self.stream = stream
         self._channels: dict[str, ChannelFaults] = {}
         self._sensors: SensorHook | None = None
 
@@ -433,12 +486,15 @@ class FaultInjector:
             return None
         hook = self._channels.get(role)
         if hook is None:
-            hook = self._channels[role] = ChannelFaults(cfg, role, self.config.seed, self.log)
+            hook = self._channels[role] = ChannelFaults(
+                cfg, role, self.config.seed, self.log, self.stream
+            )
         return hook
 
-    def sensors(self) -> SensorHook | None:
-        """The plant's sensor-fault hook; None without sensor faults."""
-        if not self.config.sensors.enabled:
+    def sensors(self, always: bool = False) -> SensorHook | None:
+        """The plant's sensor-fault hook; None without sensor faults unless ``always``
+        (a hook to switch faults on later, :meth:`SensorHook.reconfigure`)."""
+        if not (always or self.config.sensors.enabled):
             return None
         if self._sensors is None:
             self._sensors = SensorHook(self.config.sensors, self.config.seed, self.log)
@@ -447,3 +503,195 @@ class FaultInjector:
     def summary(self) -> dict[str, int]:
         """Injected faults per kind."""
         return dict(sorted(self.log.counts.items()))
+
+
+# ----------------------------------------------------------------------------- flags
+#: A dotted key of the ``[faults]`` table: TOML bare keys joined by dots.
+_FLAG_KEY = re.compile(r"[A-Za-z0-9_-]+(\.[A-Za-z0-9_-]+)*")
+
+
+def parse_fault_flags(flags: Sequence[str]) -> dict[str, Any]:
+    """``--fault KEY=VALUE`` flags as a nested ``[faults]`` table, later flags winning.
+
+    ``KEY`` is a dotted key of the table (``control.loss_rate``, ``seed``); ``VALUE`` is a
+    TOML value (``0.05``, ``[{node = 2, start_s = 1}]``, ``"max"``).  Syntax errors raise
+    :class:`hdhil.dataconf.ConfigError` naming the flag; the values are checked by
+    :func:`with_fault_flags`.
+    """
+    table: dict[str, Any] = {}
+    for flag in flags:
+        key, sep, text = flag.partition("=")
+        key = key.strip()
+        if not sep or not _FLAG_KEY.fullmatch(key):
+            raise ConfigError(
+                f"--fault {flag!r}: expected KEY=VALUE with a dotted key of the [faults] "
+                "table, e.g. control.loss_rate=0.05"
+            )
+        try:
+            parsed = tomllib.loads(f"value = {text}")
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(
+                f"--fault {key}: {text!r} is not a TOML value ({exc}); strings need quotes, "
+                'e.g. sensors.stuck=[{channel="tacho", start_s=1}]'
+            ) from None
+        if set(parsed) != {"value"}:
+            raise ConfigError(f"--fault {key}: {text!r} is more than one TOML value")
+        value: Any = parsed["value"]
+        for part in reversed(key.split(".")):
+            value = {part: value}
+        table = merge(table, value)
+    return table
+
+
+def with_fault_flags(config: FaultConfig | None, flags: Sequence[str]) -> FaultConfig | None:
+    """``config`` (a scenario's ``[faults]``, None if it has none) with ``--fault`` flags
+    merged over it, validated as the table is: unknown keys, wrong types and values out of
+    range raise :class:`hdhil.dataconf.ConfigError` naming the key."""
+    if not flags:
+        return config
+    table = merge(to_dict(config) if config is not None else {}, parse_fault_flags(flags))
+    try:
+        return from_dict(FaultConfig, table, "faults")
+    except ConfigError as exc:
+        raise ConfigError(f"--fault: {exc}") from None
+
+
+# ----------------------------------------------------------------------------- one node
+class FaultyTransmitBus:
+    """A node's python-can bus whose *own* transmissions go through a channel's faults.
+
+    For a node in a process of its own on a real or networked bus (``hdhil emulate`` /
+    ``hdhil firmware``), where no simulated channel sits between the nodes: each frame the
+    node sends meets the :class:`ChannelFaults` of its channel as it would on the
+    simulated bus, with the time counted from the node's start on ``clock``.  Lost and
+    silenced frames are not sent; a corrupted or wrong-DLC frame is sent as modified; a
+    duplicate is sent twice; a delayed frame waits in a queue and goes out at its time
+    from the next ``send``/``recv`` (the node's loop calls ``recv`` at least every few
+    milliseconds; a ``recv`` never blocks past a queued frame's time); a reordered frame
+    goes out after the next one.  A node cannot transmit error frames (its CAN controller
+    raises them), so ``error_frame_rate`` is refused (:func:`check_node_transmit_faults`).
+
+    Everything else (``recv``, ``shutdown``, ``channel_info``, ...) is the wrapped bus.
+    """
+
+    def __init__(self, bus: can.BusABC, hook: ChannelFaults,
+                 clock: Callable[[], float] = time.monotonic) -> None:  # fmt: skip
+        self.bus = bus
+        self.hook = hook
+        self._clock = clock
+        self._t0 = clock()
+        self._due: list[tuple[float, int, can.Message]] = []
+        self._seq = itertools.count()
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "bus":  # not set yet (copy, pickle): no recursion
+            raise AttributeError(name)
+        return getattr(self.bus, name)
+
+    def _now(self) -> float:
+        return self._clock() - self._t0
+
+    def _release(self, now: float) -> None:
+        due = self._due
+        while due and due[0][0] <= now:
+            self.bus.send(heapq.heappop(due)[2])
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        now = self._now()
+        self._release(now)
+        if self.hook.blocked(msg, now):
+            return
+        frame = can.Message(arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+                            is_remote_frame=msg.is_remote_frame, dlc=msg.dlc,
+                            data=bytes(msg.data), check=False)  # fmt: skip
+        out, _ = self.hook.transmit(frame, now, 0.0)
+        for m in out:
+            m.is_rx = False
+            if m.timestamp <= now:
+                self.bus.send(m, timeout)
+            else:
+                heapq.heappush(self._due, (m.timestamp, next(self._seq), m))
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        self._release(self._now())
+        if self._due:
+            wait = max(0.0, self._due[0][0] - self._now())
+            timeout = wait if timeout is None else min(timeout, wait)
+        msg = self.bus.recv(timeout)
+        self._release(self._now())
+        return msg
+
+    def flush(self) -> None:
+        """Send every queued (delayed) frame now, e.g. before the bus shuts down."""
+        while self._due:
+            self.bus.send(heapq.heappop(self._due)[2])
+
+
+def check_node_transmit_faults(config: FaultConfig, role: Literal["control", "truth"]) -> None:
+    """``ConfigError`` if channel ``role`` has faults a single node cannot put on its own
+    transmissions (:class:`FaultyTransmitBus`)."""
+    cfg: BusFaults = getattr(config, role)
+    if cfg.error_frame_rate:
+        raise ConfigError(
+            f"faults.{role}.error_frame_rate: a node cannot transmit error frames (its CAN "
+            "controller raises them): set it to 0 here, and inject them on the simulated "
+            "bus with hdhil run"
+        )
+
+
+class TransmitSilence:
+    """A node that stops transmitting for a while (the drive's object 0x2310 sub 8).
+
+    While a silence lasts, every frame the node sends on ``bus`` (PDOs, heartbeat, EMCY,
+    SDO answers) is dropped before the wire and logged as ``silence`` on ``channel``, as
+    a :class:`NodeWindow` of the simulated bus would.  The silence shadows the bus object's
+    ``send`` only while it lasts (restored at the first send after its end, or by
+    :meth:`stop`), so a node that is not silenced sends exactly as before, at no cost.
+    ``clock()`` is the node's time (simulated time in lockstep).
+    """
+
+    def __init__(self, bus: Any, log: FaultLog, channel: str, clock: Callable[[], float]) -> None:
+        self.bus = bus
+        self.log = log
+        self.channel = channel
+        self._clock = clock
+        self.until = -math.inf
+        self._shadowed: tuple[bool, Any] | None = None  # (had an own ``send``, that send)
+        self._send: Callable[..., None] = bus.send
+
+    @property
+    def active(self) -> bool:
+        return self._shadowed is not None
+
+    def start(self, duration_s: float) -> None:
+        """Silence from now for ``duration_s`` (0 ends a silence at once)."""
+        if duration_s <= 0:
+            self.stop()
+            return
+        self.until = self._clock() + duration_s
+        if self._shadowed is None:
+            own = self.bus.__dict__
+            self._shadowed = ("send" in own, own.get("send"))
+            self._send = self.bus.send
+            self.bus.send = self._silenced
+
+    def stop(self) -> None:
+        """End the silence: the bus's own ``send`` is back."""
+        if self._shadowed is None:
+            return
+        had_own, own = self._shadowed
+        self._shadowed = None
+        if had_own:
+            self.bus.send = own
+        else:
+            del self.bus.send
+        self.until = -math.inf
+
+    def _silenced(self, msg: can.Message, timeout: float | None = None) -> None:
+        now = self._clock()
+        if now >= self.until - _TIME_EPSILON:
+            send = self._send
+            self.stop()
+            send(msg, timeout)
+            return
+        self.log.record(now, self.channel, "silence", msg.arbitration_id)

@@ -14,6 +14,20 @@ Pacing of ``hdhil firmware`` (the SYNC producer):
   the drive's sensor frame of cycle k (deterministic order, faster than real time);
 - ``--realtime``: SYNC at the sample period on the monotonic clock (sleep, then spin to
   the deadline).
+
+Faults (the scenario's ``[faults]`` table with ``--fault KEY=VALUE`` flags merged over it,
+:mod:`hdhil.faults`): each process injects the faults that arise in it.
+
+- ``emulate``: the sensor faults (``sensors.*``, at the plant, in plant time), and the
+  bus faults of ``control.*`` (and ``truth.*`` with a truth bus) on the drive's own
+  transmissions (:class:`hdhil.faults.FaultyTransmitBus`, timed from the process's start);
+  object 0x2310 switches sensor faults and silences the drive at run time.
+- ``firmware``: the bus faults of ``control.*`` on the controller's own transmissions.
+
+With both nodes started with the same table, each drops, delays or corrupts its own
+frames, as the simulated bus of ``hdhil run`` does for all of them (error frames
+excepted: a node cannot send one).  ``--fault-log`` writes every injected fault; the
+counts are in the summary line.
 """
 
 from __future__ import annotations
@@ -23,7 +37,7 @@ import json
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import can
 
@@ -31,7 +45,16 @@ from firmware.config import FirmwareConfig
 from firmware.controller import ControllerNode
 from hdhil.dataconf import ConfigError, from_dict
 from hdhil.dbc import CHANNEL_NUMBER, eds_path
-from hdhil.run import stop_on_signals
+from hdhil.faults import (
+    FaultConfig,
+    FaultInjector,
+    FaultLog,
+    FaultyTransmitBus,
+    check_node_transmit_faults,
+    parse_fault_flags,
+    with_fault_flags,
+)
+from hdhil.run import add_fault_arguments, stop_on_signals
 from hdhil.trace import BusTap, FrameCounter, open_writer
 from hostsim.drive import DriveConfig, DriveNode
 from hostsim.plant import Plant
@@ -83,6 +106,39 @@ def _truth_bus(args: argparse.Namespace) -> can.BusABC | None:
     return open_bus(args.truth_interface, args.truth_channel, args.bitrate, "truth bus")
 
 
+def _fault_injector(
+    args: argparse.Namespace, faults: FaultConfig | None, stream: str, acts_on: tuple[str, ...]
+) -> FaultInjector:
+    """The process's faults: ``faults`` (the scenario's table) with the ``--fault`` flags
+    merged over it; flags for parts that do not act in this process are refused."""
+    flagged = sorted(set(parse_fault_flags(args.fault)) - {"seed", *acts_on})
+    if flagged:
+        raise ConfigError(
+            f"--fault {flagged[0]}.*: these faults do not act in hdhil {args.command} "
+            f"(it injects {', '.join(acts_on)})"
+        )
+    config = with_fault_flags(faults, args.fault) or FaultConfig()
+    for role in ("control", "truth"):
+        if role in acts_on:
+            check_node_transmit_faults(config, role)  # type: ignore[arg-type]
+    try:
+        log = FaultLog(args.fault_log, keep=False)
+    except OSError as exc:
+        raise ConfigError(f"cannot write the fault log {args.fault_log}: {exc}") from None
+    return FaultInjector(config, log, stream=stream)
+
+
+def _with_faults(
+    bus: can.BusABC | None, injector: FaultInjector, role: Literal["control", "truth"]
+) -> Any:
+    """``bus``, or its :class:`~hdhil.faults.FaultyTransmitBus` when the node's own frames
+    on channel ``role`` are to be faulted."""
+    hook = injector.channel(role)
+    if bus is None or hook is None:
+        return bus
+    return FaultyTransmitBus(bus, hook)
+
+
 def _serve(
     node: Any,
     stop: Callable[[], bool],
@@ -103,29 +159,39 @@ def run_emulate(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     fw = from_dict(FirmwareConfig, scenario.firmware, "firmware")
     seed = scenario.seed if args.seed is None else args.seed
-    bus = open_bus(args.interface, args.channel, args.bitrate)
-    truth = None
+    acts_on = ("sensors", "control", "truth") if args.truth_interface else ("sensors", "control")
+    injector = _fault_injector(args, scenario.faults, "drive", acts_on)
+    bus = truth = None
     try:
+        bus = open_bus(args.interface, args.channel, args.bitrate)
         truth = _truth_bus(args)
+        node_bus = _with_faults(bus, injector, "control")
+        node_truth = _with_faults(truth, injector, "truth") if truth is not None else None
         drive = DriveNode(
-            bus,
-            Plant(scenario.plant, seed),
+            node_bus,
+            Plant(scenario.plant, seed, faults=injector.sensors()),
             DriveConfig(sample_period_s=fw.sample_period_s),
-            truth_bus=truth,
+            truth_bus=node_truth,
+            faults=injector,
         )
         t_end = time.monotonic() + args.duration if args.duration else float("inf")
         with stop_on_signals() as stop:
             drive.boot(time.monotonic())
             _serve(drive, stop.is_set, lambda: time.monotonic() >= t_end)
         stopped_by_signal = stop.is_set()
+        for b in (node_bus, node_truth):
+            if isinstance(b, FaultyTransmitBus):
+                b.flush()
         d = drive.diagnostics
         print(json.dumps({"node": "drive", "syncs": d.syncs, "commands": d.commands,
                           "nmt_state": str(drive.nmt_state), "drive_state": str(drive.drive_state),
-                          "plant_time_s": drive.plant.time}))  # fmt: skip
+                          "plant_time_s": drive.plant.time,
+                          "faults": injector.summary()}))  # fmt: skip
     finally:
-        bus.shutdown()
-        if truth is not None:
-            truth.shutdown()
+        for b in (bus, truth):
+            if b is not None:
+                b.shutdown()
+        injector.log.close()
     return 130 if stopped_by_signal else 0
 
 
@@ -136,9 +202,12 @@ def run_firmware(args: argparse.Namespace) -> int:
     fw = from_dict(FirmwareConfig, scenario.firmware, "firmware")
     Ts = fw.sample_period_s
     cycles = round((args.duration or scenario.duration_s) / Ts)
-    bus = open_bus(args.interface, args.channel, args.bitrate)
+    injector = _fault_injector(args, scenario.faults, "controller", ("control",))
+    bus = None
     try:
-        ctrl = ControllerNode(bus, fw, boot_timeout_s=args.boot_timeout)
+        bus = open_bus(args.interface, args.channel, args.bitrate)
+        node_bus = _with_faults(bus, injector, "control")
+        ctrl = ControllerNode(node_bus, fw, boot_timeout_s=args.boot_timeout)
         with stop_on_signals() as stop:
             ctrl.boot(time.monotonic())
             # Wait for the drive's boot-up (or the timeout) while producing heartbeats.
@@ -149,13 +218,17 @@ def run_firmware(args: argparse.Namespace) -> int:
             ctrl.request_stop()
             _sync_loop(ctrl, lambda: False, 2000, Ts, args.realtime,
                        until=lambda: ctrl.phase in ("stopped", "safe"))  # fmt: skip
+        if isinstance(node_bus, FaultyTransmitBus):
+            node_bus.flush()
         d = ctrl.diagnostics
         print(json.dumps({"node": "controller", "operational_cycles": done,
                           "syncs_sent": d.syncs_sent, "sensor_frames": d.sensor_frames,
-                          "phase": ctrl.phase}))  # fmt: skip
+                          "phase": ctrl.phase, "faults": injector.summary()}))  # fmt: skip
         return 130 if stop.is_set() else 0
     finally:
-        bus.shutdown()
+        if bus is not None:
+            bus.shutdown()
+        injector.log.close()
 
 
 def _sync_loop(
@@ -304,6 +377,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="wall seconds (default: until Ctrl-C / SIGTERM)",
     )
+    add_fault_arguments(p, " (sensors.*, and control.*/truth.* on the drive's own frames)")
     p.set_defaults(func=run_emulate)
 
     p = sub.add_parser("firmware", help="run the controller firmware alone on a CAN interface")
@@ -323,6 +397,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--boot-timeout", type=float, default=2.0, help="seconds to wait for the drive's boot-up"
     )
+    add_fault_arguments(p, " (control.* on the controller's own frames)")
     p.set_defaults(func=run_firmware)
 
     p = sub.add_parser("log", help="record a CAN interface (and the truth bus) to a trace")

@@ -41,7 +41,7 @@ from hdhil.dataconf import ConfigError, from_dict, merge
 from hdhil.dbc import CHANNEL_NUMBER, database
 from hdhil.evaluate import RecordingListener, format_evaluation
 from hdhil.evaluate import evaluate as evaluate_recording
-from hdhil.faults import FaultInjector, FaultLog
+from hdhil.faults import FaultInjector, FaultLog, with_fault_flags
 from hdhil.realtime import RealtimeLoop, WallClock, format_realtime
 from hdhil.score import TorqueScorer, TrackingScorer
 from hdhil.simbus import SimClock
@@ -307,6 +307,7 @@ def run_lockstep(
             Plant(scenario.plant, seed, faults=injector.sensors() if injector else None),
             drive_config,
             truth_bus=drive_truth,
+            faults=injector,
         )
         counter = FrameCounter()
         scorer = TorqueScorer()
@@ -573,13 +574,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="calibration file written by `hdhil calibrate --out` (the firmware uses its gain)",
     )
-    p.add_argument(
-        "--fault-log",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="write every injected fault (the scenario's [faults] table) as JSON lines",
-    )
+    add_fault_arguments(p)
     p.add_argument(
         "--compare-laws",
         action="store_true",
@@ -660,6 +655,27 @@ def stop_on_signals() -> Iterator[threading.Event]:
             signal.signal(sig, handler)
 
 
+def add_fault_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
+    """``--fault KEY=VALUE`` (repeatable) and ``--fault-log FILE``."""
+    p.add_argument(
+        "--fault",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="inject a fault: a key of the scenario's [faults] table, dotted, and a TOML "
+        "value, merged over the table (the flag wins; repeatable), e.g. "
+        "control.loss_rate=0.05, control.jitter_us=200, sensors.tacho_spike_rate=0.001, "
+        "seed=3, 'control.silence=[{node=2,start_s=1,duration_s=0.5}]'" + what,
+    )
+    p.add_argument(
+        "--fault-log",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write every injected fault as JSON lines",
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     from hdhil.cli import UserError
 
@@ -667,6 +683,10 @@ def run(args: argparse.Namespace) -> int:
     for path in args.override:
         overrides = merge(overrides, read_toml(path))
     scenario = load_scenario(args.scenario, overrides or None)
+    if args.fault:
+        scenario = dataclasses.replace(
+            scenario, faults=with_fault_flags(scenario.faults, args.fault)
+        )
     if args.calibration is not None:
         from hdhil.calibrate import load_calibration
 
