@@ -115,6 +115,13 @@ controller sends nothing without a sensor frame), then EMCY 0x8250 "RPDO timeout
 of the drive while it is commanded (it was reset) and NMT commands from another master
 that take the controller out of OPERATIONAL (or reset it) also lead to "safe".
 
+Sensor plausibility (:class:`firmware.stages.SensorPlausibility`) does not stop the
+controller: replaced tacho samples and encoder increments are counted in the
+diagnostics, and when a channel is replaced ``max_rejections`` times in a row the next
+``tick`` sends EMCY 0x7301 "tacho fault" or 0x7305 "incremental sensor 1 fault"
+(CiA 402), once; EMCY 0x0000 follows when the channel is plausible again.  A cycle
+without a sensor frame widens the next sample's bounds by one period.
+
 Live parameters (SDO)
 ---------------------
 The controller's object dictionary holds the firmware parameters (objects 0x2400-0x2430,
@@ -911,6 +918,7 @@ class ControllerNode(CanNode):
             self._missing_sensor = 0
             return True
         self._missing_sensor += 1
+        self.isr.chain.sample_missed()
         d = self.diagnostics
         d.sensor_frames_missed += 1
         d.sensor_hold_longest = max(d.sensor_hold_longest, self._missing_sensor)

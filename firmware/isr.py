@@ -273,6 +273,11 @@ class TorqueFilterChain:
         self.T_ripple = ripple
         return acc, T_mod, Delta_T, filtered_torque(T_meas, ripple), ripple
 
+    def sample_missed(self) -> None:
+        """A sample period passed without a sample (the sensor frame was lost): the
+        plausibility bounds of the next sample span the gap."""
+        self.plausibility.missed()
+
     def keep_plausibility(self, previous: SensorPlausibility) -> None:
         """Carry the plausibility stage of a replaced chain over (its history, error
         flags and counters); the encoder check follows this chain's mode."""

@@ -239,7 +239,9 @@ class SensorPlausibility:
     rule).  If they differ by more than ``encoder_tolerance_counts``, the predicted
     increment replaces the measured one: the stage returns the count shifted by the
     offset it has accumulated, so an encoder glitch (counts lost or gained for good)
-    leaves the angle the filter sees continuous.
+    leaves the angle the filter sees continuous.  After g missed samples
+    (:meth:`missed`, a lost sensor frame) the prediction spans 1 + g periods and the
+    velocity bound grows by g periods too.
 
     **No lock-out.**  At most ``max_rejections`` implausible samples in a row are
     replaced per channel; the next one is accepted as the new level (a real jump, or a
@@ -251,17 +253,19 @@ class SensorPlausibility:
 
     After :meth:`step`: ``rejected`` is True when a value was replaced this sample
     (:class:`firmware.isr.TorqueFilterChain` then keeps the sample out of the Kalman
-    filter's learning) and ``reseeded`` when the velocity was accepted as a new level.  Counters: ``tacho_rejections``,
-    ``encoder_rejections`` (values replaced), ``tacho_reseeds``, ``encoder_reseeds``
-    (implausible values accepted as the new level), ``errors_raised``; ``revision``
-    changes whenever any of them or an error flag does.  A non-finite velocity is passed
-    on unchecked (the later stages skip it) and skips the encoder check.
+    filter's learning) and ``reseeded`` when the velocity was accepted as a new level.
+    Counters: ``tacho_rejections``, ``encoder_rejections`` (values replaced),
+    ``tacho_reseeds``, ``encoder_reseeds`` (implausible values accepted as the new
+    level), ``errors_raised``; ``revision`` changes whenever any of them or an error
+    flag does.  A non-finite velocity is passed on unchecked (the later stages skip it)
+    and skips the encoder check.
     """
 
     __slots__ = (
         "_dv_max",
         "_e_bad",
         "_e_good",
+        "_gap",
         "_half_Ts_counts",
         "_limit",
         "_noise",
@@ -276,15 +280,15 @@ class SensorPlausibility:
         "_v_ref",
         "check_encoder",
         "encoder_error",
-        "encoder_reseeds",
         "encoder_rejections",
+        "encoder_reseeds",
         "errors_raised",
         "rejected",
         "reseeded",
         "revision",
         "tacho_error",
-        "tacho_reseeds",
         "tacho_rejections",
+        "tacho_reseeds",
     )
 
     _MASK = 0xFFFF
@@ -316,6 +320,7 @@ class SensorPlausibility:
         self._v_ref: float | None = None
         self._v_prev: float | None = None
         self._since = 1
+        self._gap = 0  # sample periods missed since the last step
         self._v_bad = self._v_good = 0
         self._raw_last: int | None = None
         self._offset = 0.0  # replaced minus measured increments (counts)
@@ -334,10 +339,17 @@ class SensorPlausibility:
         self._raw_last = None
         self._v_prev = None
 
+    def missed(self) -> None:
+        """A sample period passed without a sample (a lost sensor frame): the next
+        velocity bound and encoder prediction span it."""
+        self._gap += 1
+        self._since += 1
+
     def step(self, velocity: float, encoder: int | None) -> tuple[float, int | None]:
         """One sample: calibrated velocity (rad/s) and raw encoder count (None: no
         encoder) to the velocity and 16-bit count the later stages use."""
         self.rejected = self.reseeded = False
+        gap = self._gap
         v = velocity
         v_ref = self._v_ref
         if v_ref is None or not math.isfinite(v):
@@ -353,6 +365,8 @@ class SensorPlausibility:
                     self._tacho_good()
             else:
                 v = self._tacho_implausible(v, v_ref)
+        if gap:
+            self._gap = 0
         if encoder is None or not self.check_encoder:
             return v, encoder
         raw = encoder & self._MASK
@@ -365,7 +379,7 @@ class SensorPlausibility:
                 d = (raw - last) & self._MASK
                 if d >= self._HALF:
                     d -= 0x10000
-                predicted = (v_prev + v) * self._half_Ts_counts
+                predicted = (v_prev + v) * self._half_Ts_counts * (1 + gap)
                 tol = self._tolerance
                 if -tol <= d - predicted <= tol:
                     self._e_bad = 0

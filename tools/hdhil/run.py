@@ -485,8 +485,8 @@ def format_result(r: RunResult) -> str:
     if c.get("tacho_rejections") or c.get("encoder_rejections") or c.get("plausibility_errors"):
         lines.append(
             f"  plausibility       replaced {c['tacho_rejections']} tacho samples and "
-            f"{c['encoder_rejections']} encoder increments; accepted as a new level "
-            f"{c['tacho_reseeds']} / {c['encoder_reseeds']}; "
+            f"{c['encoder_rejections']} encoder increments; {c['tacho_reseeds']} / "
+            f"{c['encoder_reseeds']} accepted as a new level (tacho / encoder); "
             f"{c['plausibility_errors']} sensor errors (EMCY)"
         )
     if r.tracking is not None:
