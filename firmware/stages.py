@@ -230,7 +230,8 @@ class SensorPlausibility:
     n samples back, by more than ``tacho_noise_radps + n * max_acceleration_radps2 *
     Ts``: the joint cannot change its speed faster than its motor torque allows, and the
     tacho noise band comes on top.  It is replaced by the last accepted velocity (hold).
-    The bound grows with n, as what the joint may have done since grows.
+    The bound grows with n, as what the joint may have done since grows.  The first
+    sample has nothing to be compared against and is accepted as it is.
 
     **Encoder** (with ``check_encoder``, i.e. when the ripple filter locks its harmonics
     to the encoder).  The increment of the 16-bit count, taken as a signed 16-bit number
