@@ -52,6 +52,10 @@ __all__ = [
     "PAPER_Q_MOTOR",
     "PAPER_Q_OUTPUT",
     "PAPER_R",
+    "PLAUSIBLE_ACCELERATION_RADPS2",
+    "PLAUSIBLE_ENCODER_COUNTS",
+    "PLAUSIBLE_REJECTIONS",
+    "PLAUSIBLE_TACHO_NOISE_RADPS",
     "RECOMMENDED_P0",
     "RECOMMENDED_P0_OUTPUT",
     "RECOMMENDED_Q_HARMONIC",
@@ -70,6 +74,7 @@ __all__ = [
     "Law",
     "Oscillator",
     "PhaseSource",
+    "PlausibilityConfig",
     "ReferenceConfig",
     "RippleFilterConfig",
     "Wave",
@@ -514,6 +519,80 @@ class DesiredTorqueConfig:
         )
 
 
+#: Plausibility: the largest motor acceleration (rad/s², motor side) the joint can do.
+#: The seeds give no motor data, so this is the drive emulator's default motor
+#: (``hostsim.plant.AmplifierConfig`` / ``DriveTrainConfig``, representative of an
+#: RHS-20-class drive, not from the seeds): current limit 6 A x torque constant
+#: 0.06 Nm/A = 0.36 Nm at the motor shaft, over the rotor and wave-generator inertia
+#: 0.3 kg m² / 100² = 3e-5 kg m², is 12 000 rad/s² with the load uncoupled (the load only
+#: lowers it), times a margin of 1.5 for a flexspline that unwinds into the motor:
+#: 18 000 rad/s², 18 rad/s per 1 ms sample.  The fastest clean change measured on the
+#: shipped scenarios is far below it (README, "Real-time mode and faults").
+PLAUSIBLE_ACCELERATION_RADPS2 = 18_000.0
+#: Plausibility: the tachometer noise band (rad/s) added to the velocity bound.  The
+#: firmware's tacho channel (12-bit, +/-10 V, 56.2565 rad/s per V; seed 000 listing A.1
+#: ``volt2radps``) has an LSB of 0.275 rad/s; two samples each within half an LSB of
+#: quantisation and 4 sigma of a 0.05 rad/s rms noise (``hostsim.plant.SensorConfig``)
+#: differ by at most 0.275 + 0.4 rad/s; rounded up to 1 rad/s.
+PLAUSIBLE_TACHO_NOISE_RADPS = 1.0
+#: Plausibility: how far (counts) an encoder increment may be from the one the accepted
+#: velocity predicts, Ts (v(k-1) + v(k)) / 2 x counts per rad.  At 8000 counts per
+#: revolution (:attr:`Calibration.encoder_counts_per_rev`) a tacho gain error of 5 % at
+#: 300 rad/s is 19 counts per 1 ms sample, the tacho quantisation 0.35 counts.  A jump
+#: the check lets through (at most 0.016 rad of motor angle, 0.03 rad of phase of the 2x
+#: ripple) hardly matters to the ripple filter.
+PLAUSIBLE_ENCODER_COUNTS = 20.0
+#: Plausibility: at most this many implausible samples in a row are replaced by the
+#: prediction (the last of them raises the sensor error, EMCY); the next one is accepted
+#: as the new level, so the firmware cannot lock out.  5 ms of hold at 1 kHz.
+PLAUSIBLE_REJECTIONS = 5
+
+
+@dataclass(frozen=True)
+class PlausibilityConfig:
+    """The sensor plausibility stage (:class:`firmware.stages.SensorPlausibility`; not in
+    the seeds).  It runs right after calibration and bounds what one sample can change.
+
+    - ``enabled``: ``false`` passes every sample through unchecked (the seed's handler).
+    - ``max_acceleration_radps2``: the largest motor acceleration the joint can do
+      (:data:`PLAUSIBLE_ACCELERATION_RADPS2`, where the number comes from).  A velocity
+      sample is implausible when it differs from the last accepted one by more than
+      ``tacho_noise_radps + n * max_acceleration_radps2 * Ts``, n being the samples
+      since that one; the differentiator's acceleration is clamped to ±this value.
+    - ``tacho_noise_radps``: the tachometer noise band (:data:`PLAUSIBLE_TACHO_NOISE_RADPS`).
+    - ``encoder_tolerance_counts``: how far an encoder increment may be from the
+      accepted velocity's (:data:`PLAUSIBLE_ENCODER_COUNTS`).  Only checked when the
+      ripple filter takes its phase from the encoder.
+    - ``max_rejections``: at most this many implausible samples in a row are replaced
+      (:data:`PLAUSIBLE_REJECTIONS`); the last of them raises the sensor error (EMCY),
+      the next implausible one is accepted as the new level, and the error clears
+      after as many plausible samples in a row.
+    """
+
+    enabled: bool = True
+    max_acceleration_radps2: float = PLAUSIBLE_ACCELERATION_RADPS2
+    tacho_noise_radps: float = PLAUSIBLE_TACHO_NOISE_RADPS
+    encoder_tolerance_counts: float = PLAUSIBLE_ENCODER_COUNTS
+    max_rejections: int = PLAUSIBLE_REJECTIONS
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.enabled, bool):
+            raise ValueError(f"plausibility.enabled must be true or false, got {self.enabled!r}")
+        check_fields(
+            self,
+            {
+                "max_acceleration_radps2": ">0",
+                "tacho_noise_radps": ">=0",
+                "encoder_tolerance_counts": ">0",
+            },
+        )
+        m = self.max_rejections
+        if isinstance(m, bool) or not isinstance(m, int) or m < 1:
+            raise ValueError(
+                f"PlausibilityConfig.max_rejections must be an integer >= 1, got {m!r}"
+            )
+
+
 ControlFeedback = Literal["T_meas", "T_filtered"]
 
 
@@ -635,6 +714,8 @@ class FirmwareConfig:
     - ``adc`` / ``dac``: the DT1401's 12-bit, +/-10 V converters.
     - ``control``: seed 003's joint-torque control (:class:`ControlConfig`); off by
       default (``law = none``), in which case the handler is the seed-000 port unchanged.
+    - ``plausibility``: bounds on velocity and encoder changes per sample
+      (:class:`PlausibilityConfig`, not in the seeds); on by default.
     """
 
     sample_period_s: float = 1e-3
@@ -648,6 +729,7 @@ class FirmwareConfig:
     adc: Converter = field(default_factory=Converter)
     dac: Converter = field(default_factory=Converter)
     control: ControlConfig = field(default_factory=ControlConfig)
+    plausibility: PlausibilityConfig = field(default_factory=PlausibilityConfig)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.sample_period_s) and 0.0 < self.sample_period_s <= 1.0):
@@ -668,6 +750,7 @@ class FirmwareConfig:
             ("adc", Converter),
             ("dac", Converter),
             ("control", ControlConfig),
+            ("plausibility", PlausibilityConfig),
         ):
             if not isinstance(getattr(self, name), expected):
                 raise ValueError(f"{name} must be a {expected.__name__}")

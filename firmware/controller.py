@@ -115,6 +115,13 @@ controller sends nothing without a sensor frame), then EMCY 0x8250 "RPDO timeout
 of the drive while it is commanded (it was reset) and NMT commands from another master
 that take the controller out of OPERATIONAL (or reset it) also lead to "safe".
 
+Sensor plausibility (:class:`firmware.stages.SensorPlausibility`) does not stop the
+controller: replaced tacho samples and encoder increments are counted in the
+diagnostics, and when a channel is replaced ``max_rejections`` times in a row the next
+``tick`` sends EMCY 0x7301 "tacho fault" or 0x7305 "incremental sensor 1 fault"
+(CiA 402), once; EMCY 0x0000 follows when the channel is plausible again.  A cycle
+without a sensor frame widens the next sample's bounds by one period.
+
 Live parameters (SDO)
 ---------------------
 The controller's object dictionary holds the firmware parameters (objects 0x2400-0x2430,
@@ -281,6 +288,14 @@ class ControllerDiagnostics:
     parameter_updates_applied: int = 0
     filter_restarts: int = 0
     control_rebuilds: int = 0
+    #: Plausibility stage (:class:`firmware.stages.SensorPlausibility`): velocity samples
+    #: and encoder increments replaced by the prediction, implausible values accepted as
+    #: the new level after ``max_rejections`` in a row, errors announced by EMCY.
+    tacho_rejections: int = 0
+    encoder_rejections: int = 0
+    tacho_reseeds: int = 0
+    encoder_reseeds: int = 0
+    plausibility_errors: int = 0
     safe_reason: str | None = None
 
 
@@ -522,6 +537,8 @@ class ControllerNode(CanNode):
         self._pending: FirmwareConfig | None = None
         self._staged: tuple[int, int, Any, FirmwareConfig] | None = None
         self._prebuilt_control: tuple[Any, TorqueControl] | None = None
+        self._plausibility_revision = 0
+        self._plausibility_emcy: set[int] = set()  # EMCY codes of active sensor errors
         self._cycle = 0
         Ts = config.sample_period_s
         self._statusword_timeout_cycles = max(1, math.ceil(self.STATUSWORD_TIMEOUT_S / Ts - 1e-9))
@@ -606,6 +623,8 @@ class ControllerNode(CanNode):
                     f"{_seconds(self.boot_timeout_s)} s: check power, node-ID and bit rate"
                 )
                 self._enter_safe(self.boot_error)
+        if self.isr.chain.plausibility.revision != self._plausibility_revision:
+            self._report_plausibility()
         counters = self.services.counters
         self.diagnostics.emcy_sent = counters.emcy_sent
         self.diagnostics.emcy_received = counters.emcy_received
@@ -685,6 +704,36 @@ class ControllerNode(CanNode):
             self.bus.send(self._telemetry_msg)
         if self.isr.done:
             self.request_stop(f"num_samples = {self.config.num_samples} reached")
+
+    def _report_plausibility(self) -> None:
+        """The plausibility stage's counters into the diagnostics, and its error flags on
+        the bus (CiA 301 §7.2.7: an EMCY when an error occurs, EMCY 0x0000 "error reset
+        or no error" when it goes away; not one per replaced sample).
+
+        Codes (CiA 402 / IEC 61800-7-201 table of error codes, "sensor" family 0x73xx):
+        0x7301 "tacho fault" for the velocity and 0x7305 "incremental sensor 1 fault" for
+        the encoder.  Both are more specific than 0x7300 "sensor", which the drive
+        already sends for a saturated ADC channel, so a host can tell the two apart.
+        """
+        check = self.isr.chain.plausibility
+        self._plausibility_revision = check.revision
+        d = self.diagnostics
+        d.tacho_rejections = check.tacho_rejections
+        d.encoder_rejections = check.encoder_rejections
+        d.tacho_reseeds = check.tacho_reseeds
+        d.encoder_reseeds = check.encoder_reseeds
+        d.plausibility_errors = check.errors_raised
+        active = self._plausibility_emcy
+        for code, error in (
+            (EmcyCode.TACHO_FAULT, check.tacho_error),
+            (EmcyCode.INCREMENTAL_SENSOR_1, check.encoder_error),
+        ):
+            if error and code not in active:
+                active.add(code)
+                self.services.emcy(code)
+            elif not error and code in active:
+                active.discard(code)
+                self.services.emcy_clear(code)
 
     def _send_command(self, dac_counts: int, controlword: int) -> None:
         self._command_msg.data = self._command.encode(dac_counts, controlword, self._cycle & 0xFF)
@@ -869,6 +918,7 @@ class ControllerNode(CanNode):
             self._missing_sensor = 0
             return True
         self._missing_sensor += 1
+        self.isr.chain.sample_missed()
         d = self.diagnostics
         d.sensor_frames_missed += 1
         d.sensor_hold_longest = max(d.sensor_hold_longest, self._missing_sensor)
@@ -1060,6 +1110,7 @@ class ControllerNode(CanNode):
             chain.encoder = previous.encoder
             chain.integrator = previous.integrator
             chain.angle = previous.angle
+            chain.keep_plausibility(previous.plausibility)
             isr.chain = chain
             d.filter_restarts += 1
         else:

@@ -74,6 +74,7 @@ from firmware.stages import (
     Differentiator,
     EncoderUnwrap,
     ReferenceGenerator,
+    SensorPlausibility,
     VelocityIntegrator,
     adc_read,
     calibrate,
@@ -175,6 +176,27 @@ class TorqueFilterChain:
 
     :meth:`step` returns ``(acceleration, T_expected, delta_T, T_filtered, ripple)``
     with ``T_filtered = T_meas - ripple`` in both modes.
+
+    The chain starts with the plausibility stage (not in the listing;
+    :class:`firmware.stages.SensorPlausibility`, ``cfg.plausibility``): a velocity
+    sample the joint cannot have produced is replaced by the last accepted one and an
+    implausible encoder increment by the predicted one (the encoder is checked only
+    when the recommended filter takes its phase from it), the differentiator's output
+    is clamped to ``max_acceleration_radps2``, and a level accepted after
+    ``max_rejections`` re-seeds the differentiator.  :attr:`velocity` is the velocity
+    the chain used at the last step.  How the Kalman filter treats a sample with a
+    replaced value:
+
+    - recommended: it skips the update, exactly as for a non-finite sample (its
+      ``skipped`` counts both); the learned ripple map is still subtracted at the
+      sample's (predicted) angle.  Its state is a random walk (Φ = I), so nothing is
+      lost by skipping.
+    - paper: it updates with the replaced velocity.  The listing's ``Kalman`` rotates
+      its oscillators by ``vel * sample_period`` inside the update, so a skipped call
+      leaves the ripple phase one sample behind; the replaced velocity is the
+      prediction of that step.  Measured on free-motion with 1 V tacho spikes at 1 %
+      of the samples (filtered-torque RMS error from 0.3 s against the clean run):
+      1.00x when updating, 1.08x when skipping, 5.0x without the stage.
     """
 
     def __init__(self, cfg: FirmwareConfig) -> None:
@@ -195,6 +217,17 @@ class TorqueFilterChain:
         self._gear_ratio = cfg.gear_ratio
         self.T_ripple = 0.0  # listing: float T_ripple = 0.0;
         self.angle = 0.0  # recommended mode: motor angle of the last sample (rad)
+        self.velocity = 0.0  # velocity used at the last sample (after plausibility)
+        plausibility = cfg.plausibility
+        self._check = plausibility.enabled
+        self.plausibility = SensorPlausibility(
+            plausibility,
+            cfg.sample_period_s,
+            cfg.calibration.encoder_counts_per_rev,
+            check_encoder=not self._paper and self._use_encoder,
+        )
+        if self._check:
+            self.differentiator.limit = plausibility.max_acceleration_radps2
 
     def step(
         self, T_meas: float, velocity: float, encoder: int | None = None
@@ -207,6 +240,15 @@ class TorqueFilterChain:
         In paper mode ``self.T_ripple`` afterwards holds the prediction for the next
         sample (the listing's global).
         """
+        if self._check:  # plausibility (not in the listing), right after calibration
+            check = self.plausibility
+            velocity, encoder = check.step(velocity, encoder)
+            if check.reseeded:
+                self.differentiator.reseed(velocity)
+            rejected = check.rejected
+        else:
+            rejected = False
+        self.velocity = velocity
         acc = self.differentiator.step(velocity)  # acc = Diff_filter( vel);
         T_mod = expected_torque(acc, self._J_load, self._gear_ratio)  # T_mod = J_load*acc/Gain;
         Delta_T = torque_error(T_meas, T_mod)  # Delta_T = T_meas - T_mod;
@@ -225,9 +267,22 @@ class TorqueFilterChain:
         else:
             angle = self.integrator.step(velocity)
         self.angle = angle
-        ripple = self.kalman.step(Delta_T, velocity, angle)  # type: ignore[call-arg]
+        # a sample with a replaced value skips the update, exactly like a non-finite one
+        y = math.nan if rejected else Delta_T
+        ripple = self.kalman.step(y, velocity, angle)  # type: ignore[call-arg]
         self.T_ripple = ripple
         return acc, T_mod, Delta_T, filtered_torque(T_meas, ripple), ripple
+
+    def sample_missed(self) -> None:
+        """A sample period passed without a sample (the sensor frame was lost): the
+        plausibility bounds of the next sample span the gap."""
+        self.plausibility.missed()
+
+    def keep_plausibility(self, previous: SensorPlausibility) -> None:
+        """Carry the plausibility stage of a replaced chain over (its history, error
+        flags and counters); the encoder check follows this chain's mode."""
+        previous.set_encoder_check(self.plausibility.check_encoder)
+        self.plausibility = previous
 
     def reset(self) -> None:
         """Back to power-on state: differentiator, angle sources and Kalman filter
@@ -236,8 +291,10 @@ class TorqueFilterChain:
         self.kalman.reset()
         self.encoder.reset()
         self.integrator.reset()
+        self.plausibility.reset()
         self.T_ripple = 0.0
         self.angle = 0.0
+        self.velocity = 0.0
 
 
 class TorqueControl:
@@ -383,9 +440,11 @@ class InterruptHandler:
         Torque, Tacho, MotorCurrOut = adc_read(sample.torque, sample.tacho, sample.current, cfg.adc)
         # vel = Tacho * volt2radps; T_meas = Torque * volt2Nm;
         T_meas, vel, current = calibrate(Torque, Tacho, MotorCurrOut, cfg.calibration)
+        # plausibility (not in the listing): implausible vel / pcsample replaced;
         # acc = Diff_filter(vel); T_mod; Delta_T; Torque_f; T_ripple = Kalman(...);
         # (recommended mode: the motor angle from pcsample, the drive's encoder count)
-        acc, T_mod, Delta_T, Torque_f, ripple = self.chain.step(T_meas, vel, sample.encoder)
+        chain = self.chain
+        acc, T_mod, Delta_T, Torque_f, ripple = chain.step(T_meas, vel, sample.encoder)
         out = self._out
         control = self.control
         if control is None:
@@ -401,7 +460,7 @@ class InterruptHandler:
         # copy(&T_meas ...); copy(&vel ...); copy(&MotorCurrOut ...); copy(&Torque_f ...);
         out.samplecount = k
         out.T_meas = T_meas
-        out.velocity = vel
+        out.velocity = chain.velocity
         out.current = current
         out.acceleration = acc
         out.T_expected = T_mod

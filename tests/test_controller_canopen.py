@@ -13,11 +13,12 @@ from __future__ import annotations
 import itertools
 import math
 import struct
+from collections.abc import Callable
 
 import can
 import pytest
 
-from firmware.config import FirmwareConfig, Law, ReferenceConfig, Wave
+from firmware.config import FirmwareConfig, Law, ReferenceConfig, Wave, paper_config
 from firmware.controller import PARAMETERS, ControllerNode
 from hdhil.canopen_services import load_od
 from hdhil.dbc import codec, database, eds_path
@@ -54,6 +55,8 @@ class FakeDrive:
         self.controlwords: list[int] = []
         self.dac: list[int] = []
         self.sample = 0
+        #: The sensor frame's (torque, tacho, current, encoder) per sample; None: fixed.
+        self.sensor: Callable[[int], tuple[int, int, int, int]] | None = None
 
     def _send(self, can_id: int, data: bytes) -> None:
         if not self.silent:
@@ -93,7 +96,12 @@ class FakeDrive:
                 self.nmt = {0x01: 0x05, 0x02: 0x04, 0x80: 0x7F}.get(data[0], self.nmt)
             elif can_id == 0x080 and self.nmt == 0x05 and not self.mute_sensor:
                 self.sample += 1
-                self._send(SENSOR.frame_id, SENSOR.encode(100, 20, 0, (7 * self.sample) & 0xFFFF))
+                values = (
+                    (100, 20, 0, (7 * self.sample) & 0xFFFF)
+                    if self.sensor is None
+                    else self.sensor(self.sample)
+                )
+                self._send(SENSOR.frame_id, SENSOR.encode(*values))
             elif can_id == COMMAND.frame_id and self.nmt == 0x05:
                 dac, cw, _ = COMMAND.decode(data)
                 self.controlwords.append(cw)
@@ -551,6 +559,95 @@ def test_sensor_hold_keeps_the_last_command_then_safe(link):
     assert (d.sensor_frames_missed, d.sensor_hold_longest) == (13, 10)
 
 
+class SensorScript:
+    """Sensor frames of a motor whose tacho reads ``tacho(sample)`` counts and whose
+    encoder counts the velocity it really has, ``true(sample)`` tacho counts (the same
+    as the tacho unless that is faulty); ``stuck`` freezes the encoder count."""
+
+    VOLT_PER_COUNT = 10.0 / 2048
+    RADPS_PER_COUNT = VOLT_PER_COUNT * 56.2565
+
+    def __init__(self, tacho: Callable[[int], int], true: Callable[[int], int] | None = None):
+        self.tacho = tacho
+        self.true = true or tacho
+        self.angle = 0.0  # rad
+        self.count = 0
+        self.stuck: range = range(0)
+
+    def __call__(self, sample: int) -> tuple[int, int, int, int]:
+        self.angle += self.true(sample) * self.RADPS_PER_COUNT * TS
+        if sample not in self.stuck:
+            self.count = round(self.angle * 8000 / (2 * math.pi))
+        return 100, self.tacho(sample), 0, self.count & 0xFFFF
+
+
+def _emcy(frames) -> list[tuple[int, int]]:
+    """(error code, error register) of the controller's EMCY frames."""
+    return [struct.unpack_from("<HB", d) for _, i, d in frames if i == 0x081]
+
+
+def _scripted(make, script: SensorScript, config: FirmwareConfig | None = None) -> Link:
+    """A link whose drive sends the script's sensor frames from its first one."""
+    lk = make(config)
+    lk.drive.sensor = script
+    lk.boot()
+    lk.run_until("operational", 50)
+    return lk
+
+
+def test_a_tacho_spike_is_counted_but_sends_no_emcy(link):
+    lk = _scripted(link, SensorScript(lambda s: 400 if s == 50 else 20, lambda s: 20))
+    frames = lk.run(100)
+    d = lk.node.diagnostics
+    assert (d.tacho_rejections, d.encoder_rejections, d.plausibility_errors) == (1, 0, 0)
+    assert _emcy(frames) == []
+
+
+def test_persistent_implausible_velocity_sends_emcy_0x7301_then_the_reset(link):
+    """The tacho jumps to a level the joint cannot reach even over M samples and stays:
+    the M-th replaced sample raises EMCY 0x7301 "tacho fault" (CiA 402) once; the level
+    is then accepted and M plausible samples later EMCY 0x0000 clears the error.  (Paper
+    mode: the encoder, which would disagree with the new level, is not checked.)"""
+    script = SensorScript(lambda s: 1500 if s >= 50 else 20)  # 5 -> 412 rad/s
+    lk = _scripted(link, script, paper_config(FirmwareConfig()))
+    m = lk.node.config.plausibility.max_rejections
+    start = len(lk.log)
+    lk.run(100)
+    emcy = [(k, *struct.unpack_from("<HB", d)) for k, i, d in lk.log[start:] if i == 0x081]
+    assert [(code, reg) for _, code, reg in emcy] == [(0x7301, 0x21), (0x0000, 0x00)]
+    raised_cycle, cleared_cycle = emcy[0][0], emcy[1][0]
+    assert cleared_cycle - raised_cycle == m + 1  # M replaced, 1 new level, M plausible
+    d = lk.node.diagnostics
+    assert (d.tacho_rejections, d.tacho_reseeds, d.plausibility_errors) == (m, 1, 1)
+    assert d.encoder_rejections == 0 and lk.node.phase == "operational"
+    assert d.emcy_sent == 2
+
+
+def test_a_stuck_encoder_sends_emcy_0x7305_while_it_stays_stuck(link):
+    """The encoder stops counting for 30 samples at 55 rad/s: M increments replaced,
+    EMCY 0x7305 "incremental sensor 1 fault" once, the stuck count followed (no
+    lock-out), and EMCY 0x0000 once it counts again."""
+    script = SensorScript(lambda s: 200)  # 55 rad/s, 70 counts per sample
+    script.stuck = range(50, 80)
+    lk = _scripted(link, script)
+    m = lk.node.config.plausibility.max_rejections
+
+    def until(sample: int) -> list[tuple[int, int, bytes]]:
+        frames = []
+        while lk.drive.sample < sample:
+            frames += lk.run(1)
+        return frames
+
+    assert _emcy(until(50)) == []
+    assert _emcy(until(50 + m + 2)) == [(0x7305, 0x21)]
+    assert _emcy(until(80 + m + 2)) == [(0x0000, 0x00)]
+    d = lk.node.diagnostics
+    # 30 samples without an increment, then the whole 30 x 70 counts at once: M replaced,
+    # the rest followed
+    assert d.encoder_rejections == m and d.encoder_reseeds == 30 - m + 1
+    assert d.tacho_rejections == 0 and d.plausibility_errors == 1
+
+
 def test_a_drive_reboot_or_another_masters_nmt_stop_is_safe(link):
     lk = operational(link)
     lk.drive.boot(lk.now)
@@ -623,6 +720,21 @@ def test_filter_r_write_restarts_the_ripple_filter(link):
     assert lk.node.isr.chain.kalman.cfg.r == f32(0.002)
     assert lk.node.diagnostics.filter_restarts == 1
     assert lk.read_real(0x2410, 2) == f32(0.002)
+
+
+def test_a_filter_restart_keeps_the_plausibility_history_and_counts(link):
+    lk = _scripted(link, SensorScript(lambda s: 400 if s == 20 else 20, lambda s: 20))
+    lk.run(30)
+    check = lk.node.isr.chain.plausibility
+    assert check.tacho_rejections == 1 and check.check_encoder
+    assert lk.download(0x2410, 1, b"\x00") is None  # paper: the encoder is not used
+    lk.cycle()
+    assert lk.node.isr.chain.plausibility is check and not check.check_encoder
+    assert lk.download(0x2410, 1, b"\x01") is None  # recommended again
+    lk.run(30)
+    assert check.check_encoder and lk.node.diagnostics.filter_restarts == 2
+    d = lk.node.diagnostics
+    assert (d.tacho_rejections, d.encoder_rejections, d.plausibility_errors) == (1, 0, 0)
 
 
 def test_filter_mode_write_gives_the_modes_default_tuning(link):

@@ -48,7 +48,7 @@ import numpy as np
 from firmware.config import FirmwareConfig, paper_config
 from firmware.isr import AdcSample, InterruptHandler, IsrOutput, TorqueControl, TorqueFilterChain
 from firmware.ripple import HarmonicKalman, RippleKalman
-from firmware.stages import Differentiator, adc_read, calibrate
+from firmware.stages import Differentiator, SensorPlausibility, adc_read, calibrate
 from hdhil.dataconf import from_dict
 from hdhil.run import run_lockstep
 from hostsim.plant import Plant
@@ -306,6 +306,14 @@ def bench_stages(s: BenchSettings) -> dict[str, Any]:
     diff = Differentiator(fm.diff_tau_s, fm.sample_period_s)
     row = _percentiles_us(_time_each(diff.step, [(v,) for v in sig["vel"]]))
     row.update(stage="differentiator", config="free-motion")
+    rows.append(row)
+
+    # plausibility check: velocity and encoder increment bounds
+    check = SensorPlausibility(
+        fm.plausibility, fm.sample_period_s, fm.calibration.encoder_counts_per_rev
+    )
+    row = _percentiles_us(_time_each(check.step, list(zip(sig["vel"], sig["enc"], strict=True))))
+    row.update(stage="plausibility check", config="free-motion")
     rows.append(row)
 
     # ripple Kalman filters: 4th order (free-motion) and 6th order (misalignment)

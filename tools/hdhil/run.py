@@ -175,6 +175,11 @@ def _controller_diagnostics(controller: ControllerNode) -> dict[str, Any]:
         "filter_mode": controller.config.ripple.mode,
         "filter_states": int(P.shape[0]),
         "kalman_skipped": kalman.skipped,
+        "tacho_rejections": d.tacho_rejections,
+        "encoder_rejections": d.encoder_rejections,
+        "tacho_reseeds": d.tacho_reseeds,
+        "encoder_reseeds": d.encoder_reseeds,
+        "plausibility_errors": d.plausibility_errors,
         "covariance_resets": getattr(kalman, "covariance_resets", 0),
         "covariance_finite": finite,
         "covariance_min_eigenvalue": (
@@ -486,6 +491,14 @@ def format_result(r: RunResult) -> str:
     if r.faults is not None:
         injected = ", ".join(f"{kind} {n}" for kind, n in r.faults.items()) or "none"
         lines.append(f"  faults injected    {injected}")
+    c = r.controller
+    if c.get("tacho_rejections") or c.get("encoder_rejections") or c.get("plausibility_errors"):
+        lines.append(
+            f"  plausibility       replaced {c['tacho_rejections']} tacho samples and "
+            f"{c['encoder_rejections']} encoder increments; {c['tacho_reseeds']} / "
+            f"{c['encoder_reseeds']} accepted as a new level (tacho / encoder); "
+            f"{c['plausibility_errors']} sensor errors (EMCY)"
+        )
     if r.tracking is not None:
         lines.append(format_tracking([r.tracking]))
     if r.evaluation is not None:
