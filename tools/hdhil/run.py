@@ -227,9 +227,9 @@ def run_lockstep(
 
     ``extra_listeners`` are added to the host tap after the run's own (they see every frame
     of both buses, as a logger does).  ``monitor`` is called with the controller at
-    the cycle boundary after every ``monitor_every`` samples in operation, when the
-    tap has seen all frames of those samples (how :mod:`hdhil.soak` reads the
-    firmware's filter health per block).
+    the cycle boundary after every ``monitor_every`` samples in operation; on the
+    simulated bus the tap has then seen every frame of those samples (how
+    :mod:`hdhil.soak` reads the firmware's filter health per block).
     """
     fw_config = from_dict(FirmwareConfig, scenario.firmware, "firmware")
     Ts = fw_config.sample_period_s
