@@ -412,6 +412,12 @@ class InterruptHandler:
         return n > 0 and self.samplecount >= n
 
     @property
+    def output(self) -> IsrOutput:
+        """The output of the last call (the preallocated object; all zeros before the
+        first), for a host that checks the handler between samples."""
+        return self._out
+
+    @property
     def startup_dac_counts(self) -> int:
         """The code to output before the first interrupt (listing ``main``:
         ``write_dac0( Vbias )``; with a control law, zero torque)."""

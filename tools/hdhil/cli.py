@@ -33,6 +33,7 @@ COMMANDS = (
     "identify",
     "netcmd",
     "bench",
+    "soak",
 )
 
 

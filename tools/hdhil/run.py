@@ -24,7 +24,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -212,6 +212,9 @@ def run_lockstep(
     evaluate_skip_s: float = 0.0,
     fault_log: Path | None = None,
     realtime: bool = False,
+    extra_listeners: Sequence[can.Listener] = (),
+    monitor: Callable[[ControllerNode], None] | None = None,
+    monitor_every: int = 1000,
 ) -> RunResult:
     """Run ``scenario`` in lockstep and return the scored result.
 
@@ -227,6 +230,12 @@ def run_lockstep(
     ``realtime`` paces SYNC by the wall clock at the sample period instead of running as
     fast as possible, and reports jitter, latency and deadline misses
     (:mod:`hdhil.realtime`).
+
+    ``extra_listeners`` are added to the host tap after the run's own (they see every frame
+    of both buses, as a logger does).  ``monitor`` is called with the controller at
+    the cycle boundary after every ``monitor_every`` samples in operation; on the
+    simulated bus the tap has then seen every frame of those samples (how
+    :mod:`hdhil.soak` reads the firmware's filter health per block).
     """
     fw_config = from_dict(FirmwareConfig, scenario.firmware, "firmware")
     Ts = fw_config.sample_period_s
@@ -288,6 +297,8 @@ def run_lockstep(
             faults=truth_faults,
         )
 
+    if monitor is not None and monitor_every < 1:
+        raise ConfigError(f"monitor_every must be >= 1 sample, got {monitor_every}")
     # One BLAS thread for the run: the matrices here are at most 7x7, so BLAS threads
     # only spin and take the core the trace writer runs on; and a thread pool created
     # under SCHED_FIFO on one pinned CPU (OpenBLAS restarts its pool lazily after the
@@ -326,6 +337,7 @@ def run_lockstep(
             listeners.append(recorder)
         if trace is not None:
             listeners.insert(0, WriterProcess(trace))
+        listeners += extra_listeners
         tap = BusTap(
             {CHANNEL_NUMBER["control"]: tap_control, CHANNEL_NUMBER["truth"]: tap_truth}, listeners
         )
@@ -368,6 +380,7 @@ def run_lockstep(
                     )
                 cycle()
             startup_cycles = k
+            next_monitor = monitor_every
             if pacer is not None:
                 pacer.recording = True  # statistics cover the cycles in operation
             # The run lasts until the interrupt has handled ``cycles`` samples.
@@ -378,6 +391,9 @@ def run_lockstep(
                 if controller.phase != "operational":
                     break
                 cycle()
+                if monitor is not None and controller.isr.samplecount >= next_monitor:
+                    next_monitor += monitor_every
+                    monitor(controller)
             done = controller.isr.samplecount
             operation_end = k
             if pacer is not None:

@@ -1,0 +1,309 @@
+"""Tests of ``hdhil soak`` (tools/hdhil/soak.py) on short runs.
+
+The per-block figures are checked against the run's own whole-run scorers (nothing lost
+between blocks), and each verdict is made to fail by a fault injected into the running
+firmware through the ``after_block`` hook: a non-finite value, a broken covariance, a
+sensor-gain drift, a memory leak.  No timing is asserted.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import io
+import itertools
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import hdhil.soak as soak
+from firmware.controller import ControllerNode
+from hdhil.cli import main
+from hdhil.dataconf import ConfigError
+from hdhil.run import run_lockstep
+from hdhil.soak import Block, SoakLimits, SoakReport, run_soak, stationarity
+from hostsim.scenario import load_scenario
+
+VERDICTS = [
+    "run completed",
+    "no non-finite value",
+    "covariance SPD",
+    "torque error stationary",
+    "tracking error stationary",
+    "memory growth",
+]
+
+
+def _strict_json(text: str) -> Any:
+    def no_constant(name: str) -> None:
+        raise AssertionError(f"non-standard JSON constant {name}")
+
+    return json.loads(text, parse_constant=no_constant)
+
+
+def _cli_report(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, dict[str, Any]]:
+    code = main(["soak", *args, "--json"])
+    return code, _strict_json(capsys.readouterr().out)
+
+
+def _verdict(report: dict[str, Any] | SoakReport, name: str) -> Any:
+    verdicts = report["verdicts"] if isinstance(report, dict) else report.verdicts
+    (v,) = [v for v in verdicts if (v["name"] if isinstance(v, dict) else v.name) == name]
+    return v
+
+
+def _short(after_block: Any, duration_s: float = 12.0, block_s: float = 3.0) -> SoakReport:
+    return run_soak(
+        load_scenario("lqg-tracking"),
+        duration_s=duration_s,
+        block_s=block_s,
+        limits=SoakLimits(settle_s=block_s),
+        after_block=after_block,
+    )
+
+
+# ------------------------------------------------------------------ a healthy short soak
+@pytest.fixture(scope="module")
+def healthy(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, dict[str, Any], Path]:
+    """lqg-tracking (LQG + ripple filter), 20 s in blocks of 5 s, BLF trace, via the CLI."""
+    trace = tmp_path_factory.mktemp("soak") / "soak.blf"
+    out = io.StringIO()  # capsys is function-scoped: capture by hand
+
+    with contextlib.redirect_stdout(out):
+        code = main(
+            ["soak", "--scenario", "lqg-tracking", "--duration", "20", "--every", "5",
+             "--settle", "5", "--trace", str(trace), "--json"]
+        )  # fmt: skip
+    return code, _strict_json(out.getvalue()), trace
+
+
+def test_healthy_soak_blocks_partition_the_run(healthy: tuple[int, dict, Path]) -> None:
+    _code, r, _trace = healthy
+    blocks = r["blocks"]
+    assert [b["index"] for b in blocks] == [1, 2, 3, 4]
+    assert [b["end_s"] for b in blocks] == pytest.approx([5.0, 10.0, 15.0, 20.0])
+    assert [b["start_s"] for b in blocks] == pytest.approx([0.0, 5.0, 10.0, 15.0])
+    assert r["samples_done"] == r["samples_expected"] == 20_000
+    # Every telemetry sample the run's own scorer saw is in exactly one block ...
+    whole = r["run"]["torque"]
+    n = np.array([b["samples"] for b in blocks])
+    assert n.sum() == whole["samples"] == 20_000
+    # ... and the per-block RMS errors recombine into the whole-run figures.
+    for key in ("rms_error_filtered", "rms_error_raw"):
+        rms = np.array([b[key] for b in blocks])
+        assert math.sqrt((n * rms**2).sum() / n.sum()) == pytest.approx(whole[key], rel=1e-9)
+    assert max(b["max_error_filtered"] for b in blocks) == pytest.approx(
+        whole["max_error_filtered"]
+    )
+    tracking = r["run"]["tracking"]
+    t_rms = np.array([b["tracking_rms"] for b in blocks])
+    assert math.sqrt((n * t_rms**2).sum() / n.sum()) == pytest.approx(
+        tracking["rms_error"], rel=1e-9
+    )
+    assert max(b["tracking_max"] for b in blocks) == pytest.approx(tracking["max_abs_error"])
+
+
+def test_healthy_soak_filter_health_resources_and_verdicts(
+    healthy: tuple[int, dict, Path],
+) -> None:
+    code, r, trace = healthy
+    blocks = r["blocks"]
+    states = r["run"]["controller"]["filter_states"]
+    assert states == 5  # lqg-tracking: the 4th-order model plus the residual
+    for b in blocks:
+        assert b["nonfinite"] == {}
+        assert b["covariance_resets"] == 0 and b["skipped_samples"] == 0
+        assert b["covariance_symmetric"] is True
+        assert b["covariance_min_eigenvalue"] > 0
+        assert b["rss_MB"] > 0 and b["wall_s"] > 0
+    # The final block's covariance is the one the run reports after it ended.
+    assert blocks[-1]["covariance_min_eigenvalue"] == pytest.approx(
+        r["run"]["controller"]["covariance_min_eigenvalue"], rel=1e-12
+    )
+    sizes = [b["trace_MB"] for b in blocks]
+    assert all(later > earlier for earlier, later in itertools.pairwise(sizes))
+    assert trace.stat().st_size / 2**20 >= sizes[-1]
+    assert [v["name"] for v in r["verdicts"]] == VERDICTS
+    assert all(v["passed"] for v in r["verdicts"]), r["verdicts"]
+    assert r["passed"] is True and code == 0
+    tracking = _verdict(r, "tracking error stationary")["values"]
+    assert tracking["blocks"] == 3  # blocks starting at or after --settle 5 s
+    rms = [b["tracking_rms"] for b in blocks[1:]]
+    assert tracking["first_half_mean"] == pytest.approx(rms[0])
+    assert tracking["last_half_mean"] == pytest.approx(rms[-1])
+
+
+def test_text_report_lists_every_block_and_verdict(capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["soak", "--scenario", "misalignment", "--duration", "4", "--every", "2",
+                 "--settle", "0", "--trace", ""])  # fmt: skip
+    text = capsys.readouterr().out
+    # Block 1 holds the filter's learning of the misalignment: not stationary from 0 s.
+    (torque,) = [line for line in text.splitlines() if "torque error stationary" in line]
+    assert "FAIL" in torque and code == 1
+    rows = [line.split() for line in text.splitlines() if line.strip()[:1].isdigit()]
+    assert [row[0] for row in rows] == ["1", "2"]
+    for name in VERDICTS:
+        if name != "tracking error stationary":  # no control law in this scenario
+            assert name in text
+    assert "tracking error stationary" not in text
+    assert "result: " in text
+
+
+def test_default_scenario_runs_the_six_order_filter_under_lqg(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    code, r = _cli_report(capsys, "--duration", "8", "--every", "4", "--trace", "")
+    assert r["scenario"] == "lqg-misalignment"
+    assert r["run"]["controller"]["filter_states"] == 7  # 2x, 4x motor, 1x output, residual
+    assert r["run"]["tracking"]["law"] == "jtf1"
+    assert all(v["passed"] for v in r["verdicts"][:3])
+    # 8 s ends before the scenario's settling time: stationarity cannot be shown.
+    stat = _verdict(r, "torque error stationary")
+    assert not stat["passed"] and "needs at least 2 blocks" in stat["detail"]
+    assert code == 1
+
+
+# --------------------------------------------------------------- faults fail verdicts
+def _poison_differentiator(controller: ControllerNode, block: Block) -> None:
+    if block.index == 1:
+        controller.isr.chain.differentiator.a_1 = math.nan
+
+
+def test_injected_nan_fails_the_non_finite_verdict_and_exits_1(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(
+        soak, "run_soak", functools.partial(soak.run_soak, after_block=_poison_differentiator)
+    )
+    code, r = _cli_report(capsys, "--scenario", "lqg-tracking", "--duration", "9",
+                          "--every", "3", "--settle", "3", "--trace", "")  # fmt: skip
+    assert code == 1
+    first, *later = r["blocks"]
+    assert first["nonfinite"] == {} and first["skipped_samples"] == 0
+    for b in later:
+        assert b["nonfinite"].get("interrupt outputs", 0) > 0  # acceleration, T_expected, ...
+        assert b["skipped_samples"] == 3000  # the filter skips every NaN input
+    v = _verdict(r, "no non-finite value")
+    assert not v["passed"]
+    assert v["values"]["blocks_with_nonfinite"] == [2, 3]
+    assert v["values"]["skipped_samples"] == 6000
+    assert _verdict(r, "run completed")["passed"]
+
+
+def test_broken_covariance_fails_the_spd_verdict() -> None:
+    def break_P(controller: ControllerNode, block: Block) -> None:
+        if block.index == 1:
+            kalman = controller.isr.chain.kalman
+            kalman._P = tuple(-abs(p) for p in kalman._P)  # negative diagonal: not SPD
+
+    r = _short(break_P, duration_s=9.0)
+    assert [b.covariance_resets for b in r.blocks] == [0, 1, 0]
+    v = _verdict(r, "covariance SPD")
+    assert not v.passed and v.values["covariance_resets"] == 1
+    assert _verdict(r, "no non-finite value").passed
+    assert not r.passed
+
+
+def test_sensor_gain_drift_fails_the_stationarity_verdicts() -> None:
+    def drift(controller: ControllerNode, block: Block) -> None:
+        if block.index == 3:  # the firmware's torque gain 10 % off from block 4 on
+            isr = controller.isr
+            cal = dataclasses.replace(
+                isr.cfg.calibration, volt2Nm=isr.cfg.calibration.volt2Nm * 1.1
+            )
+            isr.cfg = dataclasses.replace(isr.cfg, calibration=cal)
+
+    r = _short(drift, duration_s=18.0)
+    torque = _verdict(r, "torque error stationary")
+    tracking = _verdict(r, "tracking error stationary")
+    assert not torque.passed and torque.values["relative_change"] > 0.1
+    assert not tracking.passed and tracking.values["relative_change"] > 0.1
+    assert _verdict(r, "covariance SPD").passed
+
+
+def test_memory_growth_verdict_sees_a_leak() -> None:
+    kept: list[bytearray] = []
+
+    def leak(controller: ControllerNode, block: Block) -> None:
+        if block.index == 1:
+            kept.append(bytearray(b"\x01") * (32 * 2**20))  # 32 MB, every page touched
+
+    r = _short(leak, duration_s=6.0, block_s=2.0)
+    v = _verdict(r, "memory growth")
+    assert not v.passed and v.values["growth_MB"] > 20.0
+    assert r.blocks[1].rss_MB - r.blocks[0].rss_MB > 30.0
+
+
+# ------------------------------------------------------------------- verdict arithmetic
+def _blocks(values: list[float], block_s: float = 60.0) -> list[Block]:
+    return [
+        Block(index=i + 1, start_s=i * block_s, end_s=(i + 1) * block_s, samples=1000,
+              rms_error_filtered=v, rms_error_raw=1.0, max_error_filtered=v,
+              tracking_rms=None, tracking_max=None, covariance_asymmetry=0.0,
+              covariance_min_eigenvalue=1e-4, covariance_symmetric=True, nonfinite={},
+              covariance_resets=0, skipped_samples=0, rss_MB=100.0, trace_MB=None, wall_s=1.0)
+        for i, v in enumerate(values)
+    ]  # fmt: skip
+
+
+def test_stationarity_half_means_slope_and_settling() -> None:
+    rng = np.random.default_rng(7)
+    flat = list(0.026 + 0.0005 * rng.standard_normal(60))
+    blocks = _blocks(flat)
+    limits = SoakLimits(settle_s=60.0, tolerance=0.05)
+    v = stationarity("torque", blocks, flat, limits)
+    kept = flat[1:]  # the first block starts before the settling time
+    assert v.values["blocks"] == 59
+    assert v.values["first_half_mean"] == pytest.approx(np.mean(kept[:29]))
+    assert v.values["last_half_mean"] == pytest.approx(np.mean(kept[-29:]))
+    hours = [(i + 2) / 60.0 for i in range(59)]
+    assert v.values["slope_per_hour"] == pytest.approx(np.polyfit(hours, kept, 1)[0])
+    assert v.passed
+    drifting = [x * (1.0 + 0.5 * i / 60) for i, x in enumerate(flat)]
+    d = stationarity("torque", blocks, drifting, limits)
+    assert not d.passed and d.values["relative_change"] > 0.05
+    assert d.values["slope_per_hour"] - d.values["slope_ci95_per_hour"] > 0  # a real trend
+    short = stationarity("torque", _blocks(flat[:2]), flat[:2], limits)
+    assert not short.passed and "needs at least 2 blocks" in short.detail
+
+
+# ------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--every", "0"], "--every"),
+        (["--every", "0.0005"], "whole number"),
+        (["--duration", "0"], "duration must be > 0"),
+        (["--tolerance", "0"], "tolerance must be > 0"),
+        (["--settle", "-1"], "settle time"),
+        (["--scenario", "no-such-scenario"], "no-such-scenario"),
+        (["--trace", "/nonexistent-dir/x.blf"], "does not exist"),
+    ],
+)
+def test_bad_input_is_a_one_line_error(
+    capsys: pytest.CaptureFixture[str], args: list[str], message: str
+) -> None:
+    code = main(["soak", "--duration", "1", *args])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.startswith("hdhil: error:") and message in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_run_lockstep_monitor_is_called_every_n_samples() -> None:
+    seen: list[int] = []
+    run_lockstep(
+        load_scenario("free-motion"),
+        duration_s=1.0,
+        evaluate=False,
+        monitor=lambda c: seen.append(c.isr.samplecount),
+        monitor_every=300,
+    )
+    assert seen == [300, 600, 900]
+    with pytest.raises(ConfigError, match="monitor_every"):
+        run_lockstep(load_scenario("free-motion"), duration_s=0.01, monitor=print, monitor_every=0)
