@@ -8,7 +8,8 @@ tell the buses apart; formats without channels (CSV) still decode because truth 
 
 :class:`WriterProcess` runs that writer in a child process: the run hands it frames in
 batches through a pipe, so formatting and compressing the file happens on the other core
-and costs the 1 kHz loop about 0.5 us a frame instead of 2.5.  The pipe is bounded: a
+and costs the 1 kHz loop about 0.5 us a frame instead of 1.2 (parent CPU time,
+median of 5 runs of 70 000 frames).  The pipe is bounded: a
 writer that falls behind makes the run wait, it never drops a frame.  If the run dies
 (even by SIGKILL) the child reads what was sent up to then and closes the file properly.
 """
@@ -19,6 +20,7 @@ import multiprocessing
 import multiprocessing.util
 import operator
 import signal
+import struct
 import time
 from collections.abc import Iterable
 from pathlib import Path
@@ -60,18 +62,17 @@ BATCH_MAX_AGE_S = 0.25
 #: How long ``stop`` waits for the writer process to finish the file.
 WRITER_EXIT_TIMEOUT_S = 120.0
 
-Frame = tuple[float, int, bool, bool, bool, int, bytes, Any, bool]
+#: One frame on the pipe: timestamp, identifier, flags (bit 0 extended, 1 remote, 2 error
+#: frame, 3 received), DLC, channel number, payload length, payload (padded to 8 bytes).
+_RECORD = struct.Struct("<dIBBBB8s")
 
 
-def _frame(msg: can.Message) -> Frame:
-    return (msg.timestamp, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
-            msg.is_error_frame, msg.dlc, bytes(msg.data), msg.channel, msg.is_rx)  # fmt: skip
-
-
-def _message(f: Frame) -> can.Message:
-    return can.Message(timestamp=f[0], arbitration_id=f[1], is_extended_id=f[2],
-                       is_remote_frame=f[3], is_error_frame=f[4], dlc=f[5], data=f[6],
-                       channel=f[7], is_rx=f[8], check=False)  # fmt: skip
+def _message(f: tuple[float, int, int, int, int, int, bytes]) -> can.Message:
+    ts, can_id, flags, dlc, channel, length, data = f
+    return can.Message(timestamp=ts, arbitration_id=can_id, is_extended_id=bool(flags & 1),
+                       is_remote_frame=bool(flags & 2), is_error_frame=bool(flags & 4),
+                       is_rx=bool(flags & 8), dlc=dlc, data=data[:length], channel=channel,
+                       check=False)  # fmt: skip
 
 
 def _writer_main(path: str, frames: Any, status: Any, frames_w: Any) -> None:
@@ -96,12 +97,12 @@ def _writer_main(path: str, frames: Any, status: Any, frames_w: Any) -> None:
     try:
         while True:
             try:
-                batch = frames.recv()
+                batch = frames.recv_bytes()
             except EOFError:
                 break
-            for f in batch:
+            for f in _RECORD.iter_unpack(batch):
                 writer.on_message_received(_message(f))
-            written += len(batch)
+                written += 1
     except OSError as exc:
         error = f"cannot write trace {path}: {exc.strerror or exc}"
     finally:
@@ -110,6 +111,9 @@ def _writer_main(path: str, frames: Any, status: Any, frames_w: Any) -> None:
         except OSError as exc:
             error = error or f"cannot close trace {path}: {exc.strerror or exc}"
     status.send(("error", error) if error else ("done", written))
+
+
+_pack = _RECORD.pack
 
 
 class WriterError(ValueError):
@@ -128,7 +132,8 @@ class WriterProcess(can.Listener):
         check_trace_path(path)
         self.path = path
         self.sent = 0
-        self._batch: list[Frame] = []
+        self._batch = bytearray()
+        self._batched = 0
         self._batch_started = 0.0
         methods = multiprocessing.get_all_start_methods()
         ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
@@ -161,28 +166,34 @@ class WriterProcess(can.Listener):
         return "error", f"the trace writer for {self.path} stopped (exit code {code})"
 
     def on_message_received(self, msg: can.Message) -> None:
-        batch = self._batch
-        if not batch:
+        """Append the frame to the batch; ``msg.channel`` must be a channel number (0-255),
+        as the run's tap stamps it."""
+        if not self._batched:
             self._batch_started = time.monotonic()
-        batch.append(_frame(msg))
-        if len(batch) >= BATCH_FRAMES or (
-            len(batch) & 31 == 0 and time.monotonic() - self._batch_started > BATCH_MAX_AGE_S
+        data = msg.data
+        self._batch += _pack(msg.timestamp, msg.arbitration_id,
+                             msg.is_extended_id | msg.is_remote_frame << 1
+                             | msg.is_error_frame << 2 | msg.is_rx << 3,
+                             msg.dlc, msg.channel, len(data), data)  # fmt: skip
+        self._batched += 1
+        if self._batched >= BATCH_FRAMES or (
+            self._batched & 31 == 0 and time.monotonic() - self._batch_started > BATCH_MAX_AGE_S
         ):
             self._send()
 
     def _send(self) -> None:
-        batch = self._batch
-        if not batch:
+        if not self._batched:
             return
         try:
-            self._frames.send(batch)
+            self._frames.send_bytes(self._batch)
         except OSError as exc:
             raise WriterError(
                 f"the trace writer for {self.path} is gone ({exc.strerror or exc}); "
                 f"the trace holds at most {self.sent} frames"
             ) from None
-        self.sent += len(batch)
-        self._batch = []
+        self.sent += self._batched
+        self._batch = bytearray()
+        self._batched = 0
 
     def stop(self) -> None:
         """Hand on the last frames, let the child close the file, check the count."""
