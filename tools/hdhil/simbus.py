@@ -229,8 +229,9 @@ def _snapshot_checked(msg: can.Message, channel: Any) -> can.Message:
 
 
 #: The field-by-field copy only while python-can's Message has exactly these fields; a
-#: python-can that adds one gets the constructor (slower, always complete).
-_snapshot = (
+#: python-can that adds one gets the constructor (slower, always complete).  The copy is
+#: a received frame (``is_rx``) on ``channel``, timestamp 0 until it is delivered.
+received_copy = _snapshot = (
     _snapshot_fast
     if set(getattr(can.Message, "__slots__", ())) - {"__weakref__"} == _MESSAGE_FIELDS
     else _snapshot_checked

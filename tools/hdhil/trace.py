@@ -28,6 +28,8 @@ from typing import Any
 
 import can
 
+from hdhil.simbus import received_copy
+
 SUPPORTED_SUFFIXES = (".blf", ".asc", ".log", ".csv", ".trc")
 
 
@@ -233,18 +235,10 @@ _timestamp = operator.attrgetter("timestamp")
 
 
 def _stamped(msg: can.Message, channel: int) -> can.Message:
-    return can.Message(
-        timestamp=msg.timestamp,
-        arbitration_id=msg.arbitration_id,
-        is_extended_id=msg.is_extended_id,
-        is_remote_frame=msg.is_remote_frame,
-        is_error_frame=msg.is_error_frame,
-        dlc=msg.dlc,
-        data=msg.data,
-        channel=channel,
-        is_rx=True,
-        check=False,
-    )
+    """A copy of a received frame carrying the trace's channel number."""
+    copy = received_copy(msg, channel)
+    copy.timestamp = msg.timestamp
+    return copy
 
 
 class BusTap:
