@@ -11,7 +11,6 @@ import itertools
 import json
 import math
 import struct
-import threading
 import time
 
 import can
@@ -468,30 +467,12 @@ def test_sdo_fault_log_goes_to_the_run_log_file(tmp_path):
 
 
 @pytest.fixture
-def served_drive():
+def served_drive(serve_drive):
     """A drive served in real time on python-can's virtual bus (as ``hdhil emulate``)."""
-    channel = f"hdhil-fault-{time.monotonic_ns()}"
-    bus = can.Bus(interface="virtual", channel=channel)
-    inj = FaultInjector(FaultConfig())
     plant = Plant(load_scenario("free-motion").plant, 1)
-    node = DriveNode(bus, plant, DriveConfig(), faults=inj)
-    stop = threading.Event()
-
-    def serve() -> None:
-        node.boot(time.monotonic())
-        while not stop.is_set():
-            node.tick(time.monotonic())
-            msg = bus.recv(0.002)
-            while msg is not None:
-                node.on_message(msg)
-                msg = bus.recv(0)
-
-    thread = threading.Thread(target=serve, daemon=True)
-    thread.start()
-    yield node, ["--interface", "virtual", "--channel", channel]
-    stop.set()
-    thread.join(5)
-    bus.shutdown()
+    return serve_drive(
+        lambda bus: DriveNode(bus, plant, DriveConfig(), faults=FaultInjector(FaultConfig()))
+    )
 
 
 def test_hdhil_sdo_writes_the_fault_object(served_drive, capsys):

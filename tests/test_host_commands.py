@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import threading
 import time
 
-import can
 import pytest
 
 from firmware.config import FirmwareConfig
@@ -16,29 +14,14 @@ from hostsim.scenario import load_scenario
 
 
 @pytest.fixture
-def drive():
-    channel = f"hdhil-host-{time.monotonic_ns()}"
-    bus = can.Bus(interface="virtual", channel=channel)
+def drive(serve_drive):
     sc = load_scenario("free-motion")
     fw = FirmwareConfig()
-    node = DriveNode(bus, Plant(sc.plant, 1), DriveConfig(sample_period_s=fw.sample_period_s))
-    stop = threading.Event()
-
-    def serve() -> None:
-        node.boot(time.monotonic())
-        while not stop.is_set():
-            node.tick(time.monotonic())
-            msg = bus.recv(0.002)
-            while msg is not None:
-                node.on_message(msg)
-                msg = bus.recv(0)
-
-    thread = threading.Thread(target=serve, daemon=True)
-    thread.start()
-    yield node, ["--interface", "virtual", "--channel", channel]
-    stop.set()
-    thread.join(5)
-    bus.shutdown()
+    return serve_drive(
+        lambda bus: DriveNode(
+            bus, Plant(sc.plant, 1), DriveConfig(sample_period_s=fw.sample_period_s)
+        )
+    )
 
 
 def test_sdo_read_and_write_through_the_cli(drive, capsys):

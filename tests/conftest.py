@@ -1,0 +1,48 @@
+"""Shared fixtures."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+
+import can
+import pytest
+
+from hostsim.drive import DriveNode
+
+ServeDrive = Callable[[Callable[[can.BusABC], DriveNode]], tuple[DriveNode, list[str]]]
+
+
+@pytest.fixture
+def serve_drive() -> Iterator[ServeDrive]:
+    """Serves a drive node in real time on a fresh python-can virtual channel, as
+    ``hdhil emulate`` does; ``serve_drive(make_node)`` returns the node and the CLI
+    arguments that reach it (``--interface virtual --channel ...``)."""
+    served: list[tuple[threading.Event, threading.Thread, can.BusABC]] = []
+
+    def start(make_node: Callable[[can.BusABC], DriveNode]) -> tuple[DriveNode, list[str]]:
+        channel = f"hdhil-served-{time.monotonic_ns()}"
+        bus = can.Bus(interface="virtual", channel=channel)
+        node = make_node(bus)
+        stop = threading.Event()
+
+        def serve() -> None:
+            node.boot(time.monotonic())
+            while not stop.is_set():
+                node.tick(time.monotonic())
+                msg = bus.recv(0.002)
+                while msg is not None:
+                    node.on_message(msg)
+                    msg = bus.recv(0)
+
+        thread = threading.Thread(target=serve, daemon=True)
+        thread.start()
+        served.append((stop, thread, bus))
+        return node, ["--interface", "virtual", "--channel", channel]
+
+    yield start
+    for stop, thread, bus in served:
+        stop.set()
+        thread.join(5)
+        bus.shutdown()
