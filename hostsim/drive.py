@@ -604,7 +604,7 @@ class DriveNode(CanNode):
             d.late_commands += 1
         self._command_in_cycle = True
         self._silent_cycles = 0
-        if EmcyCode.RPDO_TIMEOUT in self.services.active_errors:
+        if self.services.error_active(EmcyCode.RPDO_TIMEOUT):
             self.services.emcy_clear(EmcyCode.RPDO_TIMEOUT)
         self._latched_V = self._dac.to_volts(dac_counts)
         if self._next_sync:

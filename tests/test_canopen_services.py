@@ -534,7 +534,10 @@ def test_emcy_once_per_error_clear_and_reset(bench):
     frames = bench.frames()
     assert [struct.unpack_from("<HB", d) for _, d in frames] == [(0x2310, 0x03), (0x7300, 0x83)]
     assert node.active_errors == (0x2310, 0x7300)
+    assert node.error_active(0x2310) and node.error_active(0x7300)
+    assert not node.error_active(0x8250)
     assert node.emcy_clear(EmcyCode.CONTINUOUS_OVER_CURRENT)
+    assert not node.error_active(0x2310) and node.error_active(0x7300)
     assert bench.frames() == [(0x082, struct.pack("<HB5x", 0, 0x81))]  # remaining register
     assert not node.emcy_clear(EmcyCode.CONTINUOUS_OVER_CURRENT)
     assert node.emcy_reset()

@@ -937,6 +937,11 @@ class CanopenServices:
         """Codes of the errors raised with ``emcy`` and not yet cleared."""
         return tuple(sorted({code for code, _ in self._active_errors}))
 
+    def error_active(self, code: int) -> bool:
+        """True while an error with this code is raised and not cleared (a per-frame check:
+        no allocation when none is active)."""
+        return bool(self._active_errors) and any(c == code for c, _ in self._active_errors)
+
     def emcy(self, code: int, register_bits: int | None = None, manufacturer: bytes = b"") -> bool:
         """Signal an error: EMCY frame (CiA 301 §7.2.7.3.1), 0x1001 and 0x1003 updated.
 

@@ -64,8 +64,8 @@ class SimClock:
 
 
 class _Channel:
-    __slots__ = ("bitrate", "buses", "busy_until", "clock", "faults", "frames", "label", "lock",
-                 "name", "pending", "seq", "timing")  # fmt: skip
+    __slots__ = ("bitrate", "buses", "busy_until", "clock", "faults", "frames", "label",
+                 "latest_request", "lock", "name", "pending", "seq", "timing")  # fmt: skip
 
     def __init__(self, name: str, clock: SimClock, bitrate: int, label: str | int,
                  timing: str) -> None:  # fmt: skip
@@ -83,6 +83,8 @@ class _Channel:
         # number keeps requests of equal identifiers in order.
         self.pending: list[_Pending] = []
         self.seq = 0
+        #: The latest request time among the frames requested so far (only ever grows).
+        self.latest_request = 0.0
         #: Fault injection hook (:class:`hdhil.faults.ChannelFaults`); None = a clean link.
         self.faults: ChannelFaults | None = None
 
@@ -105,10 +107,16 @@ class _Channel:
             return
         pending = self.pending
         while pending:
+            free = self.busy_until
             if len(pending) == 1:  # the common case: nothing to arbitrate
                 item = pending.pop()
-                free = self.busy_until
                 start = free if item[2] <= free else item[2]
+            elif self.latest_request <= free:
+                # Every frame was requested before the wire frees up: they go in
+                # arbitration order, which is what _next would pick one by one.
+                pending.sort(reverse=True)
+                item = pending.pop()
+                start = free
             else:
                 start, item = self._next()
             _, _, _, sender, msg = item
@@ -303,6 +311,8 @@ class SimBus(can.BusABC):
             now = ch.clock.now
             requested = self._last_rx if self._last_rx > now else now
             ch.seq += 1
+            if requested > ch.latest_request:
+                ch.latest_request = requested
             key = arbitration_key(frame.arbitration_id, frame.is_extended_id)
             ch.pending.append((key, ch.seq, requested, self, frame))
             for bus in ch.buses:
