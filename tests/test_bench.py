@@ -11,8 +11,9 @@ import math
 
 import pytest
 
-from hdhil.bench import LOCKSTEP_SCENARIOS, format_bench, run_benchmarks
+from hdhil.bench import LOCKSTEP_SCENARIOS, REALTIME_GOALS, format_bench, run_benchmarks
 from hdhil.cli import main
+from hdhil.realtime import STAGES
 
 
 def _positive(x: float) -> bool:
@@ -85,16 +86,78 @@ def test_filter_and_memory(report: dict) -> None:
     assert mem["simulated_s"] == pytest.approx(report["settings"]["memory_duration_s"])
 
 
+def _ordered(p: dict) -> bool:
+    return p["p50"] <= p["p99"] <= p["p99.9"] <= p["max"]
+
+
+def test_realtime_section(report: dict) -> None:
+    rt = report["realtime"]
+    st = report["settings"]
+    assert rt["scenario"] == "free-motion" and rt["logging"] is False
+    assert rt["duration_s"] == st["realtime_s"] > 0
+    assert rt["cycles"] == round(st["realtime_s"] / rt["sample_period_s"])
+    assert rt["interrupts"] == rt["cycles"]
+    assert 0 <= rt["deadline_misses"] <= rt["cycles"]
+    assert rt["misses_per_100k"] == pytest.approx(1e5 * rt["deadline_misses"] / rt["cycles"])
+    for key in ("jitter_us", "latency_us", "isr_us", "cycle_work_us", "sleep_overshoot_us"):
+        assert _ordered(rt[key]), (key, rt[key])
+    assert [k for k, _ in STAGES] == list(rt["stages_us"])
+    stage_sum = sum(s["mean"] for s in rt["stages_us"].values())
+    assert stage_sum == pytest.approx(rt["isr_us"]["mean"], rel=1e-9, abs=1e-6)
+    for s in rt["stages_us"].values():
+        assert _ordered(s) and s["p50"] >= 0
+    # the verdicts follow the figures
+    g = rt["goals"]
+    assert g["p99_us"]["met"] == (rt["jitter_us"]["p99"] <= REALTIME_GOALS["p99_us"])
+    assert g["p99.9_us"]["met"] == (rt["jitter_us"]["p99.9"] <= REALTIME_GOALS["p99.9_us"])
+    assert g["misses_per_100k"]["met"] == (
+        rt["misses_per_100k"] <= REALTIME_GOALS["misses_per_100k"]
+    )
+    floor = rt["floor"]
+    assert floor["cycles"] == round(st["floor_s"] / rt["sample_period_s"])
+    assert floor["spin_us"] == rt["pacing"]["spin_us"]
+    assert floor["work_us"] == pytest.approx(rt["cycle_work_us"]["p50"], abs=1e-3)
+    assert _ordered(floor["jitter_us"]) and 0 <= floor["deadline_misses"] <= floor["cycles"]
+
+
 def test_text_report_and_json_roundtrip(report: dict) -> None:
     text = format_bench(report)
     assert report["machine"]["cpu"] in text
     for heading in ("Lockstep real-time factor", "Firmware compute per call",
-                    "Offline `hdhil filter`", "Memory"):  # fmt: skip
+                    "Offline `hdhil filter`", "Memory", "Real-time mode"):  # fmt: skip
         assert heading in text
     assert "| free-motion" in text and "| lqg-tracking" in text
+    assert "| SYNC jitter (late)" in text and "machine floor" in text
+    assert "deadline misses:" in text and "per 100 000" in text
+    for _, label in STAGES:
+        assert label in text
     assert json.loads(json.dumps(report)) == report
 
 
-def test_cli_rejects_bad_arguments(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["bench", "--quick", "--repeat", "0"]) == 2
-    assert "--repeat" in capsys.readouterr().err
+def test_realtime_section_can_be_left_out(report: dict, monkeypatch) -> None:
+    import hdhil.bench as bench
+
+    def fail(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a section ran")
+
+    for name in ("bench_lockstep_all", "bench_stages", "bench_filter", "bench_realtime"):
+        monkeypatch.setattr(bench, name, fail if name == "bench_realtime" else lambda s: [])
+    monkeypatch.setattr(bench, "bench_memory", lambda s: {})
+    assert run_benchmarks(quick=True, realtime_s=0)["realtime"] is None
+    assert "Real-time mode" not in format_bench({**report, "realtime": None})
+
+
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["--repeat", "0"], "--repeat"),
+        (["--realtime-s", "-1"], "--realtime-s"),
+        (["--realtime-s", "nan"], "--realtime-s"),
+    ],
+)
+def test_cli_rejects_bad_arguments(
+    argv: list[str], fragment: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["bench", "--quick", *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("hdhil: error:") and fragment in err

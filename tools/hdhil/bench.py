@@ -18,10 +18,16 @@ Sections of the report (``--json`` gives the same data):
 - **filter**: offline throughput of ``hdhil filter``'s signal-CSV code path
   (:func:`hdhil.filter_cmd.filter_signal_csv`) on a generated CSV;
 - **memory**: peak RSS of the process (``ru_maxrss``) and the resident-memory growth
-  over one long lockstep run with logging, per simulated minute.
+  over one long lockstep run with logging, per simulated minute;
+- **real time**: one free-motion ``--realtime`` run of ``--realtime-s`` seconds, no
+  logging (:mod:`hdhil.realtime`): SYNC jitter p50/p99/p99.9/max, deadline misses (and
+  per 100 000 cycles), sensor-to-command latency, compute per interrupt stage, each
+  against the issue's goals (p99 <= 100 µs, p99.9 <= 500 µs, <= 1 miss per 100 000), and
+  the machine floor: the bare sleep+spin loop in the same process state for
+  ``--floor-s`` seconds.
 
-``--quick`` shrinks every section (CI and the tests); the default takes a couple of
-minutes on a 2-core machine.
+``--quick`` shrinks every section (CI and the tests); the default takes about four
+minutes on a 2-core machine, one of them the real-time run.
 """
 
 from __future__ import annotations
@@ -50,6 +56,7 @@ from firmware.isr import AdcSample, InterruptHandler, IsrOutput, TorqueControl, 
 from firmware.ripple import HarmonicKalman, RippleKalman
 from firmware.stages import Differentiator, SensorPlausibility, adc_read, calibrate
 from hdhil.dataconf import from_dict
+from hdhil.realtime import RealtimeConfig
 from hdhil.run import run_lockstep
 from hostsim.plant import Plant
 from hostsim.scenario import load_scenario
@@ -73,14 +80,22 @@ class BenchSettings:
     stage_calls: int  # calls per stage timing
     filter_rows: int  # rows of the generated signal CSV
     memory_duration_s: float  # simulated seconds of the RSS-growth run
+    realtime_s: float = 60.0  # seconds of the real-time run (0: no real-time section)
+    floor_s: float = 10.0  # seconds of the machine-floor loop after it
 
     @classmethod
-    def full(cls, duration_s: float = 10.0, repeat: int = 3) -> BenchSettings:
-        return cls("full", duration_s, repeat, min(duration_s, 2.0), 20_000, 100_000, 120.0)
+    def full(
+        cls, duration_s: float = 10.0, repeat: int = 3, realtime_s: float = 60.0
+    ) -> BenchSettings:
+        return cls("full", duration_s, repeat, min(duration_s, 2.0), 20_000, 100_000, 120.0,
+                   realtime_s, min(10.0, realtime_s))  # fmt: skip
 
     @classmethod
-    def quick(cls, duration_s: float = 0.3, repeat: int = 1) -> BenchSettings:
-        return cls("quick", duration_s, repeat, min(duration_s, 0.2), 1_000, 2_000, 3.0)
+    def quick(
+        cls, duration_s: float = 0.3, repeat: int = 1, realtime_s: float = 1.5
+    ) -> BenchSettings:
+        return cls("quick", duration_s, repeat, min(duration_s, 0.2), 1_000, 2_000, 3.0,
+                   realtime_s, min(0.5, realtime_s))  # fmt: skip
 
 
 # ------------------------------------------------------------------------ helpers
@@ -469,12 +484,52 @@ def bench_memory(s: BenchSettings, scenario: str = "misalignment") -> dict[str, 
     }
 
 
+# ---------------------------------------------------------------------- real time
+#: The issue's real-time goals: SYNC jitter p99 and p99.9 (µs), misses per 100 000 cycles.
+REALTIME_GOALS = {"p99_us": 100.0, "p99.9_us": 500.0, "misses_per_100k": 1.0}
+
+
+def bench_realtime(s: BenchSettings, scenario: str = "free-motion") -> dict[str, Any]:
+    """One ``--realtime`` run of ``s.realtime_s`` seconds without logging, then the
+    machine floor for ``s.floor_s`` seconds (same spin window and process state)."""
+    r = run_lockstep(
+        load_scenario(scenario),
+        duration_s=s.realtime_s,
+        trace=None,
+        evaluate=False,
+        realtime=True,
+        realtime_config=RealtimeConfig(floor_s=s.floor_s),
+    )
+    rt = dict(r.realtime or {})
+    rt.pop("jitter_histogram", None)
+    jitter = rt["jitter_us"]
+    goals = REALTIME_GOALS
+    rt["goals"] = {
+        "p99_us": {"goal": goals["p99_us"], "met": jitter["p99"] <= goals["p99_us"]},
+        "p99.9_us": {"goal": goals["p99.9_us"], "met": jitter["p99.9"] <= goals["p99.9_us"]},
+        "misses_per_100k": {
+            "goal": goals["misses_per_100k"],
+            "met": rt["misses_per_100k"] <= goals["misses_per_100k"],
+        },
+    }
+    rt.update(scenario=scenario, duration_s=s.realtime_s, logging=False, wall_s=r.wall_s)
+    return rt
+
+
 # ------------------------------------------------------------------------- report
 def run_benchmarks(
-    duration_s: float = 10.0, repeat: int = 3, quick: bool = False
+    duration_s: float = 10.0,
+    repeat: int = 3,
+    quick: bool = False,
+    realtime_s: float | None = None,
 ) -> dict[str, Any]:
-    """Every section; ``quick`` shrinks them (``duration_s`` / ``repeat`` still apply)."""
-    s = BenchSettings.quick(duration_s, repeat) if quick else BenchSettings.full(duration_s, repeat)
+    """Every section; ``quick`` shrinks them (``duration_s`` / ``repeat`` still apply).
+    ``realtime_s``: seconds of the real-time run (default 60, quick 1.5; 0 leaves the
+    section out)."""
+    if quick:
+        s = BenchSettings.quick(duration_s, repeat, 1.5 if realtime_s is None else realtime_s)
+    else:
+        s = BenchSettings.full(duration_s, repeat, 60.0 if realtime_s is None else realtime_s)
     started = time.strftime("%Y-%m-%d %H:%M:%S")
     wall0 = time.perf_counter()
     lockstep = bench_lockstep_all(s)
@@ -482,6 +537,7 @@ def run_benchmarks(
     filt = bench_filter(s)
     memory = bench_memory(s)
     memory["peak_rss_MB"] = _peak_rss_bytes() / 2**20
+    rt = bench_realtime(s) if s.realtime_s > 0 else None
     return {
         "started": started,
         "mode": s.mode,
@@ -493,11 +549,14 @@ def run_benchmarks(
             "stage_calls": s.stage_calls,
             "filter_rows": s.filter_rows,
             "memory_duration_s": s.memory_duration_s,
+            "realtime_s": s.realtime_s,
+            "floor_s": s.floor_s,
         },
         "lockstep": lockstep,
         "stages": stages,
         "filter": filt,
         "memory": memory,
+        "realtime": rt,
         "wall_s": time.perf_counter() - wall0,
     }
 
@@ -586,7 +645,63 @@ def format_bench(report: dict[str, Any]) -> str:
         ],
     ]
     lines += _table(["figure", "value"], rows, [False, True])
+    if report.get("realtime"):
+        lines += ["", *format_realtime_section(report["realtime"])]
     return "\n".join(lines)
+
+
+def _pct_cells(p: dict[str, float]) -> list[str]:
+    return [f"{p[q]:.1f}" for q in ("p50", "p99", "p99.9", "max")]
+
+
+def format_realtime_section(rt: dict[str, Any]) -> list[str]:
+    """The real-time section of the text report."""
+    pace = rt["pacing"]
+    lines = [
+        f"Real-time mode ({rt['scenario']}, {rt['duration_s']:g} s paced at "
+        f"{rt['sample_period_s'] * 1e3:g} ms, no logging; spin window {pace['spin_us']:.0f} µs, "
+        f"loop CPU share {pace['cpu_share']:.0%} of an RT limit of "
+        f"{pace['rt_share_limit']:.0%})",
+        f"applied: {'; '.join(rt['applied']) or 'nothing'}",
+    ]
+    if rt["refused"]:
+        lines.append(f"refused: {'; '.join(rt['refused'])}")
+    rows = [
+        ["SYNC jitter (late)", *_pct_cells(rt["jitter_us"])],
+        ["sensor frame -> command", *_pct_cells(rt["latency_us"])],
+        ["cycle work (frames, nodes)", *_pct_cells(rt["cycle_work_us"])],
+        ["sleep overshoot", *_pct_cells(rt["sleep_overshoot_us"])],
+        ["interrupt compute", *_pct_cells(rt["isr_us"])],
+        *([f"  {st['label']}", *_pct_cells(st)] for st in rt["stages_us"].values()),
+    ]
+    floor = rt.get("floor")
+    if floor:
+        rows += [
+            [f"machine floor: start jitter ({floor['duration_s']:g} s)",
+             *_pct_cells(floor["jitter_us"])],
+            ["machine floor: sleep overshoot", *_pct_cells(floor["sleep_overshoot_us"])],
+        ]  # fmt: skip
+    lines += _table(["µs", "p50", "p99", "p99.9", "max"], rows, [False] + [True] * 4)
+    g = rt["goals"]
+
+    def verdict(key: str) -> str:
+        return "met" if g[key]["met"] else "NOT met"
+
+    lines.append(
+        f"deadline misses: {rt['deadline_misses']} in {rt['cycles']} cycles "
+        f"({rt['misses_per_100k']:.1f} per 100 000; goal <= {g['misses_per_100k']['goal']:g}: "
+        f"{verdict('misses_per_100k')}); jitter p99 goal <= {g['p99_us']['goal']:g} µs: "
+        f"{verdict('p99_us')}, p99.9 goal <= {g['p99.9_us']['goal']:g} µs: {verdict('p99.9_us')}"
+    )
+    if floor:
+        lines.append(
+            f"machine floor: {floor['deadline_misses']} misses in {floor['cycles']} cycles "
+            f"({floor['misses_per_100k']:.1f} per 100 000) with {floor['work_us']:.0f} µs busy "
+            f"work per cycle and no hdhil code; sleep woke past the spin window "
+            f"{floor['late_wakeups']} times (run: {rt['late_wakeups']} times in "
+            f"{rt['cycles']} cycles)"
+        )
+    return lines
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -601,6 +716,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--repeat", type=int, default=None,
         help="runs per figure, median reported (default 3, --quick 1)",
     )  # fmt: skip
+    p.add_argument(
+        "--realtime-s", type=float, default=None, metavar="S",
+        help="seconds of the real-time run (default 60, --quick 1.5; 0 leaves it out)",
+    )  # fmt: skip
     p.add_argument("--quick", action="store_true", help="a short version of every section (CI)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=run)
@@ -614,7 +733,10 @@ def run(args: argparse.Namespace) -> int:
     repeat = args.repeat if args.repeat is not None else (1 if quick else 3)
     if not duration > 0 or repeat < 1:
         raise UserError("--duration must be > 0 and --repeat >= 1")
-    report = run_benchmarks(duration, repeat, quick=quick)
+    realtime_s = getattr(args, "realtime_s", None)
+    if realtime_s is not None and not (math.isfinite(realtime_s) and realtime_s >= 0):
+        raise UserError(f"--realtime-s must be >= 0 seconds, got {realtime_s:g}")
+    report = run_benchmarks(duration, repeat, quick=quick, realtime_s=realtime_s)
     if args.json:
         json.dump(report, sys.stdout, indent=2)
         print()

@@ -1,10 +1,21 @@
 """``hdhil run --realtime``: the lockstep run paced by the wall clock at the sample period.
 
-Pacing: cycle k's SYNC is due at ``t0 + k·Ts`` on the monotonic clock
-(:func:`time.perf_counter_ns`).  The runner sleeps until about :data:`SPIN_NS` before the
-deadline (``time.sleep`` wakes late by 50-100 µs on a loaded Linux VM), then spins to it.
-The schedule is absolute: a cycle that overruns is not skipped, the next SYNC goes out at
+Pacing
+------
+Cycle k's SYNC is due at ``t0 + k·Ts`` on the monotonic clock (:func:`time.perf_counter_ns`).
+The runner sleeps until a *spin window* before the deadline, then busy-waits to it.  The
+schedule is absolute: a cycle that overruns is not skipped, the next SYNC goes out at
 once and the following ones catch up, as a hardware timer would keep its phase.
+
+The spin window absorbs late wake-ups of ``time.sleep``: a wake-up later than the window
+makes SYNC late.  It is sized from the period and the measured work of a cycle
+(:class:`SpinPlan`): :data:`SPIN_FRACTION` of the period (600 µs at 1 kHz), but never so
+wide that the loop's CPU share (spin + work per period) exceeds the kernel's real-time
+throttling limit (``/proc/sys/kernel/sched_rt_runtime_us`` / ``sched_rt_period_us``,
+95 % by default) minus :data:`RT_SHARE_MARGIN`.  Under ``SCHED_FIFO`` a loop above that
+limit is parked by the kernel for the rest of the throttling period (50 ms every second
+at 95 %).  The window is re-sized every second from the mean work of the last second.
+``--spin-us`` fixes it instead.
 
 Clock: the simulated bus's clock (:class:`WallClock`) reads wall time since the run
 started, so every frame is requested at the moment it was really sent and trace
@@ -12,83 +23,215 @@ timestamps are real (the wire time of each frame is still modelled by ``simbus``
 drive stays locked to SYNC: it integrates the plant one period per SYNC, whatever the
 wall time between two SYNCs was.
 
-Statistics, per operation cycle (start-up and stop cycles are not counted), kept in
-``array('d')`` (nothing else is allocated per cycle):
+Statistics
+----------
+Per operation cycle, kept in ``array('d')``.  Start-up and stop cycles are not counted,
+except the last start-up cycle when the first interrupt already ran in it: the controller
+turns operational on the drive's statusword, and in real time the cycle's sensor frame
+may arrive after it (frames are requested at wall time, so their order on the wire is
+that of the moments they were sent).  So the statistics cover exactly the cycles in
+which the interrupt ran.
 
 - **jitter**: when SYNC k was actually handed to the bus minus its deadline;
 - **latency**: from the controller receiving ``DRIVE_TPDO1`` (its bus's ``recv``
   returning it) to the command ``DRIVE_RPDO1`` being handed to the bus: decode,
   interrupt, encode, send;
-- **isr**: compute time of the interrupt body alone (:class:`firmware.isr.InterruptHandler`
-  call);
+- **interrupt compute**: the interrupt body (:class:`firmware.isr.InterruptHandler` call);
+- **stages** of the interrupt (:data:`STAGES`), contiguous, so that they add up to the
+  interrupt's time in every cycle;
+- **cycle work**: from the deadline (or the wake-up, if later) to the end of the cycle's
+  frame handling: what the loop computes per period besides spinning;
+- **sleep overshoot**: how late ``time.sleep`` returned (the machine's share of the tail);
 - **misses**: cycles whose command was not handed to the bus before the next SYNC's
   deadline (or never).
 
-The bus's ``send``/``recv`` and the controller's interrupt are wrapped for the run only
-(instance attributes, the firmware is unchanged); each wrapper costs one or two
-``perf_counter_ns`` calls.
+Instrumentation, for the run only (instance attributes; the firmware's code is unchanged
+and runs as before outside real-time mode): the bus's ``send``/``recv``, the interrupt
+handler, and its stage objects (the filter chain, its differentiator and Kalman filter,
+the control law or the reference generator) are wrapped in forwarding proxies that take
+``perf_counter_ns`` time stamps; a stage object the controller swaps in at run time (new
+parameters over SDO) is wrapped at the next interrupt.  Everything is unwrapped at the
+end.  The time stamps cost about 1 µs per interrupt, counted in its compute time.
 
-Determinism, each applied where permitted and reported in ``applied`` / ``refused``:
+Machine floor
+-------------
+:meth:`RealtimeLoop.measure_floor` (``--floor-s``) runs the bare loop after the run, in the
+same process state (same spin window, affinity, priority, no collector) and with the
+run's median cycle work as busy-waiting, but no hdhil code: the jitter and misses it
+shows are the machine's (scheduler, timer, hypervisor), and bound what the run can reach.
 
-- ``gc``: ``gc.collect()`` before the loop and ``gc.disable()`` during it.  This helps
-  most: a generation-2 collection in the middle of a cycle costs milliseconds once the
-  heap holds the scenario, the DBC and the CANopen object dictionaries.  The loop itself
-  allocates little, so memory stays flat over minutes without the collector (reference
-  counting frees everything that is not cyclic).
-- ``affinity``: :func:`os.sched_setaffinity` to one CPU (the last one allowed), which
-  avoids migrations and keeps the caches warm; on a 2-core shared VM it helps little.
+Determinism
+-----------
+Each of these is applied where permitted and reported in ``applied`` / ``refused``, and
+undone when the loop ends:
+
+- ``gc``: ``gc.collect()`` before the loop and ``gc.disable()`` during it.  A generation-2
+  collection in the middle of a cycle costs milliseconds once the heap holds the
+  scenario, the DBC and the CANopen object dictionaries.  The loop itself allocates
+  little, so memory stays flat over minutes without the collector (reference counting
+  frees everything that is not cyclic).
+- ``affinity``: :func:`os.sched_setaffinity` to one CPU: no migrations, warm caches.  The
+  CPU is the last allowed one that runs no other user-space real-time task
+  (:func:`rt_tasks_per_cpu`): two ``SCHED_FIFO`` loops on one CPU take turns and together
+  exceed the RT throttling limit, which parks both for tens of milliseconds.
+- ``timer slack``: ``prctl(PR_SET_TIMERSLACK, 1)`` (Linux, via :mod:`ctypes`): the kernel
+  may otherwise delay a sleeping task's wake-up by up to 50 µs to batch timers.  Linux
+  gives real-time tasks no slack at all, so it only matters when ``SCHED_FIFO`` is refused.
 - ``SCHED_FIFO``: :func:`os.sched_setscheduler` with real-time priority 50 (root or
-  CAP_SYS_NICE only).  It keeps other processes from preempting the loop and is what
-  bounds the tail (p99.9, max) on a loaded machine; the kernel's RT throttling (95 % by
-  default) still guarantees others a share.  Without the privilege it is reported as
-  refused and the run goes on.
+  CAP_SYS_NICE only).  It keeps other processes from preempting the loop and bounds the
+  tail on a loaded machine; the kernel's RT throttling still guarantees others a share.
+- ``mlockall``: ``mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT)`` (Linux, via
+  :mod:`ctypes`; root, CAP_IPC_LOCK or a large enough ``RLIMIT_MEMLOCK``): pages the
+  process touches stay resident, so the loop never waits for a page to come back from
+  disk.  ``MCL_ONFAULT`` locks pages as they are touched instead of faulting in every
+  mapping at once (which costs about 0.4 s and 220 MB for this process).
 
-All three are undone when the loop ends.
-
-Measured (20 s runs, free-motion, shared 2-core EPYC VM, as root; SYNC jitter p50 /
-p99.9 / max, deadline misses): all three applied 4 / 415 / 2 274 µs, 5 misses; without
-SCHED_FIFO 4 / 14 258 / 31 876 µs, 55 misses; with gc disabled only 4 / 36 783 /
-54 569 µs, 122 misses.  Pure spinning (no sleep) under SCHED_FIFO is much worse: the
-kernel's RT throttling parks the task for 50 ms every second (p99 41 ms, 1 022 misses in
-20 000 cycles), so the loop must sleep most of each period.  The remaining tail (p99.9
-0.4-1 ms) is late wake-ups of ``time.sleep`` on the VM, not compute: the sensor-to-command
-latency stays under 0.3 ms at its maximum.  Not done here: ``mlockall`` (not in :mod:`os`),
-isolated CPUs (``isolcpus``/``nohz_full``), disabling frequency scaling: those are the
-next steps on a dedicated bench PC.
-
+Other interfaces
+----------------
 ``--interface virtual`` (and any real python-can interface) works too: pacing and
 statistics are the same, only the clock is the monotonic clock the non-simulated path
-already uses.  There the statistics cover the cycles paced in operation; the first
-sample may already be handled in the last start-up cycle (the statusword and the sensor
-frame can arrive in either order), so they may count one cycle fewer than the run.
+already uses.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
 import gc
 import math
 import os
+import statistics
+import sys
 import time
 from array import array
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import can
 
+from hdhil.dataconf import ConfigError
 from hdhil.simbus import SimClock
 
-#: Spin (busy-wait) for the last this many nanoseconds before a deadline.
-SPIN_NS = 200_000
+#: Spin window by default, as a fraction of the sample period (600 µs at 1 kHz).
+SPIN_FRACTION = 0.6
+
+#: The loop's CPU share (spin + work per period) stays this far below the kernel's RT
+#: throttling limit.
+RT_SHARE_MARGIN = 0.15
+
+#: The kernel's default RT throttling limit (950 000 µs per 1 000 000 µs), assumed when
+#: ``/proc/sys/kernel/sched_rt_*`` cannot be read.
+RT_SHARE_DEFAULT = 0.95
+
+#: The spin window is re-sized after every this many seconds of cycles.
+RESIZE_EVERY_S = 1.0
 
 #: SCHED_FIFO priority asked for (1..99); 50 is below the kernel's IRQ threads.
 FIFO_PRIORITY = 50
+
+#: Timer slack asked for with ``prctl(PR_SET_TIMERSLACK)`` (ns; 0 would mean "default").
+TIMER_SLACK_NS = 1
 
 #: Jitter histogram bin edges in µs (1-2-5 log spacing); below the first edge (early or
 #: under 1 µs late) is the first bin, from the last edge on the last.
 HISTOGRAM_EDGES_US = (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000, 10000)
 
+#: The interrupt's stages as timed in real-time mode (key, label), in execution order
+#: (``InterruptHandler.__call__``).  The differentiator and the ripple Kalman filter are
+#: timed around their ``step``; "model torque, error, angle" is the rest of the filter
+#: chain (``T_mod``, ``Delta_T``, the encoder angle, ``Torque_f``); "control / reference"
+#: is the LQG law (it also converts its command to DAC counts) or
+#: ``reference_generation``; "DAC write, outputs" is ``write_dac0`` and the output copies.
+STAGES: tuple[tuple[str, str], ...] = (
+    ("adc_calibration", "ADC read + calibration"),
+    ("differentiator", "differentiator"),
+    ("ripple_kalman", "ripple Kalman"),
+    ("torque_model", "model torque, error, angle"),
+    ("control_reference", "control / reference"),
+    ("dac_output", "DAC write, outputs"),
+)
+
 _now_ns = time.perf_counter_ns
+_sleep = time.sleep
+
+# Linux prctl options and mlockall flags (<linux/prctl.h>, <asm-generic/mman-common.h>;
+# powerpc and sparc use other mlockall values: mlockall is not attempted there).
+PR_SET_TIMERSLACK = 29
+PR_GET_TIMERSLACK = 30
+MCL_CURRENT, MCL_FUTURE, MCL_ONFAULT = 1, 2, 4
+
+
+@dataclass(frozen=True)
+class RealtimeConfig:
+    """How ``--realtime`` paces the loop and what it applies (each where permitted).
+
+    ``spin_us``: the spin window before each deadline in µs; None sizes it from the
+    period and the measured work (:class:`SpinPlan`).  ``floor_s``: seconds of the
+    machine-floor loop after the run (0: none).  The switches turn off one measure each
+    (for comparisons; all are on by default).
+    """
+
+    spin_us: float | None = None
+    floor_s: float = 0.0
+    affinity: bool = True
+    timer_slack: bool = True
+    fifo: bool = True
+    mlock: bool = True
+    gc_off: bool = True
+
+    def check(self, sample_period_s: float) -> None:
+        """One-line :class:`ConfigError` for values that cannot work at this period."""
+        period_us = sample_period_s * 1e6
+        if self.spin_us is not None and not (
+            math.isfinite(self.spin_us) and 0 <= self.spin_us < period_us
+        ):
+            raise ConfigError(
+                f"--spin-us must be >= 0 and below the sample period ({period_us:g} µs), "
+                f"got {self.spin_us:g}"
+            )
+        if not (math.isfinite(self.floor_s) and self.floor_s >= 0):
+            raise ConfigError(f"--floor-s must be >= 0 seconds, got {self.floor_s:g}")
+
+
+def rt_share_limit(sysctl_dir: str = "/proc/sys/kernel") -> tuple[float, str]:
+    """The kernel's RT throttling limit as a CPU share, and where it came from.
+
+    ``sched_rt_runtime_us = -1`` means no throttling (share 1.0)."""
+    try:
+        with open(os.path.join(sysctl_dir, "sched_rt_runtime_us"), encoding="ascii") as fh:
+            runtime = int(fh.read())
+        with open(os.path.join(sysctl_dir, "sched_rt_period_us"), encoding="ascii") as fh:
+            period = int(fh.read())
+    except (OSError, ValueError):
+        return RT_SHARE_DEFAULT, "kernel default (sched_rt_* not readable)"
+    if runtime < 0 or period <= 0:
+        return 1.0, "sched_rt_runtime_us = -1 (no throttling)"
+    source = f"sched_rt_runtime_us {runtime} / sched_rt_period_us {period}"
+    return min(1.0, runtime / period), source
+
+
+@dataclass
+class SpinPlan:
+    """The spin window: :data:`SPIN_FRACTION` of the period, capped so that spin + mean
+    cycle work stays below the RT throttling limit minus :data:`RT_SHARE_MARGIN`; or a
+    fixed window (``--spin-us``)."""
+
+    period_ns: int
+    share_limit: float
+    fixed_ns: int | None = None
+
+    @property
+    def budget_ns(self) -> int:
+        """CPU time per period the loop may use (spin + work)."""
+        return round((self.share_limit - RT_SHARE_MARGIN) * self.period_ns)
+
+    def spin_ns(self, mean_work_ns: float) -> int:
+        if self.fixed_ns is not None:
+            return self.fixed_ns
+        wanted = round(SPIN_FRACTION * self.period_ns)
+        return max(0, min(wanted, round(self.budget_ns - mean_work_ns)))
 
 
 class WallClock(SimClock):
@@ -107,39 +250,135 @@ class WallClock(SimClock):
         self.t0_ns = t0_ns
 
 
-class _TimedIsr:
-    """Forwards everything to the interrupt handler; times its call."""
+# ------------------------------------------------------------------ instrumentation
+class _Proxy:
+    """Forwards attribute reads and writes to the wrapped object."""
 
-    __slots__ = ("_isr", "_sink")
+    __slots__ = ("_loop", "_target")
 
-    def __init__(self, isr: Any, sink: Callable[[int], None]) -> None:
-        object.__setattr__(self, "_isr", isr)
-        object.__setattr__(self, "_sink", sink)
-
-    def __call__(self, sample: Any) -> Any:
-        t = _now_ns()
-        out = self._isr(sample)
-        self._sink(_now_ns() - t)
-        return out
+    def __init__(self, target: Any, loop: RealtimeLoop) -> None:
+        object.__setattr__(self, "_target", target)
+        object.__setattr__(self, "_loop", loop)
 
     def __getattr__(self, name: str) -> Any:
-        return getattr(self._isr, name)
+        return getattr(self._target, name)
 
     def __setattr__(self, name: str, value: Any) -> None:
-        setattr(self._isr, name, value)
+        setattr(self._target, name, value)
 
 
+def _unwrap(obj: Any) -> Any:
+    return obj._target if isinstance(obj, _Proxy) else obj
+
+
+class _TimedChain(_Proxy):
+    """:class:`firmware.isr.TorqueFilterChain`: time stamps on entry and exit of ``step``."""
+
+    __slots__ = ()
+
+    def step(self, T_meas: float, velocity: float, encoder: int | None = None) -> Any:
+        loop = self._loop
+        loop._chain_in = _now_ns()
+        out = self._target.step(T_meas, velocity, encoder)
+        loop._chain_out = _now_ns()
+        return out
+
+
+class _TimedDifferentiator(_Proxy):
+    __slots__ = ()
+
+    def step(self, v: float) -> float:
+        t = _now_ns()
+        out = self._target.step(v)
+        self._loop._diff_ns += _now_ns() - t
+        return out
+
+
+class _TimedKalman(_Proxy):
+    __slots__ = ()
+
+    def step(self, *args: float) -> float:
+        t = _now_ns()
+        out = self._target.step(*args)
+        self._loop._kalman_ns += _now_ns() - t
+        return out
+
+
+class _TimedControl(_Proxy):
+    """:class:`firmware.isr.TorqueControl`: time stamp when the law has returned."""
+
+    __slots__ = ()
+
+    def __call__(self, k: int, T: float, out: Any) -> None:
+        self._target(k, T, out)
+        self._loop._control_out = _now_ns()
+
+
+class _TimedReference(_Proxy):
+    """:class:`firmware.stages.ReferenceGenerator`: time stamp when ``value`` returns."""
+
+    __slots__ = ()
+
+    def value(self, k: int) -> float:
+        out = self._target.value(k)
+        self._loop._control_out = _now_ns()
+        return out
+
+
+class _TimedIsr(_Proxy):
+    """The interrupt handler: wraps its stage objects (again, if the controller swapped
+    one), times the call, hands the time stamps to the loop."""
+
+    __slots__ = ()
+
+    def __call__(self, sample: Any) -> Any:
+        loop = self._loop
+        isr = self._target
+        chain = isr.chain
+        if type(chain) is not _TimedChain:
+            isr.chain = chain = _TimedChain(chain, loop)
+        inner = chain._target
+        if type(inner.differentiator) is not _TimedDifferentiator:
+            inner.differentiator = _TimedDifferentiator(inner.differentiator, loop)
+        if type(inner.kalman) is not _TimedKalman:
+            inner.kalman = _TimedKalman(inner.kalman, loop)
+        control = isr.control
+        if control is not None and type(control) is not _TimedControl:
+            isr.control = _TimedControl(control, loop)
+        if type(isr.reference) is not _TimedReference:
+            isr.reference = _TimedReference(isr.reference, loop)
+        loop._chain_in = loop._chain_out = loop._control_out = 0
+        loop._diff_ns = loop._kalman_ns = 0
+        t0 = _now_ns()
+        out = isr(sample)
+        loop._isr_done(t0, _now_ns())
+        return out
+
+
+def _unwrap_isr(isr: Any) -> Any:
+    """The handler with every stage proxy removed."""
+    isr = _unwrap(isr)
+    chain = isr.chain = _unwrap(isr.chain)
+    chain.differentiator = _unwrap(chain.differentiator)
+    chain.kalman = _unwrap(chain.kalman)
+    isr.control = _unwrap(isr.control)
+    isr.reference = _unwrap(isr.reference)
+    return isr
+
+
+# ------------------------------------------------------------------ statistics
 def percentiles(values: array) -> dict[str, float]:
-    """p50, p99, p99.9 and max (nearest rank) of ``values``; NaN when empty."""
+    """p50, p99, p99.9, max (nearest rank) and mean of ``values``; NaN when empty."""
     n = len(values)
     if not n:
-        return {"p50": math.nan, "p99": math.nan, "p99.9": math.nan, "max": math.nan}
+        return dict.fromkeys(("p50", "p99", "p99.9", "max", "mean"), math.nan)
     s = sorted(values)
 
     def rank(p: float) -> float:
         return s[min(n - 1, max(0, math.ceil(p * n) - 1))]
 
-    return {"p50": rank(0.50), "p99": rank(0.99), "p99.9": rank(0.999), "max": s[-1]}
+    return {"p50": rank(0.50), "p99": rank(0.99), "p99.9": rank(0.999), "max": s[-1],
+            "mean": math.fsum(s) / n}  # fmt: skip
 
 
 def histogram(values_us: array) -> list[dict[str, Any]]:
@@ -160,34 +399,171 @@ def histogram(values_us: array) -> list[dict[str, Any]]:
     return bins
 
 
+def _finite(values: array) -> array:
+    return array("d", (v for v in values if not math.isnan(v)))
+
+
+def per_100k(events: int, cycles: int) -> float:
+    return 1e5 * events / cycles if cycles else math.nan
+
+
+# ------------------------------------------------------------------ privileges
+def _libc() -> Any:
+    """The C library with errno kept (Linux only); None elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL(None, use_errno=True)
+    except OSError:
+        return None
+
+
+def _os_error(what: str) -> OSError:
+    code = ctypes.get_errno()
+    return OSError(code, f"{what}: {os.strerror(code)}")
+
+
+def set_timer_slack(ns: int) -> int:
+    """``prctl(PR_SET_TIMERSLACK, ns)``; returns the previous slack (ns)."""
+    libc = _libc()
+    if libc is None or not hasattr(libc, "prctl"):
+        raise OSError(errno.ENOSYS, "prctl not available on this platform")
+    previous = libc.prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0)
+    if previous < 0 or libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(ns), 0, 0, 0) != 0:
+        raise _os_error("prctl(PR_SET_TIMERSLACK)")
+    return int(previous)
+
+
+def get_timer_slack() -> int:
+    libc = _libc()
+    return int(libc.prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0)) if libc is not None else -1
+
+
+def lock_memory() -> None:
+    """``mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT)``."""
+    import platform
+
+    libc = _libc()
+    if libc is None or not hasattr(libc, "mlockall"):
+        raise OSError(errno.ENOSYS, "mlockall not available on this platform")
+    if platform.machine().startswith(("ppc", "powerpc", "sparc", "alpha")):
+        raise OSError(errno.ENOSYS, "mlockall flags of this architecture not known")
+    if libc.mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT) != 0:
+        raise _os_error("mlockall")
+
+
+def unlock_memory() -> None:
+    libc = _libc()
+    if libc is not None:
+        libc.munlockall()
+
+
+#: ``task->flags`` bit of kernel threads (<linux/sched.h>).
+PF_KTHREAD = 0x00200000
+
+
+def rt_tasks_per_cpu(proc: str = "/proc") -> dict[int, int]:
+    """User-space threads of other processes under ``SCHED_FIFO`` or ``SCHED_RR``, per
+    CPU: the CPU they are pinned to, else the one they last ran on (``/proc/PID/task/TID/
+    stat`` fields 9 flags, 39 processor, 41 policy).  Empty where there is no procfs."""
+    counts: dict[int, int] = {}
+    me = str(os.getpid())
+    try:
+        pids = [p for p in os.listdir(proc) if p.isdigit() and p != me]
+    except OSError:
+        return counts
+    for pid in pids:
+        try:
+            tids = os.listdir(os.path.join(proc, pid, "task"))
+        except OSError:
+            continue
+        for tid in tids:
+            try:
+                with open(os.path.join(proc, pid, "task", tid, "stat"), encoding="ascii",
+                          errors="replace") as fh:  # fmt: skip
+                    stat = fh.read()
+                fields = stat[stat.rindex(")") + 2 :].split()  # from field 3 (state) on
+                flags, cpu, policy = int(fields[6]), int(fields[36]), int(fields[38])
+            except (OSError, ValueError, IndexError):
+                continue
+            if flags & PF_KTHREAD or policy not in (1, 2):  # SCHED_FIFO, SCHED_RR
+                continue
+            with contextlib.suppress(OSError, ValueError):
+                pinned = os.sched_getaffinity(int(tid))
+                if len(pinned) == 1:
+                    cpu = next(iter(pinned))
+            counts[cpu] = counts.get(cpu, 0) + 1
+    return counts
+
+
+def _why(exc: OSError) -> str:
+    return exc.strerror or str(exc)
+
+
+# ------------------------------------------------------------------ the loop
 class RealtimeLoop:
     """Paces the cycles, instruments the controller, collects the statistics."""
 
-    def __init__(self, sample_period_s: float, *, sync_id: int = 0x080,
-                 sensor_id: int = 0x182, command_id: int = 0x202) -> None:  # fmt: skip
+    def __init__(self, sample_period_s: float, config: RealtimeConfig | None = None, *,
+                 sync_id: int = 0x080, sensor_id: int = 0x182,
+                 command_id: int = 0x202) -> None:  # fmt: skip
+        self.config = config = config or RealtimeConfig()
+        config.check(sample_period_s)
         self.period_ns = round(sample_period_s * 1e9)
         self.sync_id = sync_id
         self.sensor_id = sensor_id
         self.command_id = command_id
+        share, source = rt_share_limit()
+        self.plan = SpinPlan(
+            self.period_ns,
+            share,
+            None if config.spin_us is None else round(config.spin_us * 1e3),
+        )
+        self.rt_limit_source = source
+        self._spin_ns = self.plan.spin_ns(0.0)
+        self.spin_range_ns = [self._spin_ns, self._spin_ns]  # during recording
         self.t0_ns = 0
         self.recording = False
         self.jitter_us = array("d")
         self.latency_us = array("d")
         self.isr_us = array("d")
+        self.work_us = array("d")
+        self.overshoot_us = array("d")  # NaN: no sleep that cycle
+        self.stage_us = {key: array("d") for key, _ in STAGES}
         self.misses = 0
         self.cycles = 0
+        self.late_starts = 0
+        self.late_wakeups = 0
+        self.busy_ns = 0
+        self.floor: dict[str, Any] | None = None
         self.applied: list[str] = []
         self.refused: list[str] = []
         self._deadline = 0
+        self._wake_ns = 0
+        self._started_late = False
+        self._overshoot_ns = -1
         self._sync_ns = 0
         self._sensor_ns = 0
         self._command_ns = 0
+        self._window_cycles = max(1, round(RESIZE_EVERY_S * 1e9 / self.period_ns))
+        self._window_n = 0
+        self._window_work_ns = 0
+        # time stamps the stage proxies leave for the current interrupt
+        self._chain_in = self._chain_out = self._control_out = 0
+        self._diff_ns = self._kalman_ns = 0
+        # the current cycle's interrupt, kept by _isr_done until end_cycle records it
+        self._stage_ns = [0] * len(STAGES)
+        self._stage_arrays = [self.stage_us[key] for key, _ in STAGES]
+        self._isr_ns = 0
+        self._isr_ran = False
+        self._end_ns = 0
         self._restore: list[Callable[[], None]] = []
 
     # ------------------------------------------------------------ instrumentation
 
     def instrument(self, controller: Any) -> None:
-        """Wrap the controller's bus send/recv and its interrupt (for this run only)."""
+        """Wrap the controller's bus send/recv, its interrupt and the interrupt's stage
+        objects (for this run only; :meth:`exit` unwraps them)."""
         bus: can.BusABC = controller.bus
         send, recv = bus.send, bus.recv
         sync_id, sensor_id, command_id = self.sync_id, self.sensor_id, self.command_id
@@ -209,46 +585,109 @@ class RealtimeLoop:
 
         bus.send = timed_send  # type: ignore[method-assign]
         bus.recv = timed_recv  # type: ignore[method-assign]
-        controller.isr = _TimedIsr(controller.isr, self._isr_done)
+        controller.isr = _TimedIsr(controller.isr, self)
 
-    def _isr_done(self, ns: int) -> None:
-        if self.recording:
-            self.isr_us.append(ns * 1e-3)
+        def uninstrument() -> None:
+            for name in ("send", "recv"):
+                with contextlib.suppress(AttributeError):
+                    delattr(bus, name)
+            controller.isr = _unwrap_isr(controller.isr)
+
+        self._restore.append(uninstrument)
+
+    def _isr_done(self, t0: int, t4: int) -> None:
+        """Keep the interrupt's time and its stages (contiguous: they sum to it) for
+        :meth:`end_cycle`."""
+        chain_in = self._chain_in or t0
+        chain_out = self._chain_out or chain_in
+        control_out = self._control_out or chain_out
+        diff, kalman = self._diff_ns, self._kalman_ns
+        ns = self._stage_ns  # in STAGES order
+        ns[0] = chain_in - t0
+        ns[1] = diff
+        ns[2] = kalman
+        ns[3] = chain_out - chain_in - diff - kalman
+        ns[4] = control_out - chain_out
+        ns[5] = t4 - control_out
+        self._isr_ns = t4 - t0
+        self._isr_ran = True
 
     # ------------------------------------------------------------ determinism
 
     def enter(self) -> None:
         """Apply what improves determinism and is permitted; note what was refused."""
-        if hasattr(os, "sched_setaffinity"):
-            try:
-                before = os.sched_getaffinity(0)
-                cpu = max(before)
-                os.sched_setaffinity(0, {cpu})
-                self.applied.append(f"affinity: CPU {cpu}")
-                self._restore.append(lambda: os.sched_setaffinity(0, before))
-            except OSError as exc:
-                self.refused.append(f"affinity: {exc.strerror or exc}")
-        else:
+        cfg = self.config
+        if cfg.affinity:
+            self._apply_affinity()
+        if cfg.timer_slack:  # before SCHED_FIFO: Linux ignores the call for RT tasks
+            self._apply_timer_slack()
+        if cfg.fifo:
+            self._apply_fifo()
+        if cfg.mlock:
+            self._apply_mlock()
+        if cfg.gc_off:
+            gc.collect()
+            if gc.isenabled():
+                gc.disable()
+                self._restore.append(gc.enable)
+            self.applied.append("gc disabled during the loop (collected before)")
+
+    def _apply_affinity(self) -> None:
+        if not hasattr(os, "sched_setaffinity"):
             self.refused.append("affinity: not supported on this platform")
-        if hasattr(os, "sched_setscheduler"):
-            try:
-                policy = os.sched_getscheduler(0)
-                param = os.sched_getparam(0)
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(FIFO_PRIORITY))
-                self.applied.append(f"SCHED_FIFO priority {FIFO_PRIORITY}")
-                self._restore.append(lambda: os.sched_setscheduler(0, policy, param))
-            except OSError as exc:
-                self.refused.append(f"SCHED_FIFO: {exc.strerror or exc} (needs root/CAP_SYS_NICE)")
-        else:
+            return
+        try:
+            before = os.sched_getaffinity(0)
+            busy = rt_tasks_per_cpu()
+            cpu = min(before, key=lambda c: (busy.get(c, 0), -c))
+            os.sched_setaffinity(0, {cpu})
+        except OSError as exc:
+            self.refused.append(f"affinity: {_why(exc)}")
+            return
+        others = ", ".join(f"{n} on CPU {c}" for c, n in sorted(busy.items()) if c in before)
+        note = f" (other real-time tasks: {others})" if others else ""
+        self.applied.append(f"affinity: CPU {cpu}{note}")
+        self._restore.append(lambda: os.sched_setaffinity(0, before))
+
+    def _apply_timer_slack(self) -> None:
+        try:
+            previous = set_timer_slack(TIMER_SLACK_NS)
+        except OSError as exc:
+            self.refused.append(f"timer slack: {_why(exc)}")
+            return
+        self.applied.append(f"timer slack {TIMER_SLACK_NS} ns (was {previous} ns)")
+        self._restore.append(lambda: set_timer_slack(previous))
+
+    def _apply_fifo(self) -> None:
+        if not hasattr(os, "sched_setscheduler"):
             self.refused.append("SCHED_FIFO: not supported on this platform")
-        gc.collect()
-        if gc.isenabled():
-            gc.disable()
-            self._restore.append(gc.enable)
-        self.applied.append("gc disabled during the loop (collected before)")
+            return
+        try:
+            policy = os.sched_getscheduler(0)
+            param = os.sched_getparam(0)
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(FIFO_PRIORITY))
+        except OSError as exc:
+            self.refused.append(f"SCHED_FIFO: {_why(exc)} (needs root/CAP_SYS_NICE)")
+            return
+        note = ""
+        if self.config.timer_slack and get_timer_slack() == 0:
+            note = " (timer slack 0 for RT tasks)"
+        self.applied.append(f"SCHED_FIFO priority {FIFO_PRIORITY}{note}")
+        self._restore.append(lambda: os.sched_setscheduler(0, policy, param))
+
+    def _apply_mlock(self) -> None:
+        try:
+            lock_memory()
+        except OSError as exc:
+            self.refused.append(
+                f"mlockall: {_why(exc)} (needs root/CAP_IPC_LOCK or RLIMIT_MEMLOCK)"
+            )
+            return
+        self.applied.append("mlockall (current and future pages, as touched)")
+        self._restore.append(unlock_memory)
 
     def exit(self) -> None:
-        """Undo :meth:`enter` (in reverse order)."""
+        """Undo :meth:`enter` and :meth:`instrument` (in reverse order)."""
         while self._restore:
             with contextlib.suppress(OSError):  # best effort
                 self._restore.pop()()
@@ -261,22 +700,53 @@ class RealtimeLoop:
         return self.t0_ns
 
     def wait(self, k: int) -> None:
-        """Sleep, then spin, until cycle ``k``'s deadline."""
+        """Sleep until the spin window, then spin, until cycle ``k``'s deadline."""
         deadline = self.t0_ns + k * self.period_ns
         self._deadline = deadline
         self._sync_ns = self._sensor_ns = self._command_ns = 0
-        remaining = deadline - _now_ns()
-        if remaining > SPIN_NS:
-            time.sleep((remaining - SPIN_NS) * 1e-9)
+        self._isr_ran = False
+        target = deadline - self._spin_ns
+        t = _now_ns()
+        self._started_late = t >= deadline
+        if target > t:
+            _sleep((target - t) * 1e-9)
+            wake = _now_ns()
+            self._overshoot_ns = wake - target
+        else:
+            wake = t
+            self._overshoot_ns = -1
+        self._wake_ns = wake
         while _now_ns() < deadline:
             pass
 
     def end_cycle(self) -> None:
-        """After the cycle's frames are handled: record it (while recording)."""
-        if not self.recording:
-            return
-        self.cycles += 1
+        """After the cycle's frames are handled: account its work, re-size the spin window
+        every second, record the cycle (while recording)."""
+        t = self._end_ns = _now_ns()
         deadline = self._deadline
+        wake = self._wake_ns
+        self._window_work_ns += t - (wake if wake > deadline else deadline)
+        self._window_n += 1
+        if self._window_n >= self._window_cycles:
+            self._resize_spin()
+        if self.recording:
+            self._record()
+
+    def _record(self) -> None:
+        """Append the cycle that just ended to the statistics."""
+        t = self._end_ns
+        deadline = self._deadline
+        wake = self._wake_ns
+        work = t - (wake if wake > deadline else deadline)
+        self.cycles += 1
+        self.busy_ns += t - wake
+        self.work_us.append(work * 1e-3)
+        over = self._overshoot_ns
+        self.overshoot_us.append(over * 1e-3 if over >= 0 else math.nan)
+        if over > self._spin_ns:
+            self.late_wakeups += 1
+        if self._started_late:
+            self.late_starts += 1
         sync = self._sync_ns
         self.jitter_us.append((sync - deadline) * 1e-3 if sync else math.nan)
         command = self._command_ns
@@ -284,48 +754,191 @@ class RealtimeLoop:
             self.latency_us.append((command - self._sensor_ns) * 1e-3)
         if not command or command >= deadline + self.period_ns:
             self.misses += 1
+        if self._isr_ran:
+            for a, ns in zip(self._stage_arrays, self._stage_ns, strict=True):
+                a.append(ns * 1e-3)
+            self.isr_us.append(self._isr_ns * 1e-3)
+
+    def _resize_spin(self) -> None:
+        mean_work = self._window_work_ns / self._window_n
+        self._window_n = self._window_work_ns = 0
+        self._spin_ns = spin = self.plan.spin_ns(mean_work)
+        if self.recording:
+            r = self.spin_range_ns
+            r[0], r[1] = min(r[0], spin), max(r[1], spin)
+
+    def begin_recording(self) -> None:
+        """Statistics from the next cycle on (the run's operation phase), and from the
+        cycle that just ended if the interrupt already ran in it: the controller turns
+        operational on the drive's statusword, and in real time the cycle's sensor frame
+        may come after it (module docstring)."""
+        self.recording = True
+        self.spin_range_ns = [self._spin_ns, self._spin_ns]
+        if self._isr_ran:
+            self._record()
+
+    # ------------------------------------------------------------ machine floor
+
+    def measure_floor(self, duration_s: float | None = None) -> dict[str, Any] | None:
+        """The bare loop: same spin window and process state, the run's median cycle
+        work as busy-waiting, no hdhil code (module docstring).  Call it after the run,
+        before :meth:`exit`."""
+        duration = self.config.floor_s if duration_s is None else duration_s
+        if not duration > 0:
+            return None
+        self.floor = measure_floor(
+            self.period_ns,
+            self._spin_ns,
+            round(statistics.median(self.work_us) * 1e3) if self.work_us else 0,
+            duration,
+        )
+        return self.floor
 
     # ------------------------------------------------------------ report
 
     def result(self) -> dict[str, Any]:
-        jitter = array("d", (v for v in self.jitter_us if not math.isnan(v)))
+        jitter = _finite(self.jitter_us)
+        overshoot = _finite(self.overshoot_us)  # the cycles that slept
+        stages = {}
+        for key, label in STAGES:
+            stages[key] = {"label": label, **percentiles(self.stage_us[key])}
+        period_ns = self.period_ns
+        share = self.busy_ns / (self.cycles * period_ns) if self.cycles else math.nan
+        fixed = self.plan.fixed_ns is not None
         return {
             "cycles": self.cycles,
-            "sample_period_s": self.period_ns * 1e-9,
+            "sample_period_s": period_ns * 1e-9,
             "deadline_misses": self.misses,
+            "misses_per_100k": per_100k(self.misses, self.cycles),
             "jitter_us": percentiles(jitter),
             "latency_us": percentiles(self.latency_us),
+            "interrupts": len(self.isr_us),
             "isr_us": percentiles(self.isr_us),
+            "stages_us": stages,
+            "cycle_work_us": percentiles(self.work_us),
+            "sleep_overshoot_us": percentiles(overshoot),
+            "sleeps": len(overshoot),
             "jitter_histogram": histogram(jitter),
             "syncs_missing": self.cycles - len(jitter),
+            "late_starts": self.late_starts,
+            "late_wakeups": self.late_wakeups,
+            "pacing": {
+                "spin_us": self._spin_ns * 1e-3,
+                "spin_us_range": [v * 1e-3 for v in self.spin_range_ns],
+                "spin_source": "fixed (--spin-us)"
+                if fixed
+                else f"{SPIN_FRACTION:.0%} of the period, within the RT budget",
+                "rt_share_limit": self.plan.share_limit,
+                "rt_share_limit_source": self.rt_limit_source,
+                "rt_share_budget": self.plan.share_limit - RT_SHARE_MARGIN,
+                "cpu_share": share,
+            },
             "applied": list(self.applied),
             "refused": list(self.refused),
-            "spin_us": SPIN_NS * 1e-3,
+            "floor": self.floor,
         }
 
 
+def measure_floor(period_ns: int, spin_ns: int, work_ns: int, duration_s: float) -> dict[str, Any]:
+    """Sleep-then-spin pacing with ``work_ns`` of busy-waiting per cycle and nothing else,
+    for ``duration_s`` (the caller sets up affinity, priority, collector).  Jitter is the
+    lateness of the loop's start of work; a miss is work that ends after the next
+    deadline."""
+    n = max(1, round(duration_s * 1e9 / period_ns))
+    jitter_us = array("d")
+    overshoot_us = array("d")
+    misses = late_wakeups = 0
+    now = _now_ns
+    t0 = now() + period_ns
+    for k in range(n):
+        deadline = t0 + k * period_ns
+        target = deadline - spin_ns
+        t = now()
+        if target > t:
+            _sleep((target - t) * 1e-9)
+            over = now() - target
+            overshoot_us.append(over * 1e-3)
+            if over > spin_ns:
+                late_wakeups += 1
+        while now() < deadline:
+            pass
+        start = now()
+        jitter_us.append((start - deadline) * 1e-3)
+        end = start + work_ns
+        while now() < end:
+            pass
+        if now() >= deadline + period_ns:
+            misses += 1
+    return {
+        "duration_s": n * period_ns * 1e-9,
+        "cycles": n,
+        "spin_us": spin_ns * 1e-3,
+        "work_us": work_ns * 1e-3,
+        "jitter_us": percentiles(jitter_us),
+        "sleep_overshoot_us": percentiles(overshoot_us),
+        "jitter_histogram": histogram(jitter_us),
+        "deadline_misses": misses,
+        "misses_per_100k": per_100k(misses, n),
+        "late_wakeups": late_wakeups,
+    }
+
+
+# ------------------------------------------------------------------ text
+def _row(label: str, p: dict[str, float]) -> str:
+    return f"    {label:<30} {p['p50']:9.1f} {p['p99']:9.1f} {p['p99.9']:9.1f} {p['max']:9.1f}"
+
+
+def _histogram_lines(bins: list[dict[str, Any]]) -> list[str]:
+    top = max((b["count"] for b in bins), default=0) or 1
+    return [
+        f"      {b['bin']:>14} {b['count']:>8}  {'#' * max(1, round(40 * b['count'] / top))}"
+        for b in bins
+        if b["count"]
+    ]
+
+
 def format_realtime(rt: dict[str, Any]) -> str:
-    """The statistics as text: a percentile table and the jitter histogram."""
+    """The statistics as text: percentile tables, the jitter histogram, the floor."""
+    pace = rt["pacing"]
+    lo, hi = pace["spin_us_range"]
+    spin = f"{pace['spin_us']:.0f} µs" if lo == hi else f"{lo:.0f}-{hi:.0f} µs"
     lines = [
         f"  real time          {rt['cycles']} cycles paced at "
-        f"{rt['sample_period_s'] * 1e3:g} ms; deadline misses {rt['deadline_misses']}",
-        f"    applied: {'; '.join(rt['applied']) or 'nothing'}",
+        f"{rt['sample_period_s'] * 1e3:g} ms; deadline misses {rt['deadline_misses']} "
+        f"({rt['misses_per_100k']:.1f} per 100 000)",
+        f"    pacing: spin window {spin} ({pace['spin_source']}); loop CPU share "
+        f"{pace['cpu_share']:.0%}, RT throttling limit {pace['rt_share_limit']:.0%}",
     ]
+    if pace["cpu_share"] > pace["rt_share_limit"]:
+        lines.append("    WARNING: the loop's CPU share is above the RT throttling limit: "
+                     "the kernel parks it for the rest of each throttling period")  # fmt: skip
+    lines.append(
+        f"    sleep woke later than the spin window in {rt['late_wakeups']} cycles; "
+        f"{rt['late_starts']} cycles started late (the previous one overran)"
+    )
+    lines.append(f"    applied: {'; '.join(rt['applied']) or 'nothing'}")
     if rt["refused"]:
         lines.append(f"    refused: {'; '.join(rt['refused'])}")
-    lines.append(f"    {'µs':<28} {'p50':>9} {'p99':>9} {'p99.9':>9} {'max':>9}")
+    lines.append(f"    {'µs':<30} {'p50':>9} {'p99':>9} {'p99.9':>9} {'max':>9}")
     for key, label in (("jitter_us", "SYNC jitter (late)"),
                        ("latency_us", "sensor frame -> command"),
+                       ("cycle_work_us", "cycle work (frames, nodes)"),
+                       ("sleep_overshoot_us", "sleep overshoot"),
                        ("isr_us", "interrupt compute")):  # fmt: skip
-        p = rt[key]
-        lines.append(
-            f"    {label:<28} {p['p50']:9.1f} {p['p99']:9.1f} {p['p99.9']:9.1f} {p['max']:9.1f}"
-        )
+        lines.append(_row(label, rt[key]))
+    for stage in rt["stages_us"].values():
+        lines.append(_row(f"  {stage['label']}", stage))
     lines.append("    SYNC jitter histogram:")
-    bins = rt["jitter_histogram"]
-    top = max((b["count"] for b in bins), default=0) or 1
-    for b in bins:
-        if b["count"]:
-            bar = "#" * max(1, round(40 * b["count"] / top))
-            lines.append(f"      {b['bin']:>14} {b['count']:>8}  {bar}")
+    lines += _histogram_lines(rt["jitter_histogram"])
+    floor = rt.get("floor")
+    if floor:
+        lines += [
+            f"  machine floor      bare sleep+spin loop, {floor['cycles']} cycles, same spin "
+            f"window and process state, {floor['work_us']:.0f} µs busy work per cycle, no "
+            f"hdhil code: misses {floor['deadline_misses']} "
+            f"({floor['misses_per_100k']:.1f} per 100 000), late wake-ups "
+            f"{floor['late_wakeups']}",
+            _row("start jitter (late)", floor["jitter_us"]),
+            _row("sleep overshoot", floor["sleep_overshoot_us"]),
+        ]
     return "\n".join(lines)

@@ -42,7 +42,7 @@ from hdhil.dbc import CHANNEL_NUMBER, database
 from hdhil.evaluate import RecordingListener, format_evaluation
 from hdhil.evaluate import evaluate as evaluate_recording
 from hdhil.faults import FaultInjector, FaultLog, with_fault_flags
-from hdhil.realtime import RealtimeLoop, WallClock, format_realtime
+from hdhil.realtime import RealtimeConfig, RealtimeLoop, WallClock, format_realtime
 from hdhil.score import TorqueScorer, TrackingScorer
 from hdhil.simbus import SimClock
 from hdhil.trace import BusTap, FrameCounter, WriterProcess
@@ -215,6 +215,7 @@ def run_lockstep(
     extra_listeners: Sequence[can.Listener] = (),
     monitor: Callable[[ControllerNode], None] | None = None,
     monitor_every: int = 1000,
+    realtime_config: RealtimeConfig | None = None,
 ) -> RunResult:
     """Run ``scenario`` in lockstep and return the scored result.
 
@@ -229,7 +230,8 @@ def run_lockstep(
 
     ``realtime`` paces SYNC by the wall clock at the sample period instead of running as
     fast as possible, and reports jitter, latency and deadline misses
-    (:mod:`hdhil.realtime`).
+    (:mod:`hdhil.realtime`); ``realtime_config`` sets its spin window and machine-floor
+    reference.
 
     ``extra_listeners`` are added to the host tap after the run's own (they see every frame
     of both buses, as a logger does).  ``monitor`` is called with the controller at
@@ -253,6 +255,7 @@ def run_lockstep(
             f"{bitrate} bit/s bus at {Ts * 1e3:g} ms: it cannot run"
         )
     drive_config = DriveConfig(sample_period_s=Ts, actuation=actuation)  # type: ignore[arg-type]
+    pacer = RealtimeLoop(Ts, realtime_config) if realtime else None  # checks its options
 
     run_id = next(_run_ids)
     # Injected faults (the scenario's [faults] table), reproducible by their seed and logged.
@@ -263,7 +266,6 @@ def run_lockstep(
     truth_faults = injector.channel("truth") if injector is not None else None
     clock = WallClock() if realtime else SimClock()
     simulated = interface == "simbus"
-    pacer = RealtimeLoop(Ts) if realtime else None
 
     def control_bus() -> can.BusABC:
         if simulated:
@@ -382,7 +384,7 @@ def run_lockstep(
             startup_cycles = k
             next_monitor = monitor_every
             if pacer is not None:
-                pacer.recording = True  # statistics cover the cycles in operation
+                pacer.begin_recording()  # statistics cover the cycles in operation
             # The run lasts until the interrupt has handled ``cycles`` samples.
             while controller.isr.samplecount < cycles:
                 if stop_requested is not None and stop_requested():
@@ -405,6 +407,8 @@ def run_lockstep(
                     break
                 cycle()
             stop_cycles = k - operation_end
+            if pacer is not None and not interrupted:
+                pacer.measure_floor()  # the bare loop in the same process state
         except KeyboardInterrupt:
             interrupted = True
         finally:
@@ -660,6 +664,22 @@ def register(sub: argparse._SubParsersAction) -> None:
         "of lockstep as fast as possible; reports SYNC jitter, sensor-to-command latency, "
         "interrupt compute time and deadline misses (also under 'realtime' in --json)",
     )
+    p.add_argument(
+        "--spin-us",
+        type=float,
+        default=None,
+        metavar="US",
+        help="--realtime: busy-wait this many µs before each deadline (default: 60 %% of the "
+        "period, within the kernel's RT throttling budget)",
+    )
+    p.add_argument(
+        "--floor-s",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="--realtime: after the run, measure the machine floor (the bare sleep+spin loop, "
+        "no hdhil code) for S seconds (default: none)",
+    )
     p.set_defaults(func=run)
 
 
@@ -722,6 +742,9 @@ def run(args: argparse.Namespace) -> int:
         firmware = merge(scenario.firmware, load_calibration(args.calibration))
         scenario = dataclasses.replace(scenario, firmware=firmware)
     trace = Path(args.trace) if args.trace else None
+    if not args.realtime and (args.spin_us is not None or args.floor_s):
+        raise UserError("--spin-us and --floor-s need --realtime")
+    rt_config = RealtimeConfig(spin_us=args.spin_us, floor_s=args.floor_s)
     try:
         interface = None if args.interface == "config" else args.interface
         with stop_on_signals() as stop:
@@ -738,6 +761,7 @@ def run(args: argparse.Namespace) -> int:
                     stop_requested=stop.is_set,
                     evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,
                     realtime=args.realtime,
+                    realtime_config=rt_config,
                 )
                 if args.json:
                     json.dump({"scenario": scenario.name, "laws": rows}, sys.stdout, indent=2)
@@ -759,6 +783,7 @@ def run(args: argparse.Namespace) -> int:
                 evaluate=args.evaluate,
                 evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,
                 realtime=args.realtime,
+                realtime_config=rt_config,
                 fault_log=args.fault_log,
             )
     except ValueError as exc:
