@@ -219,6 +219,31 @@ def test_refused_privileges_are_reported_and_the_run_goes_on(monkeypatch):
     assert gc.isenabled()
 
 
+@pytest.mark.skipif(not hasattr(os, "SCHED_RESET_ON_FORK"), reason="Linux only")
+def test_threads_started_during_the_loop_do_not_inherit_sched_fifo():
+    """A helper thread (or process) started while the loop runs gets the normal policy:
+    inheriting SCHED_FIFO on the loop's CPU, it could only run while the loop sleeps."""
+    import threading
+
+    loop = RealtimeLoop(1e-3, RealtimeConfig(affinity=False, mlock=False))
+    seen: list[int] = []
+    loop.enter()
+    try:
+        main_policy = os.sched_getscheduler(0)
+        thread = threading.Thread(target=lambda: seen.append(os.sched_getscheduler(0)))
+        thread.start()
+        thread.join()
+    finally:
+        loop.exit()
+    if not any(a.startswith("SCHED_FIFO") for a in loop.applied):
+        assert any(r.startswith("SCHED_FIFO") for r in loop.refused)
+        return  # not permitted here: nothing to inherit
+    assert main_policy & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO
+    assert seen == [os.SCHED_OTHER]
+    assert "reset on fork" in " ".join(loop.applied)
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER
+
+
 def test_switched_off_measures_are_neither_applied_nor_refused():
     cfg = RealtimeConfig(affinity=False, timer_slack=False, fifo=False, mlock=False)
     r = run_lockstep(load_scenario("free-motion"), duration_s=0.05, evaluate=False,

@@ -80,6 +80,10 @@ undone when the loop ends:
 - ``SCHED_FIFO``: :func:`os.sched_setscheduler` with real-time priority 50 (root or
   CAP_SYS_NICE only).  It keeps other processes from preempting the loop and bounds the
   tail on a loaded machine; the kernel's RT throttling still guarantees others a share.
+  With ``SCHED_RESET_ON_FORK``: a thread or process started during the loop (a trace
+  writer, say) runs under the normal policy; inheriting ``SCHED_FIFO`` and the loop's
+  CPU, it could only run while the loop sleeps, and a loop waiting for it would spin
+  forever.
 - ``mlockall``: ``mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT)`` (Linux, via
   :mod:`ctypes`; root, CAP_IPC_LOCK or a large enough ``RLIMIT_MEMLOCK``): pages the
   process touches stay resident, so the loop never waits for a page to come back from
@@ -665,14 +669,17 @@ class RealtimeLoop:
         try:
             policy = os.sched_getscheduler(0)
             param = os.sched_getparam(0)
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(FIFO_PRIORITY))
+            fifo = os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0)
+            os.sched_setscheduler(0, fifo, os.sched_param(FIFO_PRIORITY))
         except OSError as exc:
             self.refused.append(f"SCHED_FIFO: {_why(exc)} (needs root/CAP_SYS_NICE)")
             return
-        note = ""
+        what = f"SCHED_FIFO priority {FIFO_PRIORITY}"
+        if fifo != os.SCHED_FIFO:
+            what += ", reset on fork"
         if self.config.timer_slack and get_timer_slack() == 0:
-            note = " (timer slack 0 for RT tasks)"
-        self.applied.append(f"SCHED_FIFO priority {FIFO_PRIORITY}{note}")
+            what += " (timer slack 0 for RT tasks)"
+        self.applied.append(what)
         self._restore.append(lambda: os.sched_setscheduler(0, policy, param))
 
     def _apply_mlock(self) -> None:
