@@ -105,7 +105,6 @@ import errno
 import gc
 import math
 import os
-import statistics
 import sys
 import time
 from array import array
@@ -796,7 +795,7 @@ class RealtimeLoop:
         self.floor = measure_floor(
             self.period_ns,
             self._spin_ns,
-            round(statistics.median(self.work_us) * 1e3) if self.work_us else 0,
+            round(percentiles(self.work_us)["p50"] * 1e3) if self.work_us else 0,
             duration,
         )
         return self.floor
