@@ -116,7 +116,7 @@ def test_realtime_cli_run_reports_statistics(tmp_path, capsys):
     affinity = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
     slack = realtime.get_timer_slack()
     code = main(["run", "--realtime", "--duration", "0.3", "--no-evaluate", "--json",
-                 "--floor-s", "0.1", "--trace", str(tmp_path / "rt.blf")])  # fmt: skip
+                 "--floor-s", "0.1", "--mlock", "--trace", str(tmp_path / "rt.blf")])  # fmt: skip
     assert code == 0
     result = json.loads(capsys.readouterr().out)
     assert result["cycles"] == 300
@@ -124,6 +124,7 @@ def test_realtime_cli_run_reports_statistics(tmp_path, capsys):
     _check_stats(rt, 300)
     _floor_ok(rt["floor"], 0.1)
     assert rt["floor"]["spin_us"] == rt["pacing"]["spin_us"]
+    assert any(a.startswith("mlockall") for a in rt["applied"] + rt["refused"])
     # Everything the loop changed is undone.
     assert gc.isenabled()
     if affinity is not None:
@@ -178,7 +179,7 @@ def test_bad_realtime_options_are_one_line_errors(argv, fragment, capsys, tmp_pa
     assert not trace.exists()  # refused before anything ran
 
 
-@pytest.mark.parametrize("option", [["--spin-us", "100"], ["--floor-s", "1"]])
+@pytest.mark.parametrize("option", [["--spin-us", "100"], ["--floor-s", "1"], ["--mlock"]])
 def test_realtime_options_need_realtime(option, capsys):
     assert main(["run", "--duration", "0.05", "--trace", "", *option]) == 2
     assert "need --realtime" in capsys.readouterr().err
@@ -208,7 +209,7 @@ def test_refused_privileges_are_reported_and_the_run_goes_on(monkeypatch):
     monkeypatch.setattr(realtime, "set_timer_slack", _refuse(errno.EPERM))
     monkeypatch.setattr(realtime, "lock_memory", _refuse(errno.ENOMEM))
     r = run_lockstep(load_scenario("free-motion"), duration_s=0.1, evaluate=False,
-                     realtime=True)  # fmt: skip
+                     realtime=True, realtime_config=RealtimeConfig(mlock=True))  # fmt: skip
     rt = r.realtime
     _check_stats(rt, 100)
     refused = " | ".join(rt["refused"])

@@ -673,6 +673,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "period, within the kernel's RT throttling budget)",
     )
     p.add_argument(
+        "--mlock",
+        action="store_true",
+        help="--realtime: lock the process's memory (mlockall, where permitted)",
+    )
+    p.add_argument(
         "--floor-s",
         type=float,
         default=0.0,
@@ -742,9 +747,9 @@ def run(args: argparse.Namespace) -> int:
         firmware = merge(scenario.firmware, load_calibration(args.calibration))
         scenario = dataclasses.replace(scenario, firmware=firmware)
     trace = Path(args.trace) if args.trace else None
-    if not args.realtime and (args.spin_us is not None or args.floor_s):
-        raise UserError("--spin-us and --floor-s need --realtime")
-    rt_config = RealtimeConfig(spin_us=args.spin_us, floor_s=args.floor_s)
+    if not args.realtime and (args.spin_us is not None or args.floor_s or args.mlock):
+        raise UserError("--spin-us, --floor-s and --mlock need --realtime")
+    rt_config = RealtimeConfig(spin_us=args.spin_us, floor_s=args.floor_s, mlock=args.mlock)
     try:
         interface = None if args.interface == "config" else args.interface
         with stop_on_signals() as stop:
