@@ -104,12 +104,13 @@ misses in 60 000 cycles):
 - ``mlockall`` (6 runs each): p99.9 76 -> 82 µs, misses 16 -> 10.5, within the spread of
   the runs (this VM has no swap and 22 GB free), hence off by default.
 
-The misses left are stalls of 1-7 ms in which the loop does not run at all; the machine
-floor shows them too, at a similar rate (module section above).  They come in a 100 ms
-rhythm that is not the run's (the heartbeats fall on other cycles).  Not done here:
-a ``PREEMPT_RT`` kernel (this VM's is ``PREEMPT_NONE``), isolated CPUs (``isolcpus``,
-``nohz_full``), interrupts steered away from the loop's CPU (here the block device's go
-to CPU 1): those are the next steps on a dedicated bench PC.
+The misses left are stalls of 1-4 ms in which the loop does not run at all.  The machine
+floor shows them too, less often (medians per 60 s: sleeps woken past the window 17 in
+the run against 9 in the bare loop, misses 7 against 1; README).  Within a run they recur
+at a fixed phase of a 100 ms rhythm that is not the run's own (its heartbeats fall on
+other cycles).  Not done here: a ``PREEMPT_RT`` kernel (this VM's is ``PREEMPT_NONE``),
+isolated CPUs (``isolcpus``, ``nohz_full``), interrupts steered away from the loop's CPU
+(here the block device's go to CPU 1): the next steps on a dedicated bench PC.
 
 Other interfaces
 ----------------
