@@ -591,6 +591,7 @@ class RealtimeLoop:
         objects (for this run only; :meth:`exit` unwraps them)."""
         bus: can.BusABC = controller.bus
         send, recv = bus.send, bus.recv
+        own = {name: vars(bus)[name] for name in ("send", "recv") if name in vars(bus)}
         sync_id, sensor_id, command_id = self.sync_id, self.sensor_id, self.command_id
 
         def timed_send(msg: can.Message, timeout: float | None = None) -> None:
@@ -614,8 +615,11 @@ class RealtimeLoop:
 
         def uninstrument() -> None:
             for name in ("send", "recv"):
-                with contextlib.suppress(AttributeError):
-                    delattr(bus, name)
+                if name in own:  # the bus's own instance attribute, as it was
+                    setattr(bus, name, own[name])
+                else:
+                    with contextlib.suppress(AttributeError):
+                        delattr(bus, name)
             controller.isr = _unwrap_isr(controller.isr)
 
         self._restore.append(uninstrument)
