@@ -20,6 +20,8 @@ import pytest
 
 from firmware.config import FirmwareConfig
 from firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
+from firmware.ripple import HarmonicKalman, RippleKalman
+from firmware.stages import Differentiator, ReferenceGenerator, SensorPlausibility
 from hdhil import realtime
 from hdhil.cli import main
 from hdhil.dataconf import ConfigError, from_dict
@@ -340,7 +342,8 @@ def test_stage_timing_leaves_the_interrupt_unchanged_and_follows_swapped_stages(
     plain = InterruptHandler(cfg)
     bus = can.Bus(interface="virtual", channel="rt-stage-test")
     try:
-        controller = SimpleNamespace(bus=bus, isr=InterruptHandler(cfg))
+        handler = InterruptHandler(cfg)
+        controller = SimpleNamespace(bus=bus, isr=handler)
         loop = RealtimeLoop(cfg.sample_period_s, RealtimeConfig(spin_us=0))
         loop.instrument(controller)
         loop.start()
@@ -348,7 +351,7 @@ def test_stage_timing_leaves_the_interrupt_unchanged_and_follows_swapped_stages(
         samples = _adc_samples(40)
         for k, sample in enumerate(samples):
             if k == 20:  # the controller's _apply_pending swaps a new chain in
-                inner = controller.isr._target
+                inner = controller.isr
                 new_chain = TorqueFilterChain(cfg)
                 new_chain.differentiator = inner.chain.differentiator
                 inner.chain = new_chain
@@ -366,13 +369,18 @@ def test_stage_timing_leaves_the_interrupt_unchanged_and_follows_swapped_stages(
         assert all(v > 0 for v in loop.stage_us["ripple_kalman"][20:])
         for a, *stages in zip(loop.isr_us, *(loop.stage_us[k] for k, _ in STAGES), strict=True):
             assert math.fsum(stages) == pytest.approx(a, abs=1e-6)
+        # timed while the run lasts: subclasses of the stages' own classes
+        assert controller.isr is handler and type(handler) is not InterruptHandler
+        assert isinstance(handler, InterruptHandler)
+        assert type(handler.chain.kalman) not in (HarmonicKalman, RippleKalman)
         loop.exit()
         isr = controller.isr
-        assert type(isr) is InterruptHandler
+        assert isr is handler and type(isr) is InterruptHandler  # its own class again
         assert type(isr.chain) is TorqueFilterChain
-        assert type(isr.chain.kalman).__name__ in ("HarmonicKalman", "RippleKalman")
-        assert type(isr.chain.differentiator).__name__ == "Differentiator"
-        assert type(isr.reference).__name__ == "ReferenceGenerator"
+        assert type(isr.chain.kalman) in (HarmonicKalman, RippleKalman)
+        assert type(isr.chain.differentiator) is Differentiator
+        assert type(isr.chain.plausibility) is SensorPlausibility
+        assert type(isr.reference) is ReferenceGenerator
         assert "send" not in vars(bus) and "recv" not in vars(bus)
     finally:
         bus.shutdown()
