@@ -96,8 +96,8 @@ undone when the loop ends:
 
 Measured, each change against the previous state (60 s free-motion runs without
 logging, as root, on the shared 2-core VM, runs of the compared settings interleaved and
-only while no other real-time task was running; medians; SYNC jitter p99.9 and deadline
-misses in 60 000 cycles):
+only while no other real-time task was running, before the plausibility stage was added;
+medians; SYNC jitter p99.9 and deadline misses in 60 000 cycles):
 
 - spin window 200 µs -> 600 µs (3 runs each): p99.9 391 -> 72 µs, misses 28 -> 4; the
   cycles whose sleep woke later than the window 106 -> 23;
@@ -106,9 +106,10 @@ misses in 60 000 cycles):
 - ``mlockall`` (6 runs each): p99.9 76 -> 82 µs, misses 16 -> 10.5, within the spread of
   the runs (this VM has no swap and 22 GB free), hence off by default.
 
-The misses left are stalls of 1-4 ms in which the loop does not run at all.  The machine
-floor shows them too, less often (medians per 60 s: sleeps woken past the window 17 in
-the run against 9 in the bare loop, misses 7 against 1; README).  Within a run they recur
+The misses left are stalls of 1-5 ms in which the loop does not run at all.  The machine
+floor shows them too (medians per 60 s, README: sleeps woken past the window 30 in the
+run against 25 in the bare loop, misses 20 against 11; the rate follows the machine's
+load, 15 minutes earlier 7 against 1).  Within a run they recur
 at a fixed phase of a 100 ms rhythm that is not the run's own (its heartbeats fall on
 other cycles).  Not done here: a ``PREEMPT_RT`` kernel (this VM's is ``PREEMPT_NONE``),
 isolated CPUs (``isolcpus``, ``nohz_full``), interrupts steered away from the loop's CPU
