@@ -334,7 +334,9 @@ def test_kalman_riccati_residual_and_observer_stability(p, w):
     Ap, _, G, C = observer_model(p)
     P = kalman_riccati(p, w.W, w.V)
     terms = (Ap @ P, P @ Ap.T, P @ C.T @ C @ P / w.W, w.V * G @ G.T)
-    assert _relative_residual(terms, (1, 1, -1, 1)) < 1e-6
+    # V/W spans 1e-1..1e9 here: at the ill-conditioned end the Schur solver's relative
+    # residual reaches ~1e-6 (seen 1.35e-6); a wrong P leaves a residual of order 1.
+    assert _relative_residual(terms, (1, 1, -1, 1)) < 1e-5
     L = design_kalman(p, w.W, w.V)
     assert np.max(np.linalg.eigvals(Ap - np.outer(L, C[0])).real) < 0
     assert L[2] == pytest.approx(math.sqrt(w.V / w.W), rel=1e-6)
