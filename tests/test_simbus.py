@@ -9,7 +9,13 @@ from hypothesis import strategies as st
 
 from hdhil.busload import schedule_load
 from hdhil.canbits import frame_bits
-from hdhil.simbus import _MESSAGE_FIELDS, SimClock, _snapshot, _snapshot_checked, _snapshot_fast
+from hdhil.simbus import (
+    _MESSAGE_FIELDS,
+    SimClock,
+    _snapshot_checked,
+    _snapshot_fast,
+    received_copy,
+)
 
 
 @pytest.fixture
@@ -183,4 +189,4 @@ def test_the_received_copy_equals_a_constructed_message(can_id, extended, remote
 
 def test_the_fast_copy_is_used_only_while_it_covers_every_message_field():
     fields = set(can.Message.__slots__) - {"__weakref__"}
-    assert (_snapshot is _snapshot_fast) == (fields == _MESSAGE_FIELDS)
+    assert (received_copy is _snapshot_fast) == (fields == _MESSAGE_FIELDS)

@@ -765,19 +765,9 @@ class RealtimeLoop:
         self._deadline = deadline
         self._sync_ns = self._sensor_ns = self._command_ns = 0
         self._isr_ran = False
-        target = deadline - self._spin_ns
-        t = _now_ns()
-        self._started_late = t >= deadline
-        if target > t:
-            _sleep((target - t) * 1e-9)
-            wake = _now_ns()
-            self._overshoot_ns = wake - target
-        else:
-            wake = t
-            self._overshoot_ns = -1
+        wake, self._overshoot_ns = sleep_then_spin(deadline, self._spin_ns)
         self._wake_ns = wake
-        while _now_ns() < deadline:
-            pass
+        self._started_late = self._overshoot_ns < 0 and wake >= deadline
 
     def end_cycle(self) -> None:
         """After the cycle's frames are handled: account its work, re-size the spin window
@@ -899,6 +889,23 @@ class RealtimeLoop:
         }
 
 
+def sleep_then_spin(deadline_ns: int, spin_ns: int) -> tuple[int, int]:
+    """Sleep until ``spin_ns`` before the deadline, then spin to it (the pacing of both
+    the run and the machine floor).  Returns when the loop woke (or started, if there
+    was no time to sleep) and how late the sleep woke, -1 if it did not sleep."""
+    target = deadline_ns - spin_ns
+    t = _now_ns()
+    if target > t:
+        _sleep((target - t) * 1e-9)
+        wake = _now_ns()
+        over = wake - target
+    else:
+        wake, over = t, -1
+    while _now_ns() < deadline_ns:
+        pass
+    return wake, over
+
+
 def measure_floor(period_ns: int, spin_ns: int, work_ns: int, duration_s: float) -> dict[str, Any]:
     """Sleep-then-spin pacing with ``work_ns`` of busy-waiting per cycle and nothing else,
     for ``duration_s`` (the caller sets up affinity, priority, collector).  Jitter is the
@@ -912,16 +919,11 @@ def measure_floor(period_ns: int, spin_ns: int, work_ns: int, duration_s: float)
     t0 = now() + period_ns
     for k in range(n):
         deadline = t0 + k * period_ns
-        target = deadline - spin_ns
-        t = now()
-        if target > t:
-            _sleep((target - t) * 1e-9)
-            over = now() - target
+        _, over = sleep_then_spin(deadline, spin_ns)
+        if over >= 0:
             overshoot_us.append(over * 1e-3)
             if over > spin_ns:
                 late_wakeups += 1
-        while now() < deadline:
-            pass
         start = now()
         jitter_us.append((start - deadline) * 1e-3)
         end = start + work_ns

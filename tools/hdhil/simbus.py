@@ -192,7 +192,7 @@ def _request_key(item: _Pending) -> tuple[float, int]:
     return item[2], item[1]
 
 
-#: The fields of a :class:`can.Message`; :func:`_snapshot` fills every one of them.
+#: The fields of a :class:`can.Message`; :func:`received_copy` fills every one of them.
 _MESSAGE_FIELDS = frozenset(
     ("arbitration_id", "bitrate_switch", "channel", "data", "dlc", "error_state_indicator",
      "is_error_frame", "is_extended_id", "is_fd", "is_remote_frame", "is_rx", "timestamp")
@@ -239,7 +239,7 @@ def _snapshot_checked(msg: can.Message, channel: Any) -> can.Message:
 #: The field-by-field copy only while python-can's Message has exactly these fields; a
 #: python-can that adds one gets the constructor (slower, always complete).  The copy is
 #: a received frame (``is_rx``) on ``channel``, timestamp 0 until it is delivered.
-received_copy = _snapshot = (
+received_copy = (
     _snapshot_fast
     if set(getattr(can.Message, "__slots__", ())) - {"__weakref__"} == _MESSAGE_FIELDS
     else _snapshot_checked
@@ -306,7 +306,7 @@ class SimBus(can.BusABC):
         node has received a frame since (it cannot answer a frame before receiving it)."""
         ch = self._ch
         # A private snapshot: callers may reuse their Message object for the next frame.
-        frame = _snapshot(msg, ch.label)
+        frame = received_copy(msg, ch.label)
         with ch.lock:
             now = ch.clock.now
             requested = self._last_rx if self._last_rx > now else now

@@ -251,7 +251,6 @@ class BusTap:
     """
 
     def __init__(self, buses: dict[int, can.BusABC], listeners: Iterable[can.Listener]) -> None:
-        self.buses = buses
         self.listeners = list(listeners)
         self._callbacks = [listener.on_message_received for listener in self.listeners]
         self._receivers = [(channel, bus.recv) for channel, bus in buses.items()]
