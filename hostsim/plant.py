@@ -703,10 +703,8 @@ def continuous_model(cfg: PlantConfig) -> tuple[np.ndarray, np.ndarray]:
     current row is zero and ``i_cmd`` drives the motor directly.
     """
     dt_cfg = cfg.drivetrain
-    amp = cfg.amplifier
     jm, jl = dt_cfg.J_motor, dt_cfg.J_load
     k, c = dt_cfg.k_flex, dt_cfg.c_flex
-    kt_out = dt_cfg.gear_ratio * amp.torque_constant_Nm_per_A  # Nm at the output per A
     a = np.zeros((5, 5))
     b = np.zeros((5, 3))
     # d' = w_m - w_l
@@ -722,12 +720,7 @@ def continuous_model(cfg: PlantConfig) -> tuple[np.ndarray, np.ndarray]:
     a[2, 2] = -(dt_cfg.b_load + c) / jl
     b[2, 2] = 1.0 / jl
     # i' = (i_cmd - i) / tau_i
-    if amp.current_lag_s > 0.0:
-        a[1, 3] = kt_out / jm
-        a[3, 3] = -1.0 / amp.current_lag_s
-        b[3, 0] = 1.0 / amp.current_lag_s
-    else:
-        b[1, 0] = kt_out / jm
+    _current_row(cfg, a, b, row=3)
     # q_l' = w_l
     a[4, 2] = 1.0
     return a, b
@@ -757,9 +750,8 @@ def prescribed_model(cfg: PlantConfig) -> tuple[np.ndarray, np.ndarray]:
     The exosystem makes the zero-order-hold discretisation exact for the sine (and
     trivially for ``hold``, A = 0).  Current row as in :func:`continuous_model`.
     """
-    dt_cfg, amp, link = cfg.drivetrain, cfg.amplifier, cfg.link
+    dt_cfg, link = cfg.drivetrain, cfg.link
     jm, k, c = dt_cfg.J_motor, dt_cfg.k_flex, dt_cfg.c_flex
-    kt_out = dt_cfg.gear_ratio * amp.torque_constant_Nm_per_A
     a_w = link.amplitude_rad * link.omega_radps  # link velocity amplitude
     a = np.zeros((5, 5))
     b = np.zeros((5, 2))
@@ -768,14 +760,24 @@ def prescribed_model(cfg: PlantConfig) -> tuple[np.ndarray, np.ndarray]:
     a[1, 1] = -(dt_cfg.b_motor + c) / jm
     a[1, 4] = c * a_w / jm
     b[1, 1] = 1.0 / jm
-    if amp.current_lag_s > 0.0:
-        a[1, 2] = kt_out / jm
-        a[2, 2] = -1.0 / amp.current_lag_s
-        b[2, 0] = 1.0 / amp.current_lag_s
-    else:
-        b[1, 0] = kt_out / jm
+    _current_row(cfg, a, b, row=2)
     a[3, 4], a[4, 3] = link.omega_radps, -link.omega_radps
     return a, b
+
+
+def _current_row(cfg: PlantConfig, a: np.ndarray, b: np.ndarray, row: int) -> None:
+    """The amplifier in the models above: ``i' = (i_cmd - i) / tau_i`` in state ``row``
+    drives the motor velocity (state 1) with ``N Kt / J_m``; with an ideal amplifier
+    (``current_lag_s == 0``) that row stays zero and ``i_cmd`` (input 0) drives the motor
+    directly."""
+    dt_cfg, amp = cfg.drivetrain, cfg.amplifier
+    kt_out = dt_cfg.gear_ratio * amp.torque_constant_Nm_per_A  # Nm at the output per A
+    if amp.current_lag_s > 0.0:
+        a[1, row] = kt_out / dt_cfg.J_motor
+        a[row, row] = -1.0 / amp.current_lag_s
+        b[row, 0] = 1.0 / amp.current_lag_s
+    else:
+        b[1, 0] = kt_out / dt_cfg.J_motor
 
 
 def _no_lag(cfg: PlantConfig) -> bool:
