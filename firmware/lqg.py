@@ -966,52 +966,40 @@ class LqgController:
         x2 = z2 + self._m2 * r
         self.tau_s_hat, self.tau_s_dot_hat, self.tau_lgd_hat = x0, x1, x2
         if self.delay_samples:
-            u = self._u_prev + d  # torque acting on the motor over [t(k), t(k+1))
-            n0 = self._a00 * z0 + self._a01 * z1 + self._a02 * z2 + self._bu0 * u + self._by0 * y
-            n1 = self._a10 * z0 + self._a11 * z1 + self._a12 * z2 + self._bu1 * u + self._by1 * y
-            n2 = self._a20 * z0 + self._a21 * z1 + self._a22 * z2 + self._bu2 * u + self._by2 * y
-            if self.predict:
-                sd = tau_sD + self._Ts * tau_sD_dot
-                cmd = (
-                    -(
-                        self._k1 * n0
-                        + self._k2 * n1
-                        + self._k3 * n2
-                        + self._ksd * sd
-                        + self._ksdd * tau_sD_dot
-                    )
-                    - d
-                )
-            else:
-                cmd = (
-                    -(
-                        self._k1 * x0
-                        + self._k2 * x1
-                        + self._k3 * x2
-                        + self._ksd * tau_sD
-                        + self._ksdd * tau_sD_dot
-                    )
-                    - d
-                )
+            # torque acting on the motor over [t(k), t(k+1)): the previous command
+            n0, n1, n2 = self._observer_predict(z0, z1, z2, self._u_prev + d, y)
+        if self.predict:  # delay_samples == 1: act on the one-sample prediction
+            s0, s1, s2, sd = n0, n1, n2, tau_sD + self._Ts * tau_sD_dot
+        else:
+            s0, s1, s2, sd = x0, x1, x2, tau_sD
+        cmd = (
+            -(
+                self._k1 * s0
+                + self._k2 * s1
+                + self._k3 * s2
+                + self._ksd * sd
+                + self._ksdd * tau_sD_dot
+            )
+            - d
+        )
+        if self.delay_samples:
             self._u_prev = cmd
         else:
-            cmd = (
-                -(
-                    self._k1 * x0
-                    + self._k2 * x1
-                    + self._k3 * x2
-                    + self._ksd * tau_sD
-                    + self._ksdd * tau_sD_dot
-                )
-                - d
-            )
-            u = cmd + d
-            n0 = self._a00 * z0 + self._a01 * z1 + self._a02 * z2 + self._bu0 * u + self._by0 * y
-            n1 = self._a10 * z0 + self._a11 * z1 + self._a12 * z2 + self._bu1 * u + self._by1 * y
-            n2 = self._a20 * z0 + self._a21 * z1 + self._a22 * z2 + self._bu2 * u + self._by2 * y
+            n0, n1, n2 = self._observer_predict(z0, z1, z2, cmd + d, y)
         self._z0, self._z1, self._z2 = n0, n1, n2
         self._last_cmd = cmd
         return cmd
+
+    def _observer_predict(
+        self, z0: float, z1: float, z2: float, u: float, y: float
+    ) -> tuple[float, float, float]:
+        """Observer time update ``z(k+1) = Ad z(k) + Bd [u; y]`` (seed 003 Eq. 8, discretised
+        as in the module docstring)."""
+        return (
+            self._a00 * z0 + self._a01 * z1 + self._a02 * z2 + self._bu0 * u + self._by0 * y,
+            self._a10 * z0 + self._a11 * z1 + self._a12 * z2 + self._bu1 * u + self._by1 * y,
+            self._a20 * z0 + self._a21 * z1 + self._a22 * z2 + self._bu2 * u + self._by2 * y,
+        )
 
     def set_applied(self, tau_m: float) -> None:
         """Tell the observer the command actually applied (e.g. after saturation).
