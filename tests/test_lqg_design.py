@@ -339,7 +339,7 @@ def test_kalman_riccati_residual_and_observer_stability(p, w):
     assert _relative_residual(terms, (1, 1, -1, 1)) < 1e-5
     L = design_kalman(p, w.W, w.V)
     assert np.max(np.linalg.eigvals(Ap - np.outer(L, C[0])).real) < 0
-    assert L[2] == pytest.approx(math.sqrt(w.V / w.W), rel=1e-6)
+    assert L[2] == pytest.approx(math.sqrt(w.V / w.W), rel=1e-5)  # solver accuracy, as above
 
 
 def test_zoh_kalman_matches_continuous_observer_poles():

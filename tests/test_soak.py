@@ -15,6 +15,7 @@ import io
 import itertools
 import json
 import math
+import mmap
 from pathlib import Path
 from typing import Any
 
@@ -227,11 +228,15 @@ def test_sensor_gain_drift_fails_the_stationarity_verdicts() -> None:
 
 
 def test_memory_growth_verdict_sees_a_leak() -> None:
-    kept: list[bytearray] = []
+    kept: list[mmap.mmap] = []
 
     def leak(controller: ControllerNode, block: Block) -> None:
         if block.index == 1:
-            kept.append(bytearray(b"\x01") * (32 * 2**20))  # 32 MB, every page touched
+            # 32 MB of fresh pages, every one touched: an anonymous mapping, not the heap,
+            # where earlier tests may have left freed memory resident for reuse
+            region = mmap.mmap(-1, 32 * 2**20)
+            region.write(b"\x01" * len(region))
+            kept.append(region)
 
     r = _short(leak, duration_s=6.0, block_s=2.0)
     v = _verdict(r, "memory growth")
