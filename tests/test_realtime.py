@@ -343,7 +343,11 @@ def test_stage_timing_leaves_the_interrupt_unchanged_and_follows_swapped_stages(
     bus = can.Bus(interface="virtual", channel="rt-stage-test")
     try:
         handler = InterruptHandler(cfg)
-        controller = SimpleNamespace(bus=bus, isr=handler)
+
+        def on_message(msg: can.Message) -> None:
+            pass
+
+        controller = SimpleNamespace(bus=bus, isr=handler, on_message=on_message)
         loop = RealtimeLoop(cfg.sample_period_s, RealtimeConfig(spin_us=0))
         loop.instrument(controller)
         loop.start()
@@ -381,7 +385,7 @@ def test_stage_timing_leaves_the_interrupt_unchanged_and_follows_swapped_stages(
         assert type(isr.chain.differentiator) is Differentiator
         assert type(isr.chain.plausibility) is SensorPlausibility
         assert type(isr.reference) is ReferenceGenerator
-        assert "send" not in vars(bus) and "recv" not in vars(bus)
+        assert "send" not in vars(bus) and controller.on_message is on_message
     finally:
         bus.shutdown()
 

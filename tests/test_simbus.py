@@ -131,6 +131,88 @@ def test_zero_bitrate_stamps_with_the_clock():
     b.shutdown()
 
 
+def test_zero_bitrate_delivers_at_once_in_the_order_sent():
+    """Without a wire there is no arbitration: frames arrive as sent (a higher
+    identifier first here), each stamped with the clock's time when it was sent."""
+    clock = SimClock(2.0)
+    a = can.Bus(interface="simbus", channel="t-zero-order", bitrate=0, clock=clock)
+    b = can.Bus(interface="simbus", channel="t-zero-order")
+    try:
+        a.send(_frame(0x300, 2))
+        assert b.pending() == 1  # already delivered
+        clock.now = 2.5
+        a.send(_frame(0x100, 2))
+        got = [b.recv(0), b.recv(0)]
+        assert [(m.arbitration_id, m.timestamp) for m in got] == [(0x300, 2.0), (0x100, 2.5)]
+        assert b.recv(0) is None and a.frames_sent == 2
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
+def _exchange(channel: str, use_dispatch: bool) -> list[tuple[str, int, float]]:
+    """Node a sends three frames; node b answers each of the first two with two frames,
+    the higher identifier sent first.  Returns what b and c received, in order, with
+    timestamps."""
+    clock = SimClock(0.001)
+    a = can.Bus(interface="simbus", channel=channel, clock=clock)
+    b = can.Bus(interface="simbus", channel=channel)
+    c = can.Bus(interface="simbus", channel=channel)
+    seen: list[tuple[str, int, float]] = []
+    try:
+        for can_id in (0x300, 0x301, 0x302):
+            a.send(_frame(can_id, 8))
+
+        def answer(msg: can.Message) -> None:
+            seen.append(("b", msg.arbitration_id, msg.timestamp))
+            if msg.arbitration_id in (0x300, 0x301):
+                b.send(_frame(msg.arbitration_id - 0x100, 4))
+                b.send(_frame(msg.arbitration_id - 0x200, 4))
+
+        if use_dispatch:
+            assert b.dispatch(answer) == 3
+            c.dispatch(lambda m: seen.append(("c", m.arbitration_id, m.timestamp)))
+        else:
+            while (msg := b.recv(0)) is not None:
+                answer(msg)
+            while (msg := c.recv(0)) is not None:
+                seen.append(("c", msg.arbitration_id, msg.timestamp))
+        return seen
+    finally:
+        for bus in (a, b, c):
+            bus.shutdown()
+
+
+def test_dispatch_is_a_recv_loop_without_the_calls():
+    """Same frames, same order, same timestamps, answers arbitrated the same way."""
+    by_recv = _exchange("t-disp-recv", use_dispatch=False)
+    by_dispatch = _exchange("t-disp", use_dispatch=True)
+    assert by_dispatch == by_recv
+    # a's frames were all on the wire when b first polled; each pair of answers
+    # arbitrates (lower identifier first), and the second pair waits for b's next poll
+    assert [i for who, i, _ in by_recv if who == "c"] == [
+        0x300, 0x301, 0x302, 0x100, 0x200, 0x101, 0x201
+    ]  # fmt: skip
+    times = [t for who, _, t in by_recv if who == "c"]
+    assert times == sorted(times) and len(set(times)) == len(times)
+
+
+def test_dispatch_honours_receive_filters():
+    clock = SimClock()
+    a = can.Bus(interface="simbus", channel="t-disp-filter", clock=clock)
+    b = can.Bus(interface="simbus", channel="t-disp-filter",
+                can_filters=[{"can_id": 0x182, "can_mask": 0x7FF}])  # fmt: skip
+    try:
+        a.send(_frame(0x080, 1))
+        a.send(_frame(0x182, 8))
+        got: list[can.Message] = []
+        assert b.dispatch(got.append) == 1
+        assert [m.arbitration_id for m in got] == [0x182]
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
 def test_a_channel_cannot_be_joined_with_another_clock():
     a = can.Bus(interface="simbus", channel="t-clock", clock=SimClock())
     with pytest.raises(ValueError, match="another clock"):

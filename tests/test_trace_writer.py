@@ -11,7 +11,8 @@ from pathlib import Path
 import can
 import pytest
 
-from hdhil.trace import BATCH_FRAMES, WriterProcess, open_writer
+from hdhil.simbus import SimClock
+from hdhil.trace import BATCH_FRAMES, BusTap, FrameCounter, WriterProcess, open_writer
 
 
 def _frames(n: int) -> list[can.Message]:
@@ -53,6 +54,23 @@ def test_the_writer_process_writes_what_python_cans_writer_writes(tmp_path, suff
     assert len(_read(background)) == len(frames)
 
 
+@pytest.mark.parametrize("chunk", [1, 7, BATCH_FRAMES + 3])
+def test_frames_handed_on_in_batches_give_the_same_file(tmp_path, chunk):
+    """``on_frames`` (how the run's tap hands frames on) writes what one-by-one does."""
+    frames = _frames(2 * BATCH_FRAMES + 11)
+    one, batched = tmp_path / "one.blf", tmp_path / "batched.blf"
+    proc = WriterProcess(one)
+    for m in frames:
+        proc.on_message_received(m)
+    proc.stop()
+    proc = WriterProcess(batched)
+    for i in range(0, len(frames), chunk):
+        proc.on_frames(frames[i : i + chunk])
+    proc.stop()
+    assert proc.sent == len(frames)
+    assert _read(batched) == _read(one)
+
+
 def test_an_unwritable_trace_is_refused_before_the_run(tmp_path):
     (tmp_path / "dir.blf").mkdir()
     with pytest.raises(ValueError, match="cannot write trace"):
@@ -92,3 +110,38 @@ def test_the_file_is_closed_and_complete_when_the_run_is_killed(tmp_path):
             break
         time.sleep(0.1)
     assert [f[3] for f in frames] == expected
+
+
+class _Collect(can.Listener):
+    def __init__(self) -> None:
+        self.frames: list[can.Message] = []
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.frames.append(msg)
+
+
+def test_the_tap_merges_channels_in_time_order_for_every_kind_of_listener():
+    """Frames of two channels reach a plain listener one by one and batch listeners
+    (``on_frames``) in one call, the same frames in the same (timestamp) order, stamped
+    with the tap's channel numbers; a bus without ``trace_channel`` gets stamped copies."""
+    clock = SimClock(0.0)
+    control = can.Bus(interface="simbus", channel="t-tap-c", clock=clock, trace_channel=0)
+    truth = can.Bus(interface="simbus", channel="t-tap-t", clock=clock, bitrate=0)
+    tap_c = can.Bus(interface="simbus", channel="t-tap-c")
+    tap_t = can.Bus(interface="simbus", channel="t-tap-t")
+    plain, counter = _Collect(), FrameCounter()
+    tap = BusTap({0: tap_c, 1: tap_t}, [plain, counter])
+    try:
+        for k in range(3):
+            clock.now = k * 1e-3
+            control.send(can.Message(arbitration_id=0x080, data=b"\x01", is_extended_id=False))
+            truth.send(can.Message(arbitration_id=0x1F0001, data=bytes(8), is_extended_id=True))
+        assert tap.poll() == 6 and tap.poll() == 0
+        got = [(m.channel, m.arbitration_id) for m in plain.frames]
+        assert got == [(1, 0x1F0001), (0, 0x080)] * 3  # truth at t(k), SYNC a frame later
+        times = [m.timestamp for m in plain.frames]
+        assert times == sorted(times)
+        assert counter.counts == {(0, 0x080): 3, (1, 0x1F0001): 3}
+    finally:
+        for bus in (control, truth, tap_c, tap_t):
+            bus.shutdown()

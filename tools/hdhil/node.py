@@ -15,6 +15,7 @@ from collections.abc import Callable
 import can
 
 from hdhil.dbc import BusName, FrameCodec, known_frames
+from hdhil.simbus import SimBus
 
 Handler = Callable[[can.Message], None]
 
@@ -28,6 +29,7 @@ class CanNode:
         self.error_frames = 0
         self._known = known_frames(bus_name)
         self._handlers: dict[tuple[int, bool], Handler] = {}
+        self._simbus = isinstance(bus, SimBus)
 
     def handle(self, frame_id: int, handler: Handler, extended: bool = False) -> None:
         """Route frames with this identifier to ``handler``."""
@@ -48,6 +50,8 @@ class CanNode:
 
     def poll(self) -> int:
         """Handle every frame waiting on the bus without blocking; returns how many."""
+        if self._simbus:
+            return self.bus.dispatch(self.on_message)  # type: ignore[attr-defined]
         n = 0
         recv = self.bus.recv
         while (msg := recv(0)) is not None:

@@ -33,8 +33,8 @@ that of the moments they were sent).  So the statistics cover exactly the cycles
 which the interrupt ran.
 
 - **jitter**: when SYNC k was actually handed to the bus minus its deadline;
-- **latency**: from the controller receiving ``DRIVE_TPDO1`` (its bus's ``recv``
-  returning it) to the command ``DRIVE_RPDO1`` being handed to the bus: decode,
+- **latency**: from the controller receiving ``DRIVE_TPDO1`` (the frame handed to its
+  frame handler) to the command ``DRIVE_RPDO1`` being handed to the bus: decode,
   interrupt, encode, send;
 - **interrupt compute**: the interrupt body (:class:`firmware.isr.InterruptHandler` call);
 - **stages** of the interrupt (:data:`STAGES`), contiguous, so that they add up to the
@@ -46,15 +46,15 @@ which the interrupt ran.
   deadline (or never).
 
 Instrumentation, for the run only (the firmware's code is unchanged and runs as before
-outside real-time mode): the controller bus's ``send``/``recv`` are wrapped (instance
-attributes), and the interrupt handler and its stage objects (the filter chain, its
-plausibility stage, differentiator and Kalman filter, the control law or the reference
-generator) get a timed subclass of their own class (:class:`StageTimer`) whose one
-overridden method takes ``perf_counter_ns`` time stamps around the original.  A stage
-object the controller swaps in at run time (new parameters over SDO) is timed from the
-next interrupt on.  Everything is restored at the end.  The time stamps cost about
-2.2 µs per interrupt, counted in its compute time (free-motion, medians of 20 000 calls on
-recorded inputs: 3.1 µs plain, 5.3 µs timed).
+outside real-time mode): the controller bus's ``send`` and the controller's frame
+handler ``on_message`` are wrapped (instance attributes), and the interrupt handler and
+its stage objects (the filter chain, its plausibility stage, differentiator and Kalman
+filter, the control law or the reference generator) get a timed subclass of their own
+class (:class:`StageTimer`) whose one overridden method takes ``perf_counter_ns`` time
+stamps around the original.  A stage object the controller swaps in at run time (new
+parameters over SDO) is timed from the next interrupt on.  Everything is restored at the
+end.  The time stamps cost about 2.2 µs per interrupt, counted in its compute time
+(free-motion, medians of 20 000 calls on recorded inputs: 3.1 µs plain, 5.3 µs timed).
 
 Machine floor
 -------------
@@ -593,11 +593,11 @@ class RealtimeLoop:
     # ------------------------------------------------------------ instrumentation
 
     def instrument(self, controller: Any) -> None:
-        """Wrap the controller's bus send/recv, its interrupt and the interrupt's stage
-        objects (for this run only; :meth:`exit` unwraps them)."""
+        """Wrap the controller's bus send, its frame handler, its interrupt and the
+        interrupt's stage objects (for this run only; :meth:`exit` unwraps them)."""
         bus: can.BusABC = controller.bus
-        send, recv = bus.send, bus.recv
-        own = {name: vars(bus)[name] for name in ("send", "recv") if name in vars(bus)}
+        send, on_message = bus.send, controller.on_message
+        own_send, own_on_message = vars(bus).get("send"), vars(controller).get("on_message")
         sync_id, sensor_id, command_id = self.sync_id, self.sensor_id, self.command_id
 
         def timed_send(msg: can.Message, timeout: float | None = None) -> None:
@@ -609,23 +609,26 @@ class RealtimeLoop:
                 self._sync_ns = t
             send(msg, timeout)
 
-        def timed_recv(timeout: float | None = None) -> can.Message | None:
-            msg = recv(timeout)
-            if msg is not None and msg.arbitration_id == sensor_id:
-                self._sensor_ns = _now_ns()
-            return msg
+        def timed_on_message(msg: can.Message) -> None:
+            if msg.arbitration_id == sensor_id:
+                self._sensor_ns = _now_ns()  # received: handed to the controller
+            on_message(msg)
 
         bus.send = timed_send  # type: ignore[method-assign]
-        bus.recv = timed_recv  # type: ignore[method-assign]
+        controller.on_message = timed_on_message
         self._stages.time(controller.isr, "isr")
 
         def uninstrument() -> None:
-            for name in ("send", "recv"):
-                if name in own:  # the bus's own instance attribute, as it was
-                    setattr(bus, name, own[name])
-                else:
-                    with contextlib.suppress(AttributeError):
-                        delattr(bus, name)
+            if own_send is not None:  # the bus's own instance attribute, as it was
+                bus.send = own_send  # type: ignore[method-assign]
+            else:
+                with contextlib.suppress(AttributeError):
+                    delattr(bus, "send")
+            if own_on_message is not None:
+                controller.on_message = own_on_message
+            else:
+                with contextlib.suppress(AttributeError):
+                    delattr(controller, "on_message")
             self._stages.restore()
 
         self._restore.append(uninstrument)

@@ -44,7 +44,7 @@ from hdhil.evaluate import evaluate as evaluate_recording
 from hdhil.faults import FaultInjector, FaultLog, with_fault_flags
 from hdhil.realtime import RealtimeConfig, RealtimeLoop, WallClock, format_realtime
 from hdhil.score import TorqueScorer, TrackingScorer
-from hdhil.simbus import SimClock
+from hdhil.simbus import SimBus, SimClock
 from hdhil.trace import BusTap, FrameCounter, WriterProcess
 from hostsim.drive import DriveConfig, DriveNode
 from hostsim.plant import Plant
@@ -110,20 +110,38 @@ class SilentPeerError(ConfigError):
     """A node did not answer within the cycle timeout."""
 
 
+def _frames_requested(control: can.BusABC, truth: can.BusABC) -> Callable[[], int]:
+    """Counts the frames requested so far on the two simulated channels."""
+    assert isinstance(control, SimBus) and isinstance(truth, SimBus)
+
+    def requested() -> int:
+        return control.frames_requested + truth.frames_requested
+
+    return requested
+
+
 def _complete_cycle(controller: ControllerNode, drive: DriveNode, tap: BusTap,
-                    simulated: bool) -> None:  # fmt: skip
+                    requested: Callable[[], int] | None) -> None:  # fmt: skip
     """Let the nodes handle the current cycle's frames.
 
-    On the simulated bus delivery is immediate: pump until every queue is empty.  On a
-    real interface frames take time to come back, so wait (briefly sleeping) until the
-    controller has answered this cycle's sensor frame, with a timeout that names the
-    silent node.  During start-up (no sensor frames yet) the wait is short.
+    On the simulated bus delivery is immediate: pump until a round in which nobody sent
+    a frame (``requested()`` counts the frames requested on the simulated channels; after
+    such a round every queue is empty).  On a real interface frames take time to come
+    back, so wait (briefly sleeping) until the controller has answered this cycle's
+    sensor frame, with a timeout that names the silent node.  During start-up (no sensor
+    frames yet) the wait is short.
     """
+    if requested is not None:
+        while True:
+            before = requested()
+            drive.poll()
+            controller.poll()
+            tap.poll()
+            if requested() == before:
+                return
     answered = controller.diagnostics.commands_sent
     while drive.poll() + controller.poll() + tap.poll():
         pass
-    if simulated:
-        return
     operational = controller.phase == "operational"
     deadline = time.monotonic() + (CYCLE_TIMEOUT_S if operational else 0.005)
     while controller.diagnostics.commands_sent <= answered:
@@ -343,6 +361,7 @@ def run_lockstep(
         tap = BusTap(
             {CHANNEL_NUMBER["control"]: tap_control, CHANNEL_NUMBER["truth"]: tap_truth}, listeners
         )
+        requested = _frames_requested(ctrl_bus, drive_truth) if simulated else None
         if pacer is not None:
             pacer.instrument(controller)
             pacer.enter()
@@ -359,7 +378,7 @@ def run_lockstep(
             drive.tick(now)
             controller.tick(now)
             controller.send_sync()  # the controller decides by its phase whether SYNC goes out
-            _complete_cycle(controller, drive, tap, simulated)
+            _complete_cycle(controller, drive, tap, requested)
             if pacer is not None:
                 pacer.end_cycle()
             k += 1

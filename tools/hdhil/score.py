@@ -63,6 +63,7 @@ class TorqueScorer(can.Listener):
         self._truth_key = (truth.frame_id, True)
         self._tele = tele
         self._truth = truth
+        self._keys = frozenset((self._tele_key, self._truth_key))
         self._T_true: float | None = None
         self.n = 0
         self._sum_true2 = 0.0
@@ -103,6 +104,13 @@ class TorqueScorer(can.Listener):
                 self._block_end = self._block_start + (passed + 1) * self.block_s
             self._block_sum += e_filt * e_filt
             self._block_n += 1
+
+    def on_frames(self, frames: list[can.Message]) -> None:
+        """:meth:`on_message_received` for the telemetry and truth frames among ``frames``."""
+        keys = self._keys
+        for msg in frames:
+            if (msg.arbitration_id, msg.is_extended_id) in keys:
+                self.on_message_received(msg)
 
     def _close_block(self) -> None:
         if self._block_n:

@@ -21,8 +21,9 @@ Timing model: frames are serialised on the channel like on a real wire.
   transmission.
 - A frame's duration is its exact bit count at the bit rate (``timing="exact"``,
   default: CRC and the real stuff bits, :mod:`hdhil.canbits`) or its worst case
-  (``timing="worst-case"``, DESIGN.md's budget).  ``bitrate=0`` turns timing off (frames
-  are stamped with the clock's time), used for the ground-truth side channel.
+  (``timing="worst-case"``, DESIGN.md's budget).  ``bitrate=0`` turns timing off: frames
+  are delivered as they are sent, stamped with the clock's time (the ground-truth side
+  channel; with a fault hook they still go through the scheduler).
 - Requested frames are scheduled when a receiver next polls, so all requests made at
   one instant take part in the arbitration.
 
@@ -43,6 +44,7 @@ from __future__ import annotations
 
 import threading
 from collections import deque
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import can
@@ -65,7 +67,8 @@ class SimClock:
 
 class _Channel:
     __slots__ = ("bitrate", "buses", "busy_until", "clock", "faults", "frames", "label",
-                 "latest_request", "lock", "name", "pending", "seq", "timing")  # fmt: skip
+                 "latest_request", "lock", "name", "pending", "receivers", "seq", "timing",
+                 "waiting")  # fmt: skip
 
     def __init__(self, name: str, clock: SimClock, bitrate: int, label: str | int,
                  timing: str) -> None:  # fmt: skip
@@ -76,6 +79,10 @@ class _Channel:
         self.timing = timing if bitrate else "none"
         self.busy_until = 0.0
         self.buses: list[SimBus] = []
+        #: For each sender, the buses its frames are delivered to (see :meth:`attach`).
+        self.receivers: dict[SimBus, tuple[SimBus, ...]] = {}
+        #: Buses blocked in ``recv`` with a timeout (they wait on the channel's lock).
+        self.waiting = 0
         self.frames = 0
         self.lock = threading.Lock()
         # Frames requested but not yet on the wire: (arbitration key, sequence, request
@@ -87,6 +94,29 @@ class _Channel:
         self.latest_request = 0.0
         #: Fault injection hook (:class:`hdhil.faults.ChannelFaults`); None = a clean link.
         self.faults: ChannelFaults | None = None
+
+    def attach(self, bus: SimBus) -> None:
+        self.buses.append(bus)
+        self._route()
+
+    def detach(self, bus: SimBus) -> None:
+        if bus in self.buses:
+            self.buses.remove(bus)
+        self._route()
+
+    def _route(self) -> None:
+        """Every other bus receives a sender's frames; the sender too with
+        ``receive_own_messages``."""
+        self.receivers = {
+            sender: tuple(b for b in self.buses if b is not sender or b._receive_own)
+            for sender in self.buses
+        }
+
+    def notify_waiting(self) -> None:
+        """Wake the buses blocked in ``recv`` (caller holds the lock)."""
+        for bus in self.buses:
+            if bus._waiting:
+                bus._ready.notify()
 
     def bits(self, msg: can.Message) -> int:
         length = 0 if msg.is_remote_frame else len(msg.data)
@@ -106,6 +136,10 @@ class _Channel:
             self._flush_faulty(self.faults)
             return
         pending = self.pending
+        receivers = self.receivers
+        bitrate = self.bitrate
+        timed = self.timing != "none"
+        exact = self.timing == "exact"
         while pending:
             free = self.busy_until
             if len(pending) == 1:  # the common case: nothing to arbitrate
@@ -120,16 +154,21 @@ class _Channel:
             else:
                 start, item = self._next()
             _, _, _, sender, msg = item
-            end = start + (self.bits(msg) / self.bitrate if self.timing != "none" else 0.0)
+            if exact and not msg.is_error_frame:  # the snapshot's data is bytes (hashable)
+                end = start + frame_bits(msg.arbitration_id, msg.is_extended_id,
+                                         msg.is_remote_frame, msg.data) / bitrate  # fmt: skip
+            elif timed:
+                end = start + self.bits(msg) / bitrate
+            else:
+                end = start
             self.busy_until = end
             self.frames += 1
             msg.timestamp = end  # the sender's private snapshot becomes the received frame
-            for bus in self.buses:
-                if bus is not sender or bus._receive_own:
-                    bus._queue.append(msg)
-                    bus._last_rx = end
-                    if bus._waiting:
-                        bus._ready.notify()
+            for bus in receivers[sender]:
+                bus._queue.append(msg)
+                bus._last_rx = end
+        if self.waiting:
+            self.notify_waiting()
 
     def _next(self) -> tuple[float, _Pending]:
         """Take the frame that goes on the wire next, and when it starts: when the wire
@@ -166,14 +205,14 @@ class _Channel:
                 out.append((m.timestamp, n, sender, m))
                 n += 1
         out.sort(key=lambda d: (d[0], d[1]))
+        receivers = self.receivers
         for t, _, sender, msg in out:
-            for bus in self.buses:
-                if bus is not sender or bus._receive_own:
-                    bus._queue.append(msg)
-                    if t > bus._last_rx:
-                        bus._last_rx = t
-                    if bus._waiting:
-                        bus._ready.notify()
+            for bus in receivers[sender]:
+                bus._queue.append(msg)
+                if t > bus._last_rx:
+                    bus._last_rx = t
+        if self.waiting:
+            self.notify_waiting()
 
 
 _Pending = tuple[int, int, float, "SimBus", can.Message]
@@ -282,19 +321,30 @@ class SimBus(can.BusABC):
                 if ch.faults is not None and ch.faults is not faults:
                     raise ValueError(f"simbus channel {name!r} already has other faults")
                 ch.faults = faults
-            ch.buses.append(self)
-        self._ch = ch
-        self._queue: deque[can.Message] = deque()
-        self._ready = threading.Condition(ch.lock)
-        self._receive_own = receive_own_messages
-        self._waiting = False
-        self._last_rx = 0.0
+            self._ch = ch
+            self._queue: deque[can.Message] = deque()
+            self._ready = threading.Condition(ch.lock)
+            self._receive_own = receive_own_messages
+            self._waiting = False
+            self._last_rx = 0.0
+            with ch.lock:  # a frame in flight is routed to the old set or the new one
+                ch.attach(self)
         self.channel_info = f"simbus channel {name!r} at {ch.bitrate} bit/s"
         super().__init__(channel=name, **kwargs)
 
     @property
     def clock(self) -> SimClock:
         return self._ch.clock
+
+    @property
+    def trace_channel(self) -> str | int:
+        """The channel received frames carry (``msg.channel``)."""
+        return self._ch.label
+
+    @property
+    def frames_requested(self) -> int:
+        """Frames requested (``send``) on the whole channel since it was created."""
+        return self._ch.seq
 
     @property
     def frames_sent(self) -> int:
@@ -310,14 +360,28 @@ class SimBus(can.BusABC):
         with ch.lock:
             now = ch.clock.now
             requested = self._last_rx if self._last_rx > now else now
-            ch.seq += 1
+            seq = ch.seq = ch.seq + 1
+            if ch.timing == "none" and ch.faults is None:
+                # No wire to share: delivered at once, in the order sent.
+                end = requested if requested > ch.busy_until else ch.busy_until
+                ch.busy_until = frame.timestamp = end
+                ch.frames += 1
+                for bus in ch.receivers[self]:
+                    bus._queue.append(frame)
+                    bus._last_rx = end
+                if ch.waiting:
+                    ch.notify_waiting()
+                return
             if requested > ch.latest_request:
                 ch.latest_request = requested
-            key = arbitration_key(frame.arbitration_id, frame.is_extended_id)
-            ch.pending.append((key, ch.seq, requested, self, frame))
-            for bus in ch.buses:
-                if bus._waiting:
-                    bus._ready.notify()
+            key = (
+                arbitration_key(frame.arbitration_id, True)
+                if frame.is_extended_id
+                else frame.arbitration_id << 19  # arbitration_key of a base frame
+            )
+            ch.pending.append((key, seq, requested, self, frame))
+            if ch.waiting:
+                ch.notify_waiting()
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         """Next received frame; without receive filters this skips python-can's generic
@@ -332,6 +396,29 @@ class SimBus(can.BusABC):
             return None
         return super().recv(timeout)
 
+    def dispatch(self, handler: Callable[[can.Message], object]) -> int:
+        """Hand every frame waiting for this bus (and passing its receive filters) to
+        ``handler``, in order; returns how many.
+
+        What calling ``recv(0)`` until the queue is empty and handling each frame does
+        (frames requested meanwhile go on the wire before the next one is taken, so a
+        handler's answers arbitrate as they would), without a method call per frame.
+        """
+        ch = self._ch
+        queue = self._queue
+        matches = None if self._filters is None else self._matches_filters
+        n = 0
+        while True:
+            if ch.pending:
+                with ch.lock:
+                    ch.flush()
+            if not queue:
+                return n
+            msg = queue.popleft()
+            if matches is None or matches(msg):
+                handler(msg)
+                n += 1
+
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         queue = self._queue
         if queue:
@@ -341,6 +428,7 @@ class SimBus(can.BusABC):
         ch = self._ch
         with self._ready:
             self._waiting = True
+            ch.waiting += 1
             try:
 
                 def arrived() -> bool:
@@ -351,6 +439,7 @@ class SimBus(can.BusABC):
                 self._ready.wait_for(arrived, timeout)
             finally:
                 self._waiting = False
+                ch.waiting -= 1
             return (queue.popleft() if queue else None), False
 
     def pending(self) -> int:
@@ -362,8 +451,8 @@ class SimBus(can.BusABC):
     def shutdown(self) -> None:
         with _channels_lock:
             ch = self._ch
-            if self in ch.buses:
-                ch.buses.remove(self)
+            with ch.lock:
+                ch.detach(self)
             if not ch.buses and _channels.get(ch.name) is ch:
                 del _channels[ch.name]
         super().shutdown()

@@ -22,13 +22,13 @@ import operator
 import signal
 import struct
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
 import can
 
-from hdhil.simbus import received_copy
+from hdhil.simbus import SimBus, received_copy
 
 SUPPORTED_SUFFIXES = (".blf", ".asc", ".log", ".csv", ".trc")
 
@@ -183,6 +183,24 @@ class WriterProcess(can.Listener):
         ):
             self._send()
 
+    def on_frames(self, frames: list[can.Message]) -> None:
+        """:meth:`on_message_received` for each frame, in one call."""
+        if not self._batched:
+            self._batch_started = time.monotonic()
+        batch = self._batch  # appended in place
+        for msg in frames:
+            data = msg.data
+            batch += _pack(msg.timestamp, msg.arbitration_id,
+                           msg.is_extended_id | msg.is_remote_frame << 1
+                           | msg.is_error_frame << 2 | msg.is_rx << 3,
+                           msg.dlc, msg.channel, len(data), data)  # fmt: skip
+        self._batched += len(frames)
+        if (
+            self._batched >= BATCH_FRAMES
+            or time.monotonic() - self._batch_started > BATCH_MAX_AGE_S
+        ):
+            self._send()
+
     def _send(self) -> None:
         if not self._batched:
             return
@@ -226,12 +244,50 @@ class FrameCounter(can.Listener):
         key = (msg.channel, msg.arbitration_id)
         self.counts[key] = self.counts.get(key, 0) + 1
 
+    def on_frames(self, frames: list[can.Message]) -> None:
+        counts = self.counts
+        get = counts.get
+        for msg in frames:
+            key = (msg.channel, msg.arbitration_id)
+            counts[key] = get(key, 0) + 1
+
     @property
     def total(self) -> int:
         return sum(self.counts.values())
 
 
 _timestamp = operator.attrgetter("timestamp")
+
+
+def _frames_callback(listener: can.Listener) -> Callable[[list[can.Message]], object]:
+    """``listener.on_frames``, or a loop over ``on_message_received``."""
+    on_frames = getattr(listener, "on_frames", None)
+    if on_frames is not None:
+        return on_frames
+    callback = listener.on_message_received
+
+    def one_by_one(frames: list[can.Message]) -> None:
+        for msg in frames:
+            callback(msg)
+
+    return one_by_one
+
+
+def _drain(channel: int, bus: can.BusABC) -> Callable[[Callable[[can.Message], object]], int]:
+    """A function handing every frame waiting on ``bus`` to its argument, stamped with
+    ``channel``; it returns how many."""
+    if isinstance(bus, SimBus) and bus.trace_channel == channel:
+        return bus.dispatch  # frames already carry the channel number
+    recv = bus.recv
+
+    def drain(append: Callable[[can.Message], object]) -> int:
+        n = 0
+        while (msg := recv(0)) is not None:
+            append(msg if msg.channel == channel else _stamped(msg, channel))
+            n += 1
+        return n
+
+    return drain
 
 
 def _stamped(msg: can.Message, channel: int) -> can.Message:
@@ -248,12 +304,16 @@ class BusTap:
     the received frame itself when it already carries that channel number (``simbus`` with
     ``trace_channel``), else a fresh :class:`can.Message` carrying it (received frames are
     shared between receivers and are never modified).
+
+    A listener with an ``on_frames(frames)`` method gets each poll's frames in one call
+    (:class:`WriterProcess`, :class:`FrameCounter`, the scorers); any other
+    :class:`can.Listener` gets them one by one through ``on_message_received``.
     """
 
     def __init__(self, buses: dict[int, can.BusABC], listeners: Iterable[can.Listener]) -> None:
         self.listeners = list(listeners)
-        self._callbacks = [listener.on_message_received for listener in self.listeners]
-        self._receivers = [(channel, bus.recv) for channel, bus in buses.items()]
+        self._deliver = [_frames_callback(listener) for listener in self.listeners]
+        self._drains = [_drain(channel, bus) for channel, bus in buses.items()]
 
     def poll(self) -> int:
         """Hand on every waiting frame, all channels merged in timestamp order.
@@ -265,19 +325,14 @@ class BusTap:
         batch: list[can.Message] = []
         append = batch.append
         channels = 0
-        for channel, recv in self._receivers:
-            n = len(batch)
-            while (msg := recv(0)) is not None:
-                append(msg if msg.channel == channel else _stamped(msg, channel))
-            channels += len(batch) > n
+        for drain in self._drains:
+            channels += drain(append) > 0
         if not batch:
             return 0
         if channels > 1:
             batch.sort(key=_timestamp)
-        callbacks = self._callbacks
-        for msg in batch:
-            for callback in callbacks:
-                callback(msg)
+        for deliver in self._deliver:
+            deliver(batch)
         return len(batch)
 
     def stop(self) -> None:
