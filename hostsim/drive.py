@@ -364,7 +364,7 @@ class DriveNode(CanNode):
         self._dac = plant.cfg.dac
         self._adc = plant.cfg.adc
         self._max_torque = plant.cfg.max_motor_torque_Nm
-        self._current_limit_Nm = self._max_torque * (1 - 1e-12)  # "at the limit" from here
+        self._current_limit_Nm = self._max_torque * (1 - 1e-12)  # at the limit from here on
         self._now = 0.0
 
         # Command path: latched by DRIVE_RPDO1, active from the activation point.
