@@ -230,6 +230,11 @@ class Phase(str, enum.Enum):
 _COMMANDING = frozenset({Phase.STARTING, Phase.OPERATIONAL, Phase.STOPPING})
 #: Final phases: no SYNC, no PDO; only a restart leaves them.
 _FINAL = frozenset({Phase.STOPPED, Phase.SAFE})
+# The phases the per-cycle code tests for, as module globals: an attribute of an Enum class
+# (``Phase.OPERATIONAL``) is looked up through ``EnumType.__getattr__``'s slow path in
+# Python 3.11, several times slower than a global.
+_WAIT_BOOT = Phase.WAIT_BOOT
+_OPERATIONAL = Phase.OPERATIONAL
 
 
 class PhaseChange(NamedTuple):
@@ -613,7 +618,7 @@ class ControllerNode(CanNode):
         self._now = now
         self.services.tick(now)
         self._apply_pending()
-        if self._phase is Phase.WAIT_BOOT and self.services.state is not NmtState.INITIALISING:
+        if self._phase is _WAIT_BOOT and self.services.state is not NmtState.INITIALISING:
             drive = self.drive_node_id
             if self.services.boot_seen(drive) or self.services.remote_state(drive) is not None:
                 self._start_drive()
@@ -639,7 +644,7 @@ class ControllerNode(CanNode):
         """
         self._apply_pending()
         phase = self._phase
-        if phase is Phase.OPERATIONAL:
+        if phase is _OPERATIONAL:
             if not self._sensor_hold_ok():
                 return False
         elif phase is Phase.STARTING or phase is Phase.STOPPING:
@@ -681,11 +686,11 @@ class ControllerNode(CanNode):
             return
         self._sensor_seen = True
         self.diagnostics.sensor_frames += 1
-        if phase is not Phase.OPERATIONAL:
+        if phase is not _OPERATIONAL:
             self._send_command(self.isr.shutdown_dac_counts, self._controlword)
             return
         torque, tacho, current, encoder = self._sensor.decode(msg.data)
-        out = self.isr(AdcSample(torque=torque, tacho=tacho, current=current, encoder=encoder))
+        out = self.isr(AdcSample(torque, tacho, current, encoder))
         self._send_command(out.dac_counts, CONTROLWORD_ENABLE_OPERATION)
         if self.control_pdo_valid:
             self._telemetry_msg.data = self._telemetry.encode(

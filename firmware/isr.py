@@ -97,7 +97,7 @@ __all__ = [
 SENSOR_TORQUE_SIGN = -1.0
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class AdcSample:
     """Raw counts from the drive's sensor frame (listing ``DT1401Read`` channels
     CH6 torque bridge, CH4 tachometer, CH5 motor current monitor, and the quadrature

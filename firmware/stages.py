@@ -467,6 +467,20 @@ def filtered_torque(T_meas: float, ripple_predicted: float) -> float:
     return T_meas - ripple_predicted
 
 
+# The waves ReferenceGenerator.value tells apart, as module globals: an attribute of an
+# Enum class (``Wave.SINE``) is looked up through ``EnumType.__getattr__``'s slow path in
+# Python 3.11, several times slower than a global (the LQG stage evaluates its desired
+# torque wave three times per sample).
+_NONE, _STEP, _SINE, _CHIRP, _SQUARE, _TRIANGLE = (
+    Wave.NONE,
+    Wave.STEP,
+    Wave.SINE,
+    Wave.CHIRP,
+    Wave.SQUARE,
+    Wave.TRIANGLE,
+)
+
+
 class ReferenceGenerator:
     """The reference voltage for the servo amplifier at sample k (t = k·Ts).
 
@@ -540,21 +554,21 @@ class ReferenceGenerator:
         """Reference voltage at sample ``k`` (t = k·Ts)."""
         wave = self._wave
         b = self._bias
-        if wave is Wave.NONE:
+        if wave is _NONE:
             return b
         A = self._amplitude
-        if wave is Wave.STEP:
+        if wave is _STEP:
             return b if k < self._k_step else b + A
-        if wave is Wave.SINE:
+        if wave is _SINE:
             return b + A * math.sin(2.0 * math.pi * k * self._f_ts)
-        if wave is Wave.CHIRP:
+        if wave is _CHIRP:
             f0, half_rate, period = self._chirp
             t = math.fmod(k * self.sample_period_s, period)
             return b + A * math.sin(2.0 * math.pi * t * (f0 + half_rate * t))
         p = self.phase(k)
-        if wave is Wave.SQUARE:
+        if wave is _SQUARE:
             return b + A if p < self._duty else b - A
-        if wave is Wave.TRIANGLE:
+        if wave is _TRIANGLE:
             if p < 0.25:
                 tri = 4.0 * p
             elif p < 0.75:

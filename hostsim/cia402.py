@@ -92,13 +92,11 @@ class State(Enum):
     FAULT_REACTION_ACTIVE = (0x4F, 0x0F)
     FAULT = (0x4F, 0x08)
 
-    @property
-    def mask(self) -> int:
-        return self.value[0]
-
-    @property
-    def pattern(self) -> int:
-        return self.value[1]
+    def __init__(self, mask: int, pattern: int) -> None:
+        # Plain attributes, not properties over ``value``: the statusword is built from
+        # ``pattern`` several times per cycle.
+        self.mask = mask
+        self.pattern = pattern
 
 
 class Command(Enum):
@@ -211,6 +209,13 @@ _NEXT: dict[State, dict[Command, State]] = {
     State.QUICK_STOP_ACTIVE: {Command.DISABLE_VOLTAGE: State.SWITCH_ON_DISABLED},
 }
 
+# The states the per-cycle code tests for, as module globals: an attribute of an Enum
+# class (``State.FAULT``) is looked up through ``EnumType.__getattr__``'s slow path in
+# Python 3.11, several times slower than a global.
+_OPERATION_ENABLED = State.OPERATION_ENABLED
+_QUICK_STOP_ACTIVE = State.QUICK_STOP_ACTIVE
+_FAULT_REACTION_ACTIVE = State.FAULT_REACTION_ACTIVE
+
 
 def decode_controlword(controlword: int) -> Command | None:
     """The command a controlword codes, ignoring the fault-reset edge (needs history).
@@ -300,6 +305,9 @@ class DriveStateMachine:
         self._ramp_left_s = 0.0  # remaining quick-stop / fault-reaction ramp
         self._ramp_total_s = 0.0
         self._held_torque = 0.0
+        # The last (controlword, state) that took no transition (see apply_controlword).
+        self._idle_controlword: int | None = None
+        self._idle_state: State | None = None
         self.state = State.NOT_READY_TO_SWITCH_ON
         self._record(Transition(0, None, self.state, "power on"))
 
@@ -329,15 +337,23 @@ class DriveStateMachine:
                 return ()
             self.error_code = 0
             return (self._go(State.SWITCH_ON_DISABLED, "fault reset"),)
+        state = self.state
+        if controlword == self._idle_controlword and state is self._idle_state:
+            # This word took no transition in this state before, and without bit 7 the
+            # outcome depends on the word and the state alone (the cyclic command
+            # repeats its controlword every cycle).
+            return ()
         command = decode_controlword(controlword)
         assert command is not None
-        state = self.state
         if state is State.QUICK_STOP_ACTIVE and command is Command.ENABLE_OPERATION:
+            # Depends on the quick stop option code as well: never remembered as idle.
             if self.quick_stop_option >= 5:
                 return (self._go(State.OPERATION_ENABLED, command.value),)
             return ()
         target = _NEXT.get(state, {}).get(command)
         if target is None:
+            self._idle_controlword = controlword
+            self._idle_state = state
             return ()
         if target is State.QUICK_STOP_ACTIVE:
             return self._start_quick_stop()
@@ -398,7 +414,7 @@ class DriveStateMachine:
     @property
     def follows_command(self) -> bool:
         """OPERATION ENABLED in mode CST (statusword bit 12 in cyclic synchronous modes)."""
-        return self.state is State.OPERATION_ENABLED and self.modes_of_operation_display == CST
+        return self.state is _OPERATION_ENABLED and self.modes_of_operation_display == CST
 
     @property
     def halt(self) -> bool:
@@ -416,11 +432,11 @@ class DriveStateMachine:
 
     def torque_output(self, target: float) -> float:
         """The torque demand to apply for this target (see the module docstring)."""
-        if self.follows_command:
-            self._held_torque = target
-            return target
-        if self.state is State.OPERATION_ENABLED:  # mode "no mode": ignore the target
-            self._held_torque = 0.0
+        if self.state is _OPERATION_ENABLED:
+            if self.modes_of_operation_display == CST:  # follows_command
+                self._held_torque = target
+                return target
+            self._held_torque = 0.0  # mode "no mode": ignore the target
             return 0.0
         return self._held_torque * self.torque_factor
 
@@ -429,7 +445,7 @@ class DriveStateMachine:
         """Object 0x6041 for the present state and flags."""
         state = self.state
         word = state.pattern
-        if state is not State.QUICK_STOP_ACTIVE:
+        if state is not _QUICK_STOP_ACTIVE:
             word |= SW_QUICK_STOP
         if self.voltage_present:
             word |= SW_VOLTAGE_ENABLED
@@ -437,21 +453,21 @@ class DriveStateMachine:
             word |= SW_WARNING
         if self.remote:
             word |= SW_REMOTE
-        if self.target_reached or (state is State.QUICK_STOP_ACTIVE and not self._ramping):
+        if self.target_reached or (state is _QUICK_STOP_ACTIVE and not self._ramping):
             word |= SW_TARGET_REACHED
         if self.internal_limit_active:
             word |= SW_INTERNAL_LIMIT
-        if self.follows_command:
-            word |= SW_DRIVE_FOLLOWS_COMMAND
+        if state is _OPERATION_ENABLED and self.modes_of_operation_display == CST:
+            word |= SW_DRIVE_FOLLOWS_COMMAND  # follows_command
         return word
 
     # ---------------------------------------------------------------- internals
 
     @property
     def _ramping(self) -> bool:
-        return (
-            self.state in (State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE)
-            and self._ramp_left_s > 0
+        state = self.state
+        return (state is _QUICK_STOP_ACTIVE or state is _FAULT_REACTION_ACTIVE) and (
+            self._ramp_left_s > 0
         )
 
     def _present_demand(self) -> float:

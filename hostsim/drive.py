@@ -226,6 +226,14 @@ MASK_CHANNELS = ("torque", "tacho", "current", "encoder")
 #: 0x7300 manufacturer byte 0.
 ADC_CHANNELS = (1, 2, 3)
 
+# What the per-cycle code tests for, as module globals: an attribute of an Enum class
+# (``NmtState.OPERATIONAL``) is looked up through ``EnumType.__getattr__``'s slow path in
+# Python 3.11, several times slower than a global.
+_INITIALISING = NmtState.INITIALISING
+_OPERATIONAL = NmtState.OPERATIONAL
+_OPERATION_ENABLED = State.OPERATION_ENABLED
+_RPDO_TIMEOUT = EmcyCode.RPDO_TIMEOUT
+
 
 def _check_int(obj: object, name: str, lo: int, hi: int) -> None:
     value = getattr(obj, name)
@@ -356,6 +364,7 @@ class DriveNode(CanNode):
         self._dac = plant.cfg.dac
         self._adc = plant.cfg.adc
         self._max_torque = plant.cfg.max_motor_torque_Nm
+        self._current_limit_Nm = self._max_torque * (1 - 1e-12)  # at the limit from here on
         self._now = 0.0
 
         # Command path: latched by DRIVE_RPDO1, active from the activation point.
@@ -533,9 +542,9 @@ class DriveNode(CanNode):
         else:
             self._plant_started = True
         sample = self._sample = plant.sample()
-        if self.services.state is not NmtState.INITIALISING:
+        if self.services.state is not _INITIALISING:
             self._check_sensors(sample)
-        if self.services.state is NmtState.OPERATIONAL:
+        if self.services.state is _OPERATIONAL:
             self._sensor_msg.data = self._sensor.encode(*sample)
             self.bus.send(self._sensor_msg)
             d.sensor_frames += 1
@@ -555,7 +564,7 @@ class DriveNode(CanNode):
         had_command = self._command_in_cycle
         self._command_in_cycle = False
         limit = self.config.command_hold_cycles
-        if had_command or not limit or self._machine.state is not State.OPERATION_ENABLED:
+        if had_command or not limit or self._machine.state is not _OPERATION_ENABLED:
             self._silent_cycles = 0
             return
         self._silent_cycles += 1
@@ -568,17 +577,18 @@ class DriveNode(CanNode):
     def _check_sensors(self, sample: tuple[int, int, int, int]) -> None:
         """EMCY 0x7300 per saturated ADC channel, 0x2310 at the current limit (edges)."""
         saturated = self._adc.saturated
+        active = self._saturated
         for channel, counts in zip(ADC_CHANNELS, sample, strict=False):
             if saturated(counts):
-                if channel not in self._saturated:
-                    self._saturated.add(channel)
+                if channel not in active:
+                    active.add(channel)
                     self.diagnostics.adc_saturations += 1
                     self._emcy(EmcyCode.SENSOR, bytes((channel,)))
-            elif channel in self._saturated:
-                self._saturated.discard(channel)
+            elif channel in active:
+                active.discard(channel)
                 self.services.emcy_clear(EmcyCode.SENSOR, bytes((channel,)))
-        self._machine.warning = bool(self._saturated)
-        at_limit = abs(self.plant.motor_torque_command_output) >= self._max_torque * (1 - 1e-12)
+        self._machine.warning = bool(active)
+        at_limit = abs(self.plant.motor_torque_command_output) >= self._current_limit_Nm
         if at_limit != self._at_current_limit:
             self._at_current_limit = at_limit
             self._machine.internal_limit_active = at_limit
@@ -592,7 +602,7 @@ class DriveNode(CanNode):
 
     def _on_command(self, msg: can.Message) -> None:
         d = self.diagnostics
-        if self.services.state is not NmtState.OPERATIONAL:
+        if self.services.state is not _OPERATIONAL:
             d.pdos_ignored += 1
             return
         if msg.is_remote_frame or len(msg.data) != self._command.length:
@@ -604,8 +614,8 @@ class DriveNode(CanNode):
             d.late_commands += 1
         self._command_in_cycle = True
         self._silent_cycles = 0
-        if self.services.error_active(EmcyCode.RPDO_TIMEOUT):
-            self.services.emcy_clear(EmcyCode.RPDO_TIMEOUT)
+        if self.services.error_active(_RPDO_TIMEOUT):
+            self.services.emcy_clear(_RPDO_TIMEOUT)
         self._latched_V = self._dac.to_volts(dac_counts)
         if self._next_sync:
             self._pending_cw = int(controlword)
@@ -620,7 +630,7 @@ class DriveNode(CanNode):
     def _flush_statusword(self) -> None:
         """Send DRIVE_TPDO2 if the statusword changed (or is due after entering OPERATIONAL)
         and the inhibit time since the last one has passed (CiA 301 §7.2.2.5)."""
-        if self.services.state is not NmtState.OPERATIONAL:
+        if self.services.state is not _OPERATIONAL:
             return
         word = self._machine.statusword
         if word == self._statusword_sent and not self._statusword_force:

@@ -865,7 +865,8 @@ class Plant:
         self.bridge = StrainGaugeBridge(cfg.bridge)
         self._volt2Nm = cfg.bridge.volt2Nm
         self._hysteresis = GaugeHysteresis(cfg.bridge.hysteresis_Nm, cfg.bridge.hysteresis_span_Nm)
-        self._parts = RippleParts(0.0, 0.0, 0.0, 0.0, 0.0)
+        self._parts = (0.0, 0.0, 0.0, 0.0, 0.0)  # RippleParts, built when asked for
+        self._T_true = 0.0
         self._T_ripple = 0.0
         self._update_sensor()
         self._rng = np.random.Generator(np.random.PCG64(seed))
@@ -964,7 +965,7 @@ class Plant:
             ld, lm, ll, li, lu, ltm, ltl,
             qd, qm, ql, qi, qu, qtm, qtl,
             ii, iu,
-        ) = self._map(dt)  # fmt: skip
+        ) = self._maps.get(dt) or self._map(dt)  # fmt: skip
         # coefficient <row><column>: rows d (twist), m (w_m), l (w_l), q (q_l), i (current);
         # columns d, m, l, i (state), u (i_cmd), tm / tl (motor / load non-linear torque)
         i_cmd = self._command_current(volts)
@@ -1071,12 +1072,13 @@ class Plant:
             4.0 * th_m + r.phase4_rad
         )
         mis = 0.5 * r.misalignment_pp_Nm * math.sin(q_l + r.misalignment_phase_rad)
-        torsion = self.T_true + mesh + mis
+        T_true = self._T_true = self.T_true  # for the next sample(s) at this state
+        torsion = T_true + mesh + mis
         hyst = self._hysteresis.update(torsion)
         bridge = self.bridge
         nl = bridge.nonlinearity_Nm(torsion)
         mod = bridge.modulation_V(th_m + q_l) * self._volt2Nm
-        self._parts = RippleParts(mesh, mis, mod, nl, hyst)
+        self._parts = (mesh, mis, mod, nl, hyst)
         self._T_ripple = mesh + mis + mod + nl + hyst
 
     # ------------------------------------------------------------------ sensors
@@ -1103,14 +1105,16 @@ class Plant:
         self._noise_pos = pos + 3
         s = self.cfg.sensors
         to_counts = self.cfg.adc.to_counts
+        # T_true as _update_sensor found it: the state has not moved since.
         torque_V = (
-            (self.T_true + self._T_ripple) / self._volt2Nm
+            (self._T_true + self._T_ripple) / self._volt2Nm
             + s.torque_offset_V
             + self._sig_torque_V * n_torque
         )
         tacho_V = self._n * self._wm / s.volt2radps + self._sig_tacho_V * n_tacho
         current_V = self._i / s.current_monitor_A_per_V + self._sig_current_V * n_current
-        enc = math.floor(self.theta_motor_unwrapped * self._cpr_per_rad) % ENCODER_MODULUS
+        theta_motor_unwrapped = self._n * (self._ql + self._d)
+        enc = math.floor(theta_motor_unwrapped * self._cpr_per_rad) % ENCODER_MODULUS
         counts = to_counts(torque_V), to_counts(tacho_V), to_counts(current_V), enc
         if self.faults is not None:
             adc = self.cfg.adc
@@ -1161,7 +1165,7 @@ class Plant:
     def ripple_parts(self) -> RippleParts:
         """:attr:`T_ripple` by origin: mesh, misalignment, bridge modulation, gauge
         nonlinearity and hysteresis (Nm; they sum to ``T_ripple``)."""
-        return self._parts
+        return RippleParts(*self._parts)
 
     @property
     def torque_V_clean(self) -> float:
@@ -1192,7 +1196,7 @@ class Plant:
     @property
     def theta_motor(self) -> float:
         """Motor (wave generator) angle in rad, wrapped to [0, 2 pi)."""
-        return self.theta_motor_unwrapped % TWO_PI
+        return self._n * (self._ql + self._d) % TWO_PI  # theta_motor_unwrapped, wrapped
 
     @property
     def omega_motor(self) -> float:

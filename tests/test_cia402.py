@@ -379,3 +379,68 @@ def test_random_controlword_sequences_keep_the_invariants(words, option):
             assert drive.history[-len(taken)].old is before
         else:
             assert drive.state is before
+
+
+#: Controlwords (0x8F: fault reset with the enable bits) and other inputs of the machine.
+CONTROLWORDS_AND_EVENTS = (
+    *(SHUTDOWN, SWITCH_ON, ENABLE, DISABLE_VOLTAGE, QUICK_STOP, 0x80, 0x8F),
+    *("fault", "persisting fault", "clear", "step", "option 2", "option 6"),
+)
+
+
+def test_a_repeated_enable_in_quick_stop_follows_a_new_quick_stop_option():
+    drive = drive_in(State.OPERATION_ENABLED, quick_stop_option=2, quick_stop_time_s=0.01)
+    assert drive.apply_controlword(QUICK_STOP) == (11,)
+    assert drive.apply_controlword(ENABLE) == ()
+    assert drive.apply_controlword(ENABLE) == ()
+    drive.quick_stop_option = 6
+    assert drive.apply_controlword(ENABLE) == (16,)
+    assert drive.state is State.OPERATION_ENABLED
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(
+        st.one_of(
+            st.sampled_from(CONTROLWORDS_AND_EVENTS),
+            st.integers(0, 0xFFFF),
+        ),
+        max_size=60,
+    ),
+    st.sampled_from([0, 2, 6]),
+)
+def test_repeated_controlwords_take_the_same_transitions_as_without_the_shortcut(events, option):
+    """apply_controlword skips a word that took no transition in the same state before;
+    a machine that never takes the shortcut must do exactly the same (fault-reset edge,
+    quick stop option changes, ramps)."""
+    kwargs = dict(quick_stop_option=option, quick_stop_time_s=0.002, fault_reaction_time_s=0.002)
+    fast, plain = DriveStateMachine(**kwargs), DriveStateMachine(**kwargs)
+    for drive in (fast, plain):
+        drive.complete_initialisation()
+    for event in events:
+        results = []
+        for drive in (fast, plain):
+            if drive is plain:
+                drive._idle_state = None  # forget what was idle: the full decoding every time
+            if isinstance(event, int):
+                results.append(drive.apply_controlword(event))
+            elif event == "fault":
+                results.append(drive.fault(0x1000))
+            elif event == "persisting fault":
+                results.append(drive.fault(0x8130, persists=True))
+            elif event == "clear":
+                drive.clear_fault_condition()
+                results.append(())
+            elif event == "step":
+                results.append(drive.step(0.001))
+            else:
+                drive.quick_stop_option = int(event.split()[1])
+                results.append(())
+        assert results[0] == results[1]
+        assert fast.state is plain.state
+        assert fast.statusword == plain.statusword
+        assert (fast.controlword, fast.error_code, fast.fault_resets_rejected) == (
+            plain.controlword,
+            plain.error_code,
+            plain.fault_resets_rejected,
+        )

@@ -129,6 +129,13 @@ class NmtCommand(IntEnum):
     RESET_COMMUNICATION = 0x82
 
 
+# The NMT states the per-frame checks test for, as module globals: an attribute of an Enum
+# class (``NmtState.OPERATIONAL``) is looked up through ``EnumType.__getattr__``'s slow
+# path in Python 3.11, several times slower than a global.
+_OPERATIONAL = NmtState.OPERATIONAL
+_PRE_OPERATIONAL = NmtState.PRE_OPERATIONAL
+
+
 ResetKind = Literal["node", "communication"]
 
 
@@ -697,11 +704,12 @@ class CanopenServices:
     @property
     def pdo_allowed(self) -> bool:
         """PDOs may be sent and received only in OPERATIONAL."""
-        return self.state is NmtState.OPERATIONAL
+        return self.state is _OPERATIONAL
 
     @property
     def sdo_allowed(self) -> bool:
-        return self.state in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL)
+        state = self.state
+        return state is _OPERATIONAL or state is _PRE_OPERATIONAL
 
     #: SYNC and EMCY follow the same rule as SDO (PRE-OPERATIONAL and OPERATIONAL).
     sync_allowed = sdo_allowed
