@@ -59,48 +59,38 @@ def _stuff_step(state: tuple[int, int], bit: int) -> tuple[tuple[int, int], int]
     return (last, run), 0
 
 
-def _stuff_table() -> dict[tuple[int, int], tuple[tuple[int, tuple[int, int]], ...]]:
-    table = {}
-    for last in (0, 1):
-        for run in range(1, 5):
-            rows = []
-            for byte in range(256):
-                state, added = (last, run), 0
-                for i in range(7, -1, -1):
-                    state, s = _stuff_step(state, (byte >> i) & 1)
-                    added += s
-                rows.append((added, state))
-            table[(last, run)] = tuple(rows)
-    return table
+def _state_index(state: tuple[int, int]) -> int:
+    """A stuffing state as a small int: last bit x 4 + (run - 1), 0..7."""
+    last, run = state
+    return last * 4 + run - 1
 
 
-_STUFF = _stuff_table()
+def _stuff_table(nbits: int) -> tuple[int, ...]:
+    """For every state and every ``nbits``-bit chunk (most significant bit first), the
+    stuff bits it adds and the state after it, packed as ``added << 3 | state`` at index
+    ``state << nbits | chunk``: one list lookup per chunk on the hot path."""
+    table = []
+    for index in range(8):
+        for chunk in range(1 << nbits):
+            state, added = (index >> 2, (index & 3) + 1), 0
+            for i in range(nbits - 1, -1, -1):
+                state, s = _stuff_step(state, (chunk >> i) & 1)
+                added += s
+            table.append(added << 3 | _state_index(state))
+    return tuple(table)
 
 
-def _stuff_table_7() -> dict[tuple[int, int], tuple[tuple[int, tuple[int, int]], ...]]:
-    """Like the byte table, for the last 7 bits of the CRC sequence."""
-    table = {}
-    for last in (0, 1):
-        for run in range(1, 5):
-            rows = []
-            for chunk in range(128):
-                state, added = (last, run), 0
-                for i in range(6, -1, -1):
-                    state, s = _stuff_step(state, (chunk >> i) & 1)
-                    added += s
-                rows.append((added, state))
-            table[(last, run)] = tuple(rows)
-    return table
-
-
-_STUFF7 = _stuff_table_7()
+#: Stuffing over a byte, and over the last 7 bits of the CRC sequence.
+_STUFF = _stuff_table(8)
+_STUFF7 = _stuff_table(7)
 
 
 @lru_cache(maxsize=4096)
 def _header(
     arbitration_id: int, extended: bool, remote: bool, dlc: int
-) -> tuple[int, int, tuple[int, int], int]:
-    """(bits, CRC after the header, stuffing state after the header, stuff bits so far)."""
+) -> tuple[int, int, int, int]:
+    """(bits, CRC after the header, stuffing state index after the header, stuff bits so
+    far)."""
     if extended:
         base, ext = arbitration_id >> 18, arbitration_id & 0x3FFFF
         # SOF, base id, SRR=1, IDE=1, ext id, RTR, r1=0, r0=0, DLC
@@ -116,7 +106,7 @@ def _header(
     for i in range(nbits - 2, -1, -1):
         state, s = _stuff_step(state, (header >> i) & 1)
         added += s
-    return nbits, crc15_bits(header, nbits), state, added
+    return nbits, crc15_bits(header, nbits), _state_index(state), added
 
 
 @lru_cache(maxsize=8192)
@@ -124,13 +114,13 @@ def frame_bits(arbitration_id: int, extended: bool, remote: bool, data: bytes) -
     """Exact bits on the wire of one classical data or remote frame, incl. 3-bit IFS."""
     payload = b"" if remote else data
     nbits, crc, state, added = _header(arbitration_id, extended, remote, min(len(data), 8))
-    table = _STUFF
+    stuff, crc_table = _STUFF, _CRC_TABLE
     for byte in payload:
-        n, state = table[state][byte]
-        added += n
-        crc = ((crc << 8) & 0x7FFF) ^ _CRC_TABLE[((crc >> 7) ^ byte) & 0xFF]
-    n, state = table[state][crc >> 7]  # CRC bits 14..7
-    added += n
-    n, state = _STUFF7[state][crc & 0x7F]  # CRC bits 6..0
-    added += n
+        step = stuff[state << 8 | byte]
+        added += step >> 3
+        state = step & 7
+        crc = ((crc << 8) & 0x7FFF) ^ crc_table[((crc >> 7) ^ byte) & 0xFF]
+    step = stuff[state << 8 | crc >> 7]  # CRC bits 14..7
+    added += step >> 3
+    added += _STUFF7[(step & 7) << 7 | crc & 0x7F] >> 3  # CRC bits 6..0
     return nbits + 8 * len(payload) + 15 + added + 13
