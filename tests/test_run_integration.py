@@ -7,6 +7,7 @@ import json
 import can
 import pytest
 
+from hdhil import run as run_module
 from hdhil.cli import main
 from hdhil.dbc import CHANNEL_NUMBER, codec
 from hdhil.run import run_lockstep
@@ -79,6 +80,38 @@ def test_same_seed_gives_an_identical_decoded_trace(free_motion, tmp_path):
     run_lockstep(free_motion, duration_s=0.5, seed=8, trace=c)
     assert _decoded(a) == _decoded(b)
     assert _decoded(a) != _decoded(c)
+
+
+class _Recorder(can.Listener):
+    """Every frame a tap listener is handed, in order, and how many hand-overs."""
+
+    def __init__(self) -> None:
+        self.frames: list[tuple] = []
+        self.calls = 0
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.on_frames([msg])
+
+    def on_frames(self, frames: list[can.Message]) -> None:
+        self.calls += 1
+        self.frames += [(m.channel, m.arbitration_id, m.timestamp, bytes(m.data)) for m in frames]
+
+
+def test_tap_draining_every_cycle_or_in_batches_hands_listeners_the_same_frames(
+    free_motion, monkeypatch
+):
+    """Lockstep drains the tap every TAP_EVERY_CYCLES cycles: the listeners must see the
+    very frames, in the very order, they see when it drains after every cycle."""
+    seen = {}
+    for every in (1, run_module.TAP_EVERY_CYCLES):
+        monkeypatch.setattr(run_module, "TAP_EVERY_CYCLES", every)
+        recorder = _Recorder()
+        run_lockstep(free_motion, duration_s=0.2, seed=2, extra_listeners=[recorder])
+        seen[every] = recorder
+    one, batched = seen[1], seen[run_module.TAP_EVERY_CYCLES]
+    assert len(one.frames) > 1400
+    assert batched.frames == one.frames
+    assert batched.calls < one.calls / 4  # it did batch
 
 
 def test_sync_counter_and_command_cycle_count_up(free_motion, tmp_path):
