@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import math
 
-from scipy import signal
-
 from firmware.config import Calibration, PlausibilityConfig, ReferenceConfig, Wave
 from hdhil.converter import Converter
 
@@ -93,8 +91,12 @@ class Differentiator:
             raise ValueError(
                 f"sample_period_s must be a finite number > 0, got {sample_period_s!r}"
             )
+        # Imported here: scipy.signal takes most of a second to import, and a firmware
+        # node needs it for this one design step only.
+        from scipy.signal import bilinear
+
         # H(s) = s / (tau s + 1): numerator [1, 0], denominator [tau, 1]; Tustin at fs = 1/Ts.
-        b, a = signal.bilinear([1.0, 0.0], [tau_s, 1.0], fs=1.0 / sample_period_s)
+        b, a = bilinear([1.0, 0.0], [tau_s, 1.0], fs=1.0 / sample_period_s)
         self.nd: tuple[float, float] = (float(b[0] / a[0]), float(b[1] / a[0]))
         self.dd: tuple[float, float] = (1.0, float(a[1] / a[0]))
         self.v_1 = 0.0
