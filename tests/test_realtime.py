@@ -126,6 +126,12 @@ def test_realtime_cli_run_reports_statistics(tmp_path, capsys):
     _check_stats(rt, 300)
     _floor_ok(rt["floor"], 0.1)
     assert rt["floor"]["spin_us"] == rt["pacing"]["spin_us"]
+    if os.path.exists("/proc/stat"):  # steal time where the kernel accounts it
+        pinned = [a for a in rt["applied"] if a.startswith("affinity: CPU ")]
+        for steal in (rt["steal"], rt["floor"]["steal"]):
+            assert steal["ms"] >= 0 and 0 <= steal["share"] <= 1
+            if pinned:
+                assert pinned[0].startswith(f"affinity: CPU {steal['cpu']}")
     assert any(a.startswith("mlockall") for a in rt["applied"] + rt["refused"])
     # Everything the loop changed is undone.
     assert gc.isenabled()
@@ -150,6 +156,41 @@ def test_realtime_text_output_has_tables_histogram_and_floor(capsys):
     for _, label in STAGES:
         assert label in out
     assert "machine floor" in out
+    if os.path.exists("/proc/stat"):
+        assert out.count("hypervisor steal time on") == 2  # the run and the floor
+
+
+def _fake_stat(path, cpu1_steal_ticks: int) -> None:
+    # user nice system idle iowait irq softirq steal guest guest_nice
+    (path / "stat").write_text(
+        "cpu  100 0 50 900 5 0 1 70 0 0\n"
+        "cpu0 50 0 25 450 2 0 1 20 0 0\n"
+        f"cpu1 50 0 25 450 3 0 0 {cpu1_steal_ticks} 0 0\n"
+        "intr 12345 0 0\n"
+    )
+
+
+def test_steal_time_is_read_per_cpu_from_proc_stat(tmp_path):
+    tick_ns = 1_000_000_000 // os.sysconf("SC_CLK_TCK")
+    _fake_stat(tmp_path, 50)
+    assert realtime.cpu_steal_ns(1, str(tmp_path)) == 50 * tick_ns
+    assert realtime.cpu_steal_ns(0, str(tmp_path)) == 20 * tick_ns
+    assert realtime.cpu_steal_ns(None, str(tmp_path)) == 70 * tick_ns
+    assert realtime.cpu_steal_ns(7, str(tmp_path)) is None  # no such CPU
+    assert realtime.cpu_steal_ns(0, str(tmp_path / "none")) is None  # no procfs
+    (tmp_path / "stat").write_text("cpu0 50 0 25 450\n")  # a kernel without the column
+    assert realtime.cpu_steal_ns(0, str(tmp_path)) is None
+
+
+def test_steal_report_over_an_interval():
+    r = realtime.steal_report(1_000_000_000, 1_250_000_000, 1, 10.0)
+    assert r == {"cpu": 1, "ms": pytest.approx(250.0), "share": pytest.approx(0.025)}
+    everywhere = realtime.steal_report(0, 400_000_000, None, 10.0)
+    assert everywhere["cpu"] == "all"
+    assert everywhere["share"] == pytest.approx(0.4 / (10.0 * (os.cpu_count() or 1)))
+    assert realtime.steal_report(None, 5, 0, 1.0) is None
+    text = realtime.format_steal(r)
+    assert "CPU 1" in text and "250 ms" in text and "2.50%" in text
 
 
 def test_fixed_spin_window_is_used():

@@ -56,7 +56,7 @@ from firmware.isr import AdcSample, InterruptHandler, IsrOutput, TorqueControl, 
 from firmware.ripple import HarmonicKalman, RippleKalman
 from firmware.stages import Differentiator, SensorPlausibility, adc_read, calibrate
 from hdhil.dataconf import from_dict
-from hdhil.realtime import RealtimeConfig
+from hdhil.realtime import RealtimeConfig, format_steal
 from hdhil.run import run_lockstep
 from hostsim.plant import Plant
 from hostsim.scenario import load_scenario
@@ -666,6 +666,8 @@ def format_realtime_section(rt: dict[str, Any]) -> list[str]:
     ]
     if rt["refused"]:
         lines.append(f"refused: {'; '.join(rt['refused'])}")
+    if rt.get("steal"):
+        lines.append(format_steal(rt["steal"]))
     rows = [
         ["SYNC jitter (late)", *_pct_cells(rt["jitter_us"])],
         ["sensor frame -> command", *_pct_cells(rt["latency_us"])],
@@ -700,6 +702,7 @@ def format_realtime_section(rt: dict[str, Any]) -> list[str]:
             f"work per cycle and no hdhil code; sleep woke past the spin window "
             f"{floor['late_wakeups']} times (run: {rt['late_wakeups']} times in "
             f"{rt['cycles']} cycles)"
+            + (f"; {format_steal(floor['steal'])}" if floor.get("steal") else "")
         )
     return lines
 

@@ -525,6 +525,39 @@ def rt_tasks_per_cpu(proc: str = "/proc") -> dict[int, int]:
     return counts
 
 
+def cpu_steal_ns(cpu: int | None = None, proc: str = "/proc") -> int | None:
+    """Time the hypervisor ran something else while this machine's ``cpu`` (all CPUs for
+    None) wanted to run: the ``steal`` column of ``/proc/stat`` (8th value of the
+    ``cpuN`` line, in USER_HZ ticks), in ns.  None where there is no such column (no
+    procfs, not Linux, a kernel without steal accounting).  A guest cannot see or avoid
+    these stalls; it can only count them."""
+    label = "cpu" if cpu is None else f"cpu{cpu}"
+    try:
+        with open(os.path.join(proc, "stat"), encoding="ascii", errors="replace") as fh:
+            for line in fh:
+                fields = line.split()
+                if fields and fields[0] == label:
+                    ticks = int(fields[8])
+                    return ticks * 1_000_000_000 // os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def steal_report(before: int | None, after: int | None, cpu: int | None,
+                 duration_s: float) -> dict[str, Any] | None:  # fmt: skip
+    """Steal time between two :func:`cpu_steal_ns` readings, as a report entry."""
+    if before is None or after is None:
+        return None
+    ms = (after - before) * 1e-6
+    cpus = 1 if cpu is not None else (os.cpu_count() or 1)
+    return {
+        "cpu": "all" if cpu is None else cpu,
+        "ms": ms,
+        "share": ms * 1e-3 / (duration_s * cpus) if duration_s > 0 else math.nan,
+    }
+
+
 def _why(exc: OSError) -> str:
     return exc.strerror or str(exc)
 
@@ -565,6 +598,11 @@ class RealtimeLoop:
         self.late_wakeups = 0
         self.busy_ns = 0
         self.floor: dict[str, Any] | None = None
+        #: The CPU the loop is pinned to (None: not pinned), for its steal time.
+        self.cpu: int | None = None
+        self.steal: dict[str, Any] | None = None
+        self._steal0: int | None = None
+        self._recording_t0_ns = 0
         self.applied: list[str] = []
         self.refused: list[str] = []
         self._deadline = 0
@@ -704,10 +742,15 @@ class RealtimeLoop:
         except OSError as exc:
             self.refused.append(f"affinity: {_why(exc)}")
             return
+        self.cpu = cpu
         others = ", ".join(f"{n} on CPU {c}" for c, n in sorted(busy.items()) if c in before)
         note = f" (other real-time tasks: {others})" if others else ""
         self.applied.append(f"affinity: CPU {cpu}{note}")
         self._restore.append(lambda: os.sched_setaffinity(0, before))
+        self._restore.append(self._unpin)
+
+    def _unpin(self) -> None:
+        self.cpu = None
 
     def _apply_timer_slack(self) -> None:
         try:
@@ -827,8 +870,19 @@ class RealtimeLoop:
         may come after it (module docstring)."""
         self.recording = True
         self.spin_range_ns = [self._spin_ns, self._spin_ns]
+        self._steal0 = cpu_steal_ns(self.cpu)
+        self._recording_t0_ns = _now_ns()
         if self._isr_ran:
             self._record()
+
+    def end_recording(self) -> None:
+        """Statistics end here (the run's operation phase is over): the steal time on the
+        loop's CPU over the recorded cycles."""
+        if not self.recording:
+            return
+        self.recording = False
+        elapsed_s = (_now_ns() - self._recording_t0_ns) * 1e-9
+        self.steal = steal_report(self._steal0, cpu_steal_ns(self.cpu), self.cpu, elapsed_s)
 
     # ------------------------------------------------------------ machine floor
 
@@ -844,6 +898,7 @@ class RealtimeLoop:
             self._spin_ns,
             round(percentiles(self.work_us)["p50"] * 1e3) if self.work_us else 0,
             duration,
+            self.cpu,
         )
         return self.floor
 
@@ -888,6 +943,7 @@ class RealtimeLoop:
             },
             "applied": list(self.applied),
             "refused": list(self.refused),
+            "steal": self.steal,
             "floor": self.floor,
         }
 
@@ -909,16 +965,19 @@ def sleep_then_spin(deadline_ns: int, spin_ns: int) -> tuple[int, int]:
     return wake, over
 
 
-def measure_floor(period_ns: int, spin_ns: int, work_ns: int, duration_s: float) -> dict[str, Any]:
+def measure_floor(period_ns: int, spin_ns: int, work_ns: int, duration_s: float,
+                  cpu: int | None = None) -> dict[str, Any]:  # fmt: skip
     """Sleep-then-spin pacing with ``work_ns`` of busy-waiting per cycle and nothing else,
     for ``duration_s`` (the caller sets up affinity, priority, collector).  Jitter is the
     lateness of the loop's start of work; a miss is work that ends after the next
-    deadline."""
+    deadline.  ``steal``: the hypervisor's steal time on ``cpu`` (the loop's; None: all
+    CPUs) meanwhile."""
     n = max(1, round(duration_s * 1e9 / period_ns))
     jitter_us = array("d")
     overshoot_us = array("d")
     misses = late_wakeups = 0
     now = _now_ns
+    steal0 = cpu_steal_ns(cpu)
     t0 = now() + period_ns
     for k in range(n):
         deadline = t0 + k * period_ns
@@ -945,6 +1004,7 @@ def measure_floor(period_ns: int, spin_ns: int, work_ns: int, duration_s: float)
         "deadline_misses": misses,
         "misses_per_100k": per_100k(misses, n),
         "late_wakeups": late_wakeups,
+        "steal": steal_report(steal0, cpu_steal_ns(cpu), cpu, (now() - t0 + period_ns) * 1e-9),
     }
 
 
@@ -960,6 +1020,15 @@ def _histogram_lines(bins: list[dict[str, Any]]) -> list[str]:
         for b in bins
         if b["count"]
     ]
+
+
+def format_steal(steal: dict[str, Any]) -> str:
+    """One phrase: the hypervisor's steal time (:func:`steal_report`)."""
+    where = "all CPUs" if steal["cpu"] == "all" else f"the loop's CPU {steal['cpu']}"
+    return (
+        f"hypervisor steal time on {where}: {steal['ms']:.0f} ms "
+        f"({steal['share']:.2%} of the time; stalls the machine cannot avoid)"
+    )
 
 
 def format_realtime(rt: dict[str, Any]) -> str:
@@ -981,6 +1050,8 @@ def format_realtime(rt: dict[str, Any]) -> str:
         f"    sleep woke later than the spin window in {rt['late_wakeups']} cycles; "
         f"{rt['late_starts']} cycles started late (the previous one overran)"
     )
+    if rt.get("steal"):
+        lines.append(f"    {format_steal(rt['steal'])}")
     lines.append(f"    applied: {'; '.join(rt['applied']) or 'nothing'}")
     if rt["refused"]:
         lines.append(f"    refused: {'; '.join(rt['refused'])}")
@@ -1002,7 +1073,8 @@ def format_realtime(rt: dict[str, Any]) -> str:
             f"window and process state, {floor['work_us']:.0f} µs busy work per cycle, no "
             f"hdhil code: misses {floor['deadline_misses']} "
             f"({floor['misses_per_100k']:.1f} per 100 000), late wake-ups "
-            f"{floor['late_wakeups']}",
+            f"{floor['late_wakeups']}"
+            + (f"; {format_steal(floor['steal'])}" if floor.get("steal") else ""),
             _row("start jitter (late)", floor["jitter_us"]),
             _row("sleep overshoot", floor["sleep_overshoot_us"]),
         ]

@@ -420,7 +420,7 @@ def run_lockstep(
             done = controller.isr.samplecount
             operation_end = k
             if pacer is not None:
-                pacer.recording = False
+                pacer.end_recording()
             # Walk the drive back (disable operation, shut down) before the buses close.
             controller.request_stop()
             for _ in range(MAX_STOP_CYCLES):
