@@ -7,6 +7,7 @@ checked, never a timing threshold: the machines running the tests are shared and
 from __future__ import annotations
 
 import json
+import os
 import math
 
 import pytest
@@ -47,6 +48,8 @@ def test_lockstep_rows(report: dict) -> None:
             assert _positive(r[key]), (r["scenario"], key, r[key])
         assert r["min"] <= r["median"] <= r["max"]
         assert r["runs"] == 1
+        if os.path.exists("/proc/stat"):  # the hypervisor's steal time over the runs
+            assert 0 <= r["steal_share"] <= 1
 
 
 def test_stage_rows(report: dict) -> None:
@@ -128,6 +131,7 @@ def test_text_report_and_json_roundtrip(report: dict) -> None:
         assert heading in text
     assert "| free-motion" in text and "| lqg-tracking" in text
     assert "| SYNC jitter (late)" in text and "machine floor" in text
+    assert "| steal |" in text
     assert "deadline misses:" in text and "per 100 000" in text
     for _, label in STAGES:
         assert label in text

@@ -56,7 +56,7 @@ from firmware.isr import AdcSample, InterruptHandler, IsrOutput, TorqueControl, 
 from firmware.ripple import HarmonicKalman, RippleKalman
 from firmware.stages import Differentiator, SensorPlausibility, adc_read, calibrate
 from hdhil.dataconf import from_dict
-from hdhil.realtime import RealtimeConfig, format_steal
+from hdhil.realtime import RealtimeConfig, cpu_steal_ns, format_steal, steal_report
 from hdhil.run import run_lockstep
 from hostsim.plant import Plant
 from hostsim.scenario import load_scenario
@@ -167,6 +167,7 @@ def bench_lockstep(
     """Real-time factor of a lockstep run (simulated seconds per wall second)."""
     sc = load_scenario(scenario)
     factors = []
+    steal0, wall0 = cpu_steal_ns(), time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(repeat):
             trace = Path(tmp) / f"bench{i}.blf" if logging else None
@@ -177,8 +178,10 @@ def bench_lockstep(
             cycles = r.cycles
             frames = r.frames_total
             fw = r.controller
+    steal = steal_report(steal0, cpu_steal_ns(), None, time.perf_counter() - wall0)
     stats = _median_spread(factors)
     stats.update(
+        steal_share=steal["share"] if steal else None,
         scenario=scenario,
         duration_s=duration_s,
         logging=logging,
@@ -595,13 +598,19 @@ def format_bench(report: dict[str, Any]) -> str:
             f"{r['min']:.1f}-{r['max']:.1f}x",
             f"{r['us_per_cycle']:.0f}",
             f"{r['frames_per_cycle']:.1f}",
+            "n/a" if r.get("steal_share") is None else f"{r['steal_share']:.1%}",
         ]
         for r in report["lockstep"]
     ]
     lines += _table(
-        ["scenario", "model", "filter", "log", "bus", "RTF", "min-max", "us/cycle", "frames/cycle"],
+        ["scenario", "model", "filter", "log", "bus", "RTF", "min-max", "us/cycle",
+         "frames/cycle", "steal"],
         rows,
-        [False] * 5 + [True] * 4,
+        [False] * 5 + [True] * 5,
+    )  # fmt: skip
+    lines.append(
+        "(steal: the hypervisor's steal time over the figure's runs, all CPUs; wall time "
+        "lost to it slows the runs on a shared machine)"
     )
     stg = report["stages"]
     lines += [
