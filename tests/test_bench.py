@@ -7,8 +7,8 @@ checked, never a timing threshold: the machines running the tests are shared and
 from __future__ import annotations
 
 import json
-import os
 import math
+import os
 
 import pytest
 
