@@ -747,10 +747,6 @@ class RealtimeLoop:
         note = f" (other real-time tasks: {others})" if others else ""
         self.applied.append(f"affinity: CPU {cpu}{note}")
         self._restore.append(lambda: os.sched_setaffinity(0, before))
-        self._restore.append(self._unpin)
-
-    def _unpin(self) -> None:
-        self.cpu = None
 
     def _apply_timer_slack(self) -> None:
         try:

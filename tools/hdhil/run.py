@@ -151,7 +151,6 @@ def _complete_cycle(controller: ControllerNode, drive: DriveNode, tap: BusTap,
                 )
             break
         time.sleep(50e-6)
-    tap.poll()
 
 
 #: Cycles allowed from power-on to "operation enabled" (NMT start and the CiA 402 walk
