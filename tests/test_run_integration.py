@@ -102,13 +102,14 @@ def test_tap_draining_every_cycle_or_in_batches_hands_listeners_the_same_frames(
 ):
     """Lockstep drains the tap every TAP_EVERY_CYCLES cycles: the listeners must see the
     very frames, in the very order, they see when it drains after every cycle."""
+    batch = run_module.TAP_EVERY_CYCLES
     seen = {}
-    for every in (1, run_module.TAP_EVERY_CYCLES):
+    for every in (1, batch):
         monkeypatch.setattr(run_module, "TAP_EVERY_CYCLES", every)
         recorder = _Recorder()
         run_lockstep(free_motion, duration_s=0.2, seed=2, extra_listeners=[recorder])
         seen[every] = recorder
-    one, batched = seen[1], seen[run_module.TAP_EVERY_CYCLES]
+    one, batched = seen[1], seen[batch]
     assert len(one.frames) > 1400
     assert batched.frames == one.frames
     assert batched.calls < one.calls / 4  # it did batch

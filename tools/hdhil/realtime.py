@@ -1000,7 +1000,7 @@ def measure_floor(period_ns: int, spin_ns: int, work_ns: int, duration_s: float,
         "deadline_misses": misses,
         "misses_per_100k": per_100k(misses, n),
         "late_wakeups": late_wakeups,
-        "steal": steal_report(steal0, cpu_steal_ns(cpu), cpu, (now() - t0 + period_ns) * 1e-9),
+        "steal": steal_report(steal0, cpu_steal_ns(cpu), cpu, n * period_ns * 1e-9),
     }
 
 
