@@ -5,7 +5,7 @@ Appendix A.1 ``free_kalman.c``, and A.2) kept in a global variable, a host mailb
 literal inside a function is a field here, with the listing's value as the default.
 All classes are frozen dataclasses that check their ranges in ``__post_init__`` and
 raise ``ValueError`` naming the field and the allowed range, so that
-``hdhil.dataconf.from_dict`` turns a bad scenario value into a one-line ``ConfigError``.
+``hdhil.core.dataconf.from_dict`` turns a bad scenario value into a one-line ``ConfigError``.
 
 The ripple filter has two modes (:class:`RippleFilterConfig`): ``"paper"`` is the
 seed's prediction-type Kalman filter exactly as listing A.1 / A.2 implement it
@@ -18,7 +18,7 @@ whole :class:`FirmwareConfig` between the modes.
 
 Example (plain data, as from a TOML scenario)::
 
-    from hdhil.dataconf import from_dict
+    from hdhil.core.dataconf import from_dict
     cfg = from_dict(FirmwareConfig, {
         "reference": {"wave": "step", "amplitude_V": 1.0, "step_time_s": 0.1},
         "ripple": {"mode": "paper",
@@ -40,9 +40,9 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-from firmware.lqg import ControlLaw, Feedforward, JointParams, LqgWeights, ObserverMethod
-from hdhil.converter import Converter
-from hdhil.dataconf import check_fields
+from hdhil.core.converter import Converter
+from hdhil.core.dataconf import check_fields
+from hdhil.firmware.lqg import ControlLaw, Feedforward, JointParams, LqgWeights, ObserverMethod
 
 __all__ = [
     "JTF1_FF_TRACKING",

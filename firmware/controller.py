@@ -20,7 +20,7 @@ not sent at all: the PDO is not valid, as CANopen marks it with bit 31 of its CO
 in step with the law), and the bus carries exactly the seed-000 schedule.  Worst-case
 control-bus load: 44 % without, 57.5 % with a law.
 
-CANopen roles (CiA 301, :mod:`hdhil.canopen_services`)
+CANopen roles (CiA 301, :mod:`hdhil.canopen.services`)
 ------------------------------------------------------
 The controller is node-ID 1: an NMT slave itself (boot-up 0x701, heartbeat producer 0x701
 every 100 ms, SDO server on 0x601/0x581, EMCY producer 0x081) and the NMT master, SYNC
@@ -128,7 +128,7 @@ The controller's object dictionary holds the firmware parameters (objects 0x2400
 :data:`PARAMETERS`); the scenario's configuration is written into it when the node is
 built, so an SDO upload returns what runs (REAL32: to float32 precision, and the firmware
 then runs with the value the OD holds).  A download passes the checks of
-:class:`hdhil.canopen_services.CanopenServices` (type and length 0x06070012/13, access
+:class:`hdhil.canopen.services.CanopenServices` (type and length 0x06070012/13, access
 0x06010002, range from the EDS 0x06090031/32, unknown object 0x06020000) and then this
 node's: the new :class:`firmware.config.FirmwareConfig` must build (``dataclasses.replace``;
 0x06090030 otherwise), and ``q_i`` of a harmonic that is not configured aborts with
@@ -172,10 +172,9 @@ from typing import Any, NamedTuple
 
 import can
 
-from firmware.config import FirmwareConfig, Law, Wave, paper_config, recommended_config
-from firmware.isr import AdcSample, InterruptHandler, TorqueControl, TorqueFilterChain
-from firmware.stages import ReferenceGenerator
-from hdhil.canopen_services import (
+from hdhil.can.node import CanNode, pdo_cob_id
+from hdhil.canopen.cia402 import CONTROLWORD, CW_FAULT_RESET, Command, State, state_from_statusword
+from hdhil.canopen.services import (
     ABORT_DEVICE_STATE,
     ABORT_INVALID_VALUE,
     SDO_RX_BASE,
@@ -187,8 +186,9 @@ from hdhil.canopen_services import (
     ResetKind,
 )
 from hdhil.dbc import codec, eds_path
-from hdhil.node import CanNode, pdo_cob_id
-from hostsim.cia402 import CONTROLWORD, CW_FAULT_RESET, Command, State, state_from_statusword
+from hdhil.firmware.config import FirmwareConfig, Law, Wave, paper_config, recommended_config
+from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueControl, TorqueFilterChain
+from hdhil.firmware.stages import ReferenceGenerator
 
 __all__ = [
     "CONTROLWORD_ENABLE_OPERATION",

@@ -67,10 +67,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from firmware.config import FirmwareConfig
-from firmware.lqg import LqgController, LqgDesign, design_lqg
-from firmware.ripple import HarmonicKalman, RippleKalman
-from firmware.stages import (
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.lqg import LqgController, LqgDesign, design_lqg
+from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
+from hdhil.firmware.stages import (
     Differentiator,
     EncoderUnwrap,
     ReferenceGenerator,

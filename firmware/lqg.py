@@ -177,7 +177,7 @@ from scipy.linalg import (
     solve_sylvester,
 )
 
-from hdhil.dataconf import check_fields
+from hdhil.core.dataconf import check_fields
 
 __all__ = [
     "ControlLaw",

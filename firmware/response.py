@@ -31,8 +31,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from firmware.config import FirmwareConfig
-from firmware.isr import TorqueFilterChain
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.isr import TorqueFilterChain
 
 __all__ = ["torque_response", "torque_transfer"]
 

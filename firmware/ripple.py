@@ -56,7 +56,7 @@ from functools import cache
 import numpy as np
 from numpy.lib.stride_tricks import as_strided
 
-from firmware.config import RippleFilterConfig
+from hdhil.firmware.config import RippleFilterConfig
 
 __all__ = ["HarmonicKalman", "RippleKalman"]
 
@@ -550,7 +550,7 @@ class HarmonicKalman:
     def innovation_variance(self) -> float:
         """Its predicted variance S(k) = C(k) P(k|k−1) C(k)ᵀ + R (Nm²), the same S the
         step divides by; with the model right, e(k) ~ N(0, S(k)) and
-        Σ ½(log 2πS + e²/S) is the negative log-likelihood :mod:`hdhil.tune` minimises.
+        Σ ½(log 2πS + e²/S) is the negative log-likelihood :mod:`hdhil.commands.tune` minimises.
         NaN whenever :attr:`innovation` is."""
         return self._innovation_variance
 

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import math
 
-from firmware.config import Calibration, PlausibilityConfig, ReferenceConfig, Wave
-from hdhil.converter import Converter
+from hdhil.core.converter import Converter
+from hdhil.firmware.config import Calibration, PlausibilityConfig, ReferenceConfig, Wave
 
 __all__ = [
     "Differentiator",

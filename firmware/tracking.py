@@ -104,10 +104,10 @@ from typing import Any
 import numpy as np
 from scipy.linalg import expm
 
-from firmware.config import ControlConfig, FirmwareConfig, Law
-from firmware.isr import IsrOutput, TorqueControl
-from firmware.lqg import JointParams
-from hdhil.dataconf import check_fields
+from hdhil.core.dataconf import check_fields
+from hdhil.firmware.config import ControlConfig, FirmwareConfig, Law
+from hdhil.firmware.isr import IsrOutput, TorqueControl
+from hdhil.firmware.lqg import JointParams
 
 __all__ = ["TrackingPlant", "simulate_tracking", "tracking_table"]
 
@@ -296,7 +296,7 @@ def tracking_table(
     then ``ff_control`` (default :data:`firmware.config.JTF1_FF_TRACKING` with the same
     actuator calibration) labelled ``jtf1_ff (tuned)``.
     """
-    from firmware.config import JTF1_FF_TRACKING
+    from hdhil.firmware.config import JTF1_FF_TRACKING
 
     base = control or ControlConfig(law=Law.JTF1, torque_per_volt=20.0, torque_limit_Nm=150.0)
     ff = ff_control or dataclasses.replace(

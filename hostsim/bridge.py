@@ -75,7 +75,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hdhil.dataconf import check_fields
+from hdhil.core.dataconf import check_fields
 
 __all__ = [
     "BRIDGE_SIGN",

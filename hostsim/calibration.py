@@ -47,8 +47,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from hdhil.dataconf import check_fields
-from hostsim.plant import Plant, PlantConfig
+from hdhil.core.dataconf import check_fields
+from hdhil.hostsim.plant import Plant, PlantConfig
 
 __all__ = ["CalibrationResult", "CalibrationRig", "Experiment", "calibrate", "load_sequence"]
 

@@ -21,8 +21,8 @@ like the sensors.
 The CANopen device (node-ID 2, ``dbc/drive.eds``)
 -------------------------------------------------
 The CiA 301 services (NMT slave, heartbeat producer and consumer, EMCY producer, checked
-SDO server) are :class:`hdhil.canopen_services.CanopenServices`; the CiA 402 power drive
-system is :class:`hostsim.cia402.DriveStateMachine`.  This module wires them to the
+SDO server) are :class:`hdhil.canopen.services.CanopenServices`; the CiA 402 power drive
+system is :class:`hdhil.canopen.cia402.DriveStateMachine`.  This module wires them to the
 frames and the plant, and holds no physics itself.  Every received frame goes through
 ``services.handle`` first, timed with the ``now`` of the latest :meth:`DriveNode.tick`.
 
@@ -104,7 +104,7 @@ active for ``command_hold_cycles`` periods in all.  We chose a fault over a quic
 because a lost command stream is a communication error the controller must acknowledge
 (fault reset), as for a lost heartbeat.  The next DRIVE_RPDO1 clears the EMCY (0x0000).
 SYNC counter jumps are counted as missed SYNCs, commands arriving more than one period
-after their SYNC as late commands (:class:`hdhil.canopen_services.SyncMonitor`).
+after their SYNC as late commands (:class:`hdhil.canopen.services.SyncMonitor`).
 
 **Other EMCY** (once on the rising edge, EMCY 0x0000 when the condition goes away):
 0x7300 "sensor error" when an ADC channel sits at a code limit (manufacturer byte 0 = the
@@ -124,7 +124,7 @@ latest sample.  Writable application objects:
   values are the plant's configuration.  A write is applied at the next SYNC, before the
   plant step: the plant's frozen configuration is rebuilt with ``dataclasses.replace``
   and swapped in, so the step ending at that SYNC and its sample use the new values.
-- 0x2310 "Fault injection" (:mod:`hdhil.faults`), applied at the next SYNC like 0x2300:
+- 0x2310 "Fault injection" (:mod:`hdhil.can.faults`), applied at the next SYNC like 0x2300:
   1 ``tacho_spike_rate`` (REAL32, 0..1 per sample), 2 ``tacho_spike_V`` (0..20 V),
   3 ``encoder_glitch_rate`` (0..1 per sample), 4 ``encoder_glitch_counts`` (UNSIGNED16);
   channel masks (UNSIGNED8, bit 0 torque, 1 tacho, 2 current, 3 encoder) 5
@@ -156,7 +156,18 @@ from typing import Any, Literal
 
 import can
 
-from hdhil.canopen_services import (
+from hdhil.can.faults import (
+    FaultConfig,
+    FaultInjector,
+    FaultLog,
+    SensorFaults,
+    SensorHook,
+    SensorWindow,
+    TransmitSilence,
+)
+from hdhil.can.node import CanNode, pdo_cob_id
+from hdhil.canopen.cia402 import CONTROLWORD, SUPPORTED_MODES, Command, DriveStateMachine, State
+from hdhil.canopen.services import (
     ABORT_INVALID_VALUE,
     TIME_EPSILON,
     CanopenServices,
@@ -166,18 +177,7 @@ from hdhil.canopen_services import (
     SyncMonitor,
 )
 from hdhil.dbc import codec, eds_path
-from hdhil.faults import (
-    FaultConfig,
-    FaultInjector,
-    FaultLog,
-    SensorFaults,
-    SensorHook,
-    SensorWindow,
-    TransmitSilence,
-)
-from hdhil.node import CanNode, pdo_cob_id
-from hostsim.cia402 import CONTROLWORD, SUPPORTED_MODES, Command, DriveStateMachine, State
-from hostsim.plant import Plant, PlantConfig
+from hdhil.hostsim.plant import Plant, PlantConfig
 
 #: Object indices the node serves (CiA 301 / CiA 402 / manufacturer area).
 OD_ABORT_CONNECTION = 0x6007
@@ -204,7 +204,7 @@ EMULATOR_KNOBS: dict[int, tuple[str, str]] = {
     6: ("load", "torque_Nm"),
 }
 
-#: 0x2310 sub-index -> the :class:`hdhil.faults.SensorFaults` field it sets.
+#: 0x2310 sub-index -> the :class:`hdhil.can.faults.SensorFaults` field it sets.
 FAULT_FIELDS: dict[int, str] = {
     1: "tacho_spike_rate",
     2: "tacho_spike_V",

@@ -100,10 +100,10 @@ from typing import Literal, NamedTuple
 import numpy as np
 from scipy.linalg import expm
 
-from hdhil.converter import Converter
-from hdhil.dataconf import check_fields
-from hdhil.faults import SensorHook
-from hostsim.bridge import BridgeConfig, GaugeHysteresis, StrainGaugeBridge
+from hdhil.can.faults import SensorHook
+from hdhil.core.converter import Converter
+from hdhil.core.dataconf import check_fields
+from hdhil.hostsim.bridge import BridgeConfig, GaugeHysteresis, StrainGaugeBridge
 
 __all__ = [
     "AmplifierConfig",
@@ -825,7 +825,7 @@ class Plant:
     def __init__(self, cfg: PlantConfig, seed: int = 0, faults: SensorHook | None = None) -> None:
         self.cfg = cfg
         self.seed = seed
-        #: Sensor-fault hook (:meth:`hdhil.faults.FaultInjector.sensors`) applied to every
+        #: Sensor-fault hook (:meth:`hdhil.can.faults.FaultInjector.sensors`) applied to every
         #: :meth:`sample`; None = healthy sensors.
         self.faults = faults
         dt_cfg = cfg.drivetrain
@@ -1095,7 +1095,7 @@ class Plant:
         a given seed gives the same noise sequence whatever the noise settings.
 
         With :attr:`faults` set, the counts then pass through the sensor faults (stuck,
-        saturated, encoder glitches, tacho spikes; :mod:`hdhil.faults`).
+        saturated, encoder glitches, tacho spikes; :mod:`hdhil.can.faults`).
         """
         pos = self._noise_pos
         if pos + 3 > len(self._noise):

@@ -19,14 +19,14 @@ Layout of a scenario file::
     step_times_s = [1.0, 2.0]
     step_values_Nm = [-1.0, 0.0]
 
-    [faults]                   # optional: injected faults (hdhil.faults.FaultConfig)
+    [faults]                   # optional: injected faults (hdhil.can.faults.FaultConfig)
     seed = 3
     control = { loss_rate = 0.05, jitter_us = 200.0 }
 
     [firmware.reference]       # optional: passed through as a raw dict; the runner
     wave = "step"              # validates it with the firmware's own config class
 
-Shipped scenarios live in ``hostsim/scenarios/*.toml`` (package data) and are
+Shipped scenarios live in ``hdhil/hostsim/scenarios/*.toml`` (package data) and are
 addressed by file stem; any other ``.toml`` file is addressed by path:
 
 - ``free-motion``: seed 000 Fig. 8-9, step to ~156 rad/s, 2x/4x ripple;
@@ -37,7 +37,7 @@ addressed by file stem; any other ``.toml`` file is addressed by path:
 
 Every
 mistake (unknown name, missing file, TOML syntax, unknown key, wrong type, value out
-of range) raises :class:`hdhil.dataconf.ConfigError` with a one-line message.
+of range) raises :class:`hdhil.core.dataconf.ConfigError` with a one-line message.
 """
 
 from __future__ import annotations
@@ -48,9 +48,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from hdhil.dataconf import ConfigError, from_dict, merge
-from hdhil.faults import FaultConfig
-from hostsim.plant import PlantConfig
+from hdhil.can.faults import FaultConfig
+from hdhil.core.dataconf import ConfigError, from_dict, merge
+from hdhil.hostsim.plant import PlantConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -113,11 +113,11 @@ class _Header:
 
 
 def _scenario_dir() -> Path:
-    return Path(str(resources.files("hostsim").joinpath("scenarios")))
+    return Path(str(resources.files("hdhil.hostsim").joinpath("scenarios")))
 
 
 def list_scenarios() -> list[str]:
-    """Names (file stems) of the scenarios shipped in ``hostsim/scenarios``, sorted."""
+    """Names (file stems) of the scenarios shipped in ``hdhil/hostsim/scenarios``, sorted."""
     return sorted(p.stem for p in _scenario_dir().glob("*.toml") if p.is_file())
 
 

@@ -9,7 +9,7 @@ from collections.abc import Callable, Iterator
 import can
 import pytest
 
-from hostsim.drive import DriveNode
+from hdhil.hostsim.drive import DriveNode
 
 ServeDrive = Callable[[Callable[[can.BusABC], DriveNode]], tuple[DriveNode, list[str]]]
 

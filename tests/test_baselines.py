@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from firmware.baselines import ButterworthLowPass, TrackingNotchBank
+from hdhil.firmware.baselines import ButterworthLowPass, TrackingNotchBank
 
 Ts = 1e-3
 FS = 1.0 / Ts

@@ -12,9 +12,9 @@ import os
 
 import pytest
 
-from hdhil.bench import LOCKSTEP_SCENARIOS, REALTIME_GOALS, format_bench, run_benchmarks
 from hdhil.cli import main
-from hdhil.realtime import STAGES
+from hdhil.commands.bench import LOCKSTEP_SCENARIOS, REALTIME_GOALS, format_bench, run_benchmarks
+from hdhil.rig.realtime import STAGES
 
 
 def _positive(x: float) -> bool:
@@ -139,7 +139,7 @@ def test_text_report_and_json_roundtrip(report: dict) -> None:
 
 
 def test_realtime_section_can_be_left_out(report: dict, monkeypatch) -> None:
-    import hdhil.bench as bench
+    import hdhil.commands.bench as bench
 
     def fail(*args: object, **kwargs: object) -> None:
         raise AssertionError("a section ran")

@@ -8,15 +8,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from hdhil.dataconf import ConfigError, from_dict
-from hostsim.bridge import (
+from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.hostsim.bridge import (
     GAUGE_COUNT,
     BridgeConfig,
     GaugeHysteresis,
     StrainGaugeBridge,
     bridge_output_V,
 )
-from hostsim.plant import RippleConfig
+from hdhil.hostsim.plant import RippleConfig
 
 BETAS = np.linspace(0.0, 2 * math.pi, 256, endpoint=False)
 

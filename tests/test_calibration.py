@@ -9,14 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware.config import FirmwareConfig
-from hdhil.calibrate import load_calibration
-from hdhil.cli import UserError, main
-from hdhil.dataconf import from_dict, merge
-from hostsim.bridge import BridgeConfig
-from hostsim.calibration import CalibrationRig, calibrate, load_sequence
-from hostsim.plant import PlantConfig
-from hostsim.scenario import load_scenario
+from hdhil.cli import main
+from hdhil.core.dataconf import from_dict, merge
+from hdhil.core.errors import UserError
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.hostsim.bridge import BridgeConfig
+from hdhil.hostsim.calibration import CalibrationRig, calibrate, load_sequence
+from hdhil.hostsim.plant import PlantConfig
+from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.calibration import load_calibration
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ from __future__ import annotations
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hdhil.canbits import frame_bits
+from hdhil.can.bittiming import frame_bits
 from hdhil.dbc import worst_case_frame_bits
 
 

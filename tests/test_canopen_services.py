@@ -19,7 +19,8 @@ from canopen.objectdictionary import datatypes as dt
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hdhil.canopen_services import (
+from hdhil.can.simbus import SimClock
+from hdhil.canopen.services import (
     ABORT_TEXT,
     BootTimeoutError,
     CanopenServices,
@@ -38,7 +39,6 @@ from hdhil.canopen_services import (
     sdo_write,
 )
 from hdhil.dbc import eds_path
-from hdhil.simbus import SimClock
 
 _channel_ids = itertools.count()
 

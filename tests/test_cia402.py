@@ -7,7 +7,7 @@ from canopen.profiles.p402 import OperationMode, State402
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hostsim.cia402 import (
+from hdhil.canopen.cia402 import (
     CONTROLWORD,
     CST,
     SUPPORTED_DRIVE_MODES_BITS,

@@ -16,7 +16,10 @@ import cantools
 import numpy as np
 import pytest
 
-from firmware.config import (
+from hdhil.can.busload import schedule_load
+from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.dbc import codec, database, dbc_path
+from hdhil.firmware.config import (
     JTF1_FF_TRACKING,
     ControlConfig,
     DesiredTorqueConfig,
@@ -24,15 +27,12 @@ from firmware.config import (
     Law,
     Wave,
 )
-from firmware.controller import ControllerNode
-from firmware.isr import AdcSample, InterruptHandler
-from firmware.lqg import ControlLaw, Feedforward, LqgWeights, ObserverMethod
-from firmware.tracking import TrackingPlant, simulate_tracking, tracking_table
-from hdhil.busload import schedule_load
-from hdhil.dataconf import ConfigError, from_dict
-from hdhil.dbc import codec, database, dbc_path
-from hostsim.plant import Plant
-from hostsim.scenario import load_scenario
+from hdhil.firmware.controller import ControllerNode
+from hdhil.firmware.isr import AdcSample, InterruptHandler
+from hdhil.firmware.lqg import ControlLaw, Feedforward, LqgWeights, ObserverMethod
+from hdhil.firmware.tracking import TrackingPlant, simulate_tracking, tracking_table
+from hdhil.hostsim.plant import Plant
+from hdhil.hostsim.scenario import load_scenario
 
 #: The seed's design on the lqg-tracking actuator (20 Nm/V, 150 Nm).
 SEED = ControlConfig(law=Law.JTF1, torque_per_volt=20.0, torque_limit_Nm=150.0)
@@ -168,8 +168,8 @@ def test_node_sends_ctrl_tpdo2_only_with_a_law() -> None:
 
     (That its content is the handler's output is tested in tests/test_controller_canopen.py.)
     """
-    from hdhil.run import run_lockstep
-    from hostsim.scenario import load_scenario
+    from hdhil.hostsim.scenario import load_scenario
+    from hdhil.rig.runner import run_lockstep
 
     def frames(name: str) -> tuple[dict[str, int], int]:
         r = run_lockstep(load_scenario(name), duration_s=0.05, trace=None, evaluate=False)
@@ -254,7 +254,7 @@ def test_12_bit_dac_quantisation_is_not_the_limit() -> None:
 
 
 def _dac16():
-    from hdhil.converter import Converter
+    from hdhil.core.converter import Converter
 
     return Converter(bits=16)
 

@@ -2,7 +2,7 @@
 
 Every test runs the controller in lockstep on ``simbus`` against a small scripted drive
 (node 2): boot-up, NMT slave, heartbeat, sensor TPDO on SYNC, the CiA 402 state machine of
-:mod:`hostsim.cia402` driven by the controlword of ``DRIVE_RPDO1`` (applied on receipt),
+:mod:`hdhil.canopen.cia402` driven by the controlword of ``DRIVE_RPDO1`` (applied on receipt),
 the statusword in ``DRIVE_TPDO2`` on change, and an SDO upload of 0x6041.  Faults (a lost
 statusword, silence, a fault) are scripted, so the tests do not depend on the real
 drive's timing.  SDO requests to the controller are hand-made frames (CiA 301 §7.2.4).
@@ -18,12 +18,12 @@ from collections.abc import Callable
 import can
 import pytest
 
-from firmware.config import FirmwareConfig, Law, ReferenceConfig, Wave, paper_config
-from firmware.controller import PARAMETERS, ControllerNode
-from hdhil.canopen_services import load_od
+from hdhil.can.simbus import SimClock
+from hdhil.canopen.cia402 import DriveStateMachine, State
+from hdhil.canopen.services import load_od
 from hdhil.dbc import codec, database, eds_path
-from hdhil.simbus import SimClock
-from hostsim.cia402 import DriveStateMachine, State
+from hdhil.firmware.config import FirmwareConfig, Law, ReferenceConfig, Wave, paper_config
+from hdhil.firmware.controller import PARAMETERS, ControllerNode
 
 TS = 1e-3
 SENSOR = codec("control", "DRIVE_TPDO1")
@@ -292,7 +292,7 @@ def test_the_scenario_configuration_is_what_an_sdo_read_returns(link):
         num_samples=1234,
         reference=ReferenceConfig(wave=Wave.STEP, amplitude_V=0.654296875, step_time_s=0.05),
     )
-    from firmware.config import paper_config
+    from hdhil.firmware.config import paper_config
 
     cfg = paper_config(cfg)
     lk = link(cfg, sync_overflow=16)

@@ -82,7 +82,7 @@ def test_every_control_frame_is_a_known_canopen_object():
         if kind == "PDO":
             assert _attribute(message, "GenMsgSendType") in TRANSMISSION_TYPES, message.name
         else:
-            # Sporadic service frames stay out of the cyclic schedule (hdhil.busload),
+            # Sporadic service frames stay out of the cyclic schedule (hdhil.can.busload),
             # except SYNC, which paces the cycle.
             assert bool(message.cycle_time) == (kind == "SYNC"), message.name
 
@@ -209,8 +209,8 @@ def test_drive_eds_communication_objects_agree_with_the_dbc():
 
 
 def test_nodes_take_pdo_identifiers_from_their_object_dictionary():
+    from hdhil.can.node import pdo_cob_id
     from hdhil.dbc import codec
-    from hdhil.node import pdo_cob_id
 
     od = canopen.import_od(str(eds_path("drive")), 2)
     assert pdo_cob_id(od, 0x1800, codec("control", "DRIVE_TPDO1")) == 0x182

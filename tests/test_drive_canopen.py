@@ -17,17 +17,17 @@ import struct
 import can
 import pytest
 
-from hdhil.canopen_services import NmtCommand, NmtState
-from hdhil.dbc import codec
-from hdhil.simbus import SimClock
-from hostsim.cia402 import (
+from hdhil.can.simbus import SimClock
+from hdhil.canopen.cia402 import (
     SW_INTERNAL_LIMIT,
     SW_WARNING,
     State,
     state_from_statusword,
 )
-from hostsim.drive import DriveConfig, DriveNode
-from hostsim.plant import Plant, PlantConfig, RippleConfig, SensorConfig
+from hdhil.canopen.services import NmtCommand, NmtState
+from hdhil.dbc import codec
+from hdhil.hostsim.drive import DriveConfig, DriveNode
+from hdhil.hostsim.plant import Plant, PlantConfig, RippleConfig, SensorConfig
 
 _channels = itertools.count()
 

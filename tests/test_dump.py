@@ -15,8 +15,9 @@ import can
 import numpy as np
 import pytest
 
-from hdhil import dump
+from hdhil.can import tracefile as dump
 from hdhil.cli import main
+from hdhil.commands import dump as dump_command
 from hdhil.dbc import database
 
 CTRL = database("control")
@@ -285,7 +286,7 @@ def test_csv_output(tmp_path, capsys):
 def test_csv_is_not_left_half_written(tmp_path, capsys, monkeypatch):
     trace = write_trace(tmp_path / "t.blf", make_frames(20))
     out_csv = tmp_path / "out.csv"
-    original = dump._CsvOut.add
+    original = dump_command._CsvOut.add
     calls = {"n": 0}
 
     def failing_add(self, frame):
@@ -294,7 +295,7 @@ def test_csv_is_not_left_half_written(tmp_path, capsys, monkeypatch):
             raise KeyboardInterrupt
         original(self, frame)
 
-    monkeypatch.setattr(dump._CsvOut, "add", failing_add)
+    monkeypatch.setattr(dump_command._CsvOut, "add", failing_add)
     rc, _, err = run_cli(capsys, trace, "--csv", out_csv)
     assert rc == 130 and "interrupted" in err
     assert not out_csv.exists()
@@ -641,8 +642,8 @@ def test_decode_frame_api():
 
 def test_stats_report_actual_load_and_cycle_counter_gaps(tmp_path, capsys):
     """A run's trace with frames removed: the counters' gaps show exactly what is missing."""
-    from hdhil.run import run_lockstep
-    from hostsim.scenario import load_scenario
+    from hdhil.hostsim.scenario import load_scenario
+    from hdhil.rig.runner import run_lockstep
 
     full = tmp_path / "full.blf"
     run_lockstep(load_scenario("free-motion"), duration_s=0.5, trace=full, evaluate=False)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from hdhil.evaluate import estimate_lag, harmonic_amplitude
+from hdhil.rig.evaluate import estimate_lag, harmonic_amplitude
 
 
 def test_harmonic_amplitude_recovers_each_component():
@@ -41,7 +41,7 @@ def test_per_minute_blocks_count_from_the_first_frame_whatever_the_clock():
     import can
 
     from hdhil.dbc import codec
-    from hdhil.score import TorqueScorer
+    from hdhil.rig.score import TorqueScorer
 
     tele, truth = codec("control", "CTRL_TPDO1"), codec("truth", "TRUTH_TORQUE")
     scorer = TorqueScorer(block_s=1.0)

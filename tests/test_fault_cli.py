@@ -16,13 +16,7 @@ import time
 import can
 import pytest
 
-from firmware.config import FirmwareConfig
-from firmware.controller import ControllerNode
-from hdhil import run as run_module
-from hdhil.cli import main
-from hdhil.dataconf import ConfigError, from_dict
-from hdhil.dbc import codec
-from hdhil.faults import (
+from hdhil.can.faults import (
     FaultConfig,
     FaultInjector,
     FaultLog,
@@ -30,10 +24,16 @@ from hdhil.faults import (
     parse_fault_flags,
     with_fault_flags,
 )
-from hdhil.simbus import SimClock
-from hostsim.drive import DriveConfig, DriveNode
-from hostsim.plant import Plant, PlantConfig
-from hostsim.scenario import load_scenario
+from hdhil.can.simbus import SimClock
+from hdhil.cli import main
+from hdhil.commands import run as run_module
+from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.dbc import codec
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.controller import ControllerNode
+from hdhil.hostsim.drive import DriveConfig, DriveNode
+from hdhil.hostsim.plant import Plant, PlantConfig
+from hdhil.hostsim.scenario import load_scenario
 
 TS = 1e-3
 SENSOR = codec("control", "DRIVE_TPDO1")

@@ -9,11 +9,11 @@ import math
 import can
 import pytest
 
-from hdhil.dataconf import ConfigError, from_dict
-from hdhil.faults import FaultConfig, FaultInjector, FaultLog, node_ids
-from hdhil.simbus import SimClock
-from hostsim.plant import Plant, PlantConfig
-from hostsim.scenario import scenario_from_dict
+from hdhil.can.faults import FaultConfig, FaultInjector, FaultLog, node_ids
+from hdhil.can.simbus import SimClock
+from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.hostsim.plant import Plant, PlantConfig
+from hdhil.hostsim.scenario import scenario_from_dict
 
 _names = itertools.count()
 
@@ -295,10 +295,10 @@ def test_inf_duration_window_is_allowed():
 
 # ----------------------------------------------------------------------------- lockstep
 def _lockstep(monkeypatch, faults: dict | None, seed: int = 0):
-    """``hdhil.run.run_lockstep`` on free-motion with ``faults`` on the control channel
+    """``hdhil.rig.runner.run_lockstep`` on free-motion with ``faults`` on the control channel
     (attached by wrapping ``can.Bus`` until run_lockstep takes a faults argument)."""
-    from hdhil import run
-    from hostsim.scenario import load_scenario
+    from hdhil.hostsim.scenario import load_scenario
+    from hdhil.rig import runner as run
 
     inj = FaultInjector(from_dict(FaultConfig, {"seed": seed, "control": faults or {}}))
     real_bus = can.Bus

@@ -12,12 +12,12 @@ import can
 import numpy as np
 import pytest
 
-from firmware.config import FirmwareConfig, paper_config
-from firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
+from hdhil.can.trace import open_writer
 from hdhil.cli import main
 from hdhil.dbc import codec
-from hdhil.filter_cmd import OUTPUT_COLUMNS
-from hdhil.trace import open_writer
+from hdhil.firmware.config import FirmwareConfig, paper_config
+from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
+from hdhil.rig.offline import OUTPUT_COLUMNS
 
 HEADER = "time,T_meas,acceleration,T_expected,ripple,T_filtered"
 

@@ -1,7 +1,7 @@
 """The ripple-filter goals, measured end to end over the bus against ground truth.
 
 Each scenario runs through the simulated CAN link (firmware, drive emulator, logger) and
-is scored by :mod:`hdhil.evaluate` from what was on the buses, after the scenario's
+is scored by :mod:`hdhil.rig.evaluate` from what was on the buses, after the scenario's
 ``evaluate_from_s`` (the ripple at standstill is a static offset no causal filter can
 separate from true torque; the whole-run figure is printed by ``hdhil run`` too).
 """
@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import pytest
 
-from hdhil.run import run_lockstep
-from hostsim.scenario import load_scenario
+from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.runner import run_lockstep
 
 
 def _evaluate(name: str, duration_s: float | None = None) -> dict[str, dict]:

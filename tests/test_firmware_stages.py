@@ -8,7 +8,9 @@ import math
 
 import pytest
 
-from firmware.config import (
+from hdhil.core.converter import Converter
+from hdhil.core.dataconf import ConfigError, from_dict, to_dict
+from hdhil.firmware.config import (
     LISTING_A1_RIPPLE,
     LISTING_A2_RIPPLE,
     RECOMMENDED_RIPPLE,
@@ -23,7 +25,7 @@ from firmware.config import (
     paper_config,
     recommended_config,
 )
-from firmware.stages import (
+from hdhil.firmware.stages import (
     Differentiator,
     EncoderUnwrap,
     ReferenceGenerator,
@@ -35,8 +37,6 @@ from firmware.stages import (
     filtered_torque,
     torque_error,
 )
-from hdhil.converter import Converter
-from hdhil.dataconf import ConfigError, from_dict, to_dict
 
 LSB = 10.0 / 2048  # 12-bit, +/-10 V
 

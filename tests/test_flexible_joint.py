@@ -11,13 +11,12 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from firmware.config import FirmwareConfig
-from firmware.stages import adc_read, calibrate
-from hdhil.dataconf import ConfigError, from_dict
+from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.dbc import codec
-from hdhil.run import run_lockstep
-from hostsim.bridge import BridgeConfig
-from hostsim.plant import (
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.stages import adc_read, calibrate
+from hdhil.hostsim.bridge import BridgeConfig
+from hdhil.hostsim.plant import (
     AmplifierConfig,
     DriveTrainConfig,
     GravityConfig,
@@ -28,7 +27,8 @@ from hostsim.plant import (
     RippleConfig,
     SensorConfig,
 )
-from hostsim.scenario import load_scenario
+from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.runner import run_lockstep
 
 #: Seed 003 §I-II, reduced to the output shaft; friction off unless a test adds it.
 SEED003 = DriveTrainConfig(

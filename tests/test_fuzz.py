@@ -27,7 +27,7 @@ sum of every per-frame counter of the node (``unknown_frames``, ``error_frames``
 diagnostics' frame counters, the CiA 301 services' counters).  A frame either moves the
 tally (handled and counted) or belongs to one of the classes a node ignores by design:
 
-- ``not_addressed``: a DBC frame of another node (``hdhil.node``: frames of the bus's
+- ``not_addressed``: a DBC frame of another node (``hdhil.can.node``: frames of the bus's
   DBC not addressed to the node are ignored), remote frames on those identifiers
   included;
 - ``nmt_other_node``: an NMT command for another node-ID (CiA 301);
@@ -55,15 +55,15 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from firmware.config import FirmwareConfig
-from firmware.controller import ControllerNode, Phase
-from hdhil import canopen_services
-from hdhil.canopen_services import ABORT_TEXT, NmtState
+from hdhil.can.simbus import SimClock
+from hdhil.canopen import services as canopen_services
+from hdhil.canopen.cia402 import state_from_statusword
+from hdhil.canopen.services import ABORT_TEXT, NmtState
 from hdhil.dbc import codec, database
-from hdhil.simbus import SimClock
-from hostsim.cia402 import state_from_statusword
-from hostsim.drive import DriveConfig, DriveNode
-from hostsim.plant import Plant, PlantConfig
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.controller import ControllerNode, Phase
+from hdhil.hostsim.drive import DriveConfig, DriveNode
+from hdhil.hostsim.plant import Plant, PlantConfig
 
 TS = 1e-3
 CTRL_ID, DRIVE_ID = 1, 2

@@ -6,11 +6,11 @@ import time
 
 import pytest
 
-from firmware.config import FirmwareConfig
 from hdhil.cli import main
-from hostsim.drive import DriveConfig, DriveNode
-from hostsim.plant import Plant
-from hostsim.scenario import load_scenario
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.hostsim.drive import DriveConfig, DriveNode
+from hdhil.hostsim.plant import Plant
+from hdhil.hostsim.scenario import load_scenario
 
 
 @pytest.fixture

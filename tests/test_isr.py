@@ -9,7 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from firmware.config import (
+from hdhil.core.converter import Converter
+from hdhil.firmware.config import (
     ControlConfig,
     DesiredTorqueConfig,
     FirmwareConfig,
@@ -19,8 +20,8 @@ from firmware.config import (
     Wave,
     paper_config,
 )
-from firmware.isr import AdcSample, InterruptHandler, IsrOutput, TorqueFilterChain
-from firmware.lqg import (
+from hdhil.firmware.isr import AdcSample, InterruptHandler, IsrOutput, TorqueFilterChain
+from hdhil.firmware.lqg import (
     ControlLaw,
     Feedforward,
     JointParams,
@@ -29,9 +30,8 @@ from firmware.lqg import (
     design_lq,
     design_lqg,
 )
-from firmware.ripple import HarmonicKalman, RippleKalman
-from firmware.stages import Differentiator
-from hdhil.converter import Converter
+from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
+from hdhil.firmware.stages import Differentiator
 
 LSB = 10.0 / 2048
 PAPER = paper_config(FirmwareConfig())  # listing A.1

@@ -17,7 +17,8 @@ from hypothesis import strategies as st
 from scipy.linalg import expm, solve_continuous_lyapunov
 
 import hdhil.cli as cli
-from firmware.lqg import (
+from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.firmware.lqg import (
     ControlLaw,
     DesignError,
     Feedforward,
@@ -37,7 +38,6 @@ from firmware.lqg import (
     lq_riccati,
     observer_model,
 )
-from hdhil.dataconf import ConfigError, from_dict
 
 SEED_K = (-18.3, -0.33, -2.81, 3.62)  # seed 003 §VI
 SEED_L = (199.0, 19854.0, 289.0)  # seed 003 §VI
@@ -627,9 +627,7 @@ def test_undetectable_lq_problem_raises_design_error():
 
 @pytest.fixture
 def hdhil(monkeypatch, capsys):
-    """``hdhil`` restricted to the design subcommand (isolates these tests from the
-    other subcommands' imports)."""
-    monkeypatch.setattr(cli, "COMMANDS", ("design",))
+    """``hdhil ARGS...``: (exit code, stdout, stderr)."""
 
     def run(*argv: str) -> tuple[int, str, str]:
         code = cli.main(list(argv))

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from hdhil.dataconf import ConfigError, from_dict
-from hostsim.bridge import BridgeConfig
-from hostsim.plant import (
+from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.hostsim.bridge import BridgeConfig
+from hdhil.hostsim.plant import (
     AmplifierConfig,
     DriveTrainConfig,
     LoadTorqueConfig,
@@ -23,7 +23,7 @@ from hostsim.plant import (
     steady_state_motor_velocity,
     steady_state_volts,
 )
-from hostsim.scenario import load_scenario
+from hdhil.hostsim.scenario import load_scenario
 
 LSB = 10.0 / 2048  # 12-bit, +/-10 V (the converter spec shared with the firmware)
 QUIET = SensorConfig(torque_noise_Nm=0.0, tacho_noise_radps=0.0, current_noise_A=0.0)

@@ -14,12 +14,12 @@ import can
 import numpy as np
 import pytest
 
-from firmware.config import FirmwareConfig, PlausibilityConfig, paper_config
-from firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
-from firmware.stages import Differentiator, SensorPlausibility
-from hdhil.dataconf import ConfigError, from_dict
-from hdhil.run import run_lockstep
-from hostsim.scenario import load_scenario
+from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.firmware.config import FirmwareConfig, PlausibilityConfig, paper_config
+from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
+from hdhil.firmware.stages import Differentiator, SensorPlausibility
+from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.runner import run_lockstep
 
 TS = 1e-3
 CFG = PlausibilityConfig()

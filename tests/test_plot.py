@@ -12,12 +12,9 @@ import can
 import numpy as np
 import pytest
 
-from firmware.config import FirmwareConfig
+from hdhil.can.tracefile import read_trace
 from hdhil.cli import main
-from hdhil.dataconf import from_dict
-from hdhil.dump import read_trace
-from hdhil.evaluate import recording_from_trace
-from hdhil.plot import (
+from hdhil.commands.plot import (
     PlotData,
     flat_velocity_window,
     make_figure,
@@ -26,7 +23,10 @@ from hdhil.plot import (
     spectrum_peaks,
     torque_spectrum,
 )
-from hostsim.scenario import load_scenario
+from hdhil.core.dataconf import from_dict
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.evaluate import recording_from_trace
 
 Ts = 1e-3
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -71,7 +71,7 @@ def test_flat_velocity_window() -> None:
 def traces(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """2 s of free motion (seed 000 Fig. 8-9) and 3 s of misalignment (Figs. 10-11); the
     misalignment trace also without truth and with the drive's sensor frames only."""
-    from hdhil.run import run_lockstep
+    from hdhil.rig.runner import run_lockstep
 
     d = tmp_path_factory.mktemp("plot")
     out = {"free": d / "free.blf", "mis": d / "mis.blf"}

@@ -18,14 +18,15 @@ from types import SimpleNamespace
 import can
 import pytest
 
-from firmware.config import FirmwareConfig
-from firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
-from firmware.ripple import HarmonicKalman, RippleKalman
-from firmware.stages import Differentiator, ReferenceGenerator, SensorPlausibility
-from hdhil import realtime
 from hdhil.cli import main
-from hdhil.dataconf import ConfigError, from_dict
-from hdhil.realtime import (
+from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
+from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
+from hdhil.firmware.stages import Differentiator, ReferenceGenerator, SensorPlausibility
+from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig import realtime as realtime
+from hdhil.rig.realtime import (
     HISTOGRAM_EDGES_US,
     RT_SHARE_MARGIN,
     SPIN_FRACTION,
@@ -38,8 +39,7 @@ from hdhil.realtime import (
     percentiles,
     rt_share_limit,
 )
-from hdhil.run import run_lockstep
-from hostsim.scenario import load_scenario
+from hdhil.rig.runner import run_lockstep
 
 STAT_KEYS = ("jitter_us", "latency_us", "isr_us", "cycle_work_us", "sleep_overshoot_us")
 PCT_KEYS = {"p50", "p99", "p99.9", "max", "mean"}

@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from firmware.config import (
+from hdhil.firmware.config import (
     RECOMMENDED_RIPPLE,
     RECOMMENDED_SECTION5_RIPPLE,
     FirmwareConfig,
@@ -18,9 +18,9 @@ from firmware.config import (
     RippleFilterConfig,
     paper_config,
 )
-from firmware.isr import TorqueFilterChain
-from firmware.response import torque_response, torque_transfer
-from firmware.ripple import HarmonicKalman
+from hdhil.firmware.isr import TorqueFilterChain
+from hdhil.firmware.response import torque_response, torque_transfer
+from hdhil.firmware.ripple import HarmonicKalman
 
 Ts = 1e-3
 GEAR = 100.0

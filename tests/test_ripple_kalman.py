@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from scipy.linalg import block_diag
 
-from firmware.config import (
+from hdhil.firmware.config import (
     LISTING_A1_RIPPLE,
     LISTING_A2_RIPPLE,
     SECTION5_RIPPLE,
     Oscillator,
     RippleFilterConfig,
 )
-from firmware.ripple import RippleKalman
+from hdhil.firmware.ripple import RippleKalman
 
 T = 1e-3
 GEAR = 100.0

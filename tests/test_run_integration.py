@@ -7,11 +7,11 @@ import json
 import can
 import pytest
 
-from hdhil import run as run_module
 from hdhil.cli import main
 from hdhil.dbc import CHANNEL_NUMBER, codec
-from hdhil.run import run_lockstep
-from hostsim.scenario import load_scenario
+from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig import runner as run_module
+from hdhil.rig.runner import run_lockstep
 
 
 @pytest.fixture(scope="module")
@@ -244,7 +244,7 @@ def test_sigkill_loses_at_most_the_last_second_of_a_line_based_trace(tmp_path, s
     import sys
     import time
 
-    from hdhil.dump import read_trace
+    from hdhil.can.tracefile import read_trace
 
     def last_time(path) -> tuple[int, float]:
         with read_trace(path) as trace:

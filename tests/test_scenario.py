@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware.config import FirmwareConfig
-from firmware.stages import ReferenceGenerator
-from hdhil.dataconf import ConfigError, from_dict
-from hostsim.plant import Plant, PlantConfig, steady_state_motor_velocity
-from hostsim.scenario import Scenario, list_scenarios, load_scenario
+from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.stages import ReferenceGenerator
+from hdhil.hostsim.plant import Plant, PlantConfig, steady_state_motor_velocity
+from hdhil.hostsim.scenario import Scenario, list_scenarios, load_scenario
 
 SHIPPED = Path(__file__).resolve().parents[1] / "hostsim" / "scenarios"
 

@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hdhil.busload import schedule_load
-from hdhil.canbits import frame_bits
-from hdhil.simbus import (
+from hdhil.can.bittiming import frame_bits
+from hdhil.can.busload import schedule_load
+from hdhil.can.simbus import (
     _MESSAGE_FIELDS,
     SimClock,
     _snapshot_checked,

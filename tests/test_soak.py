@@ -22,13 +22,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-import hdhil.soak as soak
-from firmware.controller import ControllerNode
+import hdhil.commands.soak as soak
 from hdhil.cli import main
-from hdhil.dataconf import ConfigError
-from hdhil.run import run_lockstep
-from hdhil.soak import Block, SoakLimits, SoakReport, run_soak, stationarity
-from hostsim.scenario import load_scenario
+from hdhil.commands.soak import Block, SoakLimits, SoakReport, run_soak, stationarity
+from hdhil.core.dataconf import ConfigError
+from hdhil.firmware.controller import ControllerNode
+from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.runner import run_lockstep
 
 VERDICTS = [
     "run completed",

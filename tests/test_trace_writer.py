@@ -11,8 +11,8 @@ from pathlib import Path
 import can
 import pytest
 
-from hdhil.simbus import SimClock
-from hdhil.trace import BATCH_FRAMES, BusTap, FrameCounter, WriterProcess, open_writer
+from hdhil.can.simbus import SimClock
+from hdhil.can.trace import BATCH_FRAMES, BusTap, FrameCounter, WriterProcess, open_writer
 
 
 def _frames(n: int) -> list[can.Message]:
@@ -88,7 +88,7 @@ def test_the_file_is_closed_and_complete_when_the_run_is_killed(tmp_path):
     script = textwrap.dedent(f"""
         import os, signal, can
         from pathlib import Path
-        from hdhil.trace import BATCH_FRAMES, WriterProcess
+        from hdhil.can.trace import BATCH_FRAMES, WriterProcess
         w = WriterProcess(Path({str(trace)!r}))
         for i in range(2 * BATCH_FRAMES):
             w.on_message_received(can.Message(timestamp=i * 1e-3, arbitration_id=0x80,

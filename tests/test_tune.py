@@ -13,19 +13,9 @@ import can
 import numpy as np
 import pytest
 
-from firmware.config import (
-    LISTING_A1_RIPPLE,
-    RECOMMENDED_SECTION5_RIPPLE,
-    FirmwareConfig,
-    paper_config,
-    recommended_config,
-)
-from firmware.isr import TorqueFilterChain
-from firmware.ripple import HarmonicKalman, RippleKalman
+from hdhil.can.tracefile import read_trace
 from hdhil.cli import main
-from hdhil.dataconf import from_dict
-from hdhil.dump import read_trace
-from hdhil.tune import (
+from hdhil.commands.tune import (
     filter_inputs,
     mean_nll,
     paper_innovations,
@@ -34,7 +24,17 @@ from hdhil.tune import (
     tune_signals,
     with_tuning,
 )
-from hostsim.scenario import load_scenario
+from hdhil.core.dataconf import from_dict
+from hdhil.firmware.config import (
+    LISTING_A1_RIPPLE,
+    RECOMMENDED_SECTION5_RIPPLE,
+    FirmwareConfig,
+    paper_config,
+    recommended_config,
+)
+from hdhil.firmware.isr import TorqueFilterChain
+from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
+from hdhil.hostsim.scenario import load_scenario
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -181,7 +181,7 @@ def test_with_tuning_sets_each_harmonic_group() -> None:
 def traces(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """A 3 s misalignment run (seed 000 §5), and the same trace without the truth channel
     and with only the controller's frames (no DRIVE_TPDO1)."""
-    from hdhil.run import run_lockstep
+    from hdhil.rig.runner import run_lockstep
 
     d = tmp_path_factory.mktemp("tune")
     full = d / "mis.blf"

@@ -1,9 +1,14 @@
-"""The ``hdhil`` command: one console script, one subcommand per tool.
+"""The ``hdhil`` command: one console script, one subcommand per module of
+:mod:`hdhil.commands`.
 
-Each subcommand lives in its own module exposing ``register(subparsers)``, which adds
-its parser and sets ``func`` to a function ``(args) -> int`` (the exit code).  User
-mistakes (bad files, bad parameters) raise :class:`UserError` or ``ConfigError`` and
-become a one-line ``hdhil: error: ...`` on stderr with exit code 2, never a traceback.
+Each command module exposes ``register(subparsers)``, which adds its parser(s) and sets
+``func`` to a function ``(args) -> int`` (the exit code). Only the module of the command
+being run is imported; the others appear in ``hdhil --help`` through the one-line help
+of :data:`COMMANDS`, so asking for help or running one command never loads scipy or
+matplotlib for the others. A test keeps that table equal to what the modules register.
+
+Exit codes: 0 completed, 1 stopped early by a fault reaction or a failed verdict,
+2 usage or input error (one line on stderr, never a traceback), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -13,52 +18,80 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from hdhil.dataconf import ConfigError
+from hdhil.core.errors import ConfigError, UserError
+
+#: Every subcommand, in the order ``hdhil --help`` lists them: its module in
+#: :mod:`hdhil.commands` and its one-line help.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "run": ("run", "run a scenario end to end on the in-process bus"),
+    "dump": ("dump", "show a CAN trace decoded with the DBCs (table, CSV or timing statistics)"),
+    "filter": ("filter", "run the firmware's torque filter offline over a signal CSV or a trace"),
+    "evaluate": ("evaluate", "score the filters against ground truth in a trace"),
+    "tune": ("tune", "tune the recommended ripple filter's Q/R on a trace (maximum likelihood)"),
+    "plot": ("plot", "draw the seed's torque figures (Figs. 8-11) from a trace"),
+    "calibrate": (
+        "calibrate",
+        "calibrate the emulated torque sensor (arm and weights, seed 000 §3)",
+    ),
+    "design": ("design", "controller design (LQG joint-torque regulator of seed 003)"),
+    "identify": (
+        "identify",
+        "natural frequency and damping of the joint from a chirp trace (seed 003 Fig. 5)",
+    ),
+    "emulate": ("netcmd", "run the drive emulator alone on a CAN interface"),
+    "firmware": ("netcmd", "run the controller firmware alone on a CAN interface"),
+    "log": ("netcmd", "record a CAN interface (and the truth bus) to a trace"),
+    "sdo": ("netcmd", "read or write a node's object dictionary (SDO client)"),
+    "nmt": ("netcmd", "send an NMT command"),
+    "bench": ("bench", "measure throughput, per-stage compute time and memory (medians)"),
+    "soak": (
+        "soak",
+        "long lockstep run with logging, checked per block (filter health, errors, memory)",
+    ),
+}
+
+__all__ = ["COMMANDS", "ConfigError", "UserError", "build_parser", "main"]
 
 
-class UserError(Exception):
-    """A mistake the user can fix: reported as one line, exit code 2."""
+def _requested(argv: Sequence[str]) -> str | None:
+    """The subcommand named on the command line, if any (the first non-option word)."""
+    for word in argv:
+        if not word.startswith("-"):
+            return word if word in COMMANDS else None
+    return None
 
 
-#: Subcommand modules, in the order ``hdhil --help`` lists them.
-COMMANDS = (
-    "run",
-    "dump",
-    "filter_cmd",
-    "evaluate",
-    "tune",
-    "plot",
-    "calibrate",
-    "design",
-    "identify",
-    "netcmd",
-    "bench",
-    "soak",
-)
-
-
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(
+    argv: Sequence[str] | None = None, load_all: bool = False
+) -> argparse.ArgumentParser:
+    """The parser for ``argv``: the requested command's module is imported and registers
+    its full parser; the other commands are listed by name and help only.
+    ``load_all`` imports every command module (for tests and documentation)."""
+    wanted = _requested(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(
         prog="hdhil",
         description="Hardware-in-the-loop emulator for joint-torque sensing and control of "
         "harmonic-drive joints over CAN.",
+        epilog="exit codes: 0 completed, 1 stopped early by a fault reaction or failed "
+        "verdict, 2 usage or input error, 130 interrupted",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in COMMANDS:
-        try:
-            module = importlib.import_module(f"hdhil.{name}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"hdhil.{name}":
-                raise
+    loaded: set[str] = set()
+    for name, (module_name, help_text) in COMMANDS.items():
+        if module_name in loaded:
             continue
-        module.register(sub)
+        if load_all or COMMANDS.get(wanted or "", ("",))[0] == module_name:
+            importlib.import_module(f"hdhil.commands.{module_name}").register(sub)
+            loaded.add(module_name)
+        else:
+            sub.add_parser(name, help=help_text, add_help=False)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
     try:
+        parser = build_parser(argv)
+        args = parser.parse_args(argv)
         return int(args.func(args) or 0)
     except (UserError, ConfigError) as exc:
         print(f"hdhil: error: {exc}", file=sys.stderr)

@@ -81,13 +81,13 @@ from typing import Any
 import numpy as np
 from scipy import signal
 
-from firmware.config import FirmwareConfig
-from firmware.stages import adc_read, calibrate
-from hdhil.cli import UserError
-from hdhil.dataconf import from_dict
+from hdhil.core.dataconf import from_dict
+from hdhil.core.errors import UserError
 from hdhil.dbc import codec
-from hostsim.plant import PlantConfig
-from hostsim.scenario import list_scenarios, load_scenario
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.stages import adc_read, calibrate
+from hdhil.hostsim.plant import PlantConfig
+from hdhil.hostsim.scenario import list_scenarios, load_scenario
 
 __all__ = [
     "DEFAULT_SEGMENT_S",
@@ -152,7 +152,7 @@ def chirp_data_from_trace(
     DAC) x ``torque_per_volt``; 0 while the controlword does not enable the drive.
     Cycles without a command (the trace's last, typically) are dropped.
     """
-    from hdhil.dump import read_trace
+    from hdhil.can.tracefile import read_trace
 
     sensor = codec("control", "DRIVE_TPDO1")
     command = codec("control", "DRIVE_RPDO1")

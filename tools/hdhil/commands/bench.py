@@ -7,7 +7,7 @@ its spread, and every per-call time is a median and 99th percentile over many ca
 Sections of the report (``--json`` gives the same data):
 
 - **lockstep**: real-time factor (simulated seconds per wall second) of
-  :func:`hdhil.run.run_lockstep` for free-motion (4th-order ripple model),
+  :func:`hdhil.rig.runner.run_lockstep` for free-motion (4th-order ripple model),
   misalignment (6th order) and lqg-tracking, each with BLF logging on and off, plus
   the reference: the same free-motion loop (same frames) on python-can's bare
   ``virtual`` bus instead of ``simbus``;
@@ -16,11 +16,11 @@ Sections of the report (``--json`` gives the same data):
   run of the plant and the interrupt handler without a bus), the whole interrupt, and
   the plant step (advance + sample) the drive emulator does per cycle;
 - **filter**: offline throughput of ``hdhil filter``'s signal-CSV code path
-  (:func:`hdhil.filter_cmd.filter_signal_csv`) on a generated CSV;
+  (:func:`hdhil.rig.offline.filter_signal_csv`) on a generated CSV;
 - **memory**: peak RSS of the process (``ru_maxrss``) and the resident-memory growth
   over one long lockstep run with logging, per simulated minute;
 - **real time**: one free-motion ``--realtime`` run of ``--realtime-s`` seconds, no
-  logging (:mod:`hdhil.realtime`): SYNC jitter p50/p99/p99.9/max, deadline misses (and
+  logging (:mod:`hdhil.rig.realtime`): SYNC jitter p50/p99/p99.9/max, deadline misses (and
   per 100 000 cycles), sensor-to-command latency, compute per interrupt stage, each
   against the issue's goals (p99 <= 100 µs, p99.9 <= 500 µs, <= 1 miss per 100 000), and
   the machine floor: the bare sleep+spin loop in the same process state for
@@ -51,15 +51,22 @@ from typing import Any
 
 import numpy as np
 
-from firmware.config import FirmwareConfig, paper_config
-from firmware.isr import AdcSample, InterruptHandler, IsrOutput, TorqueControl, TorqueFilterChain
-from firmware.ripple import HarmonicKalman, RippleKalman
-from firmware.stages import Differentiator, SensorPlausibility, adc_read, calibrate
-from hdhil.dataconf import from_dict
-from hdhil.realtime import RealtimeConfig, cpu_steal_ns, format_steal, steal_report
-from hdhil.run import run_lockstep
-from hostsim.plant import Plant
-from hostsim.scenario import load_scenario
+from hdhil.core.dataconf import from_dict
+from hdhil.core.errors import UserError
+from hdhil.firmware.config import FirmwareConfig, paper_config
+from hdhil.firmware.isr import (
+    AdcSample,
+    InterruptHandler,
+    IsrOutput,
+    TorqueControl,
+    TorqueFilterChain,
+)
+from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
+from hdhil.firmware.stages import Differentiator, SensorPlausibility, adc_read, calibrate
+from hdhil.hostsim.plant import Plant
+from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.realtime import RealtimeConfig, cpu_steal_ns, format_steal, steal_report
+from hdhil.rig.runner import run_lockstep
 
 #: Scenarios of the lockstep section, with the order of their ripple model.
 LOCKSTEP_SCENARIOS: tuple[tuple[str, str], ...] = (
@@ -400,7 +407,7 @@ def write_signal_csv(path: Path, rows: int, seed: int = 0) -> None:
 def bench_filter(s: BenchSettings) -> list[dict[str, Any]]:
     """Samples per second of ``hdhil filter`` on a signal CSV (reading, filtering and
     writing the output CSV), recommended and paper mode."""
-    from hdhil.filter_cmd import OUTPUT_COLUMNS, filter_signal_csv
+    from hdhil.rig.offline import OUTPUT_COLUMNS, filter_signal_csv
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -738,8 +745,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hdhil.cli import UserError
-
     quick = bool(getattr(args, "quick", False))
     duration = args.duration if args.duration is not None else (0.3 if quick else 10.0)
     repeat = args.repeat if args.repeat is not None else (1 if quick else 3)

@@ -5,7 +5,7 @@ Three nodes share two python-can channels and nothing else:
 - the controller (:class:`firmware.controller.ControllerNode`) on the control bus,
 - the drive emulator (:class:`hostsim.drive.DriveNode`) on the control bus, publishing
   ground truth on the truth channel,
-- the host tap (:class:`hdhil.trace.BusTap`) listening on both: trace writer, frame
+- the host tap (:class:`hdhil.can.trace.BusTap`) listening on both: trace writer, frame
   counter and the scorer that compares telemetry with truth.
 
 Lockstep (DESIGN.md): SYNC k is sent at simulated time k*Ts; every node then handles what
@@ -15,13 +15,10 @@ deterministic and bit-identical for a given seed, and as fast as the host allows
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import itertools
-import json
 import math
 import signal
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -34,21 +31,21 @@ import can
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from firmware.config import FirmwareConfig, Law
-from firmware.controller import ControllerNode
-from hdhil.busload import LOAD_LIMIT, schedule_load
-from hdhil.dataconf import ConfigError, from_dict, merge
+from hdhil.can.busload import LOAD_LIMIT, schedule_load
+from hdhil.can.faults import FaultInjector, FaultLog
+from hdhil.can.simbus import SimBus, SimClock
+from hdhil.can.trace import BusTap, FrameCounter, WriterProcess
+from hdhil.core.dataconf import ConfigError, from_dict, merge
 from hdhil.dbc import CHANNEL_NUMBER, database
-from hdhil.evaluate import RecordingListener, format_evaluation
-from hdhil.evaluate import evaluate as evaluate_recording
-from hdhil.faults import FaultInjector, FaultLog, with_fault_flags
-from hdhil.realtime import RealtimeConfig, RealtimeLoop, WallClock, format_realtime
-from hdhil.score import TorqueScorer, TrackingScorer
-from hdhil.simbus import SimBus, SimClock
-from hdhil.trace import BusTap, FrameCounter, WriterProcess
-from hostsim.drive import DriveConfig, DriveNode
-from hostsim.plant import Plant
-from hostsim.scenario import Scenario, list_scenarios, load_scenario
+from hdhil.firmware.config import FirmwareConfig, Law
+from hdhil.firmware.controller import ControllerNode
+from hdhil.hostsim.drive import DriveConfig, DriveNode
+from hdhil.hostsim.plant import Plant
+from hdhil.hostsim.scenario import Scenario
+from hdhil.rig.evaluate import RecordingListener, format_evaluation
+from hdhil.rig.evaluate import evaluate as evaluate_recording
+from hdhil.rig.realtime import RealtimeConfig, RealtimeLoop, WallClock, format_realtime
+from hdhil.rig.score import TorqueScorer, TrackingScorer
 
 _run_ids = itertools.count(1)
 
@@ -239,19 +236,19 @@ def run_lockstep(
 
     ``evaluate`` records every cycle (96 bytes per cycle) and, after the run, scores the
     firmware's filter against truth side by side with the paper/recommended Kalman modes
-    and the baselines (:mod:`hdhil.evaluate`).  Without it memory stays flat and only the
+    and the baselines (:mod:`hdhil.rig.evaluate`).  Without it memory stays flat and only the
     streaming RMS score is kept.
 
     ``realtime`` paces SYNC by the wall clock at the sample period instead of running as
     fast as possible, and reports jitter, latency and deadline misses
-    (:mod:`hdhil.realtime`); ``realtime_config`` sets its spin window and machine-floor
+    (:mod:`hdhil.rig.realtime`); ``realtime_config`` sets its spin window and machine-floor
     reference.
 
     ``extra_listeners`` are added to the host tap after the run's own (they see every frame
     of both buses, as a logger does).  ``monitor`` is called with the controller at
     the cycle boundary after every ``monitor_every`` samples in operation; on the
     simulated bus the tap has then seen every frame of those samples (how
-    :mod:`hdhil.soak` reads the firmware's filter health per block).
+    :mod:`hdhil.commands.soak` reads the firmware's filter health per block).
     """
     fw_config = from_dict(FirmwareConfig, scenario.firmware, "firmware")
     Ts = fw_config.sample_period_s
@@ -597,117 +594,6 @@ def compare_laws(scenario: Scenario, **kwargs: Any) -> list[dict[str, Any]]:
     return rows
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "run",
-        help="run a scenario end to end on the in-process bus",
-        description="Run the firmware against the drive emulator over CAN in "
-        "one process (lockstep, simulated time), log a trace and score the "
-        "filtered torque against ground truth.",
-    )
-    p.add_argument(
-        "--scenario",
-        default="free-motion",
-        help=f"scenario name or TOML file (shipped: {', '.join(list_scenarios())})",
-    )
-    p.add_argument(
-        "--duration", type=float, default=None, help="simulated seconds (default: the scenario's)"
-    )
-    p.add_argument("--seed", type=int, default=None, help="noise seed (default: the scenario's)")
-    p.add_argument(
-        "--trace",
-        default="hdhil-run.blf",
-        help="trace file; format from the extension: .blf .asc .log .csv .trc "
-        "(default: %(default)s; '' for none)",
-    )
-    p.add_argument("--json", action="store_true", help="print the result as JSON")
-    p.add_argument(
-        "--calibration",
-        type=Path,
-        default=None,
-        help="calibration file written by `hdhil calibrate --out` (the firmware uses its gain)",
-    )
-    add_fault_arguments(p)
-    p.add_argument(
-        "--compare-laws",
-        action="store_true",
-        help="run the scenario once per control law (JTF1, JTF2, JTF3, JTF1 + feedforward) "
-        "and print the tracking table (traces get the law in their name)",
-    )
-    p.add_argument(
-        "--no-evaluate",
-        dest="evaluate",
-        action="store_false",
-        help="skip the side-by-side evaluation against truth (keeps memory flat on long runs)",
-    )
-    p.add_argument(
-        "--skip",
-        type=float,
-        default=None,
-        help="seconds at the start left out of the evaluation (default: the scenario's "
-        "evaluate_from_s; the whole-run RMS figure is printed as well)",
-    )
-    p.add_argument(
-        "--override",
-        type=Path,
-        action="append",
-        default=[],
-        metavar="FILE",
-        help="TOML file deep-merged into the scenario, e.g. [firmware.ripple] written by "
-        "`hdhil tune --out` (repeatable)",
-    )
-    p.add_argument(
-        "--actuation",
-        choices=("next-sync", "immediate"),
-        default="next-sync",
-        help="when the drive applies a command (default: %(default)s)",
-    )
-    p.add_argument(
-        "--interface",
-        default="simbus",
-        help="python-can interface of the control bus: simbus (simulated time, default), "
-        "virtual, socketcan, pcan, kvaser, vector, udp_multicast, ...; 'config' reads "
-        "python-can's configuration file or CAN_INTERFACE",
-    )
-    p.add_argument(
-        "--channel",
-        default=None,
-        help="python-can channel of the control bus (e.g. vcan0, can0, PCAN_USBBUS1)",
-    )
-    p.add_argument(
-        "--bitrate", type=int, default=1_000_000, help="control bus bit rate (default: %(default)s)"
-    )
-    p.add_argument(
-        "--realtime",
-        action="store_true",
-        help="pace SYNC by the wall clock at the sample period (sleep, then spin) instead "
-        "of lockstep as fast as possible; reports SYNC jitter, sensor-to-command latency, "
-        "interrupt compute time and deadline misses (also under 'realtime' in --json)",
-    )
-    p.add_argument(
-        "--spin-us",
-        type=float,
-        default=None,
-        metavar="US",
-        help="--realtime: busy-wait this many µs before each deadline (default: 60 %% of the "
-        "period, within the kernel's RT throttling budget)",
-    )
-    p.add_argument(
-        "--mlock",
-        action="store_true",
-        help="--realtime: lock the process's memory (mlockall, where permitted)",
-    )
-    p.add_argument(
-        "--floor-s",
-        type=float,
-        default=0.0,
-        metavar="S",
-        help="--realtime: after the run, measure the machine floor (the bare sleep+spin loop, "
-        "no hdhil code) for S seconds (default: none)",
-    )
-    p.set_defaults(func=run)
-
-
 @contextmanager
 def stop_on_signals() -> Iterator[threading.Event]:
     """Turn the first SIGINT/SIGTERM into a stop request (the run ends cleanly at the next
@@ -727,95 +613,3 @@ def stop_on_signals() -> Iterator[threading.Event]:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-
-
-def add_fault_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
-    """``--fault KEY=VALUE`` (repeatable) and ``--fault-log FILE``."""
-    p.add_argument(
-        "--fault",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="inject a fault: a key of the scenario's [faults] table, dotted, and a TOML "
-        "value, merged over the table (the flag wins; repeatable), e.g. "
-        "control.loss_rate=0.05, control.jitter_us=200, sensors.tacho_spike_rate=0.001, "
-        "seed=3, 'control.silence=[{node=2,start_s=1,duration_s=0.5}]'" + what,
-    )
-    p.add_argument(
-        "--fault-log",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="write every injected fault as JSON lines",
-    )
-
-
-def run(args: argparse.Namespace) -> int:
-    from hdhil.cli import UserError
-
-    overrides: dict[str, Any] = {}
-    for path in args.override:
-        overrides = merge(overrides, read_toml(path))
-    scenario = load_scenario(args.scenario, overrides or None)
-    if args.fault:
-        scenario = dataclasses.replace(
-            scenario, faults=with_fault_flags(scenario.faults, args.fault)
-        )
-    if args.calibration is not None:
-        from hdhil.calibrate import load_calibration
-
-        firmware = merge(scenario.firmware, load_calibration(args.calibration))
-        scenario = dataclasses.replace(scenario, firmware=firmware)
-    trace = Path(args.trace) if args.trace else None
-    if not args.realtime and (args.spin_us is not None or args.floor_s or args.mlock):
-        raise UserError("--spin-us, --floor-s and --mlock need --realtime")
-    rt_config = RealtimeConfig(spin_us=args.spin_us, floor_s=args.floor_s, mlock=args.mlock)
-    try:
-        interface = None if args.interface == "config" else args.interface
-        with stop_on_signals() as stop:
-            if args.compare_laws:
-                rows = compare_laws(
-                    scenario,
-                    duration_s=args.duration,
-                    seed=args.seed,
-                    trace=trace,
-                    interface=interface,
-                    actuation=args.actuation,
-                    bitrate=args.bitrate,
-                    channel=args.channel,
-                    stop_requested=stop.is_set,
-                    evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,
-                    realtime=args.realtime,
-                    realtime_config=rt_config,
-                )
-                if args.json:
-                    json.dump({"scenario": scenario.name, "laws": rows}, sys.stdout, indent=2)
-                    print()
-                else:
-                    print(f"hdhil run --compare-laws: scenario {scenario.name}")
-                    print(format_tracking(rows))
-                return 130 if stop.is_set() else 0
-            result = run_lockstep(
-                scenario,
-                args.duration,
-                args.seed,
-                trace,
-                interface,
-                args.actuation,
-                args.bitrate,
-                args.channel,
-                stop_requested=stop.is_set,
-                evaluate=args.evaluate,
-                evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,
-                realtime=args.realtime,
-                realtime_config=rt_config,
-                fault_log=args.fault_log,
-            )
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-    if args.json:
-        json.dump(result.as_dict(), sys.stdout, indent=2)
-        print()
-    else:
-        print(format_result(result))
-    return 130 if result.interrupted else 0

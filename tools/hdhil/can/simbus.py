@@ -20,16 +20,16 @@ Timing model: frames are serialised on the channel like on a real wire.
   identifier wins arbitration; a frame is delivered, timestamped, at the end of its
   transmission.
 - A frame's duration is its exact bit count at the bit rate (``timing="exact"``,
-  default: CRC and the real stuff bits, :mod:`hdhil.canbits`) or its worst case
+  default: CRC and the real stuff bits, :mod:`hdhil.can.bittiming`) or its worst case
   (``timing="worst-case"``, DESIGN.md's budget).  ``bitrate=0`` turns timing off: frames
   are delivered as they are sent, stamped with the clock's time (the ground-truth side
   channel; with a fault hook they still go through the scheduler).
 - Requested frames are scheduled when a receiver next polls, so all requests made at
   one instant take part in the arbitration.
 
-``faults``: a :class:`hdhil.faults.ChannelFaults` hook
+``faults``: a :class:`hdhil.can.faults.ChannelFaults` hook
 (``FaultInjector.channel("control")``) makes the channel lossy, late, noisy
-(:mod:`hdhil.faults`); any bus of the channel may pass it.  Without one the channel keeps
+(:mod:`hdhil.can.faults`); any bus of the channel may pass it.  Without one the channel keeps
 its fault-free path.
 
 ``trace_channel``: the channel number received frames carry (``msg.channel``), e.g. the
@@ -49,11 +49,11 @@ from typing import TYPE_CHECKING, Any
 
 import can
 
-from hdhil.canbits import frame_bits
+from hdhil.can.bittiming import frame_bits
 from hdhil.dbc import worst_case_frame_bits
 
 if TYPE_CHECKING:
-    from hdhil.faults import ChannelFaults
+    from hdhil.can.faults import ChannelFaults
 
 
 class SimClock:
@@ -92,7 +92,7 @@ class _Channel:
         self.seq = 0
         #: The latest request time among the frames requested so far (only ever grows).
         self.latest_request = 0.0
-        #: Fault injection hook (:class:`hdhil.faults.ChannelFaults`); None = a clean link.
+        #: Fault injection hook (:class:`hdhil.can.faults.ChannelFaults`); None = a clean link.
         self.faults: ChannelFaults | None = None
 
     def attach(self, bus: SimBus) -> None:

@@ -1,7 +1,7 @@
 """Fault injection: a lossy, late, noisy CAN link and misbehaving sensors, reproducibly.
 
 A :class:`FaultConfig` (frozen dataclasses, the ``[faults]`` table of a scenario, built
-with :func:`hdhil.dataconf.from_dict`) describes what goes wrong; a :class:`FaultInjector`
+with :func:`hdhil.core.dataconf.from_dict`) describes what goes wrong; a :class:`FaultInjector`
 makes it happen from a seed and records every fault in a :class:`FaultLog`::
 
     injector = FaultInjector(from_dict(FaultConfig, {"control": {"loss_rate": 0.05}}))
@@ -11,7 +11,7 @@ makes it happen from a seed and records every fault in a :class:`FaultLog`::
     ...
     injector.summary()  # {"loss": 97, ...}
 
-Bus faults act inside :meth:`hdhil.simbus._Channel.flush`, so every node sees them
+Bus faults act inside :meth:`hdhil.can.simbus._Channel.flush`, so every node sees them
 exactly as it would see a bad link; sensor faults act at the end of
 :meth:`hostsim.plant.Plant.sample`.  ``channel()``/``sensors()`` return ``None`` when
 nothing is configured, and the bus and plant keep their fault-free fast path.
@@ -71,7 +71,7 @@ from typing import IO, Any, Literal
 
 import can
 
-from hdhil.dataconf import ConfigError, from_dict, merge, to_dict
+from hdhil.core.dataconf import ConfigError, from_dict, merge, to_dict
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -515,7 +515,7 @@ def parse_fault_flags(flags: Sequence[str]) -> dict[str, Any]:
 
     ``KEY`` is a dotted key of the table (``control.loss_rate``, ``seed``); ``VALUE`` is a
     TOML value (``0.05``, ``[{node = 2, start_s = 1}]``, ``"max"``).  Syntax errors raise
-    :class:`hdhil.dataconf.ConfigError` naming the flag; the values are checked by
+    :class:`hdhil.core.dataconf.ConfigError` naming the flag; the values are checked by
     :func:`with_fault_flags`.
     """
     table: dict[str, Any] = {}
@@ -546,7 +546,7 @@ def parse_fault_flags(flags: Sequence[str]) -> dict[str, Any]:
 def with_fault_flags(config: FaultConfig | None, flags: Sequence[str]) -> FaultConfig | None:
     """``config`` (a scenario's ``[faults]``, None if it has none) with ``--fault`` flags
     merged over it, validated as the table is: unknown keys, wrong types and values out of
-    range raise :class:`hdhil.dataconf.ConfigError` naming the key."""
+    range raise :class:`hdhil.core.dataconf.ConfigError` naming the key."""
     if not flags:
         return config
     table = merge(to_dict(config) if config is not None else {}, parse_fault_flags(flags))

@@ -21,9 +21,9 @@ figures; this command draws the same views of any hdhil trace (or a real drive's
   turns.  The output angle comes from the truth channel when present, else from the
   firmware's encoder count (motor angle / gear ratio).
 
-Every signal comes from the same :class:`hdhil.evaluate.Recording` the scorer uses: the
+Every signal comes from the same :class:`hdhil.rig.evaluate.Recording` the scorer uses: the
 measured torque and velocity are the drive's ``DRIVE_TPDO1`` counts through the firmware
-calibration (:func:`hdhil.evaluate.calibrated_signals`); time is the sample index times the
+calibration (:func:`hdhil.rig.evaluate.calibrated_signals`); time is the sample index times the
 firmware's sample period.  A trace without telemetry is plotted with the filtered torque
 re-computed offline by the firmware's own filter chain (labelled so).
 """
@@ -42,9 +42,9 @@ from matplotlib.figure import Figure
 from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 from scipy.signal import find_peaks, periodogram
 
-from firmware.config import FirmwareConfig
-from firmware.isr import TorqueFilterChain
-from hdhil.cli import UserError
+from hdhil.core.errors import UserError
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.isr import TorqueFilterChain
 
 __all__ = [
     "FORMATS",
@@ -177,8 +177,8 @@ class PlotData:
 
 
 def plot_data(rec: Any, cfg: FirmwareConfig) -> PlotData:
-    """The :class:`PlotData` of a :class:`hdhil.evaluate.Recording`."""
-    from hdhil.evaluate import calibrated_signals
+    """The :class:`PlotData` of a :class:`hdhil.rig.evaluate.Recording`."""
+    from hdhil.rig.evaluate import calibrated_signals
 
     n = len(rec)
     if n == 0:
@@ -424,9 +424,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``hdhil plot``: 0 written, 1 written from a damaged trace (2 via UserError)."""
-    from hdhil.dataconf import from_dict
-    from hdhil.evaluate import recording_from_trace
-    from hostsim.scenario import load_scenario
+    from hdhil.core.dataconf import from_dict
+    from hdhil.hostsim.scenario import load_scenario
+    from hdhil.rig.evaluate import recording_from_trace
 
     _check_out(args.out)
     scenario = load_scenario(args.scenario) if args.scenario else None

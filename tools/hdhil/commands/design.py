@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from firmware.lqg import (
+from hdhil.core.errors import UserError
+from hdhil.firmware.lqg import (
     ControlLaw,
     DesignError,
     Feedforward,
@@ -105,8 +106,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _number(args: argparse.Namespace, name: str) -> float:
-    from hdhil.cli import UserError
-
     raw = getattr(args, name)
     if raw is None:
         return float(_DEFAULTS[name])
@@ -117,8 +116,6 @@ def _number(args: argparse.Namespace, name: str) -> float:
 
 
 def _design(args: argparse.Namespace) -> LqgDesign:
-    from hdhil.cli import UserError
-
     v = {name: _number(args, name) for name, _ in _NUMBERS}
     try:
         params = JointParams(v["Jm"], v["Jl"], v["k"], v["c"])

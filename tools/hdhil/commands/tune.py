@@ -7,7 +7,7 @@ listing A.2) without saying how.  This tool estimates them from a recording inst
 using only what the firmware itself sees, so it works on a real drive's traces:
 
 - **Inputs**: the drive's raw sensor frames ``DRIVE_TPDO1`` (ADC counts and the encoder
-  count), calibrated by the firmware's own stages (:func:`hdhil.evaluate.calibrated_signals`)
+  count), calibrated by the firmware's own stages (:func:`hdhil.rig.evaluate.calibrated_signals`)
   and turned into the filter's inputs y = T_meas − T_exp, velocity and motor angle by the
   firmware's own :class:`firmware.isr.TorqueFilterChain`.  Telemetry and ground truth are
   never used for tuning.
@@ -56,16 +56,16 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize
 
-from firmware.config import (
+from hdhil.core.errors import UserError
+from hdhil.firmware.config import (
     FirmwareConfig,
     Oscillator,
     RippleFilterConfig,
     paper_config,
     recommended_config,
 )
-from firmware.isr import TorqueFilterChain
-from firmware.ripple import HarmonicKalman
-from hdhil.cli import UserError
+from hdhil.firmware.isr import TorqueFilterChain
+from hdhil.firmware.ripple import HarmonicKalman
 
 __all__ = [
     "DEFAULT_MAX_EVALS",
@@ -432,9 +432,9 @@ def tune_recording(
     max_evals: int = DEFAULT_MAX_EVALS,
     max_window: int = MAX_WINDOW_SAMPLES,
 ) -> TuneResult:
-    """Tune on a :class:`hdhil.evaluate.Recording` (its ``DRIVE_TPDO1`` columns only);
+    """Tune on a :class:`hdhil.rig.evaluate.Recording` (its ``DRIVE_TPDO1`` columns only);
     then, if it has ground truth, add the RMS check (:attr:`TuneResult.rms`)."""
-    from hdhil.evaluate import calibrated_signals, offline_chain
+    from hdhil.rig.evaluate import calibrated_signals, offline_chain
 
     if len(rec) == 0:
         raise UserError("no DRIVE_TPDO1 frames (drive sensor frames) in the trace: nothing to tune")
@@ -616,9 +616,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``hdhil tune``: 0 done, 1 done on a damaged trace (2 via UserError)."""
-    from hdhil.dataconf import from_dict
-    from hdhil.evaluate import recording_from_trace
-    from hostsim.scenario import load_scenario
+    from hdhil.core.dataconf import from_dict
+    from hdhil.hostsim.scenario import load_scenario
+    from hdhil.rig.evaluate import recording_from_trace
 
     if args.max_evals < 1:
         raise UserError(f"--max-evals must be >= 1, got {args.max_evals}")

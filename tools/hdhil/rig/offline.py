@@ -38,7 +38,6 @@ user error (one line on stderr).
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import csv
 import dataclasses
@@ -51,16 +50,16 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
-from firmware.config import FirmwareConfig, paper_config
-from firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
-from hdhil.cli import UserError
-from hdhil.dataconf import ConfigError, from_dict
+from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.core.errors import UserError
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
 
 #: Output columns, in order.
 OUTPUT_COLUMNS = ("time", "T_meas", "acceleration", "T_expected", "ripple", "T_filtered")
 #: Required columns of a signal CSV.
 REQUIRED_COLUMNS = ("time", "T_meas", "velocity")
-#: Trace formats (``hdhil.dump.READERS``), without importing python-can up front.
+#: Trace formats (``hdhil.can.tracefile.READERS``), without importing python-can up front.
 TRACE_EXTENSIONS = (".blf", ".asc", ".log", ".csv", ".trc")
 _CAN_CSV_HEADER = "timestamp,arbitration_id"
 
@@ -71,8 +70,6 @@ __all__ = [
     "filter_signal_csv",
     "filter_trace",
     "load_firmware_config",
-    "register",
-    "run",
 ]
 
 
@@ -326,8 +323,8 @@ def _collect(summary: FilterSummary, chain: TorqueFilterChain) -> None:
 
 def _sensor_frames(path: Path, summary: FilterSummary) -> Iterator[tuple[float, tuple[int, ...]]]:
     """``(timestamp, (torque, tacho, current, encoder))`` of every DRIVE_TPDO1 frame."""
+    from hdhil.can.tracefile import read_trace
     from hdhil.dbc import codec
-    from hdhil.dump import read_trace
 
     sensor = codec("control", "DRIVE_TPDO1")
     frame_id = sensor.frame_id
@@ -361,61 +358,3 @@ def filter_trace(path: Path, cfg: FirmwareConfig, writer: Any) -> FilterSummary:
     summary.samples = n
     _collect(summary, isr.chain)
     return summary
-
-
-# -------------------------------------------------------------------------------- CLI
-def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "filter",
-        help="run the firmware's torque filter offline over a signal CSV or a trace",
-        description="Run the firmware's torque filter chain (differentiator, expected "
-        "torque, ripple Kalman filter) offline.  INPUT is a CSV with columns "
-        "time,T_meas,velocity[,encoder] or a trace written by 'hdhil run' (its DRIVE_TPDO1 "
-        "frames are filtered exactly as the firmware did).  Output columns: "
-        + ",".join(OUTPUT_COLUMNS)
-        + ".",
-    )
-    parser.add_argument("input", metavar="INPUT", help="signal CSV or trace file")
-    parser.add_argument(
-        "--out", required=True, metavar="OUT.csv", help="output CSV ('-' for stdout)"
-    )
-    parser.add_argument(
-        "--paper",
-        action="store_true",
-        help="use the seed's paper filter (listing A.1 for the default harmonics) instead "
-        "of the recommended one",
-    )
-    parser.add_argument(
-        "--config",
-        metavar="FILE.toml",
-        help="firmware configuration: a scenario file ([firmware...] tables) or the "
-        "firmware tables at top level",
-    )
-    parser.set_defaults(func=run)
-
-
-def run(args: argparse.Namespace) -> int:
-    """Filter ``args.input`` into ``args.out``; 0 done, 1 damaged trace (2 via UserError)."""
-    path = Path(args.input)
-    fmt, compressed = _check_input(path)
-    cfg = load_firmware_config(args.config)
-    if args.paper:
-        cfg = paper_config(cfg)
-    is_trace = fmt != ".csv" or _is_can_csv(path, compressed)
-    target = _CsvTarget(args.out, path)
-    try:
-        if is_trace:
-            summary = filter_trace(path, cfg, target.writer)
-        else:
-            summary = filter_signal_csv(path, compressed, cfg, target.writer)
-        target.commit()
-    except BaseException:
-        target.abort()
-        raise
-    print(summary.line(target.label), file=sys.stderr)
-    for damage in summary.damage[:5]:
-        print(f"hdhil: warning: {damage}", file=sys.stderr)
-    if len(summary.damage) > 5:
-        more = len(summary.damage) - 5
-        print(f"hdhil: warning: {path}: {more} more damaged spots", file=sys.stderr)
-    return 1 if summary.damage else 0

@@ -16,11 +16,11 @@ Pacing of ``hdhil firmware`` (the SYNC producer):
   the deadline).
 
 Faults (the scenario's ``[faults]`` table with ``--fault KEY=VALUE`` flags merged over it,
-:mod:`hdhil.faults`): each process injects the faults that arise in it.
+:mod:`hdhil.can.faults`): each process injects the faults that arise in it.
 
 - ``emulate``: the sensor faults (``sensors.*``, at the plant, in plant time), and the
   bus faults of ``control.*`` (and ``truth.*`` with a truth bus) on the drive's own
-  transmissions (:class:`hdhil.faults.FaultyTransmitBus`, timed from the process's start);
+  transmissions (:class:`hdhil.can.faults.FaultyTransmitBus`, timed from the process's start);
   object 0x2310 switches sensor faults and silences the drive at run time.
 - ``firmware``: the bus faults of ``control.*`` on the controller's own transmissions.
 
@@ -41,11 +41,7 @@ from typing import Any, Literal
 
 import can
 
-from firmware.config import FirmwareConfig
-from firmware.controller import ControllerNode
-from hdhil.dataconf import ConfigError, from_dict
-from hdhil.dbc import CHANNEL_NUMBER, eds_path
-from hdhil.faults import (
+from hdhil.can.faults import (
     FaultConfig,
     FaultInjector,
     FaultLog,
@@ -54,11 +50,17 @@ from hdhil.faults import (
     parse_fault_flags,
     with_fault_flags,
 )
-from hdhil.run import add_fault_arguments, stop_on_signals
-from hdhil.trace import BusTap, FrameCounter, open_writer
-from hostsim.drive import DriveConfig, DriveNode
-from hostsim.plant import Plant
-from hostsim.scenario import load_scenario
+from hdhil.can.trace import BusTap, FrameCounter, open_writer
+from hdhil.commands.options import add_fault_arguments
+from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.core.errors import UserError
+from hdhil.dbc import CHANNEL_NUMBER, eds_path
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.controller import ControllerNode
+from hdhil.hostsim.drive import DriveConfig, DriveNode
+from hdhil.hostsim.plant import Plant
+from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.runner import stop_on_signals
 
 #: How long a node blocks in one receive before it runs its timers again (s).
 RECV_SLICE_S = 0.002
@@ -131,7 +133,7 @@ def _fault_injector(
 def _with_faults(
     bus: can.BusABC | None, injector: FaultInjector, role: Literal["control", "truth"]
 ) -> Any:
-    """``bus``, or its :class:`~hdhil.faults.FaultyTransmitBus` when the node's own frames
+    """``bus``, or its :class:`~hdhil.can.faults.FaultyTransmitBus` when the node's own frames
     on channel ``role`` are to be faulted."""
     hook = injector.channel(role)
     if bus is None or hook is None:
@@ -196,8 +198,6 @@ def run_emulate(args: argparse.Namespace) -> int:
 
 
 def run_firmware(args: argparse.Namespace) -> int:
-    from hdhil.cli import UserError
-
     scenario = load_scenario(args.scenario)
     fw = from_dict(FirmwareConfig, scenario.firmware, "firmware")
     Ts = fw.sample_period_s
@@ -298,8 +298,6 @@ def run_log(args: argparse.Namespace) -> int:
 
 
 def _parse_index(text: str) -> tuple[int, int]:
-    from hdhil.cli import UserError
-
     try:
         index, _, sub = text.partition(":")
         return int(index, 0), int(sub, 0) if sub else 0
@@ -310,8 +308,7 @@ def _parse_index(text: str) -> tuple[int, int]:
 def run_sdo(args: argparse.Namespace) -> int:
     import canopen
 
-    from hdhil.canopen_services import SdoError, sdo_read, sdo_write
-    from hdhil.cli import UserError
+    from hdhil.canopen.services import SdoError, sdo_read, sdo_write
 
     index, sub = _parse_index(args.address)
     node_eds = {1: "controller", 2: "drive"}.get(args.node)
@@ -347,8 +344,6 @@ def _parse_value(text: str) -> int | float:
         try:
             return float(text)
         except ValueError:
-            from hdhil.cli import UserError
-
             raise UserError(f"bad value {text!r}: a number is expected") from None
 
 

@@ -1,14 +1,14 @@
 """``hdhil soak``: a long lockstep run with logging, checked block by block.
 
-The run is :func:`hdhil.run.run_lockstep` with a trace, as ``hdhil run`` does it (without
+The run is :func:`hdhil.rig.runner.run_lockstep` with a trace, as ``hdhil run`` does it (without
 the side-by-side evaluation, which records every cycle).  Every ``--every`` simulated
 seconds (a *block*) this tool records:
 
 - **torque**: RMS error of the telemetry's filtered torque against the emulator's true
   torque (``CTRL_TPDO1.T_filtered``, the LQG's estimate τ̂s when a control law runs), and
-  of the raw measurement, scored from the buses by :class:`hdhil.score.TorqueScorer`;
+  of the raw measurement, scored from the buses by :class:`hdhil.rig.score.TorqueScorer`;
 - **tracking**: RMS and max |e| of the control law, e = T_true − T_D, by
-  :class:`hdhil.score.TrackingScorer` (with a control law only);
+  :class:`hdhil.rig.score.TrackingScorer` (with a control law only);
 - **filter health**, read by this tool from the firmware's ripple filter at the block
   boundary (the firmware itself never reads truth and does not run these checks):
   max|P − Pᵀ| and the smallest eigenvalue of the covariance P, the non-finite values
@@ -52,12 +52,13 @@ import can
 import numpy as np
 from scipy import stats
 
-from firmware.config import FirmwareConfig, Law
-from firmware.controller import ControllerNode
-from hdhil.dataconf import ConfigError, from_dict
-from hdhil.run import RunResult, run_lockstep, stop_on_signals
-from hdhil.score import TorqueScore, TorqueScorer, TrackingScore, TrackingScorer
-from hostsim.scenario import Scenario, list_scenarios, load_scenario
+from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.core.errors import UserError
+from hdhil.firmware.config import FirmwareConfig, Law
+from hdhil.firmware.controller import ControllerNode
+from hdhil.hostsim.scenario import Scenario, list_scenarios, load_scenario
+from hdhil.rig.runner import RunResult, run_lockstep, stop_on_signals
+from hdhil.rig.score import TorqueScore, TorqueScorer, TrackingScore, TrackingScorer
 
 MB = 2.0**20
 
@@ -675,8 +676,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hdhil.cli import UserError
-
     scenario = load_scenario(args.scenario)
     limits = SoakLimits(
         settle_s=scenario.evaluate_from_s if args.settle is None else args.settle,

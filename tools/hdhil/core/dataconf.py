@@ -14,11 +14,9 @@ import types
 import typing
 from typing import Any, TypeVar
 
+from hdhil.core.errors import ConfigError
+
 T = TypeVar("T")
-
-
-class ConfigError(ValueError):
-    """A configuration value is missing, unknown, of the wrong type or out of range."""
 
 
 def _convert(tp: Any, value: Any, where: str) -> Any:

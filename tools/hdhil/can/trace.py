@@ -28,7 +28,7 @@ from typing import Any
 
 import can
 
-from hdhil.simbus import SimBus, received_copy
+from hdhil.can.simbus import SimBus, received_copy
 
 SUPPORTED_SUFFIXES = (".blf", ".asc", ".log", ".csv", ".trc")
 

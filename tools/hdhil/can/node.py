@@ -15,7 +15,6 @@ from collections.abc import Callable
 import can
 
 from hdhil.dbc import BusName, FrameCodec, known_frames
-from hdhil.simbus import SimBus
 
 Handler = Callable[[can.Message], None]
 
@@ -29,7 +28,9 @@ class CanNode:
         self.error_frames = 0
         self._known = known_frames(bus_name)
         self._handlers: dict[tuple[int, bool], Handler] = {}
-        self._simbus = isinstance(bus, SimBus)
+        # A bus that can hand queued frames straight to a handler (simbus) is drained
+        # without a recv() call per frame; any other python-can bus through recv(0).
+        self._dispatch: Callable[[Handler], int] | None = getattr(bus, "dispatch", None)
 
     def handle(self, frame_id: int, handler: Handler, extended: bool = False) -> None:
         """Route frames with this identifier to ``handler``."""
@@ -50,8 +51,8 @@ class CanNode:
 
     def poll(self) -> int:
         """Handle every frame waiting on the bus without blocking; returns how many."""
-        if self._simbus:
-            return self.bus.dispatch(self.on_message)  # type: ignore[attr-defined]
+        if self._dispatch is not None:
+            return self._dispatch(self.on_message)
         n = 0
         recv = self.bus.recv
         while (msg := recv(0)) is not None:

@@ -31,12 +31,9 @@ Metrics, each against the emulator's true transmitted torque ``T_true``:
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import dataclasses
-import json
 import math
-import sys
 from array import array
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,11 +42,11 @@ from typing import Any
 import can
 import numpy as np
 
-from firmware.baselines import ButterworthLowPass, TrackingNotchBank
-from firmware.config import FirmwareConfig, paper_config, recommended_config
-from firmware.isr import TorqueFilterChain
-from firmware.stages import adc_read, calibrate
 from hdhil.dbc import codec
+from hdhil.firmware.baselines import ButterworthLowPass, TrackingNotchBank
+from hdhil.firmware.config import FirmwareConfig, paper_config, recommended_config
+from hdhil.firmware.isr import TorqueFilterChain
+from hdhil.firmware.stages import adc_read, calibrate
 
 #: Recording columns, in order.
 COLUMNS = (
@@ -159,7 +156,7 @@ class RecordingListener(can.Listener):
 
 def recording_from_trace(path: Path, sample_period_s: float = 1e-3) -> tuple[Recording, str]:
     """Read a trace into a recording; returns it and a damage description ('' if clean)."""
-    from hdhil.dump import read_trace
+    from hdhil.can.tracefile import read_trace
 
     listener = RecordingListener(sample_period_s)
     with read_trace(path) as trace:
@@ -347,40 +344,3 @@ def format_evaluation(ev: dict[str, Any]) -> str:
         "mis p-p: residual at 1x output angle)"
     )
     return "\n".join(lines)
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "evaluate",
-        help="score the filters against ground truth in a trace",
-        description="Re-run the firmware's filter chain and the baselines on a "
-        "recorded run and score them against the emulator's ground truth.",
-    )
-    p.add_argument("trace", type=Path, help="trace written by hdhil run")
-    p.add_argument(
-        "--scenario",
-        default=None,
-        help="scenario whose firmware configuration was used (default: defaults)",
-    )
-    p.add_argument("--skip", type=float, default=0.0, help="seconds left out at the start")
-    p.add_argument("--json", action="store_true", help="print the evaluation as JSON")
-    p.set_defaults(func=run)
-
-
-def run(args: argparse.Namespace) -> int:
-    from hdhil.dataconf import from_dict
-    from hostsim.scenario import load_scenario
-
-    fw = (from_dict(FirmwareConfig, load_scenario(args.scenario).firmware, "firmware")
-          if args.scenario else FirmwareConfig())  # fmt: skip
-    rec, damage = recording_from_trace(args.trace, fw.sample_period_s)
-    ev = evaluate(rec, fw, args.skip)
-    if args.json:
-        json.dump(ev, sys.stdout, indent=2)
-        print()
-    else:
-        print(format_evaluation(ev))
-    if damage:
-        print(f"hdhil: warning: {damage}", file=sys.stderr)
-        return 1
-    return 0

@@ -139,8 +139,8 @@ from typing import Any
 
 import can
 
-from hdhil.dataconf import ConfigError
-from hdhil.simbus import SimClock
+from hdhil.can.simbus import SimClock
+from hdhil.core.dataconf import ConfigError
 
 #: Spin window by default, as a fraction of the sample period (600 µs at 1 kHz).
 SPIN_FRACTION = 0.6

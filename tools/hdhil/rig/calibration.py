@@ -19,24 +19,21 @@ scenario's ``[firmware]`` table, so the firmware uses the calibrated gain.
 
 from __future__ import annotations
 
-import argparse
 import json
-import math
 import sys
 from pathlib import Path
 from typing import Any
 
-from hdhil.cli import UserError
-from hdhil.dataconf import ConfigError, from_dict
-from hostsim.calibration import CalibrationResult, CalibrationRig, calibrate
-from hostsim.scenario import list_scenarios, load_scenario
+from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.core.errors import UserError
+from hdhil.hostsim.calibration import CalibrationResult
 
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
-__all__ = ["format_result", "load_calibration", "register", "run", "write_calibration"]
+__all__ = ["format_result", "load_calibration", "write_calibration"]
 
 #: The calibration error the emulated experiment should stay within (README goal).
 GOAL = 0.01
@@ -75,10 +72,10 @@ def load_calibration(path: str | Path) -> dict[str, Any]:
     ``[firmware.calibration]``, with keys of the firmware's calibration
     (:class:`firmware.config.Calibration`: ``volt2Nm``, ``volt2radps``, ...).  The
     return value is ``{"calibration": {...}}``, ready to deep-merge into a scenario's
-    ``[firmware]`` table (``hdhil.dataconf.merge``).  Every mistake raises
+    ``[firmware]`` table (``hdhil.core.dataconf.merge``).  Every mistake raises
     :class:`hdhil.cli.UserError` with a one-line message naming the file.
     """
-    from firmware.config import Calibration
+    from hdhil.firmware.config import Calibration
 
     path = Path(path)
     try:
@@ -142,76 +139,3 @@ def format_result(result: CalibrationResult, scenario: str = "") -> str:
         f"{100 * result.error:+.3f} % ({verdict} the {100 * GOAL:g} % goal)",
     ]
     return "\n".join(lines)
-
-
-def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser(
-        "calibrate",
-        help="calibrate the emulated torque sensor (arm and weights, seed 000 §3)",
-        description="Emulate the torque-sensor calibration of seed 000 §3 on a scenario's "
-        "drive: wave generator locked, known torques loaded and unloaded in both directions "
-        "at several flexspline positions, low range (5 Nm) and full range (40 Nm).  Prints "
-        "the gain (mean of the least-squares slopes), the consistency measure (std / mean) "
-        "and, since this is an emulator, the sensor's true gain and the error.",
-    )
-    p.add_argument(
-        "--scenario",
-        default="free-motion",
-        help="scenario name or TOML file whose drive is calibrated "
-        f"(default: %(default)s; shipped: {', '.join(list_scenarios())})",
-    )
-    p.add_argument("--seed", type=int, default=None, help="noise seed (default: the scenario's)")
-    p.add_argument(
-        "--positions",
-        type=int,
-        default=CalibrationRig.positions,
-        help="flexspline positions; two experiments each (default: %(default)s)",
-    )
-    p.add_argument(
-        "--samples",
-        type=int,
-        default=CalibrationRig.samples,
-        help="ADC samples averaged per load step (default: %(default)s)",
-    )
-    p.add_argument("--json", action="store_true", help="print the result as JSON")
-    p.add_argument(
-        "--out",
-        metavar="FILE",
-        default=None,
-        help="write the calibrated gain as a firmware override ([firmware.calibration] "
-        "volt2Nm; JSON if FILE ends in .json, else TOML)",
-    )
-    p.set_defaults(func=run)
-
-
-def run(args: argparse.Namespace) -> int:
-    scenario = load_scenario(args.scenario)
-    seed = scenario.seed if args.seed is None else args.seed
-    if seed < 0:
-        raise UserError(f"--seed must be >= 0, got {seed}")
-    try:
-        rig = CalibrationRig(positions=args.positions, samples=args.samples)
-    except ValueError as exc:
-        msg = str(exc).replace("CalibrationRig.", "--")
-        raise UserError(msg) from None
-    result = calibrate(scenario.plant, rig, seed)
-    if not math.isfinite(result.gain_Nm_per_V):
-        raise UserError("the calibration gave no finite gain (is the torque channel saturated?)")
-    if args.out:
-        write_calibration(args.out, result, scenario.name)
-    if args.json:
-        out = result.as_dict()
-        out.update(
-            scenario=scenario.name,
-            consistency_pct=100 * result.consistency,
-            error_pct=100 * result.error,
-            within_goal=abs(result.error) <= GOAL,
-            out=args.out,
-        )
-        print(json.dumps(out, indent=2))
-    else:
-        print(format_result(result, scenario.name))
-        if args.out:
-            gain = result.gain_Nm_per_V
-            print(f"  wrote {args.out}: [firmware.calibration] volt2Nm = {gain:.6g}")
-    return 0

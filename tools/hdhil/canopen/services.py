@@ -65,7 +65,7 @@ index  sub type       access default                          used by
 0x1029 1   UNSIGNED8  rw     1 (0 pre-op, 1 no change, 2 stop) reaction to heartbeat loss
 ====== === ========== ====== ================================ =========================
 
-CiA 402 objects of the drive (``hostsim.cia402``): 0x603F error code UNSIGNED16 ro 0;
+CiA 402 objects of the drive (``hdhil.canopen.cia402``): 0x603F error code UNSIGNED16 ro 0;
 0x6040 controlword UNSIGNED16 rww 0 (PDO); 0x6041 statusword UNSIGNED16 ro 0 (PDO); 0x605A
 quick stop option code INTEGER16 rw 2 (Low 0 High 8); 0x605E fault reaction option code
 INTEGER16 rw 0; 0x6060 modes of operation INTEGER8 rw 10 (validator: 0 or 10); 0x6061

@@ -1,0 +1,205 @@
+"""``hdhil run``: a scenario end to end on the in-process bus, scored against truth."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from hdhil.can.faults import with_fault_flags
+from hdhil.commands.options import add_fault_arguments
+from hdhil.core.dataconf import merge
+from hdhil.core.errors import UserError
+from hdhil.hostsim.scenario import list_scenarios, load_scenario
+from hdhil.rig.realtime import RealtimeConfig
+from hdhil.rig.runner import (
+    compare_laws,
+    format_result,
+    format_tracking,
+    read_toml,
+    run_lockstep,
+    stop_on_signals,
+)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run",
+        help="run a scenario end to end on the in-process bus",
+        description="Run the firmware against the drive emulator over CAN in "
+        "one process (lockstep, simulated time), log a trace and score the "
+        "filtered torque against ground truth.",
+    )
+    p.add_argument(
+        "--scenario",
+        default="free-motion",
+        help=f"scenario name or TOML file (shipped: {', '.join(list_scenarios())})",
+    )
+    p.add_argument(
+        "--duration", type=float, default=None, help="simulated seconds (default: the scenario's)"
+    )
+    p.add_argument("--seed", type=int, default=None, help="noise seed (default: the scenario's)")
+    p.add_argument(
+        "--trace",
+        default="hdhil-run.blf",
+        help="trace file; format from the extension: .blf .asc .log .csv .trc "
+        "(default: %(default)s; '' for none)",
+    )
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument(
+        "--calibration",
+        type=Path,
+        default=None,
+        help="calibration file written by `hdhil calibrate --out` (the firmware uses its gain)",
+    )
+    add_fault_arguments(p)
+    p.add_argument(
+        "--compare-laws",
+        action="store_true",
+        help="run the scenario once per control law (JTF1, JTF2, JTF3, JTF1 + feedforward) "
+        "and print the tracking table (traces get the law in their name)",
+    )
+    p.add_argument(
+        "--no-evaluate",
+        dest="evaluate",
+        action="store_false",
+        help="skip the side-by-side evaluation against truth (keeps memory flat on long runs)",
+    )
+    p.add_argument(
+        "--skip",
+        type=float,
+        default=None,
+        help="seconds at the start left out of the evaluation (default: the scenario's "
+        "evaluate_from_s; the whole-run RMS figure is printed as well)",
+    )
+    p.add_argument(
+        "--override",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="TOML file deep-merged into the scenario, e.g. [firmware.ripple] written by "
+        "`hdhil tune --out` (repeatable)",
+    )
+    p.add_argument(
+        "--actuation",
+        choices=("next-sync", "immediate"),
+        default="next-sync",
+        help="when the drive applies a command (default: %(default)s)",
+    )
+    p.add_argument(
+        "--interface",
+        default="simbus",
+        help="python-can interface of the control bus: simbus (simulated time, default), "
+        "virtual, socketcan, pcan, kvaser, vector, udp_multicast, ...; 'config' reads "
+        "python-can's configuration file or CAN_INTERFACE",
+    )
+    p.add_argument(
+        "--channel",
+        default=None,
+        help="python-can channel of the control bus (e.g. vcan0, can0, PCAN_USBBUS1)",
+    )
+    p.add_argument(
+        "--bitrate", type=int, default=1_000_000, help="control bus bit rate (default: %(default)s)"
+    )
+    p.add_argument(
+        "--realtime",
+        action="store_true",
+        help="pace SYNC by the wall clock at the sample period (sleep, then spin) instead "
+        "of lockstep as fast as possible; reports SYNC jitter, sensor-to-command latency, "
+        "interrupt compute time and deadline misses (also under 'realtime' in --json)",
+    )
+    p.add_argument(
+        "--spin-us",
+        type=float,
+        default=None,
+        metavar="US",
+        help="--realtime: busy-wait this many µs before each deadline (default: 60 %% of the "
+        "period, within the kernel's RT throttling budget)",
+    )
+    p.add_argument(
+        "--mlock",
+        action="store_true",
+        help="--realtime: lock the process's memory (mlockall, where permitted)",
+    )
+    p.add_argument(
+        "--floor-s",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="--realtime: after the run, measure the machine floor (the bare sleep+spin loop, "
+        "no hdhil code) for S seconds (default: none)",
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    overrides: dict[str, Any] = {}
+    for path in args.override:
+        overrides = merge(overrides, read_toml(path))
+    scenario = load_scenario(args.scenario, overrides or None)
+    if args.fault:
+        scenario = dataclasses.replace(
+            scenario, faults=with_fault_flags(scenario.faults, args.fault)
+        )
+    if args.calibration is not None:
+        from hdhil.rig.calibration import load_calibration
+
+        firmware = merge(scenario.firmware, load_calibration(args.calibration))
+        scenario = dataclasses.replace(scenario, firmware=firmware)
+    trace = Path(args.trace) if args.trace else None
+    if not args.realtime and (args.spin_us is not None or args.floor_s or args.mlock):
+        raise UserError("--spin-us, --floor-s and --mlock need --realtime")
+    rt_config = RealtimeConfig(spin_us=args.spin_us, floor_s=args.floor_s, mlock=args.mlock)
+    try:
+        interface = None if args.interface == "config" else args.interface
+        with stop_on_signals() as stop:
+            if args.compare_laws:
+                rows = compare_laws(
+                    scenario,
+                    duration_s=args.duration,
+                    seed=args.seed,
+                    trace=trace,
+                    interface=interface,
+                    actuation=args.actuation,
+                    bitrate=args.bitrate,
+                    channel=args.channel,
+                    stop_requested=stop.is_set,
+                    evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,
+                    realtime=args.realtime,
+                    realtime_config=rt_config,
+                )
+                if args.json:
+                    json.dump({"scenario": scenario.name, "laws": rows}, sys.stdout, indent=2)
+                    print()
+                else:
+                    print(f"hdhil run --compare-laws: scenario {scenario.name}")
+                    print(format_tracking(rows))
+                return 130 if stop.is_set() else 0
+            result = run_lockstep(
+                scenario,
+                args.duration,
+                args.seed,
+                trace,
+                interface,
+                args.actuation,
+                args.bitrate,
+                args.channel,
+                stop_requested=stop.is_set,
+                evaluate=args.evaluate,
+                evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,
+                realtime=args.realtime,
+                realtime_config=rt_config,
+                fault_log=args.fault_log,
+            )
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    if args.json:
+        json.dump(result.as_dict(), sys.stdout, indent=2)
+        print()
+    else:
+        print(format_result(result))
+    return 130 if result.interrupted else 0
