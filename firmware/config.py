@@ -1,6 +1,6 @@
 """Typed configuration of the ported firmware (the 1 kHz interrupt handler of seed 000).
 
-Every value the C listing of seed 000 (``/work/shared/seeds/000_ae0a3dbe24949b7c.txt``,
+Every value the C listing of seed 000 (``000_ae0a3dbe24949b7c.txt``,
 Appendix A.1 ``free_kalman.c``, and A.2) kept in a global variable, a host mailbox or a
 literal inside a function is a field here, with the listing's value as the default.
 All classes are frozen dataclasses that check their ranges in ``__post_init__`` and

@@ -1,6 +1,6 @@
 """The 1 kHz interrupt body ``c_int10`` of seed 000, listing A.1, stage by stage.
 
-Seed: ``/work/shared/seeds/000_ae0a3dbe24949b7c.txt``, Appendix A.1 ``free_kalman.c``.
+Seed: ``000_ae0a3dbe24949b7c.txt``, Appendix A.1 ``free_kalman.c``.
 The handler, as printed (abridged)::
 
     DT1401Read( str_ch, end_ch, a2dsamples);
@@ -29,7 +29,7 @@ the encoder count the listing reads, as the motor angle: see
 The firmware never sees ground truth: its only input is :class:`AdcSample`, the raw
 counts of the drive's sensor frame.
 
-Torque control (seed 003, ``/work/shared/seeds/003_cab3072408ebe226.txt``)
+Torque control (seed 003, ``003_cab3072408ebe226.txt``)
 --------------------------------------------------------------------------
 With a control law configured (:class:`firmware.config.ControlConfig`, ``law`` other
 than ``none``) the line ``ref_fl = reference_generation(wavetype)`` becomes the LQG

@@ -1,6 +1,6 @@
 """LQG joint-torque control of a flexible joint (seed 003: Vertechy et al., "Linear-
 Quadratic-Gaussian Torque Control: Application to a Flexible Joint of a Rehabilitation
-Exoskeleton", ``/work/shared/seeds/003_cab3072408ebe226.txt``).
+Exoskeleton", ``003_cab3072408ebe226.txt``).
 
 Pure numerics: design (Riccati equations, discretisation, loop analysis) and a runtime
 controller :class:`LqgController` (observer update + control law), no CAN, no plant.

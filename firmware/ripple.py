@@ -13,7 +13,7 @@ Paper filter
 ------------
 
 :class:`RippleKalman` ports ``Kalman(Delta_T, velocity, sample_period)`` of seed 000
-(``/work/shared/seeds/000_ae0a3dbe24949b7c.txt``, Appendix A.1 ``free_kalman.c`` and
+(``000_ae0a3dbe24949b7c.txt``, Appendix A.1 ``free_kalman.c`` and
 A.2), which implements the text's Eqs. 5-10, generalised from the listing's fixed
 two blocks to a bank of any number of harmonic-oscillator blocks
 (:class:`firmware.config.Oscillator`), so the same code runs

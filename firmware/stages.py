@@ -1,6 +1,6 @@
 """The pure stages of the 1 kHz interrupt handler ``c_int10`` (seed 000, listing A.1).
 
-Seed: ``/work/shared/seeds/000_ae0a3dbe24949b7c.txt``, Appendix A.1 ``free_kalman.c``.
+Seed: ``000_ae0a3dbe24949b7c.txt``, Appendix A.1 ``free_kalman.c``.
 Each function or class here ports one line (or one helper function) of ``c_int10``;
 none touches a bus, a clock or any global state.  The torque-ripple Kalman filter is
 in :mod:`firmware.ripple`, the sequencing of the stages in :mod:`firmware.isr`.

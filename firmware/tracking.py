@@ -1,6 +1,6 @@
 """Seed 003 §VI tracking simulation, without the bus: the figures of the control laws.
 
-Seed 003 (``/work/shared/seeds/003_cab3072408ebe226.txt``) §VI, Fig. 7: the regulator
+Seed 003 (``003_cab3072408ebe226.txt``) §VI, Fig. 7: the regulator
 tracks ``τsD = 20 sin(0.4 π t)`` Nm while the output link is moved as ``θl = 20 sin(2 π t)``
 deg, with ``τd = τg = W = 0``; "the tracking error obtained with JTF1 is |e| <= 0.3 Nm",
 and JTF1 beats JTF3 and JTF2.

@@ -1,6 +1,6 @@
 """The built-in strain-gauge torque sensor of the flexspline (seed 000 §2, Eqs. 1-4).
 
-Seed: ``/work/shared/seeds/000_ae0a3dbe24949b7c.txt`` (Taghirad, CIM-TR-97-06), §2
+Seed: ``000_ae0a3dbe24949b7c.txt`` (Taghirad, CIM-TR-97-06), §2
 "Built-in torque sensor", Figs. 2-5.  Pure numerics: no CAN, no I/O, no clock.
 
 Geometry (seed 000 §2, Fig. 2): four rosettes on the flexspline diaphragm, 90° apart.

@@ -1,6 +1,6 @@
 """The torque-sensor calibration rig of seed 000 §3, emulated.
 
-Seed 000 (``/work/shared/seeds/000_ae0a3dbe24949b7c.txt``) §3: "we locked the harmonic
+Seed 000 (``000_ae0a3dbe24949b7c.txt``) §3: "we locked the harmonic
 drive wave generator, and applied a known torque on the flexspline ... using arm and
 weight method ... loading and unloading some weight on the arm, in both direction.
 This experiment is repeated at different flexspline positions ... Also low-range and

@@ -1,6 +1,6 @@
 """``hdhil identify TRACE``: the flexible joint's resonance from an open-loop chirp.
 
-Seed 003 (Vertechy et al., ``/work/shared/seeds/003_cab3072408ebe226.txt``) §II, Fig. 5:
+Seed 003 (Vertechy et al., ``003_cab3072408ebe226.txt``) §II, Fig. 5:
 "the spectrum of the joint sensor torque tau_s in response to the motor torque command
 tau_m (both reduced to the output shaft) ... is obtained experimentally by commanding
 tau_m with a chirp function.  As (2) predicts, the test-rig possesses a marked natural

@@ -1,6 +1,6 @@
 """``hdhil plot TRACE --out FIG.png``: the seed's torque figures, drawn from a trace.
 
-Seed 000 (``/work/shared/seeds/000_ae0a3dbe24949b7c.txt``) shows its results in four
+Seed 000 (``000_ae0a3dbe24949b7c.txt``) shows its results in four
 figures; this command draws the same views of any hdhil trace (or a real drive's), in a
 3 x 2 grid:
 

@@ -1,7 +1,7 @@
 """``hdhil tune TRACE``: pick the recommended ripple filter's Q and R from recorded data by
 maximum innovation likelihood.
 
-Seed 000 (``/work/shared/seeds/000_ae0a3dbe24949b7c.txt``) chooses Q = 1e3·I and R = 1 for
+Seed 000 (``000_ae0a3dbe24949b7c.txt``) chooses Q = 1e3·I and R = 1 for
 its filter (§4, text under Eq. 10, Fig. 9) and 5e-2 for the misalignment block (§5,
 listing A.2) without saying how.  This tool estimates them from a recording instead,
 using only what the firmware itself sees, so it works on a real drive's traces:
