@@ -10,6 +10,7 @@ import can
 import pytest
 
 from hdhil.hostsim.drive import DriveNode
+from hdhil.rig.loop import serve
 
 ServeDrive = Callable[[Callable[[can.BusABC], DriveNode]], tuple[DriveNode, list[str]]]
 
@@ -27,16 +28,11 @@ def serve_drive() -> Iterator[ServeDrive]:
         node = make_node(bus)
         stop = threading.Event()
 
-        def serve() -> None:
+        def run() -> None:
             node.boot(time.monotonic())
-            while not stop.is_set():
-                node.tick(time.monotonic())
-                msg = bus.recv(0.002)
-                while msg is not None:
-                    node.on_message(msg)
-                    msg = bus.recv(0)
+            serve(node, stop.is_set)  # the node loop of `hdhil emulate`
 
-        thread = threading.Thread(target=serve, daemon=True)
+        thread = threading.Thread(target=run, daemon=True)
         thread.start()
         served.append((stop, thread, bus))
         return node, ["--interface", "virtual", "--channel", channel]

@@ -11,9 +11,13 @@ drive, ``hdhil emulate`` against real firmware.
 Pacing of ``hdhil firmware`` (the SYNC producer):
 
 - default, *network lockstep*: SYNC k+1 goes out as soon as the controller has answered
-  the drive's sensor frame of cycle k (deterministic order, faster than real time);
-- ``--realtime``: SYNC at the sample period on the monotonic clock (sleep, then spin to
-  the deadline).
+  the drive's sensor frame of cycle k (deterministic order, faster than real time), or
+  after the cycle timeout of the node loop (:data:`hdhil.rig.loop.CYCLE_TIMEOUT_S`);
+- ``--realtime``: SYNC at the sample period, paced by the same pacer as
+  ``hdhil run --realtime`` (:class:`hdhil.rig.realtime.RealtimeLoop`: sleep, then spin
+  to the deadline, with the same process settings where permitted).
+
+Every node runs in the one node loop (:mod:`hdhil.rig.loop`), as in ``hdhil run``.
 
 Faults (the scenario's ``[faults]`` table with ``--fault KEY=VALUE`` flags merged over it,
 :mod:`hdhil.can.faults`): each process injects the faults that arise in it.
@@ -60,14 +64,14 @@ from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant
 from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.loop import NodeLoop, serve
+from hdhil.rig.realtime import RealtimeLoop
 from hdhil.rig.runner import stop_on_signals
 
-#: How long a node blocks in one receive before it runs its timers again (s).
-RECV_SLICE_S = 0.002
 #: The logger's pause when no frame is waiting (s): short against a 1 ms cycle.
 IDLE_SLEEP_S = 0.0002
-#: A SYNC cycle the drive does not answer within this time counts as missed (s).
-CYCLE_TIMEOUT_S = 0.2
+#: SYNC cycles allowed for walking the drive back to "stopped" after the run.
+MAX_STOP_CYCLES = 2000
 
 
 def add_bus_arguments(p: argparse.ArgumentParser, truth: bool = False) -> None:
@@ -141,22 +145,6 @@ def _with_faults(
     return FaultyTransmitBus(bus, hook)
 
 
-def _serve(
-    node: Any,
-    stop: Callable[[], bool],
-    until: Callable[[], bool],
-    now: Callable[[], float] = time.monotonic,
-) -> None:
-    """Receive and handle frames, running the node's timers, until ``until()`` or a stop."""
-    recv = node.bus.recv
-    while not stop() and not until():
-        node.tick(now())
-        msg = recv(RECV_SLICE_S)
-        while msg is not None:
-            node.on_message(msg)
-            msg = recv(0)
-
-
 def run_emulate(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     fw = from_dict(FirmwareConfig, scenario.firmware, "firmware")
@@ -179,7 +167,7 @@ def run_emulate(args: argparse.Namespace) -> int:
         t_end = time.monotonic() + args.duration if args.duration else float("inf")
         with stop_on_signals() as stop:
             drive.boot(time.monotonic())
-            _serve(drive, stop.is_set, lambda: time.monotonic() >= t_end)
+            serve(drive, stop.is_set, lambda: time.monotonic() >= t_end)
         stopped_by_signal = stop.is_set()
         for b in (node_bus, node_truth):
             if isinstance(b, FaultyTransmitBus):
@@ -211,13 +199,32 @@ def run_firmware(args: argparse.Namespace) -> int:
         with stop_on_signals() as stop:
             ctrl.boot(time.monotonic())
             # Wait for the drive's boot-up (or the timeout) while producing heartbeats.
-            _serve(ctrl, stop.is_set, lambda: ctrl.phase != "wait-boot" or ctrl.boot_error)
+            serve(ctrl, stop.is_set, lambda: ctrl.phase != "wait-boot" or bool(ctrl.boot_error))
             if ctrl.boot_error:
                 raise UserError(ctrl.boot_error)
-            done = _sync_loop(ctrl, stop.is_set, cycles, Ts, args.realtime)
-            ctrl.request_stop()
-            _sync_loop(ctrl, lambda: False, 2000, Ts, args.realtime,
-                       until=lambda: ctrl.phase in ("stopped", "safe"))  # fmt: skip
+            pacer = RealtimeLoop(Ts) if args.realtime else None
+            loop = NodeLoop(
+                [ctrl],
+                producer=ctrl,
+                answers=lambda: ctrl.diagnostics.commands_sent,
+                operational=lambda: ctrl.phase == "operational",
+                period_s=Ts,
+                pacer=pacer,
+            )
+            if pacer is not None:
+                pacer.instrument(ctrl)
+                pacer.enter()
+                pacer.start()
+            try:
+                done = _sync_cycles(loop, ctrl, stop.is_set, cycles)
+                ctrl.request_stop()  # walk the drive back to "stopped"
+                for _ in range(MAX_STOP_CYCLES):
+                    if ctrl.phase in ("stopped", "safe"):
+                        break
+                    loop.cycle()
+            finally:
+                if pacer is not None:
+                    pacer.exit()
         if isinstance(node_bus, FaultyTransmitBus):
             node_bus.flush()
         d = ctrl.diagnostics
@@ -231,41 +238,16 @@ def run_firmware(args: argparse.Namespace) -> int:
         injector.log.close()
 
 
-def _sync_loop(
-    ctrl: ControllerNode,
-    stop: Callable[[], bool],
-    cycles: int,
-    Ts: float,
-    realtime: bool,
-    until: Callable[[], bool] | None = None,
+def _sync_cycles(
+    loop: NodeLoop, ctrl: ControllerNode, stop: Callable[[], bool], cycles: int
 ) -> int:
-    """Produce SYNCs; return the cycles run while the controller was operational."""
+    """Run the loop's SYNC cycles until ``cycles`` of them found the controller
+    operational, it went safe, or a stop; return the operational cycles."""
     operational = 0
-    deadline = time.monotonic()
-    recv = ctrl.bus.recv
-    while operational < cycles and not stop() and not (until and until()):
+    while operational < cycles and not stop():
         if ctrl.phase == "safe":
             break
-        answered = ctrl.diagnostics.commands_sent
-        ctrl.tick(time.monotonic())
-        ctrl.send_sync()
-        cycle_end = time.monotonic() + CYCLE_TIMEOUT_S
-        if realtime:
-            deadline += Ts
-            cycle_end = deadline
-        while True:
-            left = cycle_end - time.monotonic()
-            if not realtime and ctrl.diagnostics.commands_sent > answered:
-                break
-            if left <= 0:
-                break
-            msg = recv(min(left, RECV_SLICE_S))
-            while msg is not None:
-                ctrl.on_message(msg)
-                msg = recv(0)
-        if realtime:
-            while time.monotonic() < deadline:  # spin the last stretch
-                pass
+        loop.cycle()
         if ctrl.phase == "operational":
             operational += 1
     return operational

@@ -811,6 +811,10 @@ class RealtimeLoop:
         self._wake_ns = wake
         self._started_late = self._overshoot_ns < 0 and wake >= deadline
 
+    def cycle_end_s(self) -> float:
+        """The next cycle's deadline in seconds on :func:`time.perf_counter`."""
+        return (self._deadline + self.period_ns) * 1e-9
+
     def end_cycle(self) -> None:
         """After the cycle's frames are handled: account its work, re-size the spin window
         every second, record the cycle (while recording)."""

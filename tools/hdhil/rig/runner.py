@@ -1,12 +1,19 @@
 """``hdhil run``: a full emulated run in one process, lockstep on the simulated bus.
 
-Three nodes share two python-can channels and nothing else:
+The nodes share python-can channels and nothing else:
 
 - the controller (:class:`firmware.controller.ControllerNode`) on the control bus,
-- the drive emulator (:class:`hostsim.drive.DriveNode`) on the control bus, publishing
-  ground truth on the truth channel,
+- the drives (by default one :class:`hostsim.drive.DriveNode`) on the control bus,
+  publishing ground truth on the truth channel,
 - the host tap (:class:`hdhil.can.trace.BusTap`) listening on both: trace writer, frame
   counter and the scorer that compares telemetry with truth.
+
+The runner builds no node itself: they come from factories (:mod:`hdhil.rig.factories`),
+one per slot of a :class:`~hdhil.rig.factories.RigLayout` (node-IDs and buses), and run
+in the one node loop (:mod:`hdhil.rig.loop`). A run is planned (:func:`plan_run`), its
+buses opened and its nodes built (:class:`RigBuses`, :func:`build_nodes`), its listeners
+set up (:func:`build_listeners`), then it goes through start-up, operation and stop
+(:func:`run_phases`) and is scored (:func:`_result`).
 
 Lockstep (DESIGN.md): SYNC k is sent at simulated time k*Ts; every node then handles what
 the bus delivers until the cycle is quiet, and SYNC k+1 follows at once.  The result is
@@ -31,7 +38,7 @@ import can
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from hdhil.can.busload import LOAD_LIMIT, schedule_load
+from hdhil.can.busload import LOAD_LIMIT, ScheduleLoad, schedule_load
 from hdhil.can.faults import FaultInjector, FaultLog
 from hdhil.can.simbus import SimBus, SimClock
 from hdhil.can.trace import BusTap, FrameCounter, WriterProcess
@@ -39,11 +46,19 @@ from hdhil.core.dataconf import ConfigError, from_dict, merge
 from hdhil.dbc import CHANNEL_NUMBER, database
 from hdhil.firmware.config import FirmwareConfig, Law
 from hdhil.firmware.controller import ControllerNode
-from hdhil.hostsim.drive import DriveConfig, DriveNode
-from hdhil.hostsim.plant import Plant
+from hdhil.hostsim.drive import DriveNode
 from hdhil.hostsim.scenario import Scenario
 from hdhil.rig.evaluate import RecordingListener, format_evaluation
 from hdhil.rig.evaluate import evaluate as evaluate_recording
+from hdhil.rig.factories import (
+    ControllerFactory,
+    DriveFactory,
+    NodeSite,
+    RigLayout,
+    scenario_controller,
+    scenario_drive,
+)
+from hdhil.rig.loop import NodeLoop
 from hdhil.rig.realtime import RealtimeConfig, RealtimeLoop, WallClock, format_realtime
 from hdhil.rig.score import TorqueScorer, TrackingScorer
 
@@ -105,51 +120,6 @@ def _frame_names() -> dict[tuple[int, int], str]:
 #: other interfaces.
 TAP_EVERY_CYCLES = 16
 
-#: A cycle that has not completed after this long (wall time) means a silent peer.
-CYCLE_TIMEOUT_S = 1.0
-
-
-class SilentPeerError(ConfigError):
-    """A node did not answer within the cycle timeout."""
-
-
-def _complete_cycle(controller: ControllerNode, drive: DriveNode, tap: BusTap,
-                    control: SimBus | None) -> None:  # fmt: skip
-    """Let the nodes handle the current cycle's frames.
-
-    On the simulated bus (``control``) delivery is immediate: pump the two nodes until a
-    round in which neither requested a control-bus frame (after such a round both
-    nodes' queues are empty).  The tap is left to the caller: frames wait in its queues,
-    in order, until it drains them (:data:`TAP_EVERY_CYCLES`).  On a real interface
-    frames take time to come back, so wait (briefly sleeping) until the controller has
-    answered this cycle's sensor frame, with a timeout that names the silent node,
-    draining the tap as frames come.  During start-up (no sensor frames yet) the wait
-    is short.
-    """
-    if control is not None:
-        while True:
-            before = control.frames_requested
-            drive.poll()
-            controller.poll()
-            if control.frames_requested == before:
-                return
-    answered = controller.diagnostics.commands_sent
-    while drive.poll() + controller.poll() + tap.poll():
-        pass
-    operational = controller.phase == "operational"
-    deadline = time.monotonic() + (CYCLE_TIMEOUT_S if operational else 0.005)
-    while controller.diagnostics.commands_sent <= answered:
-        if drive.poll() + controller.poll() + tap.poll():
-            continue
-        if time.monotonic() > deadline:
-            if operational:
-                raise SilentPeerError(
-                    f"the drive sent no sensor frame within {CYCLE_TIMEOUT_S:g} s of SYNC"
-                )
-            break
-        time.sleep(50e-6)
-
-
 #: Cycles allowed from power-on to "operation enabled" (NMT start and the CiA 402 walk
 #: take a handful) and back to "stopped".
 MAX_STARTUP_CYCLES = 500
@@ -173,16 +143,23 @@ def read_toml(path: Path) -> dict[str, Any]:
 
 
 def _controller_diagnostics(controller: ControllerNode) -> dict[str, Any]:
-    """The controller's counters and the health of its filter's covariance."""
+    """The controller's counters and the health of its filter's covariance (the
+    firmware's own interrupt handler; a handler of the user's reports the counters)."""
     d = controller.diagnostics
-    kalman = controller.isr.chain.kalman
-    P = np.asarray(kalman.P)
-    finite = bool(np.all(np.isfinite(P)))
-    return {
+    counters = {
         "syncs_sent": d.syncs_sent,
         "sensor_frames": d.sensor_frames,
         "malformed_frames": d.malformed_frames,
         "unknown_frames": sum(controller.unknown_frames.values()),
+    }
+    chain = getattr(controller.isr, "chain", None)
+    if chain is None:
+        return counters
+    kalman = chain.kalman
+    P = np.asarray(kalman.P)
+    finite = bool(np.all(np.isfinite(P)))
+    return {
+        **counters,
         "filter_mode": controller.config.ripple.mode,
         "filter_states": int(P.shape[0]),
         "kalman_skipped": kalman.skipped,
@@ -200,6 +177,16 @@ def _controller_diagnostics(controller: ControllerNode) -> dict[str, Any]:
     }
 
 
+def _drive_diagnostics(drive: DriveNode) -> dict[str, Any]:
+    d = drive.diagnostics
+    return {
+        "syncs": d.syncs,
+        "commands": d.commands,
+        "malformed_frames": d.malformed_frames,
+        "unknown_frames": sum(drive.unknown_frames.values()),
+    }
+
+
 def _frames_sent(control: can.BusABC, truth: can.BusABC) -> dict[str, int]:
     """Frames each channel carried, as counted by the bus itself (simbus only)."""
     return {
@@ -209,6 +196,332 @@ def _frames_sent(control: can.BusABC, truth: can.BusABC) -> dict[str, int]:
     }
 
 
+# ---------------------------------------------------------------------- the plan
+@dataclass(frozen=True)
+class RunPlan:
+    """What a run will do, resolved from the scenario and the caller's options before
+    anything is opened (every check that can fail without a bus fails here)."""
+
+    scenario: Scenario
+    firmware: FirmwareConfig
+    seed: int
+    cycles: int  # interrupts to run in operation
+    interface: str | None
+    channel: str | None
+    bitrate: int
+    actuation: str
+    realtime: bool
+    layout: RigLayout
+    load: ScheduleLoad
+
+    @property
+    def sample_period_s(self) -> float:
+        return self.firmware.sample_period_s
+
+    @property
+    def simulated(self) -> bool:
+        """The control bus is the in-process simulated bus (lockstep in simulated time)."""
+        return self.interface == "simbus"
+
+
+def plan_run(
+    scenario: Scenario,
+    duration_s: float | None,
+    seed: int | None,
+    interface: str | None,
+    actuation: str,
+    bitrate: int,
+    channel: str | None,
+    realtime: bool,
+    layout: RigLayout | None,
+) -> RunPlan:
+    """Resolve and check a run's settings (one-line :class:`ConfigError` otherwise)."""
+    fw_config = from_dict(FirmwareConfig, scenario.firmware, "firmware")
+    Ts = fw_config.sample_period_s
+    duration = scenario.duration_s if duration_s is None else duration_s
+    if not duration > 0:
+        raise ConfigError(f"duration must be > 0 s, got {duration}")
+    cycles = round(duration / Ts)
+    if fw_config.num_samples:
+        cycles = min(cycles, fw_config.num_samples)
+    load = schedule_load("control", bitrate, Ts)
+    if load.worst_case_load > 1.0:
+        raise ConfigError(
+            f"the cyclic schedule needs {load.worst_case_load:.0%} of a "
+            f"{bitrate} bit/s bus at {Ts * 1e3:g} ms: it cannot run"
+        )
+    if actuation not in ("next-sync", "immediate"):
+        raise ConfigError(f"actuation must be 'next-sync' or 'immediate', got {actuation!r}")
+    return RunPlan(
+        scenario=scenario,
+        firmware=fw_config,
+        seed=scenario.seed if seed is None else seed,
+        cycles=cycles,
+        interface=interface,
+        channel=channel,
+        bitrate=bitrate,
+        actuation=actuation,
+        realtime=realtime,
+        layout=layout or RigLayout(),
+        load=load,
+    )
+
+
+# ---------------------------------------------------------------------- the buses
+class RigBuses:
+    """Opens the run's python-can buses, one handle per node and per tap, and closes
+    every one it opened. The control bus follows the run's interface; the truth
+    channel is always the simulated bus (ground truth exists only in simulation)."""
+
+    def __init__(self, plan: RunPlan, clock: SimClock, injector: FaultInjector | None) -> None:
+        self.plan = plan
+        self.clock = clock
+        self.run_id = next(_run_ids)
+        self._control_faults = injector.channel("control") if injector is not None else None
+        self._truth_faults = injector.channel("truth") if injector is not None else None
+        self.opened: list[can.BusABC] = []
+
+    def control(self) -> can.BusABC:
+        """A new handle on the control bus."""
+        p = self.plan
+        if p.simulated:
+            bus = can.Bus(
+                interface="simbus",
+                channel=p.channel or f"hdhil-{self.run_id}-control",
+                bitrate=p.bitrate,
+                clock=self.clock,
+                trace_channel=CHANNEL_NUMBER["control"],
+                faults=self._control_faults,
+            )
+        elif p.interface == "virtual":
+            bus = can.Bus(interface="virtual", channel=p.channel or f"hdhil-{self.run_id}-control")
+        else:
+            try:
+                # Any python-can interface; None falls back to python-can's configuration
+                # (~/can.conf, CAN_INTERFACE / CAN_CHANNEL environment variables).
+                bus = can.Bus(interface=p.interface, channel=p.channel, bitrate=p.bitrate)
+            except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
+                raise ConfigError(
+                    f"cannot open the control bus ({p.interface} {p.channel}): {exc}"
+                ) from None
+        self.opened.append(bus)
+        return bus
+
+    def truth(self) -> can.BusABC:
+        """A new handle on the truth channel."""
+        bus = can.Bus(
+            interface="simbus",
+            channel=f"hdhil-{self.run_id}-truth",
+            bitrate=0,
+            clock=self.clock,
+            trace_channel=CHANNEL_NUMBER["truth"],
+            faults=self._truth_faults,
+        )
+        self.opened.append(bus)
+        return bus
+
+    def shutdown(self) -> None:
+        for bus in self.opened:
+            bus.shutdown()
+
+
+@dataclass
+class RigNodes:
+    """The nodes of a run, each with its own bus handle, and the host tap's handles."""
+
+    controller: ControllerNode
+    drives: list[DriveNode]
+    controller_bus: can.BusABC
+    truth_bus: can.BusABC  # one drive's handle on the truth channel (frame counts)
+    tap_buses: dict[int, can.BusABC]
+
+
+def build_nodes(
+    plan: RunPlan,
+    buses: RigBuses,
+    controller_factory: ControllerFactory,
+    drive_factories: Sequence[DriveFactory],
+    injector: FaultInjector | None,
+) -> RigNodes:
+    """Open every node's bus handle and build the nodes through their factories: the
+    controller first, then one drive per slot of the layout (its factory is the slot's
+    entry of ``drive_factories``, or the only entry for every slot)."""
+    layout = plan.layout
+    slots = layout.drives
+    if len(drive_factories) not in (1, len(slots)):
+        raise ConfigError(
+            f"{len(drive_factories)} drive factories for {len(slots)} drives in the layout"
+        )
+    Ts = plan.sample_period_s
+    drive_ids = tuple(slot.node_id for slot in slots)
+    controller_bus = buses.control()
+    site = NodeSite(
+        bus=controller_bus,
+        node_id=layout.controller_node_id,
+        controller_node_id=layout.controller_node_id,
+        sample_period_s=Ts,
+        seed=plan.seed,
+        actuation=plan.actuation,  # type: ignore[arg-type]
+        faults=injector,
+        drive_node_ids=drive_ids,
+    )
+    controller = controller_factory(site, plan.firmware)
+    drives = []
+    truth_handles = []
+    for i, slot in enumerate(slots):
+        bus, truth = buses.control(), buses.truth()
+        truth_handles.append(truth)
+        make = drive_factories[i if len(drive_factories) > 1 else 0]
+        drives.append(
+            make(dataclasses.replace(site, bus=bus, node_id=slot.node_id, truth_bus=truth))
+        )
+    tap_buses = {CHANNEL_NUMBER["control"]: buses.control(),
+                 CHANNEL_NUMBER["truth"]: buses.truth()}  # fmt: skip
+    return RigNodes(controller, drives, controller_bus, truth_handles[0], tap_buses)
+
+
+@dataclass
+class RunListeners:
+    """What listens on the host tap: counts, scores, the recording, the trace."""
+
+    counter: FrameCounter
+    scorer: TorqueScorer
+    tracking: TrackingScorer | None
+    recorder: RecordingListener | None
+    all: list[can.Listener]
+
+
+def build_listeners(
+    plan: RunPlan,
+    trace: Path | None,
+    evaluate: bool,
+    evaluate_skip_s: float,
+    extra: Sequence[can.Listener],
+) -> RunListeners:
+    """The tap's listeners, the trace writer first (it sees every frame as it came)."""
+    counter, scorer = FrameCounter(), TorqueScorer()
+    listeners: list[can.Listener] = [counter, scorer]
+    tracking = recorder = None
+    control = plan.firmware.control
+    if control.law != Law.NONE:
+        tracking = TrackingScorer(control.joint.Jl / control.joint.Jm, evaluate_skip_s)
+        listeners.append(tracking)
+    if evaluate:
+        recorder = RecordingListener(plan.sample_period_s)
+        listeners.append(recorder)
+    if trace is not None:
+        listeners.insert(0, WriterProcess(trace))
+    listeners += extra
+    return RunListeners(counter, scorer, tracking, recorder, listeners)
+
+
+# ---------------------------------------------------------------------- the phases
+class SilentPeerError(ConfigError):
+    """A drive stopped answering SYNC on a non-simulated bus and the controller went
+    safe (its sensor hold)."""
+
+
+@dataclass
+class PhaseCounts:
+    """Cycles per phase of a run and how it ended."""
+
+    startup: int = 0
+    operation: int = 0  # interrupts run in operation
+    stop: int = 0
+    interrupted: bool = False
+
+
+def start_up(loop: NodeLoop, controller: ControllerNode, drives: Sequence[DriveNode]) -> None:
+    """Power-on: every node boots; the controller starts the drives (NMT) and walks them to
+    "operation enabled" (CiA 402) over the PDOs."""
+    loop.boot()
+    while controller.phase != "operational":
+        if controller.boot_error:
+            raise ConfigError(controller.boot_error)
+        if controller.phase == "safe" or loop.k >= MAX_STARTUP_CYCLES:
+            states = ", ".join(str(d.drive_state) for d in drives)
+            raise ConfigError(
+                f"the drive did not reach operation enabled within {loop.k} cycles "
+                f"(controller phase {controller.phase}, drive {states})"
+            )
+        loop.cycle()
+
+
+def operate(
+    loop: NodeLoop,
+    controller: ControllerNode,
+    cycles: int,
+    stop_requested: Callable[[], bool] | None,
+    monitor: Callable[[ControllerNode], None] | None,
+    monitor_every: int,
+) -> bool:
+    """Cycles until the interrupt has handled ``cycles`` samples, the controller leaves
+    operation or a stop is requested (polled at every cycle boundary; returns True
+    then). ``monitor`` is called every ``monitor_every`` samples, after the tap has
+    handed every frame of those samples to its listeners."""
+    isr = controller.isr
+    next_monitor = monitor_every
+    while isr.samplecount < cycles:
+        if stop_requested is not None and stop_requested():
+            return True
+        if controller.phase != "operational":
+            break
+        loop.cycle()
+        if monitor is not None and isr.samplecount >= next_monitor:
+            next_monitor += monitor_every
+            loop.drain()  # the listeners have seen every frame of those samples
+            monitor(controller)
+    return False
+
+
+def shut_down(loop: NodeLoop, controller: ControllerNode) -> None:
+    """Walk the drives back (disable operation, shut down) before the buses close."""
+    controller.request_stop()
+    for _ in range(MAX_STOP_CYCLES):
+        if controller.phase in ("stopped", "safe"):
+            break
+        loop.cycle()
+
+
+def run_phases(
+    loop: NodeLoop,
+    nodes: RigNodes,
+    cycles: int,
+    pacer: RealtimeLoop | None,
+    stop_requested: Callable[[], bool] | None,
+    monitor: Callable[[ControllerNode], None] | None,
+    monitor_every: int,
+) -> PhaseCounts:
+    """Start-up, operation and stop, with the pacer's statistics covering operation."""
+    counts = PhaseCounts()
+    controller = nodes.controller
+    try:
+        start_up(loop, controller, nodes.drives)
+        counts.startup = loop.k
+        if pacer is not None:
+            pacer.begin_recording()  # statistics cover the cycles in operation
+        counts.interrupted = operate(
+            loop, controller, cycles, stop_requested, monitor, monitor_every
+        )
+        counts.operation = controller.isr.samplecount
+        if loop.timeouts and controller.phase == "safe":
+            raise SilentPeerError(
+                f"the drive went silent: {loop.timeouts} cycles without its sensor frame "
+                f"within {loop.timeout_s:g} s of SYNC, the controller went safe"
+            )
+        operation_end = loop.k
+        if pacer is not None:
+            pacer.end_recording()
+        shut_down(loop, controller)
+        counts.stop = loop.k - operation_end
+        if pacer is not None and not counts.interrupted:
+            pacer.measure_floor()  # the bare loop in the same process state
+    except KeyboardInterrupt:
+        counts.interrupted = True
+    return counts
+
+
+# ---------------------------------------------------------------------- the run
 def run_lockstep(
     scenario: Scenario,
     duration_s: float | None = None,
@@ -227,6 +540,10 @@ def run_lockstep(
     monitor: Callable[[ControllerNode], None] | None = None,
     monitor_every: int = 1000,
     realtime_config: RealtimeConfig | None = None,
+    *,
+    layout: RigLayout | None = None,
+    controller_factory: ControllerFactory = scenario_controller,
+    drive_factories: Sequence[DriveFactory] | None = None,
 ) -> RunResult:
     """Run ``scenario`` in lockstep and return the scored result.
 
@@ -249,230 +566,135 @@ def run_lockstep(
     the cycle boundary after every ``monitor_every`` samples in operation; on the
     simulated bus the tap has then seen every frame of those samples (how
     :mod:`hdhil.commands.soak` reads the firmware's filter health per block).
-    """
-    fw_config = from_dict(FirmwareConfig, scenario.firmware, "firmware")
-    Ts = fw_config.sample_period_s
-    duration = scenario.duration_s if duration_s is None else duration_s
-    if not duration > 0:
-        raise ConfigError(f"duration must be > 0 s, got {duration}")
-    seed = scenario.seed if seed is None else seed
-    cycles = round(duration / Ts)
-    if fw_config.num_samples:
-        cycles = min(cycles, fw_config.num_samples)
-    load = schedule_load("control", bitrate, Ts)
-    if load.worst_case_load > 1.0:
-        raise ConfigError(
-            f"the cyclic schedule needs {load.worst_case_load:.0%} of a "
-            f"{bitrate} bit/s bus at {Ts * 1e3:g} ms: it cannot run"
-        )
-    drive_config = DriveConfig(sample_period_s=Ts, actuation=actuation)  # type: ignore[arg-type]
-    pacer = RealtimeLoop(Ts, realtime_config) if realtime else None  # checks its options
 
-    run_id = next(_run_ids)
+    The nodes come from factories (:mod:`hdhil.rig.factories`): ``controller_factory``
+    builds the controller, ``drive_factories`` one drive per slot of ``layout`` (one
+    factory for all, or one per slot; default: the scenario's plant).
+    """
+    plan = plan_run(scenario, duration_s, seed, interface, actuation, bitrate, channel,
+                    realtime, layout)  # fmt: skip
+    if monitor is not None and monitor_every < 1:
+        raise ConfigError(f"monitor_every must be >= 1 sample, got {monitor_every}")
+    Ts = plan.sample_period_s
+    pacer = RealtimeLoop(Ts, realtime_config) if realtime else None  # checks its options
+    factories = drive_factories or [scenario_drive(scenario)]
     # Injected faults (the scenario's [faults] table), reproducible by their seed and logged.
     injector = (
         FaultInjector(scenario.faults, FaultLog(fault_log)) if scenario.faults is not None else None
     )
-    control_faults = injector.channel("control") if injector is not None else None
-    truth_faults = injector.channel("truth") if injector is not None else None
     clock = WallClock() if realtime else SimClock()
-    simulated = interface == "simbus"
-
-    def control_bus() -> can.BusABC:
-        if simulated:
-            return can.Bus(
-                interface="simbus",
-                channel=channel or f"hdhil-{run_id}-control",
-                bitrate=bitrate,
-                clock=clock,
-                trace_channel=CHANNEL_NUMBER["control"],
-                faults=control_faults,
-            )
-        if interface == "virtual":
-            return can.Bus(interface="virtual", channel=channel or f"hdhil-{run_id}-control")
-        try:
-            # Any python-can interface; None falls back to python-can's configuration
-            # (~/can.conf, CAN_INTERFACE / CAN_CHANNEL environment variables).
-            return can.Bus(interface=interface, channel=channel, bitrate=bitrate)
-        except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
-            raise ConfigError(
-                f"cannot open the control bus ({interface} {channel}): {exc}"
-            ) from None
-
-    def truth_bus() -> can.BusABC:
-        # Ground truth is simulation-only: it stays in-process whatever the control bus is.
-        return can.Bus(
-            interface="simbus",
-            channel=f"hdhil-{run_id}-truth",
-            bitrate=0,
-            clock=clock,
-            trace_channel=CHANNEL_NUMBER["truth"],
-            faults=truth_faults,
-        )
-
-    if monitor is not None and monitor_every < 1:
-        raise ConfigError(f"monitor_every must be >= 1 sample, got {monitor_every}")
     # One BLAS thread for the run: the matrices here are at most 7x7, so BLAS threads
     # only spin and take the core the trace writer runs on; and a thread pool created
     # under SCHED_FIFO on one pinned CPU (OpenBLAS restarts its pool lazily after the
     # writer's fork) starves its own workers and livelocks the real-time loop.
     blas = threadpool_limits(limits=1)
-    buses: list[can.BusABC] = []
+    buses = RigBuses(plan, clock, injector)
+    listening: RunListeners | None = None
     listeners: list[can.Listener] = []
-    interrupted = False
-    done = 0
     wall = 0.0
     frames_sent: dict[str, int] = {}
-    startup_cycles = stop_cycles = 0
-    recorder: RecordingListener | None = None
-    tracking: TrackingScorer | None = None
     try:
-        for make in (control_bus, control_bus, truth_bus, control_bus, truth_bus):
-            buses.append(make())
-        ctrl_bus, drive_bus, drive_truth, tap_control, tap_truth = buses
-        controller = ControllerNode(ctrl_bus, fw_config)
-        drive = DriveNode(
-            drive_bus,
-            Plant(scenario.plant, seed, faults=injector.sensors() if injector else None),
-            drive_config,
-            truth_bus=drive_truth,
-            faults=injector,
-        )
-        counter = FrameCounter()
-        scorer = TorqueScorer()
-        listeners += [counter, scorer]
-        control = fw_config.control
-        if control.law != Law.NONE:
-            tracking = TrackingScorer(control.joint.Jl / control.joint.Jm, evaluate_skip_s)
-            listeners.append(tracking)
-        if evaluate:
-            recorder = RecordingListener(Ts)
-            listeners.append(recorder)
-        if trace is not None:
-            listeners.insert(0, WriterProcess(trace))
-        listeners += extra_listeners
-        tap = BusTap(
-            {CHANNEL_NUMBER["control"]: tap_control, CHANNEL_NUMBER["truth"]: tap_truth}, listeners
-        )
-        pumped = ctrl_bus if simulated else None
+        nodes = build_nodes(plan, buses, controller_factory, factories, injector)
+        listening = build_listeners(plan, trace, evaluate, evaluate_skip_s, extra_listeners)
+        listeners = listening.all
+        tap = BusTap(nodes.tap_buses, listeners)
+        controller = nodes.controller
+        pumped = nodes.controller_bus if plan.simulated else None
         assert pumped is None or isinstance(pumped, SimBus)
-        tap_every = TAP_EVERY_CYCLES if simulated and pacer is None else 1
+        loop = NodeLoop(
+            [*nodes.drives, controller],
+            producer=controller,
+            answers=lambda: controller.diagnostics.commands_sent,
+            operational=lambda: controller.phase == "operational",
+            listeners=[tap],
+            listen_every=TAP_EVERY_CYCLES if plan.simulated and pacer is None else 1,
+            period_s=Ts,
+            sim_clock=clock,
+            node_time=(lambda: clock.now) if plan.simulated else time.monotonic,
+            pump=pumped,
+            pacer=pacer,
+        )
         if pacer is not None:
             pacer.instrument(controller)
             pacer.enter()
         wall0 = time.perf_counter()
-        k = 0
-
-        def cycle() -> None:
-            nonlocal k
-            if pacer is not None:
-                pacer.wait(k)  # wall clock: the simbus clock reads real time by itself
-            else:
-                clock.now = k * Ts
-            now = clock.now if simulated else time.monotonic()
-            drive.tick(now)
-            controller.tick(now)
-            controller.send_sync()  # the controller decides by its phase whether SYNC goes out
-            _complete_cycle(controller, drive, tap, pumped)
-            if k % tap_every == 0:
-                tap.poll()
-            if pacer is not None:
-                pacer.end_cycle()
-            k += 1
-
         try:
             if pacer is not None:
                 assert isinstance(clock, WallClock)
                 clock.restart(pacer.start())
-            # Power-on: both nodes boot; the controller starts the drive (NMT) and walks it
-            # to "operation enabled" (CiA 402) over the PDOs.
-            drive.boot(clock.now if simulated else time.monotonic())
-            controller.boot(clock.now if simulated else time.monotonic())
-            while controller.phase != "operational":
-                if controller.boot_error:
-                    raise ConfigError(controller.boot_error)
-                if controller.phase == "safe" or k >= MAX_STARTUP_CYCLES:
-                    raise ConfigError(
-                        f"the drive did not reach operation enabled within {k} cycles "
-                        f"(controller phase {controller.phase}, drive {drive.drive_state})"
-                    )
-                cycle()
-            startup_cycles = k
-            next_monitor = monitor_every
-            if pacer is not None:
-                pacer.begin_recording()  # statistics cover the cycles in operation
-            # The run lasts until the interrupt has handled ``cycles`` samples.
-            while controller.isr.samplecount < cycles:
-                if stop_requested is not None and stop_requested():
-                    interrupted = True
-                    break
-                if controller.phase != "operational":
-                    break
-                cycle()
-                if monitor is not None and controller.isr.samplecount >= next_monitor:
-                    next_monitor += monitor_every
-                    tap.poll()  # the listeners have seen every frame of those samples
-                    monitor(controller)
-            done = controller.isr.samplecount
-            operation_end = k
-            if pacer is not None:
-                pacer.end_recording()
-            # Walk the drive back (disable operation, shut down) before the buses close.
-            controller.request_stop()
-            for _ in range(MAX_STOP_CYCLES):
-                if controller.phase in ("stopped", "safe"):
-                    break
-                cycle()
-            stop_cycles = k - operation_end
-            if pacer is not None and not interrupted:
-                pacer.measure_floor()  # the bare loop in the same process state
-        except KeyboardInterrupt:
-            interrupted = True
+            counts = run_phases(loop, nodes, plan.cycles, pacer, stop_requested, monitor,
+                                monitor_every)  # fmt: skip
         finally:
             if pacer is not None:
                 pacer.exit()
         wall = time.perf_counter() - wall0
         tap.poll()
-        frames_sent = _frames_sent(ctrl_bus, drive_truth)
+        frames_sent = _frames_sent(nodes.controller_bus, nodes.truth_bus)
     finally:
         # Close the trace (flush, valid file) and release the buses whatever happened.
         try:
             for listener in listeners:
                 listener.stop()
         finally:
-            for bus in buses:
-                bus.shutdown()
+            buses.shutdown()
             if injector is not None:
                 injector.log.close()  # every injected fault is on disk
             blas.restore_original_limits()
+    return _result(plan, nodes, listening, counts, wall, frames_sent, trace, injector, pacer,
+                   evaluate_skip_s)  # fmt: skip
 
+
+def _result(
+    plan: RunPlan,
+    nodes: RigNodes,
+    listening: RunListeners,
+    counts: PhaseCounts,
+    wall: float,
+    frames_sent: dict[str, int],
+    trace: Path | None,
+    injector: FaultInjector | None,
+    pacer: RealtimeLoop | None,
+    evaluate_skip_s: float,
+) -> RunResult:
+    """The scored result of a finished run, every figure from the run itself."""
+    recorder, tracking = listening.recorder, listening.tracking
     evaluation = (
-        evaluate_recording(recorder.recording, fw_config, evaluate_skip_s)
-        if recorder is not None and not interrupted
+        evaluate_recording(recorder.recording, plan.firmware, evaluate_skip_s)
+        if recorder is not None and not counts.interrupted
         else None
     )
     names = _frame_names()
+    counter = listening.counter
     frames = {
         names.get(key, f"channel {key[0]} 0x{key[1]:X}"): n
         for key, n in sorted(counter.counts.items())
     }
+    drives = nodes.drives
+    drive = (
+        _drive_diagnostics(drives[0])
+        if len(drives) == 1
+        else {f"node {d.config.node_id}": _drive_diagnostics(d) for d in drives}
+    )
+    Ts = plan.sample_period_s
+    done = counts.operation
+    scorer = listening.scorer
     return RunResult(
-        scenario=scenario.name,
-        seed=seed,
-        interface=interface or "python-can configuration",
-        actuation=actuation,
+        scenario=plan.scenario.name,
+        seed=plan.seed,
+        interface=plan.interface or "python-can configuration",
+        actuation=plan.actuation,
         cycles=done,
         sample_period_s=Ts,
         simulated_s=done * Ts,
         wall_s=wall,
-        interrupted=interrupted,
+        interrupted=counts.interrupted,
         frames=frames,
         frames_total=counter.total,
         frames_sent=frames_sent,
-        startup_cycles=startup_cycles,
-        stop_cycles=stop_cycles,
-        worst_case_load=load.worst_case_load,
-        bitrate=bitrate,
+        startup_cycles=counts.startup,
+        stop_cycles=counts.stop,
+        worst_case_load=plan.load.worst_case_load,
+        bitrate=plan.bitrate,
         torque={**scorer.result().as_dict(), "rms_filtered_per_minute": scorer.block_rms},
         velocity_final=scorer.velocity_final,
         velocity_peak=scorer.velocity_peak,
@@ -480,17 +702,12 @@ def run_lockstep(
         evaluation=evaluation,
         faults=injector.summary() if injector is not None else None,
         tracking=(
-            {"law": fw_config.control.law.name.lower(), **tracking.result().as_dict()}
+            {"law": plan.firmware.control.law.name.lower(), **tracking.result().as_dict()}
             if tracking is not None
             else None
         ),
-        controller=_controller_diagnostics(controller),
-        drive={
-            "syncs": drive.diagnostics.syncs,
-            "commands": drive.diagnostics.commands,
-            "malformed_frames": drive.diagnostics.malformed_frames,
-            "unknown_frames": sum(drive.unknown_frames.values()),
-        },
+        controller=_controller_diagnostics(nodes.controller),
+        drive=drive,
         realtime=pacer.result() if pacer is not None else None,
     )
 

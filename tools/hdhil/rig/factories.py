@@ -1,0 +1,142 @@
+"""Node factories: the seam through which the runner gets its nodes.
+
+:func:`hdhil.rig.runner.run_lockstep` opens the buses, then asks one
+:class:`ControllerFactory` for the controller and one :class:`DriveFactory` per entry
+of :attr:`RigLayout.drives` for the drives; it never builds a node itself. Node-IDs and
+the bus each drive sits on come from the :class:`RigLayout` (configuration), so a
+second drive, or a drive on a second bus, is a layout entry, not a change of the runner.
+
+The default factories (:func:`scenario_controller`, :func:`scenario_drive`) build what
+the scenario describes: the firmware's :class:`firmware.controller.ControllerNode` with
+its interrupt handler, and :class:`hostsim.drive.DriveNode` around the emulator's
+:class:`hostsim.plant.Plant`. Your own plant is a :class:`DriveFactory` that wraps any
+:class:`hdhil.hostsim.plant_model.PlantModel` in a ``DriveNode``; your own controller
+law is a :class:`ControllerFactory` that hands the ``ControllerNode`` an interrupt
+handler of your own (:class:`hdhil.firmware.interrupt.InterruptHandlerModel`). Example
+(README, "Plugging in a plant")::
+
+    def rigid_drive(site: NodeSite) -> DriveNode:
+        return DriveNode(site.bus, RigidInertia(), site.drive_config(), truth_bus=site.truth_bus)
+
+    run_lockstep(scenario, drive_factories=[rigid_drive])
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal, Protocol
+
+import can
+
+from hdhil.can.faults import FaultInjector
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.controller import ControllerNode
+from hdhil.hostsim.drive import DriveConfig, DriveNode
+from hdhil.hostsim.plant import Plant
+from hdhil.hostsim.scenario import Scenario
+
+#: The buses a node can sit on: the CAN control bus, and the truth channel that exists
+#: only in simulation (ground truth for scoring; the firmware never reads it).
+BusName = Literal["control"]
+
+
+@dataclass(frozen=True)
+class DriveSlot:
+    """One drive of the rig: its CANopen node-ID and the bus it sits on."""
+
+    node_id: int = 2
+    bus: BusName = "control"
+
+    def __post_init__(self) -> None:
+        if isinstance(self.node_id, bool) or not 1 <= self.node_id <= 127:
+            raise ValueError(f"drive node-ID must be 1..127, got {self.node_id!r}")
+        if self.bus != "control":
+            raise ValueError(f"a drive sits on a control bus, got {self.bus!r}")
+
+
+@dataclass(frozen=True)
+class RigLayout:
+    """Who is on which bus: the controller's node-ID and the drives.
+
+    The shipped DBC and EDS files describe one drive at node-ID 2 and the controller at
+    node-ID 1 (their PDO COB-IDs); a node whose ID does not match its PDOs refuses to
+    start (:func:`hdhil.can.node.pdo_cob_id`)."""
+
+    controller_node_id: int = 1
+    drives: tuple[DriveSlot, ...] = field(default_factory=lambda: (DriveSlot(),))
+
+    def __post_init__(self) -> None:
+        if not self.drives:
+            raise ValueError("the rig needs at least one drive")
+        ids = [self.controller_node_id, *(d.node_id for d in self.drives)]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"node-IDs must be unique on the rig, got {ids}")
+
+
+@dataclass(frozen=True)
+class NodeSite:
+    """Where a factory builds its node: the node's own handle on its bus (and on the
+    truth channel, for a drive), its node-ID, the controller's node-ID (a drive
+    monitors its heartbeat), the run's sample period, noise seed, SYNC actuation and
+    fault injector (None: no faults)."""
+
+    bus: can.BusABC
+    node_id: int
+    controller_node_id: int
+    sample_period_s: float
+    seed: int
+    actuation: Literal["next-sync", "immediate"] = "next-sync"
+    truth_bus: can.BusABC | None = None
+    faults: FaultInjector | None = None
+    #: The node-IDs of the drives (what the controller addresses).
+    drive_node_ids: tuple[int, ...] = ()
+
+    def drive_config(self) -> DriveConfig:
+        """The drive node's settings for this site (period, actuation, node-IDs)."""
+        return DriveConfig(
+            sample_period_s=self.sample_period_s,
+            actuation=self.actuation,
+            node_id=self.node_id,
+            controller_node_id=self.controller_node_id,
+        )
+
+
+class ControllerFactory(Protocol):
+    """Builds the controller node (the SYNC producer) for a run."""
+
+    def __call__(self, site: NodeSite, config: FirmwareConfig) -> ControllerNode:
+        """The controller on ``site.bus`` with the run's firmware configuration."""
+        ...
+
+
+class DriveFactory(Protocol):
+    """Builds one drive node for a run."""
+
+    def __call__(self, site: NodeSite) -> DriveNode:
+        """The drive on ``site.bus``, publishing truth on ``site.truth_bus`` (if any)."""
+        ...
+
+
+def scenario_controller(site: NodeSite, config: FirmwareConfig) -> ControllerNode:
+    """The firmware's controller node with its own interrupt handler."""
+    drives: Sequence[int] = site.drive_node_ids or (2,)
+    if len(drives) != 1:
+        raise ValueError(
+            f"the firmware's controller drives one joint; the layout has drives {list(drives)}"
+        )
+    return ControllerNode(site.bus, config, node_id=site.node_id, drive_node_id=drives[0])
+
+
+def scenario_drive(scenario: Scenario) -> DriveFactory:
+    """A factory of drives emulating ``scenario``'s plant (:class:`hostsim.plant.Plant`),
+    with the run's sensor faults."""
+
+    def make(site: NodeSite) -> DriveNode:
+        injector = site.faults
+        plant = Plant(scenario.plant, site.seed, faults=injector.sensors() if injector else None)
+        return DriveNode(
+            site.bus, plant, site.drive_config(), truth_bus=site.truth_bus, faults=injector
+        )
+
+    return make

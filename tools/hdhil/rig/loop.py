@@ -1,0 +1,280 @@
+"""The one node loop: how every node runs, in one process or one per process.
+
+A *cycle* of the loop is: wait for the cycle's deadline (only with a pacer,
+:class:`hdhil.rig.realtime.RealtimeLoop`), run every node's timers (``tick``), let the
+SYNC producer (the controller) start the cycle with SYNC, then handle frames until the
+cycle is complete. What "complete" means depends on the bus, not on the caller:
+
+- on the simulated bus (``pump``) delivery is immediate: the nodes are polled in turn
+  until a round in which none of them requested a control-bus frame (after such a
+  round every node's queue is empty); nothing is waited for;
+- on any other python-can bus frames take time to come back: the loop handles frames
+  until the producer has answered the cycle's sensor frame (its answer counter moved)
+  or :data:`CYCLE_TIMEOUT_S` passed (5 ms before operation: during start-up most
+  cycles carry no sensor frame; with a pacer, never past the next cycle's deadline).
+  A cycle that times out is closed and counted (:attr:`NodeLoop.timeouts`); the
+  controller's sensor hold then decides whether the peer is gone (its own
+  ``sensor_hold_cycles``), so a dropped frame costs one late cycle, not the run;
+- without a SYNC producer (a drive or a logger alone) a cycle is one receive slice
+  (:data:`RECV_SLICE_S`): the node's timers run at least that often.
+
+Listeners that only read (the host tap, :class:`hdhil.can.trace.BusTap`) are drained
+every ``listen_every`` cycles and whenever the loop waits.
+
+Used by ``hdhil run`` (lockstep on ``simbus``, network lockstep on ``virtual`` or a
+real interface, ``--realtime``), by ``hdhil emulate`` / ``hdhil firmware`` (one node per
+process) and by the tests' served drive.
+
+Cycle timeout: one value everywhere, :data:`CYCLE_TIMEOUT_S`. It has to be long against
+a peer process that is briefly descheduled on a loaded machine (a cycle closed too
+early costs a sensor sample) and short against the controller's sensor hold (10 cycles
+by default), which is what declares a silent drive: 10 x 0.5 s = 5 s at most from the
+last sensor frame to the safe state on a lockstep network.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Protocol, runtime_checkable
+
+import can
+
+from hdhil.can.simbus import SimBus, SimClock
+
+#: How long a cycle on a real or virtual bus waits for the producer's answer (s).
+CYCLE_TIMEOUT_S = 0.5
+#: The wait before operation, when most cycles carry no sensor frame to answer (s).
+STARTUP_WAIT_S = 0.005
+#: How long one node alone blocks in one receive before it runs its timers again (s).
+RECV_SLICE_S = 0.002
+#: The pause of a loop with several nodes when no frame is waiting (s).
+IDLE_SLEEP_S = 50e-6
+
+
+@runtime_checkable
+class Pollable(Protocol):
+    """Something the loop drains without blocking: a node or a listening tap."""
+
+    def poll(self) -> int:
+        """Handle every frame waiting, without blocking; return how many."""
+        ...
+
+
+class LoopNode(Pollable, Protocol):
+    """What the loop needs from a CAN node (:class:`hdhil.can.node.CanNode` and its
+    subclasses have it): its bus, its timers and its frame handler."""
+
+    bus: can.BusABC
+
+    def boot(self, now: float) -> None:
+        """Power-on at time ``now`` (boot-up message, NMT pre-operational)."""
+        ...
+
+    def tick(self, now: float) -> None:
+        """Run the node's timers at ``now`` (heartbeats, timeouts); once per cycle."""
+        ...
+
+    def on_message(self, msg: can.Message) -> None:
+        """Handle one received frame."""
+        ...
+
+
+class SyncProducer(Protocol):
+    """The node that starts each cycle (the controller, :class:`firmware.controller.
+    ControllerNode`)."""
+
+    def send_sync(self) -> bool:
+        """Start a cycle: SYNC (the node decides by its state whether it goes out)."""
+        ...
+
+
+class NodeLoop:
+    """Runs ``nodes`` cycle by cycle (module docstring).
+
+    ``nodes`` are ticked and polled in this order; ``producer`` (one of them, or None)
+    sends the SYNC after the ticks, and ``answers`` counts its answers to sensor frames
+    (the loop waits for it to move on a non-simulated bus); ``operational`` says whether
+    the producer expects a sensor frame this cycle (long timeout) or not (short).
+    ``listeners`` are drained every ``listen_every`` cycles and while waiting.
+
+    Time: with a ``pacer`` the cycle waits for its wall-clock deadline; otherwise, with a
+    ``sim_clock``, that clock is set to ``k * period_s`` (simulated time). Nodes are
+    handed ``node_time()`` (default: the monotonic clock). ``pump`` is the simulated
+    control bus (cycles complete by pumping, no waiting).
+    """
+
+    def __init__(
+        self,
+        nodes: Sequence[LoopNode],
+        *,
+        producer: SyncProducer | None = None,
+        answers: Callable[[], int] | None = None,
+        operational: Callable[[], bool] = lambda: True,
+        listeners: Sequence[Pollable] = (),
+        listen_every: int = 1,
+        period_s: float = 1e-3,
+        sim_clock: SimClock | None = None,
+        node_time: Callable[[], float] = time.monotonic,
+        pump: SimBus | None = None,
+        pacer: Pacer | None = None,
+        timeout_s: float = CYCLE_TIMEOUT_S,
+    ) -> None:
+        if producer is not None and answers is None and pump is None:
+            raise ValueError("a SYNC producer on a real bus needs its answer counter")
+        if listen_every < 1:
+            raise ValueError(f"listen_every must be >= 1, got {listen_every}")
+        self.nodes = tuple(nodes)
+        self.producer = producer
+        self.answers = answers
+        self.operational = operational
+        self.listeners = tuple(listeners)
+        self.listen_every = listen_every
+        self.period_s = period_s
+        self.sim_clock = sim_clock
+        self.node_time = node_time
+        self.pump = pump
+        self.pacer = pacer
+        self.timeout_s = timeout_s
+        #: Cycles run so far (the next cycle's index).
+        self.k = 0
+        #: Cycles closed by the timeout before the producer answered.
+        self.timeouts = 0
+
+    def boot(self) -> None:
+        """Power every node on, in order, at the current time."""
+        for node in self.nodes:
+            node.boot(self.node_time())
+
+    def cycle(self) -> None:
+        """One cycle: pace, tick, SYNC, complete, drain the listeners."""
+        k = self.k
+        pacer = self.pacer
+        if pacer is not None:
+            pacer.wait(k)  # wall clock: a WallClock reads real time by itself
+        elif self.sim_clock is not None:
+            self.sim_clock.now = k * self.period_s
+        now = self.node_time()
+        for node in self.nodes:
+            node.tick(now)
+        producer = self.producer
+        if producer is None:
+            self._serve_slice()
+        else:
+            answered = self.answers() if self.answers is not None else 0
+            producer.send_sync()
+            if self.pump is not None:
+                self._pump()
+            else:
+                self._await_answer(answered)
+        if k % self.listen_every == 0:
+            self.drain()
+        if pacer is not None:
+            pacer.end_cycle()
+        self.k = k + 1
+
+    def run(self, stop: Callable[[], bool], until: Callable[[], bool] = lambda: False) -> None:
+        """Cycles until ``stop()`` or ``until()`` (both checked before each cycle)."""
+        while not stop() and not until():
+            self.cycle()
+
+    def drain(self) -> int:
+        """Hand every waiting frame to the listeners; return how many."""
+        return sum(listener.poll() for listener in self.listeners)
+
+    # ------------------------------------------------------------------ completion
+    def _pump(self) -> None:
+        """Simulated bus: poll the nodes until a round requests no control-bus frame."""
+        bus = self.pump
+        assert bus is not None
+        nodes = self.nodes
+        while True:
+            before = bus.frames_requested
+            for node in nodes:
+                node.poll()
+            if bus.frames_requested == before:
+                return
+
+    def _poll_all(self) -> int:
+        n = 0
+        for node in self.nodes:
+            n += node.poll()
+        for listener in self.listeners:
+            n += listener.poll()
+        return n
+
+    def _await_answer(self, answered: int) -> None:
+        """Handle frames until the producer answered or the cycle timed out."""
+        answers = self.answers
+        assert answers is not None
+        while self._poll_all():
+            pass
+        operational = self.operational()
+        clock = time.perf_counter
+        deadline = clock() + (self.timeout_s if operational else STARTUP_WAIT_S)
+        if self.pacer is not None:  # paced: never past the next cycle's deadline
+            deadline = min(deadline, self.pacer.cycle_end_s())
+        alone = self.nodes[0] if len(self.nodes) == 1 and not self.listeners else None
+        while answers() <= answered:
+            if self._poll_all():
+                continue
+            left = deadline - clock()
+            if left <= 0:
+                if operational:
+                    self.timeouts += 1
+                return
+            if alone is not None:
+                msg = alone.bus.recv(min(left, RECV_SLICE_S))
+                if msg is not None:
+                    alone.on_message(msg)
+            else:
+                time.sleep(IDLE_SLEEP_S)
+
+    def _serve_slice(self) -> None:
+        """No producer: handle what arrives within one receive slice."""
+        if len(self.nodes) == 1:
+            node = self.nodes[0]
+            recv = node.bus.recv
+            msg = recv(RECV_SLICE_S)
+            while msg is not None:
+                node.on_message(msg)
+                msg = recv(0)
+            if self.listeners:
+                self.drain()
+            return
+        deadline = time.monotonic() + RECV_SLICE_S
+        while time.monotonic() < deadline:
+            if not self._poll_all():
+                time.sleep(IDLE_SLEEP_S)
+
+
+class Pacer(Protocol):
+    """What the loop needs from a pacer (:class:`hdhil.rig.realtime.RealtimeLoop`, the
+    one pacer: sleep, then spin to an absolute deadline)."""
+
+    def wait(self, k: int) -> None:
+        """Return at cycle ``k``'s deadline."""
+        ...
+
+    def end_cycle(self) -> None:
+        """The cycle's frames are handled (statistics, spin-window sizing)."""
+        ...
+
+    def cycle_end_s(self) -> float:
+        """The next cycle's deadline on :func:`time.perf_counter` (s): how long the
+        current cycle may wait for frames."""
+        ...
+
+
+def serve(
+    node: LoopNode,
+    stop: Callable[[], bool],
+    until: Callable[[], bool] = lambda: False,
+    node_time: Callable[[], float] = time.monotonic,
+) -> NodeLoop:
+    """Serve one node on its own bus (no SYNC producer among the nodes served) until
+    ``stop()`` or ``until()``: how ``hdhil emulate`` runs the drive and the tests serve
+    one. The node is not booted here. Returns the loop (its cycle count)."""
+    loop = NodeLoop([node], node_time=node_time)
+    loop.run(stop, until)
+    return loop
