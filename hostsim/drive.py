@@ -168,6 +168,7 @@ from hdhil.can.faults import (
 from hdhil.can.node import CanNode, pdo_cob_id
 from hdhil.canopen.cia402 import CONTROLWORD, SUPPORTED_MODES, Command, DriveStateMachine, State
 from hdhil.canopen.services import (
+    ABORT_DEVICE_STATE,
     ABORT_INVALID_VALUE,
     TIME_EPSILON,
     CanopenServices,
@@ -178,6 +179,7 @@ from hdhil.canopen.services import (
 )
 from hdhil.dbc import codec, eds_path
 from hdhil.hostsim.plant import Plant, PlantConfig
+from hdhil.hostsim.plant_model import PlantModel
 
 #: Object indices the node serves (CiA 301 / CiA 402 / manufacturer area).
 OD_ABORT_CONNECTION = 0x6007
@@ -346,14 +348,18 @@ class DriveNode(CanNode):
     def __init__(
         self,
         bus: can.BusABC,
-        plant: Plant,
+        plant: PlantModel,
         config: DriveConfig | None = None,
         truth_bus: can.BusABC | None = None,
         faults: FaultInjector | None = None,
     ) -> None:
         """``faults`` is the run's fault injector, the one whose ``sensors()`` hook the
         plant has (if any): its seed and log serve the faults switched on through object
-        0x2310.  Without one the drive keeps its own (seed 0; the plant's hook's log)."""
+        0x2310.  Without one the drive keeps its own (seed 0; the plant's hook's log).
+
+        ``plant`` is any :class:`hostsim.plant_model.PlantModel`; the emulator's extras
+        (0x2300 and the sensor faults of 0x2310) need the emulator's own
+        :class:`hostsim.plant.Plant` and are refused (SDO abort) for another model."""
         super().__init__(bus)
         self.truth_bus = truth_bus
         self.plant = plant
@@ -361,9 +367,11 @@ class DriveNode(CanNode):
         self.diagnostics = DriveDiagnostics()
         self._Ts = cfg.sample_period_s
         self._next_sync = cfg.actuation == "next-sync"
-        self._dac = plant.cfg.dac
-        self._adc = plant.cfg.adc
-        self._max_torque = plant.cfg.max_motor_torque_Nm
+        #: The emulator's own plant: 0x2300 and the sensor faults of 0x2310 act on it.
+        self._emulator = isinstance(plant, Plant)
+        self._dac = plant.dac
+        self._adc = plant.adc
+        self._max_torque = plant.max_motor_torque_Nm
         self._current_limit_Nm = self._max_torque * (1 - 1e-12)  # at the limit from here on
         self._now = 0.0
 
@@ -412,7 +420,7 @@ class DriveNode(CanNode):
         # Fault injection through object 0x2310 (reproducible by the injector's seed, every
         # fault in its log): sensor faults switched over the plant's configured ones, and
         # the drive's own silence on the control bus.
-        hook = plant.faults
+        hook = plant.faults if isinstance(plant, Plant) else None
         if faults is None:
             faults = FaultInjector(
                 FaultConfig(sensors=hook.cfg) if hook is not None else FaultConfig(),
@@ -758,6 +766,14 @@ class DriveNode(CanNode):
             s.on_write(OD_EMULATOR, sub, self._knob_writer(OD_EMULATOR, sub))
         for sub in (*FAULT_FIELDS, *FAULT_MASKS, FAULT_SILENCE_MS):
             s.on_write(OD_FAULTS, sub, self._knob_writer(OD_FAULTS, sub))
+        if not self._emulator:  # another plant model: nothing to retune or fault
+            extras = (
+                (OD_EMULATOR, tuple(EMULATOR_KNOBS)),
+                (OD_FAULTS, (*FAULT_FIELDS, *FAULT_MASKS)),
+            )
+            for index, subs in extras:
+                for sub in subs:
+                    s.add_validator(index, sub, lambda _value: ABORT_DEVICE_STATE)
         # A channel saturates at one end: refuse a mask overlapping the other end's.
         for sub, other in ((6, 7), (7, 6)):
             s.add_validator(
@@ -796,7 +812,9 @@ class DriveNode(CanNode):
     # ------------------------------------------------------------------ emulator knobs
 
     @staticmethod
-    def _knob_values_of(plant: Plant) -> dict[tuple[int, int], float]:
+    def _knob_values_of(plant: PlantModel) -> dict[tuple[int, int], float]:
+        if not isinstance(plant, Plant):
+            return dict.fromkeys(((OD_EMULATOR, sub) for sub in EMULATOR_KNOBS), 0.0)
         cfg = plant.cfg
         values = {}
         for sub, (section, name) in EMULATOR_KNOBS.items():

@@ -1121,6 +1121,23 @@ class Plant:
             return self.faults.apply(self._t, counts, adc.code_min, adc.code_max, adc.lsb_V)
         return counts
 
+    # ------------------------------------------------------------------ converters
+    # (what the drive node reads through :class:`hostsim.plant_model.PlantModel`)
+    @property
+    def adc(self) -> Converter:
+        """The sensors' ADC (``cfg.adc``)."""
+        return self.cfg.adc
+
+    @property
+    def dac(self) -> Converter:
+        """The converter of the drive's command input (``cfg.dac``)."""
+        return self.cfg.dac
+
+    @property
+    def max_motor_torque_Nm(self) -> float:
+        """Motor torque at the current limit, output-referred (``cfg.max_motor_torque_Nm``)."""
+        return self.cfg.max_motor_torque_Nm
+
     # ------------------------------------------------------------------ truth
     @property
     def time(self) -> float:
