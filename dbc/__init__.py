@@ -75,6 +75,7 @@ class FrameCodec:
     """
 
     __slots__ = (
+        "_bus",
         "_int_raw",
         "_offsets",
         "_scales",
@@ -89,8 +90,9 @@ class FrameCodec:
         "signal_names",
     )
 
-    def __init__(self, message: Message) -> None:
+    def __init__(self, message: Message, bus: str = "") -> None:
         self.message = message
+        self._bus = f"{bus}.dbc " if bus else ""
         self.name: str = message.name
         self.frame_id: int = message.frame_id
         self.is_extended_id: bool = message.is_extended_frame
@@ -134,6 +136,36 @@ class FrameCodec:
         self._offsets = tuple(float(s.offset) for s in signals)
         self._int_raw = tuple(int_raw)
         self._compile()
+
+    def expect(self, *names: str) -> FrameCodec:
+        """Check, by name, that ``encode``/``decode`` take and return exactly ``names`` in
+        this order; raise ``ValueError`` naming both orders otherwise.
+
+        ``encode``/``decode`` are positional (the 1 kHz path); a node calls this once at
+        start-up with the names it packs or unpacks, so a DBC whose signals were reordered,
+        renamed, added or removed fails loudly instead of swapping values.
+        """
+        if tuple(names) != self.signal_names:
+            raise ValueError(
+                f"{self._bus}{self.name}: the node expects the signals "
+                f"({', '.join(names)}) but the DBC lays out "
+                f"({', '.join(self.signal_names)}); update the node or the DBC"
+            )
+        return self
+
+    def decode_named(self, data: bytes | bytearray) -> dict[str, float]:
+        """Unpack a payload into ``{signal name: physical value}`` (tools, tests)."""
+        return dict(zip(self.signal_names, self.decode(data), strict=True))
+
+    def encode_named(self, **values: float) -> bytes:
+        """Pack ``signal name=physical value`` pairs; every signal must be given."""
+        missing = set(self.signal_names) - values.keys()
+        extra = values.keys() - set(self.signal_names)
+        if missing or extra:
+            raise ValueError(
+                f"{self.name}: missing signals {sorted(missing)}, unknown {sorted(extra)}"
+            )
+        return self.encode(*(values[n] for n in self.signal_names))
 
     def _compile(self) -> None:
         """Generate straight-line encode/decode functions for this layout.
@@ -188,7 +220,7 @@ def codec(bus: BusName, message_name: str) -> FrameCodec:
         message = database(bus).get_message_by_name(message_name)
     except KeyError:
         raise ValueError(f"no message {message_name!r} in {bus}.dbc") from None
-    return FrameCodec(message)
+    return FrameCodec(message, bus)
 
 
 @cache
@@ -199,6 +231,47 @@ def known_frames(bus: BusName) -> frozenset[tuple[int, bool]]:
     and counted in its diagnostics.
     """
     return frozenset((m.frame_id, m.is_extended_frame) for m in database(bus).messages)
+
+
+def _attribute(obj: object, name: str) -> object:
+    dbc = getattr(obj, "dbc", None)
+    attributes = getattr(dbc, "attributes", None) or {}
+    attribute = attributes.get(name)
+    return None if attribute is None else attribute.value
+
+
+@cache
+def node_ids(bus: BusName) -> dict[str, int]:
+    """CANopen node-ID of each DBC node that has one (attribute ``NodeId``, 1..127)."""
+    ids = {}
+    for node in database(bus).nodes:
+        value = _attribute(node, "NodeId")
+        if isinstance(value, int) and 1 <= value <= 127:
+            ids[node.name] = value
+    return ids
+
+
+@cache
+def node_function_codes(bus: BusName) -> tuple[int, ...]:
+    """COB-ID bases that every CANopen node of ``bus`` transmits with its node-ID added.
+
+    Read from the DBC: a message sent by a node with a ``NodeId`` has the base
+    ``frame_id - NodeId``; the bases every such node shares are the function codes of
+    the CiA 301 pre-defined connection set in use (EMCY, TPDOs, SDO response,
+    heartbeat), while frames only one node sends (SYNC, NMT, its RPDOs, SDO requests)
+    are not per-node identifiers.
+    """
+    ids = node_ids(bus)
+    per_node: dict[str, set[int]] = {name: set() for name in ids}
+    for message in database(bus).messages:
+        if message.is_extended_frame:
+            continue
+        for sender in message.senders:
+            if sender in ids and message.frame_id >= ids[sender]:
+                per_node[sender].add(message.frame_id - ids[sender])
+    if not per_node:
+        return ()
+    return tuple(sorted(set.intersection(*per_node.values())))
 
 
 def frame_id(bus: BusName, message_name: str) -> int:

@@ -62,26 +62,14 @@ in "stopped" and "safe"; both are final: **recovery is a restart** (a new node a
 Start-up (CiA 301 §7.3.2 NMT, CiA 402 PDS state machine): on the drive's boot-up (or its
 heartbeat, if it booted before the controller) the controller sends NMT "start remote
 node" (0x000: 01 02), enters OPERATIONAL itself and walks the drive's state machine with
-the controlword of ``DRIVE_RPDO1`` (sent on every sensor frame, DAC 0):
-
-==========================  ==================  ==========================================
-drive state (statusword)    controlword sent    note
-==========================  ==================  ==========================================
-unknown, NOT READY, SWITCH  0x0006 shutdown     transition 2
-ON DISABLED
-READY TO SWITCH ON          0x0007 switch on    transition 3
-SWITCHED ON                 0x000F enable op.   transition 4
-OPERATION ENABLED           0x000F              phase "operational"
-QUICK STOP ACTIVE           0x0000              disable voltage (transition 12), walk again
-FAULT REACTION ACTIVE       unchanged           wait for FAULT
-FAULT                       0x0080 fault reset  rising edge of bit 7 (transition 15), then
-                                                walk again; **one** fault reset per node:
-                                                a second fault, or a refused reset, -> safe
-==========================  ==================  ==========================================
+the controlword of ``DRIVE_RPDO1`` (sent on every sensor frame, DAC 0); the walk's
+decisions (which controlword for which state, one fault reset per node) are
+:class:`hdhil.firmware.walk.Cia402Walk`'s, its table is in :mod:`hdhil.firmware.walk`.
 
 The statusword comes in ``DRIVE_TPDO2`` (0x282, event-driven; RPDO2 of the controller,
 object 0x2011).  An event-driven PDO is sent on change only, so right after NMT start the
-controller also reads the drive's 0x6041 once by SDO (expedited upload on 0x602/0x582):
+controller also reads the drive's statusword once by SDO (expedited upload on 0x602/0x582,
+:class:`hdhil.canopen.sdo.SdoClient`; the index is looked up by name in ``drive.eds``):
 a drive that comes up in FAULT is fault-reset from the first command on.  A walk step
 that sees no statusword for ``STATUSWORD_TIMEOUT_S`` (20 ms) counts as a missed
 statusword: the controller re-sends NMT start (start-up only) and reads 0x6041 by SDO
@@ -125,23 +113,18 @@ without a sensor frame widens the next sample's bounds by one period.
 Live parameters (SDO)
 ---------------------
 The controller's object dictionary holds the firmware parameters (objects 0x2400-0x2430,
-:data:`PARAMETERS`); the scenario's configuration is written into it when the node is
-built, so an SDO upload returns what runs (REAL32: to float32 precision, and the firmware
-then runs with the value the OD holds).  A download passes the checks of
-:class:`hdhil.canopen.services.CanopenServices` (type and length 0x06070012/13, access
-0x06010002, range from the EDS 0x06090031/32, unknown object 0x06020000) and then this
-node's: the new :class:`firmware.config.FirmwareConfig` must build (``dataclasses.replace``;
-0x06090030 otherwise), and ``q_i`` of a harmonic that is not configured aborts with
-0x08000022.  An aborted write changes nothing.  Accepted writes are applied at the next
-cycle boundary (``tick`` or ``send_sync``, whichever comes first):
+:data:`hdhil.firmware.parameters.PARAMETERS`), checked and staged by
+:class:`hdhil.firmware.parameters.LiveParameters`.  Accepted writes are applied at the
+next cycle boundary (``tick`` or ``send_sync``, whichever comes first) by
+:func:`hdhil.firmware.parameters.apply_config`:
 
 - reference generator (0x2400): rebuilt; the wave continues at the present sample index;
 - ``num_samples`` (0x2401:1): the new limit counts from the first operational sample;
 - ripple filter (0x2410): the filter chain is rebuilt, **the ripple Kalman filter
   restarts** from P0 (its learned ripple is lost); the differentiator and the encoder
   unwrapping carry over.  Writing ``mode`` gives the mode's default tuning for the same
-  harmonics (:func:`firmware.config.paper_config` / ``recommended_config``), and the OD's
-  r, residual_q and q_i are updated to it;
+  harmonics (:func:`hdhil.firmware.config.paper_config` / ``recommended_config``), and
+  the OD's r, residual_q and q_i are updated to it;
 - control law (0x2420:1): the LQG stage is rebuilt (observer from rest); ``CTRL_TPDO2``
   is sent only while a law is active and 0x1802:1 bit 31 follows; the desired torque's
   amplitude/frequency only swap the desired-torque generator;
@@ -162,23 +145,18 @@ set of nodes 1 and 2); other node-IDs move only the CiA 301 service frames.
 
 from __future__ import annotations
 
-import dataclasses
 import enum
 import math
-import struct
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import can
 
 from hdhil.can.node import CanNode, pdo_cob_id
-from hdhil.canopen.cia402 import CONTROLWORD, CW_FAULT_RESET, Command, State, state_from_statusword
+from hdhil.canopen.cia402 import CONTROLWORD_OBJECT, STATUSWORD_OBJECT, State
+from hdhil.canopen.od import eds_index, index_of
+from hdhil.canopen.sdo import ABORT_DEVICE_STATE, SdoClient
 from hdhil.canopen.services import (
-    ABORT_DEVICE_STATE,
-    ABORT_INVALID_VALUE,
-    SDO_RX_BASE,
-    SDO_TX_BASE,
     CanopenServices,
     EmcyCode,
     NmtCommand,
@@ -186,9 +164,16 @@ from hdhil.canopen.services import (
     ResetKind,
 )
 from hdhil.dbc import codec, eds_path
-from hdhil.firmware.config import FirmwareConfig, Law, Wave, paper_config, recommended_config
-from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueControl, TorqueFilterChain
-from hdhil.firmware.stages import ReferenceGenerator
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.isr import AdcSample, InterruptHandler
+from hdhil.firmware.parameters import (
+    PARAMETERS,
+    LiveParameters,
+    Parameter,
+    apply_config,
+    store_value,
+)
+from hdhil.firmware.walk import CONTROLWORD_ENABLE_OPERATION, Cia402Walk, WalkStep
 
 __all__ = [
     "CONTROLWORD_ENABLE_OPERATION",
@@ -199,17 +184,6 @@ __all__ = [
     "Phase",
     "PhaseChange",
 ]
-
-#: CiA 402 controlword "enable operation" (switch on, enable voltage, quick stop off,
-#: enable operation).  The drive amplifier follows the DAC command only while enabled.
-CONTROLWORD_ENABLE_OPERATION = CONTROLWORD[Command.ENABLE_OPERATION]
-_SHUTDOWN = CONTROLWORD[Command.SHUTDOWN]  # 0x0006
-_SWITCH_ON = CONTROLWORD[Command.SWITCH_ON]  # 0x0007, also "disable operation"
-_DISABLE_VOLTAGE = CONTROLWORD[Command.DISABLE_VOLTAGE]  # 0x0000
-_FAULT_RESET = CONTROLWORD[Command.FAULT_RESET]  # 0x0080
-
-#: The drive's statusword object, read by SDO when an event-driven statusword went missing.
-_STATUSWORD_INDEX = 0x6041
 
 
 class Phase(str, enum.Enum):
@@ -304,142 +278,6 @@ class ControllerDiagnostics:
     safe_reason: str | None = None
 
 
-# ------------------------------------------------------------------ parameters (OD)
-
-
-class _NotApplicable(Exception):
-    """The object exists but means nothing in the running configuration (abort 0x08000022)."""
-
-
-@dataclass(frozen=True)
-class Parameter:
-    """One firmware parameter in the controller's OD (``index:sub``) and how it maps to
-    :class:`FirmwareConfig`: ``get`` reads it, ``put`` returns a config with the new
-    value (None: read-only).  ``stage`` says what must be rebuilt when it changes."""
-
-    index: int
-    sub: int
-    name: str
-    get: Callable[[FirmwareConfig], Any]
-    put: Callable[[FirmwareConfig, Any], FirmwareConfig] | None
-    stage: str
-
-
-_replace = dataclasses.replace
-
-
-def _reference(sub: int, name: str, convert: Callable[[Any], Any] = float) -> Parameter:
-    return Parameter(
-        0x2400,
-        sub,
-        name,
-        lambda c: getattr(c.reference, name),
-        lambda c, v: _replace(c, reference=_replace(c.reference, **{name: convert(v)})),
-        "reference",
-    )
-
-
-def _set_mode(c: FirmwareConfig, v: int) -> FirmwareConfig:
-    return paper_config(c) if v == 0 else recommended_config(c)
-
-
-def _ripple(name: str) -> Parameter:
-    sub = {"r": 2, "residual_q": 3}[name]
-    return Parameter(
-        0x2410,
-        sub,
-        name,
-        lambda c: getattr(c.ripple, name),
-        lambda c, v: _replace(c, ripple=_replace(c.ripple, **{name: float(v)})),
-        "filter",
-    )
-
-
-def _harmonic_q(i: int) -> Parameter:
-    def get(c: FirmwareConfig) -> float:
-        osc = c.ripple.oscillators
-        return float(osc[i].q) if i < len(osc) else 0.0  # type: ignore[arg-type]
-
-    def put(c: FirmwareConfig, v: float) -> FirmwareConfig:
-        osc = list(c.ripple.oscillators)
-        if i >= len(osc):
-            raise _NotApplicable
-        osc[i] = _replace(osc[i], q=float(v))
-        return _replace(c, ripple=_replace(c.ripple, oscillators=tuple(osc)))
-
-    return Parameter(0x2410, 5 + i, f"q_{i + 1}", get, put, "filter")
-
-
-def _desired(sub: int, name: str) -> Parameter:
-    return Parameter(
-        0x2420,
-        sub,
-        f"desired_{name}",
-        lambda c: getattr(c.control.desired, name),
-        lambda c, v: _replace(
-            c, control=_replace(c.control, desired=_replace(c.control.desired, **{name: float(v)}))
-        ),
-        "desired",
-    )
-
-
-def _calibration(sub: int, name: str) -> Parameter:
-    return Parameter(
-        0x2430,
-        sub,
-        name,
-        lambda c: getattr(c.calibration, name),
-        lambda c, v: _replace(c, calibration=_replace(c.calibration, **{name: float(v)})),
-        "calibration",
-    )
-
-
-#: The firmware parameters in the controller's OD (``dbc/controller.eds``), in OD order.
-PARAMETERS: tuple[Parameter, ...] = (
-    _reference(1, "wave", Wave),
-    _reference(2, "bias_V"),
-    _reference(3, "amplitude_V"),
-    _reference(4, "frequency_Hz"),
-    _reference(5, "duty"),
-    _reference(6, "step_time_s"),
-    _reference(7, "chirp_end_Hz"),
-    _reference(8, "chirp_duration_s"),
-    Parameter(
-        0x2401,
-        1,
-        "num_samples",
-        lambda c: c.num_samples,
-        lambda c, v: _replace(c, num_samples=int(v)),
-        "run",
-    ),
-    Parameter(0x2401, 2, "sample_period_s", lambda c: c.sample_period_s, None, "run"),
-    Parameter(
-        0x2410,
-        1,
-        "mode",
-        lambda c: 0 if c.ripple.mode == "paper" else 1,
-        _set_mode,
-        "filter",
-    ),
-    _ripple("r"),
-    _ripple("residual_q"),
-    Parameter(0x2410, 4, "harmonics", lambda c: len(c.ripple.oscillators), None, "filter"),
-    *(_harmonic_q(i) for i in range(4)),
-    Parameter(
-        0x2420,
-        1,
-        "law",
-        lambda c: int(c.control.law),
-        lambda c, v: _replace(c, control=_replace(c.control, law=Law(v))),
-        "control",
-    ),
-    _desired(2, "amplitude_Nm"),
-    _desired(3, "frequency_Hz"),
-    _calibration(1, "volt2Nm"),
-    _calibration(2, "volt2radps"),
-)
-
-
 def _seconds(t: float) -> str:
     """2.0 -> "2.0", 0.25 -> "0.25" (as a user would write the timeout)."""
     return f"{t:.1f}" if round(t, 1) == t else f"{t:g}"
@@ -451,6 +289,11 @@ def _seconds(t: float) -> str:
 class ControllerNode(CanNode):
     """SYNC producer, NMT master, CiA 402 controlling device and torque-sensing firmware
     (CANopen node-ID 1).  See the module docstring for the phases and timings.
+
+    The jobs are split: :class:`hdhil.firmware.walk.Cia402Walk` decides the CiA 402
+    walk, :class:`hdhil.firmware.parameters.LiveParameters` owns the parameter objects,
+    :class:`hdhil.canopen.sdo.SdoClient` reads the drive's statusword, and this class
+    moves the frames and sequences the link phases.
 
     Args:
         bus: the control bus (any python-can bus).
@@ -469,7 +312,7 @@ class ControllerNode(CanNode):
     #: A start-up or stop walk must be done within this time.
     WALK_TIMEOUT_S = 1.0
     #: Automatic fault resets per node lifetime (CiA 402 transition 15).
-    MAX_FAULT_RESETS = 1
+    MAX_FAULT_RESETS = Cia402Walk.MAX_FAULT_RESETS
 
     def __init__(
         self,
@@ -515,33 +358,32 @@ class ControllerNode(CanNode):
             heartbeat_producer_ms=heartbeat_ms,
             heartbeat_consumers={drive_node_id: drive_heartbeat_timeout_ms},
         )
+        od = self.services.od
+        # CiA 402 objects by name: the controller's own controlword mirror, and the
+        # drive's statusword in the drive's EDS (what the SDO client reads).
+        self._controlword_index = index_of(od, CONTROLWORD_OBJECT)
+        self._drive_statusword_index = eds_index(str(eds_path("drive")), STATUSWORD_OBJECT)
         self._period_us = round(config.sample_period_s * 1e6)
         self._store_comm_values()
         self._sync = self.services.make_sync_producer()
-        self._store_config(config)
-        self._register_parameters()
+        self.parameters = LiveParameters(self.services, lambda: self.config, self._on_parameter)
+        self.parameters.store(config)
         self.services.add_validator(0x1006, 0, self._check_cycle_period)
         self.services.on_boot(self._on_boot)
         self.services.on_heartbeat_lost(self._on_heartbeat_lost)
         self.services.on_state_change(self._on_nmt_state)
         self.services.on_reset(self._on_reset)
+        self.sdo = SdoClient(bus, drive_node_id)
+        self.walk = Cia402Walk(drive_node_id, self._on_controlword)
 
         self._phase = Phase.WAIT_BOOT
         self._now = 0.0
-        self._controlword = _SHUTDOWN
-        self._cw_sends = 0  # RPDOs sent with the present controlword
-        self._drive_state: State | None = None
-        self._statusword: int | None = None
         self._phase_cycles = 0
         self._quiet_cycles = 0  # walk cycles since the last statusword
         self._nmt_start_syncs = 0
         self._sensor_seen = True
         self._missing_sensor = 0
         self._own_nmt = False
-        self._sdo_pending = False
-        self._pending: FirmwareConfig | None = None
-        self._staged: tuple[int, int, Any, FirmwareConfig] | None = None
-        self._prebuilt_control: tuple[Any, TorqueControl] | None = None
         self._plausibility_revision = 0
         self._plausibility_emcy: set[int] = set()  # EMCY codes of active sensor errors
         self._cycle = 0
@@ -549,16 +391,19 @@ class ControllerNode(CanNode):
         self._statusword_timeout_cycles = max(1, math.ceil(self.STATUSWORD_TIMEOUT_S / Ts - 1e-9))
         self._walk_timeout_cycles = max(1, math.ceil(self.WALK_TIMEOUT_S / Ts - 1e-9))
 
-        self._sensor = codec("control", "DRIVE_TPDO1")
-        self._command = codec("control", "DRIVE_RPDO1")
-        self._telemetry = codec("control", "CTRL_TPDO1")
-        self._control_telemetry = codec("control", "CTRL_TPDO2")
-        self._status = codec("control", "DRIVE_TPDO2")
-        self._status_field = (
-            self._status.signal_names.index("statusword")
-            if "statusword" in self._status.signal_names
-            else 0
+        # Codecs are used by signal name: each layout is checked against the names this
+        # node packs and unpacks (a DBC with reordered signals fails here, loudly).
+        self._sensor = codec("control", "DRIVE_TPDO1").expect(
+            "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
         )
+        self._command = codec("control", "DRIVE_RPDO1").expect("DAC_cmd", "controlword", "cycle")
+        self._telemetry = codec("control", "CTRL_TPDO1").expect(
+            "T_meas", "T_filtered", "velocity", "current"
+        )
+        self._control_telemetry = codec("control", "CTRL_TPDO2").expect(
+            "dtau_s_hat", "tau_lgd_hat", "tau_sD", "e_hat"
+        )
+        self._status = codec("control", "DRIVE_TPDO2").expect("statusword")
         self._command_msg = self._message(self._command.frame_id, self._command.length)
         self._telemetry_msg = self._message(self._telemetry.frame_id, self._telemetry.length)
         self._control_msg = self._message(
@@ -569,13 +414,12 @@ class ControllerNode(CanNode):
         self._store_control_pdo_validity()
         # PDO identifiers come from the object dictionary (RPDO1 0x1400, RPDO2 0x1401; the
         # TPDOs 0x1800-0x1802), each checked against the DBC layout the node encodes with.
-        od = self.services.od
         self.handle(pdo_cob_id(od, 0x1400, self._sensor), self._on_sensor_frame)
         self.handle(pdo_cob_id(od, 0x1401, self._status), self._on_statusword_frame)
         for comm_index, frame in ((0x1800, self._telemetry), (0x1801, self._command),
                                   (0x1802, self._control_telemetry)):  # fmt: skip
             pdo_cob_id(od, comm_index, frame)
-        self.handle(SDO_TX_BASE + drive_node_id, self._on_sdo_response)
+        self.handle(self.sdo.response_id, self._on_sdo_response)
 
     @staticmethod
     def _message(frame_id: int, length: int) -> can.Message:
@@ -597,12 +441,12 @@ class ControllerNode(CanNode):
     @property
     def drive_state(self) -> State | None:
         """The drive's CiA 402 state from its latest statusword (None before the first)."""
-        return self._drive_state
+        return self.walk.drive_state
 
     @property
     def controlword(self) -> int:
         """The controlword the next DRIVE_RPDO1 carries."""
-        return self._controlword
+        return self.walk.controlword
 
     def boot(self, now: float) -> None:
         """Power-on (CiA 301 §7.3.2.2): boot-up message 0x701, PRE-OPERATIONAL, and, as NMT
@@ -687,7 +531,7 @@ class ControllerNode(CanNode):
         self._sensor_seen = True
         self.diagnostics.sensor_frames += 1
         if phase is not _OPERATIONAL:
-            self._send_command(self.isr.shutdown_dac_counts, self._controlword)
+            self._send_command(self.isr.shutdown_dac_counts, self.walk.controlword)
             return
         torque, tacho, current, encoder = self._sensor.decode(msg.data)
         out = self.isr(AdcSample(torque, tacho, current, encoder))
@@ -744,7 +588,7 @@ class ControllerNode(CanNode):
         self._command_msg.data = self._command.encode(dac_counts, controlword, self._cycle & 0xFF)
         self.bus.send(self._command_msg)
         self.diagnostics.commands_sent += 1
-        self._cw_sends += 1
+        self.walk.cw_sends += 1
         self._cycle += 1
 
     def _on_statusword_frame(self, msg: can.Message) -> None:
@@ -755,101 +599,62 @@ class ControllerNode(CanNode):
             self.diagnostics.pdos_ignored += 1
             return
         self.diagnostics.statusword_frames += 1
-        self._on_statusword(int(self._status.decode(msg.data)[self._status_field]))
+        (statusword,) = self._status.decode(msg.data)
+        self._on_statusword(int(statusword))
 
     def _on_sdo_response(self, msg: can.Message) -> None:
         """Answer to the statusword read (expedited upload, CiA 301 §7.2.4.3.6)."""
-        data = msg.data
-        if not self._sdo_pending or len(data) != 8:
+        result = self.sdo.on_response(msg)
+        if result is None:
             return
-        index, sub = struct.unpack_from("<HB", data, 1)
-        if (index, sub) != (_STATUSWORD_INDEX, 0):
-            return
-        self._sdo_pending = False
-        if data[0] == 0x80:
+        if not result.ok:
             self.diagnostics.sdo_aborts += 1
-        elif data[0] & 0xE2 == 0x42:  # upload response, expedited
+        elif len(result.data) >= 2:
             self.diagnostics.statusword_sdo_answers += 1
             if self._phase in _COMMANDING:
-                self._on_statusword(int.from_bytes(data[4:6], "little"))
+                self._on_statusword(int.from_bytes(result.data[:2], "little"))
 
     def _on_statusword(self, statusword: int) -> None:
-        self._statusword = statusword
         self._quiet_cycles = 0
-        self._store(0x2011, 0, statusword)
-        try:
-            self._drive_state = state_from_statusword(statusword)
-        except ValueError:
+        store_value(self.services, 0x2011, 0, statusword)
+        if not self.walk.on_statusword(statusword):
             self.diagnostics.invalid_statuswords += 1
             return
         self._sequence()
 
     # ---------------------------------------------------------------- sequencer
 
-    def _set_controlword(self, controlword: int) -> None:
-        if controlword != self._controlword:
-            self._controlword = controlword
-            self._cw_sends = 0
-            self._store(0x6040, 0, controlword)
+    def _on_controlword(self, controlword: int) -> None:
+        store_value(self.services, self._controlword_index, 0, controlword)
 
     def _sequence(self) -> None:
         """The CiA 402 walk: the next controlword (or phase) for the drive's state."""
-        state = self._drive_state
         phase = self._phase
+        walk = self.walk
         if phase is Phase.OPERATIONAL:
-            if state is State.OPERATION_ENABLED:
-                return
-            if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-                if self.diagnostics.fault_resets < self.MAX_FAULT_RESETS:
-                    self._set_phase(Phase.STARTING, self._fault_text("drive fault") + ": reset")
-                    self._sequence()
-                else:
-                    self._enter_safe(self._fault_text("drive fault again after a fault reset"))
-                return
-            self._enter_safe(
-                f"drive (node {self.drive_node_id}) left OPERATION ENABLED on its own: "
-                f"{self._state_text()}"
-            )
+            step = walk.in_operation()
         elif phase is Phase.STARTING:
-            self._walk_up(state)
+            step = walk.up()
         elif phase is Phase.STOPPING:
-            if state is State.OPERATION_ENABLED:
-                self._set_controlword(_SWITCH_ON)  # disable operation (transition 5)
-            elif state is State.SWITCHED_ON or state is None:
-                self._set_controlword(_SHUTDOWN)  # transition 6
-            elif state is not State.FAULT_REACTION_ACTIVE:
-                self._finish_stop(f"drive stopped: {self._state_text()}")
+            step = walk.down()
+        else:
+            return
+        self.diagnostics.fault_resets = walk.fault_resets
+        self._take(step)
 
-    def _walk_up(self, state: State | None) -> None:
-        if state is None or state in (State.NOT_READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED):
-            self._set_controlword(_SHUTDOWN)  # transition 2
-        elif state is State.READY_TO_SWITCH_ON:
-            self._set_controlword(_SWITCH_ON)  # transition 3
-        elif state is State.SWITCHED_ON:
-            self._set_controlword(CONTROLWORD_ENABLE_OPERATION)  # transition 4
-        elif state is State.OPERATION_ENABLED:
+    def _take(self, step: WalkStep) -> None:
+        action = step.action
+        if action == "walk":
+            return
+        if action == "operational":
             self._enter_operational()
-        elif state is State.QUICK_STOP_ACTIVE:
-            self._set_controlword(_DISABLE_VOLTAGE)  # transition 12
-        elif state is State.FAULT:
-            if self._controlword & CW_FAULT_RESET:
-                if self._cw_sends:  # reset sent, drive still in FAULT: refused
-                    self._enter_safe(self._fault_text("drive refused the fault reset"))
-            elif self.diagnostics.fault_resets < self.MAX_FAULT_RESETS:
-                self.diagnostics.fault_resets += 1
-                self._set_controlword(_FAULT_RESET)  # rising edge of bit 7 (transition 15)
-            else:
-                self._enter_safe(self._fault_text("drive fault again after a fault reset"))
-        # FAULT REACTION ACTIVE: wait for FAULT with the controlword unchanged.
-
-    def _fault_text(self, what: str) -> str:
-        return f"{what} ({self._state_text()})"
-
-    def _state_text(self) -> str:
-        state = self._drive_state
-        name = state.name.replace("_", " ") if state is not None else "unknown"
-        sw = self._statusword
-        return f"{name}, statusword 0x{sw:04X}" if sw is not None else name
+        elif action == "restart":
+            self._set_phase(Phase.STARTING, step.reason)
+            self._sequence()
+        elif action == "stopped":
+            self._finish_stop(step.reason)
+        else:
+            self._enter_safe(step.reason)
 
     def _start_drive(self) -> None:
         """NMT start of the drive, controller OPERATIONAL, walk from "shutdown"."""
@@ -859,8 +664,7 @@ class ControllerNode(CanNode):
         how = "boot-up" if boot is not None else "heartbeat (booted earlier)"
         self.services.nmt_command(NmtCommand.START, drive)
         self._enter_nmt(NmtState.OPERATIONAL)
-        self._drive_state = None
-        self._set_controlword(_SHUTDOWN)
+        self.walk.restart()
         self._nmt_start_syncs = self.diagnostics.syncs_sent
         self._set_phase(Phase.STARTING, f"{how} of drive (node {drive}): NMT start")
         # Event-driven PDOs are sent on change only: read the present state once.
@@ -868,7 +672,7 @@ class ControllerNode(CanNode):
 
     def _enter_operational(self) -> None:
         d = self.diagnostics
-        self._set_controlword(CONTROLWORD_ENABLE_OPERATION)
+        self.walk.set_controlword(CONTROLWORD_ENABLE_OPERATION)
         if d.operational_at_s is None:
             d.operational_at_s = self._now
             d.startup_cycles = d.syncs_sent - self._nmt_start_syncs
@@ -886,7 +690,7 @@ class ControllerNode(CanNode):
         self._phase_cycles += 1
         self._quiet_cycles += 1
         if self._phase_cycles >= self._walk_timeout_cycles:
-            what = f"within {_seconds(self.WALK_TIMEOUT_S)} s ({self._state_text()})"
+            what = f"within {_seconds(self.WALK_TIMEOUT_S)} s ({self.walk.state_text()})"
             if self._phase is Phase.STARTING:
                 self._enter_safe(
                     f"drive (node {self.drive_node_id}) did not reach OPERATION ENABLED {what}"
@@ -903,17 +707,8 @@ class ControllerNode(CanNode):
             self._read_statusword()
 
     def _read_statusword(self) -> None:
-        """SDO expedited upload request for the drive's 0x6041 (CiA 301 §7.2.4.3.5)."""
-        request = struct.pack("<BHB4x", 0x40, _STATUSWORD_INDEX, 0)
-        self.bus.send(
-            can.Message(
-                arbitration_id=SDO_RX_BASE + self.drive_node_id,
-                is_extended_id=False,
-                data=request,
-                check=False,
-            )
-        )
-        self._sdo_pending = True
+        """SDO upload of the drive's statusword (CiA 301 §7.2.4.3.5), answered later."""
+        self.sdo.upload(self._drive_statusword_index, 0)
         self.diagnostics.statusword_sdo_reads += 1
 
     def _sensor_hold_ok(self) -> bool:
@@ -1008,33 +803,24 @@ class ControllerNode(CanNode):
         self._store_comm_values()
         self._sync.configure(overflow=self.sync_overflow, cob_id=self._sync.cob_id)
         if kind == "node":
-            self._store_config(self._pending or self.config)
+            self.parameters.store(self.parameters.pending or self.config)
         self._store_control_pdo_validity()
         if self._phase not in _FINAL:
             self._enter_safe(f"NMT reset ({kind}) of the controller by another master")
 
     # ---------------------------------------------------------------- OD values
 
-    def _store(self, index: int, sub: int, value: Any) -> None:
-        """Write an OD value as the application (no SDO checks, no callbacks)."""
-        var = self.services.od[index]
-        if sub or not hasattr(var, "encode_raw"):
-            var = var[sub]
-        self.services.node.data_store.setdefault(index, {})[sub] = var.encode_raw(value)
+    # ---------------------------------------------------------------- OD values
 
     def _store_comm_values(self) -> None:
         """0x1006 = the sample period (µs) and 0x1019 = the SYNC counter overflow."""
-        self._store(0x1006, 0, self._period_us)
-        self._store(0x1019, 0, self.sync_overflow)
-
-    def _store_config(self, cfg: FirmwareConfig) -> None:
-        for p in PARAMETERS:
-            self._store(p.index, p.sub, p.get(cfg))
+        store_value(self.services, 0x1006, 0, self._period_us)
+        store_value(self.services, 0x1019, 0, self.sync_overflow)
 
     def _store_control_pdo_validity(self) -> None:
         cob = self.services.read(0x1802, 1)
         cob = cob & ~0x80000000 if self.control_pdo_valid else cob | 0x80000000
-        self._store(0x1802, 1, cob)
+        store_value(self.services, 0x1802, 1, cob)
 
     def _check_cycle_period(self, value: int) -> int | None:
         """0x1006 holds the running period: the runner paces the cycle.  Refusing 0 also
@@ -1044,95 +830,27 @@ class ControllerNode(CanNode):
 
     # ---------------------------------------------------------- live parameters
 
-    def _register_parameters(self) -> None:
-        for p in PARAMETERS:
-            if p.put is None:
-                continue
-            self.services.add_validator(p.index, p.sub, self._validator(p))
-            self.services.on_write(p.index, p.sub, self._writer(p))
-
-    def _validator(self, p: Parameter) -> Callable[[Any], int | None]:
-        def validate(value: Any) -> int | None:
-            base = self._pending or self.config
-            assert p.put is not None
-            try:
-                candidate = p.put(base, value)
-                self._check_buildable(base, candidate)
-            except _NotApplicable:
-                return ABORT_DEVICE_STATE
-            except (ValueError, ArithmeticError, TypeError):
-                return ABORT_INVALID_VALUE
-            self._staged = (p.index, p.sub, value, candidate)
-            return None
-
-        return validate
-
-    def _writer(self, p: Parameter) -> Callable[[Any], None]:
-        def write(value: Any) -> None:
-            staged = self._staged
-            self._staged = None
-            if staged is None or staged[:3] != (p.index, p.sub, value):  # pragma: no cover
-                assert p.put is not None
-                staged = (p.index, p.sub, value, p.put(self._pending or self.config, value))
-            candidate = staged[3]
-            self._pending = candidate
-            self.diagnostics.parameter_writes += 1
-            if p.stage == "filter":  # mode writes change r/q: the OD follows at once
-                self._store_config(candidate)
-
-        return write
-
-    def _check_buildable(self, base: FirmwareConfig, new: FirmwareConfig) -> None:
-        """Raise if the stages of ``new`` that differ from ``base`` cannot be built.
-
-        The LQG design (seconds of linear algebra at worst) is built here once and kept
-        for the cycle boundary, so a design that fails aborts the SDO write instead."""
-        Ts = new.sample_period_s
-        if new.reference != base.reference:
-            ReferenceGenerator(new.reference, Ts)
-        if new.control.desired != base.control.desired:
-            ReferenceGenerator(new.control.desired.reference(), Ts)
-        if new.control.law != base.control.law and new.control.active:
-            self._prebuilt_control = (new.control, TorqueControl(new))
+    def _on_parameter(self, _: Parameter) -> None:
+        self.diagnostics.parameter_writes += 1
 
     def _apply_pending(self) -> None:
         """Swap the changed stages in at the cycle boundary (module docstring)."""
-        new = self._pending
+        params = self.parameters
+        new = params.take_pending()
         if new is None:
             return
-        self._pending = None
         old = self.config
-        isr = self.isr
-        Ts = new.sample_period_s
-        d = self.diagnostics
-        self.config = isr.cfg = new
-        if new.reference != old.reference:
-            isr.reference = ReferenceGenerator(new.reference, Ts)
-        if new.ripple != old.ripple:
-            previous = isr.chain
-            chain = TorqueFilterChain(new)
-            chain.differentiator = previous.differentiator
-            chain.encoder = previous.encoder
-            chain.integrator = previous.integrator
-            chain.angle = previous.angle
-            chain.keep_plausibility(previous.plausibility)
-            isr.chain = chain
-            d.filter_restarts += 1
-        else:
-            isr.chain.cfg = new
+        prebuilt = None
         if new.control != old.control:
-            prebuilt, self._prebuilt_control = self._prebuilt_control, None
-            if not new.control.active:
-                isr.control = None
-            elif isr.control is None or new.control.law != old.control.law:
-                if prebuilt is not None and prebuilt[0] == new.control:
-                    isr.control = prebuilt[1]
-                else:
-                    isr.control = TorqueControl(new)
-                d.control_rebuilds += 1
-            else:  # same law, new desired torque: the observer keeps its state
-                isr.control.cfg = new.control
-                isr.control.desired = ReferenceGenerator(new.control.desired.reference(), Ts)
+            prebuilt, params.prebuilt_control = params.prebuilt_control, None
+        self.config = new
+        done = apply_config(self.isr, old, new, prebuilt)
+        d = self.diagnostics
+        if done.filter_restarted:
+            d.filter_restarts += 1
+        if done.control_rebuilt:
+            d.control_rebuilds += 1
+        if done.control_changed:
             self.control_pdo_valid = new.control.active
             self._store_control_pdo_validity()
         d.parameter_updates_applied += 1

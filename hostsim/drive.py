@@ -166,7 +166,16 @@ from hdhil.can.faults import (
     TransmitSilence,
 )
 from hdhil.can.node import CanNode, pdo_cob_id
-from hdhil.canopen.cia402 import CONTROLWORD, SUPPORTED_MODES, Command, DriveStateMachine, State
+from hdhil.canopen.cia402 import (
+    CONTROLWORD,
+    CONTROLWORD_OBJECT,
+    STATUSWORD_OBJECT,
+    SUPPORTED_MODES,
+    Command,
+    DriveStateMachine,
+    State,
+)
+from hdhil.canopen.od import index_of
 from hdhil.canopen.services import (
     ABORT_DEVICE_STATE,
     ABORT_INVALID_VALUE,
@@ -184,8 +193,6 @@ from hdhil.hostsim.plant_model import PlantModel
 #: Object indices the node serves (CiA 301 / CiA 402 / manufacturer area).
 OD_ABORT_CONNECTION = 0x6007
 OD_ERROR_CODE = 0x603F
-OD_CONTROLWORD = 0x6040
-OD_STATUSWORD = 0x6041
 OD_QUICK_STOP_OPTION = 0x605A
 OD_FAULT_REACTION_OPTION = 0x605E
 OD_MODES_OF_OPERATION = 0x6060
@@ -388,14 +395,20 @@ class DriveNode(CanNode):
         self._at_current_limit = False
 
         # Frames.
-        self._sync = codec("control", "SYNC")
-        self._sensor = codec("control", "DRIVE_TPDO1")
-        self._command = codec("control", "DRIVE_RPDO1")
-        self._status = codec("control", "DRIVE_TPDO2")
+        # Codecs are used by signal name: each layout is checked against the names this
+        # node packs and unpacks (a DBC with reordered signals fails here, loudly).
+        self._sync = codec("control", "SYNC").expect("sync_counter")
+        self._sensor = codec("control", "DRIVE_TPDO1").expect(
+            "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
+        )
+        self._command = codec("control", "DRIVE_RPDO1").expect("DAC_cmd", "controlword", "cycle")
+        self._status = codec("control", "DRIVE_TPDO2").expect("statusword")
         self._truth_codecs = (
-            codec("truth", "TRUTH_TORQUE"),
-            codec("truth", "TRUTH_MOTION"),
-            codec("truth", "TRUTH_JOINT"),
+            codec("truth", "TRUTH_TORQUE").expect("T_true", "T_ripple"),
+            codec("truth", "TRUTH_MOTION").expect(
+                "theta_motor", "theta_output", "omega_motor", "omega_output"
+            ),
+            codec("truth", "TRUTH_JOINT").expect("tau_ext", "tau_d", "tau_m", "tau_m_cmd"),
         )
         self._sensor_msg = self._message(self._sensor.frame_id, self._sensor.length)
         self._status_msg = self._message(self._status.frame_id, self._status.length)
@@ -439,6 +452,9 @@ class DriveNode(CanNode):
         }
         self._set_knob_power_on_values()
         self._pending_knobs: dict[tuple[int, int], float] = {}
+        # CiA 402 objects found by name in the drive's EDS.
+        self._od_controlword = index_of(self.services.od, CONTROLWORD_OBJECT)
+        self._od_statusword = index_of(self.services.od, STATUSWORD_OBJECT)
         self._register_od_callbacks()
         services = self.services
         services.on_state_change(self._on_nmt_state)
@@ -761,7 +777,7 @@ class DriveNode(CanNode):
         s.on_write(OD_MODES_OF_OPERATION, 0, lambda mode: self._machine.set_mode(mode))
         s.on_write(OD_QUICK_STOP_OPTION, 0, self._set_quick_stop_option)
         s.on_write(OD_FAULT_REACTION_OPTION, 0, self._set_fault_reaction_option)
-        s.on_write(OD_CONTROLWORD, 0, self._sdo_controlword)
+        s.on_write(self._od_controlword, 0, self._sdo_controlword)
         for sub in EMULATOR_KNOBS:
             s.on_write(OD_EMULATOR, sub, self._knob_writer(OD_EMULATOR, sub))
         for sub in (*FAULT_FIELDS, *FAULT_MASKS, FAULT_SILENCE_MS):
@@ -785,8 +801,8 @@ class DriveNode(CanNode):
             )
         s.on_write(OD_TPDO2_COMM, 3, lambda _: setattr(self, "_inhibit_s", self._read_inhibit_s()))
         live: dict[tuple[int, int], Callable[[], int]] = {
-            (OD_STATUSWORD, 0): lambda: self._machine.statusword,
-            (OD_CONTROLWORD, 0): lambda: self._machine.controlword,
+            (self._od_statusword, 0): lambda: self._machine.statusword,
+            (self._od_controlword, 0): lambda: self._machine.controlword,
             (OD_MODES_DISPLAY, 0): lambda: self._machine.modes_of_operation_display,
             (OD_ERROR_CODE, 0): lambda: self._machine.error_code,
             (OD_ENCODER, 0): lambda: self._sample[3],

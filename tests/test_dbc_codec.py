@@ -86,3 +86,73 @@ def test_worst_case_frame_bits_match_design_budget():
     assert worst_case_frame_bits(1) == 65
     assert worst_case_frame_bits(8) == 135
     assert worst_case_frame_bits(0) == 47 + 33 // 4
+
+
+# ------------------------------------------------------------- signals checked by name
+
+
+def _reordered_control_dbc(tmp_path):
+    """control.dbc with DRIVE_TPDO1's first two signals swapped on the wire (the tacho
+    now in bytes 0-1, the torque in bytes 2-3): a valid DBC a node must not misread."""
+    from hdhil.dbc import dbc_path
+
+    text = dbc_path("control").read_text()
+    a = ' SG_ ADC_torque : 0|16@1- (1,0) [-2048|2047] "count" CONTROLLER,HOST'
+    b = ' SG_ ADC_tacho : 16|16@1- (1,0) [-2048|2047] "count" CONTROLLER,HOST'
+    assert a in text and b in text
+    text = text.replace(a, a.replace(": 0|16", ": 16|16")).replace(b, b.replace(": 16|16", ": 0|16"))
+    path = tmp_path / "control.dbc"
+    path.write_text(text)
+    return cantools.database.load_file(str(path))
+
+
+def test_a_dbc_with_reordered_signals_fails_loudly_at_start_up(tmp_path):
+    db = _reordered_control_dbc(tmp_path)
+    reordered = FrameCodec(db.get_message_by_name("DRIVE_TPDO1"), "control")
+    expected = ("ADC_torque", "ADC_tacho", "ADC_current", "ENC_count")
+    with pytest.raises(ValueError, match=r"control\.dbc DRIVE_TPDO1: the node expects") as err:
+        reordered.expect(*expected)
+    assert "ADC_tacho, ADC_torque, ADC_current, ENC_count" in str(err.value)
+    # The shipped DBC passes the same check.
+    assert codec("control", "DRIVE_TPDO1").expect(*expected).signal_names == expected
+
+
+def test_decoding_by_name_gives_the_right_values_whatever_the_order(tmp_path):
+    db = _reordered_control_dbc(tmp_path)
+    message = db.get_message_by_name("DRIVE_TPDO1")
+    reordered = FrameCodec(message, "control")
+    values = {"ADC_torque": 1234, "ADC_tacho": -567, "ADC_current": 89, "ENC_count": 40000}
+    payload = message.encode(values)  # cantools packs by name
+    assert reordered.decode_named(payload) == values
+    assert reordered.encode_named(**values) == payload
+    # Positional decoding follows the wire order: the first value is now the tacho.
+    assert reordered.decode(payload)[0] == -567
+    shipped = codec("control", "DRIVE_TPDO1")
+    assert shipped.decode_named(shipped.encode_named(**values)) == values
+    with pytest.raises(ValueError, match="missing signals"):
+        shipped.encode_named(ADC_torque=1)
+
+
+def test_every_node_expects_the_shipped_layouts():
+    """Building both nodes runs every ``expect`` against the shipped DBCs."""
+    import can
+
+    from hdhil.firmware.config import FirmwareConfig
+    from hdhil.firmware.controller import ControllerNode
+    from hdhil.hostsim.drive import DriveNode
+    from hdhil.hostsim.plant import Plant, PlantConfig
+
+    bus = can.Bus(interface="virtual", channel="t-expect", receive_own_messages=False)
+    try:
+        ControllerNode(bus, FirmwareConfig())
+        DriveNode(bus, Plant(PlantConfig()))
+    finally:
+        bus.shutdown()
+
+
+def test_node_function_codes_come_from_the_dbc():
+    from hdhil.dbc import node_function_codes, node_ids
+
+    assert node_ids("control") == {"CONTROLLER": 1, "DRIVE": 2}
+    # EMCY, TPDO1, TPDO2, SDO response, heartbeat: what both nodes transmit with their ID.
+    assert node_function_codes("control") == (0x080, 0x180, 0x280, 0x580, 0x700)

@@ -23,8 +23,10 @@ end of its transmission, as soon as a receiver polls):
   receives it.
 - ``silence`` / ``bus_off``: the node's frames never reach the wire (no wire time).
   A sender is identified by the COB-IDs it transmits: ``node = n`` stands for the
-  CANopen identifiers of node n (EMCY/TPDO1-4/SDO response/heartbeat: 0x080+n, 0x180+n,
-  0x280+n, 0x380+n, 0x480+n, 0x580+n, 0x700+n); ``ids`` lists identifiers explicitly
+  CANopen identifiers of node n, the function codes every node of ``control.dbc``
+  transmits with its node-ID added (EMCY/TPDO1/TPDO2/SDO response/heartbeat: 0x080+n,
+  0x180+n, 0x280+n, 0x580+n, 0x700+n; :func:`hdhil.dbc.node_function_codes`); ``ids``
+  lists identifiers explicitly
   (e.g. the controller's SYNC 0x080 and its RPDOs).
 - ``delay_us`` + uniform ``jitter_us``: added to the delivery timestamp (and so to the
   time a receiver may answer); deliveries scheduled by one flush are handed out in
@@ -72,6 +74,7 @@ from typing import IO, Any, Literal
 import can
 
 from hdhil.core.dataconf import ConfigError, from_dict, merge, to_dict
+from hdhil.dbc import node_function_codes
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -97,9 +100,6 @@ __all__ = [
     "with_fault_flags",
 ]
 
-#: Function codes a CANopen node transmits with its node-ID added (EMCY, TPDO1-4, SDO
-#: response, heartbeat).
-_NODE_FUNCTIONS = (0x080, 0x180, 0x280, 0x380, 0x480, 0x580, 0x700)
 
 #: Tolerance of time comparisons (s): k * Ts and a sum of periods may differ by rounding.
 _TIME_EPSILON = 1e-9
@@ -107,7 +107,7 @@ _TIME_EPSILON = 1e-9
 
 def node_ids(node: int) -> frozenset[int]:
     """The COB-IDs CANopen node ``node`` transmits (its default communication objects)."""
-    return frozenset(base + node for base in _NODE_FUNCTIONS)
+    return frozenset(base + node for base in node_function_codes("control"))
 
 
 def _rate(obj: object, name: str) -> None:

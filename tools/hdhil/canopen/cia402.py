@@ -122,6 +122,12 @@ CONTROLWORD: dict[Command, int] = {
     Command.FAULT_RESET: 0x0080,
 }
 
+#: EDS ParameterName of the CiA 402 objects the nodes use: they find the objects by name
+#: in their object dictionaries (``hdhil.canopen.od.index_of``), the numbers live in the
+#: EDS files only.
+CONTROLWORD_OBJECT = "controlword"
+STATUSWORD_OBJECT = "statusword"
+
 # Controlword bits (CiA 402-2, object 0x6040).
 CW_SWITCH_ON = 1 << 0
 CW_ENABLE_VOLTAGE = 1 << 1

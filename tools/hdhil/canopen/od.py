@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import configparser
 import re
+from functools import cache
 from pathlib import Path
 
 import canopen
 from canopen.objectdictionary import ObjectDictionary, ODVariable
 from canopen.objectdictionary import datatypes as dt
 
-__all__ = ["is_mapping_index", "load_od", "variable"]
+__all__ = ["eds_index", "index_of", "is_mapping_index", "load_od", "variable"]
 
 _SECTION = re.compile(r"^([0-9A-Fa-f]{4})(?:sub([0-9A-Fa-f]+))?$")
 
@@ -61,3 +62,20 @@ def variable(od: ObjectDictionary, index: int, sub: int) -> ODVariable | None:
 def is_mapping_index(index: int) -> bool:
     """True for a PDO mapping parameter (RPDO 0x1600-0x17FF, TPDO 0x1A00-0x1BFF)."""
     return 0x1600 <= index <= 0x17FF or 0x1A00 <= index <= 0x1BFF
+
+
+def index_of(od: ObjectDictionary, name: str) -> int:
+    """Index of the object named ``name`` (its EDS ParameterName) in ``od``.
+
+    Nodes find the CiA 402 objects by name, so the numbers live in the EDS only.
+    """
+    try:
+        return od[name].index
+    except KeyError:
+        raise KeyError(f"no object named {name!r} in the object dictionary") from None
+
+
+@cache
+def eds_index(path: str, name: str) -> int:
+    """:func:`index_of` in the EDS at ``path`` (read once per process)."""
+    return index_of(canopen.import_od(path), name)

@@ -154,8 +154,10 @@ def chirp_data_from_trace(
     """
     from hdhil.can.tracefile import read_trace
 
-    sensor = codec("control", "DRIVE_TPDO1")
-    command = codec("control", "DRIVE_RPDO1")
+    sensor = codec("control", "DRIVE_TPDO1").expect(
+        "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
+    )
+    command = codec("control", "DRIVE_RPDO1").expect("DAC_cmd", "controlword", "cycle")
     adc, dac, cal = firmware.adc, firmware.dac, firmware.calibration
     ys: list[float] = []
     us: list[float] = []

@@ -55,10 +55,13 @@ from hdhil.can.faults import (
     with_fault_flags,
 )
 from hdhil.can.trace import BusTap, FrameCounter, open_writer
+from hdhil.canopen.nmt import COMMAND_NAMES as NMT_COMMAND_NAMES
+from hdhil.canopen.nmt import nmt_frame
 from hdhil.commands.options import add_fault_arguments
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
 from hdhil.dbc import CHANNEL_NUMBER, eds_path
+from hdhil.dbc import node_ids as dbc_node_ids
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
@@ -293,7 +296,7 @@ def run_sdo(args: argparse.Namespace) -> int:
     from hdhil.canopen.services import SdoError, sdo_read, sdo_write
 
     index, sub = _parse_index(args.address)
-    node_eds = {1: "controller", 2: "drive"}.get(args.node)
+    node_eds = {n: name.lower() for name, n in dbc_node_ids("control").items()}.get(args.node)
     od = canopen.import_od(str(eds_path(node_eds)), args.node) if node_eds else None
     network = canopen.Network()
     network.bus = open_bus(args.interface, args.channel, args.bitrate)
@@ -329,14 +332,10 @@ def _parse_value(text: str) -> int | float:
             raise UserError(f"bad value {text!r}: a number is expected") from None
 
 
-NMT_COMMANDS = {"start": 0x01, "stop": 0x02, "pre-op": 0x80, "reset": 0x81, "reset-comm": 0x82}
-
-
 def run_nmt(args: argparse.Namespace) -> int:
     bus = open_bus(args.interface, args.channel, args.bitrate)
     try:
-        bus.send(can.Message(arbitration_id=0x000, is_extended_id=False,
-                             data=bytes([NMT_COMMANDS[args.action], args.node])))  # fmt: skip
+        bus.send(nmt_frame(NMT_COMMAND_NAMES[args.action], args.node))
     finally:
         bus.shutdown()
     print("ok")
@@ -399,6 +398,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("nmt", help="send an NMT command")
     add_bus_arguments(p)
-    p.add_argument("action", choices=tuple(NMT_COMMANDS))
+    p.add_argument("action", choices=tuple(NMT_COMMAND_NAMES))
     p.add_argument("node", type=int, help="node-ID (0 = all nodes)")
     p.set_defaults(func=run_nmt)

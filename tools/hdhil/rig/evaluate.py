@@ -101,12 +101,18 @@ class RecordingListener(can.Listener):
 
     def __init__(self, sample_period_s: float) -> None:
         self.recording = Recording(sample_period_s)
-        self._sensor = codec("control", "DRIVE_TPDO1")
-        self._tele = codec("control", "CTRL_TPDO1")
-        self._truth_torque = codec("truth", "TRUTH_TORQUE")
-        self._truth_motion = codec("truth", "TRUTH_MOTION")
+        self._sensor = codec("control", "DRIVE_TPDO1").expect(
+            "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
+        )
+        self._tele = codec("control", "CTRL_TPDO1").expect(
+            "T_meas", "T_filtered", "velocity", "current"
+        )
+        self._truth_torque = codec("truth", "TRUTH_TORQUE").expect("T_true", "T_ripple")
+        self._truth_motion = codec("truth", "TRUTH_MOTION").expect(
+            "theta_motor", "theta_output", "omega_motor", "omega_output"
+        )
         self._truth = [math.nan] * 5  # T_true, T_ripple, theta_m, omega_m, theta_out
-        self._status = codec("control", "DRIVE_TPDO2")
+        self._status = codec("control", "DRIVE_TPDO2").expect("statusword")
         self._enabled: bool | None = None  # unknown until a statusword is seen
         self._dispatch = {
             (self._sensor.frame_id, False): self._on_sensor,

@@ -326,7 +326,9 @@ def _sensor_frames(path: Path, summary: FilterSummary) -> Iterator[tuple[float, 
     from hdhil.can.tracefile import read_trace
     from hdhil.dbc import codec
 
-    sensor = codec("control", "DRIVE_TPDO1")
+    sensor = codec("control", "DRIVE_TPDO1").expect(
+        "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
+    )
     frame_id = sensor.frame_id
     length = sensor.length
     decode = sensor.decode

@@ -141,6 +141,7 @@ import can
 
 from hdhil.can.simbus import SimClock
 from hdhil.core.dataconf import ConfigError
+from hdhil.dbc import frame_id
 
 #: Spin window by default, as a fraction of the sample period (600 µs at 1 kHz).
 SPIN_FRACTION = 0.6
@@ -567,14 +568,15 @@ class RealtimeLoop:
     """Paces the cycles, instruments the controller, collects the statistics."""
 
     def __init__(self, sample_period_s: float, config: RealtimeConfig | None = None, *,
-                 sync_id: int = 0x080, sensor_id: int = 0x182,
-                 command_id: int = 0x202) -> None:  # fmt: skip
+                 sync_id: int | None = None, sensor_id: int | None = None,
+                 command_id: int | None = None) -> None:  # fmt: skip
         self.config = config = config or RealtimeConfig()
         config.check(sample_period_s)
         self.period_ns = round(sample_period_s * 1e9)
-        self.sync_id = sync_id
-        self.sensor_id = sensor_id
-        self.command_id = command_id
+        # Default identifiers from control.dbc (SYNC, the drive's sensor TPDO, its RPDO).
+        self.sync_id = frame_id("control", "SYNC") if sync_id is None else sync_id
+        self.sensor_id = frame_id("control", "DRIVE_TPDO1") if sensor_id is None else sensor_id
+        self.command_id = frame_id("control", "DRIVE_RPDO1") if command_id is None else command_id
         share, source = rt_share_limit()
         self.plan = SpinPlan(
             self.period_ns,

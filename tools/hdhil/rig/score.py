@@ -57,8 +57,8 @@ class TorqueScorer(can.Listener):
         self._block_n = 0
         self._block_start: float | None = None
         self._block_end = block_s
-        tele = codec("control", "CTRL_TPDO1")
-        truth = codec("truth", "TRUTH_TORQUE")
+        tele = codec("control", "CTRL_TPDO1").expect("T_meas", "T_filtered", "velocity", "current")
+        truth = codec("truth", "TRUTH_TORQUE").expect("T_true", "T_ripple")
         self._tele_key = (tele.frame_id, False)
         self._truth_key = (truth.frame_id, True)
         self._tele = tele
@@ -160,9 +160,11 @@ class TrackingScorer(can.Listener):
     def __init__(self, jl_over_jm: float, skip_s: float = 0.0) -> None:
         self.skip_s = skip_s
         self.jl_over_jm = jl_over_jm
-        self._tele = codec("control", "CTRL_TPDO2")
-        self._truth = codec("truth", "TRUTH_TORQUE")
-        self._joint = codec("truth", "TRUTH_JOINT")
+        self._tele = codec("control", "CTRL_TPDO2").expect(
+            "dtau_s_hat", "tau_lgd_hat", "tau_sD", "e_hat"
+        )
+        self._truth = codec("truth", "TRUTH_TORQUE").expect("T_true", "T_ripple")
+        self._joint = codec("truth", "TRUTH_JOINT").expect("tau_ext", "tau_d", "tau_m", "tau_m_cmd")
         self._keys = {
             (self._tele.frame_id, False): self._on_tele,
             (self._truth.frame_id, True): self._on_truth,
