@@ -78,7 +78,7 @@ def test_sdo_client_reports_the_servers_abort_code(link):
 
 
 def test_sdo_client_ignores_answers_to_other_transfers(link):
-    server, bus = link
+    _, bus = link
     client = SdoClient(bus, 2)
     msg = can.Message(arbitration_id=client.response_id, is_extended_id=False,
                       data=bytes((0x4B, 0x41, 0x60, 0, 1, 0, 0, 0)))  # fmt: skip
@@ -97,7 +97,7 @@ def test_nmt_frames_use_canopens_command_codes():
     }  # fmt: skip
     with pytest.raises(ValueError):
         nmt_frame(0x42, 2)
-    with pytest.raises(ValueError, match="0..127"):
+    with pytest.raises(ValueError, match=r"0\.\.127"):
         nmt_frame(NmtCommand.START, 128)
 
 

@@ -100,7 +100,8 @@ def _reordered_control_dbc(tmp_path):
     a = ' SG_ ADC_torque : 0|16@1- (1,0) [-2048|2047] "count" CONTROLLER,HOST'
     b = ' SG_ ADC_tacho : 16|16@1- (1,0) [-2048|2047] "count" CONTROLLER,HOST'
     assert a in text and b in text
-    text = text.replace(a, a.replace(": 0|16", ": 16|16")).replace(b, b.replace(": 16|16", ": 0|16"))
+    text = text.replace(a, a.replace(": 0|16", ": 16|16"))
+    text = text.replace(b, b.replace(": 16|16", ": 0|16"))
     path = tmp_path / "control.dbc"
     path.write_text(text)
     return cantools.database.load_file(str(path))
