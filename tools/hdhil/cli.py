@@ -48,6 +48,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "soak",
         "long lockstep run with logging, checked per block (filter health, errors, memory)",
     ),
+    "campaign": (
+        "campaign",
+        "run a campaign (scenario x fault x seed x parameter grid) in parallel",
+    ),
 }
 
 __all__ = ["COMMANDS", "ConfigError", "UserError", "build_parser", "main"]

@@ -1,0 +1,166 @@
+"""``hdhil campaign``: a grid of scenario variants in parallel, on a local process pool or
+a Dask cluster, with a verdict per variant and a report.
+
+Exit codes: 0 every variant passed every criterion, 1 some variant failed a criterion or
+raised, 2 usage or input error (nothing has run), 130 interrupted (finished variants are
+kept; run the same command again to complete the campaign).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from hdhil.core.errors import UserError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from hdhil.rig.campaign import list_campaigns
+
+    p = sub.add_parser(
+        "campaign",
+        help="run a campaign (scenario x fault x seed x parameter grid) in parallel",
+        description="Run every variant of a campaign file (base scenarios, axes over "
+        "scenario keys, criteria over the metrics of `hdhil run --json`) on a local "
+        "process pool or a Dask cluster; write results.csv, results.parquet, timings.csv "
+        "and report.md with plots. A re-run skips variants already recorded.",
+        epilog="exit codes: 0 all variants passed, 1 some variant failed a criterion or "
+        "raised, 2 usage or input error, 130 interrupted (finished variants are kept)",
+    )
+    p.add_argument(
+        "campaign",
+        metavar="NAME|FILE",
+        help=f"campaign name or TOML file (shipped: {', '.join(list_campaigns())})",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="local worker processes (default: the machine's cores)",
+    )
+    p.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="run on a Dask cluster, e.g. tcp://HOST:8786 (needs pip install 'hdhil[cluster]')",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="output directory (default: campaign-NAME); a re-run resumes in it",
+    )
+    p.add_argument("--json", action="store_true", help="print a JSON summary, no progress bar")
+    p.set_defaults(func=run)
+
+
+class _Progress:
+    """A progress bar with ETA and running pass/fail counts (stderr, terminals only)."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.counts = {"pass": 0, "fail": 0, "error": 0}
+        self.bar = None
+        if enabled:
+            try:
+                from tqdm import tqdm
+            except ImportError:  # pragma: no cover - tqdm is a dependency
+                return
+            self.bar = tqdm(total=total, unit="variant", file=sys.stderr, dynamic_ncols=True)
+
+    def __call__(self, record: Any) -> None:
+        self.counts[record.status] += 1
+        if self.bar is not None:
+            self.bar.set_postfix_str(
+                f"pass {self.counts['pass']} fail {self.counts['fail']} "
+                f"error {self.counts['error']}",
+                refresh=False,
+            )
+            self.bar.update(1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _dask_executor(address: str) -> tuple[Any, Any, tuple[type[BaseException], ...]]:
+    try:
+        from distributed import Client
+        from distributed.scheduler import KilledWorker
+    except ImportError:
+        raise UserError(
+            "--scheduler needs Dask distributed: pip install 'hdhil[cluster]'"
+        ) from None
+    try:
+        client = Client(address, timeout="15s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise UserError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
+    return client, (lambda: client.get_executor(pure=False)), (KilledWorker,)
+
+
+def run(args: argparse.Namespace) -> int:
+    from hdhil.rig.campaign import expand, load_campaign, local_executor, run_campaign
+    from hdhil.rig.campaign_report import write_outputs
+
+    campaign = load_campaign(args.campaign)
+    variants = expand(campaign)
+    if args.workers is not None and args.scheduler is not None:
+        raise UserError("--workers is for the local pool; a Dask cluster has its own workers")
+    workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
+    if workers < 1:
+        raise UserError(f"--workers must be >= 1, got {workers}")
+    out = args.out if args.out is not None else Path(f"campaign-{campaign.name}")
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out} exists and is not a directory")
+    client = None
+    lost: tuple[type[BaseException], ...] = ()
+    if args.scheduler is not None:
+        client, make_executor, lost = _dask_executor(args.scheduler)
+    else:
+
+        def make_executor() -> Any:
+            return local_executor(workers)
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create --out {out}: {exc}") from None
+    progress = _Progress(len(variants), enabled=sys.stderr.isatty() and not args.json)
+    try:
+        result = run_campaign(campaign, variants, out, make_executor, progress, lost)
+    finally:
+        progress.close()
+        if client is not None:
+            client.close()
+    summary = write_outputs(campaign, variants, result, out)
+    code = 130 if result.interrupted else (0 if summary["passed"] == len(variants) else 1)
+    summary["exit_code"] = code
+    if args.json:
+        json.dump(summary, sys.stdout, indent=2)
+        print()
+    else:
+        print(
+            f"hdhil campaign {campaign.name}: {summary['variants']} variants, "
+            f"passed {summary['passed']}, failed {summary['failed']}, errors "
+            f"{summary['errors']}, not run {summary['not_run']} "
+            f"(run now {summary['ran']}, from earlier runs {summary['resumed']}) "
+            f"in {summary['wall_s']:.1f} s"
+        )
+        for text, counts in summary["criteria"].items():
+            print(f"  {text:<40} pass {counts['pass']:>4}  fail {counts['fail']:>4}")
+        print(f"  results  {out / 'results.csv'}")
+        print(f"  report   {out / 'report.md'}")
+        for note in summary["notes"]:
+            print(f"  note: {note}")
+    if result.interrupted:
+        print(
+            "hdhil: interrupted; finished variants are kept, run the same command again "
+            "to complete the campaign",
+            file=sys.stderr,
+        )
+    return code
