@@ -19,7 +19,15 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from hdhil.rig.campaign import METRICS, Campaign, CampaignRun, Record, Variant, _write_atomic
+from hdhil.rig.campaign import (
+    METRICS,
+    Campaign,
+    CampaignRun,
+    Record,
+    Variant,
+    _fmt,
+    _write_atomic,
+)
 
 #: Variants listed per criterion under "worst variants".
 WORST = 5
@@ -125,7 +133,7 @@ def plot_files(campaign: Campaign, table: list[dict[str, Any]], plots: Path) -> 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    axes = list(campaign.axis_keys)
+    axes = [a.key for a in campaign.axes] + [group[0].key for group in campaign.zips]
     if len(campaign.scenarios) > 1:
         axes.insert(0, "scenario")
     ok = [r for r in table if r["status"] != "error"]
@@ -263,11 +271,12 @@ def report_md(campaign: Campaign, variants: Sequence[Variant], run: CampaignRun,
             continue
         lines += [f"`{c.text}`:", ""]
         for r in ranked:
-            verdict = "pass" if by_id[r["variant"]].verdicts.get(c.text) else "FAIL"
-            lines.append(
-                f"- {_describe(r, axis_cols)}: {c.metric} = {_cell(r[c.metric])[:10]} ({verdict})"
-            )
+            ok, why = c.check(by_id[r["variant"]].metrics)
+            shown = f"{c.metric} = {_fmt(r[c.metric])} (pass)" if ok else f"FAIL: {why}"
+            early = [x for x in by_id[r["variant"]].reasons if x.startswith("stopped early")]
+            lines.append(f"- {_describe(r, axis_cols)}: " + "; ".join([shown, *early]))
         lines.append("")
+    lines += _by_axis_values(campaign, table)
     if plots:
         lines += ["## Plots", ""]
         lines += [f"![{p.stem}](plots/{p.name})" for p in plots]
@@ -275,6 +284,38 @@ def report_md(campaign: Campaign, variants: Sequence[Variant], run: CampaignRun,
     if notes:
         lines += ["## Notes", ""] + [f"- {n}" for n in notes] + [""]
     return "\n".join(lines)
+
+
+def _by_axis_values(campaign: Campaign, table: list[dict[str, Any]]) -> list[str]:
+    """Pass counts and metric means per combination of the crossed axes (seeds and
+    zipped groups pooled)."""
+    keys = [a.key for a in campaign.axes if a.key != "seed"]
+    if len(campaign.scenarios) > 1:
+        keys.insert(0, "scenario")
+    if not keys or not table:
+        return []
+    metrics = campaign.plot_metrics
+    groups: dict[tuple[str, ...], list[dict[str, Any]]] = {}
+    for r in table:
+        groups.setdefault(tuple(_cell(r[k]) for k in keys), []).append(r)
+    lines = [
+        "## By axis values",
+        "",
+        "Means over the variants of each row that report the metric.",
+        "",
+        "| " + " | ".join([*keys, "passed", *(f"mean {m}" for m in metrics)]) + " |",
+        "|" + "---|" * len(keys) + "---:|" * (1 + len(metrics)),
+    ]
+    for key, members in groups.items():
+        passed = sum(1 for r in members if r["status"] == "pass")
+        means = []
+        for m in metrics:
+            ys = [r[m] for r in members if _finite(r[m])]
+            means.append(f"{sum(ys) / len(ys):.4f}" if ys else "n/a")
+            if ys and len(ys) < len(members):
+                means[-1] += f" ({len(ys)})"
+        lines.append("| " + " | ".join([*key, f"{passed}/{len(members)}", *means]) + " |")
+    return [*lines, ""]
 
 
 def _describe(row: dict[str, Any], axis_cols: list[str]) -> str:
