@@ -165,7 +165,8 @@ from hdhil.canopen.services import (
 )
 from hdhil.dbc import codec, eds_path
 from hdhil.firmware.config import FirmwareConfig
-from hdhil.firmware.isr import AdcSample, InterruptHandler
+from hdhil.firmware.interrupt import AdcSample, InterruptHandlerModel
+from hdhil.firmware.isr import InterruptHandler
 from hdhil.firmware.parameters import (
     PARAMETERS,
     LiveParameters,
@@ -326,6 +327,7 @@ class ControllerNode(CanNode):
         drive_heartbeat_timeout_ms: int = 250,
         boot_timeout_s: float = 2.0,
         sensor_hold_cycles: int = 10,
+        isr: InterruptHandlerModel | None = None,
     ) -> None:
         if not 2 <= sync_overflow <= 240:
             raise ValueError(f"SYNC counter overflow must be 2..240 (CiA 301), got {sync_overflow}")
@@ -341,7 +343,11 @@ class ControllerNode(CanNode):
             )
         super().__init__(bus)
         self.config = config
-        self.isr = InterruptHandler(config)
+        #: The interrupt handler (:class:`firmware.interrupt.InterruptHandlerModel`): the
+        #: firmware's own unless ``isr`` is given; the plausibility EMCYs and the SDO
+        #: parameters that retune stages need the firmware's own.
+        self.isr: InterruptHandlerModel = InterruptHandler(config) if isr is None else isr
+        self._own_isr = isinstance(self.isr, InterruptHandler)
         self.diagnostics = ControllerDiagnostics()
         self.sync_overflow = sync_overflow
         self.node_id = node_id
@@ -368,6 +374,7 @@ class ControllerNode(CanNode):
         self._sync = self.services.make_sync_producer()
         self.parameters = LiveParameters(self.services, lambda: self.config, self._on_parameter)
         self.parameters.store(config)
+        self.parameters.enabled = self._own_isr
         self.services.add_validator(0x1006, 0, self._check_cycle_period)
         self.services.on_boot(self._on_boot)
         self.services.on_heartbeat_lost(self._on_heartbeat_lost)
@@ -472,7 +479,7 @@ class ControllerNode(CanNode):
                     f"{_seconds(self.boot_timeout_s)} s: check power, node-ID and bit rate"
                 )
                 self._enter_safe(self.boot_error)
-        if self.isr.chain.plausibility.revision != self._plausibility_revision:
+        if self._own_isr and self.isr.chain.plausibility.revision != self._plausibility_revision:
             self._report_plausibility()
         counters = self.services.counters
         self.diagnostics.emcy_sent = counters.emcy_sent
@@ -718,7 +725,7 @@ class ControllerNode(CanNode):
             self._missing_sensor = 0
             return True
         self._missing_sensor += 1
-        self.isr.chain.sample_missed()
+        self.isr.sample_missed()
         d = self.diagnostics
         d.sensor_frames_missed += 1
         d.sensor_hold_longest = max(d.sensor_hold_longest, self._missing_sensor)

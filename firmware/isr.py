@@ -65,9 +65,9 @@ other way (``τs = k (θl - θm)``, §II); torques acting on the motor or on the
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.interrupt import AdcSample, IsrOutput, StageHook
 from hdhil.firmware.lqg import LqgController, LqgDesign, design_lqg
 from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
 from hdhil.firmware.stages import (
@@ -86,73 +86,34 @@ from hdhil.firmware.stages import (
 
 __all__ = [
     "SENSOR_TORQUE_SIGN",
+    "STAGES",
     "AdcSample",
     "InterruptHandler",
     "IsrOutput",
+    "StageHook",
     "TorqueControl",
     "TorqueFilterChain",
 ]
 
+#: The interrupt's stages in execution order (key, label), as a :data:`StageHook` sees
+#: them: stage ``i`` (1-based) ends at the hook's call with ``i``. "model torque, error,
+#: angle" is ``T_mod``, ``Delta_T``, the paper filter's ``Torque_f`` or the recommended
+#: filter's motor angle; "ripple Kalman" is the filter's step (and the recommended
+#: filter's ``Torque_f``); "control / reference" is the LQG law (it also converts its
+#: command to DAC counts) or ``reference_generation``; "DAC write, outputs" is
+#: ``write_dac0`` and the output copies.
+STAGES: tuple[tuple[str, str], ...] = (
+    ("adc_calibration", "ADC read + calibration"),
+    ("plausibility", "sensor plausibility"),
+    ("differentiator", "differentiator"),
+    ("torque_model", "model torque, error, angle"),
+    ("ripple_kalman", "ripple Kalman"),
+    ("control_reference", "control / reference"),
+    ("dac_output", "DAC write, outputs"),
+)
+
 #: Seed 003's sensor torque per product-convention torque: ``τs = -T`` (module docstring).
 SENSOR_TORQUE_SIGN = -1.0
-
-
-@dataclass(frozen=True, slots=True)
-class AdcSample:
-    """Raw counts from the drive's sensor frame (listing ``DT1401Read`` channels
-    CH6 torque bridge, CH4 tachometer, CH5 motor current monitor, and the quadrature
-    decoder's 16-bit wrapping pulse count ``pcsample``)."""
-
-    torque: int
-    tacho: int
-    current: int
-    encoder: int
-
-
-@dataclass(slots=True)
-class IsrOutput:
-    """What one interrupt produced.
-
-    ``samplecount`` is the index k of the sample this output belongs to (the listing's
-    ``samplecount`` before its ``++``); ``reference_V`` is the reference at k and
-    ``dac_counts`` its DAC code.  ``ripple`` is the ripple subtracted at k, so
-    ``T_filtered = T_meas - ripple`` exactly: in paper mode the prediction the Kalman
-    filter made at k − 1 (listing ``T_ripple``), in recommended mode the learned ripple
-    map at the angle measured at k.  ``encoder`` is the pulse count masked to 16 bits
-    (listing ``pcsample &= 0x0000ffff``), so in 0..65535.  Units: Nm, rad/s, A, rad/s².
-
-    Torque control (seed 003, only with a control law; 0 otherwise), all in the product
-    convention (module docstring): ``tau_s_hat`` / ``dtau_s_hat`` the observer's
-    sensor torque and its derivative (Nm, Nm/s), ``tau_lgd_hat`` the exogenous torque
-    ``τlgd = τl + τg − τd Jl/Jm`` (Nm), ``tau_sD`` / ``dtau_sD`` the desired torque and
-    its derivative, ``e_hat = tau_s_hat − tau_sD``, ``tau_m_request`` the law's motor
-    torque (Nm, output-referred) and ``tau_m_cmd`` the torque the DAC code stands for
-    (after the torque limit, the DAC range and quantisation), ``saturated`` whether
-    the two differ by more than half a DAC step.  ``reference_V`` is then the DAC
-    voltage before quantisation.
-    """
-
-    samplecount: int = 0
-    dac_counts: int = 0
-    reference_V: float = 0.0
-    T_meas: float = 0.0
-    velocity: float = 0.0
-    current: float = 0.0
-    acceleration: float = 0.0
-    T_expected: float = 0.0
-    delta_T: float = 0.0
-    T_filtered: float = 0.0
-    ripple: float = 0.0
-    encoder: int = 0
-    tau_s_hat: float = 0.0
-    dtau_s_hat: float = 0.0
-    tau_lgd_hat: float = 0.0
-    tau_sD: float = 0.0
-    dtau_sD: float = 0.0
-    e_hat: float = 0.0
-    tau_m_request: float = 0.0
-    tau_m_cmd: float = 0.0
-    saturated: bool = False
 
 
 class TorqueFilterChain:
@@ -230,12 +191,16 @@ class TorqueFilterChain:
             self.differentiator.limit = plausibility.max_acceleration_radps2
 
     def step(
-        self, T_meas: float, velocity: float, encoder: int | None = None
+        self,
+        T_meas: float,
+        velocity: float,
+        encoder: int | None = None,
+        stamp: StageHook | None = None,
     ) -> tuple[float, float, float, float, float]:
         """One sample: measured torque (Nm), motor velocity (rad/s) and the raw 16-bit
         encoder count (needed in recommended mode with ``phase_source = "encoder"``,
         ignored otherwise).  Returns ``(acceleration, T_expected, delta_T, T_filtered,
-        ripple)``.
+        ripple)``.  ``stamp`` is called at the ends of stages 2-5 of :data:`STAGES`.
 
         In paper mode ``self.T_ripple`` afterwards holds the prediction for the next
         sample (the listing's global).
@@ -248,14 +213,22 @@ class TorqueFilterChain:
             rejected = check.rejected
         else:
             rejected = False
+        if stamp is not None:
+            stamp(2)
         self.velocity = velocity
         acc = self.differentiator.step(velocity)  # acc = Diff_filter( vel);
+        if stamp is not None:
+            stamp(3)
         T_mod = expected_torque(acc, self._J_load, self._gear_ratio)  # T_mod = J_load*acc/Gain;
         Delta_T = torque_error(T_meas, T_mod)  # Delta_T = T_meas - T_mod;
         if self._paper:
             ripple = self.T_ripple
             Torque_f = filtered_torque(T_meas, ripple)  # Torque_f = T_meas - T_ripple;
+            if stamp is not None:
+                stamp(4)
             self.T_ripple = self.kalman.step(Delta_T, velocity)  # T_ripple = Kalman(...);
+            if stamp is not None:
+                stamp(5)
             return acc, T_mod, Delta_T, Torque_f, ripple
         if self._use_encoder:
             if encoder is None:
@@ -267,11 +240,16 @@ class TorqueFilterChain:
         else:
             angle = self.integrator.step(velocity)
         self.angle = angle
+        if stamp is not None:
+            stamp(4)
         # a sample with a replaced value skips the update, exactly like a non-finite one
         y = math.nan if rejected else Delta_T
         ripple = self.kalman.step(y, velocity, angle)  # type: ignore[call-arg]
         self.T_ripple = ripple
-        return acc, T_mod, Delta_T, filtered_torque(T_meas, ripple), ripple
+        Torque_f = filtered_torque(T_meas, ripple)
+        if stamp is not None:
+            stamp(5)
+        return acc, T_mod, Delta_T, Torque_f, ripple
 
     def sample_missed(self) -> None:
         """A sample period passed without a sample (the sensor frame was lost): the
@@ -402,6 +380,8 @@ class InterruptHandler:
         self._feedback_filtered = cfg.control.feedback == "T_filtered"
         self.samplecount = 0  # listing: int samplecount = 0;
         self._out = IsrOutput()
+        #: Stage timing (:data:`StageHook`): called at every stage boundary when set.
+        self.stage_hook: StageHook | None = None
 
     @property
     def done(self) -> bool:
@@ -431,6 +411,11 @@ class InterruptHandler:
         ``write_dac0(0.0)``)."""
         return dac_write(0.0, self.cfg.dac)
 
+    def sample_missed(self) -> None:
+        """A sample period passed without a sample: the plausibility bounds of the next
+        sample span the gap (:meth:`TorqueFilterChain.sample_missed`)."""
+        self.chain.sample_missed()
+
     def reset(self) -> None:
         """Back to power-on state (samplecount 0, filters cleared).  The output object
         is kept (it is overwritten by the next call)."""
@@ -442,26 +427,35 @@ class InterruptHandler:
     def __call__(self, sample: AdcSample) -> IsrOutput:
         cfg = self.cfg
         k = self.samplecount
+        stamp = self.stage_hook
+        if stamp is not None:
+            stamp(0)
         # DT1401Read(str_ch, end_ch, a2dsamples); Torque = CH6, Tacho = CH4, MotorCurrOut = CH5
         Torque, Tacho, MotorCurrOut = adc_read(sample.torque, sample.tacho, sample.current, cfg.adc)
         # vel = Tacho * volt2radps; T_meas = Torque * volt2Nm;
         T_meas, vel, current = calibrate(Torque, Tacho, MotorCurrOut, cfg.calibration)
+        if stamp is not None:
+            stamp(1)
         # plausibility (not in the listing): implausible vel / pcsample replaced;
         # acc = Diff_filter(vel); T_mod; Delta_T; Torque_f; T_ripple = Kalman(...);
         # (recommended mode: the motor angle from pcsample, the drive's encoder count)
         chain = self.chain
-        acc, T_mod, Delta_T, Torque_f, ripple = chain.step(T_meas, vel, sample.encoder)
+        acc, T_mod, Delta_T, Torque_f, ripple = chain.step(T_meas, vel, sample.encoder, stamp)
         out = self._out
         control = self.control
         if control is None:
             # ref_fl = reference_generation(wavetype);
             ref_fl = self.reference.value(k)
+            if stamp is not None:
+                stamp(6)
             # write_dac0( ref_fl );
             out.dac_counts = dac_write(ref_fl, cfg.dac)
             out.reference_V = ref_fl
         else:
             # seed 003: LQG torque control on the measured torque -> write_dac0(tau_m / Nm per V)
             control(k, Torque_f if self._feedback_filtered else T_meas, out)
+            if stamp is not None:
+                stamp(6)
 
         # copy(&T_meas ...); copy(&vel ...); copy(&MotorCurrOut ...); copy(&Torque_f ...);
         out.samplecount = k
@@ -476,4 +470,6 @@ class InterruptHandler:
         out.encoder = sample.encoder & 0xFFFF  # pcsample &= 0x0000ffff;
 
         self.samplecount = k + 1  # ++samplecount;
+        if stamp is not None:
+            stamp(7)
         return out

@@ -186,6 +186,9 @@ class LiveParameters:
         self.current = current
         self.on_accepted = on_accepted
         self.pending: FirmwareConfig | None = None
+        #: False when the controller runs an interrupt handler other than the firmware's
+        #: own: there are no stages to retune, every write is refused (0x08000022).
+        self.enabled = True
         #: A control law designed while its write was checked, kept for the swap.
         self.prebuilt_control: tuple[Any, TorqueControl] | None = None
         self._staged: tuple[int, int, Any, FirmwareConfig] | None = None
@@ -243,6 +246,8 @@ class LiveParameters:
 
         The LQG design (seconds of linear algebra at worst) is built here once and kept
         for the cycle boundary, so a design that fails aborts the SDO write instead."""
+        if not self.enabled:
+            raise NotApplicable
         Ts = new.sample_period_s
         if new.reference != base.reference:
             ReferenceGenerator(new.reference, Ts)

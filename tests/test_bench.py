@@ -14,7 +14,7 @@ import pytest
 
 from hdhil.cli import main
 from hdhil.commands.bench import LOCKSTEP_SCENARIOS, REALTIME_GOALS, format_bench, run_benchmarks
-from hdhil.rig.realtime import STAGES
+from hdhil.firmware.isr import STAGES
 
 
 def _positive(x: float) -> bool:

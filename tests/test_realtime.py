@@ -25,6 +25,7 @@ from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
 from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
 from hdhil.firmware.stages import Differentiator, ReferenceGenerator, SensorPlausibility
 from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig import ostuning as ostuning
 from hdhil.rig import realtime as realtime
 from hdhil.rig.realtime import (
     HISTOGRAM_EDGES_US,
@@ -37,7 +38,6 @@ from hdhil.rig.realtime import (
     WallClock,
     histogram,
     percentiles,
-    rt_share_limit,
 )
 from hdhil.rig.runner import run_lockstep
 
@@ -116,7 +116,7 @@ def _vm_locked_kb() -> int | None:
 def test_realtime_cli_run_reports_statistics(tmp_path, capsys):
     assert gc.isenabled()
     affinity = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
-    slack = realtime.get_timer_slack()
+    slack = ostuning.get_timer_slack()
     code = main(["run", "--realtime", "--duration", "0.3", "--no-evaluate", "--json",
                  "--floor-s", "0.1", "--mlock", "--trace", str(tmp_path / "rt.blf")])  # fmt: skip
     assert code == 0
@@ -139,7 +139,7 @@ def test_realtime_cli_run_reports_statistics(tmp_path, capsys):
         assert os.sched_getaffinity(0) == affinity
     if hasattr(os, "sched_getscheduler"):
         assert os.sched_getscheduler(0) == os.SCHED_OTHER
-    assert realtime.get_timer_slack() == slack
+    assert ostuning.get_timer_slack() == slack
     if _vm_locked_kb() is not None:
         assert _vm_locked_kb() == 0
     assert (tmp_path / "rt.blf").stat().st_size > 0
@@ -173,22 +173,22 @@ def _fake_stat(path, cpu1_steal_ticks: int) -> None:
 def test_steal_time_is_read_per_cpu_from_proc_stat(tmp_path):
     tick_ns = 1_000_000_000 // os.sysconf("SC_CLK_TCK")
     _fake_stat(tmp_path, 50)
-    assert realtime.cpu_steal_ns(1, str(tmp_path)) == 50 * tick_ns
-    assert realtime.cpu_steal_ns(0, str(tmp_path)) == 20 * tick_ns
-    assert realtime.cpu_steal_ns(None, str(tmp_path)) == 70 * tick_ns
-    assert realtime.cpu_steal_ns(7, str(tmp_path)) is None  # no such CPU
-    assert realtime.cpu_steal_ns(0, str(tmp_path / "none")) is None  # no procfs
+    assert ostuning.cpu_steal_ns(1, str(tmp_path)) == 50 * tick_ns
+    assert ostuning.cpu_steal_ns(0, str(tmp_path)) == 20 * tick_ns
+    assert ostuning.cpu_steal_ns(None, str(tmp_path)) == 70 * tick_ns
+    assert ostuning.cpu_steal_ns(7, str(tmp_path)) is None  # no such CPU
+    assert ostuning.cpu_steal_ns(0, str(tmp_path / "none")) is None  # no procfs
     (tmp_path / "stat").write_text("cpu0 50 0 25 450\n")  # a kernel without the column
-    assert realtime.cpu_steal_ns(0, str(tmp_path)) is None
+    assert ostuning.cpu_steal_ns(0, str(tmp_path)) is None
 
 
 def test_steal_report_over_an_interval():
-    r = realtime.steal_report(1_000_000_000, 1_250_000_000, 1, 10.0)
+    r = ostuning.steal_report(1_000_000_000, 1_250_000_000, 1, 10.0)
     assert r == {"cpu": 1, "ms": pytest.approx(250.0), "share": pytest.approx(0.025)}
-    everywhere = realtime.steal_report(0, 400_000_000, None, 10.0)
+    everywhere = ostuning.steal_report(0, 400_000_000, None, 10.0)
     assert everywhere["cpu"] == "all"
     assert everywhere["share"] == pytest.approx(0.4 / (10.0 * (os.cpu_count() or 1)))
-    assert realtime.steal_report(None, 5, 0, 1.0) is None
+    assert ostuning.steal_report(None, 5, 0, 1.0) is None
     text = realtime.format_steal(r)
     assert "CPU 1" in text and "250 ms" in text and "2.50%" in text
 
@@ -249,8 +249,8 @@ def test_refused_privileges_are_reported_and_the_run_goes_on(monkeypatch):
         monkeypatch.setattr(os, "sched_setaffinity", _refuse(errno.EPERM))
     if hasattr(os, "sched_setscheduler"):
         monkeypatch.setattr(os, "sched_setscheduler", _refuse(errno.EPERM))
-    monkeypatch.setattr(realtime, "set_timer_slack", _refuse(errno.EPERM))
-    monkeypatch.setattr(realtime, "lock_memory", _refuse(errno.ENOMEM))
+    monkeypatch.setattr(ostuning, "set_timer_slack", _refuse(errno.EPERM))
+    monkeypatch.setattr(ostuning, "lock_memory", _refuse(errno.ENOMEM))
     r = run_lockstep(load_scenario("free-motion"), duration_s=0.1, evaluate=False,
                      realtime=True, realtime_config=RealtimeConfig(mlock=True))  # fmt: skip
     rt = r.realtime
@@ -298,14 +298,14 @@ def test_switched_off_measures_are_neither_applied_nor_refused():
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl is Linux only")
 def test_timer_slack_roundtrip():
-    before = realtime.get_timer_slack()
-    previous = realtime.set_timer_slack(realtime.TIMER_SLACK_NS)
+    before = ostuning.get_timer_slack()
+    previous = ostuning.set_timer_slack(ostuning.TIMER_SLACK_NS)
     try:
         assert previous == before
-        assert realtime.get_timer_slack() in (realtime.TIMER_SLACK_NS, 0)  # 0 for RT tasks
+        assert ostuning.get_timer_slack() in (ostuning.TIMER_SLACK_NS, 0)  # 0 for RT tasks
     finally:
-        realtime.set_timer_slack(previous)
-    assert realtime.get_timer_slack() == before
+        ostuning.set_timer_slack(previous)
+    assert ostuning.get_timer_slack() == before
 
 
 def _fake_task(proc, pid, tid, comm, flags, cpu, policy):
@@ -321,20 +321,20 @@ def test_rt_tasks_per_cpu_counts_other_user_space_rt_threads(tmp_path):
     _fake_task(tmp_path, big, big, "py thon (rt) x", 0, 1, 1)  # SCHED_FIFO on CPU 1
     _fake_task(tmp_path, big, big + 1, "worker", 0, 1, 2)  # SCHED_RR thread, CPU 1
     _fake_task(tmp_path, big + 2, big + 2, "rr", 0, 0, 2)  # SCHED_RR on CPU 0
-    _fake_task(tmp_path, big + 3, big + 3, "kthread", realtime.PF_KTHREAD, 0, 1)
+    _fake_task(tmp_path, big + 3, big + 3, "kthread", ostuning.PF_KTHREAD, 0, 1)
     _fake_task(tmp_path, big + 4, big + 4, "normal", 0, 0, 0)  # SCHED_OTHER
     _fake_task(tmp_path, os.getpid(), big + 5, "me", 0, 0, 1)  # this process
     (tmp_path / "self").mkdir()
     (tmp_path / str(big + 6)).mkdir()  # a process that exited: no task directory
-    assert realtime.rt_tasks_per_cpu(str(tmp_path)) == {1: 2, 0: 1}
-    assert realtime.rt_tasks_per_cpu(str(tmp_path / "none")) == {}
+    assert ostuning.rt_tasks_per_cpu(str(tmp_path)) == {1: 2, 0: 1}
+    assert ostuning.rt_tasks_per_cpu(str(tmp_path / "none")) == {}
 
 
 @pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no affinity API")
 def test_affinity_avoids_a_cpu_with_another_rt_task(monkeypatch):
     allowed = sorted(os.sched_getaffinity(0))
     busy_cpu = allowed[-1]
-    monkeypatch.setattr(realtime, "rt_tasks_per_cpu", lambda: {busy_cpu: 3})
+    monkeypatch.setattr(ostuning, "rt_tasks_per_cpu", lambda: {busy_cpu: 3})
     r = run_lockstep(load_scenario("free-motion"), duration_s=0.02, evaluate=False,
                      realtime=True)  # fmt: skip
     chosen = allowed[-2] if len(allowed) > 1 else busy_cpu
@@ -360,13 +360,13 @@ def test_spin_plan_stays_within_the_rt_budget():
 def test_rt_share_limit_from_sysctl_files(tmp_path):
     (tmp_path / "sched_rt_runtime_us").write_text("800000\n")
     (tmp_path / "sched_rt_period_us").write_text("1000000\n")
-    share, source = rt_share_limit(str(tmp_path))
+    share, source = ostuning.rt_share_limit(str(tmp_path))
     assert share == pytest.approx(0.8) and "800000" in source
     (tmp_path / "sched_rt_runtime_us").write_text("-1\n")
-    assert rt_share_limit(str(tmp_path))[0] == 1.0
-    share, source = rt_share_limit(str(tmp_path / "missing"))
-    assert share == realtime.RT_SHARE_DEFAULT and "default" in source
-    share, _ = rt_share_limit()  # this machine's
+    assert ostuning.rt_share_limit(str(tmp_path))[0] == 1.0
+    share, source = ostuning.rt_share_limit(str(tmp_path / "missing"))
+    assert share == ostuning.RT_SHARE_DEFAULT and "default" in source
+    share, _ = ostuning.rt_share_limit()  # this machine's
     assert 0 < share <= 1
 
 
@@ -414,13 +414,13 @@ def test_stage_timing_leaves_the_interrupt_unchanged_and_follows_swapped_stages(
         assert all(v > 0 for v in loop.stage_us["ripple_kalman"][20:])
         for a, *stages in zip(loop.isr_us, *(loop.stage_us[k] for k, _ in STAGES), strict=True):
             assert math.fsum(stages) == pytest.approx(a, abs=1e-6)
-        # timed while the run lasts: subclasses of the stages' own classes
-        assert controller.isr is handler and type(handler) is not InterruptHandler
-        assert isinstance(handler, InterruptHandler)
-        assert type(handler.chain.kalman) not in (HarmonicKalman, RippleKalman)
+        # timed while the run lasts through the handler's stage hook; its classes untouched
+        assert controller.isr is handler and type(handler) is InterruptHandler
+        assert handler.stage_hook is not None
+        assert type(handler.chain.kalman) in (HarmonicKalman, RippleKalman)
         loop.exit()
         isr = controller.isr
-        assert isr is handler and type(isr) is InterruptHandler  # its own class again
+        assert isr is handler and isr.stage_hook is None  # the hook removed again
         assert type(isr.chain) is TorqueFilterChain
         assert type(isr.chain.kalman) in (HarmonicKalman, RippleKalman)
         assert type(isr.chain.differentiator) is Differentiator

@@ -65,7 +65,8 @@ from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
 from hdhil.firmware.stages import Differentiator, SensorPlausibility, adc_read, calibrate
 from hdhil.hostsim.plant import Plant
 from hdhil.hostsim.scenario import load_scenario
-from hdhil.rig.realtime import RealtimeConfig, cpu_steal_ns, format_steal, steal_report
+from hdhil.rig.ostuning import cpu_steal_ns, steal_report
+from hdhil.rig.realtime import RealtimeConfig, format_steal
 from hdhil.rig.runner import run_lockstep
 
 #: Scenarios of the lockstep section, with the order of their ripple model.

@@ -37,24 +37,23 @@ which the interrupt ran.
   frame handler) to the command ``DRIVE_RPDO1`` being handed to the bus: decode,
   interrupt, encode, send;
 - **interrupt compute**: the interrupt body (:class:`firmware.isr.InterruptHandler` call);
-- **stages** of the interrupt (:data:`STAGES`), contiguous, so that they add up to the
-  interrupt's time in every cycle;
+- **stages** of the interrupt (:data:`firmware.isr.STAGES`), contiguous, so that they
+  add up to the interrupt's time in every cycle;
 - **cycle work**: from the deadline (or the wake-up, if later) to the end of the cycle's
   frame handling: what the loop computes per period besides spinning;
 - **sleep overshoot**: how late ``time.sleep`` returned (the machine's share of the tail);
 - **misses**: cycles whose command was not handed to the bus before the next SYNC's
   deadline (or never).
 
-Instrumentation, for the run only (the firmware's code is unchanged and runs as before
-outside real-time mode): the controller bus's ``send`` and the controller's frame
-handler ``on_message`` are wrapped (instance attributes), and the interrupt handler and
-its stage objects (the filter chain, its plausibility stage, differentiator and Kalman
-filter, the control law or the reference generator) get a timed subclass of their own
-class (:class:`StageTimer`) whose one overridden method takes ``perf_counter_ns`` time
-stamps around the original.  A stage object the controller swaps in at run time (new
-parameters over SDO) is timed from the next interrupt on.  Everything is restored at the
-end.  The time stamps cost about 2.2 µs per interrupt, counted in its compute time
-(free-motion, medians of 20 000 calls on recorded inputs: 3.1 µs plain, 5.3 µs timed).
+Instrumentation, for the run only: the controller bus's ``send`` and the controller's
+frame handler ``on_message`` are wrapped (instance attributes, removed at the end), and
+the firmware's interrupt handler gets a stage hook (:data:`firmware.interrupt.StageHook`,
+``InterruptHandler.stage_hook``): the handler calls it at every stage boundary, the hook
+takes a ``perf_counter_ns`` time stamp.  The handler's code and classes stay as they are;
+a stage object the controller swaps in at run time (new parameters over SDO) is timed
+like the one before, since the handler, not the stage, calls the hook.  The time stamps'
+own cost is counted in the interrupt's compute time (README, figures).  An interrupt
+handler of the user's own without ``stage_hook`` is timed as a whole only.
 
 Machine floor
 -------------
@@ -65,55 +64,11 @@ shows are the machine's (scheduler, timer, hypervisor), and bound what the run c
 
 Determinism
 -----------
-Each of these is applied where permitted and reported in ``applied`` / ``refused``, and
-undone when the loop ends:
-
-- ``gc``: ``gc.collect()`` before the loop and ``gc.disable()`` during it.  A generation-2
-  collection in the middle of a cycle costs milliseconds once the heap holds the
-  scenario, the DBC and the CANopen object dictionaries.  The loop itself allocates
-  little, so memory stays flat over minutes without the collector (reference counting
-  frees everything that is not cyclic).
-- ``affinity``: :func:`os.sched_setaffinity` to one CPU: no migrations, warm caches.  The
-  CPU is the last allowed one that runs no other user-space real-time task
-  (:func:`rt_tasks_per_cpu`): two ``SCHED_FIFO`` loops on one CPU take turns and together
-  exceed the RT throttling limit, which parks both for tens of milliseconds.
-- ``timer slack``: ``prctl(PR_SET_TIMERSLACK, 1)`` (Linux, via :mod:`ctypes`): the kernel
-  may otherwise delay a sleeping task's wake-up by up to 50 µs to batch timers.  Linux
-  gives real-time tasks no slack at all, so it only matters when ``SCHED_FIFO`` is refused.
-- ``SCHED_FIFO``: :func:`os.sched_setscheduler` with real-time priority 50 (root or
-  CAP_SYS_NICE only).  It keeps other processes from preempting the loop and bounds the
-  tail on a loaded machine; the kernel's RT throttling still guarantees others a share.
-  With ``SCHED_RESET_ON_FORK``: a thread or process started during the loop (a trace
-  writer, say) runs under the normal policy; inheriting ``SCHED_FIFO`` and the loop's
-  CPU, it could only run while the loop sleeps, and a loop waiting for it would spin
-  forever.
-- ``mlockall`` (``--mlock``, off by default): ``mlockall(MCL_CURRENT | MCL_FUTURE |
-  MCL_ONFAULT)`` (Linux, via :mod:`ctypes`; root, CAP_IPC_LOCK or a large enough
-  ``RLIMIT_MEMLOCK``): pages the process touches stay resident, so the loop never waits
-  for a page to come back from swap.  ``MCL_ONFAULT`` locks pages as they are touched
-  instead of faulting in every mapping at once (which costs about 0.4 s and 220 MB for
-  this process).
-
-Measured, each change against the previous state (60 s free-motion runs without
-logging, as root, on the shared 2-core VM, runs of the compared settings interleaved and
-only while no other real-time task was running, before the plausibility stage was added;
-medians; SYNC jitter p99.9 and deadline misses in 60 000 cycles):
-
-- spin window 200 µs -> 600 µs (3 runs each): p99.9 391 -> 72 µs, misses 28 -> 4; the
-  cycles whose sleep woke later than the window 106 -> 23;
-- timer slack 1 ns: nothing to measure under ``SCHED_FIFO``, where the kernel gives the
-  task no slack; without ``SCHED_FIFO`` (3 runs each) p99.9 798 -> 404 µs, misses 54 -> 35;
-- ``mlockall`` (6 runs each): p99.9 76 -> 82 µs, misses 16 -> 10.5, within the spread of
-  the runs (this VM has no swap and 22 GB free), hence off by default.
-
-The misses left are stalls of 1-5 ms in which the loop does not run at all.  The machine
-floor shows them too (medians per 60 s, README: sleeps woken past the window 30 in the
-run against 25 in the bare loop, misses 20 against 11; the rate follows the machine's
-load, 15 minutes earlier 7 against 1).  Within a run they recur
-at a fixed phase of a 100 ms rhythm that is not the run's own (its heartbeats fall on
-other cycles).  Not done here: a ``PREEMPT_RT`` kernel (this VM's is ``PREEMPT_NONE``),
-isolated CPUs (``isolcpus``, ``nohz_full``), interrupts steered away from the loop's CPU
-(here the block device's go to CPU 1): the next steps on a dedicated bench PC.
+The process settings (collector off, affinity, timer slack, ``SCHED_FIFO``, optionally
+``mlockall``) are applied where permitted by :class:`hdhil.rig.ostuning.ProcessTuning`,
+reported as ``applied`` / ``refused``, and undone when the loop ends.  The misses left
+are stalls in which the loop does not run at all; the machine floor shows them too.
+What each setting changed on a measured machine is in the README's figures section.
 
 Other interfaces
 ----------------
@@ -125,12 +80,7 @@ already uses.
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import errno
-import gc
 import math
-import os
-import sys
 import time
 from array import array
 from collections.abc import Callable
@@ -142,6 +92,8 @@ import can
 from hdhil.can.simbus import SimClock
 from hdhil.core.dataconf import ConfigError
 from hdhil.dbc import frame_id
+from hdhil.firmware.isr import STAGES
+from hdhil.rig.ostuning import ProcessTuning, cpu_steal_ns, rt_share_limit, steal_report
 
 #: Spin window by default, as a fraction of the sample period (600 µs at 1 kHz).
 SPIN_FRACTION = 0.6
@@ -150,48 +102,17 @@ SPIN_FRACTION = 0.6
 #: throttling limit.
 RT_SHARE_MARGIN = 0.15
 
-#: The kernel's default RT throttling limit (950 000 µs per 1 000 000 µs), assumed when
-#: ``/proc/sys/kernel/sched_rt_*`` cannot be read.
-RT_SHARE_DEFAULT = 0.95
 
 #: The spin window is re-sized after every this many seconds of cycles.
 RESIZE_EVERY_S = 1.0
 
-#: SCHED_FIFO priority asked for (1..99); 50 is below the kernel's IRQ threads.
-FIFO_PRIORITY = 50
-
-#: Timer slack asked for with ``prctl(PR_SET_TIMERSLACK)`` (ns; 0 would mean "default").
-TIMER_SLACK_NS = 1
 
 #: Jitter histogram bin edges in µs (1-2-5 log spacing); below the first edge (early or
 #: under 1 µs late) is the first bin, from the last edge on the last.
 HISTOGRAM_EDGES_US = (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000, 10000)
 
-#: The interrupt's stages as timed in real-time mode (key, label), in execution order
-#: (``InterruptHandler.__call__``).  Sensor plausibility, the differentiator and the
-#: ripple Kalman filter are timed around their ``step``; "model torque, error, angle" is
-#: the rest of the filter chain (``T_mod``, ``Delta_T``, the encoder angle,
-#: ``Torque_f``); "control / reference"
-#: is the LQG law (it also converts its command to DAC counts) or
-#: ``reference_generation``; "DAC write, outputs" is ``write_dac0`` and the output copies.
-STAGES: tuple[tuple[str, str], ...] = (
-    ("adc_calibration", "ADC read + calibration"),
-    ("plausibility", "sensor plausibility"),
-    ("differentiator", "differentiator"),
-    ("ripple_kalman", "ripple Kalman"),
-    ("torque_model", "model torque, error, angle"),
-    ("control_reference", "control / reference"),
-    ("dac_output", "DAC write, outputs"),
-)
-
 _now_ns = time.perf_counter_ns
 _sleep = time.sleep
-
-# Linux prctl options and mlockall flags (<linux/prctl.h>, <asm-generic/mman-common.h>;
-# powerpc and sparc use other mlockall values: mlockall is not attempted there).
-PR_SET_TIMERSLACK = 29
-PR_GET_TIMERSLACK = 30
-MCL_CURRENT, MCL_FUTURE, MCL_ONFAULT = 1, 2, 4
 
 
 @dataclass(frozen=True)
@@ -224,23 +145,6 @@ class RealtimeConfig:
             )
         if not (math.isfinite(self.floor_s) and self.floor_s >= 0):
             raise ConfigError(f"--floor-s must be >= 0 seconds, got {self.floor_s:g}")
-
-
-def rt_share_limit(sysctl_dir: str = "/proc/sys/kernel") -> tuple[float, str]:
-    """The kernel's RT throttling limit as a CPU share, and where it came from.
-
-    ``sched_rt_runtime_us = -1`` means no throttling (share 1.0)."""
-    try:
-        with open(os.path.join(sysctl_dir, "sched_rt_runtime_us"), encoding="ascii") as fh:
-            runtime = int(fh.read())
-        with open(os.path.join(sysctl_dir, "sched_rt_period_us"), encoding="ascii") as fh:
-            period = int(fh.read())
-    except (OSError, ValueError):
-        return RT_SHARE_DEFAULT, "kernel default (sched_rt_* not readable)"
-    if runtime < 0 or period <= 0:
-        return 1.0, "sched_rt_runtime_us = -1 (no throttling)"
-    source = f"sched_rt_runtime_us {runtime} / sched_rt_period_us {period}"
-    return min(1.0, runtime / period), source
 
 
 @dataclass
@@ -279,121 +183,6 @@ class WallClock(SimClock):
 
     def restart(self, t0_ns: int) -> None:
         self.t0_ns = t0_ns
-
-
-# ------------------------------------------------------------------ instrumentation
-def _timed_methods(kind: str, base: type, loop: RealtimeLoop) -> dict[str, Any]:
-    """The one method a stage object's timed class overrides, per stage ``kind``: it calls
-    ``base``'s and leaves time stamps in ``loop``."""
-    now = _now_ns
-    if kind == "isr":
-        base_call = base.__call__
-
-        def __call__(self: Any, sample: Any) -> Any:
-            loop._time_stages_of(self)
-            loop._chain_in = loop._chain_out = loop._control_out = 0
-            loop._plaus_ns = loop._diff_ns = loop._kalman_ns = 0
-            t0 = now()
-            out = base_call(self, sample)
-            loop._isr_done(t0, now())
-            return out
-
-        return {"__call__": __call__}
-    if kind == "chain":
-        base_step = base.step
-
-        def step(self: Any, T_meas: float, velocity: float, encoder: int | None = None) -> Any:
-            loop._chain_in = now()
-            out = base_step(self, T_meas, velocity, encoder)
-            loop._chain_out = now()
-            return out
-
-        return {"step": step}
-    if kind == "plausibility":
-        base_step = base.step
-
-        def plausibility_step(self: Any, velocity: float, encoder: int | None) -> Any:
-            t = now()
-            out = base_step(self, velocity, encoder)
-            loop._plaus_ns += now() - t
-            return out
-
-        return {"step": plausibility_step}
-    if kind == "differentiator":
-        base_step = base.step
-
-        def differentiator_step(self: Any, v: float) -> float:
-            t = now()
-            out = base_step(self, v)
-            loop._diff_ns += now() - t
-            return out
-
-        return {"step": differentiator_step}
-    if kind == "kalman":
-        base_step = base.step
-
-        def kalman_step(self: Any, *args: float) -> float:
-            t = now()
-            out = base_step(self, *args)
-            loop._kalman_ns += now() - t
-            return out
-
-        return {"step": kalman_step}
-    if kind == "control":
-        base_call = base.__call__
-
-        def control_call(self: Any, k: int, T: float, out: Any) -> None:
-            base_call(self, k, T, out)
-            loop._control_out = now()
-
-        return {"__call__": control_call}
-    if kind == "reference":
-        base_value = base.value
-
-        def value(self: Any, k: int) -> float:
-            out = base_value(self, k)
-            loop._control_out = now()
-            return out
-
-        return {"value": value}
-    raise ValueError(f"unknown stage kind {kind!r}")
-
-
-class StageTimer:
-    """Times the interrupt's stages for one run by giving each stage object a subclass of
-    its own class (``obj.__class__`` swapped) that overrides the one method the handler
-    calls with a timed version (:func:`_timed_methods`).  The subclass adds no attributes
-    (``__slots__ = ()``), so every other attribute and method is the object's own, at full
-    speed; :meth:`restore` puts the original classes back."""
-
-    def __init__(self, loop: RealtimeLoop) -> None:
-        self.loop = loop
-        self._classes: dict[tuple[type, str], type] = {}
-        self.timed_types: set[type] = set()
-        self._swapped: list[tuple[Any, type]] = []
-
-    def time(self, obj: Any, kind: str) -> None:
-        """Swap ``obj``'s class for its timed subclass (once)."""
-        cls = type(obj)
-        if cls in self.timed_types:
-            return
-        sub = self._classes.get((cls, kind))
-        if sub is None:
-            namespace = {"__slots__": (), "__module__": cls.__module__,
-                         "__qualname__": cls.__qualname__,
-                         **_timed_methods(kind, cls, self.loop)}  # fmt: skip
-            sub = type(cls.__name__, (cls,), namespace)
-            self._classes[(cls, kind)] = sub
-            self.timed_types.add(sub)
-        obj.__class__ = sub
-        self._swapped.append((obj, cls))
-
-    def restore(self) -> None:
-        """Every object back to its own class."""
-        while self._swapped:
-            obj, cls = self._swapped.pop()
-            if type(obj) in self.timed_types:
-                obj.__class__ = cls
 
 
 # ------------------------------------------------------------------ statistics
@@ -435,132 +224,6 @@ def _finite(values: array) -> array:
 
 def per_100k(events: int, cycles: int) -> float:
     return 1e5 * events / cycles if cycles else math.nan
-
-
-# ------------------------------------------------------------------ privileges
-def _libc() -> Any:
-    """The C library with errno kept (Linux only); None elsewhere."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        return ctypes.CDLL(None, use_errno=True)
-    except OSError:
-        return None
-
-
-def _os_error(what: str) -> OSError:
-    code = ctypes.get_errno()
-    return OSError(code, f"{what}: {os.strerror(code)}")
-
-
-def set_timer_slack(ns: int) -> int:
-    """``prctl(PR_SET_TIMERSLACK, ns)``; returns the previous slack (ns)."""
-    libc = _libc()
-    if libc is None or not hasattr(libc, "prctl"):
-        raise OSError(errno.ENOSYS, "prctl not available on this platform")
-    previous = libc.prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0)
-    if previous < 0 or libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(ns), 0, 0, 0) != 0:
-        raise _os_error("prctl(PR_SET_TIMERSLACK)")
-    return int(previous)
-
-
-def get_timer_slack() -> int:
-    libc = _libc()
-    return int(libc.prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0)) if libc is not None else -1
-
-
-def lock_memory() -> None:
-    """``mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT)``."""
-    import platform
-
-    libc = _libc()
-    if libc is None or not hasattr(libc, "mlockall"):
-        raise OSError(errno.ENOSYS, "mlockall not available on this platform")
-    if platform.machine().startswith(("ppc", "powerpc", "sparc", "alpha")):
-        raise OSError(errno.ENOSYS, "mlockall flags of this architecture not known")
-    if libc.mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT) != 0:
-        raise _os_error("mlockall")
-
-
-def unlock_memory() -> None:
-    libc = _libc()
-    if libc is not None:
-        libc.munlockall()
-
-
-#: ``task->flags`` bit of kernel threads (<linux/sched.h>).
-PF_KTHREAD = 0x00200000
-
-
-def rt_tasks_per_cpu(proc: str = "/proc") -> dict[int, int]:
-    """User-space threads of other processes under ``SCHED_FIFO`` or ``SCHED_RR``, per
-    CPU: the CPU they are pinned to, else the one they last ran on (``/proc/PID/task/TID/
-    stat`` fields 9 flags, 39 processor, 41 policy).  Empty where there is no procfs."""
-    counts: dict[int, int] = {}
-    me = str(os.getpid())
-    try:
-        pids = [p for p in os.listdir(proc) if p.isdigit() and p != me]
-    except OSError:
-        return counts
-    for pid in pids:
-        try:
-            tids = os.listdir(os.path.join(proc, pid, "task"))
-        except OSError:
-            continue
-        for tid in tids:
-            try:
-                with open(os.path.join(proc, pid, "task", tid, "stat"), encoding="ascii",
-                          errors="replace") as fh:  # fmt: skip
-                    stat = fh.read()
-                fields = stat[stat.rindex(")") + 2 :].split()  # from field 3 (state) on
-                flags, cpu, policy = int(fields[6]), int(fields[36]), int(fields[38])
-            except (OSError, ValueError, IndexError):
-                continue
-            if flags & PF_KTHREAD or policy not in (1, 2):  # SCHED_FIFO, SCHED_RR
-                continue
-            with contextlib.suppress(OSError, ValueError):
-                pinned = os.sched_getaffinity(int(tid))
-                if len(pinned) == 1:
-                    cpu = next(iter(pinned))
-            counts[cpu] = counts.get(cpu, 0) + 1
-    return counts
-
-
-def cpu_steal_ns(cpu: int | None = None, proc: str = "/proc") -> int | None:
-    """Time the hypervisor ran something else while this machine's ``cpu`` (all CPUs for
-    None) wanted to run: the ``steal`` column of ``/proc/stat`` (8th value of the
-    ``cpuN`` line, in USER_HZ ticks), in ns.  None where there is no such column (no
-    procfs, not Linux, a kernel without steal accounting).  A guest cannot see or avoid
-    these stalls; it can only count them."""
-    label = "cpu" if cpu is None else f"cpu{cpu}"
-    try:
-        with open(os.path.join(proc, "stat"), encoding="ascii", errors="replace") as fh:
-            for line in fh:
-                fields = line.split()
-                if fields and fields[0] == label:
-                    ticks = int(fields[8])
-                    return ticks * 1_000_000_000 // os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
-
-
-def steal_report(before: int | None, after: int | None, cpu: int | None,
-                 duration_s: float) -> dict[str, Any] | None:  # fmt: skip
-    """Steal time between two :func:`cpu_steal_ns` readings, as a report entry."""
-    if before is None or after is None:
-        return None
-    ms = (after - before) * 1e-6
-    cpus = 1 if cpu is not None else (os.cpu_count() or 1)
-    return {
-        "cpu": "all" if cpu is None else cpu,
-        "ms": ms,
-        "share": ms * 1e-3 / (duration_s * cpus) if duration_s > 0 else math.nan,
-    }
-
-
-def _why(exc: OSError) -> str:
-    return exc.strerror or str(exc)
 
 
 # ------------------------------------------------------------------ the loop
@@ -605,8 +268,13 @@ class RealtimeLoop:
         self.steal: dict[str, Any] | None = None
         self._steal0: int | None = None
         self._recording_t0_ns = 0
-        self.applied: list[str] = []
-        self.refused: list[str] = []
+        self._tuning = ProcessTuning(
+            affinity=config.affinity,
+            timer_slack=config.timer_slack,
+            fifo=config.fifo,
+            mlock=config.mlock,
+            gc_off=config.gc_off,
+        )
         self._deadline = 0
         self._wake_ns = 0
         self._started_late = False
@@ -617,24 +285,20 @@ class RealtimeLoop:
         self._window_cycles = max(1, round(RESIZE_EVERY_S * 1e9 / self.period_ns))
         self._window_n = 0
         self._window_work_ns = 0
-        # time stamps the stage proxies leave for the current interrupt
-        self._chain_in = self._chain_out = self._control_out = 0
-        self._plaus_ns = self._diff_ns = self._kalman_ns = 0
         # the current cycle's interrupt, kept by _isr_done until end_cycle records it
         self._stage_ns = [0] * len(STAGES)
         self._stage_arrays = [self.stage_us[key] for key, _ in STAGES]
         self._isr_ns = 0
         self._isr_ran = False
+        self._staged = False  # the handler reports its stages (stage hook)
         self._end_ns = 0
-        self._stages = StageTimer(self)
-        self._timed_types = self._stages.timed_types
         self._restore: list[Callable[[], None]] = []
 
     # ------------------------------------------------------------ instrumentation
 
     def instrument(self, controller: Any) -> None:
-        """Wrap the controller's bus send, its frame handler, its interrupt and the
-        interrupt's stage objects (for this run only; :meth:`exit` unwraps them)."""
+        """Wrap the controller's bus send and its frame handler, and set the interrupt
+        handler's stage hook (for this run only; :meth:`exit` undoes all three)."""
         bus: can.BusABC = controller.bus
         send, on_message = bus.send, controller.on_message
         own_send, own_on_message = vars(bus).get("send"), vars(controller).get("on_message")
@@ -656,7 +320,12 @@ class RealtimeLoop:
 
         bus.send = timed_send  # type: ignore[method-assign]
         controller.on_message = timed_on_message
-        self._stages.time(controller.isr, "isr")
+        isr = controller.isr
+        timed_handler = self._staged = hasattr(isr, "stage_hook")
+        if timed_handler:
+            isr.stage_hook = self._stage_hook()
+        else:  # a handler of the user's own: timed as a whole
+            controller.isr = self._timed_whole(isr)
 
         def uninstrument() -> None:
             if own_send is not None:  # the bus's own instance attribute, as it was
@@ -669,126 +338,66 @@ class RealtimeLoop:
             else:
                 with contextlib.suppress(AttributeError):
                     delattr(controller, "on_message")
-            self._stages.restore()
+            if timed_handler:
+                isr.stage_hook = None
+            else:
+                controller.isr = isr
 
         self._restore.append(uninstrument)
 
-    def _time_stages_of(self, isr: Any) -> None:
-        """Give the handler's stage objects their timed classes: at the first interrupt,
-        and again for an object the controller swapped in (new parameters over SDO)."""
-        timed = self._timed_types
-        chain = isr.chain
-        if (
-            type(chain) not in timed
-            or type(chain.plausibility) not in timed
-            or type(chain.differentiator) not in timed
-            or type(chain.kalman) not in timed
-            or type(isr.reference) not in timed
-            or (isr.control is not None and type(isr.control) not in timed)
-        ):
-            stages = self._stages
-            stages.time(chain, "chain")
-            for name in ("plausibility", "differentiator", "kalman"):
-                stages.time(getattr(chain, name), name)
-            if isr.control is not None:
-                stages.time(isr.control, "control")
-            stages.time(isr.reference, "reference")
-
-    def _isr_done(self, t0: int, t4: int) -> None:
-        """Keep the interrupt's time and its stages (contiguous: they sum to it) for
+    def _stage_hook(self) -> Callable[[int], None]:
+        """The stage hook: a time stamp per stage boundary; at the last, the interrupt's
+        stage times (successive differences, so they add up to the whole) are kept for
         :meth:`end_cycle`."""
-        chain_in = self._chain_in or t0
-        chain_out = self._chain_out or chain_in
-        control_out = self._control_out or chain_out
-        plaus, diff, kalman = self._plaus_ns, self._diff_ns, self._kalman_ns
-        ns = self._stage_ns  # in STAGES order
-        ns[0] = chain_in - t0
-        ns[1] = plaus
-        ns[2] = diff
-        ns[3] = kalman
-        ns[4] = chain_out - chain_in - plaus - diff - kalman
-        ns[5] = control_out - chain_out
-        ns[6] = t4 - control_out
-        self._isr_ns = t4 - t0
-        self._isr_ran = True
+        stamps = [0] * (len(STAGES) + 1)
+        last = len(STAGES)
+        now = _now_ns
+        ns = self._stage_ns
+
+        def stamp(i: int) -> None:
+            t = stamps[i] = now()
+            if i == last:
+                for j in range(last):
+                    ns[j] = stamps[j + 1] - stamps[j]
+                self._isr_ns = t - stamps[0]
+                self._isr_ran = True
+
+        return stamp
+
+    def _timed_whole(self, isr: Any) -> Any:
+        """A handler without stage hook, timed around its call (no stage breakdown)."""
+        loop = self
+
+        class Timed:
+            def __getattr__(self, name: str) -> Any:
+                return getattr(isr, name)
+
+            def __call__(self, sample: Any) -> Any:
+                t0 = _now_ns()
+                out = isr(sample)
+                loop._isr_ns = _now_ns() - t0
+                loop._isr_ran = True
+                return out
+
+        return Timed()
 
     # ------------------------------------------------------------ determinism
 
     def enter(self) -> None:
-        """Apply what improves determinism and is permitted; note what was refused."""
-        cfg = self.config
-        if cfg.affinity:
-            self._apply_affinity()
-        if cfg.timer_slack:  # before SCHED_FIFO: Linux ignores the call for RT tasks
-            self._apply_timer_slack()
-        if cfg.fifo:
-            self._apply_fifo()
-        if cfg.mlock:
-            self._apply_mlock()
-        if cfg.gc_off:
-            gc.collect()
-            if gc.isenabled():
-                gc.disable()
-                self._restore.append(gc.enable)
-            self.applied.append("gc disabled during the loop (collected before)")
+        """Apply what improves determinism and is permitted (:class:`hdhil.rig.ostuning.
+        ProcessTuning`); what was applied and refused goes into the report."""
+        tuning = self._tuning
+        tuning.enter()
+        self.cpu = tuning.cpu
+        self._restore.append(tuning.exit)
 
-    def _apply_affinity(self) -> None:
-        if not hasattr(os, "sched_setaffinity"):
-            self.refused.append("affinity: not supported on this platform")
-            return
-        try:
-            before = os.sched_getaffinity(0)
-            busy = rt_tasks_per_cpu()
-            cpu = min(before, key=lambda c: (busy.get(c, 0), -c))
-            os.sched_setaffinity(0, {cpu})
-        except OSError as exc:
-            self.refused.append(f"affinity: {_why(exc)}")
-            return
-        self.cpu = cpu
-        others = ", ".join(f"{n} on CPU {c}" for c, n in sorted(busy.items()) if c in before)
-        note = f" (other real-time tasks: {others})" if others else ""
-        self.applied.append(f"affinity: CPU {cpu}{note}")
-        self._restore.append(lambda: os.sched_setaffinity(0, before))
+    @property
+    def applied(self) -> list[str]:
+        return self._tuning.applied
 
-    def _apply_timer_slack(self) -> None:
-        try:
-            previous = set_timer_slack(TIMER_SLACK_NS)
-        except OSError as exc:
-            self.refused.append(f"timer slack: {_why(exc)}")
-            return
-        self.applied.append(f"timer slack {TIMER_SLACK_NS} ns (was {previous} ns)")
-        self._restore.append(lambda: set_timer_slack(previous))
-
-    def _apply_fifo(self) -> None:
-        if not hasattr(os, "sched_setscheduler"):
-            self.refused.append("SCHED_FIFO: not supported on this platform")
-            return
-        try:
-            policy = os.sched_getscheduler(0)
-            param = os.sched_getparam(0)
-            fifo = os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0)
-            os.sched_setscheduler(0, fifo, os.sched_param(FIFO_PRIORITY))
-        except OSError as exc:
-            self.refused.append(f"SCHED_FIFO: {_why(exc)} (needs root/CAP_SYS_NICE)")
-            return
-        what = f"SCHED_FIFO priority {FIFO_PRIORITY}"
-        if fifo != os.SCHED_FIFO:
-            what += ", reset on fork"
-        if self.config.timer_slack and get_timer_slack() == 0:
-            what += " (timer slack 0 for RT tasks)"
-        self.applied.append(what)
-        self._restore.append(lambda: os.sched_setscheduler(0, policy, param))
-
-    def _apply_mlock(self) -> None:
-        try:
-            lock_memory()
-        except OSError as exc:
-            self.refused.append(
-                f"mlockall: {_why(exc)} (needs root/CAP_IPC_LOCK or RLIMIT_MEMLOCK)"
-            )
-            return
-        self.applied.append("mlockall (current and future pages, as touched)")
-        self._restore.append(unlock_memory)
+    @property
+    def refused(self) -> list[str]:
+        return self._tuning.refused
 
     def exit(self) -> None:
         """Undo :meth:`enter` and :meth:`instrument` (in reverse order)."""
@@ -853,8 +462,9 @@ class RealtimeLoop:
         if not command or command >= deadline + self.period_ns:
             self.misses += 1
         if self._isr_ran:
-            for a, ns in zip(self._stage_arrays, self._stage_ns, strict=True):
-                a.append(ns * 1e-3)
+            if self._staged:
+                for a, ns in zip(self._stage_arrays, self._stage_ns, strict=True):
+                    a.append(ns * 1e-3)
             self.isr_us.append(self._isr_ns * 1e-3)
 
     def _resize_spin(self) -> None:

@@ -1,0 +1,125 @@
+"""The seam between the controller node and its interrupt handler: what
+:class:`firmware.controller.ControllerNode` needs from the 1 kHz interrupt body.
+
+The controller node is the CANopen side (NMT master, the CiA 402 walk, SYNC, PDOs,
+SDO parameters, EMCY); the interrupt handler is the algorithm. On every sensor frame
+in operation the node decodes the drive's counts into an :class:`AdcSample`, calls the
+handler once, and sends the :class:`IsrOutput`'s DAC code to the drive and its
+torques and velocity as telemetry (CTRL_TPDO1, and CTRL_TPDO2 with a control law).
+Anything with the members of :class:`InterruptHandlerModel` can be that handler: the
+firmware's port of seed 000 listing A.1 (:class:`firmware.isr.InterruptHandler`) or a
+law of your own, handed to the node with ``ControllerNode(..., isr=handler)`` (or
+through a controller factory, :mod:`hdhil.rig.factories`).
+
+With another handler the node keeps its CANopen behaviour; what belongs to the
+firmware's own stages is left out: the sensor plausibility EMCYs (0x7301, 0x7305) and
+the parameter objects that retune the stages over SDO, which refuse writes (abort
+0x08000022). The handler never sees ground truth: its only input is the sensor frame.
+
+:data:`StageHook` is the other seam here: a callable the firmware's handler calls at
+each stage boundary of an interrupt, so a host can time the stages (``hdhil run
+--realtime``) without touching the handler's code.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+__all__ = ["AdcSample", "InterruptHandlerModel", "IsrOutput", "StageHook"]
+
+
+@dataclass(frozen=True, slots=True)
+class AdcSample:
+    """Raw counts from the drive's sensor frame (listing ``DT1401Read`` channels
+    CH6 torque bridge, CH4 tachometer, CH5 motor current monitor, and the quadrature
+    decoder's 16-bit wrapping pulse count ``pcsample``)."""
+
+    torque: int
+    tacho: int
+    current: int
+    encoder: int
+
+
+@dataclass(slots=True)
+class IsrOutput:
+    """What one interrupt produced.
+
+    ``samplecount`` is the index k of the sample this output belongs to (the listing's
+    ``samplecount`` before its ``++``); ``reference_V`` is the reference at k and
+    ``dac_counts`` its DAC code.  ``ripple`` is the ripple subtracted at k, so
+    ``T_filtered = T_meas - ripple`` exactly: in paper mode the prediction the Kalman
+    filter made at k − 1 (listing ``T_ripple``), in recommended mode the learned ripple
+    map at the angle measured at k.  ``encoder`` is the pulse count masked to 16 bits
+    (listing ``pcsample &= 0x0000ffff``), so in 0..65535.  Units: Nm, rad/s, A, rad/s².
+
+    Torque control (seed 003, only with a control law; 0 otherwise), all in the product
+    convention (module docstring): ``tau_s_hat`` / ``dtau_s_hat`` the observer's
+    sensor torque and its derivative (Nm, Nm/s), ``tau_lgd_hat`` the exogenous torque
+    ``τlgd = τl + τg − τd Jl/Jm`` (Nm), ``tau_sD`` / ``dtau_sD`` the desired torque and
+    its derivative, ``e_hat = tau_s_hat − tau_sD``, ``tau_m_request`` the law's motor
+    torque (Nm, output-referred) and ``tau_m_cmd`` the torque the DAC code stands for
+    (after the torque limit, the DAC range and quantisation), ``saturated`` whether
+    the two differ by more than half a DAC step.  ``reference_V`` is then the DAC
+    voltage before quantisation.
+    """
+
+    samplecount: int = 0
+    dac_counts: int = 0
+    reference_V: float = 0.0
+    T_meas: float = 0.0
+    velocity: float = 0.0
+    current: float = 0.0
+    acceleration: float = 0.0
+    T_expected: float = 0.0
+    delta_T: float = 0.0
+    T_filtered: float = 0.0
+    ripple: float = 0.0
+    encoder: int = 0
+    tau_s_hat: float = 0.0
+    dtau_s_hat: float = 0.0
+    tau_lgd_hat: float = 0.0
+    tau_sD: float = 0.0
+    dtau_sD: float = 0.0
+    e_hat: float = 0.0
+    tau_m_request: float = 0.0
+    tau_m_cmd: float = 0.0
+    saturated: bool = False
+
+
+@runtime_checkable
+class InterruptHandlerModel(Protocol):
+    """What the controller node needs from its interrupt handler (module docstring)."""
+
+    @property
+    def samplecount(self) -> int:
+        """Samples handled so far: the index of the next (listing ``samplecount``)."""
+        ...
+
+    @property
+    def done(self) -> bool:
+        """True once the handler wants no more samples (the node then walks the drive
+        back); False to run until stopped."""
+        ...
+
+    @property
+    def shutdown_dac_counts(self) -> int:
+        """The DAC code to send outside operation (start-up, stop): zero torque."""
+        ...
+
+    def __call__(self, sample: AdcSample) -> IsrOutput:
+        """One sample period: the drive's sensor counts in, the command and telemetry out.
+        The node reads the output before the next call, so it may be one reused object."""
+        ...
+
+    def sample_missed(self) -> None:
+        """A sample period passed without a sensor frame (it was lost on the bus)."""
+        ...
+
+
+#: Called by the handler with ``i`` at the boundaries of an interrupt's stages: 0 when
+#: it starts, then ``i`` when stage ``i`` (1-based, the firmware's
+#: :data:`firmware.isr.STAGES` order) ends. The stages are contiguous, so the times
+#: between successive calls add up to the whole interrupt.
+StageHook = Callable[[int], None]
