@@ -114,3 +114,23 @@ def test_a_handler_of_ones_own_is_timed_as_a_whole_in_real_time_mode():
     rt = r.realtime
     assert rt["interrupts"] >= 50 and rt["isr_us"]["p50"] > 0
     assert all(s["p50"] != s["p50"] for s in rt["stages_us"].values())  # NaN: no stages
+
+
+def test_the_firmware_stage_parameters_refuse_writes_with_a_handler_of_ones_own():
+    """The SDO objects that retune the firmware's stages have nothing to act on: refused
+    (0x08000022), where the firmware's own handler accepts the same write."""
+    from hdhil.firmware.parameters import PARAMETERS
+
+    p = next(p for p in PARAMETERS if p.put is not None)
+    value = p.get(FirmwareConfig())
+    for isr, refused in ((VelocityP(), True), (None, False)):
+        bus = can.Bus(interface="virtual", channel=f"hdhil-isr-params-{refused}")
+        try:
+            node = ControllerNode(bus, FirmwareConfig(), isr=isr)
+            if refused:
+                with pytest.raises(Exception, match=r"0x08000022|device state"):
+                    node.services.write(p.index, p.sub, value)
+            else:
+                node.services.write(p.index, p.sub, value)
+        finally:
+            bus.shutdown()
