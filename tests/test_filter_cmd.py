@@ -19,7 +19,7 @@ from hdhil.firmware.config import FirmwareConfig, paper_config
 from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
 from hdhil.rig.offline import OUTPUT_COLUMNS
 
-HEADER = "time,T_meas,acceleration,T_expected,ripple,T_filtered"
+HEADER = "time_s,T_meas_Nm,acceleration_radps2,T_expected_Nm,ripple_Nm,T_filtered_Nm"
 
 
 def _signal(n: int = 1500, seed: int = 0) -> tuple[np.ndarray, ...]:

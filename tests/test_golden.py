@@ -35,7 +35,7 @@ SCENARIOS = (
 )
 
 #: Fields of ``run --json`` that depend on the wall clock or on where the trace went.
-WALL_CLOCK_KEYS = frozenset({"wall_s", "real_time_factor", "trace", "realtime"})
+WALL_CLOCK_KEYS = frozenset({"wall_s", "real_time_factor", "trace", "realtime", "start_time"})
 
 
 def _rounded(value: Any) -> Any:

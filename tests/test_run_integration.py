@@ -73,13 +73,57 @@ def test_truth_never_reaches_the_control_bus(free_motion, tmp_path):
         assert extended == (channel == CHANNEL_NUMBER["truth"])
 
 
+def _relative(frames):
+    """The frames with times relative to the first frame (to the microsecond)."""
+    t0 = frames[0][3]
+    return [(ch, i, ext, round(t - t0, 6), data) for ch, i, ext, t, data in frames]
+
+
 def test_same_seed_gives_an_identical_decoded_trace(free_motion, tmp_path):
     a, b, c = tmp_path / "a.blf", tmp_path / "b.blf", tmp_path / "c.blf"
     run_lockstep(free_motion, duration_s=0.5, seed=7, trace=a)
     run_lockstep(free_motion, duration_s=0.5, seed=7, trace=b)
     run_lockstep(free_motion, duration_s=0.5, seed=8, trace=c)
+    assert _relative(_decoded(a)) == _relative(_decoded(b))
+    assert _relative(_decoded(a)) != _relative(_decoded(c))
+
+
+def test_trace_times_start_at_the_wall_clock_or_the_given_start(free_motion, tmp_path):
+    """Simulated time 0 is the run's wall-clock start (or ``start_time``) in the file, and
+    the sidecar JSON says so; pinned starts give identical absolute times."""
+    import json
+    import time
+
+    before = time.time()
+    now = tmp_path / "now.blf"
+    r = run_lockstep(free_motion, duration_s=0.1, seed=7, trace=now, evaluate=False)
+    after = time.time()
+    first = _decoded(now)[0][3]
+    assert before - 0.01 <= first <= after
+    assert r.start_time is not None and abs(first - r.start_time) < 1e-3
+    meta = json.loads((tmp_path / "now.blf.json").read_text())
+    assert meta["scenario"] == "free-motion" and meta["seed"] == 7
+    assert meta["start_time"] == r.start_time
+    pinned = 1767323045.0  # 2026-01-02T03:04:05Z
+    a, b, asc = tmp_path / "a.log", tmp_path / "b.log", tmp_path / "a.asc"
+    for path in (a, b, asc):
+        run_lockstep(free_motion, duration_s=0.1, seed=7, trace=path, evaluate=False,
+                     start_time=pinned)  # fmt: skip
     assert _decoded(a) == _decoded(b)
-    assert _decoded(a) != _decoded(c)
+    assert pinned <= _decoded(a)[0][3] < pinned + 1e-3  # the first frame ends its wire time
+    header = asc.read_text().splitlines()[:4]
+    # ASC's date line and trigger block carry the trace's start, not the file's creation
+    # (local time, as python-can writes them).
+    import datetime
+
+    day = datetime.datetime.fromtimestamp(pinned).strftime("%b %d")
+    assert header[0].startswith("date ") and day in header[0], header
+    assert header[3].startswith("Begin Triggerblock") and day in header[3], header
+    blf = tmp_path / "p.blf"
+    run_lockstep(free_motion, duration_s=0.1, seed=7, trace=blf, evaluate=False,
+                 start_time=pinned)  # fmt: skip
+    with can.BLFReader(str(blf)) as reader:
+        assert reader.start_timestamp == pytest.approx(pinned, abs=1e-3)
 
 
 class _Recorder(can.Listener):

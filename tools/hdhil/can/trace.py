@@ -1,10 +1,16 @@
 """Trace logging: every frame of the control bus and the truth channel into one file.
 
-The writer is python-can's, chosen by the file extension (``.blf`` default, ``.asc``,
-``.log`` candump, ``.csv``, ``.trc``).  Frames are stamped with the python-can channel
-number of their bus (:data:`hdhil.dbc.CHANNEL_NUMBER`: control 0, truth 1) so a dump can
-tell the buses apart; formats without channels (CSV) still decode because truth frames use
-29-bit identifiers.
+The writer is python-can's :func:`can.Logger`, chosen by the file extension: ``.blf``
+(default), ``.asc``, ``.log`` (candump), ``.csv``, ``.trc``, ``.mf4`` (ASAM MDF 4, needs
+asammdf: the ``mf4`` extra) and ``.db`` (SQLite); the text formats also gzip-compressed
+(``.asc.gz``, ``.log.gz``, ...).  A simulated run stamps its frames with simulated time
+plus the wall-clock time at its start (``time_offset``), so traces carry real dates and
+tools that expect them (can-utils, asammdf, Vector's) read them as any logger's.
+
+Frames are stamped with the python-can channel number of their bus
+(:data:`hdhil.dbc.CHANNEL_NUMBER`: control 0, truth 1) so a dump can tell the buses
+apart; formats without channels (CSV) still decode because truth frames use 29-bit
+identifiers.
 
 :class:`WriterProcess` runs that writer in a child process: the run hands it frames in
 batches through a pipe, so formatting and compressing the file happens on the other core
@@ -30,19 +36,51 @@ import can
 
 from hdhil.can.simbus import SimBus, received_copy
 
-SUPPORTED_SUFFIXES = (".blf", ".asc", ".log", ".csv", ".trc")
+#: Formats python-can's Logger writes and its LogReader reads, by extension.
+SUPPORTED_SUFFIXES = (".blf", ".asc", ".log", ".csv", ".trc", ".mf4", ".db")
+
+#: Formats python-can writes gzip-compressed when ``.gz`` follows (``run.asc.gz``).
+GZIP_SUFFIXES = (".asc", ".log", ".csv", ".trc")
+
+#: The message when ``.mf4`` is asked for without asammdf installed.
+MF4_MISSING = "writing and reading .mf4 traces needs asammdf: pip install 'hdhil[mf4]'"
+
+
+def trace_format(path: Path) -> tuple[str, bool]:
+    """``(format extension, gzip-compressed)`` of ``path``, e.g. ``(".asc", True)``."""
+    suffixes = [s.lower() for s in path.suffixes]
+    if suffixes and suffixes[-1] == ".gz":
+        return (suffixes[-2] if len(suffixes) >= 2 else ""), True
+    return (suffixes[-1] if suffixes else ""), False
+
+
+def supported_formats() -> str:
+    """The writable formats, for messages and help texts."""
+    return f"{', '.join(SUPPORTED_SUFFIXES)} (and {', '.join(GZIP_SUFFIXES)} with .gz)"
+
+
+def mf4_available() -> bool:
+    """Whether asammdf, which python-can's MF4 writer and reader need, is installed."""
+    import importlib.util
+
+    return importlib.util.find_spec("asammdf") is not None
 
 
 def check_trace_path(path: Path) -> None:
     """Refuse unsupported formats and unwritable places before a run starts."""
-    suffix = path.suffix.lower()
-    if suffix not in SUPPORTED_SUFFIXES:
+    fmt, compressed = trace_format(path)
+    if fmt not in SUPPORTED_SUFFIXES or (compressed and fmt not in GZIP_SUFFIXES):
+        shown = "".join(path.suffixes[-2:]) if compressed else fmt
         raise ValueError(
-            f"unsupported trace format {suffix or '(none)'!r} for {path}: "
-            f"use one of {', '.join(SUPPORTED_SUFFIXES)}"
+            f"unsupported trace format {shown or '(none)'!r} for {path}: "
+            f"use one of {supported_formats()}"
         )
+    if fmt == ".mf4" and not mf4_available():
+        raise ValueError(MF4_MISSING)
     if path.parent and not path.parent.exists():
         raise ValueError(f"cannot write trace {path}: directory {path.parent} does not exist")
+    if path.exists() and not path.is_file():
+        raise ValueError(f"cannot write trace {path}: it exists and is not a regular file")
 
 
 def open_writer(path: Path) -> can.io.generic.MessageWriter:
@@ -52,6 +90,8 @@ def open_writer(path: Path) -> can.io.generic.MessageWriter:
         return can.Logger(str(path))
     except OSError as exc:
         raise ValueError(f"cannot write trace {path}: {exc.strerror or exc}") from None
+    except (ImportError, NotImplementedError):
+        raise ValueError(MF4_MISSING) from None
 
 
 #: Frames per batch handed to the writer process: about 70 lockstep cycles.
@@ -69,29 +109,51 @@ WRITER_EXIT_TIMEOUT_S = 120.0
 _RECORD = struct.Struct("<dIBBBB8s")
 
 
-def _message(f: tuple[float, int, int, int, int, int, bytes]) -> can.Message:
+def _message(f: tuple[float, int, int, int, int, int, bytes], offset: float) -> can.Message:
     ts, can_id, flags, dlc, channel, length, data = f
-    return can.Message(timestamp=ts, arbitration_id=can_id, is_extended_id=bool(flags & 1),
+    return can.Message(timestamp=ts + offset, arbitration_id=can_id, is_extended_id=bool(flags & 1),
                        is_remote_frame=bool(flags & 2), is_error_frame=bool(flags & 4),
                        is_rx=bool(flags & 8), dlc=dlc, data=data[:length], channel=channel,
                        check=False)  # fmt: skip
 
 
-def _writer_main(path: str, frames: Any, status: Any, frames_w: Any) -> None:
+def _pin_header_dates(unix_s: float) -> None:
+    """Make the header dates python-can's ASC and MF4 writers take from the wall clock at
+    creation (ASC's ``date`` line, MF4's start time, to which MF4 frame times are
+    relative) the trace's own start, ``unix_s``.  Only ever called in the writer's child
+    process, which exits after the one file it writes."""
+    import datetime as _dt
+    import importlib
+
+    class _TraceStart(_dt.datetime):
+        @classmethod
+        def now(cls, tz: _dt.tzinfo | None = None) -> _dt.datetime:  # type: ignore[override]
+            return _dt.datetime.fromtimestamp(unix_s, tz)
+
+    for name in ("can.io.asc", "can.io.mf4"):
+        module = importlib.import_module(name)
+        if getattr(module, "datetime", None) is _dt.datetime:
+            module.datetime = _TraceStart  # type: ignore[attr-defined]
+
+
+def _writer_main(path: str, frames: Any, status: Any, frames_w: Any, offset: float) -> None:
     """The child: open the writer, write every batch until the pipe closes, close the file.
 
     Reports ``("ready", None)`` or ``("error", text)`` at start, and ``("done", frames
     written)`` or ``("error", text)`` at the end, on ``status``.  Signals meant for the run
     (Ctrl-C reaches the whole process group) are ignored: the run decides when to stop,
-    and end of input is what ends the child.
+    and end of input is what ends the child.  ``offset`` is added to every timestamp.
     """
     frames_w.close()  # the parent's end: with it open here, the input would never end
+    if offset:
+        _pin_header_dates(offset)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
     try:
         writer = can.Logger(path)
-    except OSError as exc:
-        status.send(("error", f"cannot write trace {path}: {exc.strerror or exc}"))
+    except (OSError, ValueError, ImportError, NotImplementedError) as exc:
+        text = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        status.send(("error", f"cannot write trace {path}: {text}"))
         return
     status.send(("ready", None))
     written = 0
@@ -103,7 +165,7 @@ def _writer_main(path: str, frames: Any, status: Any, frames_w: Any) -> None:
             except EOFError:
                 break
             for f in _RECORD.iter_unpack(batch):
-                writer.on_message_received(_message(f))
+                writer.on_message_received(_message(f, offset))
                 written += 1
     except OSError as exc:
         error = f"cannot write trace {path}: {exc.strerror or exc}"
@@ -125,14 +187,18 @@ class WriterError(ValueError):
 class WriterProcess(can.Listener):
     """python-can's writer for ``path`` (by extension), run in a child process.
 
+    ``time_offset`` (s) is added to every frame's timestamp as it is written: simulated
+    time starts at 0, the file gets the wall-clock time of the run's start plus it.
+
     A :class:`can.Listener`: ``on_message_received`` copies the frame's fields into the
     current batch; full batches go through a pipe.  ``stop`` sends the rest, waits for the
     child to close the file and checks that it wrote every frame it was given.
     """
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, time_offset: float = 0.0) -> None:
         check_trace_path(path)
         self.path = path
+        self.time_offset = time_offset
         self.sent = 0
         self._batch = bytearray()
         self._batched = 0
@@ -142,8 +208,8 @@ class WriterProcess(can.Listener):
         frames_r, frames_w = ctx.Pipe(duplex=False)
         status_r, status_w = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(
-            target=_writer_main, args=(str(path), frames_r, status_w, frames_w), daemon=False,
-            name=f"hdhil trace writer {path.name}",
+            target=_writer_main, args=(str(path), frames_r, status_w, frames_w, time_offset),
+            daemon=False, name=f"hdhil trace writer {path.name}",
         )  # fmt: skip
         self._proc.start()
         frames_r.close()  # only the child reads frames, only the child reports
@@ -339,3 +405,35 @@ class BusTap:
         """Flush and close every listener (writers close their files)."""
         for listener in self.listeners:
             listener.stop()
+
+
+# ------------------------------------------------------------------ metadata sidecar
+
+#: The sidecar file next to a trace: ``run.blf`` -> ``run.blf.json``.
+METADATA_SUFFIX = ".json"
+
+
+def metadata_path(trace: Path) -> Path:
+    """Where the metadata of ``trace`` is stored: the trace's name plus ``.json``."""
+    return trace.with_name(trace.name + METADATA_SUFFIX)
+
+
+def write_metadata(trace: Path, metadata: dict[str, Any]) -> Path:
+    """Write ``metadata`` (scenario, seed, start time, ...) as JSON next to ``trace``.
+
+    Written to a temporary file and renamed, so a reader never sees half of it; an
+    existing path that is not a regular file is left alone (ValueError)."""
+    import json
+    import os
+
+    target = metadata_path(trace)
+    if target.exists() and not target.is_file():
+        raise ValueError(f"cannot write {target}: it exists and is not a regular file")
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(json.dumps(metadata, indent=1, sort_keys=True) + "\n")
+        os.replace(tmp, target)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise ValueError(f"cannot write {target}: {exc.strerror or exc}") from None
+    return target

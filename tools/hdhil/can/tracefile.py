@@ -1,7 +1,8 @@
 """``hdhil dump TRACE``: read a CAN trace and show what was on the bus, decoded with the DBCs.
 
 Traces are whatever python-can writes, chosen by extension: ``.blf``, ``.asc``, ``.log``
-(candump), ``.csv``, ``.trc``, each optionally gzip-compressed (``.asc.gz``).  Decoding
+(candump), ``.csv``, ``.trc``, the text formats optionally gzip-compressed (``.asc.gz``),
+``.mf4`` (ASAM MDF 4, through asammdf) and ``.db`` (python-can's SQLite).  Decoding
 never needs channel numbers: control frames use 11-bit identifiers and truth frames
 29-bit ones, so a frame is looked up by ``(is_extended_id, arbitration_id)`` across
 both DBCs.  Channel numbers, where the format stores them, only label the bus.
@@ -72,7 +73,12 @@ READERS: dict[str, type[can.io.generic.MessageReader]] = {
     ".log": can.CanutilsLogReader,
     ".csv": can.CSVReader,
     ".trc": can.TRCReader,
+    ".mf4": can.MF4Reader,
+    ".db": can.SqliteReader,
 }
+
+#: Formats read from a file name rather than a stream (no gzip, no byte counting).
+_PATH_READERS = frozenset({".mf4", ".db"})
 
 #: Bus label per python-can channel number (inverse of :data:`hdhil.dbc.CHANNEL_NUMBER`).
 BUS_OF_CHANNEL: dict[int, str] = {number: name for name, number in CHANNEL_NUMBER.items()}
@@ -300,6 +306,16 @@ class TraceReadResult:
 
     def _open(self) -> None:
         reader_cls = READERS[self.format]
+        if self.format in _PATH_READERS:
+            if self.compressed:
+                raise ValueError(f"{self.format} traces cannot be read gzip-compressed")
+            if self.format == ".mf4":
+                from hdhil.can.trace import MF4_MISSING, mf4_available
+
+                if not mf4_available():
+                    raise TraceError(MF4_MISSING)
+            self._reader = reader_cls(str(self.path))
+            return
         opener: Callable[..., Any] = gzip.open if self.compressed else open
         if issubclass(reader_cls, can.io.generic.BinaryIOMessageReader):
             self._binary = _CountingReader(opener(self.path, "rb"))
@@ -310,6 +326,9 @@ class TraceReadResult:
             self._reader = reader_cls(self._source)
 
     def _close_file(self) -> None:
+        if self.format in _PATH_READERS and self._reader is not None:
+            with contextlib.suppress(Exception):
+                self._reader.stop()
         for handle in (self._source, self._binary):
             if handle is not None:
                 with contextlib.suppress(Exception):
@@ -317,7 +336,7 @@ class TraceReadResult:
 
     def _normalise_channel(self, msg: can.Message) -> None:
         channel = msg.channel
-        if self.format == ".csv":
+        if self.format in (".csv", ".db"):
             msg.channel = None
         elif self.format == ".trc":
             columns = getattr(self._reader, "columns", {})
@@ -467,6 +486,8 @@ class TraceReadResult:
         label = f"{self.format[1:].upper()}{' (gzip)' if self.compressed else ''}"
         try:
             self._open()
+        except TraceError:
+            raise
         except Exception as exc:
             self._close_file()
             reason = _one_line(str(exc)) or type(exc).__name__

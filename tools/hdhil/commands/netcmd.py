@@ -57,7 +57,7 @@ from hdhil.can.faults import (
 from hdhil.can.trace import BusTap, FrameCounter, open_writer
 from hdhil.canopen.nmt import COMMAND_NAMES as NMT_COMMAND_NAMES
 from hdhil.canopen.nmt import nmt_frame
-from hdhil.commands.options import add_fault_arguments
+from hdhil.commands.options import add_bus_options, add_fault_arguments, bus_named, open_bus
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
 from hdhil.dbc import CHANNEL_NUMBER, eds_path
@@ -78,41 +78,24 @@ MAX_STOP_CYCLES = 2000
 
 
 def add_bus_arguments(p: argparse.ArgumentParser, truth: bool = False) -> None:
-    p.add_argument(
-        "--interface",
-        default="config",
-        help="python-can interface (socketcan, pcan, kvaser, udp_multicast, ...); "
-        "'config' (default) reads python-can's configuration / CAN_INTERFACE",
-    )
-    p.add_argument("--channel", default=None, help="python-can channel, e.g. vcan0, can0")
-    p.add_argument("--bitrate", type=int, default=1_000_000, help="bit rate (default 1 Mbit/s)")
+    """python-can's bus options for the control bus, and with ``truth`` the same options
+    prefixed ``--truth-`` for the ground-truth channel (none: no truth)."""
+    add_bus_options(p, title="control bus (python-can; else CAN_INTERFACE, CAN_CHANNEL, "
+                    "CAN_BITRATE, then python-can's configuration file)")  # fmt: skip
     if truth:
-        p.add_argument(
-            "--truth-interface",
-            default=None,
-            help="python-can interface of the ground-truth channel (none: no truth)",
-        )
-        p.add_argument("--truth-channel", default=None, help="channel of the truth bus")
+        add_bus_options(p, prefix="truth", title="ground-truth bus (only if --truth-interface)")
 
 
-def open_bus(
-    interface: str | None, channel: str | None, bitrate: int, what: str = "control bus"
-) -> can.BusABC:
-    """A python-can bus with a one-line error instead of a traceback."""
-    iface = None if interface in (None, "config") else interface
-    kwargs: dict[str, Any] = {"bitrate": bitrate}
-    if iface == "udp_multicast":
-        kwargs = {"receive_own_messages": False}
-    try:
-        return can.Bus(interface=iface, channel=channel, **kwargs)
-    except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
-        raise ConfigError(f"cannot open the {what} ({interface} {channel}): {exc}") from None
+def _control_bus(args: argparse.Namespace) -> can.BusABC:
+    bus, _ = open_bus(args, "control bus")
+    return bus
 
 
 def _truth_bus(args: argparse.Namespace) -> can.BusABC | None:
-    if not getattr(args, "truth_interface", None):
+    if not bus_named(args, "truth"):
         return None
-    return open_bus(args.truth_interface, args.truth_channel, args.bitrate, "truth bus")
+    bus, _ = open_bus(args, "truth bus", prefix="truth")
+    return bus
 
 
 def _fault_injector(
@@ -152,11 +135,13 @@ def run_emulate(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     fw = from_dict(FirmwareConfig, scenario.firmware, "firmware")
     seed = scenario.seed if args.seed is None else args.seed
-    acts_on = ("sensors", "control", "truth") if args.truth_interface else ("sensors", "control")
+    acts_on = (
+        ("sensors", "control", "truth") if bus_named(args, "truth") else ("sensors", "control")
+    )
     injector = _fault_injector(args, scenario.faults, "drive", acts_on)
     bus = truth = None
     try:
-        bus = open_bus(args.interface, args.channel, args.bitrate)
+        bus = _control_bus(args)
         truth = _truth_bus(args)
         node_bus = _with_faults(bus, injector, "control")
         node_truth = _with_faults(truth, injector, "truth") if truth is not None else None
@@ -196,7 +181,7 @@ def run_firmware(args: argparse.Namespace) -> int:
     injector = _fault_injector(args, scenario.faults, "controller", ("control",))
     bus = None
     try:
-        bus = open_bus(args.interface, args.channel, args.bitrate)
+        bus = _control_bus(args)
         node_bus = _with_faults(bus, injector, "control")
         ctrl = ControllerNode(node_bus, fw, boot_timeout_s=args.boot_timeout)
         with stop_on_signals() as stop:
@@ -257,7 +242,7 @@ def _sync_cycles(
 
 
 def run_log(args: argparse.Namespace) -> int:
-    control = open_bus(args.interface, args.channel, args.bitrate)
+    control = _control_bus(args)
     buses = {CHANNEL_NUMBER["control"]: control}
     try:
         truth = _truth_bus(args)
@@ -299,7 +284,7 @@ def run_sdo(args: argparse.Namespace) -> int:
     node_eds = {n: name.lower() for name, n in dbc_node_ids("control").items()}.get(args.node)
     od = canopen.import_od(str(eds_path(node_eds)), args.node) if node_eds else None
     network = canopen.Network()
-    network.bus = open_bus(args.interface, args.channel, args.bitrate)
+    network.bus = _control_bus(args)
     network.notifier = can.Notifier(network.bus, network.listeners, 0.1)
     try:
         if args.action == "read":
@@ -333,7 +318,7 @@ def _parse_value(text: str) -> int | float:
 
 
 def run_nmt(args: argparse.Namespace) -> int:
-    bus = open_bus(args.interface, args.channel, args.bitrate)
+    bus = _control_bus(args)
     try:
         bus.send(nmt_frame(NMT_COMMAND_NAMES[args.action], args.node))
     finally:

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
+
+from hdhil.core.errors import UserError
 
 
 def add_fault_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
@@ -25,3 +28,121 @@ def add_fault_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
         metavar="FILE",
         help="write every injected fault as JSON lines",
     )
+
+
+# ------------------------------------------------------------------ CAN bus options
+
+#: The bit rate of the control bus when neither the command line, the environment
+#: (``CAN_BITRATE``) nor python-can's configuration file names one: the system's 1 Mbit/s.
+DEFAULT_BITRATE = 1_000_000
+
+#: Where to name an interface, for the error when none is named anywhere.
+NO_INTERFACE = (
+    "no CAN interface named: give --interface NAME (e.g. socketcan, pcan, kvaser, vector, "
+    "virtual), set CAN_INTERFACE, or write 'interface = NAME' under [default] in "
+    "python-can's configuration file (~/.canrc)"
+)
+
+_BUS_KEYS = ("interface", "channel", "bitrate", "fd", "data_bitrate", "timing", "can_filters")
+
+
+def add_bus_options(
+    p: argparse.ArgumentParser, *, prefix: str | None = None, title: str | None = None
+) -> None:
+    """python-can's own bus options (``can.cli.add_bus_arguments``): ``--interface``,
+    ``--channel``, ``--bitrate``, ``--fd``, ``--data-bitrate``, ``--timing``, ``--filter``
+    and ``--bus-kwargs`` (with ``prefix``: ``--PREFIX-interface`` ...).
+
+    Options left out are not set at all, so python-can's order of precedence holds when
+    the bus is opened: command line, then ``CAN_INTERFACE``/``CAN_CHANNEL``/``CAN_BITRATE``,
+    then its configuration file.
+    """
+    import can.cli
+
+    can.cli.add_bus_arguments(p, filter_arg=True, prefix=prefix, group_title=title)
+
+
+def _given(args: argparse.Namespace, prefix: str | None) -> dict[str, Any]:
+    """The bus options given on the command line (python-can's names, prefix removed)."""
+    given = {}
+    for key in (*_BUS_KEYS, "bus_kwargs"):
+        name = f"{prefix}_{key}" if prefix else key
+        if name in args:
+            given[key] = getattr(args, name)
+    return given
+
+
+def bus_named(args: argparse.Namespace, prefix: str | None = None) -> bool:
+    """Whether ``--[PREFIX-]interface`` was given on the command line."""
+    return "interface" in _given(args, prefix)
+
+
+def resolve_bus_config(
+    args: argparse.Namespace, prefix: str | None = None, use_environment: bool = True
+) -> dict[str, Any]:
+    """The bus configuration python-can will use: the command line over the environment
+    over the configuration file (``can.util.load_config``), with the bit rate defaulting
+    to :data:`DEFAULT_BITRATE` only when none of them names one.  A missing or unknown
+    interface is a :class:`UserError` saying how to name one."""
+    import can
+
+    given = _given(args, prefix)
+    config = {k: v for k, v in given.items() if k != "bus_kwargs"}
+    config.update(given.get("bus_kwargs", {}))
+    try:
+        if use_environment:
+            resolved = dict(can.util.load_config(config=config))
+        else:
+            resolved = dict(config)
+            resolved.setdefault("channel", None)
+    except can.CanInterfaceNotImplementedError:
+        raise UserError(NO_INTERFACE) from None
+    except (ValueError, TypeError) as exc:
+        raise UserError(f"bad CAN bus configuration: {exc}") from None
+    interface = resolved.get("interface")
+    if not interface:
+        raise UserError(NO_INTERFACE)
+    if interface not in can.VALID_INTERFACES:
+        raise UserError(
+            f"unknown CAN interface {interface!r}: "
+            f"use one of {', '.join(sorted(can.VALID_INTERFACES))}"
+        )
+    if resolved.get("bitrate") is None and resolved.get("timing") is None:
+        resolved["bitrate"] = DEFAULT_BITRATE
+    return resolved
+
+
+def open_bus(
+    args: argparse.Namespace,
+    what: str = "control bus",
+    prefix: str | None = None,
+    **extra: Any,
+) -> tuple[Any, dict[str, Any]]:
+    """Open the bus the options name through python-can's own factory
+    (``can.cli.create_bus_from_namespace``); returns the bus and its resolved
+    configuration (interface, channel, bit rate, ...).
+
+    ``extra`` keyword arguments apply only where neither the command line, the
+    environment nor the configuration file sets the same key.  Any failure is one line
+    naming the bus and the interface.
+    """
+    import can
+    import can.cli
+
+    resolved = resolve_bus_config(args, prefix)
+    defaults = {k: v for k, v in extra.items() if k not in resolved}
+    if "bitrate" not in _given(args, prefix) and resolved.get("timing") is None:
+        # python-can's own sources named no bit rate: the system's, not the interface's.
+        defaults.setdefault("bitrate", resolved["bitrate"])
+    if resolved["interface"] == "udp_multicast":
+        defaults.pop("bitrate", None)  # the multicast "bus" has no bit rate
+        defaults.setdefault("receive_own_messages", False)
+    try:
+        bus = can.cli.create_bus_from_namespace(args, prefix=prefix, **defaults)
+    except argparse.ArgumentError as exc:
+        cause = exc.__cause__ or exc
+        text = " ".join(str(cause).split()) or type(cause).__name__
+        raise UserError(
+            f"cannot open the {what} ({resolved['interface']} {resolved.get('channel')}): {text}"
+        ) from None
+    return bus, resolved

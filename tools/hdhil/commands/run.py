@@ -6,11 +6,19 @@ import argparse
 import dataclasses
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from hdhil.can.faults import with_fault_flags
-from hdhil.commands.options import add_fault_arguments
+from hdhil.commands.options import (
+    DEFAULT_BITRATE,
+    add_bus_options,
+    add_fault_arguments,
+    bus_named,
+    open_bus,
+    resolve_bus_config,
+)
 from hdhil.core.dataconf import merge
 from hdhil.core.errors import UserError
 from hdhil.hostsim.scenario import list_scenarios, load_scenario
@@ -47,6 +55,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="hdhil-run.blf",
         help="trace file; format from the extension: .blf .asc .log .csv .trc "
         "(default: %(default)s; '' for none)",
+    )
+    p.add_argument(
+        "--start-time",
+        default=None,
+        metavar="WHEN",
+        help="date and time of simulated time 0 in the trace: ISO 8601 "
+        "(2026-01-01T00:00:00Z) or Unix seconds (default: now)",
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument(
@@ -90,20 +105,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="next-sync",
         help="when the drive applies a command (default: %(default)s)",
     )
-    p.add_argument(
-        "--interface",
-        default="simbus",
-        help="python-can interface of the control bus: simbus (simulated time, default), "
-        "virtual, socketcan, pcan, kvaser, vector, udp_multicast, ...; 'config' reads "
-        "python-can's configuration file or CAN_INTERFACE",
-    )
-    p.add_argument(
-        "--channel",
-        default=None,
-        help="python-can channel of the control bus (e.g. vcan0, can0, PCAN_USBBUS1)",
-    )
-    p.add_argument(
-        "--bitrate", type=int, default=1_000_000, help="control bus bit rate (default: %(default)s)"
+    add_bus_options(
+        p,
+        title="control bus (default: the simulated bus 'simbus' at 1 Mbit/s; with "
+        "--interface, python-can's interfaces, CAN_CHANNEL, CAN_BITRATE and configuration file)",
     )
     p.add_argument(
         "--realtime",
@@ -136,6 +141,53 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def _control_bus(
+    args: argparse.Namespace,
+) -> tuple[str, str | None, int, Callable[[], Any] | None]:
+    """Interface, channel, bit rate and bus factory of the run's control bus.
+
+    Without ``--interface`` the run is on the simulated bus at ``--bitrate`` or 1 Mbit/s
+    (python-can's environment and configuration file describe real interfaces, not the
+    simulation).  With it, python-can's own factory opens the bus, the environment and
+    configuration file filling what the command line leaves out."""
+    if not bus_named(args):
+        bitrate = getattr(args, "bitrate", DEFAULT_BITRATE)
+        return "simbus", getattr(args, "channel", None), bitrate, None
+    resolved = resolve_bus_config(args)
+    interface = str(resolved["interface"])
+    if interface == "simbus":
+        return interface, resolved.get("channel"), int(resolved["bitrate"]), None
+
+    def factory() -> Any:
+        return open_bus(args, "control bus")[0]
+
+    return interface, resolved.get("channel"), int(resolved["bitrate"]), factory
+
+
+def parse_start_time(text: str | None) -> float | None:
+    """``--start-time``: ISO 8601 (UTC unless a zone is given) or Unix seconds."""
+    if text is None:
+        return None
+    import datetime
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        try:
+            when = datetime.datetime.fromisoformat(text.replace("Z", "+00:00"))
+        except ValueError:
+            raise UserError(
+                f"--start-time {text!r}: use ISO 8601 (2026-01-01T00:00:00Z) or Unix seconds"
+            ) from None
+        if when.tzinfo is None:
+            when = when.replace(tzinfo=datetime.timezone.utc)
+        value = when.timestamp()
+    if not math.isfinite(value) or not 0 <= value < 253402300800:  # up to year 9999
+        raise UserError(f"--start-time {text!r}: out of range")
+    return value
+
+
 def run(args: argparse.Namespace) -> int:
     overrides: dict[str, Any] = {}
     for path in args.override:
@@ -151,11 +203,13 @@ def run(args: argparse.Namespace) -> int:
         firmware = merge(scenario.firmware, load_calibration(args.calibration))
         scenario = dataclasses.replace(scenario, firmware=firmware)
     trace = Path(args.trace) if args.trace else None
+    start_time = parse_start_time(args.start_time)
+    metadata = {"scenario_source": args.scenario, "overrides": [str(p) for p in args.override]}
     if not args.realtime and (args.spin_us is not None or args.floor_s or args.mlock):
         raise UserError("--spin-us, --floor-s and --mlock need --realtime")
     rt_config = RealtimeConfig(spin_us=args.spin_us, floor_s=args.floor_s, mlock=args.mlock)
     try:
-        interface = None if args.interface == "config" else args.interface
+        interface, channel, bitrate, factory = _control_bus(args)
         with stop_on_signals() as stop:
             if args.compare_laws:
                 rows = compare_laws(
@@ -165,8 +219,11 @@ def run(args: argparse.Namespace) -> int:
                     trace=trace,
                     interface=interface,
                     actuation=args.actuation,
-                    bitrate=args.bitrate,
-                    channel=args.channel,
+                    bitrate=bitrate,
+                    channel=channel,
+                    open_control_bus=factory,
+                    start_time=start_time,
+                    metadata=metadata,
                     stop_requested=stop.is_set,
                     evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,
                     realtime=args.realtime,
@@ -186,8 +243,11 @@ def run(args: argparse.Namespace) -> int:
                 trace,
                 interface,
                 args.actuation,
-                args.bitrate,
-                args.channel,
+                bitrate,
+                channel,
+                open_control_bus=factory,
+                start_time=start_time,
+                metadata=metadata,
                 stop_requested=stop.is_set,
                 evaluate=args.evaluate,
                 evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,

@@ -9,7 +9,9 @@ Inputs:
 
 - a **signal CSV**: a header line with the columns ``time``, ``T_meas`` (Nm) and
   ``velocity`` (motor velocity, rad/s), optionally ``encoder`` (the 16-bit motor
-  encoder count); other columns are ignored.  Without an ``encoder`` column the
+  encoder count), or the same with units as ``hdhil dump --csv`` writes them
+  (``time_s``, ``T_meas_Nm``, ``velocity_radps``, ``ENC_count_count``); other columns
+  are ignored.  Without an ``encoder`` column the
   recommended filter takes its harmonic phase from the integrated velocity
   (``phase_source = "tacho"``).  Non-finite values (``nan``, ``inf``) are passed to
   the filter, which skips and counts them; anything else that is not a number is an
@@ -20,10 +22,11 @@ Inputs:
   firmware received, go through the firmware's interrupt handler
   (:class:`firmware.isr.InterruptHandler`: ADC read, calibration, the same chain), so
   the result is exactly what the firmware computed, given the same configuration.
-  ``time`` is the frame's timestamp.
+  ``time`` is the frame's time since the trace's first frame.
 
-Output: a CSV with exactly the columns ``time,T_meas,acceleration,T_expected,ripple,
-T_filtered`` (``T_filtered = T_meas - ripple``), numbers in Python's shortest
+Output: a CSV with exactly the columns ``time_s,T_meas_Nm,acceleration_radps2,
+T_expected_Nm,ripple_Nm,T_filtered_Nm`` (units in the names; ``T_filtered = T_meas -
+ripple``), numbers in Python's shortest
 round-trip form.  The file is written to a temporary name and renamed at the end, so
 a failed run leaves no half-written output.
 
@@ -56,11 +59,31 @@ from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
 
 #: Output columns, in order.
-OUTPUT_COLUMNS = ("time", "T_meas", "acceleration", "T_expected", "ripple", "T_filtered")
+OUTPUT_COLUMNS = (
+    "time_s", "T_meas_Nm", "acceleration_radps2", "T_expected_Nm", "ripple_Nm", "T_filtered_Nm"
+)  # fmt: skip
 #: Required columns of a signal CSV.
 REQUIRED_COLUMNS = ("time", "T_meas", "velocity")
+#: The names each input column may have: bare, or with its unit as ``hdhil dump --csv``
+#: writes it (so a per-cycle export filters directly).
+COLUMN_ALIASES = {
+    "time": ("time", "time_s"),
+    "T_meas": ("T_meas", "T_meas_Nm"),
+    "velocity": ("velocity", "velocity_radps"),
+    "encoder": ("encoder", "ENC_count_count"),
+}
+
+
+def _column(names: list[str], column: str) -> int | None:
+    """Index of ``column`` (under any of its aliases) in ``names``, or ``None``."""
+    for alias in COLUMN_ALIASES[column]:
+        if alias in names:
+            return names.index(alias)
+    return None
+
+
 #: Trace formats (``hdhil.can.tracefile.READERS``), without importing python-can up front.
-TRACE_EXTENSIONS = (".blf", ".asc", ".log", ".csv", ".trc")
+TRACE_EXTENSIONS = (".blf", ".asc", ".log", ".csv", ".trc", ".mf4", ".db")
 _CAN_CSV_HEADER = "timestamp,arbitration_id"
 
 __all__ = [
@@ -264,14 +287,15 @@ def filter_signal_csv(
         except csv.Error as exc:
             raise UserError(f"{label}:1: {exc}") from None
         names = [h.strip().lstrip("\ufeff") for h in header]
-        missing = [c for c in REQUIRED_COLUMNS if c not in names]
+        missing = [c for c in REQUIRED_COLUMNS if _column(names, c) is None]
         if missing:
             raise UserError(
                 f"{label}: missing column(s) {', '.join(missing)} "
                 f"(header: {','.join(names) or '(empty)'})"
             )
-        i_time, i_T, i_vel = (names.index(c) for c in REQUIRED_COLUMNS)
-        i_enc = names.index("encoder") if "encoder" in names else None
+        i_time, i_T, i_vel = (_column(names, c) for c in REQUIRED_COLUMNS)
+        assert i_time is not None and i_T is not None and i_vel is not None
+        i_enc = _column(names, "encoder")
         phase = cfg.ripple.phase_source
         if i_enc is None and cfg.ripple.mode == "recommended" and phase == "encoder":
             cfg = _with_tacho_phase(cfg)
@@ -334,13 +358,14 @@ def _sensor_frames(path: Path, summary: FilterSummary) -> Iterator[tuple[float, 
     decode = sensor.decode
     trace = read_trace(path)
     with trace:
+        t0 = trace.first_time or 0.0
         for msg in trace:
             if msg.arbitration_id != frame_id or msg.is_extended_id:
                 continue
             if msg.is_remote_frame or msg.is_error_frame or len(msg.data) != length:
                 summary.malformed_frames += 1
                 continue
-            yield msg.timestamp, decode(msg.data)  # type: ignore[misc]
+            yield msg.timestamp - t0, decode(msg.data)  # type: ignore[misc]
     summary.damage = [d.describe(trace.path) for d in trace.damage]
 
 

@@ -41,7 +41,7 @@ from threadpoolctl import threadpool_limits
 from hdhil.can.busload import LOAD_LIMIT, ScheduleLoad, schedule_load
 from hdhil.can.faults import FaultInjector, FaultLog
 from hdhil.can.simbus import SimBus, SimClock
-from hdhil.can.trace import BusTap, FrameCounter, WriterProcess
+from hdhil.can.trace import BusTap, FrameCounter, WriterProcess, write_metadata
 from hdhil.core.dataconf import ConfigError, from_dict, merge
 from hdhil.dbc import CHANNEL_NUMBER, database
 from hdhil.firmware.config import FirmwareConfig, Law
@@ -95,6 +95,12 @@ class RunResult:
     controller: dict[str, Any] = field(default_factory=dict)
     drive: dict[str, Any] = field(default_factory=dict)
     realtime: dict[str, Any] | None = None
+    #: Unix time of simulated time 0 in the trace (the wall clock at the run's start,
+    #: or ``start_time``); ``None`` when the control bus is a real interface.
+    start_time: float | None = None
+    #: The per-cycle recording (:class:`hdhil.rig.evaluate.Recording`) when the run
+    #: evaluated; not part of :meth:`as_dict`.
+    recording: Any = field(default=None, repr=False)
 
     @property
     def real_time_factor(self) -> float:
@@ -102,8 +108,17 @@ class RunResult:
 
     def as_dict(self) -> dict[str, Any]:
         d = dict(self.__dict__)
+        del d["recording"]
         d["real_time_factor"] = self.real_time_factor
         return d
+
+
+def _utc(unix_s: float) -> str:
+    """``unix_s`` as an ISO 8601 UTC date and time, to the millisecond."""
+    import datetime
+
+    when = datetime.datetime.fromtimestamp(unix_s, tz=datetime.timezone.utc)
+    return when.isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 def _frame_names() -> dict[tuple[int, int], str]:
@@ -273,8 +288,15 @@ class RigBuses:
     every one it opened. The control bus follows the run's interface; the truth
     channel is always the simulated bus (ground truth exists only in simulation)."""
 
-    def __init__(self, plan: RunPlan, clock: SimClock, injector: FaultInjector | None) -> None:
+    def __init__(
+        self,
+        plan: RunPlan,
+        clock: SimClock,
+        injector: FaultInjector | None,
+        open_control: Callable[[], can.BusABC] | None = None,
+    ) -> None:
         self.plan = plan
+        self._open_control = open_control
         self.clock = clock
         self.run_id = next(_run_ids)
         self._control_faults = injector.channel("control") if injector is not None else None
@@ -295,6 +317,8 @@ class RigBuses:
             )
         elif p.interface == "virtual":
             bus = can.Bus(interface="virtual", channel=p.channel or f"hdhil-{self.run_id}-control")
+        elif self._open_control is not None:
+            bus = self._open_control()  # python-can's own factory, from the command line
         else:
             try:
                 # Any python-can interface; None falls back to python-can's configuration
@@ -397,8 +421,13 @@ def build_listeners(
     evaluate: bool,
     evaluate_skip_s: float,
     extra: Sequence[can.Listener],
+    start_time: float = 0.0,
+    metadata: dict[str, Any] | None = None,
 ) -> RunListeners:
-    """The tap's listeners, the trace writer first (it sees every frame as it came)."""
+    """The tap's listeners, the trace writer first (it sees every frame as it came).
+
+    On the simulated bus the trace's times are simulated time plus ``start_time``; the
+    trace's sidecar JSON gets the run's settings and ``metadata``."""
     counter, scorer = FrameCounter(), TorqueScorer()
     listeners: list[can.Listener] = [counter, scorer]
     tracking = recorder = None
@@ -410,7 +439,19 @@ def build_listeners(
         recorder = RecordingListener(plan.sample_period_s)
         listeners.append(recorder)
     if trace is not None:
-        listeners.insert(0, WriterProcess(trace))
+        offset = start_time if plan.simulated else 0.0
+        listeners.insert(0, WriterProcess(trace, time_offset=offset))
+        write_metadata(trace, {
+            "scenario": plan.scenario.name, "seed": plan.seed,
+            "duration_s": plan.cycles * plan.sample_period_s,
+            "sample_period_s": plan.sample_period_s,
+            "start_time": start_time if plan.simulated else None,
+            "start_time_utc": _utc(start_time) if plan.simulated else None,
+            "time_offset_s": offset, "interface": plan.interface or "python-can configuration",
+            "bitrate": plan.bitrate, "actuation": plan.actuation,
+            "channels": dict(CHANNEL_NUMBER), "control_law": control.law.name.lower(),
+            **(metadata or {}),
+        })  # fmt: skip
     listeners += extra
     return RunListeners(counter, scorer, tracking, recorder, listeners)
 
@@ -544,6 +585,9 @@ def run_lockstep(
     layout: RigLayout | None = None,
     controller_factory: ControllerFactory = scenario_controller,
     drive_factories: Sequence[DriveFactory] | None = None,
+    open_control_bus: Callable[[], can.BusABC] | None = None,
+    start_time: float | None = None,
+    metadata: dict[str, Any] | None = None,
 ) -> RunResult:
     """Run ``scenario`` in lockstep and return the scored result.
 
@@ -570,6 +614,12 @@ def run_lockstep(
     The nodes come from factories (:mod:`hdhil.rig.factories`): ``controller_factory``
     builds the controller, ``drive_factories`` one drive per slot of ``layout`` (one
     factory for all, or one per slot; default: the scenario's plant).
+
+    ``start_time`` (Unix seconds; default: the wall clock now, whole milliseconds) is what
+    simulated time 0 becomes in the trace; a trace also gets ``TRACE.json`` beside it with
+    the scenario, seed, start time and bus (:func:`hdhil.can.trace.write_metadata`), plus
+    ``metadata``.  ``open_control_bus`` opens the control bus on a real interface (one
+    handle per node and for the tap).
     """
     plan = plan_run(scenario, duration_s, seed, interface, actuation, bitrate, channel,
                     realtime, layout)  # fmt: skip
@@ -588,14 +638,17 @@ def run_lockstep(
     # under SCHED_FIFO on one pinned CPU (OpenBLAS restarts its pool lazily after the
     # writer's fork) starves its own workers and livelocks the real-time loop.
     blas = threadpool_limits(limits=1)
-    buses = RigBuses(plan, clock, injector)
+    if start_time is None:
+        start_time = round(time.time(), 3)  # whole ms: the resolution of BLF's header date
+    buses = RigBuses(plan, clock, injector, open_control_bus)
     listening: RunListeners | None = None
     listeners: list[can.Listener] = []
     wall = 0.0
     frames_sent: dict[str, int] = {}
     try:
         nodes = build_nodes(plan, buses, controller_factory, factories, injector)
-        listening = build_listeners(plan, trace, evaluate, evaluate_skip_s, extra_listeners)
+        listening = build_listeners(plan, trace, evaluate, evaluate_skip_s, extra_listeners,
+                                    start_time, metadata)  # fmt: skip
         listeners = listening.all
         tap = BusTap(nodes.tap_buses, listeners)
         controller = nodes.controller
@@ -640,8 +693,10 @@ def run_lockstep(
             if injector is not None:
                 injector.log.close()  # every injected fault is on disk
             blas.restore_original_limits()
-    return _result(plan, nodes, listening, counts, wall, frames_sent, trace, injector, pacer,
-                   evaluate_skip_s)  # fmt: skip
+    result = _result(plan, nodes, listening, counts, wall, frames_sent, trace, injector, pacer,
+                     evaluate_skip_s)  # fmt: skip
+    result.start_time = start_time if plan.simulated else None
+    return result
 
 
 def _result(
@@ -709,6 +764,7 @@ def _result(
         controller=_controller_diagnostics(nodes.controller),
         drive=drive,
         realtime=pacer.result() if pacer is not None else None,
+        recording=recorder.recording if recorder is not None else None,
     )
 
 
