@@ -2,7 +2,7 @@
 
 Traces are whatever python-can writes, chosen by extension: ``.blf``, ``.asc``, ``.log``
 (candump), ``.csv``, ``.trc``, the text formats optionally gzip-compressed (``.asc.gz``),
-``.mf4`` (ASAM MDF 4, through asammdf) and ``.db`` (python-can's SQLite).  Decoding
+and ``.mf4`` (ASAM MDF 4, through asammdf).  Decoding
 never needs channel numbers: control frames use 11-bit identifiers and truth frames
 29-bit ones, so a frame is looked up by ``(is_extended_id, arbitration_id)`` across
 both DBCs.  Channel numbers, where the format stores them, only label the bus.
@@ -74,11 +74,10 @@ READERS: dict[str, type[can.io.generic.MessageReader]] = {
     ".csv": can.CSVReader,
     ".trc": can.TRCReader,
     ".mf4": can.MF4Reader,
-    ".db": can.SqliteReader,
 }
 
 #: Formats read from a file name rather than a stream (no gzip, no byte counting).
-_PATH_READERS = frozenset({".mf4", ".db"})
+_PATH_READERS = frozenset({".mf4"})
 
 #: Bus label per python-can channel number (inverse of :data:`hdhil.dbc.CHANNEL_NUMBER`).
 BUS_OF_CHANNEL: dict[int, str] = {number: name for name, number in CHANNEL_NUMBER.items()}
@@ -336,7 +335,7 @@ class TraceReadResult:
 
     def _normalise_channel(self, msg: can.Message) -> None:
         channel = msg.channel
-        if self.format in (".csv", ".db"):
+        if self.format == ".csv":
             msg.channel = None
         elif self.format == ".trc":
             columns = getattr(self._reader, "columns", {})

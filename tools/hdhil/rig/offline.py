@@ -83,7 +83,7 @@ def _column(names: list[str], column: str) -> int | None:
 
 
 #: Trace formats (``hdhil.can.tracefile.READERS``), without importing python-can up front.
-TRACE_EXTENSIONS = (".blf", ".asc", ".log", ".csv", ".trc", ".mf4", ".db")
+TRACE_EXTENSIONS = (".blf", ".asc", ".log", ".csv", ".trc", ".mf4")
 _CAN_CSV_HEADER = "timestamp,arbitration_id"
 
 __all__ = [

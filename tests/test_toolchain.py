@@ -1,0 +1,223 @@
+"""hdhil with the CAN tools its users already have: python-can's bus options and
+configuration, every trace format python-can writes and reads (MF4 through asammdf,
+gzip), can-utils' log2asc/asc2log, and real dates in the traces."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import can
+import pytest
+
+from hdhil.cli import main
+from hdhil.commands.options import NO_INTERFACE, add_bus_options, open_bus
+from hdhil.dbc import CHANNEL_NUMBER, database
+
+PINNED = "2026-01-02T03:04:05Z"
+PINNED_UNIX = 1767323045.0
+
+
+def _run(tmp_path: Path, trace: str, *extra: str) -> Path:
+    path = tmp_path / trace
+    args = ["run", "--duration", "0.2", "--seed", "1", "--no-evaluate", "--json",
+            "--trace", str(path), "--start-time", PINNED, *extra]  # fmt: skip
+    assert main(args) == 0
+    return path
+
+
+def _frames(path: Path) -> list[tuple[int, bool, bytes, float]]:
+    """(id, extended, data, time since the first frame) of every frame python-can reads."""
+    with can.LogReader(str(path)) as reader:
+        msgs = list(reader)
+    t0 = msgs[0].timestamp
+    return [(m.arbitration_id, m.is_extended_id, bytes(m.data), round(m.timestamp - t0, 6))
+            for m in msgs]  # fmt: skip
+
+
+# ------------------------------------------------------------------ bus options
+
+
+def _parsed(argv: list[str]) -> argparse.Namespace:
+    p = argparse.ArgumentParser()
+    add_bus_options(p)
+    return p.parse_args(argv)
+
+
+@pytest.fixture
+def no_can_config(tmp_path, monkeypatch):
+    """No python-can configuration from the environment or a real home directory."""
+    for name in ("CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG"):
+        monkeypatch.delenv(name, raising=False)
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.setattr(can.util, "CONFIG_FILES", [str(home / ".canrc")])
+    return home
+
+
+def test_bitrate_from_can_bitrate_reaches_the_bus(no_can_config, monkeypatch):
+    """CAN_BITRATE is python-can's; the bus opened from hdhil's options runs at it (the
+    simulated bus times frames by its bit rate, so the rate it reports is the one used)."""
+    monkeypatch.setenv("CAN_BITRATE", "500000")
+    bus, resolved = open_bus(_parsed(["-i", "simbus", "-c", "bitrate-env"]))
+    try:
+        assert resolved["bitrate"] == 500000
+        assert bus.channel_info.endswith("at 500000 bit/s")
+    finally:
+        bus.shutdown()
+    # The command line wins over the environment.
+    bus, resolved = open_bus(_parsed(["-i", "simbus", "-c", "bitrate-cli", "-b", "250000"]))
+    try:
+        assert resolved["bitrate"] == 250000
+        assert bus.channel_info.endswith("at 250000 bit/s")
+    finally:
+        bus.shutdown()
+
+
+def test_interface_and_bitrate_from_the_configuration_file(no_can_config):
+    (no_can_config / ".canrc").write_text(
+        "[default]\ninterface = simbus\nchannel = from-file\nbitrate = 125000\n"
+    )
+    bus, resolved = open_bus(_parsed([]))
+    try:
+        assert resolved["interface"] == "simbus" and resolved["channel"] == "from-file"
+        assert bus.channel_info.endswith("at 125000 bit/s")
+    finally:
+        bus.shutdown()
+
+
+def test_without_any_bit_rate_the_system_rate_is_used(no_can_config):
+    bus, resolved = open_bus(_parsed(["-i", "simbus", "-c", "default-rate"]))
+    try:
+        assert resolved["bitrate"] == 1_000_000
+        assert bus.channel_info.endswith("at 1000000 bit/s")
+    finally:
+        bus.shutdown()
+
+
+def test_missing_interface_is_one_line_saying_how_to_name_one(no_can_config, capsys):
+    assert main(["nmt", "start", "2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"hdhil: error: {NO_INTERFACE}"
+    assert "--interface" in err and "CAN_INTERFACE" in err and "\n" not in err
+
+
+def test_bus_kwargs_and_filters_reach_python_can(no_can_config):
+    args = _parsed(["-i", "virtual", "-c", "kw", "--filter", "181:7FF",
+                    "--bus-kwargs", "receive_own_messages=True"])  # fmt: skip
+    bus, _ = open_bus(args)
+    try:
+        bus.send(can.Message(arbitration_id=0x181, is_extended_id=False, data=b"\x01"))
+        bus.send(can.Message(arbitration_id=0x182, is_extended_id=False, data=b"\x02"))
+        got = bus.recv(0.5)
+        assert got is not None and got.arbitration_id == 0x181  # own frame, filtered
+        assert bus.recv(0.1) is None  # 0x182 filtered out
+    finally:
+        bus.shutdown()
+
+
+# ------------------------------------------------------------------ trace formats
+
+FORMATS = [".blf", ".asc", ".log", ".csv", ".trc", ".asc.gz", ".log.gz", ".csv.gz",
+           ".trc.gz"]  # fmt: skip
+
+
+@pytest.mark.parametrize("suffix", FORMATS)
+def test_every_format_round_trips_through_python_can(tmp_path, suffix):
+    """What ``run`` writes, python-can's LogReader reads back frame for frame, and
+    ``dump`` decodes with no unknown or damaged frame."""
+    reference = _frames(_run(tmp_path, "ref.blf"))
+    path = _run(tmp_path, f"t{suffix}")
+    assert _frames(path) == reference
+    assert main(["dump", str(path), "--stats", "--json"]) == 0
+
+
+def test_mf4_round_trip(tmp_path, capsys):
+    pytest.importorskip("asammdf", reason="asammdf (the mf4 extra) is not installed")
+    reference = _frames(_run(tmp_path, "ref.blf"))
+    path = _run(tmp_path, "t.mf4")
+    assert _frames(path) == reference
+    from asammdf import MDF
+
+    mdf = MDF(str(path))
+    # The file's start is the trace's start, and its time axis starts at 0, not 1.8e9 s.
+    assert abs(mdf.header.start_time.timestamp() - PINNED_UNIX) < 1e-3
+    assert main(["evaluate", str(path)]) == 0
+    capsys.readouterr()
+
+
+def test_mf4_without_asammdf_is_a_clear_error(tmp_path, monkeypatch, capsys):
+    import hdhil.can.trace as trace
+
+    monkeypatch.setattr(trace, "mf4_available", lambda: False)
+    assert main(["run", "--duration", "0.05", "--trace", str(tmp_path / "x.mf4")]) == 2
+    err = capsys.readouterr().err
+    assert "asammdf" in err and "hdhil[mf4]" in err and not (tmp_path / "x.mf4").exists()
+
+
+def test_sqlite_is_refused_rather_than_losing_frames(tmp_path, capsys):
+    assert main(["run", "--duration", "0.05", "--trace", str(tmp_path / "x.db")]) == 2
+    assert "unsupported trace format '.db'" in capsys.readouterr().err
+
+
+def test_blf_cannot_be_gzipped_and_says_what_can(tmp_path, capsys):
+    assert main(["run", "--duration", "0.05", "--trace", str(tmp_path / "x.blf.gz")]) == 2
+    assert ".asc" in capsys.readouterr().err
+
+
+def test_sidecar_and_header_dates(tmp_path):
+    path = _run(tmp_path, "d.blf")
+    meta = json.loads((tmp_path / "d.blf.json").read_text())
+    assert (
+        meta["start_time"] == PINNED_UNIX and meta["start_time_utc"] == "2026-01-02T03:04:05.000Z"
+    )
+    assert meta["scenario"] == "free-motion" and meta["seed"] == 1
+    with can.BLFReader(str(path)) as reader:
+        assert abs(reader.start_timestamp - PINNED_UNIX) < 1e-3
+        first = next(iter(reader))
+    assert PINNED_UNIX <= first.timestamp < PINNED_UNIX + 1e-3
+
+
+def test_bad_start_time_is_one_line(capsys):
+    assert main(["run", "--start-time", "yesterday", "--trace", ""]) == 2
+    assert "--start-time" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ can-utils
+
+
+@pytest.mark.skipif(
+    shutil.which("log2asc") is None or shutil.which("asc2log") is None,
+    reason="can-utils (log2asc, asc2log) is not installed",
+)
+def test_can_utils_log2asc_asc2log_round_trip(tmp_path):
+    """candump log -> log2asc -> asc2log gives back every frame, in order, with the same
+    times relative to the first frame and one ASC header."""
+    log = _run(tmp_path, "t.log")
+    asc, back = tmp_path / "t.asc", tmp_path / "back.log"
+    subprocess.run(["log2asc", "-I", str(log), "-O", str(asc), "can0", "can1"], check=True,
+                   capture_output=True)  # fmt: skip
+    text = asc.read_text()
+    assert text.count("\ndate ") + text.startswith("date ") == 1
+    subprocess.run(["asc2log", "-I", str(asc), "-O", str(back)], check=True,
+                   capture_output=True)  # fmt: skip
+    original, returned = _frames(log), _frames(back)
+    assert len(returned) == len(original)
+    assert [f[:3] for f in returned] == [f[:3] for f in original]
+    assert max(abs(a[3] - b[3]) for a, b in zip(original, returned, strict=True)) < 2e-6
+    # And python-can reads log2asc's ASC: the same frames.
+    assert [f[:3] for f in _frames(asc)] == [f[:3] for f in original]
+
+
+def test_truth_and_control_decode_with_the_databases(tmp_path):
+    """Channel numbers survive in the formats that store them (ASC, BLF, candump)."""
+    path = _run(tmp_path, "c.asc")
+    with can.LogReader(str(path)) as reader:
+        for msg in reader:
+            bus = "truth" if msg.is_extended_id else "control"
+            assert can.util.channel2int(msg.channel) in (CHANNEL_NUMBER[bus], None)
+            database(bus).get_message_by_frame_id(msg.arbitration_id)
