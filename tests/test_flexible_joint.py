@@ -403,7 +403,8 @@ def test_truth_joint_and_motor_torque_frames_are_published_and_decodable(tmp_pat
                 if msg.is_extended_id and msg.arbitration_id == c.frame_id:
                     rows[key].append(c.decode(msg.data))
                     if key == "joint":
-                        times.append(msg.timestamp)  # the sample instant t(k)
+                        # the sample instant t(k): simulated time after the trace's start
+                        times.append(msg.timestamp - result.start_time)
     assert len(rows["joint"]) == len(rows["torque"]) == names["TRUTH_JOINT"]
     A, w = math.radians(20.0), 2 * math.pi
     per_volt = scenario.plant.torque_per_volt
