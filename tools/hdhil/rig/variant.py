@@ -23,7 +23,7 @@ from hdhil.rig.runner import run_lockstep
 
 #: Keys of ``hdhil run --json`` that measure the host, not the run: left out of a
 #: variant's stored result so that the same variant gives the same record anywhere.
-WALL_CLOCK_KEYS = ("wall_s", "real_time_factor", "realtime", "trace")
+WALL_CLOCK_KEYS = ("wall_s", "real_time_factor", "realtime", "trace", "start_time")
 
 
 def scenario_data(scenario: Scenario) -> dict[str, Any]:
