@@ -165,3 +165,22 @@ def test_cli_rejects_bad_arguments(
     assert main(["bench", "--quick", *argv]) == 2
     err = capsys.readouterr().err
     assert err.startswith("hdhil: error:") and fragment in err
+
+
+def test_campaign_section(report: dict) -> None:
+    c = report["campaign"]
+    assert c["variants"] == 4 and c["workers"] == (os.cpu_count() or 1)
+    for key in ("reference_s", "run_s_per_variant", "wall_s_1", "wall_s_n", "report_s"):
+        assert _positive(c[key]), key
+    # the figures follow from the measured wall times
+    assert c["variants_per_min_1"] == pytest.approx(c["variants"] / c["wall_s_1"] * 60)
+    assert c["variants_per_min_n"] == pytest.approx(c["variants"] / c["wall_s_n"] * 60)
+    assert c["speedup"] == pytest.approx(c["wall_s_1"] / c["wall_s_n"])
+    assert c["speedup_goal"] == pytest.approx(0.85 * c["workers"])
+    assert c["overhead_share"] == pytest.approx(
+        c["overhead_s_per_variant"] / c["run_s_per_variant"]
+    )
+    # the machinery's time is what the campaign took beyond its variants' own runs
+    assert c["run_s_per_variant"] * c["variants"] < c["wall_s_1"]
+    text = format_bench(report)
+    assert "Campaign (4 variants of 0.5 s free-motion" in text and "speed-up" in text

@@ -24,7 +24,10 @@ Sections of the report (``--json`` gives the same data):
   per 100 000 cycles), sensor-to-command latency, compute per interrupt stage, each
   against the issue's goals (p99 <= 100 µs, p99.9 <= 500 µs, <= 1 miss per 100 000), and
   the machine floor: the bare sleep+spin loop in the same process state for
-  ``--floor-s`` seconds.
+  ``--floor-s`` seconds;
+- **campaign**: ``hdhil campaign`` on the local process pool: variants per minute on 1 and
+  N workers (N = the machine's cores), the speed-up, and the campaign machinery's
+  overhead per variant (:mod:`hdhil.rig.campaign_bench`).
 
 ``--quick`` shrinks every section (CI and the tests); the default takes about four
 minutes on a 2-core machine, one of them the real-time run.
@@ -549,6 +552,12 @@ def run_benchmarks(
     memory = bench_memory(s)
     memory["peak_rss_MB"] = _peak_rss_bytes() / 2**20
     rt = bench_realtime(s) if s.realtime_s > 0 else None
+    from hdhil.rig.campaign_bench import bench_campaign
+
+    if s.mode == "quick":
+        campaign = bench_campaign(variants=4, duration_s=0.5, repeat=1)
+    else:
+        campaign = bench_campaign(variants=16, duration_s=2.0, repeat=s.repeat)
     return {
         "started": started,
         "mode": s.mode,
@@ -568,6 +577,7 @@ def run_benchmarks(
         "filter": filt,
         "memory": memory,
         "realtime": rt,
+        "campaign": campaign,
         "wall_s": time.perf_counter() - wall0,
     }
 
@@ -664,6 +674,10 @@ def format_bench(report: dict[str, Any]) -> str:
     lines += _table(["figure", "value"], rows, [False, True])
     if report.get("realtime"):
         lines += ["", *format_realtime_section(report["realtime"])]
+    if report.get("campaign"):
+        from hdhil.rig.campaign_bench import format_campaign_section
+
+        lines += ["", *format_campaign_section(report["campaign"])]
     return "\n".join(lines)
 
 
