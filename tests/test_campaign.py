@@ -165,10 +165,10 @@ def test_failing_and_raising_variants_are_recorded_and_the_campaign_goes_on(tmp_
         assert by_loss == {"0.0": [clean_status] * 2, "1.0": ["error"] * 2}
         assert "did not reach operation enabled" in (out / "results.csv").read_text()
         assert "did not reach operation enabled" in (out / "report.md").read_text()
-    # Recorded errors are results too: a re-run runs nothing.
+    # A re-run keeps the results and runs again only the variants that raised.
     assert main(["campaign", str(path), "--workers", "1", "--out", str(out), "--json"]) == 1
     again = json.loads(capsys.readouterr().out)
-    assert again["ran"] == 0 and again["resumed"] == 4
+    assert again["ran"] == 2 and again["resumed"] == 2 and again["errors"] == 2
 
 
 RESUME = """
@@ -184,7 +184,8 @@ seed = {{ range = [1, {n}] }}
 """
 
 
-def test_an_interrupted_campaign_keeps_its_results_and_a_rerun_completes_it(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_an_interrupted_campaign_keeps_its_results_and_a_rerun_completes_it(tmp_path, sig):
     path = _campaign(tmp_path, RESUME.format(n=8))  # 14 variants of 2 s
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "hdhil", "campaign", str(path), "--workers", "1",
@@ -195,7 +196,7 @@ def test_an_interrupted_campaign_keeps_its_results_and_a_rerun_completes_it(tmp_
         assert proc.poll() is None, proc.communicate()
         assert time.monotonic() < deadline
         time.sleep(0.01)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     stdout, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 130, stderr
     assert "interrupted" in stderr and "Traceback" not in stderr

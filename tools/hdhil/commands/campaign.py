@@ -2,8 +2,8 @@
 a Dask cluster, with a verdict per variant and a report.
 
 Exit codes: 0 every variant passed every criterion, 1 some variant failed a criterion or
-raised, 2 usage or input error (nothing has run), 130 interrupted (finished variants are
-kept; run the same command again to complete the campaign).
+raised, 2 usage or input error (nothing has run), 130 interrupted by Ctrl-C or SIGTERM
+(finished variants are kept; run the same command again to complete the campaign).
 """
 
 from __future__ import annotations
@@ -11,7 +11,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -103,6 +105,17 @@ def _dask_executor(address: str) -> tuple[Any, Any, tuple[type[BaseException], .
     return client, (lambda: client.get_executor(pure=False)), (KilledWorker,)
 
 
+def _sigterm_as_interrupt() -> Any:
+    """SIGTERM ends a campaign as Ctrl-C does (finished variants kept, exit 130)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGTERM, interrupt)
+
+
 def run(args: argparse.Namespace) -> int:
     from hdhil.rig.campaign import expand, load_campaign, local_executor, run_campaign
     from hdhil.rig.campaign_report import write_outputs
@@ -131,10 +144,13 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise UserError(f"cannot create --out {out}: {exc}") from None
     progress = _Progress(len(variants), enabled=sys.stderr.isatty() and not args.json)
+    previous = _sigterm_as_interrupt()
     try:
         result = run_campaign(campaign, variants, out, make_executor, progress, lost)
     finally:
         progress.close()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
         if client is not None:
             client.close()
     summary = write_outputs(campaign, variants, result, out)

@@ -30,7 +30,8 @@ firmware configuration, criteria, metrics) before anything runs.
 A variant is recognised by a digest of its full settings (the resolved scenario with
 every default, duration, seed, trace option and the hdhil version): its record is
 stored as ``DIR/runs/<digest>.json`` the moment it arrives, so an interrupted campaign
-keeps what finished and a re-run only runs what is missing.
+keeps what finished and a re-run only runs what has no result yet (variants that raised
+run again: the cause may have been the worker's environment).
 
 Execution goes through a :class:`concurrent.futures.Executor`: a local process pool, or
 a Dask cluster through ``distributed.Client.get_executor()`` (the same interface), so
@@ -45,6 +46,7 @@ import hashlib
 import itertools
 import json
 import math
+import multiprocessing
 import os
 import re
 import signal
@@ -631,6 +633,11 @@ def execute_variant(settings: RunSettings) -> dict[str, Any]:
     trace: bytes | None = None
     error = None
     try:
+        if settings.trace_suffix and multiprocessing.current_process().daemon:
+            raise RuntimeError(
+                "the trace writer cannot start its process in a daemonic worker (Dask: "
+                "start the workers with DASK_DISTRIBUTED__WORKER__DAEMON=False)"
+            )
         result, trace = run_settings(settings)
         result = {k: v for k, v in result.items() if k not in WALL_CLOCK_KEYS}
     except Exception as exc:  # a variant's failure is data, not the campaign's
@@ -647,8 +654,6 @@ def execute_variant(settings: RunSettings) -> dict[str, Any]:
 def local_executor(workers: int) -> cf.Executor:
     """A process pool of ``workers`` processes (forked where the platform can: they
     start with hdhil already imported)."""
-    import multiprocessing
-
     methods = multiprocessing.get_all_start_methods()
     ctx = multiprocessing.get_context("fork" if "fork" in methods else None)
     return cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_sigint)
@@ -752,7 +757,11 @@ def run_campaign(
     todo: list[Variant] = []
     for v in variants:
         stored = _load_stored(runs_dir / f"{v.digest}.json", v)
-        if stored is None or (campaign.keep_trace and not _trace_path(trace_dir, v).is_file()):
+        if (
+            stored is None
+            or stored.get("error") is not None  # may come from the worker's environment
+            or (campaign.keep_trace and not _trace_path(trace_dir, v).is_file())
+        ):
             todo.append(v)
             continue
         rec = Record(v, stored.get("result"), stored.get("error"), float(stored["wall_s"]),

@@ -141,6 +141,9 @@ def plot_files(campaign: Campaign, table: list[dict[str, Any]], plots: Path) -> 
     if not ok or not axes:
         return files
     plots.mkdir(exist_ok=True)
+    for old in plots.glob("*-over-*.png"):  # an earlier run's plots of other metrics or axes
+        if old.is_file() and not old.is_symlink():
+            old.unlink()
     for metric in campaign.plot_metrics:
         for axis in axes:
             xs_all = []
@@ -181,6 +184,10 @@ def plot_files(campaign: Campaign, table: list[dict[str, Any]], plots: Path) -> 
                     color=line.get_color(),
                     label=f"{colour_by} = {label} (mean)" if colour_by else "mean",
                 )
+            for c in campaign.criteria:
+                if c.metric == metric and not isinstance(c.value, bool):
+                    ax.axhline(c.value, color="0.3", linestyle="--", linewidth=0.8,
+                               label=f"criterion {c.op} {_fmt(c.value)}")  # fmt: skip
             if not numeric:
                 ax.set_xticks(range(len(order)), [_axis_label(x) for x in order])
             unit = metric.rsplit("_", 1)[-1] if "_" in metric else ""
@@ -311,7 +318,7 @@ def _by_axis_values(campaign: Campaign, table: list[dict[str, Any]]) -> list[str
         means = []
         for m in metrics:
             ys = [r[m] for r in members if _finite(r[m])]
-            means.append(f"{sum(ys) / len(ys):.4f}" if ys else "n/a")
+            means.append(f"{sum(ys) / len(ys):.4g}" if ys else "n/a")
             if ys and len(ys) < len(members):
                 means[-1] += f" ({len(ys)})"
         lines.append("| " + " | ".join([*key, f"{passed}/{len(members)}", *means]) + " |")
