@@ -42,6 +42,7 @@ stops the campaign; a variant whose worker was lost is submitted again.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import gc
 import hashlib
 import itertools
 import json
@@ -620,9 +621,13 @@ def expand(campaign: Campaign) -> list[Variant]:
 # ----------------------------------------------------------------------------- execution
 
 
-def _ignore_sigint() -> None:
-    """Local pool workers leave Ctrl-C to the campaign (it cancels and keeps results)."""
+def _worker_init() -> None:
+    """Start of a local pool worker: leave Ctrl-C to the campaign (it cancels and keeps
+    results), and move the objects inherited from the parent out of the garbage
+    collector's reach (a forked worker would otherwise traverse, and so copy, the
+    parent's whole heap at every full collection)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    gc.freeze()
 
 
 def execute_variant(settings: RunSettings) -> dict[str, Any]:
@@ -656,7 +661,7 @@ def local_executor(workers: int) -> cf.Executor:
     start with hdhil already imported)."""
     methods = multiprocessing.get_all_start_methods()
     ctx = multiprocessing.get_context("fork" if "fork" in methods else None)
-    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_sigint)
+    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init)
 
 
 #: Submissions of one variant whose worker was lost before it is recorded as an error.

@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from hdhil.rig.campaign import Axis, Campaign, expand, local_executor, run_campaign
+from hdhil.rig.campaign import Axis, Campaign, Criterion, expand, local_executor, run_campaign
 from hdhil.rig.campaign_report import write_outputs
 from hdhil.rig.variant import run_settings
 
@@ -42,6 +42,10 @@ def bench_campaign(
         source="hdhil bench",
         scenarios=("free-motion",),
         duration_s=duration_s,
+        criteria=(
+            Criterion.parse("stopped_early == false"),
+            Criterion.parse("eval_rms_err_Nm < 0.06"),
+        ),
         axes=(Axis("seed", tuple(range(1, variants + 1))),),
     )
     grid = expand(campaign)
