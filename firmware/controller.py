@@ -232,6 +232,8 @@ class ControllerDiagnostics:
     syncs_sent: int = 0
     #: Sensor frames handled in any commanding phase (the walk's too).
     sensor_frames: int = 0
+    #: Sensor frames beyond the first of an operational cycle (ignored).
+    extra_sensor_frames: int = 0
     #: DRIVE_RPDO1 frames sent (walk and operation).
     commands_sent: int = 0
     malformed_frames: int = 0
@@ -534,6 +536,11 @@ class ControllerNode(CanNode):
         phase = self._phase
         if phase not in _COMMANDING or not self.services.pdo_allowed:
             self.diagnostics.pdos_ignored += 1
+            return
+        if phase is _OPERATIONAL and self._sensor_seen:
+            # A second sensor frame in one cycle (duplicated on the bus): the interrupt
+            # runs once per SYNC, as the seed's timer interrupt does.
+            self.diagnostics.extra_sensor_frames += 1
             return
         self._sensor_seen = True
         self.diagnostics.sensor_frames += 1

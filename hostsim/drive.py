@@ -321,6 +321,9 @@ class DriveDiagnostics:
     statusword_frames: int = 0
     #: SYNCs missing before a received one (counter jumps).
     missed_syncs: int = 0
+    #: SYNCs ignored because their counter repeated the previous one, or lay behind it.
+    duplicate_syncs: int = 0
+    stale_syncs: int = 0
     #: SYNCs whose length or counter did not fit ``sync_overflow``.
     sync_errors: int = 0
     #: Commands that arrived more than one period after their SYNC.
@@ -542,19 +545,16 @@ class DriveNode(CanNode):
             return
         d.syncs += 1
         monitor = self._sync_monitor
-        data = msg.data
-        if (
-            data
-            and len(data) == 1
-            and data[0] == 1
-            and monitor.last_counter not in (None, monitor.overflow)
-        ):
-            # CiA 301 §7.2.5: a producer (re)starting counts from 1 again; not a jump.
-            monitor.last_counter = None
         errors = monitor.length_errors
-        missed = monitor.on_sync_frame(msg, self._now)
-        d.missed_syncs += missed
+        missed = monitor.accept(msg, self._now)
         d.sync_errors += monitor.length_errors - errors
+        if missed is None:
+            # A duplicated or reordered SYNC (its counter repeats or lies behind the last
+            # one): no time passed for it, so the plant does not move and nothing is sent.
+            d.duplicate_syncs = monitor.duplicates
+            d.stale_syncs = monitor.stale
+            return
+        d.missed_syncs += missed
 
         if self._pending_knobs:
             self._apply_knobs()

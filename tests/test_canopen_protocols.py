@@ -144,3 +144,30 @@ def test_walk_resets_a_fault_once_then_gives_up():
     walk.on_statusword(drive.statusword)
     walk.set_controlword(CONTROLWORD[Command.SHUTDOWN])
     assert walk.up().action == "safe"  # a second fault: no second reset
+
+
+# ------------------------------------------------------------------ SYNC counter
+
+
+def _sync(counter: int) -> can.Message:
+    return can.Message(arbitration_id=0x080, is_extended_id=False, data=bytes((counter,)))
+
+
+def test_sync_monitor_tells_duplicates_reordering_loss_and_restarts_apart():
+    from hdhil.canopen.sync import SyncMonitor
+
+    m = SyncMonitor(overflow=240)
+    assert [m.accept(_sync(c), 0.0) for c in (1, 2, 3)] == [0, 0, 0]
+    assert m.accept(_sync(3), 0.0) is None and m.duplicates == 1
+    assert m.accept(_sync(5), 0.0) == 1  # 4 lost
+    assert m.accept(_sync(4), 0.0) is None and m.stale == 1  # 4 was only late
+    assert m.accept(_sync(6), 0.0) == 0
+    assert m.accept(_sync(1), 0.0) is None  # 5 behind: a late SYNC 1, not a restart
+    assert m.accept(_sync(20), 0.0) == 13
+    assert m.accept(_sync(1), 0.0) == 0 and m.restarts == 1  # producer restarted
+    assert m.accept(_sync(2), 0.0) == 0
+    assert m.accept(_sync(100), 0.0) == 97  # a long loss is still a loss
+    m = SyncMonitor(overflow=240)
+    for c in (239, 240, 1, 2):  # the counter wraps: no restart, no loss
+        assert m.accept(_sync(c), 0.0) == 0
+    assert m.restarts == 0 and m.missed_syncs == 0

@@ -635,6 +635,29 @@ def test_sync_counter_restart_is_not_a_jump(rig):
     assert rig.plant.time - t0 == pytest.approx(Ts)
 
 
+def test_duplicated_and_reordered_syncs_never_advance_the_plant(rig):
+    """A repeated SYNC counter (duplicate) or one just behind the last (a SYNC overtaken
+    on the bus) is ignored: the plant advances only by the periods that passed."""
+    rig.start()
+    for _ in range(5):
+        rig.cycle()
+    t0 = rig.plant.time
+    sensors0 = rig.drive.diagnostics.sensor_frames
+    rig.send(SYNC, bytes((rig.sync_counter,)))  # the same SYNC again
+    rig.drive.poll()
+    assert rig.plant.time == t0
+    assert rig.drive.diagnostics.duplicate_syncs == 1
+    rig.cycle()  # SYNC n+1
+    rig.sync_counter += 1
+    rig.cycle()  # SYNC n+3: n+2 was overtaken...
+    rig.send(SYNC, bytes((rig.sync_counter - 1,)))  # ...and arrives late
+    rig.drive.poll()
+    assert rig.drive.diagnostics.stale_syncs == 1
+    assert rig.drive.diagnostics.missed_syncs == 1
+    assert rig.plant.time - t0 == pytest.approx(3 * Ts)  # n+1, n+2 (missed), n+3
+    assert rig.drive.diagnostics.sensor_frames - sensors0 == 2  # one per accepted SYNC
+
+
 # ============================================================================ EMCY
 
 

@@ -85,6 +85,12 @@ class SyncMonitor:
     missing_commands: int = 0
     last_counter: int | None = None
     last_sync_time: float | None = None
+    #: SYNCs whose counter repeated the previous one (a duplicated frame).
+    duplicates: int = 0
+    #: SYNCs whose counter lay just behind the previous one (a frame overtaken on the bus).
+    stale: int = 0
+    #: SYNCs taken as the producer restarting its counter at 1.
+    restarts: int = 0
     _commands_in_cycle: int = field(default=0, init=False, repr=False)
     _commands_started: bool = field(default=False, init=False, repr=False)
 
@@ -133,6 +139,42 @@ class SyncMonitor:
         self.last_sync_time = now
         self._commands_in_cycle = 0
         return missed
+
+    #: A counter at most this many steps behind the previous one is a late (reordered)
+    #: SYNC; further behind, counter 1 means the producer restarted, anything else that
+    #: SYNCs were lost and the counter wrapped.
+    STALE_WINDOW = 8
+
+    def accept(self, msg: can.Message, now: float) -> int | None:
+        """Register a SYNC frame robustly; None for a SYNC to ignore, else the number of
+        SYNCs missed just before it.
+
+        With a counter (CiA 301 §7.2.5), a repeated counter is a duplicate and a counter
+        up to ``STALE_WINDOW`` steps behind the previous one is a reordered SYNC: both
+        are counted and ignored, so they never advance the consumer's time.  Counter 1
+        further behind is a producer restart (not a jump).  Without a counter every SYNC
+        is accepted (nothing tells a duplicate apart).
+        """
+        data = msg.data
+        counter = data[0] if len(data) == 1 else None
+        last = self.last_counter
+        if (
+            counter is not None
+            and last is not None
+            and self.overflow
+            and 1 <= counter <= self.overflow
+        ):
+            behind = (last - counter) % self.overflow
+            if behind == 0:
+                self.duplicates += 1
+                return None
+            if behind <= self.STALE_WINDOW:
+                self.stale += 1
+                return None
+            if counter == 1 and last != self.overflow:
+                self.restarts += 1
+                self.last_counter = None
+        return self.on_sync_frame(msg, now)
 
     def on_command(self, now: float) -> bool:
         """Register a cyclic command; True if on time (before the deadline after its SYNC)."""
