@@ -175,7 +175,15 @@ from hdhil.canopen.cia402 import (
     DriveStateMachine,
     State,
 )
-from hdhil.canopen.od import index_of
+from hdhil.canopen.od import index_of, variable
+from hdhil.canopen.pdo import (
+    MAX_PDOS,
+    PdoLayout,
+    Tpdo,
+    decode_to_od,
+    encode_from_od,
+    read_layout,
+)
 from hdhil.canopen.services import (
     ABORT_DEVICE_STATE,
     ABORT_INVALID_VALUE,
@@ -201,7 +209,11 @@ OD_ADC_COUNTS = 0x2100
 OD_ENCODER = 0x2101
 OD_EMULATOR = 0x2300
 OD_FAULTS = 0x2310
-OD_TPDO2_COMM = 0x1801
+OD_DAC_COMMAND = 0x2200
+OD_SYNC_PERIOD = 0x1006
+OD_SYNC_WINDOW = 0x1007
+#: EMCY 0x8100 manufacturer byte 0 for a SYNC timeout (CANopenNode's "SYNC time out").
+_SYNC_TIMEOUT_INFO = b"\x01"
 
 #: 0x2300 sub-index -> (plant sub-configuration, field); "load" is the held load torque.
 EMULATOR_KNOBS: dict[int, tuple[str, str]] = {
@@ -330,6 +342,10 @@ class DriveDiagnostics:
     late_commands: int = 0
     #: Command-hold faults (EMCY 0x8250).
     command_timeouts: int = 0
+    #: RPDO event-timer deadlines missed (EMCY 0x8250, manufacturer byte 0 = RPDO number).
+    rpdo_timeouts: int = 0
+    #: SYNC timeouts (1.5 x 0x1006 without a SYNC; EMCY 0x8100).
+    sync_timeouts: int = 0
     heartbeat_losses: int = 0
     adc_saturations: int = 0
     overcurrents: int = 0
@@ -389,6 +405,7 @@ class DriveNode(CanNode):
         self._active_V = 0.0
         self._latched_V = 0.0
         self._pending_cw: int | None = None
+        self._dac_counts = 0  # the latest DAC command (kept when a remap leaves it out)
         self._step_V = 0.0  # amplifier input over the plant step in progress
         self._command_in_cycle = False
         self._silent_cycles = 0
@@ -464,21 +481,43 @@ class DriveNode(CanNode):
         services.on_reset(self._on_nmt_reset)
         services.on_heartbeat_lost(self._on_heartbeat_lost)
         services.on_heartbeat_resumed(self._on_heartbeat_resumed)
-        # PDO identifiers come from the object dictionary (0x1400 RPDO1, checked against the
-        # DBC layout); the TPDOs' are checked the same way.
+        # PDO defaults come from the object dictionary (RPDO1 0x1400, TPDO1/2 0x1800/1,
+        # checked against the DBC layouts: the DBC describes the default mapping); the live
+        # PDOs are read from the OD's present values (_load_pdos).
         od = services.od
         self.handle(self._sync.frame_id, self._on_sync)
-        self.handle(pdo_cob_id(od, 0x1400, self._command), self._on_command)
+        pdo_cob_id(od, 0x1400, self._command)
         pdo_cob_id(od, 0x1800, self._sensor)
         pdo_cob_id(od, 0x1801, self._status)
         services.on_boot(self._on_remote_boot)
+        # RPDO1's transmission type is the actuation setting: synchronous (type 1, taken
+        # over at the next SYNC) or event-driven (255, taken over on receipt).
+        services.set_power_on_value(0x1400, 2, 1 if self._next_sync else 255)
+        defaults = lambda index, sub: variable(od, index, sub).default  # noqa: E731
+        self._default_layouts = {
+            (kind, n): read_layout(od, defaults, kind, n)
+            for kind in ("rpdo", "tpdo")
+            for n in (1, 2)
+        }
+        self._tpdos: list[Tpdo] = []
+        self._rpdo_handlers: dict[int, PdoLayout] = {}
+        self._rpdo_deadlines: dict[int, float] = {}
+        self._fast_sensor = True
+        for index in [*range(0x1400, 0x1404), *range(0x1600, 0x1604),
+                      *range(0x1800, 0x1804), *range(0x1A00, 0x1A04)]:  # fmt: skip
+            obj = od.get(index)
+            for sub in getattr(obj, "subindices", {}):
+                if variable(od, index, sub) is not None and variable(od, index, sub).writable:
+                    services.on_write(index, sub, self._pdo_changed)
+        for index in (OD_SYNC_PERIOD, OD_SYNC_WINDOW):
+            if variable(od, index, 0) is not None:
+                services.on_write(index, 0, self._pdo_changed)
 
         self._machine = self._new_state_machine()
         self._sync_monitor = self._new_sync_monitor()
-        self._inhibit_s = self._read_inhibit_s()
-        self._statusword_sent: int | None = None
-        self._statusword_sent_at = -math.inf
-        self._statusword_force = False
+        self._last_sync_at: float | None = None
+        self._sync_lost = False
+        self._load_pdos()
 
     @staticmethod
     def _message(frame_id: int, length: int) -> can.Message:
@@ -496,9 +535,13 @@ class DriveNode(CanNode):
 
     def tick(self, now: float) -> None:
         """Advance the node's clock: heartbeat producer and consumer (CiA 301 §7.2.8.3.2),
-        and a statusword held back by the inhibit time.  Call every cycle before polling."""
+        event-driven TPDOs held back by their inhibit time or due by their event timer,
+        the RPDO event-timer deadlines and the SYNC timeout.  Call every cycle before
+        polling."""
         self._now = now
         self.services.tick(now)
+        if self.services.state is _OPERATIONAL:
+            self._check_deadlines(now)
         self._flush_statusword()
 
     def on_message(self, msg: can.Message) -> None:
@@ -555,6 +598,10 @@ class DriveNode(CanNode):
             d.stale_syncs = monitor.stale
             return
         d.missed_syncs += missed
+        self._last_sync_at = self._now
+        if self._sync_lost:
+            self._sync_lost = False
+            self.services.emcy_clear(EmcyCode.COMMUNICATION, _SYNC_TIMEOUT_INFO)
 
         if self._pending_knobs:
             self._apply_knobs()
@@ -569,9 +616,14 @@ class DriveNode(CanNode):
         if self.services.state is not _INITIALISING:
             self._check_sensors(sample)
         if self.services.state is _OPERATIONAL:
-            self._sensor_msg.data = self._sensor.encode(*sample)
-            self.bus.send(self._sensor_msg)
-            d.sensor_frames += 1
+            if self._fast_sensor:  # TPDO1 as the DBC describes it: every SYNC
+                self._sensor_msg.data = self._sensor.encode(*sample)
+                self.bus.send(self._sensor_msg)
+                d.sensor_frames += 1
+            else:
+                for tpdo in self._tpdos:
+                    if tpdo.layout.synchronous:
+                        tpdo.on_sync(self._now)
             if self.truth_bus is not None:
                 self._publish_truth()
         self._check_command_hold()
@@ -624,6 +676,44 @@ class DriveNode(CanNode):
 
     # ------------------------------------------------------------------ command
 
+    def _on_rpdo(self, msg: can.Message) -> None:
+        """An RPDO in a mapping other than the DBC's: each mapped object is decoded with
+        its OD data type; the DAC object and the controlword act as in the default
+        mapping, other objects are written into the OD (their write callbacks apply them)."""
+        d = self.diagnostics
+        layout = self._rpdo_handlers.get(msg.arbitration_id)
+        if layout is None or self.services.state is not _OPERATIONAL:
+            d.pdos_ignored += 1
+            return
+        if msg.is_remote_frame or len(msg.data) < layout.length:
+            d.malformed_frames += 1
+            return
+        self._rpdo_received(layout)
+        dac_counts: int | None = None
+        controlword: int | None = None
+        node = self.services.node
+        for index, sub, data in decode_to_od(layout, msg.data):
+            if index == OD_DAC_COMMAND:
+                dac_counts = int.from_bytes(data, "little", signed=True)
+            elif index == self._od_controlword:
+                controlword = int.from_bytes(data, "little")
+            else:
+                try:
+                    node.set_data(index, sub, data)
+                except Exception:
+                    d.malformed_frames += 1
+        if dac_counts is None:
+            dac_counts = self._dac_counts
+        if controlword is None:
+            controlword = self._machine.controlword
+        self._command_values(dac_counts, controlword)
+
+    def _rpdo_received(self, layout: PdoLayout) -> None:
+        if layout.event_s > 0:
+            self._rpdo_deadlines[layout.number] = self._now + layout.event_s
+        if self.services.error_active(_RPDO_TIMEOUT):
+            self.services.emcy_clear(_RPDO_TIMEOUT)
+
     def _on_command(self, msg: can.Message) -> None:
         d = self.diagnostics
         if self.services.state is not _OPERATIONAL:
@@ -633,6 +723,22 @@ class DriveNode(CanNode):
             d.malformed_frames += 1
             return
         dac_counts, controlword, _cycle = self._command.decode(msg.data)
+        if self._rpdo1_event_s:
+            self._rpdo_received(self._rpdo_handlers[msg.arbitration_id])
+        self._command_values(dac_counts, controlword)
+
+    def _command_values(self, dac_counts: int, controlword: int) -> None:
+        d = self.diagnostics
+        window = self._sync_window_s
+        if (
+            window
+            and self._last_sync_at is not None
+            and self._now - self._last_sync_at > window + TIME_EPSILON
+            and self._next_sync
+        ):
+            d.late_commands += 1  # CiA 301 §7.5.2.8: outside the synchronous window
+            return
+        self._dac_counts = int(dac_counts)
         d.commands += 1
         if not self._sync_monitor.on_command(self._now):
             d.late_commands += 1
@@ -652,24 +758,100 @@ class DriveNode(CanNode):
     # ------------------------------------------------------------------ statusword
 
     def _flush_statusword(self) -> None:
-        """Send DRIVE_TPDO2 if the statusword changed (or is due after entering OPERATIONAL)
-        and the inhibit time since the last one has passed (CiA 301 §7.2.2.5)."""
+        """Event-driven TPDOs (the statusword's DRIVE_TPDO2 by default): sent when their
+        data changed (or once after entering OPERATIONAL) and the inhibit time since the
+        last one has passed, and again when the event timer expires (CiA 301 §7.2.2.5)."""
         if self.services.state is not _OPERATIONAL:
             return
-        word = self._machine.statusword
-        if word == self._statusword_sent and not self._statusword_force:
-            return
-        if self._now - self._statusword_sent_at < self._inhibit_s - TIME_EPSILON:
-            return  # sent at the first tick or frame after the inhibit time
-        self._status_msg.data = self._status.encode(word)
-        self.bus.send(self._status_msg)
-        self._statusword_sent = word
-        self._statusword_sent_at = self._now
-        self._statusword_force = False
-        self.diagnostics.statusword_frames += 1
+        now = self._now
+        for tpdo in self._event_tpdos:
+            tpdo.flush(now)
 
-    def _read_inhibit_s(self) -> float:
-        return self.services.read(OD_TPDO2_COMM, 3) * 100e-6
+    # ------------------------------------------------------------------ PDO configuration
+
+    def _pdo_changed(self, _: object) -> None:
+        self._load_pdos()
+
+    def _load_pdos(self) -> None:
+        """(Re)build the PDOs from the OD's present communication and mapping parameters
+        (at start, on every accepted write to them, after an NMT reset)."""
+        services = self.services
+        od, read = services.od, services.read
+        for cob in self._rpdo_handlers:
+            self._handlers.pop((cob, False), None)
+        self._rpdo_handlers = {}
+        self._rpdo_deadlines = {}
+        self._rpdo1_event_s = 0.0
+        for n in range(1, MAX_PDOS + 1):
+            layout = read_layout(od, read, "rpdo", n)
+            if layout is None or not layout.valid:
+                continue
+            if n == 1:
+                self._next_sync = layout.synchronous
+                self._rpdo1_event_s = layout.event_s
+            self._rpdo_handlers[layout.cob_id] = layout
+            fast = _same_mapping(layout, self._default_layouts[("rpdo", 1)])
+            self.handle(layout.cob_id, self._on_command if fast else self._on_rpdo)
+        tpdos = []
+        for n in range(1, MAX_PDOS + 1):
+            layout = read_layout(od, read, "tpdo", n)
+            if layout is not None:
+                tpdos.append(Tpdo(self.bus, layout, self._payload(layout), self._tpdo_sent))
+        self._tpdos = tpdos
+        self._event_tpdos = [t for t in tpdos if t.layout.valid and not t.layout.synchronous]
+        default = self._default_layouts[("tpdo", 1)]
+        first = tpdos[0].layout if tpdos else None
+        self._fast_sensor = (
+            first is not None
+            and first.valid
+            and first.trans_type == 1
+            and first.cob_id == default.cob_id
+            and _same_mapping(first, default)
+        )
+        self._sync_period_s = (
+            read(OD_SYNC_PERIOD) * 1e-6 if variable(od, OD_SYNC_PERIOD, 0) is not None else 0.0
+        )
+        self._sync_window_s = (
+            read(OD_SYNC_WINDOW) * 1e-6 if variable(od, OD_SYNC_WINDOW, 0) is not None else 0.0
+        )
+
+    def _payload(self, layout: PdoLayout) -> Callable[[], bytes]:
+        """The data source of a TPDO: the DBC codecs for the default mappings, the OD's
+        live values (read callbacks) for any other."""
+        if _same_mapping(layout, self._default_layouts[("tpdo", 1)]):
+            return lambda: self._sensor.encode(*self._sample)
+        if _same_mapping(layout, self._default_layouts[("tpdo", 2)]):
+            return lambda: self._status.encode(self._machine.statusword)
+        get = self.services.node.get_data
+        return lambda: encode_from_od(layout, get)
+
+    def _tpdo_sent(self, layout: PdoLayout) -> None:
+        d = self.diagnostics
+        if _same_mapping(layout, self._default_layouts[("tpdo", 1)]):
+            d.sensor_frames += 1
+        elif _same_mapping(layout, self._default_layouts[("tpdo", 2)]):
+            d.statusword_frames += 1
+
+    def _check_deadlines(self, now: float) -> None:
+        """RPDO event timers (0x14xx:5) and the SYNC timeout (1.5 x 0x1006, as CANopenNode
+        does): EMCY 0x8250 / 0x8100 and the abort-connection reaction (0x6007)."""
+        for number, deadline in list(self._rpdo_deadlines.items()):
+            if now > deadline + TIME_EPSILON:
+                del self._rpdo_deadlines[number]
+                self.diagnostics.rpdo_timeouts += 1
+                self._emcy(EmcyCode.RPDO_TIMEOUT, bytes((number,)))
+                self._communication_reaction(EmcyCode.RPDO_TIMEOUT)
+        period = self._sync_period_s
+        if (
+            period
+            and not self._sync_lost
+            and self._last_sync_at is not None
+            and now - self._last_sync_at > 1.5 * period + TIME_EPSILON
+        ):
+            self._sync_lost = True
+            self.diagnostics.sync_timeouts += 1
+            self._emcy(EmcyCode.COMMUNICATION, _SYNC_TIMEOUT_INFO)
+            self._communication_reaction(EmcyCode.COMMUNICATION)
 
     # ------------------------------------------------------------------ NMT
 
@@ -677,11 +859,22 @@ class DriveNode(CanNode):
         if old is NmtState.OPERATIONAL:
             self._leave_operational()
         if new is NmtState.OPERATIONAL:
-            self._statusword_force = True
+            for tpdo in self._tpdos:
+                tpdo.restart()
+            self._rpdo_deadlines = {}
+            self._last_sync_at = None
+            self._sync_lost = False
             self.services.emcy_clear(EmcyCode.COMMUNICATION)
 
     def _leave_operational(self) -> None:
         """PDOs stop: react as the abort connection option code 0x6007 says (CiA 402-2)."""
+        self._communication_reaction(None)
+
+    def _communication_reaction(self, emcy_sent: int | None) -> None:
+        """The abort connection option code 0x6007 (CiA 402-2): 0 none, 1 fault, 2 disable
+        voltage, 3 quick stop; for leaving OPERATIONAL, an RPDO deadline or a SYNC loss.
+        ``emcy_sent`` is the EMCY already sent for the cause (None: leaving OPERATIONAL,
+        option 1 sends 0x8100)."""
         option = self.services.read(OD_ABORT_CONNECTION)
         if option == 0:  # no action: the command hold still faults a drive left running
             return
@@ -691,8 +884,9 @@ class DriveNode(CanNode):
         if machine.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
             return
         if option == 1:
-            self._emcy(EmcyCode.COMMUNICATION)
-            machine.fault(EmcyCode.COMMUNICATION)
+            if emcy_sent is None:
+                self._emcy(EmcyCode.COMMUNICATION)
+            machine.fault(emcy_sent or EmcyCode.COMMUNICATION)
         elif option == 3:
             machine.apply_controlword(CONTROLWORD[Command.QUICK_STOP])
         else:
@@ -701,9 +895,7 @@ class DriveNode(CanNode):
     def _on_nmt_reset(self, kind: ResetKind) -> None:
         """CiA 301 §7.3.2.2.2: reset node restores the application to power-on."""
         self.diagnostics.nmt_resets += 1
-        self._inhibit_s = self._read_inhibit_s()
-        self._statusword_sent = None
-        self._statusword_sent_at = -math.inf
+        self._load_pdos()  # the OD's communication area is back to its power-on values
         self._sync_monitor = self._new_sync_monitor()
         if kind != "node":
             return
@@ -799,7 +991,6 @@ class DriveNode(CanNode):
                     ABORT_INVALID_VALUE if mask & s.read(OD_FAULTS, other) else None
                 ),
             )
-        s.on_write(OD_TPDO2_COMM, 3, lambda _: setattr(self, "_inhibit_s", self._read_inhibit_s()))
         live: dict[tuple[int, int], Callable[[], int]] = {
             (self._od_statusword, 0): lambda: self._machine.statusword,
             (self._od_controlword, 0): lambda: self._machine.controlword,
@@ -965,3 +1156,7 @@ class DriveNode(CanNode):
         send(m_torque)
         send(m_motion)
         send(m_joint)
+
+
+def _same_mapping(a: PdoLayout | None, b: PdoLayout | None) -> bool:
+    return a is not None and b is not None and a.entries == b.entries

@@ -691,6 +691,8 @@ def test_sdo_segments_outside_a_transfer_are_aborted_not_crashing(bench):
 )
 def test_sdo_write_aborts_leave_the_parameter_unchanged(bench, index, sub, data, code):
     node = booted(bench)
+    if index == 0x1A00 and 1 <= sub <= 8:  # CiA 301: entries change only while sub 0 is 0
+        assert sdo_download(bench, node, 0x1A00, 0, b"\x00") is None
     before = node.node.get_data(index, sub) if code not in (0x06020000, 0x06090011) else None
     assert sdo_download(bench, node, index, sub, data) == code
     assert code in ABORT_TEXT
@@ -715,7 +717,9 @@ def test_sdo_read_aborts(bench):
 def test_pdo_mapping_accepts_valid_entries(bench):
     node = booted(bench, od=eds_path("drive"))
     # Project EDS: 0x2010 cycle is mappable (8 bit), 0x1001 error register is not.
-    assert sdo_download(bench, node, 0x1A00, 0, b"\x00") is None  # CiA 301 procedure
+    # CiA 301 procedure: PDO not valid (COB-ID bit 31), sub 0 to 0, entries, sub 0 to n.
+    assert sdo_download(bench, node, 0x1800, 1, struct.pack("<I", 0x80000182)) is None
+    assert sdo_download(bench, node, 0x1A00, 0, b"\x00") is None
     assert sdo_download(bench, node, 0x1A00, 1, struct.pack("<I", 0x20100008)) is None
     assert sdo_download(bench, node, 0x1A00, 1, struct.pack("<I", 0x10010008)) == 0x06040041
     assert node.read(0x1A00, 1) == 0x20100008

@@ -17,7 +17,7 @@ import canopen
 from canopen.objectdictionary import ObjectDictionary, ODVariable
 from canopen.objectdictionary import datatypes as dt
 
-__all__ = ["eds_index", "index_of", "is_mapping_index", "load_od", "variable"]
+__all__ = ["eds_index", "index_of", "is_comm_index", "is_mapping_index", "load_od", "variable"]
 
 _SECTION = re.compile(r"^([0-9A-Fa-f]{4})(?:sub([0-9A-Fa-f]+))?$")
 
@@ -57,6 +57,11 @@ def variable(od: ObjectDictionary, index: int, sub: int) -> ODVariable | None:
     if isinstance(obj, ODVariable):
         return obj if sub == 0 else None
     return obj.subindices.get(sub)
+
+
+def is_comm_index(index: int) -> bool:
+    """True for a PDO communication parameter (RPDO 0x1400-0x15FF, TPDO 0x1800-0x19FF)."""
+    return 0x1400 <= index <= 0x15FF or 0x1800 <= index <= 0x19FF
 
 
 def is_mapping_index(index: int) -> bool:

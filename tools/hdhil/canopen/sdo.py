@@ -95,6 +95,7 @@ ABORT_TEXT: dict[int, str] = {
 # Named abort codes (canopen.sdo.constants).
 ABORT_TIMEOUT = sc.ABORT_TIMED_OUT
 ABORT_UNKNOWN_COMMAND = sc.ABORT_INVALID_COMMAND_SPECIFIER
+ABORT_UNSUPPORTED_ACCESS = sc.ABORT_UNSUPPORTED_ACCESS
 ABORT_WRITE_READ_ONLY = sc.ABORT_WRITE_READONLY
 ABORT_NOT_MAPPABLE = sc.ABORT_PDO_CANNOT_MAP
 ABORT_PDO_LENGTH = sc.ABORT_PDO_LENGTH_EXCEEDED
@@ -156,6 +157,9 @@ class SdoServerNode(canopen.LocalNode):
 
     def _find_object(self, index: int, subindex: int) -> ODVariable:
         obj = super()._find_object(index, subindex)
+        if isinstance(self.object_dictionary[index], ODVariable) and subindex != 0:
+            # A single-value object has only sub-index 0 (canopen serves any sub-index).
+            raise SdoAbortedError(ABORT_NO_SUBINDEX)
         parent = obj.parent
         # ODArray invents members for any sub-index 1..255; only defined ones exist.
         if isinstance(parent, ODArray) and subindex not in parent.subindices:
@@ -210,6 +214,13 @@ class SdoServerGate:
         if len(data) != 8:
             return "malformed"
         ccs = data[0] & 0xE0
+        if ccs in (sc.REQUEST_BLOCK_UPLOAD, sc.REQUEST_BLOCK_DOWNLOAD):
+            # Block transfers are not implemented: canopen's server would answer a block
+            # upload with an expedited response the client cannot parse.  Abort
+            # 0x05040001, which every client understands.
+            self._downloading = False
+            self._abort(int.from_bytes(data[1:3], "little"), data[3], ABORT_UNKNOWN_COMMAND)
+            return "protocol"
         if ccs == sc.REQUEST_SEGMENT_DOWNLOAD:
             if not self._downloading:
                 self.protocol_abort()
@@ -235,9 +246,10 @@ class SdoServerGate:
         server = self.node.sdo
         index = getattr(server, "_index", None) or 0
         sub = getattr(server, "_subindex", None) or 0
-        response = sc.SDO_STRUCT.pack(
-            sc.RESPONSE_ABORTED, index, sub
-        ) + ABORT_UNKNOWN_COMMAND.to_bytes(4, "little")
+        self._abort(index, sub, ABORT_UNKNOWN_COMMAND)
+
+    def _abort(self, index: int, sub: int, code: int) -> None:
+        response = sc.SDO_STRUCT.pack(sc.RESPONSE_ABORTED, index, sub) + code.to_bytes(4, "little")
         self.network.send_message(SDO_TX_BASE + self.node.id, response)
 
 

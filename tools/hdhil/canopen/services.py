@@ -123,8 +123,8 @@ from hdhil.canopen.nmt import (
     ResetKind,
     boot_up_frame,
 )
-from hdhil.canopen.od import is_mapping_index, load_od, variable
-from hdhil.canopen.pdo import check_mapping_count, check_mapping_entry
+from hdhil.canopen.od import is_comm_index, is_mapping_index, load_od, variable
+from hdhil.canopen.pdo import check_comm_write, check_mapping_write
 from hdhil.canopen.sdo import (
     ABORT_DEVICE_STATE,
     ABORT_INCOMPATIBLE,
@@ -368,6 +368,15 @@ class CanopenServices:
         self._require_variable(index, subindex)
         self._write_callbacks.setdefault((index, subindex), []).append(callback)
         return callback
+
+    def set_power_on_value(self, index: int, subindex: int, value: Any) -> None:
+        """Make ``value`` the power-on value of index:sub: stored now and again after every
+        NMT reset that restores its area (the node's configuration instead of the EDS
+        default, e.g. a drive's RPDO transmission type from its actuation setting)."""
+        var = self._require_variable(index, subindex)
+        data = var.encode_raw(value)
+        self._power_on[(index, subindex)] = data
+        self.node.data_store.setdefault(index, {})[subindex] = data
 
     # ------------------------------------------------------------ frames and time
 
@@ -686,10 +695,10 @@ class CanopenServices:
                 return ABORT_INVALID_VALUE  # 1 and 241..255 are reserved
             if variable(self.od, 0x1006, 0) is not None and self.read(0x1006) != 0:
                 return ABORT_DEVICE_STATE  # only writable while the SYNC period is 0
+        if is_comm_index(index):
+            return check_comm_write(self.od, self.read, index, subindex, value)
         if is_mapping_index(index):
-            if subindex == 0:
-                return check_mapping_count(self.od, self.read, index, value)
-            return check_mapping_entry(self.od, value)
+            return check_mapping_write(self.od, self.read, index, subindex, value)
         return None
 
     def _builtin_apply(self, index: int, subindex: int) -> None:
