@@ -141,9 +141,11 @@ def test_cia301_refusals_of_the_mapping_procedure(master):
     with pytest.raises(SdoAbortedError) as err:
         sdo.upload(0x1017, 1)
     assert err.value.code == 0x06090011
-    with pytest.raises(SdoAbortedError) as err:
-        with sdo.open(0x1018, 1, "rb", block_transfer=True) as f:
-            f.read()
+    with (
+        pytest.raises(SdoAbortedError) as err,
+        sdo.open(0x1018, 1, "rb", block_transfer=True) as f,
+    ):
+        f.read()
     assert err.value.code == 0x05040001
 
 
