@@ -225,3 +225,29 @@ def test_reset_from_fault_works_with_basenode402(master):
     node.sdo.download(0x1400, 5, (0).to_bytes(2, "little"))
     node.reset_from_fault()
     assert state_from_statusword(master.drive.statusword) is not State.FAULT
+
+
+def test_identity_strings_and_store_restore(master):
+    node = master.node
+    # Visible strings longer than 4 bytes: segmented upload.
+    assert node.sdo[0x1008].raw == "hdhil drive"
+    assert node.sdo[0x100A].raw == "0.1.0"
+    assert node.sdo[0x1018][2].raw == int(
+        canopen.import_od(str(eds_path("drive"))).device_information.product_number
+    )
+    # 0x1010:1 = "save": the present values become what NMT reset node restores.
+    node.sdo[0x605A].raw = 5
+    with pytest.raises(SdoAbortedError) as err:
+        node.sdo[0x1010][1].raw = 0x12345678  # not the signature
+    assert err.value.code == 0x08000020
+    node.sdo[0x1010][1].raw = int.from_bytes(b"save", "little")
+    assert node.sdo[0x1010][1].raw == 1  # reads back the capability: saves on command
+    node.sdo[0x605A].raw = 6
+    node.nmt.state = "RESET"
+    time.sleep(0.1)
+    assert node.sdo[0x605A].raw == 5
+    # 0x1011:1 = "load": the EDS defaults come back at the next reset.
+    node.sdo[0x1011][1].raw = int.from_bytes(b"load", "little")
+    node.nmt.state = "RESET"
+    time.sleep(0.1)
+    assert node.sdo[0x605A].raw == canopen.import_od(str(eds_path("drive")))[0x605A].default

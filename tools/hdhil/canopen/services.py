@@ -129,6 +129,7 @@ from hdhil.canopen.sdo import (
     ABORT_DEVICE_STATE,
     ABORT_INCOMPATIBLE,
     ABORT_INVALID_VALUE,
+    ABORT_STORE,
     ABORT_TEXT,
     SDO_RX_BASE,
     SDO_TX_BASE,
@@ -174,6 +175,10 @@ __all__ = [
     "sdo_read",
     "sdo_write",
 ]
+
+#: 0x1010 / 0x1011 signatures: "save" and "load" as little-endian ASCII (CiA 301 §7.5.2.13).
+_SAVE = int.from_bytes(b"save", "little")
+_LOAD = int.from_bytes(b"load", "little")
 
 # The NMT states the per-frame checks test for, as module globals: an attribute of an Enum
 # class (``NmtState.OPERATIONAL``) is looked up through ``EnumType.__getattr__``'s slow
@@ -288,6 +293,9 @@ class CanopenServices:
         self._consumer_fallback: dict[int, int] = {}
         self._error_behaviour: int | None = None
         self._power_on: dict[tuple[int, int], bytes] = {}
+        #: Values saved by 0x1010 ("save"): the node's non-volatile memory.  It lives as
+        #: long as this object (NMT resets keep it, a new process starts without it).
+        self.saved: dict[tuple[int, int], bytes] = {}
         self._set_power_on_values(heartbeat_producer_ms, heartbeat_consumers)
         self._apply_power_on_values()
         self._load_comm_config()
@@ -481,6 +489,9 @@ class CanopenServices:
         if kind == "node":
             self.emcy_producer.active.clear()
         self._apply_power_on_values(low, high)
+        for (index, sub), data in self.saved.items():
+            if low <= index <= high:
+                store.setdefault(index, {})[sub] = data
         self._load_comm_config()
         self.emcy_producer.store_error_register()
         for callback in self._reset_callbacks:
@@ -680,6 +691,9 @@ class CanopenServices:
 
     def _builtin_check(self, index: int, subindex: int, value: Any) -> int | None:
         """Object-specific rules of the communication profile (CiA 301 §7.5.2)."""
+        if index in (0x1010, 0x1011) and subindex >= 1:
+            signature = _SAVE if index == 0x1010 else _LOAD
+            return None if value == signature else ABORT_STORE  # CiA 301 §7.5.2.13/14
         if index == 0x1003 and subindex == 0 and value != 0:
             return ABORT_INVALID_VALUE  # only 0 (clear the history) may be written
         if index == 0x1016 and subindex >= 1:
@@ -708,6 +722,12 @@ class CanopenServices:
                 self.heartbeat.start(self.now)
         elif index == 0x1016:
             self.consumer.configure(self._consumers_from_od())
+        elif index == 0x1010:
+            self._save_parameters()
+            self.node.data_store[0x1010][subindex] = self.od[0x1010][subindex].encode_raw(1)
+        elif index == 0x1011:
+            self.saved.clear()  # the defaults come back at the next reset (CiA 301)
+            self.node.data_store[0x1011][subindex] = self.od[0x1011][subindex].encode_raw(1)
         elif index == 0x1003 and subindex == 0:
             self.node.data_store[0x1003] = {0: b"\x00"}
         elif index in (0x1005, 0x1019) and self.sync_producer is not None:
@@ -716,6 +736,19 @@ class CanopenServices:
             self._load_comm_config()
 
     # ------------------------------------------------------------ configuration
+
+    def _save_parameters(self) -> None:
+        """0x1010 "save": every writable value stored now (communication, application and
+        profile areas) becomes what NMT resets restore."""
+        saved = {}
+        for index, subs in self.node.data_store.items():
+            if not 0x1000 <= index <= 0x9FFF or index in (0x1010, 0x1011):
+                continue
+            for sub, data in subs.items():
+                var = variable(self.od, index, sub)
+                if var is not None and var.writable:
+                    saved[(index, sub)] = bytes(data)
+        self.saved = saved
 
     def _set_power_on_values(
         self, heartbeat_ms: int | None, consumers: Mapping[int, int] | None
