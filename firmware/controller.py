@@ -391,6 +391,7 @@ class ControllerNode(CanNode):
         self._quiet_cycles = 0  # walk cycles since the last statusword
         self._nmt_start_syncs = 0
         self._sensor_seen = True
+        self._isr_ran = False  # the interrupt ran in this cycle (once per SYNC)
         self._missing_sensor = 0
         self._own_nmt = False
         self._plausibility_revision = 0
@@ -509,6 +510,7 @@ class ControllerNode(CanNode):
         if not self.services.send_sync():
             return False
         self._sensor_seen = False
+        self._isr_ran = False
         self.diagnostics.syncs_sent += 1
         return True
 
@@ -537,7 +539,7 @@ class ControllerNode(CanNode):
         if phase not in _COMMANDING or not self.services.pdo_allowed:
             self.diagnostics.pdos_ignored += 1
             return
-        if phase is _OPERATIONAL and self._sensor_seen:
+        if phase is _OPERATIONAL and self._isr_ran:
             # A second sensor frame in one cycle (duplicated on the bus): the interrupt
             # runs once per SYNC, as the seed's timer interrupt does.
             self.diagnostics.extra_sensor_frames += 1
@@ -547,6 +549,7 @@ class ControllerNode(CanNode):
         if phase is not _OPERATIONAL:
             self._send_command(self.isr.shutdown_dac_counts, self.walk.controlword)
             return
+        self._isr_ran = True
         torque, tacho, current, encoder = self._sensor.decode(msg.data)
         out = self.isr(AdcSample(torque, tacho, current, encoder))
         self._send_command(out.dac_counts, CONTROLWORD_ENABLE_OPERATION)

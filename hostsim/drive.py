@@ -737,6 +737,7 @@ class DriveNode(CanNode):
             and self._next_sync
         ):
             d.late_commands += 1  # CiA 301 §7.5.2.8: outside the synchronous window
+            d.pdos_ignored += 1
             return
         self._dac_counts = int(dac_counts)
         d.commands += 1

@@ -10,7 +10,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 
 from test_multiprocess import _hdhil, netns  # noqa: F401  (the namespace fixture)
 

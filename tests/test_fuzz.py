@@ -184,6 +184,7 @@ def _tally(node) -> int:
             d.malformed_frames
             + d.pdos_ignored
             + d.sensor_frames
+            + d.extra_sensor_frames
             + d.statusword_frames
             + d.statusword_sdo_answers
             + d.sdo_aborts
