@@ -42,7 +42,13 @@ from typing import Literal
 
 from hdhil.core.converter import Converter
 from hdhil.core.dataconf import check_fields
-from hdhil.firmware.lqg import ControlLaw, Feedforward, JointParams, LqgWeights, ObserverMethod
+from hdhil.firmware.lqg_design import (
+    ControlLaw,
+    Feedforward,
+    JointParams,
+    LqgWeights,
+    ObserverMethod,
+)
 
 __all__ = [
     "JTF1_FF_TRACKING",
@@ -464,7 +470,7 @@ class Law(enum.IntEnum):
 
     @property
     def control_law(self) -> ControlLaw | None:
-        """The :class:`firmware.lqg.ControlLaw` this code selects (None for ``NONE``)."""
+        """The :class:`firmware.lqg_design.ControlLaw` this code selects (None for ``NONE``)."""
         return None if self is Law.NONE else ControlLaw(self.name.lower())
 
 
@@ -605,7 +611,7 @@ class ControlConfig:
     stage runs the LQG regulator of seed 003 (observer Eq. 8 + law Eq. 4) on the
     measured torque and writes the motor torque command to the DAC.  The design (LQ
     gains, Kalman gain, discrete observer) is computed once, when the handler is built,
-    by :func:`firmware.lqg.design_lqg` from the fields below; no gain is hard-coded.
+    by :func:`firmware.lqg_design.design_lqg` from the fields below; no gain is hard-coded.
 
     - ``law``: :class:`Law` (plain integer code, SDO-writable later).
     - ``joint``: Jm, Jl, k, c for the design (seed 003 §I-II: 2.5, 0.7, 6300, 11.8).

@@ -47,7 +47,7 @@ the regulator on a joint with angle-locked ripple); it costs ~9 µs per sample.
 Sign mapping, the one place where it happens (:data:`SENSOR_TORQUE_SIGN`):
 
 ================================  =====================  ==========================
-quantity                          product convention     seed 003 / firmware.lqg
+quantity                          product convention     seed 003 / firmware.lqg*
 ================================  =====================  ==========================
 sensor torque, its derivative     ``T`` (= T_meas)       ``τs = -T``
 desired sensor torque             ``T_D`` (config)       ``τsD = -T_D``
@@ -68,7 +68,8 @@ import math
 
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.interrupt import AdcSample, IsrOutput, StageHook
-from hdhil.firmware.lqg import LqgController, LqgDesign, design_lqg
+from hdhil.firmware.lqg import LqgController
+from hdhil.firmware.lqg_design import LqgDesign, design_lqg
 from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
 from hdhil.firmware.stages import (
     Differentiator,
@@ -278,7 +279,7 @@ class TorqueFilterChain:
 class TorqueControl:
     """The LQG joint-torque regulator of seed 003 as the handler's torque-control stage.
 
-    Built once from :class:`firmware.config.ControlConfig`: :func:`firmware.lqg.design_lqg`
+    Built once from :class:`firmware.config.ControlConfig`: :func:`firmware.lqg_design.design_lqg`
     computes the LQ gains (Eqs. 4, 6), the Kalman gain (Eq. 8) and the discrete
     observer at the sample period; :class:`firmware.lqg.LqgController` runs them.  Per
     sample (:meth:`__call__`):

@@ -35,7 +35,7 @@ Over CAN (``hdhil run --scenario lqg-tracking``, lockstep, from the trace): JTF1
 Why JTF1 alone misses 0.3 Nm
 ----------------------------
 The link motion is what costs: with the link held (``link_amplitude_deg = 0``) JTF1
-stays at 0.18 Nm, the static LQ compromise ``-0.0088 τsD`` (see :mod:`firmware.lqg`).
+stays at 0.18 Nm, the static LQ compromise ``-0.0088 τsD`` (see :mod:`firmware.lqg_design`).
 Moving the link at 1 Hz makes the exogenous torque ``τlgd = Jl θl'' + τs + (c/k) τs'``
 swing by ``Jl A ω²`` = 9.6 Nm at 1 Hz.  The observer models ``τlgd`` as a Wiener process
 (Eq. 7, ``τlgd' = v``): a steady ramp in ``τlgd`` leaves a constant estimation lag, and
@@ -67,17 +67,17 @@ the three is needed (max |e| in Nm, same conditions as above)::
 - the ``τsD'`` feedforward of §IV (``JTF1_FF``) removes the error ``τsD'`` causes
   through the damping and the error state ``e2 = τs' − τsD'``;
 - the zero-static-error gains ``k3 = -Jm/Jl``, ``k4 = 1 + Jm/Jl``, ``k5 = Jm c / (J k)``
-  (:attr:`firmware.lqg.Feedforward.EXACT`) remove the LQ compromise, which keeps 4 % of
+  (:attr:`firmware.lqg_design.Feedforward.EXACT`) remove the LQ compromise, which keeps 4 % of
   τsD and 3 % of τlgd as error even with perfect estimates;
 - a faster ``τlgd`` observer, V = 1e7 instead of 1e4 (observer poles from
   18-24 Hz to 68-70 Hz; L = [831, 3.4e5, 9129]), shrinks the Wiener lag.
 
 Alone, none suffices; without the faster observer the feedforward makes things worse,
-because ``τ̂s'`` carries the observer's lag (:mod:`firmware.lqg`, JTF1_FF caveat).
+because ``τ̂s'`` carries the observer's lag (:mod:`firmware.lqg_design`, JTF1_FF caveat).
 Larger q1 helps too (q1 = 2000, V = 1e6, exact: 0.22 Nm), at the price of other k1, k2.
 The one-sample prediction (``predict``) is kept: without it the tuned configuration
 gives 0.16 Nm here, but its gain margin drops from 5.6 dB to 3.1 dB
-(:func:`firmware.lqg.loop_analysis`) and its noise gain rises by 40 %.
+(:func:`firmware.lqg_design.loop_analysis`) and its noise gain rises by 40 %.
 Modelling ``τlgd`` as a double integrator (``τlgd'' = v``, an extension beyond the seed)
 removes the ramp lag but, with the link prescribed (an infinitely stiff environment,
 where ``τlgd`` depends on ``τs``), the loop is unstable for ``V2`` between 1e5 and 1e8
@@ -102,12 +102,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.linalg import expm
 
 from hdhil.core.dataconf import check_fields
 from hdhil.firmware.config import ControlConfig, FirmwareConfig, Law
 from hdhil.firmware.isr import IsrOutput, TorqueControl
-from hdhil.firmware.lqg import JointParams
+from hdhil.firmware.lqg_design import JointParams
 
 __all__ = ["TrackingPlant", "simulate_tracking", "tracking_table"]
 
@@ -172,6 +171,8 @@ class TrackingPlant:
         else:
             a[1, 5] = 1.0 / p.Jm
         a[3, 4], a[4, 3] = w, -w
+        from scipy.linalg import expm  # imported here: slow to import, needed once per step size
+
         F = expm(a * Ts)
         Ad, bd = F[:5, :5], F[:5, 5]
         if self.current_lag_s == 0.0:

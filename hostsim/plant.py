@@ -98,7 +98,6 @@ from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
 import numpy as np
-from scipy.linalg import expm
 
 from hdhil.can.faults import SensorHook
 from hdhil.core.converter import Converter
@@ -793,6 +792,8 @@ def _zoh(
     aug = np.zeros((n + m, n + m))
     aug[:n, :n] = a
     aug[:n, n:] = b
+    from scipy.linalg import expm  # imported here: slow to import, needed once per step size
+
     e = expm(aug * h)
     ad, bd = e[:n, :n].copy(), e[:n, n:].copy()
     if ideal_amplifier:

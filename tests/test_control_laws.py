@@ -29,7 +29,7 @@ from hdhil.firmware.config import (
 )
 from hdhil.firmware.controller import ControllerNode
 from hdhil.firmware.isr import AdcSample, InterruptHandler
-from hdhil.firmware.lqg import ControlLaw, Feedforward, LqgWeights, ObserverMethod
+from hdhil.firmware.lqg_design import ControlLaw, Feedforward, LqgWeights, ObserverMethod
 from hdhil.firmware.tracking import TrackingPlant, simulate_tracking, tracking_table
 from hdhil.hostsim.plant import Plant
 from hdhil.hostsim.scenario import load_scenario

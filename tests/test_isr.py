@@ -21,11 +21,11 @@ from hdhil.firmware.config import (
     paper_config,
 )
 from hdhil.firmware.isr import AdcSample, InterruptHandler, IsrOutput, TorqueFilterChain
-from hdhil.firmware.lqg import (
+from hdhil.firmware.lqg import LqgController
+from hdhil.firmware.lqg_design import (
     ControlLaw,
     Feedforward,
     JointParams,
-    LqgController,
     LqgWeights,
     design_lq,
     design_lqg,

@@ -18,12 +18,12 @@ from scipy.linalg import expm, solve_continuous_lyapunov
 
 import hdhil.cli as cli
 from hdhil.core.dataconf import ConfigError, from_dict
-from hdhil.firmware.lqg import (
+from hdhil.firmware.lqg import LqgController
+from hdhil.firmware.lqg_design import (
     ControlLaw,
     DesignError,
     Feedforward,
     JointParams,
-    LqgController,
     LqgWeights,
     ObserverMethod,
     design_kalman,

@@ -3,7 +3,7 @@
 Prints the LQ gains k1..k5 (Eq. 4 and the §IV τsD' feedforward), the continuous
 Kalman gain L (Eq. 8), the closed-loop poles, the discrete observer actually used at
 ``--Ts`` and the poles/margins of the sampled loop with the actuation delay.  All the
-numerics are in :mod:`firmware.lqg` (whose docstring gives the reading of the seed that
+numerics are in :mod:`firmware.lqg_design` (whose docstring gives the reading of the seed that
 reproduces its printed gains).  Defaults are the seed's values.
 """
 
@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from hdhil.core.errors import UserError
-from hdhil.firmware.lqg import (
+from hdhil.firmware.lqg_design import (
     ControlLaw,
     DesignError,
     Feedforward,
