@@ -16,10 +16,11 @@ from collections.abc import Callable
 from functools import cache
 from importlib import resources
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
-import cantools
-from cantools.database.can import Message
+if TYPE_CHECKING:
+    import cantools
+    from cantools.database.can import Message
 
 BusName = Literal["control", "truth"]
 NodeName = Literal["controller", "drive"]
@@ -44,7 +45,10 @@ def eds_path(node: NodeName) -> Path:
 
 @cache
 def database(bus: BusName) -> cantools.database.can.Database:
-    """The cantools database of ``bus`` (loaded once per process)."""
+    """The cantools database of ``bus`` (loaded once per process; cantools is imported
+    here, when a database is first needed, not when the package is)."""
+    import cantools
+
     if bus not in CHANNEL_NUMBER:
         raise ValueError(f"unknown bus {bus!r} (known: {', '.join(CHANNEL_NUMBER)})")
     return cantools.database.load_file(str(dbc_path(bus)))

@@ -59,6 +59,25 @@ def calibrate(
     return T_meas, vel, current
 
 
+def tustin_differentiator(
+    tau_s: float, sample_period_s: float
+) -> tuple[tuple[float, float], tuple[float, float]]:
+    """``H(s) = s / (tau s + 1)`` discretised by the Tustin (bilinear) method at
+    ``fs = 1 / Ts``: ``((nd0, nd1), (1, dd1))`` of ``a = nd0 v + nd1 v_1 - dd1 a_1``.
+
+    ``s = 2 fs (z - 1) / (z + 1)`` gives ``H(z) = 2 fs (z - 1) / ((2 fs tau + 1) z +
+    (1 - 2 fs tau))``.  The arithmetic is that of ``scipy.signal.bilinear`` for this
+    first-order case (the factor ``2 fs`` split as ``sqrt(2 fs)`` between numerator and
+    denominator, then normalised by the leading denominator coefficient), so the
+    coefficients are the same floats (a test compares them bit for bit) without
+    importing scipy.signal, which is slow to import, when a firmware node starts.
+    """
+    fac = math.sqrt(2.0 / sample_period_s)
+    inv = 1.0 / fac
+    d0 = inv + tau_s * fac
+    return (fac / d0, -fac / d0), (1.0, (inv - tau_s * fac) / d0)
+
+
 class Differentiator:
     """Band-limited differentiator, velocity to acceleration (listing ``Diff_filter``).
 
@@ -67,7 +86,7 @@ class Differentiator:
     ``nd = {181.818181818182, -181.818181818182}``, ``dd = {1.0, -0.81818181818182}``
     and the difference equation ``a = nd[0]*v + nd[1]*v_1 - dd[1]*a_1``.
 
-    Here the coefficients come from ``scipy.signal.bilinear`` for any τ and Ts
+    Here the coefficients come from :func:`tustin_differentiator` for any τ and Ts
     (at τ = 5 ms, Ts = 1 ms they are the listing's).  The state ``v_1``, ``a_1``
     starts at 0 like the listing's globals ``float v_1 = 0.0, a_1 = 0.0``; note that
     the first call therefore sees a step from 0 to the first velocity.
@@ -91,14 +110,7 @@ class Differentiator:
             raise ValueError(
                 f"sample_period_s must be a finite number > 0, got {sample_period_s!r}"
             )
-        # Imported here: scipy.signal takes most of a second to import, and a firmware
-        # node needs it for this one design step only.
-        from scipy.signal import bilinear
-
-        # H(s) = s / (tau s + 1): numerator [1, 0], denominator [tau, 1]; Tustin at fs = 1/Ts.
-        b, a = bilinear([1.0, 0.0], [tau_s, 1.0], fs=1.0 / sample_period_s)
-        self.nd: tuple[float, float] = (float(b[0] / a[0]), float(b[1] / a[0]))
-        self.dd: tuple[float, float] = (1.0, float(a[1] / a[0]))
+        self.nd, self.dd = tustin_differentiator(tau_s, sample_period_s)
         self.v_1 = 0.0
         self.a_1 = 0.0
         self.limit = math.inf

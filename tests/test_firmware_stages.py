@@ -434,3 +434,22 @@ def test_velocity_integrator_is_trapezoidal_and_skips_non_finite() -> None:
     assert angle == pytest.approx(25.0, rel=1e-12)
     with pytest.raises(ValueError, match="sample_period_s"):
         VelocityIntegrator(0.0)
+
+
+def test_tustin_differentiator_coefficients_are_scipys_bit_for_bit():
+    """The differentiator's Tustin design without scipy.signal gives the very floats
+    ``scipy.signal.bilinear`` gives (the golden runs depend on them), over a spread of
+    time constants and sample periods, the listing's 5 ms / 1 ms included."""
+    import random
+
+    from scipy.signal import bilinear
+
+    from hdhil.firmware.stages import tustin_differentiator
+
+    rng = random.Random(7)
+    cases = [(0.005, 1e-3), (0.002, 1e-3), (0.01, 5e-4)]
+    cases += [(10 ** rng.uniform(-4, -1), 10 ** rng.uniform(-5, -2)) for _ in range(2000)]
+    for tau, Ts in cases:
+        b, a = bilinear([1.0, 0.0], [tau, 1.0], fs=1.0 / Ts)
+        expected = ((float(b[0] / a[0]), float(b[1] / a[0])), (1.0, float(a[1] / a[0])))
+        assert tustin_differentiator(tau, Ts) == expected, (tau, Ts)

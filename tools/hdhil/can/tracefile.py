@@ -54,12 +54,13 @@ import re
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import can
-import numpy as np
-from cantools.database.can import Database
-from cantools.database.can import Message as DbcMessage
+
+if TYPE_CHECKING:
+    from cantools.database.can import Database
+    from cantools.database.can import Message as DbcMessage
 
 from hdhil.can.bittiming import frame_bits
 from hdhil.can.busload import LOAD_LIMIT
@@ -624,7 +625,11 @@ class _SignalFormat:
     def csv(self, value: float | int) -> str:
         """CSV text: exact (shortest round-trip repr for IEEE floats)."""
         if self.decimals is None:
-            return str(np.float32(value)) if self.is_float32 else repr(float(value))
+            if self.is_float32:  # the shortest text that reads back as the same float32
+                import numpy as np
+
+                return str(np.float32(value))
+            return repr(float(value))
         return self.text(value)
 
 

@@ -44,6 +44,7 @@ import os
 import platform
 import resource
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -93,20 +94,21 @@ class BenchSettings:
     memory_duration_s: float  # simulated seconds of the RSS-growth run
     realtime_s: float = 60.0  # seconds of the real-time run (0: no real-time section)
     floor_s: float = 10.0  # seconds of the machine-floor loop after it
+    startup_runs: int = 7  # process starts per start-up figure
 
     @classmethod
     def full(
         cls, duration_s: float = 10.0, repeat: int = 3, realtime_s: float = 60.0
     ) -> BenchSettings:
         return cls("full", duration_s, repeat, min(duration_s, 2.0), 20_000, 100_000, 120.0,
-                   realtime_s, min(10.0, realtime_s))  # fmt: skip
+                   realtime_s, min(10.0, realtime_s), 7)  # fmt: skip
 
     @classmethod
     def quick(
         cls, duration_s: float = 0.3, repeat: int = 1, realtime_s: float = 1.5
     ) -> BenchSettings:
         return cls("quick", duration_s, repeat, min(duration_s, 0.2), 1_000, 2_000, 3.0,
-                   realtime_s, min(0.5, realtime_s))  # fmt: skip
+                   realtime_s, min(0.5, realtime_s), 2)  # fmt: skip
 
 
 # ------------------------------------------------------------------------ helpers
@@ -531,6 +533,114 @@ def bench_realtime(s: BenchSettings, scenario: str = "free-motion") -> dict[str,
 
 
 # ------------------------------------------------------------------------- report
+# ------------------------------------------------------------------------ start-up
+#: Run in a fresh interpreter by :func:`bench_startup`: ``hdhil run`` (the CLI's own
+#: ``main``) with the node loop's ``cycle`` wrapped to print the wall-clock time at the
+#: end of the first cycle on stderr.  Nothing else is changed.
+FIRST_CYCLE_CHILD = """
+import sys, time
+from hdhil.rig import loop
+_cycle = loop.NodeLoop.cycle
+def cycle(self):
+    _cycle(self)
+    if self.k == 1:
+        print(f"hdhil-first-cycle {time.time()!r}", file=sys.stderr, flush=True)
+loop.NodeLoop.cycle = cycle
+from hdhil.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+#: The start-up goals: help within this factor of python-can's ``can.logger --help``,
+#: the first cycle of ``hdhil run`` within this many seconds of the process start.
+HELP_GOAL_FACTOR = 2.0
+FIRST_CYCLE_GOAL_S = 0.5
+
+
+def _process_s(argv: Sequence[str]) -> tuple[float, str]:
+    """Wall time of one process from spawn to exit, and its stderr."""
+    t0 = time.perf_counter()
+    proc = subprocess.run(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                          timeout=120, check=False)  # fmt: skip
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise UserError(f"bench start-up: {' '.join(argv[1:3])} failed: {proc.stderr.strip()}")
+    return wall, proc.stderr
+
+
+def bench_startup(s: BenchSettings) -> dict[str, Any]:
+    """Whole-process start-up times, each the median of ``startup_runs`` process starts,
+    taken in turns (one of each per round, so a slow moment of the machine hits every
+    figure alike), with the ratio to ``python -c 'import can'`` measured in the same
+    rounds: ``hdhil --help``, ``hdhil dump --help``, python-can's ``can.logger --help``
+    (the help goal's reference), and ``hdhil run`` of one sample with its default BLF
+    trace: the time from the process's spawn to the end of its first cycle, and to its
+    exit."""
+    py = sys.executable
+    figures: dict[str, list[float]] = {
+        "import_can": [], "can_logger_help": [], "hdhil_help": [], "dump_help": [],
+        "run_first_cycle": [], "run_whole": [],
+    }  # fmt: skip
+    with tempfile.TemporaryDirectory() as tmp:
+        trace = str(Path(tmp) / "startup.blf")
+        run_args = ["run", "--duration", "0.001", "--trace", trace, "--no-evaluate"]
+        for _ in range(s.startup_runs):
+            figures["import_can"].append(_process_s([py, "-c", "import can"])[0])
+            figures["can_logger_help"].append(_process_s([py, "-m", "can.logger", "--help"])[0])
+            figures["hdhil_help"].append(_process_s([py, "-m", "hdhil", "--help"])[0])
+            figures["dump_help"].append(_process_s([py, "-m", "hdhil", "dump", "--help"])[0])
+            spawned = time.time()
+            whole, err = _process_s([py, "-c", FIRST_CYCLE_CHILD, *run_args])
+            stamps = [float(w.split()[1]) for w in err.splitlines()
+                      if w.startswith("hdhil-first-cycle ")]  # fmt: skip
+            if not stamps:
+                raise UserError("bench start-up: hdhil run reported no first cycle")
+            figures["run_first_cycle"].append(stamps[0] - spawned)
+            figures["run_whole"].append(whole)
+    ref = statistics.median(figures["import_can"])
+    logger = statistics.median(figures["can_logger_help"])
+    labels = {
+        "import_can": "python -c 'import can' (reference)",
+        "can_logger_help": "python -m can.logger --help",
+        "hdhil_help": "hdhil --help",
+        "dump_help": "hdhil dump --help",
+        "run_first_cycle": "hdhil run: spawn to the end of the first cycle",
+        "run_whole": "hdhil run of one sample, whole process",
+    }
+    rows = []
+    for key, values in figures.items():
+        med = statistics.median(values)
+        row = {"figure": key, "label": labels[key], **_median_spread(values),
+               "to_import_can": med / ref}  # fmt: skip
+        if key in ("hdhil_help", "dump_help"):
+            row["to_can_logger_help"] = med / logger
+            row["goal_met"] = med <= HELP_GOAL_FACTOR * logger
+        elif key == "run_first_cycle":
+            row["goal_met"] = med <= FIRST_CYCLE_GOAL_S
+        rows.append(row)
+    return {"runs": s.startup_runs, "rows": rows, "help_goal_factor": HELP_GOAL_FACTOR,
+            "first_cycle_goal_s": FIRST_CYCLE_GOAL_S}  # fmt: skip
+
+
+def format_startup_section(st: dict[str, Any]) -> list[str]:
+    lines = [
+        f"Start-up (whole processes, median of {st['runs']} starts each, in turns; goals: "
+        f"help within {st['help_goal_factor']:g}x can.logger --help, first cycle within "
+        f"{st['first_cycle_goal_s']:g} s)"
+    ]
+    rows = []
+    for r in st["rows"]:
+        goal = "" if "goal_met" not in r else ("met" if r["goal_met"] else "NOT met")
+        to_logger = f"{r['to_can_logger_help']:.2f}x" if "to_can_logger_help" in r else ""
+        rows.append([r["label"], f"{r['median']:.3f}", f"{r['min']:.3f}-{r['max']:.3f}",
+                     f"{r['to_import_can']:.2f}x", to_logger, goal])  # fmt: skip
+    lines += _table(
+        ["figure", "median s", "min-max s", "/ import can", "/ can.logger", "goal"],
+        rows,
+        [False, True, True, True, True, False],
+    )
+    return lines
+
+
 def run_benchmarks(
     duration_s: float = 10.0,
     repeat: int = 3,
@@ -558,6 +668,7 @@ def run_benchmarks(
         campaign = bench_campaign(variants=4, duration_s=0.5, repeat=1)
     else:
         campaign = bench_campaign(variants=16, duration_s=2.0, repeat=s.repeat)
+    startup = bench_startup(s)
     return {
         "started": started,
         "mode": s.mode,
@@ -571,6 +682,7 @@ def run_benchmarks(
             "memory_duration_s": s.memory_duration_s,
             "realtime_s": s.realtime_s,
             "floor_s": s.floor_s,
+            "startup_runs": s.startup_runs,
         },
         "lockstep": lockstep,
         "stages": stages,
@@ -578,6 +690,7 @@ def run_benchmarks(
         "memory": memory,
         "realtime": rt,
         "campaign": campaign,
+        "startup": startup,
         "wall_s": time.perf_counter() - wall0,
     }
 
@@ -678,6 +791,8 @@ def format_bench(report: dict[str, Any]) -> str:
         from hdhil.rig.campaign_bench import format_campaign_section
 
         lines += ["", *format_campaign_section(report["campaign"])]
+    if report.get("startup"):
+        lines += ["", *format_startup_section(report["startup"])]
     return "\n".join(lines)
 
 
