@@ -184,3 +184,27 @@ def test_campaign_section(report: dict) -> None:
     assert c["run_s_per_variant"] * c["variants"] < c["wall_s_1"]
     text = format_bench(report)
     assert "Campaign (4 variants of 0.5 s free-motion" in text and "speed-up" in text
+
+
+def test_startup_section(report: dict) -> None:
+    """Whole-process start-up figures with their ratio to ``import can`` of the same
+    rounds; the goals are judged, not asserted (no timing thresholds in tests)."""
+    st = report["startup"]
+    assert st["runs"] == report["settings"]["startup_runs"] >= 1
+    rows = {r["figure"]: r for r in st["rows"]}
+    assert list(rows) == ["import_can", "can_logger_help", "hdhil_help", "dump_help",
+                          "run_first_cycle", "run_whole"]  # fmt: skip
+    ref = rows["import_can"]["median"]
+    for key, r in rows.items():
+        assert _positive(r["median"]) and r["runs"] == st["runs"], key
+        assert r["min"] <= r["median"] <= r["max"]
+        assert r["to_import_can"] == pytest.approx(r["median"] / ref)
+    assert rows["import_can"]["to_import_can"] == 1.0
+    logger = rows["can_logger_help"]["median"]
+    for key in ("hdhil_help", "dump_help"):
+        assert rows[key]["to_can_logger_help"] == pytest.approx(rows[key]["median"] / logger)
+        assert rows[key]["goal_met"] == (rows[key]["median"] <= st["help_goal_factor"] * logger)
+    # the first cycle ends before the process does
+    assert rows["run_first_cycle"]["median"] < rows["run_whole"]["median"]
+    text = format_bench(report)
+    assert "Start-up" in text and "hdhil dump --help" in text

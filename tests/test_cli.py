@@ -1,0 +1,73 @@
+"""The ``hdhil`` command line: the lazy command table and what start-up imports.
+
+``cli.COMMANDS`` lists every subcommand with its one-line help so that ``hdhil --help``
+need not import the command modules; these tests keep that table equal to what each
+module registers, and check that asking for help or starting a run does not load the
+heavy libraries only other commands (or later stages) need.  Times are measured by
+``hdhil bench`` (start-up section), never here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+
+import pytest
+
+from hdhil.cli import COMMANDS, build_parser
+
+
+def _subcommands(parser: argparse.ArgumentParser) -> dict[str, str | None]:
+    """Name -> help of every subcommand the parser lists."""
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return {action.dest: action.help for action in sub._choices_actions}
+
+
+def test_the_command_table_equals_what_the_modules_register():
+    registered = _subcommands(build_parser(["--help"], load_all=True))
+    assert registered == {name: help_text for name, (_, help_text) in COMMANDS.items()}
+
+
+def test_each_module_registers_the_commands_the_table_gives_it():
+    """Loading one module (as running one of its commands does) registers its own
+    commands with their full parsers, and only those."""
+    for name, (module, _) in COMMANDS.items():
+        parser = build_parser([name])
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        full = {n for n, p in sub.choices.items() if p.add_help}
+        assert full == {n for n, (m, _) in COMMANDS.items() if m == module}, name
+
+
+def _modules_after(code: str) -> list[str]:
+    """Top-level packages of interest loaded by ``code`` in a fresh interpreter."""
+    heavy = ("scipy", "matplotlib", "numpy", "cantools", "canopen", "pandas")
+    probe = (
+        f"import sys\n{code}\n"
+        f"import json; print(json.dumps(sorted({{m for m in sys.modules if m in {heavy!r}}})))"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         timeout=120, check=True).stdout  # fmt: skip
+    return json.loads(out.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["dump", "--help"]])
+def test_help_loads_no_heavy_library(argv):
+    code = f"from hdhil.cli import main\ntry:\n    main({argv!r})\nexcept SystemExit:\n    pass"
+    assert _modules_after(code) == []
+
+
+def test_a_run_starts_without_scipy_signal_stats_or_matplotlib():
+    """``hdhil run``'s modules import numpy, cantools and canopen, which the first cycle
+    needs, but not scipy.signal/scipy.stats (the evaluation's baselines) nor matplotlib;
+    scipy.linalg comes with the plant's first step."""
+    code = (
+        "import hdhil.commands.run, hdhil.rig.runner\n"
+        "print([m for m in ('scipy.signal', 'scipy.stats', 'scipy.linalg', 'matplotlib') "
+        "if m in sys.modules])"
+    )
+    probe = f"import sys\n{code}"
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         timeout=120, check=True).stdout  # fmt: skip
+    assert out.strip() == "[]"
