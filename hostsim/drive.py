@@ -395,6 +395,8 @@ class DriveNode(CanNode):
         self._next_sync = cfg.actuation == "next-sync"
         #: The emulator's own plant: 0x2300 and the sensor faults of 0x2310 act on it.
         self._emulator = isinstance(plant, Plant)
+        if isinstance(plant, Plant):  # its step map now, not in the middle of a cycle
+            plant.prepare(cfg.sample_period_s)
         self._dac = plant.dac
         self._adc = plant.adc
         self._max_torque = plant.max_motor_torque_Nm

@@ -950,6 +950,14 @@ class Plant:
             self._maps[dt] = m
         return m
 
+    def prepare(self, dt: float) -> None:
+        """Compute the step map for steps of ``dt`` now (it is otherwise computed, and
+        scipy.linalg imported, at the first :meth:`advance` by ``dt``): a node calls it
+        before its loop starts, so no cycle stalls on it."""
+        if not dt > 0.0:
+            raise ValueError(f"prepare needs dt > 0, got {dt!r}")
+        self._maps.get(dt) or self._map(dt)
+
     def advance(self, volts: float, dt: float) -> None:
         """Integrate from ``time`` to ``time + dt`` with the amplifier input held at ``volts``.
 

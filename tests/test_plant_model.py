@@ -182,3 +182,18 @@ def test_a_rigid_inertia_served_alone_follows_the_firmware_in_its_own_loop(serve
     assert plant.on_s == pytest.approx(0.25, abs=2.5e-3)
     assert plant.omega == pytest.approx(plant.k * STEP_V / plant.J * plant.on_s, rel=1e-9)
     assert drive.diagnostics.syncs > 300
+
+
+def test_the_emulators_plant_computes_its_step_map_when_the_drive_is_built():
+    """The emulator's step map (and the scipy.linalg import it needs) is ready before the
+    node loop starts: a cycle in a real-time or network run must not stall on it."""
+    from hdhil.hostsim.plant import Plant
+
+    bus = can.Bus(interface="virtual", channel="hdhil-plant-prepare")
+    try:
+        plant = Plant(load_scenario("free-motion").plant)
+        assert 1e-3 not in plant._maps
+        DriveNode(bus, plant, DriveConfig(sample_period_s=1e-3))
+        assert 1e-3 in plant._maps
+    finally:
+        bus.shutdown()

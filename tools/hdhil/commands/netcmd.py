@@ -67,7 +67,7 @@ from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant
 from hdhil.hostsim.scenario import load_scenario
-from hdhil.rig.loop import NodeLoop, serve
+from hdhil.rig.loop import NodeLoop, controller_expects_answer, serve
 from hdhil.rig.realtime import RealtimeLoop
 from hdhil.rig.runner import stop_on_signals
 
@@ -195,7 +195,7 @@ def run_firmware(args: argparse.Namespace) -> int:
                 [ctrl],
                 producer=ctrl,
                 answers=lambda: ctrl.diagnostics.commands_sent,
-                operational=lambda: ctrl.phase == "operational",
+                expects_answer=lambda: controller_expects_answer(ctrl),
                 period_s=Ts,
                 pacer=pacer,
             )
@@ -216,9 +216,10 @@ def run_firmware(args: argparse.Namespace) -> int:
         if isinstance(node_bus, FaultyTransmitBus):
             node_bus.flush()
         d = ctrl.diagnostics
+        why = {"safe_reason": d.safe_reason} if ctrl.phase == "safe" else {}
         print(json.dumps({"node": "controller", "operational_cycles": done,
                           "syncs_sent": d.syncs_sent, "sensor_frames": d.sensor_frames,
-                          "phase": ctrl.phase, "faults": injector.summary()}))  # fmt: skip
+                          "phase": ctrl.phase, "faults": injector.summary(), **why}))  # fmt: skip
         return 130 if stop.is_set() else 0
     finally:
         if bus is not None:

@@ -10,8 +10,8 @@ cycle is complete. What "complete" means depends on the bus, not on the caller:
   round every node's queue is empty); nothing is waited for;
 - on any other python-can bus frames take time to come back: the loop handles frames
   until the producer has answered the cycle's sensor frame (its answer counter moved)
-  or :data:`CYCLE_TIMEOUT_S` passed (5 ms before operation: during start-up most
-  cycles carry no sensor frame; with a pacer, never past the next cycle's deadline).
+  or :data:`CYCLE_TIMEOUT_S` passed (5 ms while no sensor frame is expected: before the
+  drive has sent its first one; with a pacer, never past the next cycle's deadline).
   A cycle that times out is closed and counted (:attr:`NodeLoop.timeouts`); the
   controller's sensor hold then decides whether the peer is gone (its own
   ``sensor_hold_cycles``), so a dropped frame costs one late cycle, not the run;
@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import can
 
@@ -44,7 +44,7 @@ from hdhil.can.simbus import SimBus, SimClock
 
 #: How long a cycle on a real or virtual bus waits for the producer's answer (s).
 CYCLE_TIMEOUT_S = 0.5
-#: The wait before operation, when most cycles carry no sensor frame to answer (s).
+#: The wait of a cycle that expects no sensor frame (before the drive's first one) (s).
 STARTUP_WAIT_S = 0.005
 #: How long one node alone blocks in one receive before it runs its timers again (s).
 RECV_SLICE_S = 0.002
@@ -94,8 +94,9 @@ class NodeLoop:
 
     ``nodes`` are ticked and polled in this order; ``producer`` (one of them, or None)
     sends the SYNC after the ticks, and ``answers`` counts its answers to sensor frames
-    (the loop waits for it to move on a non-simulated bus); ``operational`` says whether
-    the producer expects a sensor frame this cycle (long timeout) or not (short).
+    (the loop waits for it to move on a non-simulated bus); ``expects_answer`` says
+    whether the producer expects a sensor frame this cycle (long timeout) or not (short;
+    :func:`controller_expects_answer` for the firmware's controller).
     ``listeners`` are drained every ``listen_every`` cycles and while waiting.
 
     Time: with a ``pacer`` the cycle waits for its wall-clock deadline; otherwise, with a
@@ -110,7 +111,7 @@ class NodeLoop:
         *,
         producer: SyncProducer | None = None,
         answers: Callable[[], int] | None = None,
-        operational: Callable[[], bool] = lambda: True,
+        expects_answer: Callable[[], bool] = lambda: True,
         listeners: Sequence[Pollable] = (),
         listen_every: int = 1,
         period_s: float = 1e-3,
@@ -127,7 +128,7 @@ class NodeLoop:
         self.nodes = tuple(nodes)
         self.producer = producer
         self.answers = answers
-        self.operational = operational
+        self.expects_answer = expects_answer
         self.listeners = tuple(listeners)
         self.listen_every = listen_every
         self.period_s = period_s
@@ -209,9 +210,9 @@ class NodeLoop:
         assert answers is not None
         while self._poll_all():
             pass
-        operational = self.operational()
+        expected = self.expects_answer()
         clock = time.perf_counter
-        deadline = clock() + (self.timeout_s if operational else STARTUP_WAIT_S)
+        deadline = clock() + (self.timeout_s if expected else STARTUP_WAIT_S)
         if self.pacer is not None:  # paced: never past the next cycle's deadline
             deadline = min(deadline, self.pacer.cycle_end_s())
         alone = self.nodes[0] if len(self.nodes) == 1 and not self.listeners else None
@@ -220,7 +221,7 @@ class NodeLoop:
                 continue
             left = deadline - clock()
             if left <= 0:
-                if operational:
+                if expected:
                     self.timeouts += 1
                 return
             if alone is not None:
@@ -264,6 +265,19 @@ class Pacer(Protocol):
         """The next cycle's deadline on :func:`time.perf_counter` (s): how long the
         current cycle may wait for frames."""
         ...
+
+
+def controller_expects_answer(controller: Any) -> bool:
+    """Whether the firmware's controller (:class:`firmware.controller.ControllerNode`)
+    waits for a sensor frame this cycle: once the drive has sent one (it is then NMT
+    operational and answers every SYNC), in every phase in which the controller
+    commands it.  Before that a cycle waits only briefly: the drive is still booting or
+    pre-operational and sends nothing to answer."""
+    return controller.diagnostics.sensor_frames > 0 and controller.phase in (
+        "starting",
+        "operational",
+        "stopping",
+    )
 
 
 def serve(

@@ -58,7 +58,7 @@ from hdhil.rig.factories import (
     scenario_controller,
     scenario_drive,
 )
-from hdhil.rig.loop import NodeLoop
+from hdhil.rig.loop import NodeLoop, controller_expects_answer
 from hdhil.rig.realtime import RealtimeConfig, RealtimeLoop, WallClock, format_realtime
 from hdhil.rig.score import TorqueScorer, TrackingScorer
 
@@ -658,7 +658,7 @@ def run_lockstep(
             [*nodes.drives, controller],
             producer=controller,
             answers=lambda: controller.diagnostics.commands_sent,
-            operational=lambda: controller.phase == "operational",
+            expects_answer=lambda: controller_expects_answer(controller),
             listeners=[tap],
             listen_every=TAP_EVERY_CYCLES if plan.simulated and pacer is None else 1,
             period_s=Ts,
