@@ -559,7 +559,13 @@ class PlausibilityConfig:
     """The sensor plausibility stage (:class:`firmware.stages.SensorPlausibility`; not in
     the seeds).  It runs right after calibration and bounds what one sample can change.
 
-    - ``enabled``: ``false`` passes every sample through unchecked (the seed's handler).
+    - ``enabled``: ``true`` checks, ``false`` passes every sample through unchecked
+      (the seed's handler).  Unset (``None``, the default) means: on, except in paper
+      mode (``ripple.mode = "paper"``), which is listing A.1 exactly
+      (``000_ae0a3dbe24949b7c.txt``, listing A.1 ``c_int10``: ``vel = Tacho *
+      volt2radps; acc = Diff_filter( vel);`` uses every sample as read).  A paper
+      configuration gets the stage only when it asks for it with ``enabled = true``.
+      :attr:`FirmwareConfig.plausibility_active` is the resolved value.
     - ``max_acceleration_radps2``: the largest motor acceleration the joint can do
       (:data:`PLAUSIBLE_ACCELERATION_RADPS2`, where the number comes from).  A velocity
       sample is implausible when it differs from the last accepted one by more than
@@ -575,14 +581,14 @@ class PlausibilityConfig:
       after as many plausible samples in a row.
     """
 
-    enabled: bool = True
+    enabled: bool | None = None
     max_acceleration_radps2: float = PLAUSIBLE_ACCELERATION_RADPS2
     tacho_noise_radps: float = PLAUSIBLE_TACHO_NOISE_RADPS
     encoder_tolerance_counts: float = PLAUSIBLE_ENCODER_COUNTS
     max_rejections: int = PLAUSIBLE_REJECTIONS
 
     def __post_init__(self) -> None:
-        if not isinstance(self.enabled, bool):
+        if self.enabled is not None and not isinstance(self.enabled, bool):
             raise ValueError(f"plausibility.enabled must be true or false, got {self.enabled!r}")
         check_fields(
             self,
@@ -721,7 +727,8 @@ class FirmwareConfig:
     - ``control``: seed 003's joint-torque control (:class:`ControlConfig`); off by
       default (``law = none``), in which case the handler is the seed-000 port unchanged.
     - ``plausibility``: bounds on velocity and encoder changes per sample
-      (:class:`PlausibilityConfig`, not in the seeds); on by default.
+      (:class:`PlausibilityConfig`, not in the seeds); on by default, off in paper
+      mode unless ``plausibility.enabled = true`` (:attr:`plausibility_active`).
     """
 
     sample_period_s: float = 1e-3
@@ -760,6 +767,14 @@ class FirmwareConfig:
         ):
             if not isinstance(getattr(self, name), expected):
                 raise ValueError(f"{name} must be a {expected.__name__}")
+
+    @property
+    def plausibility_active(self) -> bool:
+        """Whether the plausibility stage runs: ``plausibility.enabled`` if set,
+        otherwise on in recommended mode and off in paper mode (paper mode is listing
+        A.1 sample for sample, ``000_ae0a3dbe24949b7c.txt``, listing A.1 ``c_int10``)."""
+        enabled = self.plausibility.enabled
+        return self.ripple.mode != "paper" if enabled is None else enabled
 
 
 def _same_harmonics(ripple: RippleFilterConfig, mode: FilterMode) -> RippleFilterConfig:

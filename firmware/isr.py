@@ -139,7 +139,8 @@ class TorqueFilterChain:
     :meth:`step` returns ``(acceleration, T_expected, delta_T, T_filtered, ripple)``
     with ``T_filtered = T_meas - ripple`` in both modes.
 
-    The chain starts with the plausibility stage (not in the listing;
+    The chain starts with the plausibility stage (not in the listing; on in recommended
+    mode, off in paper mode unless asked for, ``cfg.plausibility_active``;
     :class:`firmware.stages.SensorPlausibility`, ``cfg.plausibility``): a velocity
     sample the joint cannot have produced is replaced by the last accepted one and an
     implausible encoder increment by the predicted one (the encoder is checked only
@@ -153,7 +154,8 @@ class TorqueFilterChain:
       ``skipped`` counts both); the learned ripple map is still subtracted at the
       sample's (predicted) angle.  Its state is a random walk (Φ = I), so nothing is
       lost by skipping.
-    - paper: it updates with the replaced velocity.  The listing's ``Kalman`` rotates
+    - paper (with ``plausibility.enabled = true``): it updates with the replaced
+      velocity.  The listing's ``Kalman`` rotates
       its oscillators by ``vel * sample_period`` inside the update, so a skipped call
       leaves the ripple phase one sample behind; the replaced velocity is the
       prediction of that step.  Measured on free-motion with 1 V tacho spikes at 1 %
@@ -181,7 +183,7 @@ class TorqueFilterChain:
         self.angle = 0.0  # recommended mode: motor angle of the last sample (rad)
         self.velocity = 0.0  # velocity used at the last sample (after plausibility)
         plausibility = cfg.plausibility
-        self._check = plausibility.enabled
+        self._check = cfg.plausibility_active
         self.plausibility = SensorPlausibility(
             plausibility,
             cfg.sample_period_s,

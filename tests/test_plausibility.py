@@ -292,10 +292,13 @@ def test_chain_without_the_stage_passes_the_spike_into_the_acceleration() -> Non
 
 
 def test_chain_paper_updates_with_the_replaced_velocity() -> None:
-    """Paper mode: the listing's filter runs on the held velocity, exactly as if the
-    spikes had not happened (a skipped call would leave its oscillators behind)."""
+    """Paper mode with the stage asked for (it is off by default there): the listing's
+    filter runs on the held velocity, exactly as if the spikes had not happened (a
+    skipped call would leave its oscillators behind)."""
     T, v, enc = _spiky()
-    paper = paper_config(FirmwareConfig())
+    paper = dataclasses.replace(
+        paper_config(FirmwareConfig()), plausibility=PlausibilityConfig(enabled=True)
+    )
     chain = TorqueFilterChain(paper)
     clean = TorqueFilterChain(paper)
     for k in range(len(T)):

@@ -1,0 +1,189 @@
+"""Paper mode is listing A.1: ``hdhil filter --paper`` (and the paper-mode interrupt
+handler) against a line-by-line port of the listing's arithmetic kept here.
+
+Seed ``000_ae0a3dbe24949b7c.txt``, Appendix A.1 ``free_kalman.c``: ``c_int10`` (``vel =
+Tacho * volt2radps; acc = Diff_filter( vel); T_meas = Torque * volt2Nm; T_mod = J_load *
+acc / Gain; Delta_T = T_meas - T_mod; Torque_f = T_meas - T_ripple; T_ripple = Kalman
+(Delta_T, vel, sample_period);``), ``Diff_filter`` and ``Kalman`` loop for loop, with the
+literals of the listing (``nd``, ``dd``, ``volt2Nm``, ``J_load``, ``Gain``) and the
+Kalman locals kept between calls (the port's documented reading, firmware.ripple).
+
+The inputs are the ones the plausibility stage would change: a running start (the first
+sample at 156 rad/s, which the listing differentiates from ``v_1 = 0`` into 28 364
+rad/s², the stage into 18 000) and 30 rad/s tacho steps.  Paper mode has the stage off
+unless asked for (``firmware.config.FirmwareConfig.plausibility_active``).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hdhil.cli import main
+from hdhil.firmware.config import FirmwareConfig, PlausibilityConfig, paper_config
+from hdhil.firmware.isr import TorqueFilterChain
+
+
+class ListingA1:
+    """``c_int10`` of listing A.1 from ``vel`` and ``T_meas`` on, in the listing's order."""
+
+    def __init__(self) -> None:
+        # globals: float v_1=0.0, a_1=0.0; float T_ripple = 0.0; int kal_count = 1;
+        self.v_1 = 0.0
+        self.a_1 = 0.0
+        self.T_ripple = 0.0
+        self.kal_count = 1
+        # float J_load = 1.725e-2, Gain = 100; float sample_period = 0.001;
+        self.J_load = 1.725e-2
+        self.Gain = 100.0
+        self.sample_period = 0.001
+        # Kalman's locals, kept between calls
+        self.x = [0.0] * 4
+        self.C = [0.0] * 4
+        self.R = 0.0
+        self.P = [[0.0] * 4 for _ in range(4)]
+        self.Q = [[0.0] * 4 for _ in range(4)]
+
+    def Diff_filter(self, v: float) -> float:
+        nd = (181.818181818182, -181.818181818182)
+        dd = (1.00000000000000, -0.81818181818182)
+        a = nd[0] * v + nd[1] * self.v_1 - dd[1] * self.a_1
+        self.v_1 = v
+        self.a_1 = a
+        return a
+
+    def Kalman(self, Delta_T: float, velocity: float, sample_period: float) -> float:
+        x, C, P, Q = self.x, self.C, self.P, self.Q
+        if self.kal_count == 1:
+            self.R = 1.0
+            for i in range(4):
+                x[i] = 0.0
+                C[i] = 0.0
+                for j in range(4):
+                    P[i][j] = 1.0 if i == j else 0.0
+                    Q[i][j] = 1000.0 if i == j else 0.0
+            x[0] = x[2] = Delta_T
+            C[0] = C[2] = 1.0
+            self.kal_count += 1
+        R = self.R
+        om1 = 2.0 * velocity * sample_period
+        om2 = 2.0 * om1
+        phi = [[0.0] * 4 for _ in range(4)]
+        phi[0][0] = math.cos(om1)
+        phi[0][1] = math.sin(om1)
+        phi[1][0] = -math.sin(om1)
+        phi[1][1] = math.cos(om1)
+        phi[2][2] = math.cos(om2)
+        phi[2][3] = math.sin(om2)
+        phi[3][2] = -math.sin(om2)
+        phi[3][3] = math.cos(om2)
+        PC = [sum(P[i][j] * C[j] for j in range(4)) for i in range(4)]
+        pPC = [sum(phi[i][j] * PC[j] for j in range(4)) for i in range(4)]
+        CPC = 0.0
+        for j in range(4):
+            CPC += C[j] * PC[j]
+        K = [pPC[i] / (R + CPC) for i in range(4)]
+        Pp = [[sum(P[i][k] * phi[j][k] for k in range(4)) for j in range(4)] for i in range(4)]
+        KC = [[K[i] * C[j] for j in range(4)] for i in range(4)]
+        p_KC = [[phi[i][j] - KC[i][j] for j in range(4)] for i in range(4)]
+        gb = [[sum(p_KC[i][k] * Pp[k][j] for k in range(4)) for j in range(4)] for i in range(4)]
+        for i in range(4):
+            for j in range(4):
+                P[i][j] = Q[i][j] + gb[i][j]
+        x1 = [sum(p_KC[i][j] * x[j] for j in range(4)) for i in range(4)]
+        for i in range(4):
+            x[i] = K[i] * Delta_T + x1[i]
+        return x[0] + x[2]
+
+    def step(self, T_meas: float, vel: float) -> tuple[float, float, float, float]:
+        """``(acc, T_mod, Torque_f, T_ripple used)`` for one interrupt."""
+        acc = self.Diff_filter(vel)
+        T_mod = self.J_load * acc / self.Gain
+        Delta_T = T_meas - T_mod
+        ripple = self.T_ripple
+        Torque_f = T_meas - ripple
+        self.T_ripple = self.Kalman(Delta_T, vel, self.sample_period)
+        return acc, T_mod, Torque_f, ripple
+
+
+def _inputs(n: int = 2500, seed: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A running start at 156 rad/s, 30 rad/s steps at 0.5 s, 1.2 s (down) and 1.9 s, a
+    2x/4x ripple on the torque and noise on both."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 1e-3
+    vel = 156.0 + 30.0 * ((t >= 0.5).astype(float) - (t >= 1.2) + (t >= 1.9))
+    vel = vel + rng.normal(0.0, 0.2, n)
+    theta = np.cumsum(vel) * 1e-3
+    T = 2.0 + 0.8 * np.sin(2 * theta) + 0.3 * np.sin(4 * theta + 0.4) + rng.normal(0, 0.05, n)
+    return t, T, vel
+
+
+def _listing_rows(T: np.ndarray, vel: np.ndarray) -> np.ndarray:
+    listing = ListingA1()
+    rows = []
+    for Ti, vi in zip(T.tolist(), vel.tolist(), strict=True):
+        acc, T_mod, Torque_f, ripple = listing.step(Ti, vi)
+        rows.append((Ti, acc, T_mod, ripple, Torque_f))
+    return np.array(rows)
+
+
+def test_the_listing_port_sees_the_running_start_and_the_steps() -> None:
+    """The inputs do exercise what the plausibility stage would change."""
+    _t, T, vel = _inputs()
+    rows = _listing_rows(T, vel)
+    assert rows[0, 1] == pytest.approx(181.818181818182 * vel[0])  # ≈ 28 364 rad/s²
+    assert rows[0, 1] > 28_000.0
+    k = 500
+    assert rows[k, 1] > 18_000.0 * 0.25  # the 30 rad/s step: 5 450 rad/s² at once
+
+
+@pytest.mark.parametrize("source", ["cli", "chain"])
+def test_paper_mode_is_listing_a1_sample_for_sample(tmp_path: Path, source: str) -> None:
+    t, T, vel = _inputs()
+    expected = _listing_rows(T, vel)
+    if source == "cli":
+        path = tmp_path / "in.csv"
+        with path.open("w") as fh:
+            fh.write("time,T_meas,velocity\n")
+            for row in zip(t.tolist(), T.tolist(), vel.tolist(), strict=True):
+                fh.write(",".join(repr(v) for v in row) + "\n")
+        out = tmp_path / "out.csv"
+        assert main(["filter", str(path), "--out", str(out), "--paper"]) == 0
+        with out.open() as fh:
+            rows = list(csv.reader(fh))
+        header, got = rows[0], np.array([[float(v) for v in r] for r in rows[1:]])
+        assert header == ["time", "T_meas", "acceleration", "T_expected", "ripple", "T_filtered"]
+        got = got[:, 1:]
+    else:
+        chain = TorqueFilterChain(paper_config(FirmwareConfig()))
+        rows = []
+        for Ti, vi in zip(T.tolist(), vel.tolist(), strict=True):
+            acc, T_mod, _dT, Torque_f, ripple = chain.step(Ti, vi)
+            rows.append((Ti, acc, T_mod, ripple, Torque_f))
+        got = np.array(rows)
+    assert got.shape == expected.shape
+    # double precision against double precision; only the summation order of the
+    # matrix products and the differentiator's coefficients (scipy's bilinear vs the
+    # listing's 15-digit literals) differ
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-9)
+
+
+def test_plausibility_in_paper_mode_only_when_asked_for() -> None:
+    paper = paper_config(FirmwareConfig())
+    assert not paper.plausibility_active
+    assert FirmwareConfig().plausibility_active
+    asked = dataclasses.replace(paper, plausibility=PlausibilityConfig(enabled=True))
+    assert asked.plausibility_active
+    off = dataclasses.replace(FirmwareConfig(), plausibility=PlausibilityConfig(enabled=False))
+    assert not off.plausibility_active
+    # asked for, the stage clamps the running start's acceleration (not the listing)
+    _t, T, vel = _inputs()
+    chain = TorqueFilterChain(asked)
+    acc0 = chain.step(float(T[0]), float(vel[0]))[0]
+    assert acc0 == pytest.approx(asked.plausibility.max_acceleration_radps2)
+    assert acc0 != pytest.approx(_listing_rows(T[:1], vel[:1])[0, 1])
