@@ -84,12 +84,28 @@ JTF2's k4 is exactly that, with k3 = 0 (no disturbance compensation); JTF3's ``k
 leaves an error even without disturbance.
 
 **Kalman gain (Eq. 8).**  ``L = P Cᵀ W⁻¹`` from the filter CARE
-``A'P + PA'ᵀ - P Cᵀ W⁻¹ C P + Γ V Γᵀ = 0`` with **W = 0.12 used as the (continuous)
-measurement noise intensity** and **V = 1e4 as the intensity of ``tau_lgd' = Γ v``**
-gives ``L = [199.99, 19997.8, 288.68]`` against the printed ``[199, 19854, 289]``
-(+0.5 %, +0.7 %, -0.1 %; ``L3 = sqrt(V/W)``).  W as a standard deviation (variance
-0.0144) gives ``[332, 55028, 833]``; V as a standard deviation (1e8) gives
-``[1243, 772301, 28868]``.
+``A'P + PA'ᵀ - P Cᵀ W⁻¹ C P + Γ V Γᵀ = 0`` with W = 0.12 and V = 1e4 taken as numbers
+in one and the same convention gives ``L = [199.99, 19997.8, 288.68]`` against the
+printed ``[199, 19854, 289]`` (+0.5 %, +0.7 %, -0.1 %; ``L3 = sqrt(V/W)``).  W as a
+standard deviation (variance 0.0144) gives ``[332, 55028, 833]``; V as a standard
+deviation (1e8) gives ``[1243, 772301, 28868]``.
+
+**One reading of W (the only one in this project).**  Seed 003 §I: "torque sensor
+variance W = 0.12 Nm (measured with the motor driver turned on)".  W is the variance
+of each torque sample, 0.12 Nm², measured on the sampled signal at the loop's 1 kHz
+(:data:`W_SAMPLE_PERIOD_S`; the seed does not state its rate, 1 ms is the rig's).  The
+emulated sensor of a "seed noise" variant therefore has a standard deviation of
+``sqrt(W) = 0.3464`` Nm per sample (``hostsim.plant.SensorConfig.torque_noise_Nm``).
+The continuous filter of Eq. 8 needs intensities: white noise whose 1 ms samples have
+variance W has intensity ``W · 1 ms`` (Nm² s), and the seed's V is read in the same
+convention, ``V · 1 ms``.  The Kalman gain L depends on V/W only, so L is the printed
+one under this reading too, and the discrete filter at any Ts (``Rd = W · 1 ms / Ts``,
+Van Loan ``Qd`` from ``V · 1 ms``) has exactly the gain it has with W and V taken as
+bare intensities (a common factor on Qd and Rd does not change a DARE's gain).  At
+Ts = 1 ms, ``Rd = W``: the design assumes the very noise the emulated sensor has, and
+its predicted innovation variance (0.147 Nm²) is what a run measures (tested).  A
+1000x different reading, a per-sample Rd = W next to V taken as an intensity, is the
+design with V = 1e7 (as :data:`firmware.config.JTF1_FF_TRACKING` chooses explicitly).
 
 Discretisation for the 1 kHz loop
 ---------------------------------
@@ -101,15 +117,13 @@ the form (``z`` = a-priori estimate of x at sample k from the samples before k):
     z(k+1) = Ad z(k) + Bd [tau_m(k); y(k)]              tau_m(k): torque acting on [t_k, t_k+1)
 
 - ``zoh-kalman`` (default): the meta-system (A', B', Γ) discretised by zero-order hold,
-  process noise ``Qd = ∫_0^Ts e^{A's} Γ V Γᵀ e^{A'ᵀs} ds`` (Van Loan), measurement
-  noise ``Rd = W / Ts`` (the sample-average variance of white noise of intensity W, so
-  that the discrete filter solves the *same* problem the seed tuned), steady-state
+  process noise ``Qd = ∫_0^Ts e^{A's} Γ V' Γᵀ e^{A'ᵀs} ds`` (Van Loan) with ``V' = V ·
+  1 ms``, measurement noise ``Rd = W · 1 ms / Ts`` (the per-sample variance at Ts of
+  the white noise whose 1 ms samples have variance W: "One reading of W"), steady-state
   gain from the DARE: ``M = P Cᵀ (C P Cᵀ + Rd)⁻¹``, ``Ad = Φ (I - M C)``,
   ``Bd = [Γu, Φ M]``.  Its poles map onto the continuous observer poles
   (-55.6 ± 143.1j, -110.3 rad/s, i.e. |s| ≈ 24 Hz and 18 Hz, far below the 500 Hz
-  Nyquist frequency) to better than 1e-6 relative.  Option ``W_per_sample=True``
-  reads W as the variance of each sample (``Rd = W``): a 1000x smaller equivalent
-  intensity and a 3-4x faster observer (poles -213 ± 384j, -426 rad/s).
+  Nyquist frequency) to better than 1e-6 relative.
 - ``zoh-observer``: the continuous observer itself, ``(A' - L C, [B', L])``, discretised
   by ZOH with ``y`` held over the sample (``M = 0``): exactly the seed's L, an extra
   half-sample of lag on ``y``; same poles as above (``exp(s Ts)``).
@@ -183,6 +197,7 @@ def _linalg() -> Any:
 
 
 __all__ = [
+    "W_SAMPLE_PERIOD_S",
     "ControlLaw",
     "DesignError",
     "DiscreteObserver",
@@ -207,6 +222,10 @@ __all__ = [
     "observer_model",
     "zoh",
 ]
+
+#: The sample period at which the seed's torque-sensor variance W is read (s): W is the
+#: variance of each 1 kHz sample (module docstring, "One reading of W").
+W_SAMPLE_PERIOD_S = 1e-3
 
 
 class DesignError(ValueError):
@@ -282,9 +301,11 @@ class LqgWeights:
         q1: weight on ``(tau_s - tau_s^D)²`` (seed: 500).  Enters Q *linearly*, see the
             module docstring (Eq. 6 prints ``q1²`` but the printed gains need ``q1``).
         q2: weight on ``tau_s'²`` (seed: 0.1), linearly as q1.
-        W: torque-sensor noise intensity (seed §I: "torque sensor variance W = 0.12",
-            used as the continuous intensity of w in Eq. 7) [Nm² s].
-        V: intensity of the Wiener process ``tau_lgd' = v`` (seed §VI: V = 1e4).
+        W: variance of each 1 kHz torque sample (seed §I: "torque sensor variance
+            W = 0.12") [Nm²]; the emulated sensor's noise is ``sqrt(W)`` per sample
+            (module docstring, "One reading of W").
+        V: the Wiener process ``tau_lgd' = v`` in the same convention (seed §VI:
+            V = 1e4); only V/W sets the Kalman gain.
     """
 
     q1: float = 500.0
@@ -560,12 +581,12 @@ def discretize_observer(
     Ts: float = 1e-3,
     method: ObserverMethod = ObserverMethod.ZOH_KALMAN,
     L: np.ndarray | None = None,
-    W_per_sample: bool = False,
 ) -> DiscreteObserver:
     """The 1 kHz observer (module docstring, "Discretisation").
 
-    ``zoh-kalman``: DARE on the ZOH meta-system with Van Loan ``Qd`` and ``Rd = W/Ts``
-    (``Rd = W`` if ``W_per_sample``).  ``zoh-observer``: ZOH of ``(A' - L C, [B', L])``
+    ``zoh-kalman``: DARE on the ZOH meta-system with Van Loan ``Qd`` from the intensity
+    ``V · 1 ms`` and ``Rd = W · 1 ms / Ts`` (W the per-sample variance at 1 kHz; module
+    docstring, "One reading of W").  ``zoh-observer``: ZOH of ``(A' - L C, [B', L])``
     with ``L`` given or from :func:`design_kalman`.
     """
     _check_Ts(Ts)
@@ -582,12 +603,12 @@ def discretize_observer(
         # Van Loan: expm([[-A', ΓVΓᵀ], [0, A'ᵀ]] Ts) = [[., F12], [0, Φᵀ]], Qd = Φ F12
         vl = np.zeros((6, 6))
         vl[:3, :3] = -Ap
-        vl[:3, 3:] = V * (G @ G.T)
+        vl[:3, 3:] = V * W_SAMPLE_PERIOD_S * (G @ G.T)
         vl[3:, 3:] = Ap.T
         F = _linalg().expm(vl * Ts)
         Qd = Phi @ F[:3, 3:]
         Qd = 0.5 * (Qd + Qd.T)
-        Rd = W if W_per_sample else W / Ts
+        Rd = W * W_SAMPLE_PERIOD_S / Ts
         try:
             P = _linalg().solve_discrete_are(Phi.T, C.T, Qd, np.array([[Rd]]))
         except (LinAlgError, ValueError) as exc:
@@ -689,7 +710,6 @@ def design_lqg(
     Ts: float = 1e-3,
     method: ObserverMethod = ObserverMethod.ZOH_KALMAN,
     feedforward: Feedforward = Feedforward.LQ,
-    W_per_sample: bool = False,
 ) -> LqgDesign:
     """LQ gains, continuous Kalman gain and the discrete observer at ``Ts``."""
     _check_Ts(Ts)
@@ -702,7 +722,6 @@ def design_lqg(
         Ts=Ts,
         method=ObserverMethod(method),
         L=L,
-        W_per_sample=W_per_sample,
     )
     A, B, _ = error_model(params)
     Ap, _, _, C = observer_model(params)

@@ -535,7 +535,9 @@ class SensorConfig:
     0.12 Nm (measured with the motor driver turned on)" (§I; the unit is Nm², a
     variance, as its use in the Kalman filter of Eq. 8 shows) is
     ``torque_noise_Nm = sqrt(0.12) = 0.3464`` Nm per sample.  The seed measured it on
-    the sampled signal, so it is a per-sample variance here, at the 1 kHz sample rate.
+    the sampled signal, so it is a per-sample variance here, at the 1 kHz sample rate:
+    the one reading of W the whole project uses (the LQG design's too, see
+    ``hdhil.firmware.lqg``, "One reading of W").
 
     ``torque_measures``: what the ideal torque sensor reads, :attr:`Plant.T_true`.
     ``"transmitted"`` (default): the flexspline torque ``k (q_m - q_l) + c (dq_m -

@@ -354,9 +354,53 @@ def test_zoh_kalman_matches_continuous_observer_poles():
     # far below the 500 Hz Nyquist frequency, inside the unit circle
     assert np.max(np.abs(d.observer_poles)) / (2 * math.pi) < 50.0
     assert np.max(np.abs(d.observer.poles)) < 1.0
-    # reading W as a per-sample variance gives a ~3-4x faster filter
-    fast = discretize_observer(W_per_sample=True)
+    # a 1000x larger V/W (what a per-sample Rd = W next to V as an intensity would be)
+    # gives a ~3-4x faster filter
+    fast = discretize_observer(V=1e7)
     assert np.max(np.abs(fast.poles_s)) > 2.5 * np.max(np.abs(d.observer.poles_s))
+
+
+def test_one_reading_of_W_design_noise_is_the_emulated_sensor_noise():
+    """W = 0.12 Nm² is the variance of each 1 kHz sample (firmware.lqg, "One reading of
+    W"): the discrete filter's Rd is exactly W at 1 ms, its gain is the one the seed's
+    intensities give, and on the design model driven by per-sample noise of variance W
+    (what the emulated sensor adds, torque_noise_Nm = sqrt(W)) the measured innovation
+    variance is the one the design predicts, not 1000x off."""
+    from scipy.linalg import expm, solve_discrete_are
+
+    from hdhil.firmware.lqg_design import W_SAMPLE_PERIOD_S, observer_model, zoh
+
+    p, W, V = JointParams(), 0.12, 1e4
+    ob = discretize_observer(p, W=W, V=V, Ts=TS)
+    Ap, Bp, G, C = observer_model(p)
+    Phi, Gu = zoh(Ap, Bp, TS)
+    vl = np.zeros((6, 6))
+    vl[:3, :3], vl[:3, 3:], vl[3:, 3:] = -Ap, V * W_SAMPLE_PERIOD_S * (G @ G.T), Ap.T
+    Qd = Phi @ expm(vl * TS)[:3, 3:]
+    Qd = 0.5 * (Qd + Qd.T)
+    P = solve_discrete_are(Phi.T, C.T, Qd, np.array([[W]]))  # Rd = W per sample
+    S = float((C @ P @ C.T)[0, 0]) + W
+    np.testing.assert_allclose(ob.M, (P @ C.T).ravel() / S, rtol=1e-9)
+    # the same gain at 0.5 ms too: intensities W·1ms and V·1ms vs the bare numbers
+    half = discretize_observer(p, W=W, V=V, Ts=TS / 2)
+    assert np.max(np.abs(half.poles_s)) == pytest.approx(np.max(np.abs(ob.poles_s)), rel=1e-3)
+    # simulate the meta-system with a Wiener tau_lgd of per-sample variance Qd and the
+    # sensor noise of the seed-noise variants, and run the observer on it
+    rng = np.random.default_rng(7)
+    n = 40_000
+    x = np.zeros(3)
+    z = np.zeros(3)
+    Lq = np.linalg.cholesky(Qd + 1e-12 * np.eye(3))
+    innov = np.empty(n)
+    for i in range(n):
+        u = 20.0 * math.sin(2 * math.pi * 0.2 * i * TS)
+        y = x[0] + math.sqrt(W) * rng.standard_normal()
+        innov[i] = y - z[0]
+        z = ob.Ad @ z + ob.Bd @ np.array([u, y])
+        x = Phi @ x + Gu.ravel() * u + Lq @ rng.standard_normal(3)
+    measured = float(np.var(innov[1000:]))
+    assert measured == pytest.approx(S, rel=0.05)
+    assert pytest.approx(0.1466, rel=1e-2) == S
 
 
 @pytest.mark.parametrize("method", list(ObserverMethod))

@@ -39,8 +39,8 @@ _NUMBERS = (
     ("c", "joint damping [Nms/rad]"),
     ("q1", "LQ weight on (tau_s - tau_sD)² (enters Q linearly)"),
     ("q2", "LQ weight on tau_s'²"),
-    ("W", "torque-sensor noise intensity"),
-    ("V", "intensity of the tau_lgd Wiener process"),
+    ("W", "variance of each 1 kHz torque sample [Nm²]"),
+    ("V", "tau_lgd Wiener process, in the convention of W (only V/W sets L)"),
     ("Ts", "sample period of the discrete observer [s]"),
 )
 _DEFAULTS = {**vars(JointParams()), **vars(LqgWeights()), "Ts": 1e-3}
@@ -84,12 +84,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "or the zero-steady-state-error feedforward",
     )
     p.add_argument(
-        "--W-per-sample",
-        action="store_true",
-        help="zoh-kalman only: read W as the variance of each sample (Rd = W) instead of "
-        "a continuous intensity (Rd = W/Ts)",
-    )
-    p.add_argument(
         "--delay",
         type=int,
         choices=(0, 1),
@@ -126,7 +120,6 @@ def _design(args: argparse.Namespace) -> LqgDesign:
             Ts=v["Ts"],
             method=ObserverMethod(args.method),
             feedforward=Feedforward(args.feedforward),
-            W_per_sample=args.W_per_sample,
         )
     except DesignError as exc:
         raise UserError(f"design failed: {exc}") from None
