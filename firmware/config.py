@@ -52,6 +52,8 @@ from hdhil.firmware.lqg_design import (
 
 __all__ = [
     "JTF1_FF_TRACKING",
+    "JTF_DERIVATIVE_HZ",
+    "JTF_LOWPASS_HZ",
     "LISTING_A1_RIPPLE",
     "LISTING_A2_RIPPLE",
     "PAPER_P0",
@@ -72,11 +74,14 @@ __all__ = [
     "RECOMMENDED_SECTION5_RIPPLE",
     "RECOMMENDED_STANDSTILL_RADPS",
     "SECTION5_RIPPLE",
+    "SEED_FRICTION_MODEL",
     "Calibration",
     "ControlConfig",
     "DesiredTorqueConfig",
+    "Estimates",
     "FilterMode",
     "FirmwareConfig",
+    "FrictionModelConfig",
     "Law",
     "Oscillator",
     "PhaseSource",
@@ -525,6 +530,77 @@ class DesiredTorqueConfig:
         )
 
 
+@dataclass(frozen=True)
+class FrictionModelConfig:
+    """The motor-disturbance model ``τ̂d`` of seed 003 Eq. 5 (JTF1 with friction
+    compensation, ``τm,2 = -[k1 (τ̂s - τsD) + k2 τ̂s' + k3 τ̂lg + k4 τsD] - τ̂d``).
+
+    Seed 003 §VI (``003_cab3072408ebe226.txt``): "the experimentally determined motor
+    friction torque model ``τ̂d = [-13.7 sign(ϑ̇m)(1 + tanh(|ϑ̇m|/2) - 4)]/2`` Nm, the
+    controller implements (5) instead of (4)".  Printed garbled; the reading we take
+    (the one that reproduces the seed's ``max(τsD + τ̂d) ≈ 33.7`` Nm with ``τsD`` ≤ 20
+    Nm, ``hostsim.plant.DriveTrainConfig``) is a friction that opposes the motion,
+    tops out at 13.7 Nm and is smooth through rest::
+
+        τ̂d = -coulomb_Nm · tanh(ω / velocity_scale_radps)
+
+    with ``ω`` the motor velocity the firmware measures (tachometer, rad/s at the motor
+    shaft) and ``velocity_scale_radps`` the ``2`` of ``|ϑ̇m|/2`` read at the motor shaft
+    (2 rad/s, i.e. 0.02 rad/s at the output).  Torques at the output, the same sign in
+    the product convention and the seed's (``firmware.isr``).
+
+    ``coulomb_Nm = 0`` (the default) switches the compensation off: the law is Eq. 4 and
+    the observer's third state is ``τlgd``; with a model it is ``τlg`` (seed §V: "the
+    substitution in (8) of τm,1 with (τm,2 + τ̂d) enables to find τ̂lg instead of
+    τ̂lgd"), on a vertical joint (τg = 0) the external torque ``τl``.
+    """
+
+    coulomb_Nm: float = 0.0
+    velocity_scale_radps: float = 2.0
+
+    def __post_init__(self) -> None:
+        check_fields(self, {"coulomb_Nm": ">=0", "velocity_scale_radps": ">0"})
+
+    @property
+    def active(self) -> bool:
+        """True when the law compensates the friction (Eq. 5)."""
+        return self.coulomb_Nm > 0.0
+
+    def torque(self, velocity_radps: float) -> float:
+        """``τ̂d`` (Nm, output) at the motor velocity ``velocity_radps`` (rad/s, motor)."""
+        return -self.coulomb_Nm * math.tanh(velocity_radps / self.velocity_scale_radps)
+
+
+#: Seed 003 §VI: the experiment's motor friction model (13.7 Nm, 2 rad/s at the motor).
+SEED_FRICTION_MODEL = FrictionModelConfig(coulomb_Nm=13.7, velocity_scale_radps=2.0)
+
+#: Seed 003 §V: the estimates JTF2 and JTF3 take in the literature ("the estimates τ̂s
+#: and τ̂s' are obtained by simply feeding the torque sensor measurement y through basic
+#: low-pass and derivative filters"): ``"filters"``; ``"observer"`` takes them from the
+#: LQG observer (Eq. 8), as JTF1 does.
+Estimates = Literal["observer", "filters"]
+
+#: Cut-off (Hz) of the first-order low-pass giving τ̂s for the ``filters`` estimates.
+#: The seed gives none.  It must pass the 17 Hz joint mode the PD law damps with little
+#: phase lag (18.8° at 17 Hz) while cutting the sensor noise (W = 0.12 Nm² per sample,
+#: 0.35 Nm rms) to ~0.14 Nm rms (the noise bandwidth of a 50 Hz first-order low-pass is
+#: 78.5 Hz of the 500 Hz Nyquist band).  20-100 Hz change the noise-free §VI figure by
+#: less than 0.15 Nm.
+JTF_LOWPASS_HZ = 50.0
+#: Cut-off (Hz) of the band-limited differentiator ``s / (s/ωd + 1)`` giving τ̂s' for the
+#: ``filters`` estimates.  The seed gives none; the loop decides it.  With the seed's k1,
+#: k2 (q1 = 500, q2 = 0.1: the derivative term alone closes a loop near 130 Hz) and one
+#: sample of actuation delay, the §VI tracking loop (``firmware.tracking``, noise-free)
+#: runs into the torque limit for any derivative cut-off up to 300 Hz (max |e| of
+#: JTF3 at 50 Hz low-pass: 7.9 Nm at 50 Hz, 3.0 Nm at 200 Hz, 2.24 Nm at 300 Hz, all
+#: saturating) and is stable from 350 Hz on (2.13 Nm, no saturation).  400 Hz keeps a
+#: margin; it leaves the sensor noise almost unfiltered in τ̂s', which is seed 003 §V's
+#: point ("this may degrade JTF control performance since built-in joint-torque
+#: sensors are usually affected by noise w having significant variance").  (The seed-000
+#: listing's ``Diff_filter``, H(s) = s / (0.005 s + 1), has 31.8 Hz.)
+JTF_DERIVATIVE_HZ = 400.0
+
+
 #: Plausibility: the largest motor acceleration (rad/s², motor side) the joint can do.
 #: The seeds give no motor data, so this is the drive emulator's default motor
 #: (``hostsim.plant.AmplifierConfig`` / ``DriveTrainConfig``, representative of an
@@ -640,6 +716,15 @@ class ControlConfig:
     - ``torque_limit_Nm``: motor torque limit (output-referred); the command is clipped
       to it and to the DAC range (±10 V · ``torque_per_volt``).  Default 36 Nm, the
       default plant's current limit (6 A · 0.06 Nm/A · 100).
+    - ``friction``: the motor-friction model of Eq. 5 (:class:`FrictionModelConfig`);
+      off by default (Eq. 4).  :data:`SEED_FRICTION_MODEL` is the seed's experiment.
+    - ``estimates``: where the law takes ``τ̂s`` and ``τ̂s'`` from: ``observer`` (Eq. 8,
+      the default, for every law) or ``filters`` (seed 003 §V: JTF2 and JTF3 as the
+      literature builds them, a first-order low-pass at ``lowpass_Hz`` and a
+      band-limited differentiator at ``derivative_Hz`` on the measured torque, no
+      prediction; :data:`JTF_LOWPASS_HZ`, :data:`JTF_DERIVATIVE_HZ`).  With
+      ``filters`` the observer still runs, on the applied command, for the telemetry
+      of ``τ̂lgd``; JTF1 with ``filters`` is refused (its k3 needs ``τ̂lgd``).
     """
 
     law: Law = Law.NONE
@@ -653,9 +738,24 @@ class ControlConfig:
     desired: DesiredTorqueConfig = field(default_factory=DesiredTorqueConfig)
     torque_per_volt: float = 6.0
     torque_limit_Nm: float = 36.0
+    friction: FrictionModelConfig = field(default_factory=FrictionModelConfig)
+    estimates: Estimates = "observer"
+    lowpass_Hz: float = JTF_LOWPASS_HZ
+    derivative_Hz: float = JTF_DERIVATIVE_HZ
 
     def __post_init__(self) -> None:
+        if self.estimates not in ("observer", "filters"):
+            raise ValueError(
+                f"control.estimates must be 'observer' or 'filters', got {self.estimates!r}"
+            )
+        if self.estimates == "filters" and self.law in (Law.JTF1, Law.JTF1_FF):
+            raise ValueError(
+                "control.estimates = 'filters' is for jtf2 and jtf3 (seed 003 §V); JTF1 "
+                "needs the observer's exogenous-torque estimate"
+            )
+        check_fields(self, {"lowpass_Hz": ">0", "derivative_Hz": ">0"})
         for name, expected in (
+            ("friction", FrictionModelConfig),
             ("law", Law),
             ("joint", JointParams),
             ("weights", LqgWeights),

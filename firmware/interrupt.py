@@ -62,7 +62,8 @@ class IsrOutput:
     torque (Nm, output-referred) and ``tau_m_cmd`` the torque the DAC code stands for
     (after the torque limit, the DAC range and quantisation), ``saturated`` whether
     the two differ by more than half a DAC step.  ``reference_V`` is then the DAC
-    voltage before quantisation.
+    voltage before quantisation.  ``tau_d_hat`` is the motor-friction model's torque
+    of Eq. 5 (0 without compensation); with it ``tau_lgd_hat`` is ``τ̂lg``.
     """
 
     samplecount: int = 0
@@ -86,6 +87,7 @@ class IsrOutput:
     tau_m_request: float = 0.0
     tau_m_cmd: float = 0.0
     saturated: bool = False
+    tau_d_hat: float = 0.0
 
 
 @runtime_checkable

@@ -74,6 +74,7 @@ from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
 from hdhil.firmware.stages import (
     Differentiator,
     EncoderUnwrap,
+    LowPass,
     ReferenceGenerator,
     SensorPlausibility,
     VelocityIntegrator,
@@ -297,6 +298,18 @@ class TorqueControl:
        really applies, saturated and quantised;
     5. the outputs (:class:`IsrOutput`) in the product convention.
 
+    Eq. 5 (seed 003 §IV-VI, friction compensation): with ``cfg.control.friction``
+    active, the model ``τ̂d`` of the tachometer velocity is subtracted from the command
+    and added to the torque the observer is told acts on the motor, so the observer's
+    third state is ``τ̂lg`` (``LqgController.step(..., tau_d_hat=τ̂d)``).
+
+    Seed 003 §V estimates (``cfg.control.estimates = "filters"``, JTF2/JTF3 only): the
+    law takes ``τ̂s`` from a first-order low-pass and ``τ̂s'`` from a band-limited
+    differentiator of the measured torque (:class:`firmware.stages.LowPass`,
+    :class:`firmware.stages.Differentiator`), acting at once on the current sample
+    (no prediction); the observer still runs on the applied command for the telemetry
+    of ``τ̂lgd``.
+
     Args:
         cfg: the firmware configuration; ``cfg.control.law`` must not be ``none``.
     """
@@ -323,23 +336,45 @@ class TorqueControl:
         self._tpv = c.torque_per_volt
         self._limit = c.torque_limit_Nm
         self._half_lsb_Nm = 0.5 * cfg.dac.lsb_V * abs(c.torque_per_volt) * (1.0 + 1e-9)
+        self._friction = c.friction if c.friction.active else None
+        self._filters = c.estimates == "filters"
+        self.lowpass = LowPass(c.lowpass_Hz, cfg.sample_period_s)
+        self.derivative = Differentiator(
+            1.0 / (2.0 * math.pi * c.derivative_Hz), cfg.sample_period_s
+        )
+        g = self.controller.gains
+        self._gains = (float(g.k1), float(g.k2), float(g.k4))
         #: Samples whose command was clipped (torque limit or DAC range) since the reset.
         self.saturations = 0
 
     def reset(self) -> None:
-        """Observer back to rest (all estimates 0), saturation counter cleared."""
+        """Observer back to rest (all estimates 0), filters cleared, saturation counter
+        cleared."""
         self.controller.reset()
+        self.lowpass.reset()
+        self.derivative.reset()
         self.saturations = 0
 
-    def __call__(self, k: int, T: float, out: IsrOutput) -> None:
-        """Sample ``k`` with measured torque ``T`` (Nm, product convention): runs the
-        regulator and writes the command and estimates into ``out``."""
+    def __call__(self, k: int, T: float, out: IsrOutput, velocity: float = 0.0) -> None:
+        """Sample ``k`` with measured torque ``T`` (Nm, product convention) and motor
+        velocity ``velocity`` (rad/s, for the Eq. 5 friction model): runs the regulator
+        and writes the command and estimates into ``out``."""
         desired = self.desired.value
         T_D = desired(k)
         dT_D = (desired(k + 1) - desired(k - 1)) * self._half_fs
         s = SENSOR_TORQUE_SIGN
         ctrl = self.controller
-        request = ctrl.step(s * T, s * T_D, s * dT_D)
+        friction = self._friction
+        tau_d = None if friction is None else friction.torque(velocity)
+        request = ctrl.step(s * T, s * T_D, s * dT_D, tau_d)
+        if self._filters:
+            # seed 003 §V: JTF2/JTF3 on low-pass and derivative filters of y = τs^m
+            k1, k2, k4 = self._gains
+            ts_hat = self.lowpass.step(s * T)
+            dts_hat = self.derivative.step(s * T)
+            request = -(k1 * (ts_hat - s * T_D) + k2 * dts_hat + k4 * s * T_D)
+            if tau_d is not None:
+                request -= tau_d
         limit = self._limit
         tau = limit if request > limit else -limit if request < -limit else request
         volts = tau / self._tpv
@@ -351,8 +386,13 @@ class TorqueControl:
             self.saturations += 1
         out.reference_V = volts
         out.dac_counts = counts
-        out.tau_s_hat = T_hat = s * ctrl.tau_s_hat
-        out.dtau_s_hat = s * ctrl.tau_s_dot_hat
+        if self._filters:
+            out.tau_s_hat = T_hat = s * ts_hat
+            out.dtau_s_hat = s * dts_hat
+        else:
+            out.tau_s_hat = T_hat = s * ctrl.tau_s_hat
+            out.dtau_s_hat = s * ctrl.tau_s_dot_hat
+        out.tau_d_hat = 0.0 if tau_d is None else tau_d
         out.tau_lgd_hat = ctrl.tau_lgd_hat
         out.tau_sD = T_D
         out.dtau_sD = dT_D
@@ -456,7 +496,7 @@ class InterruptHandler:
             out.reference_V = ref_fl
         else:
             # seed 003: LQG torque control on the measured torque -> write_dac0(tau_m / Nm per V)
-            control(k, Torque_f if self._feedback_filtered else T_meas, out)
+            control(k, Torque_f if self._feedback_filtered else T_meas, out, chain.velocity)
             if stamp is not None:
                 stamp(6)
 

@@ -19,6 +19,7 @@ from hdhil.firmware.config import Calibration, PlausibilityConfig, ReferenceConf
 __all__ = [
     "Differentiator",
     "EncoderUnwrap",
+    "LowPass",
     "ReferenceGenerator",
     "SensorPlausibility",
     "VelocityIntegrator",
@@ -139,6 +140,45 @@ class Differentiator:
         """Back to the listing's initial state ``v_1 = a_1 = 0``."""
         self.v_1 = 0.0
         self.a_1 = 0.0
+
+
+class LowPass:
+    """First-order low-pass ``1 / (s/ωc + 1)``, Tustin at Ts (not in the seeds' listings).
+
+    The "basic low-pass filter" through which the JTF laws of the literature feed the
+    torque sensor measurement (seed 003 §V, ``003_cab3072408ebe226.txt``: "the estimates
+    τ̂s and τ̂s' are obtained by simply feeding the torque sensor measurement y through
+    basic low-pass and derivative filters").  ``y = b (x + x_1) + a y_1`` with ``a =
+    (2τ - Ts) / (2τ + Ts)``, ``b = Ts / (2τ + Ts)``, ``τ = 1 / (2π cutoff)``; unity gain
+    at DC.  The state starts at the first input (no start-up step from 0).
+    """
+
+    __slots__ = ("_a", "_b", "_x1", "_y1")
+
+    def __init__(self, cutoff_Hz: float, sample_period_s: float) -> None:
+        if not (math.isfinite(cutoff_Hz) and 0.0 < cutoff_Hz < 0.5 / sample_period_s):
+            raise ValueError(
+                f"low-pass cut-off must lie in (0, {0.5 / sample_period_s:g}) Hz, got {cutoff_Hz!r}"
+            )
+        tau = 1.0 / (2.0 * math.pi * cutoff_Hz)
+        self._a = (2.0 * tau - sample_period_s) / (2.0 * tau + sample_period_s)
+        self._b = sample_period_s / (2.0 * tau + sample_period_s)
+        self._x1: float | None = None
+        self._y1 = 0.0
+
+    def step(self, x: float) -> float:
+        """One sample."""
+        if self._x1 is None:
+            self._x1 = self._y1 = x
+            return x
+        y = self._b * (x + self._x1) + self._a * self._y1
+        self._x1, self._y1 = x, y
+        return y
+
+    def reset(self) -> None:
+        """Forget the history."""
+        self._x1 = None
+        self._y1 = 0.0
 
 
 class EncoderUnwrap:

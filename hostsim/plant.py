@@ -409,7 +409,15 @@ class LoadTorqueConfig:
         return self.bias_Nm + (self.amplitude_Nm if p < self.duty else -self.amplitude_Nm)
 
 
-LinkMotionKind = Literal["none", "hold", "sine"]
+LinkMotionKind = Literal["none", "hold", "sine", "person"]
+
+#: ``person`` link motion: how many sinusoids make up the motion.
+PERSON_COMPONENTS = 5
+#: ``person`` link motion: the band its frequencies are drawn from (Hz).  A person moving
+#: a handle over ±60° by hand does so in slow, uneven strokes of one to several seconds;
+#: the upper end also keeps the link within seed 003's "motor rotor maximum velocity
+#: equal to 1000rpm" (§I), 1.05 rad/s at the output (see :meth:`LinkMotionConfig.components`).
+PERSON_BAND_HZ = (0.05, 0.25)
 
 
 @dataclass(frozen=True)
@@ -427,6 +435,20 @@ class LinkMotionConfig:
     - ``none``: the link is free (the default): it obeys Eq. 1, second line.
     - ``hold``: ``theta_l = theta_0`` (link clamped, e.g. a user gripping the handle).
     - ``sine``: ``theta_l = theta_0 + A sin(2 pi f t)`` (seed 003 §VI: A = 20°, f = 1 Hz).
+    - ``person``: a person-like motion of the handle (seed 003 §VI experiment: "the end
+      link is moved in the range theta_l in [-60, 60] deg by a human user who acts on the
+      sensorized handle").  The seed gives no trajectory; our model is a sum of
+      :data:`PERSON_COMPONENTS` sinusoids ``theta_l = theta_0 + sum_i a_i sin(2 pi f_i t
+      + phi_i)`` whose frequencies are drawn uniformly from :data:`PERSON_BAND_HZ`,
+      phases uniformly, amplitudes ``∝ 1 / f_i`` (equal velocity per component, a
+      smooth, irregular stroke), from ``numpy.random.default_rng(motion_seed)``: the
+      same ``motion_seed`` gives the same motion on any machine.  The amplitudes are
+      scaled so that the largest ``|theta_l - theta_0|`` over the first
+      ``horizon_s`` seconds is ``A`` (60° for the seed's range) unless that would make
+      the link faster than ``max_velocity_radps`` (seed 003 §I: 1000 rpm at the motor,
+      1.047 rad/s at the output through the 100:1 reduction), in which case the
+      velocity bound sets the scale.  Smooth to every derivative, so the environment
+      torque it takes (the handle torque) is smooth too.
 
     The torque the environment applies to impose it is truth:
     :attr:`Plant.environment_torque` (``tau_l``) and :attr:`Plant.external_torque`
@@ -443,15 +465,57 @@ class LinkMotionConfig:
     amplitude_deg: float = 0.0
     frequency_Hz: float = 1.0
     offset_deg: float = 0.0
+    motion_seed: int = 0
+    horizon_s: float = 60.0
+    max_velocity_radps: float = 1000.0 * TWO_PI / 60.0 / 100.0
 
     def __post_init__(self) -> None:
-        if self.kind not in ("none", "hold", "sine"):
+        if self.kind not in ("none", "hold", "sine", "person"):
             raise ValueError(
-                f"LinkMotionConfig.kind must be one of none, hold, sine, got {self.kind!r}"
+                f"LinkMotionConfig.kind must be one of none, hold, sine, person, got {self.kind!r}"
             )
         check_fields(
-            self, {"amplitude_deg": "finite", "frequency_Hz": ">0", "offset_deg": "finite"}
+            self,
+            {
+                "amplitude_deg": "finite",
+                "frequency_Hz": ">0",
+                "offset_deg": "finite",
+                "horizon_s": ">0",
+                "max_velocity_radps": ">0",
+            },
         )
+        ms = self.motion_seed
+        if isinstance(ms, bool) or not isinstance(ms, int) or ms < 0:
+            raise ValueError(f"LinkMotionConfig.motion_seed must be an integer >= 0, got {ms!r}")
+        object.__setattr__(self, "_components", self._make_components())
+
+    def _make_components(self) -> tuple[tuple[float, float, float], ...]:
+        if self.kind == "sine":
+            return ((math.radians(self.amplitude_deg), TWO_PI * self.frequency_Hz, 0.0),)
+        if self.kind != "person" or self.amplitude_deg == 0.0:
+            return ()
+        rng = np.random.default_rng(self.motion_seed)
+        lo, hi = PERSON_BAND_HZ
+        f = rng.uniform(lo, hi, PERSON_COMPONENTS)
+        phase = rng.uniform(0.0, TWO_PI, PERSON_COMPONENTS)
+        w = TWO_PI * f
+        a = 1.0 / f
+        t = np.arange(0.0, self.horizon_s, 0.01)
+        shape = (a[:, None] * np.sin(w[:, None] * t + phase[:, None])).sum(axis=0)
+        speed = (a[:, None] * w[:, None] * np.cos(w[:, None] * t + phase[:, None])).sum(axis=0)
+        scale = math.radians(abs(self.amplitude_deg)) / float(np.max(np.abs(shape)))
+        scale = min(scale, self.max_velocity_radps / float(np.max(np.abs(speed))))
+        sign = 1.0 if self.amplitude_deg > 0 else -1.0
+        return tuple(
+            (sign * scale * float(ai), float(wi), float(pi))
+            for ai, wi, pi in zip(a, w, phase, strict=True)
+        )
+
+    def components(self) -> tuple[tuple[float, float, float], ...]:
+        """The motion as ``(amplitude_rad, omega_radps, phase_rad)`` sinusoids around
+        ``offset_deg``: one for ``sine``, :data:`PERSON_COMPONENTS` for ``person``, none
+        for ``hold`` and ``none``."""
+        return self._components  # type: ignore[attr-defined, no-any-return]
 
     @property
     def active(self) -> bool:
@@ -470,15 +534,23 @@ class LinkMotionConfig:
 
     def angle(self, t: float) -> float:
         """Prescribed link angle (rad) at time ``t`` (s)."""
+        if self.kind == "person":
+            return math.radians(self.offset_deg) + sum(
+                a * math.sin(w * t + p) for a, w, p in self.components()
+            )
         return math.radians(self.offset_deg) + self.amplitude_rad * math.sin(self.omega_radps * t)
 
     def velocity(self, t: float) -> float:
         """Prescribed link velocity (rad/s) at time ``t``."""
+        if self.kind == "person":
+            return sum(a * w * math.cos(w * t + p) for a, w, p in self.components())
         w = self.omega_radps
         return self.amplitude_rad * w * math.cos(w * t)
 
     def acceleration(self, t: float) -> float:
         """Prescribed link acceleration (rad/s²) at time ``t``."""
+        if self.kind == "person":
+            return -sum(a * w * w * math.sin(w * t + p) for a, w, p in self.components())
         w = self.omega_radps
         return -self.amplitude_rad * w * w * math.sin(w * t)
 
@@ -750,6 +822,7 @@ def prescribed_model(cfg: PlantConfig) -> tuple[np.ndarray, np.ndarray]:
 
     The exosystem makes the zero-order-hold discretisation exact for the sine (and
     trivially for ``hold``, A = 0).  Current row as in :func:`continuous_model`.
+    For ``person`` see :func:`person_model`.
     """
     dt_cfg, link = cfg.drivetrain, cfg.link
     jm, k, c = dt_cfg.J_motor, dt_cfg.k_flex, dt_cfg.c_flex
@@ -763,6 +836,33 @@ def prescribed_model(cfg: PlantConfig) -> tuple[np.ndarray, np.ndarray]:
     b[1, 1] = 1.0 / jm
     _current_row(cfg, a, b, row=2)
     a[3, 4], a[4, 3] = link.omega_radps, -link.omega_radps
+    return a, b
+
+
+def person_model(cfg: PlantConfig) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`prescribed_model` for a link moved as a sum of sinusoids (``person``).
+
+    State ``z = [d, w_m, i, s_1, c_1, ..., s_n, c_n]`` with ``s_j = sin(w_j t + p_j)``,
+    ``c_j = cos(w_j t + p_j)`` and ``dq_l = sum_j a_j w_j c_j``
+    (:meth:`LinkMotionConfig.components`); one rotation block per component, so the
+    zero-order-hold discretisation is exact for the whole motion.
+    """
+    dt_cfg = cfg.drivetrain
+    jm, k, c = dt_cfg.J_motor, dt_cfg.k_flex, dt_cfg.c_flex
+    comps = cfg.link.components()
+    n = 3 + 2 * len(comps)
+    a = np.zeros((n, n))
+    b = np.zeros((n, 2))
+    a[0, 1] = 1.0
+    a[1, 0] = -k / jm
+    a[1, 1] = -(dt_cfg.b_motor + c) / jm
+    b[1, 1] = 1.0 / jm
+    for j, (amp, w, _p) in enumerate(comps):
+        s_j, c_j = 3 + 2 * j, 4 + 2 * j
+        a[0, c_j] = -amp * w
+        a[1, c_j] = c * amp * w / jm
+        a[s_j, c_j], a[c_j, s_j] = w, -w
+    _current_row(cfg, a, b, row=2)
     return a, b
 
 
@@ -858,6 +958,7 @@ class Plant:
         self._mgl = cfg.gravity.mgl_Nm
         self._g_off = math.radians(cfg.gravity.offset_deg)
         self._link = cfg.link if cfg.link.active else None
+        self._person_maps: dict[float, tuple[np.ndarray, np.ndarray]] = {}
         if self._link is not None:
             # t = 0: a rigid joint moving with the link (no twist, no velocity jump)
             self._ql = self._link.angle(0.0)
@@ -968,7 +1069,10 @@ class Plant:
         if not dt > 0.0 or volts != volts:
             raise ValueError(f"advance needs dt > 0 and a number of volts, got {volts!r}, {dt!r}")
         if self._link is not None:
-            self._advance_prescribed(volts, dt)
+            if self._link.kind == "person":
+                self._advance_person(volts, dt)
+            else:
+                self._advance_prescribed(volts, dt)
             return
         (
             dd, dm, dl, di, du, dtm, dtl,
@@ -1029,6 +1133,39 @@ class Plant:
         t = self._t + y
         self._t_carry = (t - self._t) - y
         self._t = t
+
+    def _advance_person(self, volts: float, dt: float) -> None:
+        """:meth:`advance` with the link moved as a sum of sinusoids (:func:`person_model`);
+        the exosystem starts each step from the plant's clock, as for the sine."""
+        maps = self._person_maps
+        m = maps.get(dt)
+        if m is None:
+            a, b = person_model(self.cfg)
+            m = _zoh(a, b, dt / self._substeps, current_row=2, ideal_amplifier=_no_lag(self.cfg))
+            if len(maps) >= 16:
+                maps.clear()
+            maps[dt] = m
+        ad, bd = m
+        i_cmd = self._command_current(volts)
+        link = self._link
+        assert link is not None
+        comps = link.components()
+        t0 = self._t
+        z = np.empty(ad.shape[0])
+        z[0], z[1], z[2] = self._d, self._wm, self._i
+        for j, (_a, w, p) in enumerate(comps):
+            z[3 + 2 * j] = math.sin(w * t0 + p)
+            z[4 + 2 * j] = math.cos(w * t0 + p)
+        u = np.array([i_cmd, 0.0])
+        cm, inv_eps, tanh = self._cm, self._inv_eps, math.tanh
+        for _ in range(self._substeps):
+            u[1] = -cm * tanh(z[1] * inv_eps)
+            z = ad @ z + bd @ u
+        self._d, self._wm, self._i = float(z[0]), float(z[1]), float(z[2])
+        self._tick(dt)
+        self._ql = link.angle(self._t)
+        self._wl = link.velocity(self._t)
+        self._update_sensor()
 
     def _advance_prescribed(self, volts: float, dt: float) -> None:
         """:meth:`advance` with the link on its prescribed trajectory (:func:`prescribed_model`).

@@ -32,6 +32,7 @@ SCENARIOS = (
     "torque-steps",
     "lqg-tracking",
     "lqg-misalignment",
+    "lqg-experiment",
 )
 
 #: Fields of ``run --json`` that depend on the wall clock or on where the trace went.

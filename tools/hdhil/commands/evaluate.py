@@ -41,12 +41,38 @@ def run(args: argparse.Namespace) -> int:
           if args.scenario else FirmwareConfig())  # fmt: skip
     rec, damage = recording_from_trace(args.trace, fw.sample_period_s)
     ev = evaluate(rec, fw, args.skip)
+    tracking = _tracking(args.trace, fw, args.skip)
+    if tracking is not None:
+        ev["tracking"] = tracking
     if args.json:
         json.dump(ev, sys.stdout, indent=2)
         print()
     else:
         print(format_evaluation(ev))
+        if tracking is not None:
+            from hdhil.rig.runner import format_tracking
+
+            print(format_tracking([tracking]))
     if damage:
         print(f"hdhil: warning: {damage}", file=sys.stderr)
         return 1
     return 0
+
+
+def _tracking(trace: Path, fw: FirmwareConfig, skip_s: float) -> dict | None:
+    """Seed 003 tracking figures from the trace alone (desired torque and estimates from
+    the controller's CTRL_TPDO2, truth from the truth channel), or None without
+    torque-control telemetry.  The joint's Jl/Jm and whether the law compensates the
+    friction (Eq. 5) come from ``--scenario``."""
+    from hdhil.can.tracefile import read_trace
+    from hdhil.rig.score import TrackingScorer
+
+    c = fw.control
+    scorer = TrackingScorer(c.joint.Jl / c.joint.Jm, skip_s, c.friction.active)
+    with read_trace(trace) as frames:
+        for msg in frames:
+            scorer.on_message_received(msg)
+    if not scorer.n:
+        return None
+    law = c.law.name.lower() if c.active else "(from trace)"
+    return {"law": law, **scorer.result().as_dict()}

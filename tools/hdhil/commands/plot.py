@@ -412,6 +412,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(default: the firmware defaults)",
     )
     p.add_argument(
+        "--figure",
+        choices=("ripple", "fig8"),
+        default="ripple",
+        help="ripple: seed 000 Figs. 8-11 (default); fig8: seed 003 Fig. 8, the four "
+        "panels of the LQG experiment (needs a torque-control trace, e.g. scenario "
+        "lqg-experiment)",
+    )
+    p.add_argument(
         "--window",
         nargs=2,
         type=float,
@@ -430,6 +438,8 @@ def run(args: argparse.Namespace) -> int:
 
     _check_out(args.out)
     scenario = load_scenario(args.scenario) if args.scenario else None
+    if args.figure == "fig8":
+        return _run_fig8(args, scenario)
     fw = from_dict(FirmwareConfig, scenario.firmware, "firmware") if scenario else FirmwareConfig()
     rec, damage = recording_from_trace(args.trace, fw.sample_period_s)
     data = plot_data(rec, fw)
@@ -441,6 +451,29 @@ def run(args: argparse.Namespace) -> int:
     )
     window = tuple(args.window) if args.window is not None else None
     fig = make_figure(data, title, window)  # type: ignore[arg-type]
+    try:
+        fig.savefig(args.out, dpi=100)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"--out {args.out}: cannot write ({exc})") from None
+    print(f"hdhil plot: wrote {args.out}")
+    if damage:
+        print(f"hdhil: warning: {damage}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _run_fig8(args: argparse.Namespace, scenario: Any) -> int:
+    """``hdhil plot --figure fig8``: seed 003 Fig. 8 (:mod:`hdhil.commands.seedfigs`)."""
+    from hdhil.commands.seedfigs import fig8_data, make_fig8
+
+    data, damage = fig8_data(args.trace)
+    skip = scenario.evaluate_from_s if scenario is not None else 0.0
+    name = scenario.name if scenario else "(not given)"
+    title = (
+        f"{args.trace.name}: scenario {name}, {len(data)} samples; figures from t >= {skip:g} s\n"
+        "after seed 003 (Vertechy et al.) Fig. 8, seed sign convention"
+    )
+    fig = make_fig8(data, title, skip)
     try:
         fig.savefig(args.out, dpi=100)
     except (OSError, ValueError) as exc:

@@ -1,0 +1,190 @@
+"""Figures that redraw a seed's figure from this project's data (used by ``hdhil plot
+--figure fig8`` and ``hdhil calibrate --plot``; not a subcommand of its own).
+
+- :func:`fig8_data` / :func:`make_fig8`: seed 003 (``003_cab3072408ebe226.txt``) Fig. 8,
+  "Performance of the proposed LQG torque regulator (experimental results)", four
+  panels from top to bottom: (1) the raw sensor torque τs^m and the Kalman estimate
+  τ̂s; (2) the external-torque estimate τ̂l and the handle's measurement τl^m (here the
+  emulator's true external torque, ``TRUTH_JOINT.tau_ext``); (3) the tracking error e
+  and the difference τ̂l − τl^m ("the proposed controller is able to keep the torque
+  sensor tracking error e within ±0.5 Nm"; "the significant difference (roughly ±3 Nm)
+  between τ̂l and τl^m"); (4) the link position and velocity with the commanded motor
+  torque τm ("τm is rather smooth and remains within ±40 Nm").  Torques in the seed's
+  sign (``τs = -T``, :mod:`hdhil.firmware.isr`), so the desired torque is
+  ``+20 sin(0.4 π t)`` as printed.  Everything comes from the trace: the controller's
+  telemetry (``CTRL_TPDO1``, ``CTRL_TPDO2``: τ̂s, τ̂lgd, τsD), the drive's command
+  (``TRUTH_JOINT.tau_m_cmd``) and the truth channel.
+- :func:`make_calibration_figure`: seed 000 (``000_ae0a3dbe24949b7c.txt``) Figs. 6-7,
+  "Torque sensor calibration results for low-range loading" / "... full-range
+  loading": the applied torque against the bridge voltage of every experiment with its
+  least-squares line, one panel per range.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from hdhil.core.errors import UserError
+
+__all__ = ["Fig8Data", "fig8_data", "make_calibration_figure", "make_fig8"]
+
+
+@dataclass
+class Fig8Data:
+    """Time series of seed 003 Fig. 8, one row per control telemetry sample, in the
+    seed's sign convention (Nm, deg, rad/s)."""
+
+    t: np.ndarray
+    tau_s_meas: np.ndarray  #: τs^m, the calibrated measured torque
+    tau_s_hat: np.ndarray  #: τ̂s, the observer's estimate
+    tau_sD: np.ndarray  #: τsD, the desired torque from telemetry
+    tau_s_true: np.ndarray  #: τs, truth (NaN without a truth channel)
+    tau_l_hat: np.ndarray  #: the observer's exogenous-torque estimate (τ̂lg with Eq. 5)
+    tau_l_meas: np.ndarray  #: the true external torque τl + τg (the handle's sensor)
+    theta_l_deg: np.ndarray
+    omega_l: np.ndarray
+    tau_m: np.ndarray  #: commanded motor torque (output-referred)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+def fig8_data(trace: Path) -> tuple[Fig8Data, str]:
+    """Read a trace of a torque-control run into :class:`Fig8Data` (and a damage note)."""
+    from hdhil.can.tracefile import read_trace
+    from hdhil.dbc import codec
+
+    t1 = codec("control", "CTRL_TPDO1").expect("T_meas", "T_filtered", "velocity", "current")
+    t2 = codec("control", "CTRL_TPDO2").expect("dtau_s_hat", "tau_lgd_hat", "tau_sD", "e_hat")
+    tt = codec("truth", "TRUTH_TORQUE").expect("T_true", "T_ripple")
+    tm = codec("truth", "TRUTH_MOTION").expect(
+        "theta_motor", "theta_output", "omega_motor", "omega_output"
+    )
+    tj = codec("truth", "TRUTH_JOINT").expect("tau_ext", "tau_d", "tau_m", "tau_m_cmd")
+    keys = {
+        (t1.frame_id, False): "t1",
+        (t2.frame_id, False): "t2",
+        (tt.frame_id, True): "tt",
+        (tm.frame_id, True): "tm",
+        (tj.frame_id, True): "tj",
+    }
+    last: dict[str, tuple[Any, ...]] = {}
+    rows: list[tuple[float, ...]] = []
+    nan = math.nan
+    with read_trace(trace) as frames:
+        for msg in frames:
+            key = keys.get((msg.arbitration_id, msg.is_extended_id))
+            if key is None or len(msg.data) != 8:
+                continue
+            if key != "t2":
+                last[key] = {"t1": t1, "tt": tt, "tm": tm, "tj": tj}[key].decode(msg.data)
+                continue
+            if "t1" not in last:
+                continue
+            _dtau, tau_lgd_hat, tau_sD, _e = t2.decode(msg.data)
+            T_meas, T_filtered, _vel, _cur = last["t1"]
+            T_true = last["tt"][0] if "tt" in last else nan
+            th, om = (last["tm"][1], last["tm"][3]) if "tm" in last else (nan, nan)
+            tau_ext, _tau_d, _tau_m, tau_m_cmd = last.get("tj", (nan,) * 4)
+            rows.append((msg.timestamp, T_meas, T_filtered, tau_sD, T_true, tau_lgd_hat,
+                         tau_ext, th, om, tau_m_cmd))  # fmt: skip
+        damage = "; ".join(d.describe(str(trace)) for d in frames.damage)
+    if len(rows) < 2:
+        raise UserError(
+            f"{trace}: no torque-control telemetry (CTRL_TPDO2) to draw seed 003 Fig. 8 from; "
+            "record a run with a control law (e.g. hdhil run --scenario lqg-experiment --trace)"
+        )
+    a = np.array(rows, dtype=float)
+    theta = np.degrees((a[:, 7] + math.pi) % (2.0 * math.pi) - math.pi)  # link within ±180°
+    return (
+        Fig8Data(
+            t=a[:, 0],
+            tau_s_meas=-a[:, 1],
+            tau_s_hat=-a[:, 2],
+            tau_sD=-a[:, 3],
+            tau_s_true=-a[:, 4],
+            tau_l_hat=a[:, 5],
+            tau_l_meas=a[:, 6],
+            theta_l_deg=theta,
+            omega_l=a[:, 8],
+            tau_m=a[:, 9],
+        ),
+        damage,
+    )
+
+
+def make_fig8(d: Fig8Data, title: str, skip_s: float = 0.0) -> Figure:
+    """Seed 003 Fig. 8's four panels (module docstring); the figures in the legends
+    (max |e|, the τ̂l − τl^m range, the τm envelope) are over ``t >= skip_s``."""
+    fig = Figure(figsize=(11, 11))
+    axes = fig.subplots(4, 1, sharex=True)
+    t = d.t
+    ev = t >= skip_s
+    e = d.tau_s_true - d.tau_sD
+    dl = d.tau_l_hat - d.tau_l_meas
+
+    def peak(x: np.ndarray) -> float:
+        x = x[ev & np.isfinite(x)]
+        return float(np.max(np.abs(x))) if x.size else math.nan
+
+    ax = axes[0]
+    ax.plot(t, d.tau_s_meas, color="0.6", lw=0.6, label="τs^m (measured)")
+    ax.plot(t, d.tau_s_hat, color="C0", lw=1.0, label="τ̂s (Kalman estimate)")
+    ax.plot(t, d.tau_sD, "k--", lw=0.8, label="τsD (desired)")
+    ax.set_ylabel("sensor torque / Nm")
+    ax.legend(loc="upper right", fontsize=8)
+    ax = axes[1]
+    ax.plot(t, d.tau_l_meas, color="0.6", lw=0.8, label="τl^m (handle: true external torque)")
+    ax.plot(t, d.tau_l_hat, color="C1", lw=1.0, label="τ̂l (observer)")
+    ax.set_ylabel("external torque / Nm")
+    ax.legend(loc="upper right", fontsize=8)
+    ax = axes[2]
+    ax.plot(t, e, color="C3", lw=0.8, label=f"e = τs − τsD (max |e| {peak(e):.2f} Nm)")
+    ax.plot(t, dl, color="C2", lw=0.8, label=f"τ̂l − τl^m (max {peak(dl):.2f} Nm)")
+    for y in (-0.5, 0.5):
+        ax.axhline(y, color="k", lw=0.5, ls=":")
+    ax.set_ylabel("error / Nm")
+    ax.legend(loc="upper right", fontsize=8)
+    ax = axes[3]
+    ax.plot(t, d.theta_l_deg, color="C0", lw=1.0, label="θl / deg")
+    ax.plot(t, np.degrees(d.omega_l), color="C4", lw=0.8, label="θ̇l / (deg/s)")
+    ax.plot(t, d.tau_m, color="C3", lw=0.8, label=f"τm / Nm (max |τm| {peak(d.tau_m):.1f})")
+    for y in (-40.0, 40.0):
+        ax.axhline(y, color="k", lw=0.5, ls=":")
+    ax.set_ylabel("link, motor torque")
+    ax.set_xlabel("time / s")
+    ax.legend(loc="upper right", fontsize=8)
+    for ax in axes:
+        ax.grid(True, lw=0.3)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def make_calibration_figure(result: Any, title: str) -> Figure:
+    """Seed 000 Figs. 6-7: torque against bridge voltage per experiment, fitted lines,
+    one panel per load range (``result`` a :class:`hdhil.hostsim.calibration.CalibrationResult`)."""
+    ranges = sorted({e.range_Nm for e in result.experiments})
+    fig = Figure(figsize=(6.0 * len(ranges), 5.0))
+    axes = np.atleast_1d(fig.subplots(1, len(ranges)))
+    for ax, rng, fig_no in zip(axes, ranges, range(6, 6 + len(ranges)), strict=False):
+        for e in (x for x in result.experiments if x.range_Nm == rng):
+            v = np.asarray(e.volts)
+            ax.plot(v, e.torques_Nm, "o", ms=3, label=f"exp. {e.index}: {e.gain_Nm_per_V:.3f} Nm/V")
+            line = np.array([v.min(), v.max()])
+            ax.plot(line, e.gain_Nm_per_V * (line - e.offset_V), lw=0.7)
+        kind = "low-range" if rng == ranges[0] and len(ranges) > 1 else "full-range"
+        ax.set_title(f"seed 000 Fig. {fig_no}: {kind} loading (±{rng:g} Nm)", fontsize=9)
+        ax.set_xlabel("bridge amplifier output / V")
+        ax.set_ylabel("applied torque / Nm")
+        ax.grid(True, lw=0.3)
+        ax.legend(fontsize=7, loc="upper left")
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return fig
