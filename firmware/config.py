@@ -56,6 +56,7 @@ __all__ = [
     "JTF_LOWPASS_HZ",
     "LISTING_A1_RIPPLE",
     "LISTING_A2_RIPPLE",
+    "LISTING_SETTLE_S",
     "PAPER_P0",
     "PAPER_Q_MOTOR",
     "PAPER_Q_OUTPUT",
@@ -601,6 +602,17 @@ JTF_LOWPASS_HZ = 50.0
 JTF_DERIVATIVE_HZ = 400.0
 
 
+#: The listing's start-up pause (s): ``000_ae0a3dbe24949b7c.txt``, listing A.1 ``main()``,
+#: ``for (pause=0; pause < 0xffff; pause++);`` "Allow for mech. time constant", between
+#: ``write_dac0( Vbias )`` and the first interrupt.  The seed gives no clock; on the
+#: TMS320C30 the listing names (``C30 node``) at 33 MHz, 60 ns per instruction cycle, an
+#: empty counting loop takes about 4 cycles per pass (increment, compare, delayed branch):
+#: 65 535 × 4 × 60 ns ≈ 16 ms.  An estimate, stated as one: the pause is far shorter than
+#: the 0.19 s mechanical time constant of the free-motion drive, so what it settles is
+#: the amplifier and the bias, not the motor.
+LISTING_SETTLE_S = 0.016
+
+
 #: Plausibility: the largest motor acceleration (rad/s², motor side) the joint can do.
 #: The seeds give no motor data, so this is the drive emulator's default motor
 #: (``hostsim.plant.AmplifierConfig`` / ``DriveTrainConfig``, representative of an
@@ -826,6 +838,13 @@ class FirmwareConfig:
     - ``adc`` / ``dac``: the DT1401's 12-bit, +/-10 V converters.
     - ``control``: seed 003's joint-torque control (:class:`ControlConfig`); off by
       default (``law = none``), in which case the handler is the seed-000 port unchanged.
+    - ``startup_settle_s``: the listing's start-up (``main()``: ``write_dac0( Vbias
+      ); /* Allow for mech. time constant */ for (pause=0; pause < 0xffff; pause++);``
+      before ``t1_start()``): once the drive is in operation the controller outputs
+      the start-up code (``reference.bias_V``; zero torque with a control law) for this
+      long, answering sensor frames without running the interrupt handler.  Unset: the
+      listing's pause (:data:`LISTING_SETTLE_S`) in paper mode, none in recommended
+      mode (:attr:`startup_settle_cycles`).
     - ``plausibility``: bounds on velocity and encoder changes per sample
       (:class:`PlausibilityConfig`, not in the seeds); on by default, off in paper
       mode unless ``plausibility.enabled = true`` (:attr:`plausibility_active`).
@@ -843,8 +862,14 @@ class FirmwareConfig:
     dac: Converter = field(default_factory=Converter)
     control: ControlConfig = field(default_factory=ControlConfig)
     plausibility: PlausibilityConfig = field(default_factory=PlausibilityConfig)
+    startup_settle_s: float | None = None
 
     def __post_init__(self) -> None:
+        s = self.startup_settle_s
+        if s is not None and (
+            isinstance(s, bool) or not isinstance(s, (int, float)) or not 0.0 <= s <= 10.0
+        ):
+            raise ValueError(f"startup_settle_s must be within [0, 10] s, got {s!r}")
         if not (math.isfinite(self.sample_period_s) and 0.0 < self.sample_period_s <= 1.0):
             raise ValueError(
                 f"sample_period_s must be within (0, 1] s, got {self.sample_period_s!r}"
@@ -867,6 +892,16 @@ class FirmwareConfig:
         ):
             if not isinstance(getattr(self, name), expected):
                 raise ValueError(f"{name} must be a {expected.__name__}")
+
+    @property
+    def startup_settle_cycles(self) -> int:
+        """Sample periods the controller holds the start-up output before the first
+        interrupt: ``startup_settle_s`` if set, otherwise the listing's pause
+        (:data:`LISTING_SETTLE_S`) in paper mode and none in recommended mode."""
+        s = self.startup_settle_s
+        if s is None:
+            s = LISTING_SETTLE_S if self.ripple.mode == "paper" else 0.0
+        return math.ceil(round(s / self.sample_period_s, 9))
 
     @property
     def plausibility_active(self) -> bool:

@@ -148,7 +148,7 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import can
 
@@ -350,6 +350,7 @@ class ControllerNode(CanNode):
         #: parameters that retune stages need the firmware's own.
         self.isr: InterruptHandlerModel = InterruptHandler(config) if isr is None else isr
         self._own_isr = isinstance(self.isr, InterruptHandler)
+        self._settle_left = 0  # start-up pause cycles left (listing main(), _set_phase)
         self.diagnostics = ControllerDiagnostics()
         self.sync_overflow = sync_overflow
         self.node_id = node_id
@@ -550,6 +551,13 @@ class ControllerNode(CanNode):
             self._send_command(self.isr.shutdown_dac_counts, self.walk.controlword)
             return
         self._isr_ran = True
+        if self._settle_left:
+            # listing main(): write_dac0( Vbias ); then the settling pause before the
+            # first interrupt (FirmwareConfig.startup_settle_s)
+            self._settle_left -= 1
+            own = cast(InterruptHandler, self.isr)
+            self._send_command(own.startup_dac_counts, CONTROLWORD_ENABLE_OPERATION)
+            return
         torque, tacho, current, encoder = self._sensor.decode(msg.data)
         out = self.isr(AdcSample(torque, tacho, current, encoder))
         self._send_command(out.dac_counts, CONTROLWORD_ENABLE_OPERATION)
@@ -752,6 +760,9 @@ class ControllerNode(CanNode):
     # ------------------------------------------------------------ phases, faults
 
     def _set_phase(self, phase: Phase, reason: str) -> None:
+        if phase is _OPERATIONAL:
+            # the listing's start-up pause belongs to the firmware's own handler
+            self._settle_left = self.config.startup_settle_cycles if self._own_isr else 0
         self._phase = phase
         self._phase_cycles = 0
         self._quiet_cycles = 0

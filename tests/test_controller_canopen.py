@@ -10,6 +10,7 @@ drive's timing.  SDO requests to the controller are hand-made frames (CiA 301 §
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import struct
@@ -22,7 +23,14 @@ from hdhil.can.simbus import SimClock
 from hdhil.canopen.cia402 import DriveStateMachine, State
 from hdhil.canopen.services import load_od
 from hdhil.dbc import codec, database, eds_path
-from hdhil.firmware.config import FirmwareConfig, Law, ReferenceConfig, Wave, paper_config
+from hdhil.firmware.config import (
+    FirmwareConfig,
+    Law,
+    PlausibilityConfig,
+    ReferenceConfig,
+    Wave,
+    paper_config,
+)
 from hdhil.firmware.controller import PARAMETERS, ControllerNode
 
 TS = 1e-3
@@ -609,7 +617,13 @@ def test_persistent_implausible_velocity_sends_emcy_0x7301_then_the_reset(link):
     is then accepted and M plausible samples later EMCY 0x0000 clears the error.  (Paper
     mode: the encoder, which would disagree with the new level, is not checked.)"""
     script = SensorScript(lambda s: 1500 if s >= 50 else 20)  # 5 -> 412 rad/s
-    lk = _scripted(link, script, paper_config(FirmwareConfig()))
+    # paper mode asks for the stage explicitly (off there by default: the listing has none)
+    paper = dataclasses.replace(
+        paper_config(FirmwareConfig()),
+        plausibility=PlausibilityConfig(enabled=True),
+        startup_settle_s=0.0,
+    )
+    lk = _scripted(link, script, paper)
     m = lk.node.config.plausibility.max_rejections
     start = len(lk.log)
     lk.run(100)

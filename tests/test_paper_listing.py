@@ -187,3 +187,56 @@ def test_plausibility_in_paper_mode_only_when_asked_for() -> None:
     acc0 = chain.step(float(T[0]), float(vel[0]))[0]
     assert acc0 == pytest.approx(asked.plausibility.max_acceleration_radps2)
     assert acc0 != pytest.approx(_listing_rows(T[:1], vel[:1])[0, 1])
+
+
+def _commands_and_telemetry(trace: Path) -> tuple[list[tuple[float, int]], float]:
+    """``(time, DAC code)`` of the drive's RPDO1 with "enable operation", and the time of
+    the first controller telemetry frame (the first interrupt's)."""
+    import can
+
+    from hdhil.dbc import codec
+
+    rpdo, tele = codec("control", "DRIVE_RPDO1"), codec("control", "CTRL_TPDO1")
+    codes: list[tuple[float, int]] = []
+    first_tele = math.inf
+    with can.LogReader(str(trace)) as reader:
+        for msg in reader:
+            if msg.arbitration_id == rpdo.frame_id and not msg.is_extended_id:
+                dac, controlword, _cycle = rpdo.decode(msg.data)
+                if controlword == 0x000F:
+                    codes.append((msg.timestamp, int(dac)))
+            elif msg.arbitration_id == tele.frame_id and not msg.is_extended_id:
+                first_tele = min(first_tele, msg.timestamp)
+    return codes, first_tele
+
+
+@pytest.mark.parametrize("mode", ["paper", "recommended"])
+def test_paper_mode_starts_with_vbias_and_the_listing_pause(tmp_path: Path, mode: str) -> None:
+    """Listing A.1 ``main()``: ``write_dac0( Vbias )``, the settling pause, then the first
+    interrupt.  Paper mode holds the bias code for LISTING_SETTLE_S (16 samples at 1 ms)
+    before the handler runs; recommended mode starts the handler at once."""
+    import contextlib
+    import io
+
+    from hdhil.firmware.config import LISTING_SETTLE_S
+
+    override = tmp_path / "o.toml"
+    override.write_text(f'[firmware.ripple]\nmode = "{mode}"\n[firmware.reference]\nbias_V = 1.5\n')
+    trace = tmp_path / f"{mode}.blf"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["run", "--scenario", "free-motion", "--duration", "0.1", "--override",
+                     str(override), "--trace", str(trace)]) == 0  # fmt: skip
+    codes, first_tele = _commands_and_telemetry(trace)
+    bias = FirmwareConfig().dac.to_counts(1.5)
+    settle = round(LISTING_SETTLE_S / 1e-3) if mode == "paper" else 0
+    assert settle in (0, 16)
+    # before operation the drive gets zero; then Vbias: during the pause without an
+    # interrupt (no telemetry), and from the first interrupt on (the step is at 0.05 s)
+    operating = [(t, c) for t, c in codes if c != 0]
+    assert codes[: len(codes) - len(operating)] == [
+        (t, 0) for t, _ in codes[: len(codes) - len(operating)]
+    ]
+    before = [c for t, c in operating if t < first_tele - 1e-4]
+    assert before == [bias] * settle
+    assert operating[settle][1] == bias
+    assert operating[settle][0] == pytest.approx(first_tele, abs=2e-4)
