@@ -128,6 +128,22 @@ class ReferenceConfig:
     0.5 (a symmetric square wave) as default.  The listing's ``freq = 0`` default is
     replaced by 1 Hz because the frequency must be > 0 here.
 
+    Units: ``frequency_Hz`` is in hertz (cycles per second).  The listing declares
+    ``float theta = 0, freq = 0; /* Angle and angular frequency of function */``, so its
+    ``freq`` mailbox (``parm_ptr+6``) held an angular frequency; its unit is not printed
+    (rad/s or rad per sample).  A value ω in rad/s from such a host is ``frequency_Hz =
+    ω / 2π``.
+
+    Left out, with the reason: the listing's globals ``theta``, ``rise`` and ``fall``
+    (listing A.1, ``float theta = 0 ...; float rise = 0.0; float fall = 0.0;``).  They
+    belong to ``reference_generation`` (``servo_refgen.h``), whose body the seed does not
+    print, and ``main()`` never writes them from the host (it copies ``Nbias``,
+    ``sample_period``, ``numsamples``, ``Namplitude``, ``wavetype``, ``freq``, ``duty``
+    only), so they keep their initial 0 for every run the listing makes.  ``theta`` is
+    the generator's running angle: here the phase ``2π f k Ts`` computed from the sample
+    index (no accumulated state to drift).  ``rise = fall = 0`` are zero edge times:
+    here every edge (square, step) is instantaneous, which is what those zeros give.
+
     ``chirp_end_Hz`` and ``chirp_duration_s`` (not in the seeds) are for ``wave =
     "chirp"`` only: a linear sweep from ``frequency_Hz`` to ``chirp_end_Hz`` over
     ``chirp_duration_s``, repeated (seed 003 Fig. 5: "obtained experimentally by

@@ -45,6 +45,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=CalibrationRig.samples,
         help="ADC samples averaged per load step (default: %(default)s)",
     )
+    p.add_argument(
+        "--lever-error",
+        type=float,
+        default=CalibrationRig.lever_error,
+        metavar="FRACTION",
+        help="relative standard deviation of the arm's effective length per mounting "
+        "(default: %(default)s; 0.02 reproduces seed 000 Table 1's 2 %% consistency)",
+    )
+    p.add_argument(
+        "--plot",
+        metavar="FIG.png",
+        default=None,
+        help="draw seed 000 Figs. 6-7 (torque against bridge voltage per experiment, "
+        "low range and full range) into FIG (.png, .pdf, .svg)",
+    )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument(
         "--out",
@@ -62,13 +77,17 @@ def run(args: argparse.Namespace) -> int:
     if seed < 0:
         raise UserError(f"--seed must be >= 0, got {seed}")
     try:
-        rig = CalibrationRig(positions=args.positions, samples=args.samples)
+        rig = CalibrationRig(
+            positions=args.positions, samples=args.samples, lever_error=args.lever_error
+        )
     except ValueError as exc:
         msg = str(exc).replace("CalibrationRig.", "--")
         raise UserError(msg) from None
     result = calibrate(scenario.plant, rig, seed)
     if not math.isfinite(result.gain_Nm_per_V):
         raise UserError("the calibration gave no finite gain (is the torque channel saturated?)")
+    if args.plot:
+        _plot(args.plot, result, scenario.name)
     if args.out:
         write_calibration(args.out, result, scenario.name)
     if args.json:
@@ -86,4 +105,31 @@ def run(args: argparse.Namespace) -> int:
         if args.out:
             gain = result.gain_Nm_per_V
             print(f"  wrote {args.out}: [firmware.calibration] volt2Nm = {gain:.6g}")
+        if args.plot:
+            print(f"  wrote {args.plot}: seed 000 Figs. 6-7")
     return 0
+
+
+def _plot(path: str, result: object, scenario: str) -> None:
+    """Seed 000 Figs. 6-7 into ``path``
+    (:func:`hdhil.commands.seedfigs.make_calibration_figure`)."""
+    from pathlib import Path
+
+    from hdhil.commands.plot import FORMATS
+    from hdhil.commands.seedfigs import make_calibration_figure
+
+    out = Path(path)
+    if out.suffix.lower() not in FORMATS:
+        raise UserError(f"--plot {path}: use one of {', '.join(FORMATS)}")
+    if out.exists() and not out.is_file():
+        raise UserError(f"--plot {path}: exists and is not a regular file")
+    r = result
+    title = (
+        f"hdhil calibrate: scenario {scenario}, seed {r.seed}: gain {r.gain_Nm_per_V:.4f} Nm/V, "  # type: ignore[attr-defined]
+        f"consistency {100 * r.consistency:.2f} % (seed 000 Table 1: 6.60 Nm/V, 2 %)"  # type: ignore[attr-defined]
+    )
+    fig = make_calibration_figure(result, title)
+    try:
+        fig.savefig(out, dpi=100)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"--plot {path}: cannot write ({exc})") from None

@@ -176,9 +176,11 @@ def make_calibration_figure(result: Any, title: str) -> Figure:
     for ax, rng, fig_no in zip(axes, ranges, range(6, 6 + len(ranges)), strict=False):
         for e in (x for x in result.experiments if x.range_Nm == rng):
             v = np.asarray(e.volts)
-            ax.plot(v, e.torques_Nm, "o", ms=3, label=f"exp. {e.index}: {e.gain_Nm_per_V:.3f} Nm/V")
+            (pts,) = ax.plot(
+                v, e.torques_Nm, "o", ms=3, label=f"exp. {e.index}: {e.gain_Nm_per_V:.3f} Nm/V"
+            )
             line = np.array([v.min(), v.max()])
-            ax.plot(line, e.gain_Nm_per_V * (line - e.offset_V), lw=0.7)
+            ax.plot(line, e.gain_Nm_per_V * (line - e.offset_V), lw=0.7, color=pts.get_color())
         kind = "low-range" if rng == ranges[0] and len(ranges) > 1 else "full-range"
         ax.set_title(f"seed 000 Fig. {fig_no}: {kind} loading (±{rng:g} Nm)", fontsize=9)
         ax.set_xlabel("bridge amplifier output / V")
