@@ -301,7 +301,7 @@ class Oscillator:
 
     ``q = None`` (the default) takes the mode's default when the oscillator is placed
     in a :class:`RippleFilterConfig`: paper 1e3 (motor) / 5e-2 (output), recommended
-    1e-5 (motor, :data:`RECOMMENDED_Q_HARMONIC`) / 1e-4 (output,
+    3e-6 (motor, :data:`RECOMMENDED_Q_HARMONIC`) / 1e-4 (output,
     :data:`RECOMMENDED_Q_OUTPUT`).  A built :class:`RippleFilterConfig` never holds None.
     """
 
@@ -358,12 +358,13 @@ class RippleFilterConfig:
     ==============  ==========================  ===================================
     field           paper                       recommended
     ==============  ==========================  ===================================
-    oscillator q    1e3 motor, 5e-2 output      1e-5 motor, 1e-4 output
+    oscillator q    1e3 motor, 5e-2 output      3e-6 motor, 1e-4 output
     r               1.0                         5e-4 (:data:`RECOMMENDED_R`)
     p0              1.0                         1.0; 25 with an output harmonic
     ==============  ==========================  ===================================
 
-    ``residual_q = 1e-2`` and ``standstill_radps = 2.0`` are recommended-mode only; the
+    ``residual_q = 1e-3`` (:data:`RECOMMENDED_Q_RESIDUAL`) and ``standstill_radps = 2.0``
+    are recommended-mode only; the
     reasoning behind each default is at its constant above.  They are starting values:
     tune them by maximum likelihood on recorded data.
     """
@@ -851,7 +852,9 @@ class FirmwareConfig:
       (:data:`RECOMMENDED_RIPPLE`), not the listing's filter; :func:`paper_config`
       gives the same configuration with the paper filter (:data:`LISTING_A1_RIPPLE`
       for the default harmonics).
-    - ``adc`` / ``dac``: the DT1401's 12-bit, +/-10 V converters.
+    - ``adc`` / ``dac``: 12-bit, +/-10 V converters (our choice: the seed names the
+      DT1401 board but prints neither its resolution nor its range;
+      :class:`hdhil.core.converter.Converter`).
     - ``control``: seed 003's joint-torque control (:class:`ControlConfig`); off by
       default (``law = none``), in which case the handler is the seed-000 port unchanged.
     - ``startup_settle_s``: the listing's start-up (``main()``: ``write_dac0( Vbias

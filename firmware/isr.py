@@ -18,8 +18,21 @@ The handler, as printed (abridged)::
     copy(&T_meas ...); copy(&vel ...); copy(&MotorCurrOut ...); copy(&Torque_f ...);
     pcsample &= 0x0000ffff; ... ++samplecount;
 
-Not ported: the timer read-out ``timecnt`` (cycle timing is measured by the host
-loop) and the GRAM copies (the caller logs :class:`IsrOutput`).
+Not ported, with the reason:
+
+- the timer read-out ``timecnt`` and its ``copy(&timecnt, time_sample_ptr++ ...)``,
+  ``timemark`` (the listing's "blank dummy", ``0xffffffff``) and ``time_samplecount``
+  (``+= 3`` per interrupt, copied to ``parm_ptr + 10`` at the end): interrupt-timing
+  bookkeeping for the host; here cycle timing is measured by the host loop
+  (``hdhil run --realtime``) and every frame carries its timestamp;
+- ``Samples_Ready`` (``main()``, copied to ``parm_ptr + 1`` when done): the host's
+  "data ready" flag; here the telemetry streams every sample and the run ends on
+  ``num_samples``;
+- channel CH3: ``DT140XInit(str_ch, end_ch)`` scans ``DT140X_CH3`` .. ``DT140X_CH6`` but
+  the handler reads only CH4-CH6 (``NUM_CHANNELS 4``); CH3's sample is never used, so
+  the sensor frame does not carry it;
+- the GRAM copies ``copy(&T_meas, sample_ptr++ ...)``: the caller logs
+  :class:`IsrOutput` (the telemetry frames).
 
 The ripple filter is the listing's (``ripple.mode = "paper"``) or our recommended
 angle-locked filter (``"recommended"``, the default), which also uses ``pcsample``,

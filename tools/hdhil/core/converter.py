@@ -1,4 +1,5 @@
-"""The 12-bit, +/-10 V converters between the firmware and the drive.
+"""The converters (12-bit, +/-10 V by default; not from the seed) between the firmware
+and the drive.
 
 The seed's DSP board (DT1401 A/D, DAC0 to the MAX-100 servo amplifier; seed 000,
 listing A.1, ``DT1401Read`` / ``write_dac0``) works in volts; on the CAN link the
@@ -17,7 +18,12 @@ from dataclasses import dataclass, field
 
 @dataclass(frozen=True)
 class Converter:
-    """A bipolar converter: 12 bits and +/-10 V as on the seed's DT1401 board."""
+    """A bipolar converter, 12 bits and +/-10 V by default.
+
+    The defaults are ours: seed 000's listing names the DT1401 board (``DT140X.h``,
+    ``DT1401Read``) but prints neither its resolution nor its input range; 12 bits and
+    +/-10 V are the common figures of that class of board, not from the seed.
+    """
 
     bits: int = 12
     full_scale_V: float = 10.0
