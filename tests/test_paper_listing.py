@@ -27,6 +27,7 @@ import pytest
 from hdhil.cli import main
 from hdhil.firmware.config import FirmwareConfig, PlausibilityConfig, paper_config
 from hdhil.firmware.isr import TorqueFilterChain
+from hdhil.rig.offline import OUTPUT_COLUMNS
 
 
 class ListingA1:
@@ -157,7 +158,7 @@ def test_paper_mode_is_listing_a1_sample_for_sample(tmp_path: Path, source: str)
         with out.open() as fh:
             rows = list(csv.reader(fh))
         header, got = rows[0], np.array([[float(v) for v in r] for r in rows[1:]])
-        assert header == ["time", "T_meas", "acceleration", "T_expected", "ripple", "T_filtered"]
+        assert header == list(OUTPUT_COLUMNS)
         got = got[:, 1:]
     else:
         chain = TorqueFilterChain(paper_config(FirmwareConfig()))

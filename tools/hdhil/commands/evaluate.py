@@ -65,10 +65,12 @@ def _tracking(trace: Path, fw: FirmwareConfig, skip_s: float) -> dict | None:
     torque-control telemetry.  The joint's Jl/Jm and whether the law compensates the
     friction (Eq. 5) come from ``--scenario``."""
     from hdhil.can.tracefile import read_trace
-    from hdhil.rig.score import TrackingScorer
+    from hdhil.rig.score import TrackingScorer, trace_time_offset
 
     c = fw.control
-    scorer = TrackingScorer(c.joint.Jl / c.joint.Jm, skip_s, c.friction.active)
+    scorer = TrackingScorer(
+        c.joint.Jl / c.joint.Jm, skip_s, c.friction.active, trace_time_offset(trace)
+    )
     with read_trace(trace) as frames:
         for msg in frames:
             scorer.on_message_received(msg)

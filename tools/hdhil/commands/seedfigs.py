@@ -74,11 +74,16 @@ def fig8_data(trace: Path) -> tuple[Fig8Data, str]:
         (tm.frame_id, True): "tm",
         (tj.frame_id, True): "tj",
     }
+    from hdhil.rig.score import trace_time_offset
+
     last: dict[str, tuple[Any, ...]] = {}
     rows: list[tuple[float, ...]] = []
     nan = math.nan
+    t0 = trace_time_offset(trace)  # simulated time 0 (None: the first frame's time)
     with read_trace(trace) as frames:
         for msg in frames:
+            if t0 is None:
+                t0 = msg.timestamp
             key = keys.get((msg.arbitration_id, msg.is_extended_id))
             if key is None or len(msg.data) != 8:
                 continue
@@ -92,7 +97,7 @@ def fig8_data(trace: Path) -> tuple[Fig8Data, str]:
             T_true = last["tt"][0] if "tt" in last else nan
             th, om = (last["tm"][1], last["tm"][3]) if "tm" in last else (nan, nan)
             tau_ext, _tau_d, _tau_m, tau_m_cmd = last.get("tj", (nan,) * 4)
-            rows.append((msg.timestamp, T_meas, T_filtered, tau_sD, T_true, tau_lgd_hat,
+            rows.append((msg.timestamp - t0, T_meas, T_filtered, tau_sD, T_true, tau_lgd_hat,
                          tau_ext, th, om, tau_m_cmd))  # fmt: skip
         damage = "; ".join(d.describe(str(trace)) for d in frames.damage)
     if len(rows) < 2:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import can
 
@@ -184,8 +185,16 @@ class TrackingScorer(can.Listener):
     """
 
     def __init__(
-        self, jl_over_jm: float, skip_s: float = 0.0, friction_compensated: bool = False
+        self,
+        jl_over_jm: float,
+        skip_s: float = 0.0,
+        friction_compensated: bool = False,
+        time_offset: float | None = 0.0,
     ) -> None:
+        #: Subtracted from every timestamp before ``skip_s`` applies: 0 on the live buses,
+        #: a trace's ``time_offset_s`` (:func:`trace_time_offset`); None takes the first
+        #: frame's timestamp as time 0.
+        self.time_offset = time_offset
         self.skip_s = skip_s
         self.jl_over_jm = jl_over_jm
         self.friction_compensated = friction_compensated
@@ -213,6 +222,8 @@ class TrackingScorer(can.Listener):
         self._within = 0
 
     def on_message_received(self, msg: can.Message) -> None:
+        if self.time_offset is None:
+            self.time_offset = msg.timestamp
         handler = self._keys.get((msg.arbitration_id, msg.is_extended_id))
         if handler is not None and len(msg.data) == 8:
             handler(msg)
@@ -227,7 +238,11 @@ class TrackingScorer(can.Listener):
         self._tau_lgd = tau_ext if self.friction_compensated else tau_ext - tau_d * self.jl_over_jm
 
     def _on_tele(self, msg: can.Message) -> None:
-        if self._T_true is None or self._tau_lgd is None or msg.timestamp < self.skip_s:
+        if (
+            self._T_true is None
+            or self._tau_lgd is None
+            or msg.timestamp - self.time_offset < self.skip_s  # type: ignore[operator]
+        ):
             return
         _dtau, tau_lgd_hat, tau_sD, _e_hat = self._tele.decode(msg.data)
         e = self._T_true - tau_sD
@@ -257,3 +272,19 @@ class TrackingScorer(can.Listener):
             self._max_m,
             self._within / n,
         )
+
+
+def trace_time_offset(trace: Path) -> float | None:
+    """The time offset of a trace written by ``hdhil run`` (its metadata file's
+    ``time_offset_s``: simulated time 0 as a wall-clock time), or None when it has no
+    metadata (then its first frame is taken as time 0)."""
+    import json
+
+    from hdhil.can.trace import metadata_path
+
+    meta = metadata_path(trace)
+    try:
+        value = json.loads(meta.read_text()).get("time_offset_s")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return float(value) if isinstance(value, (int, float)) else None
