@@ -609,7 +609,7 @@ class SensorConfig:
     ``torque_noise_Nm = sqrt(0.12) = 0.3464`` Nm per sample.  The seed measured it on
     the sampled signal, so it is a per-sample variance here, at the 1 kHz sample rate:
     the one reading of W the whole project uses (the LQG design's too, see
-    ``hdhil.firmware.lqg``, "One reading of W").
+    ``hdhil.firmware.lqg_design``, "One reading of W").
 
     ``torque_measures``: what the ideal torque sensor reads, :attr:`Plant.T_true`.
     ``"transmitted"`` (default): the flexspline torque ``k (q_m - q_l) + c (dq_m -
