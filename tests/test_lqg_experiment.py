@@ -217,3 +217,25 @@ def test_plot_fig8_without_control_telemetry_is_a_one_line_error(tmp_path, capsy
     assert main(["plot", str(trace), "--figure", "fig8", "--out", str(tmp_path / "x.png")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("hdhil: error:") and "CTRL_TPDO2" in err[0]
+
+
+def test_lowpass_of_the_section_v_estimates() -> None:
+    """The first-order low-pass (firmware.stages.LowPass): starts at its first input,
+    unity gain at DC, -3 dB at the cut-off (Tustin: at the pre-warped frequency)."""
+    from hdhil.firmware.stages import LowPass
+
+    Ts, fc = 1e-3, 50.0
+    lp = LowPass(fc, Ts)
+    assert lp.step(3.0) == 3.0
+    for _ in range(2000):
+        y = lp.step(3.0)
+    assert y == pytest.approx(3.0, rel=1e-12)
+    # amplitude at the analog cut-off mapped through the bilinear transform
+    f_digital = math.atan(math.pi * fc * Ts) / (math.pi * Ts)
+    lp.reset()
+    n = 20_000
+    out = [lp.step(math.sin(2 * math.pi * f_digital * k * Ts)) for k in range(n)]
+    amp = max(abs(v) for v in out[n // 2 :])
+    assert amp == pytest.approx(1 / math.sqrt(2), rel=2e-3)
+    with pytest.raises(ValueError, match="cut-off"):
+        LowPass(500.0, Ts)
