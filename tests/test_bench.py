@@ -157,6 +157,7 @@ def test_realtime_section_can_be_left_out(report: dict, monkeypatch) -> None:
         (["--repeat", "0"], "--repeat"),
         (["--realtime-s", "-1"], "--realtime-s"),
         (["--realtime-s", "nan"], "--realtime-s"),
+        (["--startup-runs", "0"], "--startup-runs"),
     ],
 )
 def test_cli_rejects_bad_arguments(

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import gc
 import json
 import math
@@ -646,14 +647,18 @@ def run_benchmarks(
     repeat: int = 3,
     quick: bool = False,
     realtime_s: float | None = None,
+    startup_runs: int | None = None,
 ) -> dict[str, Any]:
     """Every section; ``quick`` shrinks them (``duration_s`` / ``repeat`` still apply).
     ``realtime_s``: seconds of the real-time run (default 60, quick 1.5; 0 leaves the
-    section out)."""
+    section out).  ``startup_runs``: process starts per start-up figure (default 7,
+    quick 2)."""
     if quick:
         s = BenchSettings.quick(duration_s, repeat, 1.5 if realtime_s is None else realtime_s)
     else:
         s = BenchSettings.full(duration_s, repeat, 60.0 if realtime_s is None else realtime_s)
+    if startup_runs is not None:
+        s = dataclasses.replace(s, startup_runs=startup_runs)
     started = time.strftime("%Y-%m-%d %H:%M:%S")
     wall0 = time.perf_counter()
     lockstep = bench_lockstep_all(s)
@@ -869,6 +874,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--realtime-s", type=float, default=None, metavar="S",
         help="seconds of the real-time run (default 60, --quick 1.5; 0 leaves it out)",
     )  # fmt: skip
+    p.add_argument(
+        "--startup-runs", type=int, default=None, metavar="N",
+        help="process starts per start-up figure (default 7, --quick 2)",
+    )  # fmt: skip
     p.add_argument("--quick", action="store_true", help="a short version of every section (CI)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=run)
@@ -883,7 +892,11 @@ def run(args: argparse.Namespace) -> int:
     realtime_s = getattr(args, "realtime_s", None)
     if realtime_s is not None and not (math.isfinite(realtime_s) and realtime_s >= 0):
         raise UserError(f"--realtime-s must be >= 0 seconds, got {realtime_s:g}")
-    report = run_benchmarks(duration, repeat, quick=quick, realtime_s=realtime_s)
+    startup_runs = getattr(args, "startup_runs", None)
+    if startup_runs is not None and startup_runs < 1:
+        raise UserError(f"--startup-runs must be >= 1, got {startup_runs}")
+    report = run_benchmarks(duration, repeat, quick=quick, realtime_s=realtime_s,
+                            startup_runs=startup_runs)  # fmt: skip
     if args.json:
         json.dump(report, sys.stdout, indent=2)
         print()

@@ -101,7 +101,8 @@ class NodeLoop:
 
     Time: with a ``pacer`` the cycle waits for its wall-clock deadline; otherwise, with a
     ``sim_clock``, that clock is set to ``k * period_s`` (simulated time). Nodes are
-    handed ``node_time()`` (default: the monotonic clock). ``pump`` is the simulated
+    handed ``node_time()`` (default: the monotonic clock; None: the ``sim_clock``'s
+    time). ``pump`` is the simulated
     control bus (cycles complete by pumping, no waiting).
     """
 
@@ -116,13 +117,15 @@ class NodeLoop:
         listen_every: int = 1,
         period_s: float = 1e-3,
         sim_clock: SimClock | None = None,
-        node_time: Callable[[], float] = time.monotonic,
+        node_time: Callable[[], float] | None = time.monotonic,
         pump: SimBus | None = None,
         pacer: Pacer | None = None,
         timeout_s: float = CYCLE_TIMEOUT_S,
     ) -> None:
         if producer is not None and answers is None and pump is None:
             raise ValueError("a SYNC producer on a real bus needs its answer counter")
+        if node_time is None and sim_clock is None:
+            raise ValueError("node_time None reads the sim_clock, and there is none")
         if listen_every < 1:
             raise ValueError(f"listen_every must be >= 1, got {listen_every}")
         self.nodes = tuple(nodes)
@@ -142,34 +145,51 @@ class NodeLoop:
         #: Cycles closed by the timeout before the producer answered.
         self.timeouts = 0
 
+    def now(self) -> float:
+        """The time the nodes are handed now."""
+        if self.node_time is not None:
+            return self.node_time()
+        assert self.sim_clock is not None
+        return self.sim_clock.now
+
     def boot(self) -> None:
         """Power every node on, in order, at the current time."""
         for node in self.nodes:
-            node.boot(self.node_time())
+            node.boot(self.now())
 
     def cycle(self) -> None:
         """One cycle: pace, tick, SYNC, complete, drain the listeners."""
         k = self.k
         pacer = self.pacer
+        sim_clock = self.sim_clock
         if pacer is not None:
             pacer.wait(k)  # wall clock: a WallClock reads real time by itself
-        elif self.sim_clock is not None:
-            self.sim_clock.now = k * self.period_s
-        now = self.node_time()
-        for node in self.nodes:
+        elif sim_clock is not None:
+            sim_clock.now = k * self.period_s
+        node_time = self.node_time
+        now = node_time() if node_time is not None else sim_clock.now  # type: ignore[union-attr]
+        nodes = self.nodes
+        for node in nodes:
             node.tick(now)
         producer = self.producer
+        bus = self.pump
         if producer is None:
             self._serve_slice()
+        elif bus is not None:  # simulated bus: pump until a round requests no frame
+            producer.send_sync()
+            while True:
+                before = bus.frames_requested
+                for node in nodes:
+                    node.poll()
+                if bus.frames_requested == before:
+                    break
         else:
             answered = self.answers() if self.answers is not None else 0
             producer.send_sync()
-            if self.pump is not None:
-                self._pump()
-            else:
-                self._await_answer(answered)
+            self._await_answer(answered)
         if k % self.listen_every == 0:
-            self.drain()
+            for listener in self.listeners:
+                listener.poll()
         if pacer is not None:
             pacer.end_cycle()
         self.k = k + 1
@@ -184,18 +204,6 @@ class NodeLoop:
         return sum(listener.poll() for listener in self.listeners)
 
     # ------------------------------------------------------------------ completion
-    def _pump(self) -> None:
-        """Simulated bus: poll the nodes until a round requests no control-bus frame."""
-        bus = self.pump
-        assert bus is not None
-        nodes = self.nodes
-        while True:
-            before = bus.frames_requested
-            for node in nodes:
-                node.poll()
-            if bus.frames_requested == before:
-                return
-
     def _poll_all(self) -> int:
         n = 0
         for node in self.nodes:

@@ -665,7 +665,7 @@ def run_lockstep(
             listen_every=TAP_EVERY_CYCLES if plan.simulated and pacer is None else 1,
             period_s=Ts,
             sim_clock=clock,
-            node_time=(lambda: clock.now) if plan.simulated else time.monotonic,
+            node_time=None if plan.simulated else time.monotonic,  # None: the sim clock
             pump=pumped,
             pacer=pacer,
         )
