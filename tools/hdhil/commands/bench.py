@@ -28,6 +28,11 @@ Sections of the report (``--json`` gives the same data):
 - **campaign**: ``hdhil campaign`` on the local process pool: variants per minute on 1 and
   N workers (N = the machine's cores), the speed-up, and the campaign machinery's
   overhead per variant (:mod:`hdhil.rig.campaign_bench`).
+- **start-up**: whole-process times of ``hdhil --help``, ``hdhil dump --help``,
+  python-can's ``can.logger --help`` and the time from spawning ``hdhil run`` to the end
+  of its first cycle (and to its exit), each the median of ``--startup-runs`` starts
+  taken in turns, with the ratio to ``python -c 'import can'`` of the same rounds and
+  the start-up goals (help within 2x ``can.logger --help``, first cycle within 0.5 s).
 
 ``--quick`` shrinks every section (CI and the tests); the default takes about four
 minutes on a 2-core machine, one of them the real-time run.
