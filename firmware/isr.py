@@ -55,7 +55,8 @@ observer (``LqgController.set_applied``).  The regulator's Kalman filter takes o
 ripple filter's role for the control: its estimate ``τ̂s`` is what the telemetry sends
 as the filtered torque.  The ripple filter still runs (its ``T_filtered`` stays in
 :class:`IsrOutput`, its state stays warm, and ``feedback = "T_filtered"`` can feed it to
-the regulator on a joint with angle-locked ripple); it costs ~9 µs per sample.
+the regulator on a joint with angle-locked ripple); its cost per sample is in
+``hdhil bench``'s stage table.
 
 Sign mapping, the one place where it happens (:data:`SENSOR_TORQUE_SIGN`):
 

@@ -18,7 +18,8 @@ class LqgController:
 
     Call :meth:`step` once per sample with the measured sensor torque; it returns the
     motor torque command (seed sign convention, output-shaft units).  Scalar arithmetic
-    on preallocated float attributes (no numpy in the loop): a few µs per call.
+    on preallocated float attributes (no numpy in the loop; its time per call is in
+    ``hdhil bench``'s stage table).
 
     Args:
         design: from :func:`design_lqg`.

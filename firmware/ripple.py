@@ -291,10 +291,9 @@ def _kernel_source(harmonics: int) -> str:
     """Python source of :class:`HarmonicKalman`'s step for ``harmonics`` harmonics.
 
     Straight-line code over local floats, unrolled for the state dimension
-    n = 2·harmonics + 1.  Measured once with ``timeit`` on CPython 3.11 (shared 2-core
-    VM): 1.4 / 2.0 µs a step for 2 / 3 harmonics, against 4.5-6.7 / 7.0-9.9 µs for the
-    same algorithm as loops over lists and 6.8 / 6.8 µs with numpy, whose per-call
-    overhead dominates at n ≤ 7.  The generated text is the algorithm written
+    n = 2·harmonics + 1: faster in CPython than the same algorithm as loops over lists,
+    or with numpy, whose per-call overhead dominates at n ≤ 7 (the step's time is in
+    ``hdhil bench``'s stage table).  The generated text is the algorithm written
     out, nothing more; :attr:`HarmonicKalman.kernel_source` shows it, and the tests
     check it against a plain numpy transcription of the equations.
     """
