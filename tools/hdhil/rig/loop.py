@@ -120,7 +120,7 @@ class NodeLoop:
         node_time: Callable[[], float] | None = time.monotonic,
         pump: SimBus | None = None,
         pacer: Pacer | None = None,
-        timeout_s: float = CYCLE_TIMEOUT_S,
+        timeout_s: float | None = None,
     ) -> None:
         if producer is not None and answers is None and pump is None:
             raise ValueError("a SYNC producer on a real bus needs its answer counter")
@@ -139,7 +139,8 @@ class NodeLoop:
         self.node_time = node_time
         self.pump = pump
         self.pacer = pacer
-        self.timeout_s = timeout_s
+        #: The cycle timeout (default :data:`CYCLE_TIMEOUT_S`).
+        self.timeout_s = CYCLE_TIMEOUT_S if timeout_s is None else timeout_s
         #: Cycles run so far (the next cycle's index).
         self.k = 0
         #: Cycles closed by the timeout before the producer answered.
