@@ -169,8 +169,14 @@ from hdhil.can.node import CanNode, pdo_cob_id
 from hdhil.canopen.cia402 import (
     CONTROLWORD,
     CONTROLWORD_OBJECT,
+    MAX_TORQUE_OBJECT,
+    POSITION_ACTUAL_OBJECT,
+    RATED_TORQUE_OBJECT,
     STATUSWORD_OBJECT,
     SUPPORTED_MODES,
+    TARGET_TORQUE_OBJECT,
+    TORQUE_ACTUAL_OBJECT,
+    VELOCITY_ACTUAL_OBJECT,
     Command,
     DriveStateMachine,
     State,
@@ -477,6 +483,7 @@ class DriveNode(CanNode):
         # CiA 402 objects found by name in the drive's EDS.
         self._od_controlword = index_of(self.services.od, CONTROLWORD_OBJECT)
         self._od_statusword = index_of(self.services.od, STATUSWORD_OBJECT)
+        self._init_cst()
         self._register_od_callbacks()
         services = self.services
         services.on_state_change(self._on_nmt_state)
@@ -615,6 +622,7 @@ class DriveNode(CanNode):
         else:
             self._plant_started = True
         sample = self._sample = plant.sample()
+        self._update_position(sample[3], (1 + missed) * self._Ts)
         if self.services.state is not _INITIALISING:
             self._check_sensors(sample)
         if self.services.state is _OPERATIONAL:
@@ -697,6 +705,8 @@ class DriveNode(CanNode):
         for index, sub, data in decode_to_od(layout, msg.data):
             if index == OD_DAC_COMMAND:
                 dac_counts = int.from_bytes(data, "little", signed=True)
+            elif index == self._od_target_torque:
+                dac_counts = self._torque_to_counts(int.from_bytes(data, "little", signed=True))
             elif index == self._od_controlword:
                 controlword = int.from_bytes(data, "little")
             else:
@@ -1000,6 +1010,9 @@ class DriveNode(CanNode):
             (OD_MODES_DISPLAY, 0): lambda: self._machine.modes_of_operation_display,
             (OD_ERROR_CODE, 0): lambda: self._machine.error_code,
             (OD_ENCODER, 0): lambda: self._sample[3],
+            (self._od_torque_actual, 0): self._torque_actual,
+            (self._od_position, 0): lambda: self._position,
+            (self._od_velocity, 0): lambda: self._velocity,
         }
         for i, channel in enumerate(ADC_CHANNELS):
             live[(OD_ADC_COUNTS, channel)] = lambda i=i: self._sample[i]
@@ -1009,6 +1022,59 @@ class DriveNode(CanNode):
             return None if getter is None else getter()
 
         s.node.add_read_callback(read_live)
+
+    # ------------------------------------------------------------------ CiA 402 CST
+
+    def _init_cst(self) -> None:
+        """Cyclic synchronous torque objects (CiA 402-2): 0x6071 target torque and 0x6077
+        torque actual in per mille of 0x6076 motor rated torque (mNm), limited by 0x6072
+        max torque (per mille); 0x6064 position actual (encoder increments, unwrapped to
+        32 bits) and 0x606C velocity actual (increments per second, from the encoder over
+        the last SYNC period).  The rated torque's power-on value is the amplifier's
+        full-scale command, ``torque_per_volt`` x the DAC's full scale."""
+        od = self.services.od
+        self._od_target_torque = index_of(od, TARGET_TORQUE_OBJECT)
+        self._od_max_torque = index_of(od, MAX_TORQUE_OBJECT)
+        self._od_rated_torque = index_of(od, RATED_TORQUE_OBJECT)
+        self._od_torque_actual = index_of(od, TORQUE_ACTUAL_OBJECT)
+        self._od_position = index_of(od, POSITION_ACTUAL_OBJECT)
+        self._od_velocity = index_of(od, VELOCITY_ACTUAL_OBJECT)
+        per_volt = getattr(getattr(self.plant, "cfg", None), "torque_per_volt", None)
+        self._torque_per_volt: float | None = float(per_volt) if per_volt else None
+        if self._torque_per_volt:
+            rated_mNm = round(self._torque_per_volt * self._dac.full_scale_V * 1e3)
+            self.services.set_power_on_value(self._od_rated_torque, 0, rated_mNm)
+        self._position = 0
+        self._velocity = 0
+        self._last_encoder: int | None = None
+
+    def _rated_Nm(self) -> float:
+        return self.services.read(self._od_rated_torque) * 1e-3
+
+    def _torque_to_counts(self, per_mille: int) -> int:
+        """0x6071 (per mille of rated torque, within 0x6072) as the amplifier's DAC
+        command: torque / torque_per_volt, quantised as the raw DAC object would be."""
+        if not self._torque_per_volt:
+            return 0
+        rated = self._rated_Nm()
+        limit = self.services.read(self._od_max_torque) * 1e-3 * rated
+        torque = min(max(per_mille * 1e-3 * rated, -limit), limit)
+        return self._dac.to_counts(torque / self._torque_per_volt)
+
+    def _torque_actual(self) -> int:
+        """0x6077: the motor torque the amplifier produces, per mille of rated torque."""
+        rated = self._rated_Nm()
+        value = round(self.plant.motor_torque_output / rated * 1e3) if rated else 0
+        return min(max(value, -32768), 32767)
+
+    def _update_position(self, encoder: int, dt: float) -> None:
+        last = self._last_encoder
+        self._last_encoder = encoder
+        if last is None:
+            return
+        delta = (encoder - last + 0x8000) % 0x10000 - 0x8000
+        self._position = (self._position + delta + 0x80000000) % 0x100000000 - 0x80000000
+        self._velocity = round(delta / dt) if dt > 0 else 0
 
     def _set_quick_stop_option(self, value: int) -> None:
         self._machine.quick_stop_option = value

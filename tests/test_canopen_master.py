@@ -251,3 +251,47 @@ def test_identity_strings_and_store_restore(master):
     node.nmt.state = "RESET"
     time.sleep(0.1)
     assert node.sdo[0x605A].raw == canopen.import_od(str(eds_path("drive")))[0x605A].default
+
+
+def test_a_cst_torque_loop_entirely_through_the_standard_objects(master):
+    """canopen's master maps 0x6071 target torque (with the controlword) into RPDO1 and
+    0x6077 torque actual with 0x6064 position actual into TPDO1, enables the drive in
+    cyclic synchronous torque and closes a loop through them alone."""
+    node = master.node
+    assert node.sdo["modes_of_operation_display"].raw == 10  # CST
+    node.rpdo.read()
+    node.tpdo.read()
+    rpdo, tpdo = node.rpdo[1], node.tpdo[1]
+    rpdo.clear()
+    rpdo.add_variable("target_torque")
+    rpdo.add_variable("controlword")
+    rpdo.save()
+    tpdo.clear()
+    tpdo.add_variable("torque_actual_value")
+    tpdo.add_variable("position_actual_value")
+    tpdo.save()
+    node.nmt.state = "OPERATIONAL"
+    time.sleep(0.05)
+
+    def cycle(cw: int, torque: int) -> None:
+        rpdo["controlword"].raw = cw
+        rpdo["target_torque"].raw = torque
+        rpdo.transmit()
+        master.counter = master.counter % 240 + 1
+        master.network.sync.transmit(master.counter)
+        time.sleep(0.003)
+
+    for cw in (0x06, 0x07, 0x0F, 0x0F):
+        cycle(cw, 0)
+    assert master.drive.drive_state is State.OPERATION_ENABLED
+    start = None
+    actual = []
+    for _ in range(100):  # a P loop on torque actual, commanded through 0x6071 only
+        error = 150 - (tpdo["torque_actual_value"].raw if actual else 0)
+        cycle(0x0F, max(-300, min(300, 150 + error // 2)))
+        actual.append(tpdo["torque_actual_value"].raw)
+        if start is None:
+            start = tpdo["position_actual_value"].raw
+    assert abs(sum(actual[-20:]) / 20 - 150) <= 10, actual[-20:]  # per mille of rated
+    assert tpdo["position_actual_value"].raw != start  # the joint moved
+    assert {len(bytes(tpdo.data))} == {6}

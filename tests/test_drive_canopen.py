@@ -800,3 +800,72 @@ def test_late_and_malformed_commands_are_counted(rig):
     rig.drive.poll()
     assert rig.drive.diagnostics.late_commands == 1
     assert rig.drive.unknown_frames == {}
+
+
+# ===================================================================== CiA 402 CST
+
+
+def _remap_rpdo1_to_cst(drive: DriveNode) -> None:
+    """CiA 301 mapping procedure, as a master does it by SDO: RPDO1 = target torque
+    0x6071 + controlword 0x6040; TPDO1 = torque actual 0x6077 + position actual 0x6064."""
+    s = drive.services
+    s.write(0x1400, 1, 0x80000202)
+    s.write(0x1600, 0, 0)
+    s.write(0x1600, 1, 0x60710010)
+    s.write(0x1600, 2, 0x60400010)
+    s.write(0x1600, 0, 2)
+    s.write(0x1400, 1, 0x00000202)
+    s.write(0x1800, 1, 0x80000182)
+    s.write(0x1A00, 0, 0)
+    s.write(0x1A00, 1, 0x60770010)
+    s.write(0x1A00, 2, 0x60640020)
+    s.write(0x1A00, 0, 2)
+    s.write(0x1800, 1, 0x00000182)
+
+
+def test_cst_torque_through_0x6071_moves_the_joint_as_the_raw_dac_object_does():
+    """The same torque commanded through the standard target torque (per mille of the
+    rated torque) and through the seed's raw DAC object moves the emulated joint the same
+    way (within the DAC's quantisation, which both paths share), and the CST TPDO reports
+    torque actual and position actual."""
+    cfg = PlantConfig(sensors=SensorConfig(torque_noise_Nm=0.0, tacho_noise_radps=0.0))
+    runs = {}
+    for how in ("raw", "cst"):
+        r = Rig(plant_cfg=cfg, truth=False)
+        try:
+            r.start()
+            if how == "cst":
+                _remap_rpdo1_to_cst(r.drive)
+            rated = r.drive.services.read(0x6076) * 1e-3  # Nm
+            per_mille = 250
+            torque = per_mille * 1e-3 * rated
+            dac = r.plant.cfg.dac.to_counts(torque / r.plant.cfg.torque_per_volt)
+            velocities, tpdo = [], []
+            for k in range(300):
+                cw = (SHUTDOWN, SWITCH_ON, ENABLE)[min(k, 2)]
+                command = dac if k >= 4 else 0
+                if how == "raw":
+                    frames = r.cycle(cw, command)
+                else:
+                    frames = r.cycle()
+                    tq = per_mille if k >= 4 else 0
+                    r.send(RPDO1, tq.to_bytes(2, "little", signed=True) + cw.to_bytes(2, "little"))
+                    r.drive.poll()
+                    frames += r.frames()
+                    tpdo += [d for i, d in frames if i == 0x182]
+                velocities.append(r.plant.omega_motor)
+            runs[how] = (velocities, tpdo, r.drive.state_machine.state)
+        finally:
+            r.close()
+    raw, cst = runs["raw"][0], runs["cst"][0]
+    assert runs["cst"][2] is State.OPERATION_ENABLED
+    assert max(abs(v) for v in raw) > 1.0  # the joint moved
+    assert (
+        max(abs(a - b) for a, b in zip(raw, cst, strict=True)) <= 1e-9 * max(map(abs, raw)) + 1e-9
+    )
+    frames = runs["cst"][1]
+    assert frames and {len(f) for f in frames} == {6}
+    torque_actual = [int.from_bytes(f[:2], "little", signed=True) for f in frames]
+    position = [int.from_bytes(f[2:6], "little", signed=True) for f in frames]
+    assert abs(torque_actual[-1] - 250) <= 5  # per mille of rated torque
+    assert position[-1] != position[0]

@@ -127,6 +127,14 @@ CONTROLWORD: dict[Command, int] = {
 #: EDS files only.
 CONTROLWORD_OBJECT = "controlword"
 STATUSWORD_OBJECT = "statusword"
+#: Cyclic synchronous torque objects (CiA 402-2): torques in per mille of the motor rated
+#: torque, position in increments, velocity in increments per second.
+TARGET_TORQUE_OBJECT = "target_torque"  # 0x6071 INTEGER16
+MAX_TORQUE_OBJECT = "max_torque"  # 0x6072 UNSIGNED16
+RATED_TORQUE_OBJECT = "motor_rated_torque"  # 0x6076 UNSIGNED32, mNm
+TORQUE_ACTUAL_OBJECT = "torque_actual_value"  # 0x6077 INTEGER16
+POSITION_ACTUAL_OBJECT = "position_actual_value"  # 0x6064 INTEGER32
+VELOCITY_ACTUAL_OBJECT = "velocity_actual_value"  # 0x606C INTEGER32
 
 # Controlword bits (CiA 402-2, object 0x6040).
 CW_SWITCH_ON = 1 << 0
