@@ -148,12 +148,14 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import NamedTuple, cast
 
 import can
 
 from hdhil.can.node import CanNode, pdo_cob_id
 from hdhil.canopen.cia402 import CONTROLWORD_OBJECT, STATUSWORD_OBJECT, State
+from hdhil.canopen.dcf import DcfConfigurator, configuration_writes
 from hdhil.canopen.od import eds_index, index_of
 from hdhil.canopen.sdo import ABORT_DEVICE_STATE, SdoClient
 from hdhil.canopen.services import (
@@ -232,6 +234,8 @@ class ControllerDiagnostics:
     syncs_sent: int = 0
     #: Sensor frames handled in any commanding phase (the walk's too).
     sensor_frames: int = 0
+    #: SDO writes of the drive's DCF done at boot (0 without a DCF).
+    dcf_writes: int = 0
     #: Sensor frames beyond the first of an operational cycle (ignored).
     extra_sensor_frames: int = 0
     #: DRIVE_RPDO1 frames sent (walk and operation).
@@ -330,6 +334,7 @@ class ControllerNode(CanNode):
         boot_timeout_s: float = 2.0,
         sensor_hold_cycles: int = 10,
         isr: InterruptHandlerModel | None = None,
+        drive_dcf: str | Path | None = None,
     ) -> None:
         if not 2 <= sync_overflow <= 240:
             raise ValueError(f"SYNC counter overflow must be 2..240 (CiA 301), got {sync_overflow}")
@@ -384,10 +389,18 @@ class ControllerNode(CanNode):
         self.services.on_state_change(self._on_nmt_state)
         self.services.on_reset(self._on_reset)
         self.sdo = SdoClient(bus, drive_node_id)
+        #: Boot-time configuration of the drive from its DCF (CiA 306), by SDO, after its
+        #: boot-up and before NMT start; None without a DCF.
+        self.configurator = (
+            DcfConfigurator(self.sdo, configuration_writes(drive_dcf, drive_node_id))
+            if drive_dcf is not None
+            else None
+        )
         self.walk = Cia402Walk(drive_node_id, self._on_controlword)
 
         self._phase = Phase.WAIT_BOOT
         self._now = 0.0
+        self._configure_deadline = 0.0
         self._phase_cycles = 0
         self._quiet_cycles = 0  # walk cycles since the last statusword
         self._nmt_start_syncs = 0
@@ -476,7 +489,7 @@ class ControllerNode(CanNode):
         if self._phase is _WAIT_BOOT and self.services.state is not NmtState.INITIALISING:
             drive = self.drive_node_id
             if self.services.boot_seen(drive) or self.services.remote_state(drive) is not None:
-                self._start_drive()
+                self._drive_seen()
             elif drive in self.services.boot_timed_out(now):
                 self.boot_error = (
                     f"drive (node {drive}) sent no boot-up within "
@@ -632,6 +645,16 @@ class ControllerNode(CanNode):
         result = self.sdo.on_response(msg)
         if result is None:
             return
+        conf = self.configurator
+        if conf is not None and conf.busy and self._phase is _WAIT_BOOT:
+            conf.on_result(result)
+            if conf.error is not None:
+                self.boot_error = conf.error
+                self._enter_safe(conf.error)
+            elif conf.done:
+                self.diagnostics.dcf_writes = len(conf.writes)
+                self._start_drive()
+            return
         if not result.ok:
             self.diagnostics.sdo_aborts += 1
         elif len(result.data) >= 2:
@@ -680,6 +703,23 @@ class ControllerNode(CanNode):
             self._finish_stop(step.reason)
         else:
             self._enter_safe(step.reason)
+
+    def _drive_seen(self) -> None:
+        """The drive is up: configure it from its DCF first (if any), then start it."""
+        conf = self.configurator
+        if conf is None or conf.done:
+            self._start_drive()
+        elif not conf.started:
+            self._configure_deadline = self._now + self.WALK_TIMEOUT_S
+            conf.start()
+            if conf.done:  # an empty DCF
+                self._start_drive()
+        elif conf.busy and self._now > self._configure_deadline:
+            self._enter_safe(
+                f"drive (node {self.drive_node_id}) did not answer the DCF configuration "
+                f"within {_seconds(self.WALK_TIMEOUT_S)} s "
+                f"({conf.position} of {len(conf.writes)} writes done)"
+            )
 
     def _start_drive(self) -> None:
         """NMT start of the drive, controller OPERATIONAL, walk from "shutdown"."""
@@ -796,7 +836,7 @@ class ControllerNode(CanNode):
         if node_id != self.drive_node_id:
             return
         if self._phase is Phase.WAIT_BOOT and self.services.state is not NmtState.INITIALISING:
-            self._start_drive()
+            self._drive_seen()
         elif self._phase in _COMMANDING:
             self._enter_safe(
                 f"drive (node {node_id}) sent a boot-up while {self._phase}: it was reset"

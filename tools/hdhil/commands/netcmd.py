@@ -183,7 +183,12 @@ def run_firmware(args: argparse.Namespace) -> int:
     try:
         bus = _control_bus(args)
         node_bus = _with_faults(bus, injector, "control")
-        ctrl = ControllerNode(node_bus, fw, boot_timeout_s=args.boot_timeout)
+        try:
+            ctrl = ControllerNode(
+                node_bus, fw, boot_timeout_s=args.boot_timeout, drive_dcf=args.drive_dcf
+            )
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
         with stop_on_signals() as stop:
             ctrl.boot(time.monotonic())
             # Wait for the drive's boot-up (or the timeout) while producing heartbeats.
@@ -358,6 +363,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--boot-timeout", type=float, default=2.0, help="seconds to wait for the drive's boot-up"
+    )
+    p.add_argument(
+        "--drive-dcf",
+        metavar="FILE",
+        default=None,
+        help="configure the drive at boot from this DCF (its ParameterValue entries, by SDO)",
     )
     add_fault_arguments(p, " (control.* on the controller's own frames)")
     p.set_defaults(func=run_firmware)
