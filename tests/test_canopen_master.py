@@ -158,19 +158,20 @@ def _enable(master: Master) -> None:
 
 def test_sync_loss_raises_emcy_0x8100_and_the_abort_connection_reaction(master):
     node = master.node
-    node.sdo.download(0x1006, 0, (10_000).to_bytes(4, "little"))  # 10 ms period
+    period = 0.04  # 0x1006 = 40 ms, SYNC every 5 ms: a loaded machine never gaps 60 ms
+    node.sdo.download(0x1006, 0, round(period * 1e6).to_bytes(4, "little"))
     node.nmt.state = "OPERATIONAL"
     time.sleep(0.05)
     _enable(master)
     master.network.sync.start(0.005)
-    time.sleep(0.2)
+    time.sleep(0.3)
     assert not [e for e in node.emcy.log if e.code == 0x8100]
     master.network.sync.stop()
     stopped = time.monotonic()
     emcy = node.emcy.wait(0x8100, timeout=1.0)
     assert emcy is not None
-    # Detected within two periods after the 15 ms timeout (the served loop's latency).
-    assert time.monotonic() - stopped < 0.015 + 2 * 0.010 + 0.05
+    # Detected within two periods after the timeout (1.5 periods after the last SYNC).
+    assert time.monotonic() - stopped < 1.5 * period + 2 * period
     time.sleep(0.05)
     # 0x6007 = 2 (default): disable voltage.
     assert master.drive.drive_state is State.SWITCH_ON_DISABLED
@@ -179,7 +180,7 @@ def test_sync_loss_raises_emcy_0x8100_and_the_abort_connection_reaction(master):
 
 def test_rpdo_event_timer_deadline_raises_emcy_0x8250(master):
     node = master.node
-    node.sdo.download(0x1400, 5, (30).to_bytes(2, "little"))  # 30 ms
+    node.sdo.download(0x1400, 5, (100).to_bytes(2, "little"))  # 100 ms, RPDOs every 10 ms
     node.nmt.state = "OPERATIONAL"
     time.sleep(0.05)
     _enable(master)

@@ -218,3 +218,25 @@ def test_nodes_take_pdo_identifiers_from_their_object_dictionary():
     od[0x1800][1].default = 0x183  # an object dictionary edited out of step with the DBC
     with pytest.raises(ValueError, match="does not match DRIVE_TPDO1"):
         pdo_cob_id(od, 0x1800, codec("control", "DRIVE_TPDO1"))
+
+
+@pytest.mark.parametrize("node", sorted(NODE_IDS))
+def test_every_valid_default_pdo_is_a_dbc_frame(node):
+    """The other direction: a PDO mapped by default in an EDS is a frame of control.dbc
+    with the same length (valid or not: the controller's CTRL_TPDO2 is valid only while a
+    control law runs); the spare PDOs a master may configure at run time are not valid
+    and not mapped by default."""
+    od = _od(node)
+    frames = {m.frame_id: m for m in PDO_MESSAGES}
+    for comm in [*range(0x1400, 0x1600), *range(0x1800, 0x1A00)]:
+        if comm not in od:
+            continue
+        cob = od[comm][1].default
+        count = od[comm + 0x200][0].default
+        if count == 0:
+            assert cob & 0x80000000, f"{node} 0x{comm:04X}: valid without a mapping"
+            continue
+        message = frames.get(cob & 0x7FF)
+        assert message is not None, f"{node} 0x{comm:04X}: COB-ID 0x{cob:03X} not in the DBC"
+        bits = sum(od[comm + 0x200][s].default & 0xFF for s in range(1, count + 1))
+        assert bits == 8 * message.length, f"{node} 0x{comm:04X}: {bits} bits"
