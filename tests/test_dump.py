@@ -250,7 +250,7 @@ def test_csv_output(tmp_path, capsys):
     cycles = 20
     trace = write_trace(tmp_path / "t.blf", make_frames(cycles))
     out_csv = tmp_path / "out.csv"
-    rc, out, err = run_cli(capsys, trace, "--csv", out_csv)
+    rc, out, err = run_cli(capsys, trace, "--csv", out_csv, "--per-frame")
     assert rc == 0
     assert out == ""
     assert summary_counts(err) == (4 * cycles + 2, 4 * cycles, 1, 1, 0, 0)
@@ -296,7 +296,7 @@ def test_csv_is_not_left_half_written(tmp_path, capsys, monkeypatch):
         original(self, frame)
 
     monkeypatch.setattr(dump_command._CsvOut, "add", failing_add)
-    rc, _, err = run_cli(capsys, trace, "--csv", out_csv)
+    rc, _, err = run_cli(capsys, trace, "--csv", out_csv, "--per-frame")
     assert rc == 130 and "interrupted" in err
     assert not out_csv.exists()
     assert not (tmp_path / "out.csv.tmp").exists()
@@ -304,7 +304,7 @@ def test_csv_is_not_left_half_written(tmp_path, capsys, monkeypatch):
 
 def test_csv_to_stdout_and_to_a_fifo(tmp_path, capsys):
     trace = write_trace(tmp_path / "t.asc", make_frames(10))
-    rc, out, err = run_cli(capsys, trace, "--csv", "-")
+    rc, out, err = run_cli(capsys, trace, "--csv", "-", "--per-frame")
     assert rc == 0
     rows = out.splitlines()
     assert rows[0].startswith("time,bus,id,") and len(rows) == 1 + 40
@@ -315,7 +315,7 @@ def test_csv_to_stdout_and_to_a_fifo(tmp_path, capsys):
     received: list[bytes] = []
     reader = threading.Thread(target=lambda: received.append(fifo.read_bytes()), daemon=True)
     reader.start()
-    rc, _, _ = run_cli(capsys, trace, "--csv", fifo)
+    rc, _, _ = run_cli(capsys, trace, "--csv", fifo, "--per-frame")
     reader.join(timeout=10)
     assert rc == 0
     assert stat.S_ISFIFO(fifo.stat().st_mode)

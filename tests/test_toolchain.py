@@ -5,6 +5,7 @@ gzip), can-utils' log2asc/asc2log, and real dates in the traces."""
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import shutil
 import subprocess
@@ -221,3 +222,73 @@ def test_truth_and_control_decode_with_the_databases(tmp_path):
             bus = "truth" if msg.is_extended_id else "control"
             assert can.util.channel2int(msg.channel) in (CHANNEL_NUMBER[bus], None)
             database(bus).get_message_by_frame_id(msg.arbitration_id)
+
+
+# ------------------------------------------------------------------ tidy data
+
+
+def _csv(path: Path) -> tuple[list[str], list[dict[str, str]]]:
+    import csv
+
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    return rows[0], [dict(zip(rows[0], r, strict=True)) for r in rows[1:]]
+
+
+def test_dump_csv_is_one_row_per_cycle_with_units(tmp_path, capsys):
+    trace = _run(tmp_path, "t.blf")
+    out, frames = tmp_path / "cycles.csv", tmp_path / "frames.csv"
+    assert main(["dump", str(trace), "--csv", str(out)]) == 0
+    assert main(["dump", str(trace), "--csv", str(frames), "--per-frame"]) == 0
+    capsys.readouterr()
+    header, rows = _csv(out)
+    assert header[:2] == ["time_s", "sample"]
+    for column in ("T_meas_Nm", "T_filtered_Nm", "velocity_radps", "current_A", "T_true_Nm",
+                   "omega_motor_radps", "ADC_torque_count", "ENC_count_count"):  # fmt: skip
+        assert column in header
+    # Only the signals present: free motion runs no control law, so no CTRL_TPDO2 columns.
+    assert not any(c.startswith(("tau_lgd_hat", "e_hat", "dtau_s_hat")) for c in header)
+    # One row per sample: as many rows as sensor frames, numbered from 0.
+    fheader, frows = _csv(frames)
+    sensor = [r for r in frows if r["id"] == "0x182"]
+    telemetry = [r for r in frows if r["id"] == "0x181"]
+    assert len(rows) == len(sensor) and [int(r["sample"]) for r in rows] == list(range(len(rows)))
+    # The cells are the frames' values: the k-th telemetry frame answers a sample.
+    answered = [r for r in rows if r["T_meas_Nm"] != ""]
+    assert len(answered) == len(telemetry)
+    for r, f in zip(answered[::50], telemetry[::50], strict=True):
+        assert float(r["T_meas_Nm"]) == float(f["CTRL_TPDO1.T_meas"])
+        assert float(r["velocity_radps"]) == float(f["CTRL_TPDO1.velocity"])
+    # Mostly full: per frame, most cells are empty.
+    empty = sum(v == "" for r in rows for v in r.values()) / (len(rows) * len(header))
+    fempty = sum(v == "" for r in frows for v in r.values()) / (len(frows) * len(fheader))
+    assert empty < 0.02 < 0.8 < fempty
+    # Times (of each sample's sensor frame) are seconds since the trace's start, rising
+    # by the 1 ms period; a heartbeat on the wire delays a sensor frame by a frame time.
+    times = [float(r["time_s"]) for r in rows]
+    steps = [b - a for a, b in itertools.pairwise(times)]
+    assert 0 <= times[0] < 0.01 and all(0.8e-3 < d < 1.2e-3 for d in steps)
+    assert abs((times[-1] - times[0]) / len(steps) - 1e-3) < 1e-6
+
+
+def test_dump_csv_has_the_control_law_columns_when_one_runs(tmp_path, capsys):
+    trace = _run(tmp_path, "lqg.blf", "--scenario", "lqg-tracking")
+    out = tmp_path / "lqg.csv"
+    assert main(["dump", str(trace), "--csv", str(out), "--id", "CTRL_TPDO2"]) == 0
+    capsys.readouterr()
+    header, rows = _csv(out)
+    assert header[:2] == ["time_s", "sample"]
+    assert {"dtau_s_hat_Nmps", "tau_lgd_hat_Nm", "tau_sD_Nm", "e_hat_Nm"} <= set(header)
+    assert len(header) == 6 and rows  # --id keeps only that message's columns
+
+
+def test_filter_reads_the_per_cycle_csv_and_writes_units(tmp_path, capsys):
+    trace = _run(tmp_path, "t.blf")
+    cycles, filtered = tmp_path / "cycles.csv", tmp_path / "filtered.csv"
+    assert main(["dump", str(trace), "--csv", str(cycles)]) == 0
+    assert main(["filter", str(cycles), "--out", str(filtered)]) == 0
+    capsys.readouterr()
+    header, rows = _csv(filtered)
+    assert header == ["time_s", "T_meas_Nm", "acceleration_radps2", "T_expected_Nm",
+                      "ripple_Nm", "T_filtered_Nm"]  # fmt: skip
+    assert len(rows) == len(_csv(cycles)[1])

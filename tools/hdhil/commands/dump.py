@@ -9,9 +9,10 @@ import json
 import math
 import os
 import sys
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TextIO
+from typing import Any, TextIO
 
 from hdhil.can.tracefile import (
     DecodedFrame,
@@ -102,7 +103,7 @@ def _parse_id_filter(values: list[str], decoder: FrameDecoder) -> tuple[_IdFilte
 
 
 class _CsvOut:
-    """Decoded frames as CSV.
+    """Decoded frames as CSV, one row per frame (``--per-frame``).
 
     A regular file is written as ``OUT.tmp`` and renamed over ``OUT`` only once complete,
     so a failure never leaves a half-written file that looks finished.  ``-`` is stdout;
@@ -131,6 +132,9 @@ class _CsvOut:
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._width = 3 + len(self.columns)
         self.rows = 0
+        self._header()
+
+    def _header(self) -> None:
         self._write(["time", "bus", "id", *self.columns])
 
     def _write(self, row: list[str]) -> None:
@@ -182,6 +186,72 @@ class _CsvOut:
                 self.tmp.unlink()
 
 
+class _CycleCsvOut(_CsvOut):
+    """Tidy data (the default ``--csv``): one row per control cycle, one column per signal
+    with its unit in the name (:mod:`hdhil.can.cycles`), only the signals that occur.
+
+    Rows go to an unnamed spool file first, with a column for every signal a cycle can
+    have; at the end the columns that never had a value are dropped while the spool is
+    copied to the output (which is written as :class:`_CsvOut` writes it)."""
+
+    def __init__(self, target: str, decoder: FrameDecoder, messages: set[str] | None) -> None:
+        from hdhil.can.cycles import CycleBuilder
+
+        self._builder = CycleBuilder(self._emit, decoder)
+        self._keep_messages = messages
+        self._spool = tempfile.TemporaryFile("w+", newline="", encoding="utf-8")  # noqa: SIM115
+        self._spool_writer = csv.writer(self._spool, lineterminator="\n")
+        self._formats = {col.name: _cycle_format(decoder, col) for col in self._builder.columns}
+        super().__init__(target, decoder, messages)
+
+    def _header(self) -> None:
+        pass  # written at commit, once the columns present are known
+
+    def add(self, frame: DecodedFrame) -> None:
+        self._builder.add(frame)
+
+    def _emit(self, time_s: float, sample: int, values: list[float | int | None]) -> None:
+        fmt = self._formats
+        cols = self._builder.columns
+        self._spool_writer.writerow(
+            [f"{time_s:.6f}", sample]
+            + ["" if v is None else fmt[c.name](v) for c, v in zip(cols, values, strict=True)]
+        )
+
+    def commit(self) -> None:
+        from hdhil.can.cycles import INDEX_COLUMNS
+
+        self._builder.finish()
+        cols = self._builder.columns
+        keep = [
+            i
+            for i, col in enumerate(cols)
+            if self._builder.present[i]
+            and (self._keep_messages is None or col.message in self._keep_messages)
+        ]
+        self._write([*INDEX_COLUMNS, *(cols[i].name for i in keep)])
+        self._spool.seek(0)
+        picks = [0, 1, *(2 + i for i in keep)]
+        for row in csv.reader(self._spool):
+            self._write([row[i] for i in picks])
+            self.rows += 1
+        self._spool.close()
+        super().commit()
+
+    def abort(self) -> None:
+        with contextlib.suppress(OSError):
+            self._spool.close()
+        super().abort()
+
+
+def _cycle_format(decoder: FrameDecoder, column: Any) -> Any:
+    """The CSV text function of a per-cycle column (the DBC signal's resolution)."""
+    for fmt in decoder.formats[column.message]:
+        if fmt.name == column.signal:
+            return fmt.csv
+    return str
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "dump",
@@ -205,8 +275,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--csv",
         metavar="OUT",
-        help="write decoded signals to OUT (one column per Message.Signal, one row per "
-        "decoded frame; '-' for stdout)",
+        help="write decoded signals to OUT as tidy data: one row per control cycle "
+        "(time_s, sample, then SIGNAL_UNIT columns such as T_meas_Nm, velocity_radps, only "
+        "the signals present); '-' for stdout",
+    )
+    parser.add_argument(
+        "--per-frame",
+        action="store_true",
+        help="--csv: one row per decoded frame instead (time, bus, id, one column per "
+        "Message.Signal)",
     )
     parser.add_argument(
         "--stats",
@@ -247,7 +324,14 @@ def run(args: argparse.Namespace) -> int:
         _check_csv_target(str(args.csv), Path(args.trace))
 
     trace = read_trace(args.trace)
-    csv_out = _CsvOut(str(args.csv), decoder, names) if args.csv is not None else None
+    if args.per_frame and args.csv is None:
+        raise UserError("--per-frame needs --csv OUT")
+    csv_out: _CsvOut | None = None
+    per_cycle: _CycleCsvOut | None = None
+    if args.csv is not None:
+        kind = _CsvOut if args.per_frame else _CycleCsvOut
+        csv_out = kind(str(args.csv), decoder, names)
+    per_cycle = csv_out if isinstance(csv_out, _CycleCsvOut) else None
     stats = StatsAccumulator(args.bitrate, decoder) if want_stats else None
     summary = _Summary()
     decode = want_table or csv_out is not None
@@ -262,13 +346,15 @@ def run(args: argparse.Namespace) -> int:
                 for msg in trace:
                     frame = decoder.classify(msg, decode)
                     summary.add(frame)
+                    if per_cycle is not None:
+                        per_cycle.add(frame)  # every frame: --id selects its columns
                     if id_filter is not None and not id_filter(frame):
                         continue
                     selected += 1
                     if want_table and printed < limit:
                         write(decoder.describe(frame) + "\n")
                         printed += 1
-                    if csv_out is not None:
+                    if csv_out is not None and per_cycle is None:
                         csv_out.add(frame)
                     if stats is not None:
                         stats.add(frame)

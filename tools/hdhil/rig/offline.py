@@ -11,7 +11,8 @@ Inputs:
   ``velocity`` (motor velocity, rad/s), optionally ``encoder`` (the 16-bit motor
   encoder count), or the same with units as ``hdhil dump --csv`` writes them
   (``time_s``, ``T_meas_Nm``, ``velocity_radps``, ``ENC_count_count``); other columns
-  are ignored.  Without an ``encoder`` column the
+  are ignored, and an empty ``T_meas``/``velocity`` cell is a missing sample
+  (NaN).  Without an ``encoder`` column the
   recommended filter takes its harmonic phase from the integrated velocity
   (``phase_source = "tacho"``).  Non-finite values (``nan``, ``inf``) are passed to
   the filter, which skips and counts them; anything else that is not a number is an
@@ -273,6 +274,12 @@ def _count(text: str, where: str) -> int:
     return int(value)
 
 
+def _cell(text: str) -> float:
+    """A signal cell: a number, or NaN where it is empty (a cycle whose frame is missing
+    in a per-cycle export; the filter skips and counts it like any non-finite sample)."""
+    return float(text) if text.strip() else math.nan
+
+
 def filter_signal_csv(
     path: Path, compressed: bool, cfg: FirmwareConfig, writer: Any
 ) -> FilterSummary:
@@ -316,8 +323,8 @@ def filter_signal_csv(
                     raise UserError(f"{label}:{line}: expected {width} fields, got {len(row)}")
                 try:
                     t = float(row[i_time])
-                    T = float(row[i_T])
-                    v = float(row[i_vel])
+                    T = _cell(row[i_T])
+                    v = _cell(row[i_vel])
                 except ValueError:
                     where = f"{label}:{line}"
                     for i, name in ((i_time, "time"), (i_T, "T_meas"), (i_vel, "velocity")):
