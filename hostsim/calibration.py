@@ -43,6 +43,7 @@ know.  It dominates the consistency measure; the gauges' hysteresis and nonlinea
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -171,12 +172,16 @@ def _locked_motor_angle(p: int, positions: int, beta0: float, gear_ratio: float)
 
 
 def calibrate(
-    plant_cfg: PlantConfig | None = None, rig: CalibrationRig | None = None, seed: int = 0
+    plant_cfg: PlantConfig | None = None,
+    rig: CalibrationRig | None = None,
+    seed: int = 0,
+    on_experiment: Callable[[int, int], object] | None = None,
 ) -> CalibrationResult:
     """Run the emulated calibration of seed 000 §3 and return its Table 1.
 
     Deterministic for a given ``seed``: it seeds the plant's sensor noise and the
     rig's own draws (the first position's modulation phase, the lever-arm errors).
+    ``on_experiment(done, total)`` is called after each experiment (progress).
     """
     plant_cfg = plant_cfg or PlantConfig()
     rig = rig or CalibrationRig()
@@ -192,6 +197,8 @@ def calibrate(
         theta_m = _locked_motor_angle(p, rig.positions, beta0, gear)
         for max_Nm in rig.ranges_Nm:
             idx = len(experiments)
+            if on_experiment is not None and idx:
+                on_experiment(idx, n_exp)
             torques = load_sequence(max_Nm, rig.steps)
             volts = []
             for nominal in torques:

@@ -9,6 +9,7 @@ import itertools
 import json
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import can
@@ -292,3 +293,62 @@ def test_filter_reads_the_per_cycle_csv_and_writes_units(tmp_path, capsys):
     assert header == ["time_s", "T_meas_Nm", "acceleration_radps2", "T_expected_Nm",
                       "ripple_Nm", "T_filtered_Nm"]  # fmt: skip
     assert len(rows) == len(_csv(cycles)[1])
+
+
+# ------------------------------------------------------------------ progress
+
+
+def _on_a_terminal(args: list[str]) -> tuple[int, str, str]:
+    """Run ``python -m hdhil ARGS`` with standard error on a pseudo-terminal; return the
+    exit code, standard output and what reached the terminal."""
+    import os
+    import pty
+
+    master, slave = pty.openpty()
+    proc = subprocess.Popen([sys.executable, "-m", "hdhil", *args], stdout=subprocess.PIPE,
+                            stderr=slave, stdin=subprocess.DEVNULL)  # fmt: skip
+    os.close(slave)
+    chunks = []
+    while True:
+        try:
+            data = os.read(master, 4096)
+        except OSError:  # EIO: the child closed the terminal
+            break
+        if not data:
+            break
+        chunks.append(data)
+    out = proc.stdout.read().decode() if proc.stdout else ""
+    code = proc.wait(timeout=300)
+    os.close(master)
+    return code, out, b"".join(chunks).decode(errors="replace")
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["run", "--duration", "1", "--trace", "", "--no-evaluate"],
+        ["calibrate", "--positions", "4"],
+    ],
+    ids=["run", "calibrate"],
+)
+def test_progress_on_a_terminal_and_none_with_json_or_quiet(args):
+    code, out, tty = _on_a_terminal(args)
+    assert code == 0, tty
+    assert f"hdhil {args[0]}" in tty and "%|" in tty and "<" in tty  # bar with an ETA
+    assert "%|" not in out  # the result itself is clean
+    for flag in ("--json", "--quiet"):
+        code, out, tty = _on_a_terminal([*args, flag])
+        assert code == 0 and "%|" not in tty and "%|" not in out
+    # Not a terminal (a pipe): no progress either.
+    proc = subprocess.run([sys.executable, "-m", "hdhil", *args], capture_output=True,
+                          text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 0 and "%|" not in proc.stderr
+
+
+def test_soak_blocks_adapt_to_short_runs():
+    from hdhil.commands.soak import SoakLimits, default_block_s
+
+    limits = SoakLimits(settle_s=40.0)
+    assert default_block_s(120.0, limits) == 20.0  # 4 blocks from 40 s
+    assert default_block_s(3600.0, limits) == 60.0
+    assert default_block_s(30.0, limits) == 60.0  # nothing after settling: the verdict says so

@@ -61,6 +61,7 @@ from typing import Any
 
 import numpy as np
 
+from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.dataconf import from_dict
 from hdhil.core.errors import UserError
 from hdhil.firmware.config import FirmwareConfig, paper_config
@@ -653,6 +654,7 @@ def run_benchmarks(
     quick: bool = False,
     realtime_s: float | None = None,
     startup_runs: int | None = None,
+    on_section: Callable[[str], object] | None = None,
 ) -> dict[str, Any]:
     """Every section; ``quick`` shrinks them (``duration_s`` / ``repeat`` still apply).
     ``realtime_s``: seconds of the real-time run (default 60, quick 1.5; 0 leaves the
@@ -666,19 +668,32 @@ def run_benchmarks(
         s = dataclasses.replace(s, startup_runs=startup_runs)
     started = time.strftime("%Y-%m-%d %H:%M:%S")
     wall0 = time.perf_counter()
+
+    def section(name: str) -> None:
+        if on_section is not None:
+            on_section(name)
+
+    section("lockstep")
     lockstep = bench_lockstep_all(s)
+    section("stages")
     stages = bench_stages(s)
+    section("filter")
     filt = bench_filter(s)
+    section("memory")
     memory = bench_memory(s)
     memory["peak_rss_MB"] = _peak_rss_bytes() / 2**20
+    section("real time")
     rt = bench_realtime(s) if s.realtime_s > 0 else None
+    section("campaign")
     from hdhil.rig.campaign_bench import bench_campaign
 
     if s.mode == "quick":
         campaign = bench_campaign(variants=4, duration_s=0.5, repeat=1)
     else:
         campaign = bench_campaign(variants=16, duration_s=2.0, repeat=s.repeat)
+    section("start-up")
     startup = bench_startup(s)
+    section("done")
     return {
         "started": started,
         "mode": s.mode,
@@ -885,6 +900,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     p.add_argument("--quick", action="store_true", help="a short version of every section (CI)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
+    add_quiet_argument(p)
     p.set_defaults(func=run)
 
 
@@ -900,8 +916,17 @@ def run(args: argparse.Namespace) -> int:
     startup_runs = getattr(args, "startup_runs", None)
     if startup_runs is not None and startup_runs < 1:
         raise UserError(f"--startup-runs must be >= 1, got {startup_runs}")
-    report = run_benchmarks(duration, repeat, quick=quick, realtime_s=realtime_s,
-                            startup_runs=startup_runs)  # fmt: skip
+    sections = [
+        "lockstep", "stages", "filter", "memory", "real time", "campaign", "start-up", "done"
+    ]  # fmt: skip
+    with progress(args, len(sections) - 1, "hdhil bench", "section") as bar:
+
+        def on_section(name: str) -> None:
+            bar.update_to(sections.index(name))
+            bar.describe(f"hdhil bench: {name}")
+
+        report = run_benchmarks(duration, repeat, quick=quick, realtime_s=realtime_s,
+                                startup_runs=startup_runs, on_section=on_section)  # fmt: skip
     if args.json:
         json.dump(report, sys.stdout, indent=2)
         print()

@@ -6,6 +6,7 @@ import argparse
 import json
 import math
 
+from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.errors import UserError
 from hdhil.hostsim.calibration import CalibrationRig, calibrate
 from hdhil.hostsim.scenario import list_scenarios, load_scenario
@@ -61,6 +62,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "low range and full range) into FIG (.png, .pdf, .svg)",
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    add_quiet_argument(p)
     p.add_argument(
         "--out",
         metavar="FILE",
@@ -83,7 +85,10 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         msg = str(exc).replace("CalibrationRig.", "--")
         raise UserError(msg) from None
-    result = calibrate(scenario.plant, rig, seed)
+    total = rig.positions * len(rig.ranges_Nm)
+    with progress(args, total, "hdhil calibrate", "experiment") as bar:
+        result = calibrate(scenario.plant, rig, seed, on_experiment=lambda n, _t: bar.update_to(n))
+        bar.update_to(total)
     if not math.isfinite(result.gain_Nm_per_V):
         raise UserError("the calibration gave no finite gain (is the torque channel saturated?)")
     if args.plot:

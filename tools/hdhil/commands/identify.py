@@ -81,6 +81,7 @@ from typing import Any
 import numpy as np
 from scipy import signal
 
+from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.dataconf import from_dict
 from hdhil.core.errors import UserError
 from hdhil.dbc import codec
@@ -656,6 +657,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="Welch segment length in s (default: %(default)s)",
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    add_quiet_argument(p)
     p.add_argument("--plot", type=Path, default=None, metavar="FIG", help="write the Bode plot")
     p.set_defaults(func=run)
 
@@ -674,13 +676,20 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.plot is not None and args.plot.suffix.lower() not in (".png", ".pdf", ".svg"):
         raise UserError(f"--plot {args.plot}: use a .png, .pdf or .svg file name")
-    data = chirp_data_from_trace(args.trace, firmware, per_volt)
-    ident = identify(data, jm, jl, args.segment, model_values(plant))
-    if args.plot is not None:
-        try:
-            make_figure(ident).savefig(args.plot, dpi=100)
-        except OSError as exc:
-            raise UserError(f"cannot write {args.plot}: {exc.strerror or exc}") from None
+    with progress(args, 3 if args.plot is not None else 2, "hdhil identify", "step") as bar:
+        bar.describe("hdhil identify: reading the trace")
+        data = chirp_data_from_trace(args.trace, firmware, per_volt)
+        bar.advance()
+        bar.describe("hdhil identify: frequency response and fits")
+        ident = identify(data, jm, jl, args.segment, model_values(plant))
+        bar.advance()
+        if args.plot is not None:
+            bar.describe("hdhil identify: plotting")
+            try:
+                make_figure(ident).savefig(args.plot, dpi=100)
+            except OSError as exc:
+                raise UserError(f"cannot write {args.plot}: {exc.strerror or exc}") from None
+            bar.advance()
     if args.json:
         out = ident.as_dict()
         out.update(trace=str(args.trace), scenario=scenario.name, plot=args.plot and str(args.plot))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import sys
@@ -19,6 +20,7 @@ from hdhil.commands.options import (
     open_bus,
     resolve_bus_config,
 )
+from hdhil.commands.progress import Progress, add_quiet_argument, progress
 from hdhil.core.dataconf import merge
 from hdhil.core.errors import UserError
 from hdhil.hostsim.scenario import list_scenarios, load_scenario
@@ -64,6 +66,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(2026-01-01T00:00:00Z) or Unix seconds (default: now)",
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    add_quiet_argument(p)
     p.add_argument(
         "--calibration",
         type=Path,
@@ -164,6 +167,22 @@ def _control_bus(
     return interface, resolved.get("channel"), int(resolved["bitrate"]), factory
 
 
+#: How often (in samples) a run on a terminal moves its progress bar.
+PROGRESS_EVERY_SAMPLES = 200
+
+
+def _progress_monitor(bar: Progress) -> Callable[[Any], None] | None:
+    """The run's ``monitor``: simulated seconds done, for the progress bar (none if the
+    bar is off, so runs without a terminal are untouched)."""
+    if not bar.enabled:
+        return None
+
+    def monitor(controller: Any) -> None:
+        bar.update_to(controller.isr.samplecount * controller.config.sample_period_s)
+
+    return monitor
+
+
 def parse_start_time(text: str | None) -> float | None:
     """``--start-time``: ISO 8601 (UTC unless a zone is given) or Unix seconds."""
     if text is None:
@@ -210,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
     rt_config = RealtimeConfig(spin_us=args.spin_us, floor_s=args.floor_s, mlock=args.mlock)
     try:
         interface, channel, bitrate, factory = _control_bus(args)
-        with stop_on_signals() as stop:
+        with stop_on_signals() as stop, contextlib.ExitStack() as stack:
             if args.compare_laws:
                 rows = compare_laws(
                     scenario,
@@ -236,6 +255,9 @@ def run(args: argparse.Namespace) -> int:
                     print(f"hdhil run --compare-laws: scenario {scenario.name}")
                     print(format_tracking(rows))
                 return 130 if stop.is_set() else 0
+            duration = args.duration if args.duration is not None else scenario.duration_s
+            bar = progress(args, duration, f"hdhil run {scenario.name}", "s")
+            stack.enter_context(bar)
             result = run_lockstep(
                 scenario,
                 args.duration,
@@ -248,6 +270,8 @@ def run(args: argparse.Namespace) -> int:
                 open_control_bus=factory,
                 start_time=start_time,
                 metadata=metadata,
+                monitor=_progress_monitor(bar),
+                monitor_every=PROGRESS_EVERY_SAMPLES,
                 stop_requested=stop.is_set,
                 evaluate=args.evaluate,
                 evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,

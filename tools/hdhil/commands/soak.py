@@ -52,6 +52,7 @@ import can
 import numpy as np
 from scipy import stats
 
+from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
 from hdhil.firmware.config import FirmwareConfig, Law
@@ -506,6 +507,22 @@ def _run_summary(r: RunResult) -> dict[str, Any]:
     }
 
 
+#: Blocks a default soak puts after the settling time, at least, for its stationarity test.
+STATIONARITY_BLOCKS = 4
+#: The default block length of long soaks (s).
+DEFAULT_BLOCK_S = 60.0
+
+
+def default_block_s(duration_s: float, limits: SoakLimits) -> float:
+    """The block length when ``--every`` is not given: 60 s, or shorter (whole seconds,
+    at least 1 s) so that :data:`STATIONARITY_BLOCKS` blocks start at or after the
+    settling time; e.g. 20 s blocks for ``--duration 120`` with 40 s of settling."""
+    after = duration_s - limits.settle_s
+    if not (math.isfinite(after) and after > 0):
+        return DEFAULT_BLOCK_S
+    return min(DEFAULT_BLOCK_S, max(1.0, math.floor(after / STATIONARITY_BLOCKS)))
+
+
 def run_soak(
     scenario: Scenario,
     duration_s: float = 3600.0,
@@ -651,8 +668,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="simulated seconds (default: %(default)g)",
     )  # fmt: skip
     p.add_argument(
-        "--every", type=float, default=60.0, metavar="S",
-        help="block length in simulated seconds (default: %(default)g)",
+        "--every", type=float, default=None, metavar="S",
+        help="block length in simulated seconds (default: 60, shorter for short runs so "
+        f"that at least {STATIONARITY_BLOCKS} blocks follow the settling time)",
     )  # fmt: skip
     p.add_argument("--seed", type=int, default=None, help="noise seed (default: the scenario's)")
     p.add_argument(
@@ -672,6 +690,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "first-half mean (default: %(default)g)",
     )  # fmt: skip
     p.add_argument("--json", action="store_true", help="print the report as JSON")
+    add_quiet_argument(p)
     p.set_defaults(func=run)
 
 
@@ -682,16 +701,19 @@ def run(args: argparse.Namespace) -> int:
         tolerance=args.tolerance,
     )
     trace = Path(args.trace) if args.trace else None
+    every = args.every if args.every is not None else default_block_s(args.duration, limits)
+    bar = progress(args, args.duration, f"hdhil soak {scenario.name}", "s")
     try:
-        with stop_on_signals() as stop:
+        with stop_on_signals() as stop, bar:
             report = run_soak(
                 scenario,
                 duration_s=args.duration,
-                block_s=args.every,
+                block_s=every,
                 trace=trace,
                 seed=args.seed,
                 limits=limits,
                 stop_requested=stop.is_set,
+                after_block=(lambda _c, block: bar.update_to(block.end_s)) if bar.enabled else None,
             )
     except ValueError as exc:
         raise UserError(str(exc)) from None

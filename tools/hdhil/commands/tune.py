@@ -48,7 +48,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize
 
+from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.errors import UserError
 from hdhil.firmware.config import (
     FirmwareConfig,
@@ -339,9 +340,11 @@ def tune_signals(
     skip_s: float = SKIP_S,
     max_evals: int = DEFAULT_MAX_EVALS,
     max_window: int = MAX_WINDOW_SAMPLES,
+    on_evaluation: Callable[[int], object] | None = None,
 ) -> TuneResult:
     """Tune the recommended filter on calibrated samples (T_meas in Nm, velocity in rad/s,
-    raw 16-bit encoder counts), starting from ``cfg``'s recommended tuning."""
+    raw 16-bit encoder counts), starting from ``cfg``'s recommended tuning.
+    ``on_evaluation(n)`` is called after the n-th likelihood evaluation (progress)."""
     t_start = time.perf_counter()
     Ts = cfg.sample_period_s
     k0, k1 = _window(len(T_meas), Ts, skip_s, max_window)
@@ -367,6 +370,8 @@ def tune_signals(
         evaluations += 1
         e, S = recommended_innovations(inputs, with_tuning(ripple0, values_of(x)), gear, k1)
         value = mean_nll(e, S, k0, k1)
+        if on_evaluation is not None:
+            on_evaluation(evaluations)
         return value if math.isfinite(value) else 1e300
 
     e_default, S_default = recommended_innovations(inputs, ripple0, gear, k1)
@@ -431,6 +436,7 @@ def tune_recording(
     skip_s: float = SKIP_S,
     max_evals: int = DEFAULT_MAX_EVALS,
     max_window: int = MAX_WINDOW_SAMPLES,
+    on_evaluation: Callable[[int], object] | None = None,
 ) -> TuneResult:
     """Tune on a :class:`hdhil.rig.evaluate.Recording` (its ``DRIVE_TPDO1`` columns only);
     then, if it has ground truth, add the RMS check (:attr:`TuneResult.rms`)."""
@@ -441,7 +447,14 @@ def tune_recording(
     T_meas, velocity = calibrated_signals(rec, cfg)
     encoder = rec.column("encoder")
     result = tune_signals(
-        T_meas, velocity, encoder, cfg, skip_s=skip_s, max_evals=max_evals, max_window=max_window
+        T_meas,
+        velocity,
+        encoder,
+        cfg,
+        skip_s=skip_s,
+        max_evals=max_evals,
+        max_window=max_window,
+        on_evaluation=on_evaluation,
     )
     T_true = rec.column("T_true")
     k0, k1 = result.window
@@ -597,6 +610,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="write the tuned [firmware.ripple] table (scenario layout) to FILE.toml",
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    add_quiet_argument(p)
     p.add_argument(
         "--max-evals",
         type=int,
@@ -629,7 +643,9 @@ def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario) if args.scenario else None
     fw = from_dict(FirmwareConfig, scenario.firmware, "firmware") if scenario else FirmwareConfig()
     rec, damage = recording_from_trace(args.trace, fw.sample_period_s)
-    res = tune_recording(rec, fw, skip_s=args.skip, max_evals=args.max_evals)
+    with progress(args, args.max_evals, "hdhil tune", "eval") as bar:
+        res = tune_recording(rec, fw, skip_s=args.skip, max_evals=args.max_evals,
+                             on_evaluation=bar.update_to)  # fmt: skip
     label = f"{args.trace}, scenario {scenario.name if scenario else '(firmware defaults)'}"
     if args.out is not None:
         comments = [
