@@ -207,3 +207,26 @@ def test_identify_rejects_a_trace_without_a_resonance(hdhil, tmp_path) -> None:
     code, _, err = hdhil("identify", trace, "--scenario", "free-motion")
     assert code == 2 and err.count("\n") == 1
     assert "resonance" in err or "half power" in err
+
+
+def test_identify_plot_has_phase_and_coherence_panels(chirp_trace) -> None:
+    """The figure holds the Bode magnitude, the phase (crossing -90 deg near fn, as a
+    second-order resonance does) and the coherence next to the impulse response."""
+    from hdhil.commands.identify import chirp_data_from_trace, identify, make_figure, model_values
+    from hdhil.firmware.config import FirmwareConfig
+    from hdhil.hostsim.scenario import load_scenario
+
+    plant = load_scenario("chirp").plant
+    data = chirp_data_from_trace(chirp_trace, FirmwareConfig(), plant.torque_per_volt)
+    ident = identify(data, plant.drivetrain.J_motor, plant.drivetrain.J_load, 2.0,
+                     model_values(plant))  # fmt: skip
+    fig = make_figure(ident)
+    labels = [ax.get_ylabel() for ax in fig.axes]
+    assert labels == ["magnitude [dB]", "phase [deg]", "coherence", "normalised"]
+    phase_ax = fig.axes[1]
+    measured = next(line for line in phase_ax.get_lines() if line.get_label() == "arg H1")
+    f, phase = (np.asarray(v, dtype=float) for v in measured.get_data())
+    crossing = f[np.argmin(np.abs(phase + 90.0))]
+    assert crossing == pytest.approx(ident.half_power.fn_exact_Hz, rel=0.05)
+    coherence = fig.axes[2].get_lines()[0].get_ydata()
+    assert 0.9 < float(np.median(coherence)) <= 1.0

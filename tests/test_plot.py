@@ -145,7 +145,7 @@ def test_cli_writes_a_png(
     out = tmp_path / "fig.png"
     assert main(["plot", str(traces[name]), "--scenario", scenario, "--out", str(out)]) == 0
     assert str(out) in capsys.readouterr().out
-    assert _png_size(out) == (1400, 1200)
+    assert _png_size(out) == (1400, 1600)
     assert 50_000 < out.stat().st_size < 5_000_000
 
 
@@ -164,8 +164,30 @@ def test_figure_titles_name_the_window(traces: dict[str, Path]) -> None:
     fig = make_figure(_data(traces["free"], "free-motion"), "title", window=(0.8, 1.1))
     titles = [ax.get_title() for ax in fig.axes]
     assert any("power spectrum, 0.80-1.10 s" in t for t in titles)
-    assert any("Figs. 10-11" in t for t in titles)
+    assert any(t.startswith("Fig. 10: misalignment before") for t in titles)
+    assert any(t.startswith("Fig. 11: misalignment after") for t in titles)
     assert fig.get_suptitle() == "title"
+    # Legends sit outside the data: below each axes (anchored under its bottom edge).
+    for ax in fig.axes:
+        legend = ax.get_legend()
+        if legend is not None:
+            assert legend.get_bbox_to_anchor()._bbox.y1 < 0  # type: ignore[attr-defined]
+
+
+def test_every_curve_is_inside_its_axes(traces: dict[str, Path]) -> None:
+    """Each panel's y limits hold every curve drawn on it (no curve clipped)."""
+    import numpy as np
+
+    fig = make_figure(_data(traces["free"], "free-motion"), "title")
+    for ax in fig.axes:
+        lo, hi = ax.get_ylim()
+        if ax.get_yscale() != "linear":
+            continue
+        for line in ax.get_lines():
+            y = np.asarray(line.get_ydata(), dtype=float)
+            y = y[np.isfinite(y)]
+            if y.size and line.get_label() and not line.get_label().startswith("_"):
+                assert lo <= y.min() and y.max() <= hi, (ax.get_title(), line.get_label())
 
 
 @pytest.mark.parametrize(

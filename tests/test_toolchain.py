@@ -245,7 +245,7 @@ def test_dump_csv_is_one_row_per_cycle_with_units(tmp_path, capsys):
     header, rows = _csv(out)
     assert header[:2] == ["time_s", "sample"]
     for column in ("T_meas_Nm", "T_filtered_Nm", "velocity_radps", "current_A", "T_true_Nm",
-                   "omega_motor_radps", "ADC_torque_count", "ENC_count_count"):  # fmt: skip
+                   "omega_motor_radps", "ADC_torque_count", "ENC_count"):  # fmt: skip
         assert column in header
     # Only the signals present: free motion runs no control law, so no CTRL_TPDO2 columns.
     assert not any(c.startswith(("tau_lgd_hat", "e_hat", "dtau_s_hat")) for c in header)
@@ -352,3 +352,41 @@ def test_soak_blocks_adapt_to_short_runs():
     assert default_block_s(120.0, limits) == 20.0  # 4 blocks from 40 s
     assert default_block_s(3600.0, limits) == 60.0
     assert default_block_s(30.0, limits) == 60.0  # nothing after settling: the verdict says so
+
+
+# ------------------------------------------------------------------ one DBC view
+
+
+def test_dbc_export_decodes_a_whole_trace_with_cantools(tmp_path, capsys):
+    """``hdhil dbc export`` gives one database for both buses: cantools decodes every
+    frame of a candump log (none unknown), with the value tables and units."""
+    merged = tmp_path / "hdhil.dbc"
+    assert main(["dbc", "export", str(merged)]) == 0
+    capsys.readouterr()
+    log = _run(tmp_path, "t.log")
+    proc = subprocess.run([sys.executable, "-m", "cantools", "decode", "--single-line",
+                           str(merged)], input=log.read_text(), capture_output=True, text=True,
+                          timeout=120, check=True)  # fmt: skip
+    lines = proc.stdout.splitlines()
+    assert len(lines) == len(log.read_text().splitlines())
+    assert not [line for line in lines if "Unknown" in line]
+    assert any("TRUTH_TORQUE(T_true:" in line and " Nm" in line for line in lines)
+    assert any("controlword: enable operation" in line for line in lines)
+    assert any("statusword: operation enabled" in line for line in lines)
+    assert any("sync_counter: 2 cycle" in line for line in lines)
+    import cantools
+
+    db = cantools.database.load_file(str(merged), strict=True)
+    assert db.dbc.attributes["Baudrate"].value == 1_000_000
+    for name in ("TRUTH_TORQUE", "TRUTH_MOTION", "TRUTH_JOINT"):
+        assert db.get_message_by_name(name).comment
+    emcy = db.get_message_by_name("EMCY_DRIVE").get_signal_by_name("error_code").choices
+    assert str(emcy[0x8130]) == "heartbeat lost"
+    sdo = db.get_message_by_name("SDO_RX_DRIVE").get_signal_by_name("sdo_cs").choices
+    assert str(sdo[0x40]) == "upload request"
+    assert db.get_message_by_name("DRIVE_RPDO1").get_signal_by_name("cycle").unit == "cycle"
+
+
+def test_dbc_export_refuses_a_directory(tmp_path, capsys):
+    assert main(["dbc", "export", str(tmp_path)]) == 2
+    assert "not a regular file" in capsys.readouterr().err

@@ -43,6 +43,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "log": ("netcmd", "record a CAN interface (and the truth bus) to a trace"),
     "sdo": ("netcmd", "read or write a node's object dictionary (SDO client)"),
     "nmt": ("netcmd", "send an NMT command"),
+    "dbc": ("dbc", "CAN databases: export the control bus and ground truth as one DBC"),
     "bench": ("bench", "measure throughput, per-stage compute time and memory (medians)"),
     "soak": (
         "soak",

@@ -53,7 +53,9 @@ def unit_slug(unit: str) -> str:
 def column_name(signal: str, unit: str) -> str:
     """``signal`` with its unit appended (``T_meas`` + ``Nm`` -> ``T_meas_Nm``)."""
     slug = unit_slug(unit)
-    return f"{signal}_{slug}" if slug else signal
+    if not slug or signal == slug or signal.endswith(f"_{slug}"):
+        return signal  # "cycle" in cycles stays "cycle"
+    return f"{signal}_{slug}"
 
 
 @dataclass(frozen=True)

@@ -439,3 +439,16 @@ def write_metadata(trace: Path, metadata: dict[str, Any]) -> Path:
         tmp.unlink(missing_ok=True)
         raise ValueError(f"cannot write {target}: {exc.strerror or exc}") from None
     return target
+
+
+def read_metadata(trace: Path) -> dict[str, Any] | None:
+    """The sidecar metadata of ``trace`` (:func:`write_metadata`), or ``None`` if there
+    is none or it is not a JSON object."""
+    import json
+
+    path = metadata_path(Path(trace))
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None

@@ -26,7 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--scenario",
         default=None,
-        help="scenario whose firmware configuration was used (default: defaults)",
+        help="scenario whose firmware configuration was used (default: the one in the "
+        "trace's sidecar TRACE.json, else the firmware defaults)",
     )
     p.add_argument("--skip", type=float, default=0.0, help="seconds left out at the start")
     p.add_argument("--json", action="store_true", help="print the evaluation as JSON")
@@ -34,11 +35,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hdhil.commands.options import scenario_for_trace
     from hdhil.core.dataconf import from_dict
-    from hdhil.hostsim.scenario import load_scenario
 
-    fw = (from_dict(FirmwareConfig, load_scenario(args.scenario).firmware, "firmware")
-          if args.scenario else FirmwareConfig())  # fmt: skip
+    scenario, _source = scenario_for_trace(args.trace, args.scenario)
+    fw = from_dict(FirmwareConfig, scenario.firmware, "firmware") if scenario else FirmwareConfig()
     rec, damage = recording_from_trace(args.trace, fw.sample_period_s)
     ev = evaluate(rec, fw, args.skip)
     tracking = _tracking(args.trace, fw, args.skip)

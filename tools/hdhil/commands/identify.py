@@ -561,8 +561,9 @@ def _pct(value: float, reference: float) -> str:
 
 
 def make_figure(ident: Identification, title: str = "") -> Any:
-    """Bode magnitude (seed 003 Fig. 5) with the peak and half-power points, and the
-    band-passed impulse response with the peaks of the logarithmic decrement."""
+    """Bode magnitude (seed 003 Fig. 5) with the peak and half-power points, the phase
+    and the coherence of the estimate over the excited band, and the band-passed impulse
+    response with the peaks of the logarithmic decrement; legends beside the axes."""
     from matplotlib.figure import Figure
     from matplotlib.ticker import FuncFormatter
 
@@ -570,8 +571,10 @@ def make_figure(ident: Identification, title: str = "") -> Any:
     lo, hi = fr.band
     f = fr.f[lo : hi + 1]
     mag_dB = 20.0 * np.log10(fr.magnitude[lo : hi + 1])
-    fig = Figure(figsize=(9, 8), layout="constrained")
-    ax, ax2 = fig.subplots(2, 1, height_ratios=(3, 2))
+    fig = Figure(figsize=(9, 12), layout="constrained")
+    ax, ax_ph, ax_coh, ax2 = fig.subplots(4, 1, height_ratios=(3, 2, 1.3, 2))
+    for axis in (ax_ph, ax_coh):
+        axis.sharex(ax)
     ax.semilogx(f, mag_dB, color="C0", lw=1.2, label="|H1| = |Pxy / Pxx| (Welch)")
     fn, zeta = hp.fn_exact_Hz, hp.zeta_exact
     r = f / fn
@@ -600,7 +603,34 @@ def make_figure(ident: Identification, title: str = "") -> Any:
     ax.xaxis.set_minor_formatter(plain)
     ax.tick_params(axis="x", which="minor", labelsize=7)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(loc="lower left")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+
+    # Phase: the measured H1's and the fit's, unwrapped over the band (seed 003 Fig. 5
+    # shows the magnitude only; the phase crossing -90 deg at fn checks the reading).
+    phase = np.degrees(np.unwrap(np.angle(fr.H[lo : hi + 1])))
+    fit_phase = np.degrees(np.unwrap(np.angle(1.0 / (1.0 - r * r + 2j * zeta * r))))
+    phase += 360.0 * round((fit_phase[0] - phase[0]) / 360.0)  # same branch as the fit
+    ax_ph.semilogx(f, phase, color="C0", lw=1.2, label="arg H1")
+    ax_ph.semilogx(f, fit_phase, "--", color="C7", lw=1.0, label="2nd-order fit")
+    ax_ph.axvline(fn, color="C3", lw=0.8, ls=":", label=f"fn {fn:.2f} Hz")
+    ax_ph.axhline(-90.0, color="0.5", lw=0.6)
+    ax_ph.set_ylabel("phase [deg]")
+    ax_ph.set_xlabel("frequency [Hz]")
+    ax_ph.grid(True, which="both", alpha=0.3)
+    ax_ph.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+
+    # Coherence: where H1 can be trusted (near 1: the response is linear in the command
+    # and noise is small).
+    ax_coh.semilogx(f, fr.coherence[lo : hi + 1], color="C2", lw=1.2, label="coherence")
+    ax_coh.set_ylim(0.0, 1.05)
+    ax_coh.set_ylabel("coherence")
+    ax_coh.set_xlabel("frequency [Hz]")
+    ax_coh.grid(True, which="both", alpha=0.3)
+    ax_coh.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    for axis in (ax_ph, ax_coh):
+        axis.xaxis.set_major_formatter(plain)
+        axis.xaxis.set_minor_formatter(plain)
+        axis.tick_params(axis="x", which="minor", labelsize=7)
     shown = ld.t <= min(ld.t[-1], (ld.peak_t[-1] if len(ld.peak_t) else 0.5) * 1.5 + 0.05)
     ax2.plot(
         ld.t[shown], ld.h.real[shown], color="C0", lw=1.0, label="impulse response (band-passed)"
@@ -611,7 +641,7 @@ def make_figure(ident: Identification, title: str = "") -> Any:
     ax2.set_xlabel("time [s]")
     ax2.set_ylabel("normalised")
     ax2.grid(True, alpha=0.3)
-    ax2.legend(loc="upper right")
+    ax2.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     return fig
 
 

@@ -146,3 +146,49 @@ def open_bus(
             f"cannot open the {what} ({resolved['interface']} {resolved.get('channel')}): {text}"
         ) from None
     return bus, resolved
+
+
+# ------------------------------------------------------------------ a trace's scenario
+
+
+def scenario_for_trace(trace: Path, given: str | None) -> tuple[Any, str]:
+    """The scenario a trace was recorded with, and where that came from.
+
+    ``--scenario`` wins; else the trace's sidecar JSON (written by ``hdhil run``/``soak``)
+    names it, with the override files of the run where they still exist; else ``None``
+    (the firmware defaults).  Returns ``(scenario or None, note)``."""
+    from hdhil.can.trace import metadata_path, read_metadata
+    from hdhil.core.dataconf import merge
+    from hdhil.hostsim.scenario import load_scenario
+
+    if given:
+        return load_scenario(given), "--scenario"
+    meta = read_metadata(trace)
+    if not meta or not meta.get("scenario"):
+        return None, "no scenario recorded with the trace"
+    source = str(meta.get("scenario_source") or meta["scenario"])
+    overrides: dict[str, Any] = {}
+    for path in meta.get("overrides") or []:
+        from hdhil.rig.runner import read_toml
+
+        try:
+            overrides = merge(overrides, read_toml(Path(path)))
+        except (OSError, ValueError, UserError):
+            return load_scenario(str(meta["scenario"])), (
+                f"{metadata_path(trace).name} (override {path} unreadable: left out)"
+            )
+    try:
+        scenario = load_scenario(source, overrides or None)
+    except (OSError, ValueError, UserError):
+        scenario = load_scenario(str(meta["scenario"]))
+    if meta.get("calibration"):
+        import dataclasses
+
+        from hdhil.rig.calibration import load_calibration
+
+        try:
+            firmware = merge(scenario.firmware, load_calibration(Path(meta["calibration"])))
+            scenario = dataclasses.replace(scenario, firmware=firmware)
+        except (OSError, ValueError, UserError):
+            return scenario, f"{metadata_path(trace).name} (calibration file unreadable)"
+    return scenario, metadata_path(trace).name

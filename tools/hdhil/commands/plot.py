@@ -250,20 +250,21 @@ def _window_samples(data: PlotData, window: tuple[float, float] | None) -> tuple
 _MEAS = {"color": "0.6", "lw": 0.6}
 _FILT = {"color": "tab:blue", "lw": 1.0}
 _TRUE = {"color": "black", "lw": 1.0, "ls": "--"}
-_EXP = {"color": "tab:orange", "lw": 1.0, "ls": ":"}
+_EXP = {"color": "tab:orange", "lw": 1.4, "ls": "-."}
 
 
 def make_figure(data: PlotData, title: str, window: tuple[float, float] | None = None) -> Figure:
     """The 3 x 2 figure (see the module docstring); ``window`` = (T0, T1) in s for the
     spectrum, else auto-detected."""
-    fig = Figure(figsize=(14, 12), layout="constrained")
+    fig = Figure(figsize=(14, 16), layout="constrained")
     fig.suptitle(title, fontsize=13)
-    grid = fig.add_gridspec(3, 2)
+    grid = fig.add_gridspec(4, 2)
     ax_tv = fig.add_subplot(grid[0, 0])
     ax_sp = fig.add_subplot(grid[0, 1])
     ax_f9 = fig.add_subplot(grid[1, 0])
     ax_zo = fig.add_subplot(grid[1, 1])
-    ax_mis = fig.add_subplot(grid[2, :])
+    ax_m10 = fig.add_subplot(grid[2, :])
+    ax_m11 = fig.add_subplot(grid[3, :], sharex=ax_m10)
     t = data.t
     span = _window_samples(data, window)
 
@@ -279,8 +280,7 @@ def make_figure(data: PlotData, title: str, window: tuple[float, float] | None =
                       label="spectrum window")  # fmt: skip
     lines = ax_tv.get_legend_handles_labels()
     more = ax_v.get_legend_handles_labels()
-    ax_tv.legend(lines[0] + more[0], lines[1] + more[1], loc="lower right", fontsize=8,
-                 framealpha=0.9)  # fmt: skip
+    _legend_below(ax_tv, lines[0] + more[0], lines[1] + more[1])
     ax_tv.grid(alpha=0.3)
 
     # Fig. 8 bottom: spectrum over the flat-velocity window.
@@ -288,13 +288,33 @@ def make_figure(data: PlotData, title: str, window: tuple[float, float] | None =
 
     # Fig. 9: measured vs filtered (+ true), whole run and a close-up.
     for ax, sl in ((ax_f9, slice(None)), (ax_zo, _close_up(data, span))):
-        ax.plot(t[sl], data.T_meas[sl], label="measured", **_MEAS)
+        true = data.T_true[sl] if data.T_true is not None else None
+        if ax is ax_zo:
+            # The close-up: the measured torque on its own (right) axis, so that an
+            # offset of the measurement (misalignment, ripple) does not flatten the
+            # filtered and true curves, whose ripple-free detail is the point here.
+            ax_m = ax.twinx()
+            ax_m.plot(t[sl], data.T_meas[sl], label="measured (right axis)", **_MEAS)
+            ax_m.set_ylabel("measured torque (Nm)", color="0.45")
+            ax_m.tick_params(axis="y", colors="0.45")
+            _fit_ylim(ax_m, [data.T_meas[sl]])
+            ax.set_zorder(ax_m.get_zorder() + 1)
+            ax.patch.set_visible(False)
+        else:
+            ax.plot(t[sl], data.T_meas[sl], label="measured", **_MEAS)
         ax.plot(t[sl], data.T_filtered[sl], label=data.filtered_label, **_FILT)
-        if data.T_true is not None:
-            ax.plot(t[sl], data.T_true[sl], label="true (truth channel)", **_TRUE)
+        if true is not None:
+            ax.plot(t[sl], true, label="true (truth channel)", **_TRUE)
         ax.set(xlabel="time (s)", ylabel="torque (Nm)")
         ax.grid(alpha=0.3)
-        ax.legend(loc="best", fontsize=8)
+        if ax is ax_zo:
+            _fit_ylim(ax, [data.T_filtered[sl], true])
+            h, lab = ax.get_legend_handles_labels()
+            hm, labm = ax_m.get_legend_handles_labels()
+            _legend_below(ax, hm + h, labm + lab)
+        else:
+            _fit_ylim(ax, [data.T_meas[sl], data.T_filtered[sl], true])
+            _legend_below(ax)
     ax_f9.set_title("Fig. 9: measured vs Kalman-filtered torque")
     zoom = _close_up(data, span)
     ax_zo.set_title(
@@ -302,9 +322,30 @@ def make_figure(data: PlotData, title: str, window: tuple[float, float] | None =
         f"(mean velocity {np.mean(data.velocity[zoom]):.0f} rad/s)"
     )
 
-    # Figs. 10-11: misalignment vs output angle.
-    _draw_misalignment(ax_mis, data)
+    # Figs. 10-11: misalignment vs output angle, before and after filtering.
+    _draw_misalignment(ax_m10, ax_m11, data)
     return fig
+
+
+def _legend_below(ax: Any, handles: Any = None, labels: Any = None) -> None:
+    """The axes' legend under it, outside the data (the constrained layout makes room)."""
+    if handles is None:
+        handles, labels = ax.get_legend_handles_labels()
+    if handles:
+        ax.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, -0.16),
+                  ncols=min(3, len(handles)), fontsize=8, frameon=False)  # fmt: skip
+
+
+def _fit_ylim(ax: Any, curves: list[np.ndarray | None], margin: float = 0.06) -> None:
+    """y limits showing every curve whole (robust to NaN), with a small margin."""
+    values = [np.asarray(c)[np.isfinite(c)] for c in curves if c is not None]
+    values = [v for v in values if v.size]
+    if not values:
+        return
+    lo = min(float(v.min()) for v in values)
+    hi = max(float(v.max()) for v in values)
+    pad = (hi - lo) * margin or max(abs(hi), 1e-3) * margin
+    ax.set_ylim(lo - pad, hi + pad)
 
 
 def _close_up(data: PlotData, span: tuple[int, int] | None) -> slice:
@@ -349,33 +390,46 @@ def _draw_spectrum(ax: Any, data: PlotData, span: tuple[int, int] | None) -> Non
         f"Fig. 8: power spectrum, {k0 * Ts:.2f}-{(k1 - 1) * Ts:.2f} s, mean velocity {v:.1f} rad/s"
     )
     ax.grid(alpha=0.3)
-    ax.legend(loc="upper right", fontsize=8)
+    _legend_below(ax)
 
 
-def _draw_misalignment(ax: Any, data: PlotData) -> None:
+def _draw_misalignment(ax10: Any, ax11: Any, data: PlotData) -> None:
+    """Fig. 10 (before: measured and expected torque) and Fig. 11 (after: filtered and
+    true torque) in two panels, each scaled to its own curves: on one axis the measured
+    torque's misalignment swing flattens the filtered and true curves."""
     turning = np.abs(data.velocity) >= TURNING_RADPS
-    ax.set(ylabel="torque (Nm)")
-    ax.set_xlabel(f"output angle (revolutions, from {data.output_angle_source})")
-    ax.grid(alpha=0.3)
+    for ax in (ax10, ax11):
+        ax.set(ylabel="torque (Nm)")
+        ax.set_xlabel(f"output angle (revolutions, from {data.output_angle_source})")
+        ax.grid(alpha=0.3)
     if not turning.any():
-        ax.set_title("Figs. 10-11: misalignment (motor not turning: nothing to show)")
+        ax10.set_title("Fig. 10: misalignment (motor not turning: nothing to show)")
+        ax11.set_title("Fig. 11: misalignment after filtering (motor not turning)")
         return
     rev = (data.output_angle - data.output_angle[turning][0]) / (2.0 * math.pi)
     # Keep gaps where the motor stops: mask instead of dropping samples.
     x = np.where(turning, rev, np.nan)
-    ax.plot(x, np.where(turning, data.T_meas, np.nan), label="measured (Fig. 10)", **_MEAS)
-    ax.plot(x, np.where(turning, data.T_expected, np.nan),
-            label="expected J_load·acc/N (Fig. 10 solid)", **_EXP)  # fmt: skip
-    ax.plot(x, np.where(turning, data.T_filtered, np.nan),
-            label=data.filtered_label + " (Fig. 11)", **_FILT)  # fmt: skip
-    if data.T_true is not None:
-        ax.plot(x, np.where(turning, data.T_true, np.nan), label="true", **_TRUE)
+    meas = np.where(turning, data.T_meas, np.nan)
+    expected = np.where(turning, data.T_expected, np.nan)
+    filtered = np.where(turning, data.T_filtered, np.nan)
+    true = np.where(turning, data.T_true, np.nan) if data.T_true is not None else None
+    ax10.plot(x, meas, label="measured", **_MEAS)
+    ax10.plot(x, expected, label="expected J_load·acc/N (the seed's solid line)", zorder=3,
+              **_EXP)  # fmt: skip
+    _fit_ylim(ax10, [meas, expected])
     extent = np.nanmax(np.abs(x[turning]))
-    ax.set_title(
-        f"Figs. 10-11: misalignment before / after filtering, {extent:.2f} output "
-        f"revolutions with |motor velocity| >= {TURNING_RADPS:g} rad/s"
+    ax10.set_title(
+        f"Fig. 10: misalignment before filtering, {extent:.2f} output revolutions with "
+        f"|motor velocity| >= {TURNING_RADPS:g} rad/s"
     )
-    ax.legend(loc="upper right", fontsize=8, ncols=2)
+    if true is not None:
+        ax11.plot(x, true, label="true (truth channel)", **_TRUE)
+    ax11.plot(x, filtered, label=data.filtered_label, **_FILT)
+    ax11.plot(x, expected, label="expected J_load·acc/N", zorder=3, **_EXP)
+    _fit_ylim(ax11, [filtered, true, expected])
+    ax11.set_title("Fig. 11: misalignment after filtering (scaled to the filtered torque)")
+    for ax in (ax10, ax11):
+        _legend_below(ax)
 
 
 # -------------------------------------------------------------------------------- CLI
@@ -409,7 +463,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--scenario",
         default=None,
         help="scenario whose firmware configuration the trace was recorded with "
-        "(default: the firmware defaults)",
+        "(default: the one in the trace's sidecar TRACE.json, else the firmware defaults)",
     )
     p.add_argument(
         "--figure",
@@ -432,12 +486,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``hdhil plot``: 0 written, 1 written from a damaged trace (2 via UserError)."""
+    from hdhil.can.trace import read_metadata
+    from hdhil.commands.options import scenario_for_trace
     from hdhil.core.dataconf import from_dict
-    from hdhil.hostsim.scenario import load_scenario
     from hdhil.rig.evaluate import recording_from_trace
 
     _check_out(args.out)
-    scenario = load_scenario(args.scenario) if args.scenario else None
+    scenario, _source = scenario_for_trace(args.trace, args.scenario)
     if args.figure == "fig8":
         return _run_fig8(args, scenario)
     fw = from_dict(FirmwareConfig, scenario.firmware, "firmware") if scenario else FirmwareConfig()
@@ -445,9 +500,15 @@ def run(args: argparse.Namespace) -> int:
     data = plot_data(rec, fw)
     name = scenario.name if scenario else "(firmware defaults)"
     truth = "with ground truth" if data.T_true is not None else "no ground truth"
+    meta = read_metadata(args.trace) or {}
+    run = ""
+    if meta.get("seed") is not None:
+        run += f", seed {meta['seed']}"
+    if meta.get("start_time_utc"):
+        run += f", recorded {meta['start_time_utc']}"
     title = (
-        f"{args.trace.name}: scenario {name}, {len(data)} samples, {data.mode} filter, {truth}\n"
-        "after seed 000 (Taghirad, CIM-TR-97-06) Figs. 8-11"
+        f"{args.trace.name}: scenario {name}{run}, {len(data)} samples, {data.mode} filter, "
+        f"{truth}\nafter seed 000 (Taghirad, CIM-TR-97-06) Figs. 8-11"
     )
     window = tuple(args.window) if args.window is not None else None
     fig = make_figure(data, title, window)  # type: ignore[arg-type]

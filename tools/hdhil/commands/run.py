@@ -223,7 +223,11 @@ def run(args: argparse.Namespace) -> int:
         scenario = dataclasses.replace(scenario, firmware=firmware)
     trace = Path(args.trace) if args.trace else None
     start_time = parse_start_time(args.start_time)
-    metadata = {"scenario_source": args.scenario, "overrides": [str(p) for p in args.override]}
+    metadata = {
+        "scenario_source": args.scenario,
+        "overrides": [str(p) for p in args.override],
+        "calibration": str(args.calibration) if args.calibration is not None else None,
+    }
     if not args.realtime and (args.spin_us is not None or args.floor_s or args.mlock):
         raise UserError("--spin-us, --floor-s and --mlock need --realtime")
     rt_config = RealtimeConfig(spin_us=args.spin_us, floor_s=args.floor_s, mlock=args.mlock)

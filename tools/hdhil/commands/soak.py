@@ -703,6 +703,9 @@ def run(args: argparse.Namespace) -> int:
     trace = Path(args.trace) if args.trace else None
     every = args.every if args.every is not None else default_block_s(args.duration, limits)
     bar = progress(args, args.duration, f"hdhil soak {scenario.name}", "s")
+    progress_kwargs: dict[str, Any] = {}
+    if bar.enabled:
+        progress_kwargs["after_block"] = lambda _c, block: bar.update_to(block.end_s)
     try:
         with stop_on_signals() as stop, bar:
             report = run_soak(
@@ -713,7 +716,7 @@ def run(args: argparse.Namespace) -> int:
                 seed=args.seed,
                 limits=limits,
                 stop_requested=stop.is_set,
-                after_block=(lambda _c, block: bar.update_to(block.end_s)) if bar.enabled else None,
+                **progress_kwargs,
             )
     except ValueError as exc:
         raise UserError(str(exc)) from None

@@ -600,7 +600,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--scenario",
         default=None,
         help="scenario whose firmware configuration (harmonics, calibration) the trace was "
-        "recorded with (default: the firmware defaults)",
+        "recorded with (default: the sidecar TRACE.json's, else the firmware defaults)",
     )
     p.add_argument(
         "--out",
@@ -631,7 +631,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """``hdhil tune``: 0 done, 1 done on a damaged trace (2 via UserError)."""
     from hdhil.core.dataconf import from_dict
-    from hdhil.hostsim.scenario import load_scenario
     from hdhil.rig.evaluate import recording_from_trace
 
     if args.max_evals < 1:
@@ -640,7 +639,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--skip must be a finite number >= 0, got {args.skip}")
     if args.out is not None:
         check_out(args.out)
-    scenario = load_scenario(args.scenario) if args.scenario else None
+    from hdhil.commands.options import scenario_for_trace
+
+    scenario, _source = scenario_for_trace(args.trace, args.scenario)
     fw = from_dict(FirmwareConfig, scenario.firmware, "firmware") if scenario else FirmwareConfig()
     rec, damage = recording_from_trace(args.trace, fw.sample_period_s)
     with progress(args, args.max_evals, "hdhil tune", "eval") as bar:

@@ -10,7 +10,7 @@ Inputs:
 - a **signal CSV**: a header line with the columns ``time``, ``T_meas`` (Nm) and
   ``velocity`` (motor velocity, rad/s), optionally ``encoder`` (the 16-bit motor
   encoder count), or the same with units as ``hdhil dump --csv`` writes them
-  (``time_s``, ``T_meas_Nm``, ``velocity_radps``, ``ENC_count_count``); other columns
+  (``time_s``, ``T_meas_Nm``, ``velocity_radps``, ``ENC_count``); other columns
   are ignored, and an empty ``T_meas``/``velocity`` cell is a missing sample
   (NaN).  Without an ``encoder`` column the
   recommended filter takes its harmonic phase from the integrated velocity
@@ -71,7 +71,7 @@ COLUMN_ALIASES = {
     "time": ("time", "time_s"),
     "T_meas": ("T_meas", "T_meas_Nm"),
     "velocity": ("velocity", "velocity_radps"),
-    "encoder": ("encoder", "ENC_count_count"),
+    "encoder": ("encoder", "ENC_count"),
 }
 
 

@@ -1,0 +1,109 @@
+"""``hdhil dbc export OUT.dbc``: one CAN database for a whole trace.
+
+A trace holds two buses: the control bus (``control.dbc``, 11-bit identifiers) and the
+emulator's ground truth (``truth.dbc``, 29-bit identifiers).  Tools that take one
+database per decode (``cantools decode``, ``cantools plot``, CANalyzer, asammdf's bus
+logging export) report every truth frame as unknown when given only the control bus's.
+This command writes both as one DBC: every message with its signals, units, value
+tables, comments and attributes (cycle times, send types, the CANopen object kind, the
+node-IDs and the bus's bit rate), the nodes of both.  The identifiers never collide
+(11-bit against 29-bit), so one database decodes every frame.  The shipped files stay
+the source; the merged one is made from them each time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any
+
+from hdhil.core.errors import UserError
+
+
+def merged_database() -> Any:
+    """The control and truth databases as one :class:`cantools.database.can.Database`."""
+    import cantools
+    from cantools.database.can import Database
+    from cantools.database.can.formats.dbc.dbc_specifics import DbcSpecifics
+
+    from hdhil.dbc import dbc_path
+
+    control, truth = (
+        cantools.database.load_file(str(dbc_path(bus))) for bus in ("control", "truth")
+    )
+    definitions: OrderedDict[str, Any] = OrderedDict(control.dbc.attribute_definitions)
+    for name, definition in truth.dbc.attribute_definitions.items():
+        definitions.setdefault(name, definition)
+    value_tables = OrderedDict(control.dbc.value_tables)
+    value_tables.update(truth.dbc.value_tables)
+    nodes = list(control.nodes)
+    names = {n.name for n in nodes}
+    nodes += [n for n in truth.nodes if n.name not in names]
+    specifics = DbcSpecifics(
+        attributes=control.dbc.attributes,
+        attribute_definitions=definitions,
+        environment_variables=control.dbc.environment_variables,
+        value_tables=value_tables,
+    )
+    return Database(
+        messages=[*control.messages, *truth.messages],
+        nodes=nodes,
+        buses=control.buses,
+        version=control.version,
+        dbc_specifics=specifics,
+        strict=True,
+    )
+
+
+def merged_dbc_text() -> str:
+    """The merged database as DBC text, checked by loading it back."""
+    import cantools
+
+    text = merged_database().as_dbc_string()
+    cantools.database.load_string(text, database_format="dbc", strict=True)
+    return text
+
+
+def export(out: Path) -> int:
+    """Write the merged DBC to ``out`` (a temporary file renamed over it, so a failure
+    leaves no half-written file; only a regular file is ever replaced).  Returns the
+    number of messages written."""
+    if out.exists() and not out.is_file():
+        raise UserError(f"{out}: exists and is not a regular file")
+    if not out.parent.is_dir():
+        raise UserError(f"{out}: directory {out.parent} does not exist")
+    text = merged_dbc_text()
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(text, encoding="cp1252", errors="strict", newline="\r\n")
+        os.replace(tmp, out)
+    except (OSError, UnicodeEncodeError) as exc:
+        tmp.unlink(missing_ok=True)
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        raise UserError(f"cannot write {out}: {reason}") from None
+    return text.count("\nBO_ ")
+
+
+def run_export(args: argparse.Namespace) -> int:
+    n = export(Path(args.out))
+    print(f"hdhil dbc export: {n} messages (control bus and ground truth) in {args.out}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "dbc",
+        help="CAN databases: export the control bus and ground truth as one DBC",
+        description="Work with the CAN databases of the drive link.",
+    )
+    actions = p.add_subparsers(dest="dbc_action", metavar="ACTION", required=True)
+    e = actions.add_parser(
+        "export",
+        help="write one DBC with every frame of a trace (control bus and ground truth)",
+        description="Write control.dbc and truth.dbc merged into one DBC, for tools that "
+        "take one database per trace (cantools decode/plot, CANalyzer, asammdf).",
+    )
+    e.add_argument("out", metavar="OUT.dbc", help="the DBC file to write")
+    e.set_defaults(func=run_export)
