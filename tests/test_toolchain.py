@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 import can
+import numpy as np
 import pytest
 
 from hdhil.cli import main
@@ -390,3 +391,46 @@ def test_dbc_export_decodes_a_whole_trace_with_cantools(tmp_path, capsys):
 def test_dbc_export_refuses_a_directory(tmp_path, capsys):
     assert main(["dbc", "export", str(tmp_path)]) == 2
     assert "not a regular file" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ the Python API
+
+
+def test_the_readme_python_api_example_runs_and_prints_what_the_readme_says(tmp_path):
+    """The README's "Python API" example, run as it stands in a fresh interpreter (in an
+    empty directory), prints exactly the lines the README shows."""
+    import re
+
+    readme = (Path(__file__).parent.parent / "README.md").read_text(encoding="utf-8")
+    section = readme[readme.index("## Python API") :]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    claimed = re.search(r"It prints:\n\n```\n(.*?)```", section, re.S).group(1)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, check=True, cwd=tmp_path).stdout  # fmt: skip
+    assert out.strip() == claimed.strip()
+    assert (tmp_path / "api-run.blf").is_file() and (tmp_path / "api-run.blf.json").is_file()
+
+
+def test_api_arrays_match_the_trace(tmp_path):
+    """The run's per-cycle arrays (samples in operation) are a stretch of the trace's
+    per-cycle table (every sample, start-up included), value for value."""
+    import hdhil.api as hd
+
+    trace = tmp_path / "a.blf"
+    result = hd.run("free-motion", duration_s=0.3, seed=2, trace=trace)
+    run_arrays, trace_arrays = hd.cycle_arrays(result), hd.read_trace(trace)
+    n = len(run_arrays["time_s"])
+    assert n >= 300 and len(trace_arrays["time_s"]) > n
+    enc_run, enc_trace = run_arrays["ENC_count"], trace_arrays["ENC_count"]
+    adc_run, adc_trace = run_arrays["ADC_torque_count"], trace_arrays["ADC_torque_count"]
+    offsets = [o for o in range(len(enc_trace) - n + 1)
+               if np.array_equal(adc_trace[o : o + n], adc_run)
+               and np.array_equal(enc_trace[o : o + n], enc_run)]  # fmt: skip
+    assert len(offsets) == 1
+    o = offsets[0]
+    told, tnew = trace_arrays["T_meas_Nm"][o : o + n], run_arrays["T_meas_Nm"]
+    both = np.isfinite(told) & np.isfinite(tnew)
+    assert both.sum() > 0.95 * n and np.array_equal(told[both], tnew[both])
+    assert np.array_equal(trace_arrays["T_true_Nm"][o : o + n], run_arrays["T_true_Nm"])
+    with pytest.raises(ValueError, match="evaluate=True"):
+        hd.cycle_arrays(hd.run("free-motion", duration_s=0.05, evaluate=False))
