@@ -214,3 +214,26 @@ def test_the_readme_example_runs_and_prints_what_the_readme_says():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=300, check=True).stdout  # fmt: skip
     assert out.strip() == claimed
+
+
+def test_firmware_realtime_paces_with_the_run_pacer_and_reports_its_statistics(serve_drive, capsys):
+    """``hdhil firmware --realtime`` against a served drive: SYNC paced by the pacer of
+    ``hdhil run --realtime``, its statistics in the summary line, covering the cycles in
+    operation, each cycle no shorter than the period."""
+    import time
+
+    drive, bus_args = serve_drive(lambda bus: DriveNode(bus, RigidInertia(), DriveConfig()))
+    t0 = time.monotonic()
+    code = main(["firmware", *bus_args, "--scenario", "free-motion", "--duration", "0.2",
+                 "--realtime"])  # fmt: skip
+    wall = time.monotonic() - t0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert code == 0 and out["operational_cycles"] == 200 and out["phase"] == "stopped"
+    rt = out["realtime"]
+    assert 199 <= rt["cycles"] <= 201 and rt["sample_period_s"] == pytest.approx(1e-3)
+    # a sensor frame that comes after the next deadline is a miss, handled a cycle late
+    assert 0 < rt["interrupts"] <= rt["cycles"]
+    assert 0 <= rt["deadline_misses"] <= rt["cycles"]
+    assert rt["applied"] or rt["refused"]  # the process settings were tried
+    assert wall >= 0.2  # paced: 200 cycles of 1 ms take at least 0.2 s
+    assert drive.diagnostics.syncs >= 200

@@ -189,6 +189,7 @@ def run_firmware(args: argparse.Namespace) -> int:
             )
         except ValueError as exc:
             raise UserError(str(exc)) from None
+        pacer: RealtimeLoop | None = None
         with stop_on_signals() as stop:
             ctrl.boot(time.monotonic())
             # Wait for the drive's boot-up (or the timeout) while producing heartbeats.
@@ -209,7 +210,9 @@ def run_firmware(args: argparse.Namespace) -> int:
                 pacer.enter()
                 pacer.start()
             try:
-                done = _sync_cycles(loop, ctrl, stop.is_set, cycles)
+                done = _sync_cycles(loop, ctrl, stop.is_set, cycles, pacer)
+                if pacer is not None:
+                    pacer.end_recording()
                 ctrl.request_stop()  # walk the drive back to "stopped"
                 for _ in range(MAX_STOP_CYCLES):
                     if ctrl.phase in ("stopped", "safe"):
@@ -221,10 +224,12 @@ def run_firmware(args: argparse.Namespace) -> int:
         if isinstance(node_bus, FaultyTransmitBus):
             node_bus.flush()
         d = ctrl.diagnostics
-        why = {"safe_reason": d.safe_reason} if ctrl.phase == "safe" else {}
+        extra: dict[str, Any] = {"safe_reason": d.safe_reason} if ctrl.phase == "safe" else {}
+        if pacer is not None:  # the real-time statistics, as in hdhil run --json
+            extra["realtime"] = pacer.result()
         print(json.dumps({"node": "controller", "operational_cycles": done,
                           "syncs_sent": d.syncs_sent, "sensor_frames": d.sensor_frames,
-                          "phase": ctrl.phase, "faults": injector.summary(), **why}))  # fmt: skip
+                          "phase": ctrl.phase, "faults": injector.summary(), **extra}))  # fmt: skip
         return 130 if stop.is_set() else 0
     finally:
         if bus is not None:
@@ -233,16 +238,23 @@ def run_firmware(args: argparse.Namespace) -> int:
 
 
 def _sync_cycles(
-    loop: NodeLoop, ctrl: ControllerNode, stop: Callable[[], bool], cycles: int
+    loop: NodeLoop,
+    ctrl: ControllerNode,
+    stop: Callable[[], bool],
+    cycles: int,
+    pacer: RealtimeLoop | None = None,
 ) -> int:
     """Run the loop's SYNC cycles until ``cycles`` of them found the controller
-    operational, it went safe, or a stop; return the operational cycles."""
+    operational, it went safe, or a stop; return the operational cycles.  The pacer's
+    statistics start with operation, as in ``hdhil run --realtime``."""
     operational = 0
     while operational < cycles and not stop():
         if ctrl.phase == "safe":
             break
         loop.cycle()
         if ctrl.phase == "operational":
+            if pacer is not None and not pacer.recording:
+                pacer.begin_recording()
             operational += 1
     return operational
 
