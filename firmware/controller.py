@@ -16,7 +16,7 @@ With a torque-control law active (seed 003, :class:`firmware.config.ControlConfi
 filter's torque, and a second telemetry frame ``CTRL_TPDO2`` (0x281) follows with
 ``τ̂s'``, ``τ̂lgd``, ``τsD`` and the estimated error ``e``.  Without a law ``CTRL_TPDO2`` is
 not sent at all: the PDO is not valid, as CANopen marks it with bit 31 of its COB-ID
-(``dbc/controller.eds`` object 0x1802 defaults to 0x80000281, and the node keeps that bit
+(``dbc/controller.eds`` object 0x1801 defaults to 0x80000281, and the node keeps that bit
 in step with the law), and the bus carries exactly the seed-000 schedule.  Worst-case
 control-bus load: 44 % without, 57.5 % with a law.
 
@@ -126,7 +126,7 @@ next cycle boundary (``tick`` or ``send_sync``, whichever comes first) by
   harmonics (:func:`hdhil.firmware.config.paper_config` / ``recommended_config``), and
   the OD's r, residual_q and q_i are updated to it;
 - control law (0x2420:1): the LQG stage is rebuilt (observer from rest); ``CTRL_TPDO2``
-  is sent only while a law is active and 0x1802:1 bit 31 follows; the desired torque's
+  is sent only while a law is active and 0x1801:1 bit 31 follows; the desired torque's
   amplitude/frequency only swap the desired-torque generator;
 - calibration (0x2430): used from the next sample on.
 
@@ -440,8 +440,8 @@ class ControllerNode(CanNode):
         # TPDOs 0x1800-0x1802), each checked against the DBC layout the node encodes with.
         self.handle(pdo_cob_id(od, 0x1400, self._sensor), self._on_sensor_frame)
         self.handle(pdo_cob_id(od, 0x1401, self._status), self._on_statusword_frame)
-        for comm_index, frame in ((0x1800, self._telemetry), (0x1801, self._command),
-                                  (0x1802, self._control_telemetry)):  # fmt: skip
+        for comm_index, frame in ((0x1800, self._telemetry), (0x1802, self._command),
+                                  (0x1801, self._control_telemetry)):  # fmt: skip
             pdo_cob_id(od, comm_index, frame)
         self.handle(self.sdo.response_id, self._on_sdo_response)
 
@@ -886,9 +886,9 @@ class ControllerNode(CanNode):
         store_value(self.services, 0x1019, 0, self.sync_overflow)
 
     def _store_control_pdo_validity(self) -> None:
-        cob = self.services.read(0x1802, 1)
+        cob = self.services.read(0x1801, 1)
         cob = cob & ~0x80000000 if self.control_pdo_valid else cob | 0x80000000
-        store_value(self.services, 0x1802, 1, cob)
+        store_value(self.services, 0x1801, 1, cob)
 
     def _check_cycle_period(self, value: int) -> int | None:
         """0x1006 holds the running period: the runner paces the cycle.  Refusing 0 also

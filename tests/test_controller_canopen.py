@@ -314,7 +314,7 @@ def test_the_scenario_configuration_is_what_an_sdo_read_returns(link):
     assert lk.read_real(0x2410, 2) == 1.0 and lk.read_real(0x2410, 5) == 1000.0
     assert lk.upload(0x1006, 0) == struct.pack("<I", 500)
     assert lk.upload(0x1019, 0) == b"\x10"
-    assert lk.upload(0x1802, 1) == struct.pack("<I", 0x80000281)  # no law: not valid
+    assert lk.upload(0x1801, 1) == struct.pack("<I", 0x80000281)  # no law: not valid
 
 
 # =========================================================================== boot
@@ -768,12 +768,12 @@ def test_law_write_switches_the_control_stage_and_ctrl_tpdo2(link):
     lk = operational(link)
     assert 0x281 not in ids(lk.run(3))
     assert lk.download(0x2420, 1, bytes((Law.JTF1,))) is None
-    assert lk.upload(0x1802, 1) == struct.pack("<I", 0x80000281)  # not yet applied
+    assert lk.upload(0x1801, 1) == struct.pack("<I", 0x80000281)  # not yet applied
     lk.cycle()
     assert lk.node.isr.control is not None and lk.node.control_pdo_valid
     frames = lk.run(3)
     assert ids(frames).count(0x281) == 3
-    assert lk.upload(0x1802, 1) == struct.pack("<I", 0x00000281)
+    assert lk.upload(0x1801, 1) == struct.pack("<I", 0x00000281)
     control = lk.node.isr.control
     assert lk.write_real(0x2420, 2, -10.0) is None  # desired amplitude: observer kept
     lk.cycle()
@@ -783,7 +783,7 @@ def test_law_write_switches_the_control_stage_and_ctrl_tpdo2(link):
     assert lk.download(0x2420, 1, b"\x00") is None
     lk.cycle()
     assert 0x281 not in ids(lk.run(3)) and lk.node.isr.control is None
-    assert lk.upload(0x1802, 1) == struct.pack("<I", 0x80000281)
+    assert lk.upload(0x1801, 1) == struct.pack("<I", 0x80000281)
 
 
 def test_calibration_write_scales_the_measured_torque(link):

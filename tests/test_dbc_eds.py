@@ -240,3 +240,26 @@ def test_every_valid_default_pdo_is_a_dbc_frame(node):
         assert message is not None, f"{node} 0x{comm:04X}: COB-ID 0x{cob:03X} not in the DBC"
         bits = sum(od[comm + 0x200][s].default & 0xFF for s in range(1, count + 1))
         assert bits == 8 * message.length, f"{node} 0x{comm:04X}: {bits} bits"
+
+
+def test_pdo_names_follow_the_eds_numbering():
+    """A DBC message named NODE_TPDOn / NODE_RPDOn is the n-th TPDO / RPDO of its node's
+    EDS (communication parameter 0x1800 / 0x1400 + n - 1): the COB-ID in that slot is the
+    message's identifier, so the DBC's names and the EDS's numbering agree."""
+    import re
+
+    db = database("control")
+    od = {"CTRL": _od("CONTROLLER"), "DRIVE": _od("DRIVE")}
+    checked = 0
+    for message in db.messages:
+        m = re.fullmatch(r"(CTRL|DRIVE)_(T|R)PDO(\d)", message.name)
+        if m is None:
+            continue
+        node, kind, n = m.group(1), m.group(2), int(m.group(3))
+        base = 0x1800 if kind == "T" else 0x1400
+        if kind == "R":  # an RPDO of the drive is a TPDO of the controller, and vice versa
+            assert (base + n - 1) in od[node], f"{message.name}: no RPDO{n} in the EDS"
+        comm = od[node][base + n - 1]
+        assert comm[1].default & 0x7FF == message.frame_id, message.name
+        checked += 1
+    assert checked >= 5
