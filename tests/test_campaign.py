@@ -300,3 +300,41 @@ def test_unknown_campaign_name_and_missing_dask_are_one_line_errors(tmp_path, ca
     err = capsys.readouterr().err
     assert err == "hdhil: error: --scheduler needs Dask distributed: pip install 'hdhil[cluster]'\n"
     assert not (out / "runs").exists()
+
+
+def _stderr_on_a_terminal(argv: list[str]) -> tuple[int, str]:
+    """Run hdhil with its standard error on a pseudo-terminal of 120 columns."""
+    import fcntl
+    import pty
+    import struct
+    import termios
+
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0))
+    proc = subprocess.Popen([sys.executable, "-m", "hdhil", *argv], stdout=subprocess.DEVNULL,
+                            stderr=slave)  # fmt: skip
+    os.close(slave)
+    chunks = []
+    while True:
+        try:
+            data = os.read(master, 4096)
+        except OSError:  # the terminal closed with the process
+            break
+        if not data:
+            break
+        chunks.append(data)
+    os.close(master)
+    return proc.wait(timeout=120), b"".join(chunks).decode(errors="replace")
+
+
+def test_progress_on_a_terminal_with_eta_and_running_counts_off_with_json(tmp_path):
+    path = _campaign(tmp_path, RESUME.format(n=3))  # 4 variants
+    out = tmp_path / "out"
+    code, err = _stderr_on_a_terminal(["campaign", str(path), "--workers", "2", "--out", str(out)])
+    assert code == 0
+    frames = err.split("\r")
+    assert any("0/4" in f and "?" in f for f in frames)  # ETA unknown at the start
+    assert any("4/4" in f and "pass 4 fail 0 error 0" in f for f in frames)
+    assert any("<00:" in f for f in frames)  # elapsed<remaining
+    code, err = _stderr_on_a_terminal(["campaign", str(path), "--out", str(out), "--json"])
+    assert code == 0 and "4/4" not in err and "pass 4" not in err
