@@ -338,3 +338,23 @@ def test_progress_on_a_terminal_with_eta_and_running_counts_off_with_json(tmp_pa
     assert any("<00:" in f for f in frames)  # elapsed<remaining
     code, err = _stderr_on_a_terminal(["campaign", str(path), "--out", str(out), "--json"])
     assert code == 0 and "4/4" not in err and "pass 4" not in err
+
+
+def test_an_early_stop_is_recorded_with_the_runs_own_reason():
+    from hdhil.rig.campaign import judge
+
+    variant = expand(load_campaign("smoke"))[0]
+    criteria = load_campaign("smoke").criteria
+    result = json.loads((Path(__file__).parent / "data" / "campaign-stopped-run.json").read_text())
+    metrics, verdicts, reasons = judge(variant, result, None, criteria)
+    assert metrics["stopped_early"] is True and metrics["cycles"] == 402
+    assert verdicts == {
+        "stopped_early == false": False,
+        "filtered_rms_err_Nm < 0.25": True,
+        "covariance_finite == true": True,
+    }
+    assert reasons[0] == (
+        "stopped early at 0.402 s of 1 s (402 of 1000 samples) by node 1: the drive reported "
+        "a fault; EMCY received 0x8130 Life guard or heartbeat error"
+    )
+    assert reasons[1] == "stopped_early = true, not == false"

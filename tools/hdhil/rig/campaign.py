@@ -203,17 +203,20 @@ def metrics_of(result: dict[str, Any], planned_cycles: int) -> dict[str, Any]:
 def stop_reason(result: dict[str, Any], planned_cycles: int) -> str:
     """Why a run ended before its duration, in words (the run's own reason when it
     reports one)."""
-    for key in ("stop_reason", "stopped_reason", "reason"):
-        if isinstance(result.get(key), str) and result[key]:
-            return f"stopped early: {result[key]}"
-    stopped = result.get("stopped")
-    if isinstance(stopped, dict) and stopped.get("reason"):
-        return f"stopped early: {stopped['reason']}"
     ts = float(result.get("sample_period_s", 1e-3))
-    return (
+    text = (
         f"stopped early at {int(result['cycles']) * ts:g} s of {planned_cycles * ts:g} s "
         f"({result['cycles']} of {planned_cycles} samples)"
     )
+    verdict = result.get("verdict")  # the run's own account of an early stop
+    if isinstance(verdict, dict) and verdict.get("reason"):
+        by = f" by node {verdict['node']}" if verdict.get("node") is not None else ""
+        text += f"{by}: {verdict['reason']}"
+        for key, label in (("emcy_sent", "EMCY sent"), ("emcy_received", "EMCY received")):
+            emcy = verdict.get(key)
+            if isinstance(emcy, dict) and emcy.get("code"):
+                text += f"; {label} {emcy['code']} {emcy.get('text', '')}".rstrip()
+    return text
 
 
 # ----------------------------------------------------------------------------- criteria
