@@ -434,3 +434,10 @@ def test_api_arrays_match_the_trace(tmp_path):
     assert np.array_equal(trace_arrays["T_true_Nm"][o : o + n], run_arrays["T_true_Nm"])
     with pytest.raises(ValueError, match="evaluate=True"):
         hd.cycle_arrays(hd.run("free-motion", duration_s=0.05, evaluate=False))
+
+
+def test_compare_laws_traces_keep_the_whole_format_extension():
+    from hdhil.rig.runner import _suffixed
+
+    assert _suffixed(Path("d/run.asc.gz"), "jtf1") == Path("d/run-jtf1.asc.gz")
+    assert _suffixed(Path("run.blf"), "jtf2") == Path("run-jtf2.blf")

@@ -113,6 +113,17 @@ class RunResult:
         return d
 
 
+def _suffixed(trace: Path, label: str) -> Path:
+    """``run.blf`` -> ``run-LABEL.blf``; the whole format extension is kept
+    (``run.asc.gz`` -> ``run-LABEL.asc.gz``)."""
+    from hdhil.can.trace import trace_format
+
+    fmt, compressed = trace_format(trace)
+    ext = fmt + (".gz" if compressed else "")
+    base = trace.name[: -len(ext)] if ext and trace.name.lower().endswith(ext) else trace.stem
+    return trace.with_name(f"{base}-{label}{trace.name[len(base) :]}")
+
+
 def _utc(unix_s: float) -> str:
     """``unix_s`` as an ISO 8601 UTC date and time, to the millisecond."""
     import datetime
@@ -882,7 +893,7 @@ def compare_laws(scenario: Scenario, **kwargs: Any) -> list[dict[str, Any]]:
         laws[0] = ("JTF1 with friction comp. (Eq. 5)", "jtf1", {"law": "jtf1"})
     for label, slug, control in laws:
         firmware = merge(scenario.firmware, {"control": control})
-        law_trace = trace.with_name(f"{trace.stem}-{slug}{trace.suffix}") if trace else None
+        law_trace = _suffixed(trace, slug) if trace else None
         r = run_lockstep(dataclasses.replace(scenario, firmware=firmware), trace=law_trace,
                          evaluate=False, **kwargs)  # fmt: skip
         if r.tracking is None:
