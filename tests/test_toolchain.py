@@ -441,3 +441,11 @@ def test_compare_laws_traces_keep_the_whole_format_extension():
 
     assert _suffixed(Path("d/run.asc.gz"), "jtf1") == Path("d/run-jtf1.asc.gz")
     assert _suffixed(Path("run.blf"), "jtf2") == Path("run-jtf2.blf")
+
+
+@pytest.mark.parametrize("name", ["x.txt", "x.blf.gz"])
+def test_log_refuses_a_bad_trace_name_in_one_line(tmp_path, capsys, name):
+    args = ["log", str(tmp_path / name), "-i", "virtual", "-c", "log-bad", "--duration", "0.1"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("hdhil: error: unsupported trace format") and "\n" not in err

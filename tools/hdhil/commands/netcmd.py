@@ -54,7 +54,7 @@ from hdhil.can.faults import (
     parse_fault_flags,
     with_fault_flags,
 )
-from hdhil.can.trace import BusTap, FrameCounter, open_writer
+from hdhil.can.trace import BusTap, FrameCounter, check_trace_path, open_writer
 from hdhil.canopen.nmt import COMMAND_NAMES as NMT_COMMAND_NAMES
 from hdhil.canopen.nmt import nmt_frame
 from hdhil.commands.options import add_bus_options, add_fault_arguments, bus_named, open_bus
@@ -260,6 +260,10 @@ def _sync_cycles(
 
 
 def run_log(args: argparse.Namespace) -> int:
+    try:
+        check_trace_path(Path(args.trace))  # a bad name or format: before any bus opens
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
     control = _control_bus(args)
     buses = {CHANNEL_NUMBER["control"]: control}
     try:
@@ -267,7 +271,11 @@ def run_log(args: argparse.Namespace) -> int:
         if truth is not None:
             buses[CHANNEL_NUMBER["truth"]] = truth
         counter = FrameCounter()
-        tap = BusTap(buses, [open_writer(Path(args.trace)), counter])
+        try:
+            writer = open_writer(Path(args.trace))
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        tap = BusTap(buses, [writer, counter])
         t_end = time.monotonic() + args.duration if args.duration else float("inf")
         try:
             with stop_on_signals() as stop:
