@@ -169,6 +169,7 @@ from hdhil.dbc import codec, eds_path
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.interrupt import AdcSample, InterruptHandlerModel
 from hdhil.firmware.isr import InterruptHandler
+from hdhil.firmware.odlimits import check_od_limits
 from hdhil.firmware.parameters import (
     PARAMETERS,
     LiveParameters,
@@ -349,6 +350,7 @@ class ControllerNode(CanNode):
                 f"sensor_hold_cycles must be an integer >= 1, got {sensor_hold_cycles}"
             )
         super().__init__(bus)
+        check_od_limits(config)  # every OD parameter representable in its entry
         self.config = config
         #: The interrupt handler (:class:`firmware.interrupt.InterruptHandlerModel`): the
         #: firmware's own unless ``isr`` is given; the plausibility EMCYs and the SDO

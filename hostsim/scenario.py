@@ -48,7 +48,6 @@ of range) raises :class:`hdhil.core.dataconf.ConfigError` with a one-line messag
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -56,12 +55,9 @@ from typing import Any
 
 from hdhil.can.faults import FaultConfig
 from hdhil.core.dataconf import ConfigError, from_dict, merge
+from hdhil.core.errors import UserError
+from hdhil.core.files import load_toml
 from hdhil.hostsim.plant import PlantConfig
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - exercised on Python 3.10 only
-    import tomli as tomllib
 
 __all__ = ["Scenario", "list_scenarios", "load_scenario", "scenario_from_dict"]
 
@@ -191,9 +187,9 @@ def _resolve(name_or_path: str) -> Path:
             f"unknown scenario {text!r} (known: {known}; or give a path to a .toml file)"
         )
     path = Path(text)
-    if not path.is_file():
+    if not path.exists():
         raise ConfigError(f"scenario file not found: {text}")
-    return path
+    return path  # load_toml refuses what is not a regular file, naming it
 
 
 def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
@@ -205,12 +201,9 @@ def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = N
     """
     path = _resolve(str(name_or_path))
     try:
-        with path.open("rb") as fh:
-            data = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read: {exc}") from None
+        data = load_toml(path, "scenario file")
+    except UserError as exc:
+        raise ConfigError(str(exc)) from None
     if overrides:
         if not isinstance(overrides, dict):
             raise ConfigError(f"overrides must be a nested dict, got {overrides!r}")

@@ -157,7 +157,7 @@ def test_cli_text_report_and_out_file_round_trip(tmp_path: Path, capsys) -> None
 @pytest.mark.parametrize(
     ("name", "text", "match"),
     [
-        ("missing.toml", None, "not found"),
+        ("missing.toml", None, "no such file"),
         ("bad.toml", "[firmware.calibration\nvolt2Nm = 6.6\n", "invalid TOML"),
         ("bad.json", "{", "invalid JSON"),
         ("top.toml", "[scenario]\nname = 'x'\n", r"only a \[firmware.calibration\]"),
@@ -188,7 +188,7 @@ def test_load_calibration_errors_are_one_line(
         (["calibrate", "--positions", "0"], "--positions"),
         (["calibrate", "--seed", "-1"], "--seed"),
         (["calibrate", "--scenario", "no-such"], "no-such"),
-        (["calibrate", "--samples", "1", "--out", "/no/such/dir/c.toml"], "cannot write"),
+        (["calibrate", "--samples", "1", "--out", "/no/such/dir/c.toml"], "does not exist"),
     ],
 )
 def test_cli_user_errors_are_one_line(argv: list[str], message: str, capsys) -> None:

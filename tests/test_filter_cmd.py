@@ -291,7 +291,7 @@ def test_bad_output_and_config_are_one_line(signal_csv, tmp_path, capsys) -> Non
     assert "ripple.mode" in err
     bad.write_text("[firmware\n")
     err = _one_line_error(["filter", str(path), "--out", "-", "--config", str(bad)], capsys)
-    assert "not valid TOML" in err
+    assert "invalid TOML" in err
     err = _one_line_error(
         ["filter", str(path), "--out", "-", "--config", str(tmp_path / "none.toml")], capsys
     )

@@ -13,6 +13,7 @@ import pytest
 
 from hdhil.can.simbus import SimClock
 from hdhil.can.trace import BATCH_FRAMES, BusTap, FrameCounter, WriterProcess, open_writer
+from hdhil.core.errors import UserError
 
 
 def _frames(n: int) -> list[can.Message]:
@@ -73,8 +74,8 @@ def test_frames_handed_on_in_batches_give_the_same_file(tmp_path, chunk):
 
 def test_an_unwritable_trace_is_refused_before_the_run(tmp_path):
     (tmp_path / "dir.blf").mkdir()
-    with pytest.raises(ValueError, match="cannot write trace"):
-        WriterProcess(tmp_path / "dir.blf")  # a directory: the child cannot open it
+    with pytest.raises(UserError, match="a directory; only regular files are written"):
+        WriterProcess(tmp_path / "dir.blf")
     with pytest.raises(ValueError, match="does not exist"):
         WriterProcess(tmp_path / "missing" / "x.blf")
     with pytest.raises(ValueError, match="unsupported trace format"):

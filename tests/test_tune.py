@@ -277,8 +277,8 @@ def test_paper_mode_scenario_is_tuned_as_recommended(tmp_path: Path) -> None:
         (["{full}", "--skip", "2.9"], "too few samples"),
         (["{full}", "--out", "{tmp}/tuned.json"], "must be a .toml file"),
         (["{full}", "--out", "{tmp}/missing/tuned.toml"], "does not exist"),
-        (["{full}", "--max-evals", "0"], "--max-evals must be >= 1"),
-        (["{full}", "--skip", "-1"], "--skip must be"),
+        (["{full}", "--max-evals", "0"], "--max-evals: must be >= 1"),
+        (["{full}", "--skip", "-1"], "--skip: must be"),
         (["{full}", "--scenario", "no-such-scenario"], "no-such-scenario"),
     ],
 )

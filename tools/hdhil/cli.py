@@ -17,8 +17,10 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from hdhil.core.errors import ConfigError, UserError
+from hdhil.core.files import install_signal_handlers, restore_signal_handlers
 
 #: Every subcommand, in the order ``hdhil --help`` lists them: its module in
 #: :mod:`hdhil.commands` and its one-line help.
@@ -66,6 +68,16 @@ def _requested(argv: Sequence[str]) -> str | None:
     return None
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage mistakes as one line, ``hdhil: error: ...`` and exit code 2, like every
+    other input error (argparse would print the usage first); ``--help`` still prints
+    the full usage."""
+
+    def error(self, message: str) -> NoReturn:
+        command = self.prog.removeprefix("hdhil").strip()
+        raise UserError(f"{command + ': ' if command else ''}{message} (see {self.prog} --help)")
+
+
 def build_parser(
     argv: Sequence[str] | None = None, load_all: bool = False
 ) -> argparse.ArgumentParser:
@@ -73,7 +85,7 @@ def build_parser(
     its full parser; the other commands are listed by name and help only.
     ``load_all`` imports every command module (for tests and documentation)."""
     wanted = _requested(sys.argv[1:] if argv is None else argv)
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="hdhil",
         description="Hardware-in-the-loop emulator for joint-torque sensing and control of "
         "harmonic-drive joints over CAN.",
@@ -94,6 +106,8 @@ def build_parser(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command; the exit code (see the module docstring)."""
+    previous = install_signal_handlers()  # SIGTERM/SIGHUP: like Ctrl-C; temporaries removed
     try:
         parser = build_parser(argv)
         args = parser.parse_args(argv)
@@ -108,6 +122,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         # Output piped into a command that stopped reading (e.g. `| head`): not an error.
         sys.stderr.close()
         return 0
+    except OSError as exc:
+        # Disk full, a file vanished mid-run, ...: one line naming what failed.
+        what = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+        print(f"hdhil: error:{what} {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    finally:
+        restore_signal_handlers(previous)
 
 
 if __name__ == "__main__":

@@ -74,6 +74,8 @@ from typing import IO, Any, Literal
 import can
 
 from hdhil.core.dataconf import ConfigError, from_dict, merge, to_dict
+from hdhil.core.files import check_output
+from hdhil.core.numbers import MAX_SECONDS
 from hdhil.dbc import node_function_codes
 
 if sys.version_info >= (3, 11):
@@ -117,13 +119,15 @@ def _rate(obj: object, name: str) -> None:
                          f"got {value!r}")  # fmt: skip
 
 
-def _nonneg(obj: object, name: str, allow_inf: bool = False) -> None:
+def _nonneg(obj: object, name: str, allow_inf: bool = False, hi: float | None = None) -> None:
     value = getattr(obj, name)
     ok = isinstance(value, (int, float)) and value >= 0
     if ok and not allow_inf:
         ok = math.isfinite(value)
     if not ok:
         raise ValueError(f"{type(obj).__name__}.{name} must be >= 0, got {value!r}")
+    if hi is not None and value > hi and not (allow_inf and value == math.inf):
+        raise ValueError(f"{type(obj).__name__}.{name} must be <= {hi:g}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -132,13 +136,13 @@ class NodeWindow:
     for good).  The node is ``node`` (its CANopen COB-IDs) and/or the ``ids`` listed."""
 
     start_s: float
-    duration_s: float = math.inf
+    duration_s: float = field(default=math.inf, metadata={"allow_inf": True})
     node: int = 0
     ids: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
-        _nonneg(self, "start_s")
-        _nonneg(self, "duration_s", allow_inf=True)
+        _nonneg(self, "start_s", hi=MAX_SECONDS)
+        _nonneg(self, "duration_s", allow_inf=True, hi=MAX_SECONDS)
         if not 0 <= self.node <= 127:
             raise ValueError(
                 f"NodeWindow.node must be a node-ID 1..127 (0 = none), got {self.node}"
@@ -178,8 +182,9 @@ class BusFaults:
         for name in ("loss_rate", "duplicate_rate", "reorder_rate", "corrupt_rate",
                      "dlc_rate", "error_frame_rate"):  # fmt: skip
             _rate(self, name)
-        for name in ("burst_every_s", "delay_us", "jitter_us"):
-            _nonneg(self, name)
+        _nonneg(self, "burst_every_s", hi=MAX_SECONDS)
+        for name in ("delay_us", "jitter_us"):  # a delivery time a trace can still stamp
+            _nonneg(self, name, hi=MAX_SECONDS * 1e6)
         _nonneg(self, "burst_len_frames")
         if (self.burst_every_s > 0) != (self.burst_len_frames > 0):
             raise ValueError("BusFaults.burst_len_frames and burst_every_s go together "
@@ -201,15 +206,15 @@ class SensorWindow:
 
     channel: SensorChannel
     start_s: float
-    duration_s: float = math.inf
+    duration_s: float = field(default=math.inf, metadata={"allow_inf": True})
     level: Literal["max", "min"] = "max"
 
     def __post_init__(self) -> None:
         if self.channel not in _SENSOR_INDEX:
             raise ValueError(f"SensorWindow.channel must be one of {list(_SENSOR_INDEX)}, "
                              f"got {self.channel!r}")  # fmt: skip
-        _nonneg(self, "start_s")
-        _nonneg(self, "duration_s", allow_inf=True)
+        _nonneg(self, "start_s", hi=MAX_SECONDS)
+        _nonneg(self, "duration_s", allow_inf=True, hi=MAX_SECONDS)
 
     def active(self, t: float) -> bool:
         return self.start_s <= t < self.start_s + self.duration_s
@@ -290,9 +295,17 @@ class FaultLog:
         self.records: list[FaultRecord] = []
         self.counts: Counter[str] = Counter()
         self._keep = keep
-        self._fh: IO[str] | None = (
-            Path(path).open("w", encoding="utf-8") if path is not None else None  # noqa: SIM115
-        )
+        self._fh: IO[str] | None = None
+        if path is not None:
+            target = check_output(path, "fault log")  # a regular file, never a device
+            try:
+                # Line-buffered: a record is in the file as soon as it is injected, so a
+                # killed run (SIGKILL) loses none of the faults its trace shows.
+                self._fh = open(target or "/dev/stdout", "w", encoding="utf-8", buffering=1)  # noqa: SIM115
+            except OSError as exc:
+                raise ConfigError(
+                    f"fault log {path}: cannot write ({exc.strerror or exc})"
+                ) from None
 
     def record(self, time: float, channel: str, kind: str, frame_id: int | None,
                **details: Any) -> None:  # fmt: skip

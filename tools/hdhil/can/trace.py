@@ -35,6 +35,7 @@ from typing import Any
 import can
 
 from hdhil.can.simbus import SimBus, received_copy
+from hdhil.core.files import check_output
 
 #: Formats python-can's Logger writes and its LogReader reads, by extension.  python-can's
 #: SQLite writer (``.db``) is left out: its writer thread dropped frames at the end of a
@@ -81,8 +82,7 @@ def check_trace_path(path: Path) -> None:
         raise ValueError(MF4_MISSING)
     if path.parent and not path.parent.exists():
         raise ValueError(f"cannot write trace {path}: directory {path.parent} does not exist")
-    if path.exists() and not path.is_file():
-        raise ValueError(f"cannot write trace {path}: it exists and is not a regular file")
+    check_output(path, "trace")  # only a regular file is ever overwritten
 
 
 def open_writer(path: Path) -> can.io.generic.MessageWriter:

@@ -65,6 +65,7 @@ if TYPE_CHECKING:
 from hdhil.can.bittiming import frame_bits
 from hdhil.can.busload import LOAD_LIMIT
 from hdhil.core.errors import UserError
+from hdhil.core.files import check_input
 from hdhil.dbc import CHANNEL_NUMBER, codec, database, worst_case_frame_bits
 
 #: Reader class per (lower-case) file extension.
@@ -520,10 +521,10 @@ def read_trace(path: str | os.PathLike[str]) -> TraceReadResult:
     """
     p = Path(path)
     fmt, compressed = _split_suffix(p)
-    if not p.exists():
-        raise TraceError(f"{p}: no such file")
-    if p.is_dir():
-        raise TraceError(f"{p}: is a directory, not a trace file")
+    try:
+        check_input(p)  # a regular file (a FIFO or a device would block or never end)
+    except UserError as exc:
+        raise TraceError(str(exc)) from None
     if fmt not in READERS:
         raise TraceError(
             f"{p}: unsupported trace format {fmt or '(no extension)'!r}; "

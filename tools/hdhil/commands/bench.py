@@ -64,6 +64,7 @@ import numpy as np
 from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.dataconf import from_dict
 from hdhil.core.errors import UserError
+from hdhil.core.numbers import arg_int, arg_seconds
 from hdhil.firmware.config import FirmwareConfig, paper_config
 from hdhil.firmware.isr import (
     AdcSample,
@@ -883,15 +884,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         "bench", help="measure throughput, per-stage compute time and memory (medians)"
     )
     p.add_argument(
-        "--duration", type=float, default=None,
+        "--duration", type=arg_seconds(), default=None,
         help="simulated seconds per lockstep run (default 10, --quick 0.3)",
     )  # fmt: skip
     p.add_argument(
-        "--repeat", type=int, default=None,
+        "--repeat", type=arg_int(1, 10_000), default=None,
         help="runs per figure, median reported (default 3, --quick 1)",
     )  # fmt: skip
     p.add_argument(
-        "--realtime-s", type=float, default=None, metavar="S",
+        "--realtime-s", type=arg_seconds(), default=None, metavar="S",
         help="seconds of the real-time run (default 60, --quick 1.5; 0 leaves it out)",
     )  # fmt: skip
     p.add_argument(

@@ -8,6 +8,8 @@ import math
 
 from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.errors import UserError
+from hdhil.core.files import atomic_path, check_output
+from hdhil.core.numbers import arg_int
 from hdhil.hostsim.calibration import CalibrationRig, calibrate
 from hdhil.hostsim.scenario import list_scenarios, load_scenario
 from hdhil.rig.calibration import (
@@ -33,16 +35,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="scenario name or TOML file whose drive is calibrated "
         f"(default: %(default)s; shipped: {', '.join(list_scenarios())})",
     )
-    p.add_argument("--seed", type=int, default=None, help="noise seed (default: the scenario's)")
+    p.add_argument(
+        "--seed",
+        type=arg_int(0, 2**63 - 1),
+        default=None,
+        help="noise seed (default: the scenario's)",
+    )
     p.add_argument(
         "--positions",
-        type=int,
+        type=arg_int(1, 1000),
         default=CalibrationRig.positions,
         help="flexspline positions; two experiments each (default: %(default)s)",
     )
     p.add_argument(
         "--samples",
-        type=int,
+        type=arg_int(1, 10_000_000),
         default=CalibrationRig.samples,
         help="ADC samples averaged per load step (default: %(default)s)",
     )
@@ -85,6 +92,8 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         msg = str(exc).replace("CalibrationRig.", "--")
         raise UserError(msg) from None
+    if args.out:
+        check_output(args.out, "--out")  # before the work, not after
     total = rig.positions * len(rig.ranges_Nm)
     with progress(args, total, "hdhil calibrate", "experiment") as bar:
         result = calibrate(scenario.plant, rig, seed, on_experiment=lambda n, _t: bar.update_to(n))
@@ -126,8 +135,7 @@ def _plot(path: str, result: object, scenario: str) -> None:
     out = Path(path)
     if out.suffix.lower() not in FORMATS:
         raise UserError(f"--plot {path}: use one of {', '.join(FORMATS)}")
-    if out.exists() and not out.is_file():
-        raise UserError(f"--plot {path}: exists and is not a regular file")
+    check_output(out, "--plot")  # a regular file or a new one, in an existing directory
     r = result
     title = (
         f"hdhil calibrate: scenario {scenario}, seed {r.seed}: gain {r.gain_Nm_per_V:.4f} Nm/V, "  # type: ignore[attr-defined]
@@ -135,6 +143,7 @@ def _plot(path: str, result: object, scenario: str) -> None:
     )
     fig = make_calibration_figure(result, title)
     try:
-        fig.savefig(out, dpi=100)
+        with atomic_path(out, "--plot") as tmp:
+            fig.savefig(tmp, dpi=100)
     except (OSError, ValueError) as exc:
         raise UserError(f"--plot {path}: cannot write ({exc})") from None

@@ -12,7 +12,7 @@ import sys
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 from hdhil.can.tracefile import (
     DecodedFrame,
@@ -25,6 +25,8 @@ from hdhil.can.tracefile import (
     read_trace,
 )
 from hdhil.core.errors import UserError
+from hdhil.core.files import AtomicOutput
+from hdhil.core.numbers import arg_int
 
 
 @dataclass
@@ -103,32 +105,19 @@ def _parse_id_filter(values: list[str], decoder: FrameDecoder) -> tuple[_IdFilte
 
 
 class _CsvOut:
-    """Decoded frames as CSV, one row per frame (``--per-frame``).
-
-    A regular file is written as ``OUT.tmp`` and renamed over ``OUT`` only once complete,
-    so a failure never leaves a half-written file that looks finished.  ``-`` is stdout;
-    a symlink or an existing file that is not a regular file (FIFO, ``/dev/stdout``) is
-    written in place: renaming over it would replace the link, device or pipe.
-    """
+    """Decoded frames as CSV, one row per frame (``--per-frame``), written through
+    :class:`hdhil.core.files.AtomicOutput`: a regular file (or ``-``, stdout) only,
+    replaced once complete; a device, FIFO, socket or directory is refused before the
+    trace is read."""
 
     def __init__(self, target: str, decoder: FrameDecoder, messages: set[str] | None) -> None:
-        self.path = Path(target)
-        self.label = "stdout" if target == "-" else str(self.path)
+        self._out = AtomicOutput(target, "--csv")
+        self.label = self._out.label
         self.decoder = decoder
         self.columns = decoder.columns(messages)
         self.index = {column: i for i, column in enumerate(self.columns, start=3)}
-        self.tmp: Path | None = None
-        self._owns_file = target != "-"
-        try:
-            if target == "-":
-                self._file: TextIO = sys.stdout
-            elif self.path.is_symlink() or (self.path.exists() and not self.path.is_file()):
-                self._file = open(self.path, "w", newline="", encoding="utf-8")  # noqa: SIM115
-            else:
-                self.tmp = self.path.with_name(self.path.name + ".tmp")
-                self._file = open(self.tmp, "w", newline="", encoding="utf-8")  # noqa: SIM115
-        except OSError as exc:
-            raise UserError(f"cannot write {self.label}: {exc.strerror or exc}") from None
+        self._file = self._out.__enter__().file
+        assert self._file is not None
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._width = 3 + len(self.columns)
         self.rows = 0
@@ -165,12 +154,7 @@ class _CsvOut:
 
     def commit(self) -> None:
         try:
-            if self._owns_file:
-                self._file.close()
-            else:
-                self._file.flush()
-            if self.tmp is not None:
-                os.replace(self.tmp, self.path)
+            self._out.__exit__(None, None, None)
         except BrokenPipeError:
             raise
         except OSError as exc:
@@ -178,12 +162,8 @@ class _CsvOut:
             raise UserError(f"cannot write {self.label}: {exc.strerror or exc}") from None
 
     def abort(self) -> None:
-        if self._owns_file:
-            with contextlib.suppress(OSError):
-                self._file.close()
-        if self.tmp is not None:
-            with contextlib.suppress(OSError):
-                self.tmp.unlink()
+        with contextlib.suppress(OSError):
+            self._out.__exit__(RuntimeError, None, None)
 
 
 class _CycleCsvOut(_CsvOut):
@@ -262,7 +242,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("trace", metavar="TRACE", help="trace file")
     parser.add_argument(
-        "--limit", type=int, metavar="N", help="print at most N frames (all are still counted)"
+        "--limit",
+        type=arg_int(0),
+        metavar="N",
+        help="print at most N frames (all are still counted)",
     )
     parser.add_argument(
         "--id",
@@ -293,7 +276,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--json", action="store_true", help="statistics as JSON (implies --stats)")
     parser.add_argument(
         "--bitrate",
-        type=int,
+        type=arg_int(1, 100_000_000),
         default=1_000_000,
         metavar="BIT/S",
         help="bit rate for frame times and bus load (default: 1000000)",

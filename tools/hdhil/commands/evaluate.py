@@ -7,6 +7,10 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
+from hdhil.core.errors import UserError
+from hdhil.core.numbers import arg_seconds
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.rig.evaluate import (
     evaluate,
@@ -29,7 +33,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="scenario whose firmware configuration was used (default: the one in the "
         "trace's sidecar TRACE.json, else the firmware defaults)",
     )
-    p.add_argument("--skip", type=float, default=0.0, help="seconds left out at the start")
+    p.add_argument(
+        "--skip", type=arg_seconds(lo_open=False), default=0.0, help="seconds left out at the start"
+    )
     p.add_argument("--json", action="store_true", help="print the evaluation as JSON")
     p.set_defaults(func=run)
 
@@ -41,6 +47,13 @@ def run(args: argparse.Namespace) -> int:
     scenario, _source = scenario_for_trace(args.trace, args.scenario)
     fw = from_dict(FirmwareConfig, scenario.firmware, "firmware") if scenario else FirmwareConfig()
     rec, damage = recording_from_trace(args.trace, fw.sample_period_s)
+    if len(rec) == 0:
+        raise UserError(f"{args.trace}: no drive sensor frames (DRIVE_TPDO1) to evaluate")
+    if not np.isfinite(rec.column("T_true")).any():
+        raise UserError(
+            f"{args.trace}: no ground truth (TRUTH_TORQUE frames on the truth channel); "
+            "nothing to score against (`hdhil filter` runs the filter without truth)"
+        )
     ev = evaluate(rec, fw, args.skip)
     tracking = _tracking(args.trace, fw, args.skip)
     if tracking is not None:

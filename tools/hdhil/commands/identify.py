@@ -84,6 +84,8 @@ from scipy import signal
 from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.dataconf import from_dict
 from hdhil.core.errors import UserError
+from hdhil.core.files import atomic_path, check_output
+from hdhil.core.numbers import FLOAT32_MAX, arg_float, arg_seconds
 from hdhil.dbc import codec
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.stages import adc_read, calibrate
@@ -666,14 +668,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--torque-per-volt",
-        type=float,
+        type=arg_float(-FLOAT32_MAX, FLOAT32_MAX),
         default=None,
         metavar="NM_PER_V",
         help="motor torque at the output per DAC volt (default: the scenario's)",
     )
     p.add_argument(
         "--inertias",
-        type=float,
+        type=arg_float(0.0, FLOAT32_MAX, lo_open=True),
         nargs=2,
         default=None,
         metavar=("JM", "JL"),
@@ -681,7 +683,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--segment",
-        type=float,
+        type=arg_seconds(),
         default=DEFAULT_SEGMENT_S,
         metavar="S",
         help="Welch segment length in s (default: %(default)s)",
@@ -706,6 +708,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.plot is not None and args.plot.suffix.lower() not in (".png", ".pdf", ".svg"):
         raise UserError(f"--plot {args.plot}: use a .png, .pdf or .svg file name")
+    if args.plot is not None:
+        check_output(args.plot, "--plot")
     with progress(args, 3 if args.plot is not None else 2, "hdhil identify", "step") as bar:
         bar.describe("hdhil identify: reading the trace")
         data = chirp_data_from_trace(args.trace, firmware, per_volt)
@@ -716,7 +720,8 @@ def run(args: argparse.Namespace) -> int:
         if args.plot is not None:
             bar.describe("hdhil identify: plotting")
             try:
-                make_figure(ident).savefig(args.plot, dpi=100)
+                with atomic_path(args.plot, "--plot") as tmp:
+                    make_figure(ident).savefig(tmp, dpi=100)
             except OSError as exc:
                 raise UserError(f"cannot write {args.plot}: {exc.strerror or exc}") from None
             bar.advance()

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import struct
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -60,6 +61,7 @@ from hdhil.canopen.nmt import nmt_frame
 from hdhil.commands.options import add_bus_options, add_fault_arguments, bus_named, open_bus
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
+from hdhil.core.numbers import arg_int, arg_seconds
 from hdhil.dbc import CHANNEL_NUMBER, eds_path
 from hdhil.dbc import node_ids as dbc_node_ids
 from hdhil.firmware.config import FirmwareConfig
@@ -296,9 +298,15 @@ def run_log(args: argparse.Namespace) -> int:
 def _parse_index(text: str) -> tuple[int, int]:
     try:
         index, _, sub = text.partition(":")
-        return int(index, 0), int(sub, 0) if sub else 0
+        address = int(index, 0), int(sub, 0) if sub else 0
     except ValueError:
         raise UserError(f"bad object address {text!r}: use INDEX[:SUB], e.g. 0x2100:2") from None
+    if not (0 <= address[0] <= 0xFFFF and 0 <= address[1] <= 0xFF):
+        raise UserError(
+            f"bad object address {text!r}: the index is 16 bits (0..0xFFFF), the sub-index "
+            "8 bits (0..0xFF)"
+        )
+    return address
 
 
 def run_sdo(args: argparse.Namespace) -> int:
@@ -324,7 +332,7 @@ def run_sdo(args: argparse.Namespace) -> int:
             print("ok")
     except SdoError as exc:
         raise UserError(f"SDO abort 0x{exc.code:08X}: {exc.text}") from None
-    except (TypeError, ValueError, KeyError) as exc:
+    except (TypeError, ValueError, KeyError, ArithmeticError, struct.error) as exc:
         raise UserError(f"sdo {args.action} 0x{index:04X}:{sub:02X} on node {args.node}: "
                         f"{exc}") from None  # fmt: skip
     finally:
@@ -357,10 +365,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("emulate", help="run the drive emulator alone on a CAN interface")
     add_bus_arguments(p, truth=True)
     p.add_argument("--scenario", default="free-motion", help="scenario (its plant section)")
-    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--seed", type=arg_int(0, 2**63 - 1), default=None)
     p.add_argument(
         "--duration",
-        type=float,
+        type=arg_seconds(),
         default=None,
         help="wall seconds (default: until Ctrl-C / SIGTERM)",
     )
@@ -372,7 +380,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scenario", default="free-motion", help="scenario (its firmware section)")
     p.add_argument(
         "--duration",
-        type=float,
+        type=arg_seconds(),
         default=None,
         help="simulated seconds of operation (default: the scenario's)",
     )
@@ -382,7 +390,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="pace SYNC at the sample period on the monotonic clock",
     )
     p.add_argument(
-        "--boot-timeout", type=float, default=2.0, help="seconds to wait for the drive's boot-up"
+        "--boot-timeout",
+        type=arg_seconds(hi=3600.0),
+        default=2.0,
+        help="seconds to wait for the drive's boot-up",
     )
     p.add_argument(
         "--drive-dcf",
@@ -398,7 +409,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("trace", help="trace file (.blf .asc .log .csv .trc)")
     p.add_argument(
         "--duration",
-        type=float,
+        type=arg_seconds(),
         default=None,
         help="wall seconds (default: until Ctrl-C / SIGTERM)",
     )
@@ -407,14 +418,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("sdo", help="read or write a node's object dictionary (SDO client)")
     add_bus_arguments(p)
     p.add_argument("action", choices=("read", "write"))
-    p.add_argument("node", type=int, help="node-ID (1 controller, 2 drive)")
+    p.add_argument("node", type=arg_int(1, 127), help="node-ID (1 controller, 2 drive)")
     p.add_argument("address", help="INDEX[:SUB], e.g. 0x2100:2")
     p.add_argument("value", nargs="?", default=None)
-    p.add_argument("--timeout", type=float, default=1.0)
+    p.add_argument("--timeout", type=arg_seconds(hi=3600.0), default=1.0)
     p.set_defaults(func=run_sdo)
 
     p = sub.add_parser("nmt", help="send an NMT command")
     add_bus_arguments(p)
     p.add_argument("action", choices=tuple(NMT_COMMAND_NAMES))
-    p.add_argument("node", type=int, help="node-ID (0 = all nodes)")
+    p.add_argument("node", type=arg_int(0, 127), help="node-ID (0 = all nodes)")
     p.set_defaults(func=run_nmt)

@@ -43,6 +43,8 @@ from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 from scipy.signal import find_peaks, periodogram
 
 from hdhil.core.errors import UserError
+from hdhil.core.files import atomic_path, check_output
+from hdhil.core.numbers import arg_seconds
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.isr import TorqueFilterChain
 
@@ -439,11 +441,7 @@ def _check_out(path: Path) -> None:
             f"--out {path}: unsupported figure format {path.suffix or '(no extension)'!r}; "
             f"use {', '.join(FORMATS)}"
         )
-    if path.is_dir():
-        raise UserError(f"--out {path}: is a directory")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise UserError(f"--out {path}: directory {parent} does not exist")
+    check_output(path, "--out")  # a regular file or a new one, in an existing directory
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -476,7 +474,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--window",
         nargs=2,
-        type=float,
+        type=arg_seconds(lo_open=False),
         metavar=("T0", "T1"),
         default=None,
         help="time window (s) of the spectrum (default: the flattest 0.3 s of velocity)",
@@ -513,7 +511,8 @@ def run(args: argparse.Namespace) -> int:
     window = tuple(args.window) if args.window is not None else None
     fig = make_figure(data, title, window)  # type: ignore[arg-type]
     try:
-        fig.savefig(args.out, dpi=100)
+        with atomic_path(args.out, "--out") as tmp:
+            fig.savefig(tmp, dpi=100)
     except (OSError, ValueError) as exc:
         raise UserError(f"--out {args.out}: cannot write ({exc})") from None
     print(f"hdhil plot: wrote {args.out}")

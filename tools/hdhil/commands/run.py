@@ -21,8 +21,11 @@ from hdhil.commands.options import (
     resolve_bus_config,
 )
 from hdhil.commands.progress import Progress, add_quiet_argument, progress
-from hdhil.core.dataconf import merge
-from hdhil.core.errors import UserError
+from hdhil.core.dataconf import from_dict, merge
+from hdhil.core.errors import ConfigError, UserError
+from hdhil.core.numbers import arg_float, arg_int, arg_seconds
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.odlimits import check_od_limits
 from hdhil.hostsim.scenario import list_scenarios, load_scenario
 from hdhil.rig.realtime import RealtimeConfig
 from hdhil.rig.runner import (
@@ -49,9 +52,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=f"scenario name or TOML file (shipped: {', '.join(list_scenarios())})",
     )
     p.add_argument(
-        "--duration", type=float, default=None, help="simulated seconds (default: the scenario's)"
+        "--duration",
+        type=arg_seconds(),
+        default=None,
+        help="simulated seconds (default: the scenario's)",
     )
-    p.add_argument("--seed", type=int, default=None, help="noise seed (default: the scenario's)")
+    p.add_argument(
+        "--seed",
+        type=arg_int(0, 2**63 - 1),
+        default=None,
+        help="noise seed (default: the scenario's)",
+    )
     p.add_argument(
         "--trace",
         default="hdhil-run.blf",
@@ -88,7 +99,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--skip",
-        type=float,
+        type=arg_seconds(lo_open=False),
         default=None,
         help="seconds at the start left out of the evaluation (default: the scenario's "
         "evaluate_from_s; the whole-run RMS figure is printed as well)",
@@ -122,7 +133,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--spin-us",
-        type=float,
+        type=arg_float(0.0, 1e6),
         default=None,
         metavar="US",
         help="--realtime: busy-wait this many µs before each deadline (default: 60 %% of the "
@@ -135,7 +146,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--floor-s",
-        type=float,
+        type=arg_seconds(lo_open=False),
         default=0.0,
         metavar="S",
         help="--realtime: after the run, measure the machine floor (the bare sleep+spin loop, "
@@ -207,11 +218,22 @@ def parse_start_time(text: str | None) -> float | None:
     return value
 
 
+def _strip_source(message: str) -> str:
+    """A scenario error without the scenario file's name in front (``path: ...``)."""
+    head, sep, rest = message.partition(": ")
+    return rest if sep and head.endswith(".toml") else message
+
+
 def run(args: argparse.Namespace) -> int:
+    scenario = load_scenario(args.scenario)  # its own mistakes name the scenario file
     overrides: dict[str, Any] = {}
     for path in args.override:
         overrides = merge(overrides, read_toml(path))
-    scenario = load_scenario(args.scenario, overrides or None)
+        try:  # a mistake an override brings in names the override file
+            scenario = load_scenario(args.scenario, overrides)
+            check_od_limits(from_dict(FirmwareConfig, scenario.firmware, "firmware"))
+        except ConfigError as exc:
+            raise ConfigError(f"override file {path}: {_strip_source(str(exc))}") from None
     if args.fault:
         scenario = dataclasses.replace(
             scenario, faults=with_fault_flags(scenario.faults, args.fault)

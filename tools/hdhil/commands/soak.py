@@ -55,6 +55,7 @@ from scipy import stats
 from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
+from hdhil.core.numbers import FLOAT32_MAX, arg_float, arg_int, arg_seconds
 from hdhil.firmware.config import FirmwareConfig, Law
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.scenario import Scenario, list_scenarios, load_scenario
@@ -664,15 +665,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         f"{', '.join(list_scenarios())})",
     )
     p.add_argument(
-        "--duration", type=float, default=3600.0,
+        "--duration", type=arg_seconds(), default=3600.0,
         help="simulated seconds (default: %(default)g)",
     )  # fmt: skip
     p.add_argument(
-        "--every", type=float, default=None, metavar="S",
+        "--every", type=arg_seconds(), default=None, metavar="S",
         help="block length in simulated seconds (default: 60, shorter for short runs so "
         f"that at least {STATIONARITY_BLOCKS} blocks follow the settling time)",
     )  # fmt: skip
-    p.add_argument("--seed", type=int, default=None, help="noise seed (default: the scenario's)")
+    p.add_argument(
+        "--seed",
+        type=arg_int(0, 2**63 - 1),
+        default=None,
+        help="noise seed (default: the scenario's)",
+    )
     p.add_argument(
         "--trace",
         default="hdhil-soak.blf",
@@ -680,12 +686,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(default: %(default)s; '' for none)",
     )
     p.add_argument(
-        "--settle", type=float, default=None, metavar="S",
+        "--settle", type=arg_seconds(lo_open=False), default=None, metavar="S",
         help="blocks starting before this are left out of the stationarity test "
         "(default: the scenario's evaluate_from_s)",
     )  # fmt: skip
     p.add_argument(
-        "--tolerance", type=float, default=SoakLimits.tolerance,
+        "--tolerance", type=arg_float(0.0, FLOAT32_MAX, lo_open=True), default=SoakLimits.tolerance,
         help="stationarity: allowed relative change of the last-half mean against the "
         "first-half mean (default: %(default)g)",
     )  # fmt: skip

@@ -58,6 +58,8 @@ from scipy.optimize import minimize
 
 from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.errors import UserError
+from hdhil.core.files import check_output, write_text
+from hdhil.core.numbers import arg_int, arg_seconds
 from hdhil.firmware.config import (
     FirmwareConfig,
     Oscillator,
@@ -514,20 +516,13 @@ def check_out(path: Path) -> None:
     """``--out`` must be a ``.toml`` file in an existing directory (checked before tuning)."""
     if path.suffix.lower() != ".toml":
         raise UserError(f"--out {path}: must be a .toml file")
-    if path.is_dir():
-        raise UserError(f"--out {path}: is a directory")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise UserError(f"--out {path}: directory {parent} does not exist")
+    check_output(path, "--out")  # a regular file or a new one, in an existing directory
 
 
 def write_toml(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` (see :func:`check_out`)."""
     check_out(path)
-    try:
-        path.write_text(text, encoding="utf-8")
-    except OSError as exc:
-        raise UserError(f"--out {path}: cannot write ({exc.strerror or exc})") from None
+    write_text(path, text, "--out")
 
 
 def _g(value: float | None) -> str:
@@ -613,14 +608,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_quiet_argument(p)
     p.add_argument(
         "--max-evals",
-        type=int,
+        type=arg_int(1, 1_000_000),
         default=DEFAULT_MAX_EVALS,
         metavar="N",
         help=f"budget of likelihood evaluations (default {DEFAULT_MAX_EVALS})",
     )
     p.add_argument(
         "--skip",
-        type=float,
+        type=arg_seconds(lo_open=False),
         default=SKIP_S,
         metavar="S",
         help=f"seconds left out of the likelihood at the start (default {SKIP_S:g})",

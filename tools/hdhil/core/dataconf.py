@@ -15,11 +15,12 @@ import typing
 from typing import Any, TypeVar
 
 from hdhil.core.errors import ConfigError
+from hdhil.core.numbers import FLOAT32_MAX, check_number
 
 T = TypeVar("T")
 
 
-def _convert(tp: Any, value: Any, where: str) -> Any:
+def _convert(tp: Any, value: Any, where: str, allow_inf: bool = False) -> Any:
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
     if origin in (typing.Union, types.UnionType):
@@ -30,7 +31,7 @@ def _convert(tp: Any, value: Any, where: str) -> Any:
             if arg is type(None):
                 continue
             try:
-                return _convert(arg, value, where)
+                return _convert(arg, value, where, allow_inf)
             except ConfigError as exc:
                 errors.append(str(exc))
         raise ConfigError(errors[0] if errors else f"{where}: bad value {value!r}")
@@ -72,12 +73,16 @@ def _convert(tp: Any, value: Any, where: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
+        # Every configuration float is finite (a field may allow +inf, "never") and fits
+        # the object dictionary's REAL32.
+        check_number(value, where, lo=-FLOAT32_MAX, hi=FLOAT32_MAX, allow_inf=allow_inf)
         return float(value)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            if isinstance(value, float) and value.is_integer():
+            if isinstance(value, float) and value.is_integer() and abs(value) < 2**63:
                 return int(value)
             raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        check_number(value, where, integer=True)
         return value
     if tp is bool:
         if not isinstance(value, bool):
@@ -105,7 +110,8 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "") -> T:
     kwargs = {}
     for name, value in data.items():
         key = f"{where}.{name}" if where else name
-        kwargs[name] = _convert(hints[name], value, key)
+        allow_inf = bool(fields[name].metadata.get("allow_inf"))
+        kwargs[name] = _convert(hints[name], value, key, allow_inf)
     try:
         return cls(**kwargs)
     except ConfigError:

@@ -20,18 +20,13 @@ scenario's ``[firmware]`` table, so the firmware uses the calibrated gain.
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
+from hdhil.core.files import load_json, load_toml, write_text
 from hdhil.hostsim.calibration import CalibrationResult
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - exercised on Python 3.10 only
-    import tomli as tomllib
 
 __all__ = ["format_result", "load_calibration", "write_calibration"]
 
@@ -59,10 +54,7 @@ def write_calibration(path: str | Path, result: CalibrationResult, scenario: str
             "[firmware.calibration]\n"
             f"volt2Nm = {gain!r}\n"
         )
-    try:
-        path.write_text(text, encoding="utf-8")
-    except OSError as exc:
-        raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None
+    write_text(path, text, "--out")
 
 
 def load_calibration(path: str | Path) -> dict[str, Any]:
@@ -78,21 +70,8 @@ def load_calibration(path: str | Path) -> dict[str, Any]:
     from hdhil.firmware.config import Calibration
 
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise UserError(f"calibration file not found: {path}") from None
-    except OSError as exc:
-        raise UserError(f"cannot read calibration file {path}: {exc.strerror or exc}") from None
-    try:
-        text = raw.decode("utf-8")
-        data = json.loads(text) if _is_json(path) else tomllib.loads(text)
-    except UnicodeDecodeError:
-        raise UserError(f"{path}: not a text file") from None
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{path}: invalid JSON: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise UserError(f"{path}: invalid TOML: {exc}") from None
+    what = "calibration file"
+    data = load_json(path, what) if _is_json(path) else load_toml(path, what)
     expected = "expected only a [firmware.calibration] table"
     if not isinstance(data, dict) or set(data) != {"firmware"}:
         keys = ", ".join(sorted(data)) if isinstance(data, dict) else type(data).__name__

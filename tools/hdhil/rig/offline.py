@@ -48,14 +48,13 @@ import dataclasses
 import gzip
 import math
 import os
-import sys
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
+from hdhil.core.files import AtomicOutput, check_input, load_toml
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
 
@@ -106,22 +105,8 @@ def load_firmware_config(path: str | os.PathLike[str] | None) -> FirmwareConfig:
     """
     if path is None:
         return FirmwareConfig()
-    if sys.version_info >= (3, 11):
-        import tomllib
-    else:  # pragma: no cover - Python 3.10
-        import tomli as tomllib
     p = Path(path)
-    try:
-        with p.open("rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise UserError(f"--config {p}: no such file") from None
-    except IsADirectoryError:
-        raise UserError(f"--config {p}: is a directory") from None
-    except OSError as exc:
-        raise UserError(f"--config {p}: cannot read ({exc.strerror or exc})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise UserError(f"--config {p}: not valid TOML: {exc}") from None
+    data = load_toml(p, "--config")
     table: Any = data.get("firmware", data)
     if not isinstance(table, dict):
         raise UserError(f"--config {p}: [firmware] must be a table")
@@ -133,53 +118,34 @@ def load_firmware_config(path: str | os.PathLike[str] | None) -> FirmwareConfig:
 
 # ------------------------------------------------------------------------------ output
 class _CsvTarget:
-    """The output CSV: a temporary file renamed into place by :meth:`commit`."""
+    """The output CSV through :class:`hdhil.core.files.AtomicOutput`: a regular file (or
+    ``-``, stdout) only, replaced by :meth:`commit` once complete; :meth:`abort` removes
+    the temporary file and leaves the old one as it was."""
 
     def __init__(self, target: str, source: Path) -> None:
+        self._out = AtomicOutput(target, "--out")
         self.label = "stdout" if target == "-" else target
-        self._tmp: Path | None = None
-        if target == "-":
-            self.file: TextIO = sys.stdout
-            self._path: Path | None = None
-        else:
-            out = Path(target)
-            if out.is_dir():
-                raise UserError(f"--out {out}: is a directory")
-            parent = out.parent if str(out.parent) else Path(".")
-            if not parent.is_dir():
-                raise UserError(f"--out {out}: directory {parent} does not exist")
+        out = self._out.target
+        if out is not None:
             with contextlib.suppress(OSError):
                 if out.exists() and out.resolve() == source.resolve():
-                    raise UserError(f"--out {out}: would overwrite the input")
-            try:
-                fd, name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent)
-            except OSError as exc:
-                raise UserError(f"--out {out}: cannot write ({exc.strerror or exc})") from None
-            self._tmp = Path(name)
-            self._path = out
-            self.file = open(fd, "w", newline="", encoding="utf-8")  # noqa: SIM115
+                    raise UserError(f"--out {target}: would overwrite the input")
+        file = self._out.__enter__().file
+        assert file is not None
+        self.file: TextIO = file
         self.writer = csv.writer(self.file, lineterminator="\n")
         self.writer.writerow(OUTPUT_COLUMNS)
 
     def commit(self) -> None:
         try:
-            if self._path is None:
-                self.file.flush()
-                return
-            self.file.close()
-            os.replace(self._tmp, self._path)  # type: ignore[arg-type]
+            self._out.__exit__(None, None, None)
         except OSError as exc:
             self.abort()
             raise UserError(f"--out {self.label}: cannot write ({exc.strerror or exc})") from None
 
     def abort(self) -> None:
-        if self._path is None:
-            return
         with contextlib.suppress(OSError):
-            self.file.close()
-        if self._tmp is not None:
-            with contextlib.suppress(OSError):
-                self._tmp.unlink()
+            self._out.__exit__(RuntimeError, None, None)
 
 
 # ------------------------------------------------------------------------------- input
@@ -198,10 +164,7 @@ def _open_text(path: Path, compressed: bool) -> TextIO:
 
 def _check_input(path: Path) -> tuple[str, bool]:
     """``(format, compressed)`` of an existing, readable, supported input."""
-    if not path.exists():
-        raise UserError(f"{path}: no such file")
-    if path.is_dir():
-        raise UserError(f"{path}: is a directory")
+    check_input(path)  # a regular file (a FIFO or a device would block or never end)
     fmt, compressed = _split_suffix(path)
     if fmt not in TRACE_EXTENSIONS:
         raise UserError(

@@ -43,6 +43,7 @@ from hdhil.can.faults import FaultInjector, FaultLog
 from hdhil.can.simbus import SimBus, SimClock
 from hdhil.can.trace import BusTap, FrameCounter, WriterProcess, write_metadata
 from hdhil.core.dataconf import ConfigError, from_dict, merge
+from hdhil.core.files import load_toml
 from hdhil.dbc import CHANNEL_NUMBER, database
 from hdhil.firmware.config import FirmwareConfig, Law
 from hdhil.firmware.controller import ControllerNode
@@ -153,19 +154,9 @@ MAX_STOP_CYCLES = 200
 
 
 def read_toml(path: Path) -> dict[str, Any]:
-    """A TOML override file as nested dicts, with one-line errors."""
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10
-        import tomli as tomllib  # type: ignore[no-redef]
-    try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"override file not found: {path}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"cannot read override file {path}: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
+    """A TOML override file as nested dicts, with one-line errors naming the file
+    (a regular file, size and nesting capped: :func:`hdhil.core.files.load_toml`)."""
+    return load_toml(path, "override file")
 
 
 def _controller_diagnostics(controller: ControllerNode) -> dict[str, Any]:
