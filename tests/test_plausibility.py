@@ -326,7 +326,7 @@ def test_interrupt_reports_the_replaced_velocity() -> None:
         ({"max_rejections": 0}, "max_rejections must be an integer >= 1"),
         ({"max_rejections": 2.5}, "max_rejections"),
         ({"max_acceleration_radps2": -1.0}, "max_acceleration_radps2 must be > 0"),
-        ({"tacho_noise_radps": math.nan}, "tacho_noise_radps must be >= 0"),
+        ({"tacho_noise_radps": math.nan}, "tacho_noise_radps must be a finite number"),
         ({"encoder_tolerance_counts": 0.0}, "encoder_tolerance_counts must be > 0"),
         ({"enabled": "yes"}, "firmware.plausibility.enabled"),
         ({"max_accel": 1.0}, "unknown key firmware.plausibility.max_accel"),

@@ -283,9 +283,9 @@ def test_stationarity_half_means_slope_and_settling() -> None:
     [
         (["--every", "0"], "--every"),
         (["--every", "0.0005"], "whole number"),
-        (["--duration", "0"], "duration must be > 0"),
-        (["--tolerance", "0"], "tolerance must be > 0"),
-        (["--settle", "-1"], "settle time"),
+        (["--duration", "0"], "--duration: must be > 0"),
+        (["--tolerance", "0"], "--tolerance: must be > 0"),
+        (["--settle", "-1"], "--settle: must be >= 0"),
         (["--scenario", "no-such-scenario"], "no-such-scenario"),
         (["--trace", "/nonexistent-dir/x.blf"], "does not exist"),
     ],

@@ -118,6 +118,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("hdhil: interrupted", file=sys.stderr)
         return 130
+    except SystemExit as exc:  # --help (0); in-process callers get the code back
+        return exc.code if isinstance(exc.code, int) else 0
     except BrokenPipeError:
         # Output piped into a command that stopped reading (e.g. `| head`): not an error.
         sys.stderr.close()

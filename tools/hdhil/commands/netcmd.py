@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import json
 import struct
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -72,6 +73,7 @@ from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig.loop import NodeLoop, controller_expects_answer, serve
 from hdhil.rig.realtime import RealtimeLoop
 from hdhil.rig.runner import stop_on_signals
+from hdhil.rig.verdict import drive_verdict, format_verdict, stop_verdict
 
 #: The logger's pause when no frame is waiting (s): short against a 1 ms cycle.
 IDLE_SLEEP_S = 0.0002
@@ -163,16 +165,24 @@ def run_emulate(args: argparse.Namespace) -> int:
             if isinstance(b, FaultyTransmitBus):
                 b.flush()
         d = drive.diagnostics
-        print(json.dumps({"node": "drive", "syncs": d.syncs, "commands": d.commands,
-                          "nmt_state": str(drive.nmt_state), "drive_state": str(drive.drive_state),
-                          "plant_time_s": drive.plant.time,
-                          "faults": injector.summary()}))  # fmt: skip
+        verdict = drive_verdict(drive)
+        summary = {"node": "drive", "syncs": d.syncs, "commands": d.commands,
+                   "nmt_state": str(drive.nmt_state), "drive_state": str(drive.drive_state),
+                   "plant_time_s": drive.plant.time, "faults": injector.summary()}  # fmt: skip
+        if verdict is not None:
+            summary["verdict"] = verdict
+        print(json.dumps(summary))
     finally:
         for b in (bus, truth):
             if b is not None:
                 b.shutdown()
         injector.log.close()
-    return 130 if stopped_by_signal else 0
+    if stopped_by_signal:
+        return 130
+    if verdict is not None:
+        print(f"hdhil: emulate {format_verdict(verdict)}", file=sys.stderr)
+        return 1
+    return 0
 
 
 def run_firmware(args: argparse.Namespace) -> int:
@@ -226,13 +236,23 @@ def run_firmware(args: argparse.Namespace) -> int:
         if isinstance(node_bus, FaultyTransmitBus):
             node_bus.flush()
         d = ctrl.diagnostics
-        extra: dict[str, Any] = {"safe_reason": d.safe_reason} if ctrl.phase == "safe" else {}
+        verdict = None if stop.is_set() else stop_verdict(ctrl, cycles, done, Ts)
+        summary = {"node": "controller", "operational_cycles": done,
+                   "syncs_sent": d.syncs_sent, "sensor_frames": d.sensor_frames,
+                   "phase": str(ctrl.phase.value), "faults": injector.summary()}  # fmt: skip
+        if ctrl.phase == "safe":
+            summary["safe_reason"] = d.safe_reason
         if pacer is not None:  # the real-time statistics, as in hdhil run --json
-            extra["realtime"] = pacer.result()
-        print(json.dumps({"node": "controller", "operational_cycles": done,
-                          "syncs_sent": d.syncs_sent, "sensor_frames": d.sensor_frames,
-                          "phase": ctrl.phase, "faults": injector.summary(), **extra}))  # fmt: skip
-        return 130 if stop.is_set() else 0
+            summary["realtime"] = pacer.result()
+        if verdict is not None:
+            summary["verdict"] = verdict
+        print(json.dumps(summary))
+        if stop.is_set():
+            return 130
+        if verdict is not None:
+            print(f"hdhil: firmware {format_verdict(verdict)}", file=sys.stderr)
+            return 1
+        return 0
     finally:
         if bus is not None:
             bus.shutdown()

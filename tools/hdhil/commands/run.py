@@ -36,6 +36,7 @@ from hdhil.rig.runner import (
     run_lockstep,
     stop_on_signals,
 )
+from hdhil.rig.verdict import format_verdict
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -280,7 +281,13 @@ def run(args: argparse.Namespace) -> int:
                 else:
                     print(f"hdhil run --compare-laws: scenario {scenario.name}")
                     print(format_tracking(rows))
-                return 130 if stop.is_set() else 0
+                if stop.is_set():
+                    return 130
+                stopped = [row for row in rows if "verdict" in row]
+                for row in stopped:
+                    print(f"hdhil: run {row['law']}: {format_verdict(row['verdict'])}",
+                          file=sys.stderr)  # fmt: skip
+                return 1 if stopped else 0
             duration = args.duration if args.duration is not None else scenario.duration_s
             bar = progress(args, duration, f"hdhil run {scenario.name}", "s")
             stack.enter_context(bar)
@@ -312,4 +319,9 @@ def run(args: argparse.Namespace) -> int:
         print()
     else:
         print(format_result(result))
-    return 130 if result.interrupted else 0
+    if result.interrupted:
+        return 130
+    if result.verdict is not None:  # stopped by a fault reaction: the reason is printed
+        print(f"hdhil: run {format_verdict(result.verdict)}", file=sys.stderr)
+        return 1
+    return 0

@@ -61,6 +61,7 @@ from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.scenario import Scenario, list_scenarios, load_scenario
 from hdhil.rig.runner import RunResult, run_lockstep, stop_on_signals
 from hdhil.rig.score import TorqueScore, TorqueScorer, TrackingScore, TrackingScorer
+from hdhil.rig.verdict import format_verdict
 
 MB = 2.0**20
 
@@ -505,6 +506,7 @@ def _run_summary(r: RunResult) -> dict[str, Any]:
         "torque": {k: v for k, v in r.torque.items() if k != "rms_filtered_per_minute"},
         "tracking": r.tracking,
         "controller": r.controller,
+        "verdict": r.verdict,
     }
 
 
@@ -577,6 +579,8 @@ def run_soak(
         if scorer.scored_samples == 0 and not recorder.blocks:
             raise  # nothing ran: a configuration error, reported as such
         aborted = str(exc)  # e.g. a non-finite value the telemetry cannot encode
+    if result is not None and result.verdict is not None:
+        aborted = format_verdict(result.verdict)  # a fault reaction ended the run early
     wall = time.perf_counter() - wall0
     if recorder.controller is not None and recorder.open_samples > 0:
         recorder.close(recorder.controller)  # the last, shorter block

@@ -62,6 +62,7 @@ from hdhil.rig.factories import (
 from hdhil.rig.loop import NodeLoop, controller_expects_answer
 from hdhil.rig.realtime import RealtimeConfig, RealtimeLoop, WallClock, format_realtime
 from hdhil.rig.score import TorqueScorer, TrackingScorer
+from hdhil.rig.verdict import format_verdict, stop_verdict
 
 _run_ids = itertools.count(1)
 
@@ -102,6 +103,9 @@ class RunResult:
     #: The per-cycle recording (:class:`hdhil.rig.evaluate.Recording`) when the run
     #: evaluated; not part of :meth:`as_dict`.
     recording: Any = field(default=None, repr=False)
+    #: Why the run stopped before its planned end (:func:`hdhil.rig.verdict.stop_verdict`),
+    #: ``None`` when it completed or was interrupted.
+    verdict: dict[str, Any] | None = None
 
     @property
     def real_time_factor(self) -> float:
@@ -110,6 +114,8 @@ class RunResult:
     def as_dict(self) -> dict[str, Any]:
         d = dict(self.__dict__)
         del d["recording"]
+        if d["verdict"] is None:
+            del d["verdict"]  # a completed run: the summary keeps its keys
         d["real_time_factor"] = self.real_time_factor
         return d
 
@@ -259,6 +265,8 @@ def plan_run(
     if not duration > 0:
         raise ConfigError(f"duration must be > 0 s, got {duration}")
     cycles = round(duration / Ts)
+    if cycles < 1:
+        raise ConfigError(f"duration {duration:g} s is less than one sample period ({Ts:g} s)")
     if fw_config.num_samples:
         cycles = min(cycles, fw_config.num_samples)
     load = schedule_load("control", bitrate, Ts)
@@ -769,6 +777,9 @@ def _result(
         drive=drive,
         realtime=pacer.result() if pacer is not None else None,
         recording=recorder.recording if recorder is not None else None,
+        verdict=(
+            None if counts.interrupted else stop_verdict(nodes.controller, plan.cycles, done, Ts)
+        ),
     )
 
 
@@ -821,6 +832,8 @@ def format_result(r: RunResult) -> str:
         lines.append(format_realtime(r.realtime))
     if r.trace:
         lines.append(f"  trace              {r.trace} ({r.frames_total} frames)")
+    if r.verdict is not None:
+        lines.append(f"  verdict            {format_verdict(r.verdict)}")
     return "\n".join(lines)
 
 
@@ -889,8 +902,11 @@ def compare_laws(scenario: Scenario, **kwargs: Any) -> list[dict[str, Any]]:
                          evaluate=False, **kwargs)  # fmt: skip
         if r.tracking is None:
             raise ConfigError(f"{scenario.name}: no tracking telemetry for {label}")
-        rows.append({**r.tracking, "law": label, "trace": str(law_trace) if law_trace else None,
-                     "real_time_factor": r.real_time_factor})  # fmt: skip
+        row = {**r.tracking, "law": label, "trace": str(law_trace) if law_trace else None,
+               "real_time_factor": r.real_time_factor}  # fmt: skip
+        if r.verdict is not None:
+            row["verdict"] = r.verdict
+        rows.append(row)
         if r.interrupted:
             break
     return rows
