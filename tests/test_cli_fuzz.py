@@ -170,12 +170,12 @@ OPTIONS: dict[str, dict[str, object]] = {
     "emulate": {"--duration": SECONDS, "--seed": NUMBER, "--scenario": INPUT,
                 "--fault": st.sampled_from(["sensors.tacho_spike_rate=0.1", "control.loss_rate=0.1",
                                             "x.y=1"])},
-    "firmware": {"--duration": SECONDS, "--boot-timeout": st.sampled_from(BAD_NUMBERS + ["0.05"]),
+    "firmware": {"--duration": SECONDS, "--boot-timeout": st.sampled_from([*BAD_NUMBERS, "0.05"]),
                  "--scenario": INPUT},
     "log": {"TRACE": OUTPUT, "--duration": SECONDS},
     "sdo": {"ACTION": st.sampled_from(["read", "write", "x"]), "NODE": NUMBER,
             "ADDR": st.sampled_from(["0x1000", "0x123456:1", "0x1000:300", "x", "0x2400:3"]),
-            "--timeout": st.sampled_from(BAD_NUMBERS + ["0.05"])},
+            "--timeout": st.sampled_from([*BAD_NUMBERS, "0.05"])},
     "nmt": {"ACTION": st.sampled_from(["start", "stop", "reset", "x"]), "NODE": NUMBER},
     "bench": {"--duration": BAD, "--repeat": BAD},
     "soak": {"--duration": BAD, "--every": BAD},
@@ -243,7 +243,7 @@ def _check_one(argv: list[str], files: dict[str, Path], capsys: pytest.CaptureFi
     finally:
         signal.alarm(0)
         signal.signal(signal.SIGALRM, previous)
-    out, err = capsys.readouterr()
+    _, err = capsys.readouterr()
     assert "Traceback" not in err, (argv, err)
     assert rc in (0, 1, 2), (argv, rc, err)
     if rc == 2:
