@@ -178,6 +178,7 @@ OPTIONS: dict[str, dict[str, object]] = {
             "--timeout": st.sampled_from([*BAD_NUMBERS, "0.05"])},
     "nmt": {"ACTION": st.sampled_from(["start", "stop", "reset", "x"]), "NODE": NUMBER},
     "bench": {"--duration": BAD, "--repeat": BAD},
+    "campaign": {"FILE": INPUT, "--workers": BAD, "--json": None},
     "soak": {"--duration": BAD, "--every": BAD},
 }  # fmt: skip
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from hdhil.core.errors import UserError
+from hdhil.core.numbers import arg_int
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -40,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--workers",
-        type=int,
+        type=arg_int(1, 4096),
         default=None,
         metavar="N",
         help="local worker processes (default: the machine's cores)",

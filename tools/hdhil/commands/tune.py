@@ -128,20 +128,37 @@ class FilterInputs:
         return len(self.delta_T)
 
 
+def _gaps(missed: np.ndarray | None, n: int) -> list[int]:
+    return [0] * n if missed is None else missed[:n].astype(np.int64).tolist()
+
+
 def filter_inputs(
-    T_meas: np.ndarray, velocity: np.ndarray, encoder: np.ndarray, cfg: FirmwareConfig
+    T_meas: np.ndarray,
+    velocity: np.ndarray,
+    encoder: np.ndarray,
+    cfg: FirmwareConfig,
+    missed: np.ndarray | None = None,
 ) -> FilterInputs:
     """Run the firmware's :class:`~firmware.isr.TorqueFilterChain` (recommended mode) over
     calibrated samples and collect the ripple filter's inputs.  They do not depend on the
-    filter's tuning, so they are computed once per trace."""
+    filter's tuning, so they are computed once per trace.  ``missed[k]``: periods without
+    a sample before sample k (told to the chain, as the firmware's was)."""
     chain = TorqueFilterChain(recommended_config(cfg))
     n = len(T_meas)
     delta_T = np.empty(n)
     angle = np.empty(n)
     step = chain.step
-    for k, (T, v, count) in enumerate(
-        zip(T_meas.tolist(), velocity.tolist(), encoder.astype(np.int64).tolist(), strict=True)
+    for k, (T, v, count, gap) in enumerate(
+        zip(
+            T_meas.tolist(),
+            velocity.tolist(),
+            encoder.astype(np.int64).tolist(),
+            _gaps(missed, n),
+            strict=True,
+        )
     ):
+        for _ in range(gap):
+            chain.sample_missed()
         delta_T[k] = step(T, v, count)[2]
         angle[k] = chain.angle
     return FilterInputs(delta_T, np.asarray(velocity, dtype=np.float64).copy(), angle)
@@ -175,6 +192,7 @@ def paper_innovations(
     velocity: np.ndarray,
     cfg: FirmwareConfig,
     stop: int | None = None,
+    missed: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Innovations and their variances S = R + C P Cᵀ of the paper filter (seed 000
     Eqs. 8-10, listing A.1 :class:`firmware.ripple.RippleKalman`) with the seed's tuning,
@@ -184,7 +202,9 @@ def paper_innovations(
     n = len(T_meas) if stop is None else min(stop, len(T_meas))
     e: list[float] = []
     S: list[float] = []
-    for T, v in zip(T_meas[:n].tolist(), velocity[:n].tolist(), strict=True):
+    for T, v, gap in zip(T_meas[:n].tolist(), velocity[:n].tolist(), _gaps(missed, n), strict=True):
+        for _ in range(gap):
+            chain.sample_missed()
         chain.step(T, v)
         e.append(kf.innovation)
         S.append(kf.innovation_variance)
@@ -343,17 +363,20 @@ def tune_signals(
     max_evals: int = DEFAULT_MAX_EVALS,
     max_window: int = MAX_WINDOW_SAMPLES,
     on_evaluation: Callable[[int], object] | None = None,
+    missed: np.ndarray | None = None,
 ) -> TuneResult:
     """Tune the recommended filter on calibrated samples (T_meas in Nm, velocity in rad/s,
     raw 16-bit encoder counts), starting from ``cfg``'s recommended tuning.
-    ``on_evaluation(n)`` is called after the n-th likelihood evaluation (progress)."""
+    ``on_evaluation(n)`` is called after the n-th likelihood evaluation (progress);
+    ``missed[k]`` is the number of sample periods without a sample before sample k (a
+    lossy trace)."""
     t_start = time.perf_counter()
     Ts = cfg.sample_period_s
     k0, k1 = _window(len(T_meas), Ts, skip_s, max_window)
     start_cfg = recommended_config(cfg)
     ripple0 = start_cfg.ripple
     gear = cfg.gear_ratio
-    inputs = filter_inputs(T_meas[:k1], velocity[:k1], encoder[:k1], cfg)
+    inputs = filter_inputs(T_meas[:k1], velocity[:k1], encoder[:k1], cfg, missed)
     names = parameter_names(ripple0)
     default = tuning_of(ripple0)
     bounds = [LOG10_BOUNDS[name] for name in names]
@@ -403,7 +426,7 @@ def tune_signals(
         for o in paper.oscillators
     }
     paper_values["r"] = float(paper.r)  # type: ignore[arg-type]
-    e_paper, S_paper = paper_innovations(T_meas, velocity, cfg, k1)
+    e_paper, S_paper = paper_innovations(T_meas, velocity, cfg, k1, missed)
     nll_paper = mean_nll(e_paper, S_paper, k0, k1)
     e_tuned, S_tuned = recommended_innovations(inputs, tuned_ripple, gear, k1)
     innovations = {
@@ -448,6 +471,7 @@ def tune_recording(
         raise UserError("no DRIVE_TPDO1 frames (drive sensor frames) in the trace: nothing to tune")
     T_meas, velocity = calibrated_signals(rec, cfg)
     encoder = rec.column("encoder")
+    missed = rec.column("missed")  # the periods the firmware had no sample (a lossy trace)
     result = tune_signals(
         T_meas,
         velocity,
@@ -457,6 +481,7 @@ def tune_recording(
         max_evals=max_evals,
         max_window=max_window,
         on_evaluation=on_evaluation,
+        missed=missed,
     )
     T_true = rec.column("T_true")
     k0, k1 = result.window
@@ -465,9 +490,9 @@ def tune_recording(
         tuned_cfg = dataclasses.replace(recommended_config(cfg), ripple=result.tuned_ripple)
         candidates = {
             "raw": T_meas,
-            "paper": offline_chain(paper_config(cfg), T_meas, velocity, encoder),
-            "default": offline_chain(recommended_config(cfg), T_meas, velocity, encoder),
-            "tuned": offline_chain(tuned_cfg, T_meas, velocity, encoder),
+            "paper": offline_chain(paper_config(cfg), T_meas, velocity, encoder, missed),
+            "default": offline_chain(recommended_config(cfg), T_meas, velocity, encoder, missed),
+            "tuned": offline_chain(tuned_cfg, T_meas, velocity, encoder, missed),
         }
         result.rms = {
             name: float(np.sqrt(np.mean((x[k0:k1] - T_true[k0:k1])[truth] ** 2)))

@@ -61,14 +61,15 @@ from pathlib import Path
 from typing import Any
 
 from hdhil.core.dataconf import ConfigError, from_dict, merge
+from hdhil.core.files import load_toml
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.hostsim.scenario import load_scenario, scenario_from_dict
 from hdhil.rig.variant import WALL_CLOCK_KEYS, RunSettings, run_settings, scenario_data
 
 if sys.version_info >= (3, 11):
-    import tomllib
+    pass
 else:  # pragma: no cover - exercised on Python 3.10 only
-    import tomli as tomllib
+    pass
 
 __all__ = [
     "METRICS",
@@ -425,12 +426,7 @@ def _flatten_axes(table: Any, where: str, prefix: str = "") -> list[Axis]:
 def load_campaign(name_or_path: str | Path) -> Campaign:
     """Read and check a campaign file (a shipped name or a path)."""
     path = _resolve(str(name_or_path))
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read: {exc}") from None
+    data = load_toml(path, "campaign file")  # regular file, size and depth capped
     try:
         return _campaign_from_dict(data, path)
     except ConfigError as exc:

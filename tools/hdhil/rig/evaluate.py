@@ -51,8 +51,21 @@ from hdhil.firmware.stages import adc_read, calibrate
 COLUMNS = (
     "adc_torque", "adc_tacho", "adc_current", "encoder",
     "T_meas_tele", "T_filtered_tele", "velocity_tele",
-    "T_true", "T_ripple", "theta_motor", "omega_motor", "theta_output",
+    "T_true", "T_ripple", "theta_motor", "omega_motor", "theta_output", "missed",
 )  # fmt: skip
+
+
+def missed_cycles(previous_s: float | None, now_s: float, sample_period_s: float) -> int:
+    """Sample periods without a sensor frame between two sensor frames stamped
+    ``previous_s`` and ``now_s``: the cycles in which the firmware ran no interrupt and
+    told its filter chain so (:meth:`firmware.isr.InterruptHandler.sample_missed`).  A
+    frame is sent once per SYNC, so the gap in periods, rounded, less one; 0 for a
+    duplicate (same period) or the first frame.  Rounding tolerates delivery jitter up to
+    half a period."""
+    if previous_s is None:
+        return 0
+    return max(0, round((now_s - previous_s) / sample_period_s) - 1)
+
 
 #: Butterworth cut-offs (Hz) evaluated as baselines.
 BUTTERWORTH_CUTOFFS_HZ = (10.0, 20.0, 50.0, 100.0)
@@ -113,6 +126,9 @@ class RecordingListener(can.Listener):
         self._truth = [math.nan] * 5  # T_true, T_ripple, theta_m, omega_m, theta_out
         self._status = codec("control", "DRIVE_TPDO2").expect("statusword")
         self._enabled: bool | None = None  # unknown until a statusword is seen
+        self._t = 0.0  # timestamp of the frame being handled
+        self._last_sensor_t: float | None = None
+        self._missed = 0  # periods without a sensor frame since the last recorded sample
         self._dispatch = {
             (self._sensor.frame_id, False): self._on_sensor,
             (self._tele.frame_id, False): self._on_telemetry,
@@ -124,6 +140,7 @@ class RecordingListener(can.Listener):
     def on_message_received(self, msg: can.Message) -> None:
         handler = self._dispatch.get((msg.arbitration_id, msg.is_extended_id))
         if handler is not None and not msg.is_remote_frame and not msg.is_error_frame:
+            self._t = msg.timestamp
             with contextlib.suppress(ValueError):  # wrong length: malformed, not a sample
                 handler(msg.data)
 
@@ -133,14 +150,17 @@ class RecordingListener(can.Listener):
         self._enabled = (statusword & 0x6F) == 0x27
 
     def _on_sensor(self, data: bytes) -> None:
+        torque, tacho, current, encoder = self._sensor.decode(data)
+        self._missed += missed_cycles(self._last_sensor_t, self._t, self.recording.sample_period_s)
+        self._last_sensor_t = self._t
         if self._enabled is False:
             return
-        torque, tacho, current, encoder = self._sensor.decode(data)
         t = self._truth
         self.recording.append_row(
             (torque, tacho, current, encoder, math.nan, math.nan, math.nan,
-             t[0], t[1], t[2], t[3], t[4])
+             t[0], t[1], t[2], t[3], t[4], float(self._missed))
         )  # fmt: skip
+        self._missed = 0
 
     def _on_telemetry(self, data: bytes) -> None:
         if self._enabled is False:
@@ -216,15 +236,28 @@ def estimate_lag(x: np.ndarray, truth: np.ndarray, sample_period_s: float) -> fl
 
 
 def offline_chain(
-    cfg: FirmwareConfig, T_meas: np.ndarray, velocity: np.ndarray, encoder: np.ndarray
+    cfg: FirmwareConfig,
+    T_meas: np.ndarray,
+    velocity: np.ndarray,
+    encoder: np.ndarray,
+    missed: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The firmware's own filter chain over recorded samples; returns T_filtered."""
+    """The firmware's own filter chain over recorded samples; returns T_filtered.
+
+    ``missed[k]``: sample periods without a sample before sample k (the recording's
+    ``missed`` column); the chain is told of each, as the firmware's was, so a lossy
+    trace is replayed with the same skipped updates the firmware made."""
     chain = TorqueFilterChain(cfg)
     step = chain.step
     out = np.empty_like(T_meas)
-    for k, (T, v, e) in enumerate(
-        zip(T_meas.tolist(), velocity.tolist(), encoder.astype(np.int64).tolist(), strict=True)
+    gaps = [0] * len(T_meas) if missed is None else missed.astype(np.int64).tolist()
+    for k, (T, v, e, gap) in enumerate(
+        zip(
+            T_meas.tolist(), velocity.tolist(), encoder.astype(np.int64).tolist(), gaps, strict=True
+        )
     ):
+        for _ in range(gap):
+            chain.sample_missed()
         out[k] = step(T, v, e)[3]
     return out
 
@@ -257,11 +290,12 @@ def candidate_signals(rec: Recording, cfg: FirmwareConfig) -> dict[str, np.ndarr
     signals = {"raw": T_meas, f"firmware ({mode})": rec.column("T_filtered_tele")}
     paper = paper_config(cfg)
     recommended = recommended_config(cfg)
+    missed = rec.column("missed")
     signals[f"kalman paper ({paper.ripple.order}th order)"] = offline_chain(
-        paper, T_meas, vel, encoder
+        paper, T_meas, vel, encoder, missed
     )
     signals[f"kalman recommended ({len(recommended.ripple.oscillators)} harmonics)"] = (
-        offline_chain(recommended, T_meas, vel, encoder)
+        offline_chain(recommended, T_meas, vel, encoder, missed)
     )
     for fc in BUTTERWORTH_CUTOFFS_HZ:
         if fc < 0.5 / Ts:

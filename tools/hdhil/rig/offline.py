@@ -57,6 +57,7 @@ from hdhil.core.errors import UserError
 from hdhil.core.files import AtomicOutput, check_input, load_toml
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
+from hdhil.rig.evaluate import missed_cycles
 
 #: Output columns, in order.
 OUTPUT_COLUMNS = (
@@ -346,7 +347,13 @@ def filter_trace(path: Path, cfg: FirmwareConfig, writer: Any) -> FilterSummary:
     summary = FilterSummary(cfg, cfg.ripple.phase_source, "DRIVE_TPDO1 frames")
     writerow = writer.writerow
     n = 0
+    Ts = cfg.sample_period_s
+    previous: float | None = None
     for t, (torque, tacho, current, encoder) in _sensor_frames(path, summary):
+        # Periods without a sensor frame: the firmware's interrupt was told of each.
+        for _ in range(missed_cycles(previous, t, Ts)):
+            isr.sample_missed()
+        previous = t
         out = isr(AdcSample(torque, tacho, current, encoder))
         writerow((t, out.T_meas, out.acceleration, out.T_expected, out.ripple, out.T_filtered))
         n += 1
