@@ -656,8 +656,43 @@ def test_stats_report_actual_load_and_cycle_counter_gaps(tmp_path, capsys):
     clean = json.loads(capsys.readouterr().out)
     assert main(["dump", str(cut), "--stats", "--json"]) == 0
     gaps = json.loads(capsys.readouterr().out)["counter_gaps"]
-    assert clean["counter_gaps"]["SYNC.sync_counter"] == {"gaps": 0, "missing": 0, "repeats": 0}
-    assert gaps["SYNC.sync_counter"] == {"gaps": 2, "missing": 3, "repeats": 0}
-    assert gaps["DRIVE_RPDO1.cycle"] == {"gaps": 2, "missing": 4, "repeats": 0}
+    assert clean["counter_gaps"]["SYNC.sync_counter"] == {
+        "gaps": 0,
+        "missing": 0,
+        "reordered": 0,
+        "repeats": 0,
+    }
+    assert gaps["SYNC.sync_counter"] == {"gaps": 2, "missing": 3, "reordered": 0, "repeats": 0}
+    assert gaps["DRIVE_RPDO1.cycle"] == {"gaps": 2, "missing": 4, "reordered": 0, "repeats": 0}
     control = clean["buses"]["control"]
     assert 0 < control["actual_load_percent"] < control["load_percent"]
+
+
+@pytest.mark.parametrize(
+    ("fault", "kind", "field"),
+    [
+        ("control.loss_rate=0.05", "loss", "missing"),
+        ("control.duplicate_rate=0.02", "duplicate", "repeats"),
+        ("control.reorder_rate=0.02", "reorder", None),
+    ],
+)
+def test_stats_tell_lost_duplicated_and_reordered_counts_apart(tmp_path, capsys, fault, kind,
+                                                               field):  # fmt: skip
+    """A faulty run's trace: the SYNC counter's lost and duplicated counts equal the
+    faults injected on SYNC (fault log), and reordering is never counted as loss."""
+    trace, log = tmp_path / "t.blf", tmp_path / "faults.jsonl"
+    args = ["run", "--duration", "1.5", "--fault", fault, "--trace", str(trace)]
+    assert main([*args, "--fault-log", str(log), "--no-evaluate"]) == 0
+    capsys.readouterr()
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    injected = sum(r["kind"] == kind and r["frame_id"] == 0x080 for r in records)
+    assert injected > 3
+    assert main(["dump", str(trace), "--stats", "--json"]) == 0
+    stats = json.loads(capsys.readouterr().out)
+    (sync,) = [g for g in stats["counter_gaps_by_channel"] if g["sender"] == "080"]
+    others = {"missing", "repeats", "reordered"} - {field}
+    if field is None:  # reordering: swapped neighbours, nothing lost or duplicated
+        assert sync["reordered"] >= 1 and sync["missing"] == 0 and sync["repeats"] == 0
+    else:
+        assert sync[field] == injected
+        assert all(sync[k] == 0 for k in others)

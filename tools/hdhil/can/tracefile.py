@@ -828,6 +828,71 @@ class _IdStats:
         self.malformed += malformed
 
 
+class _CounterTrack:
+    """One cycle counter as one sender sends it on one channel: which counts went
+    missing for good (lost), which came late (reordered) and which came twice.
+
+    ``last`` is the highest count seen (modulo ``modulus``).  A count one ahead is in
+    order; further ahead is a jump whose skipped counts become *pending*; a count behind
+    ``last`` that is pending arrived late (reordered, no longer missing), one seen
+    recently is a duplicate.  Pending counts older than :data:`REORDER_WINDOW` frames
+    are lost for good; at the end every pending count is lost.
+    """
+
+    __slots__ = ("frames", "gaps", "last", "lost", "modulus", "pending", "recent",
+                 "reordered", "repeats")  # fmt: skip
+
+    def __init__(self, modulus: int) -> None:
+        self.modulus = modulus
+        self.last: int | None = None
+        self.pending: dict[int, int] = {}  # count -> frame number when it went missing
+        self.recent: dict[int, int] = {}  # count -> frame number last seen
+        self.frames = self.gaps = self.lost = self.reordered = self.repeats = 0
+
+    def add(self, value: int) -> None:
+        self.frames += 1
+        n = self.frames
+        value %= self.modulus  # SYNC counts 1..240: 240 is 0 here, so steps wrap right
+        last = self.last
+        if last is None:
+            self.last = value
+            self.recent[value] = n
+            return
+        step = (value - last) % self.modulus
+        if step == 0:
+            self.repeats += 1  # the newest count again: a duplicate
+        elif step <= self.modulus // 2:
+            if step > 1:  # a jump: the skipped counts are missing (for now)
+                self.gaps += 1
+                for i in range(1, step):
+                    self.pending[(last + i) % self.modulus] = n
+            self.last = value
+        elif value in self.pending:
+            del self.pending[value]  # a count given up as missing arrived late
+            self.reordered += 1
+        elif n - self.recent.get(value, -REORDER_WINDOW - 1) <= REORDER_WINDOW:
+            self.repeats += 1  # an older count seen again: a duplicate
+        else:
+            self.last = value  # far behind, never missed: the sender restarted its count
+        self.recent[value] = n
+        if len(self.recent) > 2 * REORDER_WINDOW:
+            self.recent = {k: v for k, v in self.recent.items() if n - v <= REORDER_WINDOW}
+        if self.pending and n - min(self.pending.values()) > REORDER_WINDOW:
+            expired = [k for k, v in self.pending.items() if n - v > REORDER_WINDOW]
+            for k in expired:
+                del self.pending[k]
+            self.lost += len(expired)
+
+    def result(self) -> dict[str, int]:
+        return {"gaps": self.gaps, "missing": self.lost + len(self.pending),
+                "reordered": self.reordered, "repeats": self.repeats}  # fmt: skip
+
+
+#: Frames of one counter after which a count still missing is lost for good (a
+#: reordered frame arrives at most a few frames late).
+REORDER_WINDOW = 32
+
+
 @dataclass
 class _BusStats:
     frames: int = 0
@@ -868,11 +933,9 @@ class StatsAccumulator:
         }
         self._counter_codecs = {key: codec("control", name.split(".")[0])
                                 for key, (name, *_rest) in self._counters.items()}  # fmt: skip
-        self._last_count: dict[str, int] = {}
-        self.gaps: dict[str, dict[str, int]] = {
-            name: {"gaps": 0, "missing": 0, "repeats": 0}
-            for name, *_rest in self._counters.values()
-        }
+        # One track per (channel, sender's identifier, counter): frames logged on two
+        # channels, or two senders of one counter, are never mixed into one sequence.
+        self._tracks: dict[tuple[str, int, str], _CounterTrack] = {}
 
     def _count(self, frame: DecodedFrame) -> None:
         key = (frame.arbitration_id, frame.is_extended_id)
@@ -881,18 +944,36 @@ class StatsAccumulator:
             value = int(self._counter_codecs[key].decode(frame.data)[index])
         except ValueError:
             return
-        last = self._last_count.get(name)
-        self._last_count[name] = value
-        if last is None:
-            return
         # Works for both counters: SYNC runs 1..240 and wraps to 1, so (value - last) mod
         # 240 is 1 across the wrap as well; the command's cycle counter runs mod 256.
-        step = (value - last) % modulus
-        if step == 0:
-            self.gaps[name]["repeats"] += 1
-        elif step != 1:
-            self.gaps[name]["gaps"] += 1
-            self.gaps[name]["missing"] += step - 1
+        track_key = (frame.bus, frame.arbitration_id, name)
+        track = self._tracks.get(track_key)
+        if track is None:
+            track = self._tracks[track_key] = _CounterTrack(modulus)
+        track.add(value)
+
+    @property
+    def gaps(self) -> dict[str, dict[str, int]]:
+        """Per counter, summed over channels and senders: ``gaps`` (jumps forward),
+        ``missing`` (counts never seen: lost frames), ``reordered`` (counts that came
+        late), ``repeats`` (duplicates)."""
+        out = {name: dict.fromkeys(("gaps", "missing", "reordered", "repeats"), 0)
+               for name, *_rest in self._counters.values()}  # fmt: skip
+        for (_, _, name), track in self._tracks.items():
+            for k, v in track.result().items():
+                out[name][k] += v
+        return out
+
+    @property
+    def gaps_by_channel(self) -> list[dict[str, Any]]:
+        """One entry per channel, sender and counter (see :attr:`gaps`)."""
+        return [
+            {"bus": bus, "sender": format_id(frame_id, False), "counter": name, "frames": t.frames,
+             **t.result()}
+            for (bus, frame_id, name), t in sorted(
+                self._tracks.items(), key=lambda kv: (_bus_sort_key(kv[0][0]), kv[0][1:])
+            )
+        ]  # fmt: skip
 
     def add(self, frame: DecodedFrame | can.Message) -> None:
         if isinstance(frame, can.Message):
@@ -1028,6 +1109,9 @@ class StatsAccumulator:
             # Gaps in the cycle counters (lost frames): per counter, the number of jumps and
             # of counts missing: SYNC.sync_counter (CiA 301, 1..240), DRIVE_RPDO1.cycle.
             "counter_gaps": self.gaps,
+            # The same per channel and sender (two channels logging the same frames, or a
+            # counter sent by two nodes, each checked on its own).
+            "counter_gaps_by_channel": self.gaps_by_channel,
         }
 
 
@@ -1079,10 +1163,11 @@ def format_stats(stats: Mapping[str, Any]) -> str:
             f"{b['load_percent']:.1f} % of {kbit:g} kbit/s{flag}, actual "
             f"{_fmt(b.get('actual_load_percent'), '.1f')} %; {', '.join(extras)}"
         )
-    for counter, g in stats.get("counter_gaps", {}).items():
+    for g in stats.get("counter_gaps_by_channel", []):
         lines.append(
-            f"cycle counter {counter}: {g['gaps']} gaps ({g['missing']} counts missing), "
-            f"{g['repeats']} repeats"
+            f"cycle counter {g['counter']} on {g['bus']} from {g['sender']}: {g['frames']} "
+            f"frames, {g['missing']} lost ({g['gaps']} gaps), {g['reordered']} reordered, "
+            f"{g['repeats']} duplicated"
         )
     return "\n".join(lines)
 
