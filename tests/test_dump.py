@@ -696,3 +696,35 @@ def test_stats_tell_lost_duplicated_and_reordered_counts_apart(tmp_path, capsys,
     else:
         assert sync[field] == injected
         assert all(sync[k] == 0 for k in others)
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".trc"])
+def test_a_flipped_byte_in_a_frame_line_is_reported(tmp_path, capsys, suffix):
+    """Every single-bit flip that loses a frame of an ASC/TRC file is reported: exit 1,
+    the count of unreadable lines and the first line number (seeded sample of flips)."""
+    import random
+
+    trace = tmp_path / f"t{suffix}"
+    assert main(["run", "--duration", "0.2", "--trace", str(trace), "--no-evaluate"]) == 0
+    capsys.readouterr()
+    src = trace.read_bytes()
+    assert main(["dump", str(trace), "--stats", "--json"]) == 0
+    frames = json.loads(capsys.readouterr().out)["frames"]
+    rng = random.Random(7)
+    lost_and_reported = 0
+    for _ in range(120):
+        data = bytearray(src)
+        pos = rng.randrange(len(data))
+        data[pos] ^= 1 << rng.randrange(8)
+        damaged = tmp_path / f"d{suffix}"
+        damaged.write_bytes(bytes(data))
+        rc = main(["dump", str(damaged), "--stats", "--json"])
+        out, err = capsys.readouterr()
+        assert "Traceback" not in err
+        if rc == 2:
+            continue  # the header itself is gone: not a trace (one-line error)
+        if json.loads(out)["frames"] < frames:  # a frame line was lost...
+            assert rc == 1, (pos, bytes(src[pos - 20 : pos + 20]))  # ...and reported
+            assert "unreadable line" in err and ", the first at line " in err
+            lost_and_reported += 1
+    assert lost_and_reported >= 10

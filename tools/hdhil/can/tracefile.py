@@ -99,6 +99,15 @@ _ASC_HEADER = re.compile(
 )
 _ASC_EVENT = re.compile(r"\d+\.\d+\s")
 _TRC_FRAME_TYPES = frozenset({"DT", "FD", "FB", "FE", "BI", "RR"})
+#: TRC record types that are not frames (PEAK TRC 2.x: status, error counter, event,
+#: error frame): skipping them is not damage.
+_TRC_OTHER_TYPES = frozenset({"ST", "EC", "EV", "ER"})
+#: ASC: a token only a frame line carries (a skipped line with it is a damaged frame).
+_ASC_DIRECTION = re.compile(r"(?:^|\s)(?:Rx|Tx)(?:\s|$)", re.I)
+#: ASC: the shape of a frame line whatever its direction token ("t ch id dir d|r dlc").
+_ASC_FRAMEISH = re.compile(r"\d+\.\d+\s+\d+\s+[0-9a-f]+x?\s+\S+\s+[dr]\s+[0-9a-f]", re.I | re.A)
+#: Printable ASCII plus tab: a writer of these text formats writes nothing else.
+_PRINTABLE = re.compile(r"[\t\x20-\x7e]*")
 
 
 class TraceError(UserError):
@@ -349,11 +358,18 @@ class TraceReadResult:
         """Why a line the reader skipped without complaint is damage (``None``: it is not)."""
         line = text.strip()
         invalid = f"not a valid {self.format[1:].upper()} line"
+        if not _PRINTABLE.fullmatch(line):
+            return f"{invalid} (a byte outside printable ASCII)"
         if self.format == ".asc":
             if _ASC_FRAME.match(line):
                 return "frame line skipped by the reader"
-            if _ASC_HEADER.match(line) or _ASC_EVENT.match(line):
-                return None  # header, comment, trigger block, timestamped event
+            if _ASC_HEADER.match(line):
+                return None  # header, comment, trigger block
+            if _ASC_EVENT.match(line):
+                # A timestamped event ("Start of measurement", a status): no direction
+                # token.  A skipped line with Rx/Tx is a frame line the reader lost.
+                lost = _ASC_DIRECTION.search(line) or _ASC_FRAMEISH.match(line)
+                return "frame line skipped by the reader" if lost else None
             return invalid
         if self.format == ".trc":
             if line.startswith(";"):
@@ -367,7 +383,9 @@ class TraceReadResult:
                 kind = tokens[columns["T"]]
             except (IndexError, ValueError):
                 return invalid
-            return "frame line with missing columns" if kind in _TRC_FRAME_TYPES else None
+            if kind in _TRC_FRAME_TYPES:
+                return "frame line with missing columns"
+            return None if kind in _TRC_OTHER_TYPES else f"{invalid} (record type {kind!r})"
         return invalid  # CSV and candump readers never skip a non-blank line on purpose
 
     def _check_skipped(self, keep_last: bool) -> None:

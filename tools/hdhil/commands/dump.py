@@ -404,3 +404,8 @@ def _report(
         print(f"hdhil: warning: {damage.describe(trace.path)}", file=err)
     if len(trace.damage) > 5:
         print(f"hdhil: warning: {trace.path}: {len(trace.damage) - 5} more damaged spots", file=err)
+    lines = [d.line for d in trace.damage if d.line is not None]
+    if lines:  # text formats: how many lines could not be read, and where it starts
+        print(f"hdhil: warning: {trace.path}: {len(lines)} unreadable line"
+              f"{'s' if len(lines) != 1 else ''}, the first at line {min(lines)}",
+              file=err)  # fmt: skip
