@@ -473,9 +473,17 @@ WARNING = re.compile(
 )
 
 
+UNREADABLE = re.compile(r"^hdhil: warning: \S+: (\d+) unreadable lines?, the first at line (\d+)$")
+
+
 def _warnings(err: str) -> list[re.Match[str]]:
-    matches = [WARNING.match(line) for line in err.splitlines()]
+    lines = err.splitlines()
+    summary = [UNREADABLE.match(line) for line in lines if UNREADABLE.match(line)]
+    matches = [WARNING.match(line) for line in lines if not UNREADABLE.match(line)]
     assert all(matches), err
+    lined = [m for m in matches if m and "line " in m["reason"]]
+    if lined:  # text formats: the count and the first line number are summarised
+        assert len(summary) == 1 and int(summary[0][1]) >= len(lined), err
     return matches  # type: ignore[return-value]
 
 
