@@ -151,7 +151,11 @@ class RecordingListener(can.Listener):
 
     def _on_sensor(self, data: bytes) -> None:
         torque, tacho, current, encoder = self._sensor.decode(data)
-        self._missed += missed_cycles(self._last_sensor_t, self._t, self.recording.sample_period_s)
+        Ts = self.recording.sample_period_s
+        last = self._last_sensor_t
+        if last is not None and round((self._t - last) / Ts) <= 0:
+            return  # a second sensor frame in one period: the firmware ignores it too
+        self._missed += missed_cycles(last, self._t, Ts)
         self._last_sensor_t = self._t
         if self._enabled is False:
             return
