@@ -691,6 +691,11 @@ class PlausibilityConfig:
     tacho_noise_radps: float = PLAUSIBLE_TACHO_NOISE_RADPS
     encoder_tolerance_counts: float = PLAUSIBLE_ENCODER_COUNTS
     max_rejections: int = PLAUSIBLE_REJECTIONS
+    #: Stuck channel (:class:`firmware.stages.StuckChannels`): the torque or tacho reading
+    #: unchanged for ``stuck_samples`` samples while the encoder turned at least
+    #: ``stuck_motion_rad`` (motor side) is a stuck sensor (EMCY 0x7300).
+    stuck_samples: int = 100
+    stuck_motion_rad: float = 2.0
 
     def __post_init__(self) -> None:
         if self.enabled is not None and not isinstance(self.enabled, bool):
@@ -703,6 +708,10 @@ class PlausibilityConfig:
                 "encoder_tolerance_counts": ">0",
             },
         )
+        check_fields(self, {"stuck_motion_rad": ">0"})
+        n = self.stuck_samples
+        if isinstance(n, bool) or not isinstance(n, int) or n < 2:
+            raise ValueError(f"PlausibilityConfig.stuck_samples must be an integer >= 2, got {n!r}")
         m = self.max_rejections
         if isinstance(m, bool) or not isinstance(m, int) or m < 1:
             raise ValueError(

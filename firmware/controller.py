@@ -149,7 +149,7 @@ import enum
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple, cast
+from typing import Any, NamedTuple, cast
 
 import can
 
@@ -283,6 +283,9 @@ class ControllerDiagnostics:
     tacho_reseeds: int = 0
     encoder_reseeds: int = 0
     plausibility_errors: int = 0
+    #: Stuck sensor channels (torque or tacho reading unchanged while the motor turned,
+    #: :class:`firmware.stages.StuckChannels`), each announced by EMCY 0x7300.
+    stuck_sensor_events: int = 0
     safe_reason: str | None = None
 
 
@@ -411,6 +414,7 @@ class ControllerNode(CanNode):
         self._missing_sensor = 0
         self._own_nmt = False
         self._plausibility_revision = 0
+        self._stuck_revision = 0
         self._plausibility_emcy: set[int] = set()  # EMCY codes of active sensor errors
         self._cycle = 0
         Ts = config.sample_period_s
@@ -500,6 +504,9 @@ class ControllerNode(CanNode):
                 self._enter_safe(self.boot_error)
         if self._own_isr and self.isr.chain.plausibility.revision != self._plausibility_revision:
             self._report_plausibility()
+        stuck = getattr(self.isr, "stuck", None) if self._own_isr else None
+        if stuck is not None and stuck.revision != self._stuck_revision:
+            self._report_stuck(stuck)
         counters = self.services.counters
         self.diagnostics.emcy_sent = counters.emcy_sent
         self.diagnostics.emcy_received = counters.emcy_received
@@ -593,6 +600,17 @@ class ControllerNode(CanNode):
             self.bus.send(self._telemetry_msg)
         if self.isr.done:
             self.request_stop(f"num_samples = {self.config.num_samples} reached")
+
+    def _report_stuck(self, stuck: Any) -> None:
+        """EMCY 0x7300 "sensor error" when a channel gets stuck (manufacturer byte 0: 1
+        torque, 2 tacho), cleared when it reads again; the diagnostic counter follows."""
+        self._stuck_revision = stuck.revision
+        self.diagnostics.stuck_sensor_events = stuck.events
+        for channel, flag in ((1, stuck.torque_stuck), (2, stuck.tacho_stuck)):
+            if flag:
+                self.services.emcy(EmcyCode.SENSOR, manufacturer=bytes((channel,)))
+            else:
+                self.services.emcy_clear(EmcyCode.SENSOR, bytes((channel,)))
 
     def _report_plausibility(self) -> None:
         """The plausibility stage's counters into the diagnostics, and its error flags on

@@ -91,6 +91,7 @@ from hdhil.firmware.stages import (
     LowPass,
     ReferenceGenerator,
     SensorPlausibility,
+    StuckChannels,
     VelocityIntegrator,
     adc_read,
     calibrate,
@@ -436,6 +437,18 @@ class InterruptHandler:
         self.control = TorqueControl(cfg) if cfg.control.active else None
         self._feedback_filtered = cfg.control.feedback == "T_filtered"
         self.samplecount = 0  # listing: int samplecount = 0;
+        plausibility = cfg.plausibility
+        #: Stuck torque/tacho channel check (not in the listing), with the plausibility
+        #: stage; ``None`` when that stage is off.
+        self.stuck: StuckChannels | None = (
+            StuckChannels(
+                plausibility.stuck_samples,
+                plausibility.stuck_motion_rad,
+                cfg.calibration.encoder_counts_per_rev,
+            )
+            if plausibility.enabled
+            else None
+        )
         self._out = IsrOutput()
         #: Stage timing (:data:`StageHook`): called at every stage boundary when set.
         self.stage_hook: StageHook | None = None
@@ -479,6 +492,8 @@ class InterruptHandler:
         self.chain.reset()
         if self.control is not None:
             self.control.reset()
+        if self.stuck is not None:
+            self.stuck.reset()
         self.samplecount = 0
 
     def __call__(self, sample: AdcSample) -> IsrOutput:
@@ -491,6 +506,8 @@ class InterruptHandler:
         Torque, Tacho, MotorCurrOut = adc_read(sample.torque, sample.tacho, sample.current, cfg.adc)
         # vel = Tacho * volt2radps; T_meas = Torque * volt2Nm;
         T_meas, vel, current = calibrate(Torque, Tacho, MotorCurrOut, cfg.calibration)
+        if self.stuck is not None:  # a channel stuck while the motor turns (not in the listing)
+            self.stuck.step(T_meas, vel, sample.encoder, Torque, Tacho)
         if stamp is not None:
             stamp(1)
         # plausibility (not in the listing): implausible vel / pcsample replaced;

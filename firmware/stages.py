@@ -272,6 +272,87 @@ class VelocityIntegrator:
         self._last = None
 
 
+class StuckChannels:
+    """A torque channel stuck at one reading while the motor turns (not in the seeds).
+
+    A torque bridge whose ADC reading does not change by a single count for
+    ``stuck_samples`` samples in a row, while the encoder moved by at least
+    ``stuck_motion_rad`` of motor angle over those samples, is stuck: a turning motor
+    sweeps the torque ripple (seed 000 §2: two and four times the motor angle) through
+    many counts.  A reading at the ADC's full scale is saturation, not a stuck sensor,
+    and is left to the drive's own check.  The flag ``torque_stuck`` rises at that sample
+    (``events`` counts the rises; the controller sends EMCY 0x7300 "sensor error" with 1,
+    the torque channel, in manufacturer byte 0) and falls at the first changed reading.
+    Without an encoder nothing is judged.  ``revision`` changes whenever the flag does.
+
+    The tachometer is not judged this way: at a steady speed its noise (0.05 rad/s in the
+    shipped scenarios) is below one count (0.27 rad/s), so a constant tacho reading is
+    normal; a stuck tacho shows as encoder increments that disagree with it
+    (:class:`SensorPlausibility`).  ``tacho_stuck`` stays False.
+    """
+
+    __slots__ = ("_counts_needed", "_last", "_moved", "_raw_last", "_run", "_samples",
+                 "events", "revision", "tacho_stuck", "torque_stuck")  # fmt: skip
+
+    _MASK = 0xFFFF
+    _HALF = 0x8000
+    #: A reading this close to the ADC's ends is saturation (volts, ±10 V converter).
+    _FULL_SCALE_V = 9.99
+
+    def __init__(self, samples: int, motion_rad: float, counts_per_rev: int) -> None:
+        self._samples = samples
+        self._counts_needed = motion_rad * counts_per_rev / (2.0 * math.pi)
+        self.reset()
+
+    def reset(self) -> None:
+        self._last: list[float | None] = [None, None]
+        self._run = [0, 0]
+        self._moved = [0.0, 0.0]
+        self._raw_last: int | None = None
+        self.torque_stuck = self.tacho_stuck = False
+        self.events = 0
+        self.revision = 0
+
+    def step(self, torque: float, velocity: float, encoder: int | None,
+             torque_V: float, tacho_V: float) -> None:  # fmt: skip
+        """One sample: calibrated torque and velocity, the raw encoder count and the two
+        channels' voltages (for the saturation exclusion)."""
+        if encoder is None:
+            return
+        raw = encoder & self._MASK
+        last_raw = self._raw_last
+        self._raw_last = raw
+        d = 0
+        if last_raw is not None:
+            d = (raw - last_raw) & self._MASK
+            if d >= self._HALF:
+                d = 0x10000 - d
+        for i, (value, volts) in enumerate(((torque, torque_V),)):
+            if value != self._last[i] or abs(volts) >= self._FULL_SCALE_V:
+                self._last[i] = value
+                self._run[i] = 0
+                self._moved[i] = 0.0
+                if self._flag(i):
+                    self._set(i, False)
+                continue
+            self._run[i] += 1
+            self._moved[i] += d
+            if (not self._flag(i) and self._run[i] >= self._samples
+                    and self._moved[i] >= self._counts_needed):  # fmt: skip
+                self._set(i, True)
+                self.events += 1
+
+    def _flag(self, i: int) -> bool:
+        return self.torque_stuck if i == 0 else self.tacho_stuck
+
+    def _set(self, i: int, on: bool) -> None:
+        if i == 0:
+            self.torque_stuck = on
+        else:
+            self.tacho_stuck = on
+        self.revision += 1
+
+
 class SensorPlausibility:
     """Bounds on what one sample may change: tacho spikes and encoder glitches are
     replaced by the prediction (not in the seed; the listing uses every sample as read).

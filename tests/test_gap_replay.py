@@ -83,7 +83,7 @@ def test_filter_command_reproduces_the_firmware_on_a_lossy_trace(lossy_trace, tm
     tele = rec.column("T_filtered_tele")
     # filter writes one row per DRIVE_TPDO1 frame; the recording keeps those in operation
     # (the last len(rec) frames before the stop, aligned by time)
-    filtered = {round(float(r["time"]), 6): float(r["T_filtered"]) for r in rows}
+    filtered = {round(float(r["time_s"]), 6): float(r["T_filtered_Nm"]) for r in rows}
     assert len(filtered) >= len(rec)
     times = sorted(filtered)
     # the recording starts at the first sample in operation: match by order from the start

@@ -191,6 +191,7 @@ def _controller_diagnostics(controller: ControllerNode) -> dict[str, Any]:
         "tacho_reseeds": d.tacho_reseeds,
         "encoder_reseeds": d.encoder_reseeds,
         "plausibility_errors": d.plausibility_errors,
+        "stuck_sensor_events": d.stuck_sensor_events,
         "covariance_resets": getattr(kalman, "covariance_resets", 0),
         "covariance_finite": finite,
         "covariance_min_eigenvalue": (
