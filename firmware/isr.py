@@ -446,7 +446,7 @@ class InterruptHandler:
                 plausibility.stuck_motion_rad,
                 cfg.calibration.encoder_counts_per_rev,
             )
-            if plausibility.enabled
+            if cfg.plausibility_active
             else None
         )
         self._out = IsrOutput()
