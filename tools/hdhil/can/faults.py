@@ -119,6 +119,10 @@ def _rate(obj: object, name: str) -> None:
                          f"got {value!r}")  # fmt: skip
 
 
+#: Largest ``delay_us`` / ``jitter_us`` accepted (1 s).
+MAX_DELAY_US = 1e6
+
+
 def _nonneg(obj: object, name: str, allow_inf: bool = False, hi: float | None = None) -> None:
     value = getattr(obj, name)
     ok = isinstance(value, (int, float)) and value >= 0
@@ -183,8 +187,10 @@ class BusFaults:
                      "dlc_rate", "error_frame_rate"):  # fmt: skip
             _rate(self, name)
         _nonneg(self, "burst_every_s", hi=MAX_SECONDS)
-        for name in ("delay_us", "jitter_us"):  # a delivery time a trace can still stamp
-            _nonneg(self, name, hi=MAX_SECONDS * 1e6)
+        # At most a second late: later than the nodes' supervision times (heartbeat,
+        # sensor hold) is a lost frame, which loss_rate/silence describe.
+        for name in ("delay_us", "jitter_us"):
+            _nonneg(self, name, hi=MAX_DELAY_US)
         _nonneg(self, "burst_len_frames")
         if (self.burst_every_s > 0) != (self.burst_len_frames > 0):
             raise ValueError("BusFaults.burst_len_frames and burst_every_s go together "
