@@ -179,6 +179,7 @@ OPTIONS: dict[str, dict[str, object]] = {
     "nmt": {"ACTION": st.sampled_from(["start", "stop", "reset", "x"]), "NODE": NUMBER},
     "bench": {"--duration": BAD, "--repeat": BAD},
     "campaign": {"FILE": INPUT, "--workers": BAD, "--json": None},
+    "dbc": {"ACTION": st.sampled_from(["export", "x", "--help"]), "TRACE": INPUT, "OUT": OUTPUT},
     "soak": {"--duration": BAD, "--every": BAD},
 }  # fmt: skip
 

@@ -104,8 +104,8 @@ class FakeDrive:
                 self.nmt = {0x01: 0x05, 0x02: 0x04, 0x80: 0x7F}.get(data[0], self.nmt)
             elif can_id == 0x080 and self.nmt == 0x05 and not self.mute_sensor:
                 self.sample += 1
-                values = (
-                    (100, 20, 0, (7 * self.sample) & 0xFFFF)
+                values = (  # the torque wobbles a count: a live sensor, not a stuck one
+                    (100 + (self.sample & 1), 20, 0, (7 * self.sample) & 0xFFFF)
                     if self.sensor is None
                     else self.sensor(self.sample)
                 )
