@@ -2,15 +2,23 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable, Iterator
 
 import can
 import pytest
+from hypothesis import settings
 
 from hdhil.hostsim.drive import DriveNode
 from hdhil.rig.loop import serve
+
+# In CI, property tests draw the same examples on every run, so a verdict can be
+# reproduced from the commit alone; local runs keep exploring new examples.
+settings.register_profile("ci", derandomize=True, print_blob=True)
+if os.environ.get("CI"):
+    settings.load_profile("ci")
 
 ServeDrive = Callable[[Callable[[can.BusABC], DriveNode]], tuple[DriveNode, list[str]]]
 
