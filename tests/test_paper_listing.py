@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from listing_ports import ListingKF
 
 from hdhil.cli import main
 from hdhil.firmware.config import FirmwareConfig, PlausibilityConfig, paper_config
@@ -43,12 +44,8 @@ class ListingA1:
         self.J_load = 1.725e-2
         self.Gain = 100.0
         self.sample_period = 0.001
-        # Kalman's locals, kept between calls
-        self.x = [0.0] * 4
-        self.C = [0.0] * 4
-        self.R = 0.0
-        self.P = [[0.0] * 4 for _ in range(4)]
-        self.Q = [[0.0] * 4 for _ in range(4)]
+        # Kalman, with its locals kept between calls (listing A.1's arithmetic)
+        self.Kalman = ListingKF(a2=False)
 
     def Diff_filter(self, v: float) -> float:
         nd = (181.818181818182, -181.818181818182)
@@ -57,49 +54,6 @@ class ListingA1:
         self.v_1 = v
         self.a_1 = a
         return a
-
-    def Kalman(self, Delta_T: float, velocity: float, sample_period: float) -> float:
-        x, C, P, Q = self.x, self.C, self.P, self.Q
-        if self.kal_count == 1:
-            self.R = 1.0
-            for i in range(4):
-                x[i] = 0.0
-                C[i] = 0.0
-                for j in range(4):
-                    P[i][j] = 1.0 if i == j else 0.0
-                    Q[i][j] = 1000.0 if i == j else 0.0
-            x[0] = x[2] = Delta_T
-            C[0] = C[2] = 1.0
-            self.kal_count += 1
-        R = self.R
-        om1 = 2.0 * velocity * sample_period
-        om2 = 2.0 * om1
-        phi = [[0.0] * 4 for _ in range(4)]
-        phi[0][0] = math.cos(om1)
-        phi[0][1] = math.sin(om1)
-        phi[1][0] = -math.sin(om1)
-        phi[1][1] = math.cos(om1)
-        phi[2][2] = math.cos(om2)
-        phi[2][3] = math.sin(om2)
-        phi[3][2] = -math.sin(om2)
-        phi[3][3] = math.cos(om2)
-        PC = [sum(P[i][j] * C[j] for j in range(4)) for i in range(4)]
-        pPC = [sum(phi[i][j] * PC[j] for j in range(4)) for i in range(4)]
-        CPC = 0.0
-        for j in range(4):
-            CPC += C[j] * PC[j]
-        K = [pPC[i] / (R + CPC) for i in range(4)]
-        Pp = [[sum(P[i][k] * phi[j][k] for k in range(4)) for j in range(4)] for i in range(4)]
-        KC = [[K[i] * C[j] for j in range(4)] for i in range(4)]
-        p_KC = [[phi[i][j] - KC[i][j] for j in range(4)] for i in range(4)]
-        gb = [[sum(p_KC[i][k] * Pp[k][j] for k in range(4)) for j in range(4)] for i in range(4)]
-        for i in range(4):
-            for j in range(4):
-                P[i][j] = Q[i][j] + gb[i][j]
-        x1 = [sum(p_KC[i][j] * x[j] for j in range(4)) for i in range(4)]
-        for i in range(4):
-            x[i] = K[i] * Delta_T + x1[i]
-        return x[0] + x[2]
 
     def step(self, T_meas: float, vel: float) -> tuple[float, float, float, float]:
         """``(acc, T_mod, Torque_f, T_ripple used)`` for one interrupt."""
