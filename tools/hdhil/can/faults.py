@@ -353,12 +353,23 @@ class ChannelFaults:
         self._bus_off = [(w, w.cob_ids) for w in cfg.bus_off]
         self._held: can.Message | None = None  # a frame waiting to be reordered
 
-    def blocked(self, msg: can.Message, t: float) -> bool:
+    def blocked(self, msg: can.Message, t: float, sender: int | None = None) -> bool:
         """True when the sender of ``msg`` is silent or bus-off at ``t`` (frame dropped
-        before the wire; logged)."""
+        before the wire; logged).
+
+        ``sender`` is the node-ID of the node that sent ``msg`` when it is known (the
+        simbus handle's ``node_id``, a node process's own bus): a window of ``node = n``
+        then stops every frame node n sends, whatever its identifier.  Without it, the
+        frame is node n's when its identifier is one of node n's own COB-IDs
+        (:func:`node_ids`).  A window's ``ids`` match by identifier, whoever sends."""
+        fid = msg.arbitration_id
         for kind, windows in (("silence", self._silence), ("bus_off", self._bus_off)):
             for w, ids in windows:
-                if msg.arbitration_id in ids and w.active(t):
+                if sender is not None and w.node:
+                    hit = sender == w.node or fid in w.ids
+                else:
+                    hit = fid in ids
+                if hit and w.active(t):
                     self.log.record(t, self.name, kind, msg.arbitration_id)
                     return True
         return False
@@ -590,13 +601,19 @@ class FaultyTransmitBus:
     goes out after the next one.  A node cannot transmit error frames (its CAN controller
     raises them), so ``error_frame_rate`` is refused (:func:`check_node_transmit_faults`).
 
+    ``node_id`` is the node's CANopen node-ID: a ``silence``/``bus_off`` window of that
+    node stops every frame it sends (SYNC, RPDOs, NMT and SDO requests of a master
+    included); None judges frames by their identifiers (:meth:`ChannelFaults.blocked`).
+
     Everything else (``recv``, ``shutdown``, ``channel_info``, ...) is the wrapped bus.
     """
 
     def __init__(self, bus: can.BusABC, hook: ChannelFaults,
-                 clock: Callable[[], float] = time.monotonic) -> None:  # fmt: skip
+                 clock: Callable[[], float] = time.monotonic,
+                 node_id: int | None = None) -> None:  # fmt: skip
         self.bus = bus
         self.hook = hook
+        self.node_id = node_id
         self._clock = clock
         self._t0 = clock()
         self._due: list[tuple[float, int, can.Message]] = []
@@ -618,7 +635,7 @@ class FaultyTransmitBus:
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         now = self._now()
         self._release(now)
-        if self.hook.blocked(msg, now):
+        if self.hook.blocked(msg, now, self.node_id):
             return
         frame = can.Message(arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
                             is_remote_frame=msg.is_remote_frame, dlc=msg.dlc,

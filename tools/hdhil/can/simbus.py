@@ -26,11 +26,21 @@ Timing model: frames are serialised on the channel like on a real wire.
   channel; with a fault hook they still go through the scheduler).
 - Requested frames are scheduled when a receiver next polls, so all requests made at
   one instant take part in the arbitration.
+- With a fault hook, a frame is receivable only once the simulated clock has reached
+  its delivery time: deliveries due at or after the clock's ``horizon`` (the end of the
+  lockstep step, :class:`SimClock`) wait in flight and are handed out, in delivery-time
+  order, in the step that contains their time.  A sensor frame delayed past the next
+  SYNC therefore arrives after that SYNC, in the next cycle, as on a real bus.
 
 ``faults``: a :class:`hdhil.can.faults.ChannelFaults` hook
 (``FaultInjector.channel("control")``) makes the channel lossy, late, noisy
 (:mod:`hdhil.can.faults`); any bus of the channel may pass it.  Without one the channel keeps
 its fault-free path.
+
+``node_id``: the CANopen node-ID of the node that owns the handle: a ``silence`` or
+``bus_off`` window of node n stops every frame sent through a handle of node n,
+whatever its identifier (the SYNC and RPDOs of a master included).  Handles without one
+(taps, tools) are judged by the identifiers they send.
 
 ``trace_channel``: the channel number received frames carry (``msg.channel``), e.g. the
 trace channel of the bus; by default the channel name.
@@ -42,6 +52,8 @@ Receivers must not mutate received messages.
 
 from __future__ import annotations
 
+import heapq
+import math
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -57,18 +69,26 @@ if TYPE_CHECKING:
 
 
 class SimClock:
-    """Simulated time in seconds, advanced by whoever paces the run (the lockstep runner)."""
+    """Simulated time in seconds, advanced by whoever paces the run (the lockstep runner).
 
-    __slots__ = ("now",)
+    ``now`` is the start of the current step (a lockstep cycle starts at ``k * Ts``);
+    ``horizon`` is where the step ends (``(k + 1) * Ts``): a channel with a fault hook
+    holds back every delivery due at or after it (a frame delayed past the next SYNC)
+    until a later step reaches its time.  ``inf`` (the default): nothing is held, every
+    delivery is handed out at the next poll.
+    """
 
-    def __init__(self, now: float = 0.0) -> None:
+    __slots__ = ("horizon", "now")
+
+    def __init__(self, now: float = 0.0, horizon: float = math.inf) -> None:
         self.now = now
+        self.horizon = horizon
 
 
 class _Channel:
-    __slots__ = ("bitrate", "buses", "busy_until", "clock", "faults", "frames", "label",
-                 "latest_request", "lock", "name", "pending", "receivers", "seq", "timing",
-                 "waiting")  # fmt: skip
+    __slots__ = ("bitrate", "buses", "busy_until", "clock", "delivered", "faults", "frames",
+                 "inflight", "label", "latest_request", "lock", "name", "pending", "receivers",
+                 "seq", "timing", "waiting")  # fmt: skip
 
     def __init__(self, name: str, clock: SimClock, bitrate: int, label: str | int,
                  timing: str) -> None:  # fmt: skip
@@ -94,6 +114,13 @@ class _Channel:
         self.latest_request = 0.0
         #: Fault injection hook (:class:`hdhil.can.faults.ChannelFaults`); None = a clean link.
         self.faults: ChannelFaults | None = None
+        #: With a fault hook: deliveries off the wire, not yet handed to the receivers, as a
+        #: heap of (delivery time, order, sender, frame); due ones go out at the next poll,
+        #: the others when the clock's horizon has passed their time.  Always empty
+        #: without a hook.
+        self.inflight: list[tuple[float, int, SimBus, can.Message]] = []
+        #: Deliveries made so far (the order of equal delivery times).
+        self.delivered = 0
 
     def attach(self, bus: SimBus) -> None:
         self.buses.append(bus)
@@ -189,29 +216,41 @@ class _Channel:
     def _flush_faulty(self, faults: ChannelFaults) -> None:
         """:meth:`flush` through the fault hook: frames of a silent/bus-off sender never
         reach the wire; the others may be lost, delayed, duplicated, reordered,
-        corrupted, resized or followed by an error frame.  Deliveries of one flush go
-        out in timestamp order."""
-        out: list[tuple[float, int, SimBus, can.Message]] = []
-        n = 0
+        corrupted, resized or followed by an error frame.
+
+        Every delivery goes in flight with its delivery time; those due before the
+        clock's horizon are handed out now, in delivery-time order; later ones wait for
+        the step that contains their time (:meth:`release`), so a frame delayed past the
+        next SYNC reaches its receivers after that SYNC, as on a real bus."""
+        inflight = self.inflight
         while self.pending:
             start, (_, _, _, sender, msg) = self._next()
-            if faults.blocked(msg, start):
+            if faults.blocked(msg, start, sender.node_id):
                 continue
             frame_s = self.bits(msg) / self.bitrate if self.timing != "none" else 0.0
             end = start + frame_s
             self.frames += 1
             delivered, self.busy_until = faults.transmit(msg, end, frame_s)
             for m in delivered:
-                out.append((m.timestamp, n, sender, m))
-                n += 1
-        out.sort(key=lambda d: (d[0], d[1]))
+                self.delivered += 1
+                heapq.heappush(inflight, (m.timestamp, self.delivered, sender, m))
+        self.release()
+
+    def release(self) -> None:
+        """Hand out the in-flight deliveries due before the clock's horizon, in
+        delivery-time order (caller holds the lock)."""
+        inflight = self.inflight
+        horizon = self.clock.horizon
         receivers = self.receivers
-        for t, _, sender, msg in out:
-            for bus in receivers[sender]:
+        released = False
+        while inflight and inflight[0][0] < horizon:
+            t, _, sender, msg = heapq.heappop(inflight)
+            released = True
+            for bus in receivers.get(sender, ()):
                 bus._queue.append(msg)
                 if t > bus._last_rx:
                     bus._last_rx = t
-        if self.waiting:
+        if released and self.waiting:
             self.notify_waiting()
 
 
@@ -300,6 +339,7 @@ class SimBus(can.BusABC):
         trace_channel: int | None = None,
         timing: str = "exact",
         faults: ChannelFaults | None = None,
+        node_id: int | None = None,
         **kwargs: Any,
     ) -> None:
         name = str(channel)
@@ -327,6 +367,9 @@ class SimBus(can.BusABC):
             self._receive_own = receive_own_messages
             self._waiting = False
             self._last_rx = 0.0
+            #: The CANopen node-ID of the node that sends through this handle (None: not
+            #: known); silence and bus-off windows of that node stop all its frames.
+            self.node_id = node_id
             with ch.lock:  # a frame in flight is routed to the old set or the new one
                 ch.attach(self)
         self.channel_info = f"simbus channel {name!r} at {ch.bitrate} bit/s"
@@ -387,7 +430,7 @@ class SimBus(can.BusABC):
         """Next received frame; without receive filters this skips python-can's generic
         filter loop (the 1 kHz path polls with ``timeout=0`` several times a cycle)."""
         ch = self._ch
-        if ch.pending:
+        if ch.pending or ch.inflight:
             with ch.lock:
                 ch.flush()
         if self._filters is None and self._queue:
@@ -409,7 +452,7 @@ class SimBus(can.BusABC):
         matches = None if self._filters is None else self._matches_filters
         n = 0
         while True:
-            if ch.pending:
+            if ch.pending or ch.inflight:
                 with ch.lock:
                     ch.flush()
             if not queue:
@@ -432,7 +475,7 @@ class SimBus(can.BusABC):
             try:
 
                 def arrived() -> bool:
-                    if ch.pending:
+                    if ch.pending or ch.inflight:
                         ch.flush()
                     return bool(queue)
 

@@ -77,6 +77,8 @@ from hdhil.rig.verdict import drive_verdict, format_verdict, stop_verdict
 
 #: The logger's pause when no frame is waiting (s): short against a 1 ms cycle.
 IDLE_SLEEP_S = 0.0002
+#: The controller's node-ID (control.dbc's node CONTROLLER).
+CONTROLLER_NODE_ID = dbc_node_ids("control")["CONTROLLER"]
 #: SYNC cycles allowed for walking the drive back to "stopped" after the run.
 MAX_STOP_CYCLES = 2000
 
@@ -125,14 +127,18 @@ def _fault_injector(
 
 
 def _with_faults(
-    bus: can.BusABC | None, injector: FaultInjector, role: Literal["control", "truth"]
+    bus: can.BusABC | None,
+    injector: FaultInjector,
+    role: Literal["control", "truth"],
+    node_id: int,
 ) -> Any:
-    """``bus``, or its :class:`~hdhil.can.faults.FaultyTransmitBus` when the node's own frames
-    on channel ``role`` are to be faulted."""
+    """``bus``, or its :class:`~hdhil.can.faults.FaultyTransmitBus` when the own frames of
+    node ``node_id`` on channel ``role`` are to be faulted (a silence of that node stops
+    all of them)."""
     hook = injector.channel(role)
     if bus is None or hook is None:
         return bus
-    return FaultyTransmitBus(bus, hook)
+    return FaultyTransmitBus(bus, hook, node_id=node_id)
 
 
 def run_emulate(args: argparse.Namespace) -> int:
@@ -147,12 +153,13 @@ def run_emulate(args: argparse.Namespace) -> int:
     try:
         bus = _control_bus(args)
         truth = _truth_bus(args)
-        node_bus = _with_faults(bus, injector, "control")
-        node_truth = _with_faults(truth, injector, "truth") if truth is not None else None
+        drive_config = DriveConfig(sample_period_s=fw.sample_period_s)
+        node_bus = _with_faults(bus, injector, "control", drive_config.node_id)
+        node_truth = _with_faults(truth, injector, "truth", drive_config.node_id)
         drive = DriveNode(
             node_bus,
             Plant(scenario.plant, seed, faults=injector.sensors()),
-            DriveConfig(sample_period_s=fw.sample_period_s),
+            drive_config,
             truth_bus=node_truth,
             faults=injector,
         )
@@ -194,10 +201,14 @@ def run_firmware(args: argparse.Namespace) -> int:
     bus = None
     try:
         bus = _control_bus(args)
-        node_bus = _with_faults(bus, injector, "control")
+        node_bus = _with_faults(bus, injector, "control", CONTROLLER_NODE_ID)
         try:
             ctrl = ControllerNode(
-                node_bus, fw, boot_timeout_s=args.boot_timeout, drive_dcf=args.drive_dcf
+                node_bus,
+                fw,
+                node_id=CONTROLLER_NODE_ID,
+                boot_timeout_s=args.boot_timeout,
+                drive_dcf=args.drive_dcf,
             )
         except ValueError as exc:
             raise UserError(str(exc)) from None

@@ -165,6 +165,9 @@ class RecordingListener(can.Listener):
              t[0], t[1], t[2], t[3], t[4], float(self._missed))
         )  # fmt: skip
         self._missed = 0
+        # The truth of one SYNC belongs to one sample: a sample whose truth frames never
+        # came (truth faults) has none, rather than the previous sample's.
+        self._truth = [math.nan] * 5
 
     def _on_telemetry(self, data: bytes) -> None:
         if self._enabled is False:
@@ -313,15 +316,22 @@ def evaluate(rec: Recording, cfg: FirmwareConfig, skip_s: float = 0.0) -> dict[s
     n = len(rec)
     T_true = rec.column("T_true")
     valid = np.isfinite(T_true)
-    if n == 0 or not valid.any():
+    if n == 0:
         return {"samples": 0, "candidates": []}
+    if not valid.any():
+        # No ground truth at all (a trace without the truth channel, or truth silenced)
+        return {"samples": 0, "skip_s": skip_s, "candidates": [], "samples_without_truth": n}
     signals = candidate_signals(rec, cfg)
     k0 = min(n, round(skip_s / cfg.sample_period_s))
     window = np.zeros(n, dtype=bool)
     window[k0:] = True
     window &= valid
+    # Samples in the window without ground truth (truth frames lost or silenced): left
+    # out of every score, and reported.
+    without_truth = int(n - k0 - window[k0:].sum())
+    missing = {"samples_without_truth": without_truth} if without_truth else {}
     if not window.any():
-        return {"samples": 0, "skip_s": skip_s, "candidates": []}
+        return {"samples": 0, "skip_s": skip_s, "candidates": [], **missing}
     theta_m = _unwrap_angle(rec.column("theta_motor"))
     theta_o = _unwrap_angle(rec.column("theta_output"))
     turning = window & (np.abs(rec.column("omega_motor")) > MIN_SPEED_RADPS)
@@ -356,6 +366,7 @@ def evaluate(rec: Recording, cfg: FirmwareConfig, skip_s: float = 0.0) -> dict[s
             for label, src, mult in HARMONICS
         },
         "candidates": [dataclasses.asdict(s) for s in scores],
+        **missing,
     }
 
 
@@ -368,12 +379,22 @@ def _fmt(v: float | None, spec: str) -> str:
 
 
 def format_evaluation(ev: dict[str, Any]) -> str:
+    without = ev.get("samples_without_truth", 0)
     if not ev.get("samples"):
         start = f" after {ev['skip_s']:g} s" if ev.get("skip_s") else ""
+        if without:
+            return (f"  evaluation: no samples with ground truth{start}: the truth frames of "
+                    f"all {without} samples are missing (truth faults?)")  # fmt: skip
         return f"  evaluation: no samples with ground truth{start} (run longer or use --skip)"
     lines = [
         f"  evaluation vs truth ({ev['samples']} samples after {ev['skip_s']:g} s; "
         f"RMS true torque {ev['rms_true']:.4f} Nm)",
+    ]
+    if without:
+        lines.append(
+            f"    {without} samples without ground truth (truth frames missing) are left out"
+        )
+    lines += [
         f"    {'candidate':<34} {'RMS err/Nm':>10} {'% raw':>7} {'2x dB':>7} {'4x dB':>7} "
         f"{'mis p-p/Nm':>10} {'lag/ms':>7}",
     ]

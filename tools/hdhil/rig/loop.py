@@ -100,7 +100,8 @@ class NodeLoop:
     ``listeners`` are drained every ``listen_every`` cycles and while waiting.
 
     Time: with a ``pacer`` the cycle waits for its wall-clock deadline; otherwise, with a
-    ``sim_clock``, that clock is set to ``k * period_s`` (simulated time). Nodes are
+    ``sim_clock``, that clock is set to ``k * period_s`` (simulated time) and its
+    horizon to ``(k + 1) * period_s`` (frames delayed past it wait for their cycle). Nodes are
     handed ``node_time()`` (default: the monotonic clock; None: the ``sim_clock``'s
     time). ``pump`` is the simulated
     control bus (cycles complete by pumping, no waiting).
@@ -167,6 +168,8 @@ class NodeLoop:
             pacer.wait(k)  # wall clock: a WallClock reads real time by itself
         elif sim_clock is not None:
             sim_clock.now = k * self.period_s
+            # The step ends at the next SYNC: a delivery due later waits in flight.
+            sim_clock.horizon = (k + 1) * self.period_s
         node_time = self.node_time
         now = node_time() if node_time is not None else sim_clock.now  # type: ignore[union-attr]
         nodes = self.nodes

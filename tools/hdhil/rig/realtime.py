@@ -174,6 +174,10 @@ class WallClock(SimClock):
 
     __slots__ = ("t0_ns",)
 
+    #: Nothing is held in flight in real time: a delivery is handed out at the next poll,
+    #: stamped with its (possibly delayed) time.
+    horizon = math.inf
+
     def __init__(self) -> None:
         self.t0_ns = _now_ns()
 

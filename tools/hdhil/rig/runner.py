@@ -39,7 +39,13 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from hdhil.can.busload import LOAD_LIMIT, ScheduleLoad, schedule_load
-from hdhil.can.faults import FaultInjector, FaultLog
+from hdhil.can.faults import (
+    ChannelFaults,
+    FaultInjector,
+    FaultLog,
+    FaultyTransmitBus,
+    check_node_transmit_faults,
+)
 from hdhil.can.simbus import SimBus, SimClock
 from hdhil.can.trace import BusTap, FrameCounter, WriterProcess, write_metadata
 from hdhil.core.dataconf import ConfigError, from_dict, merge
@@ -312,10 +318,13 @@ class RigBuses:
         self.run_id = next(_run_ids)
         self._control_faults = injector.channel("control") if injector is not None else None
         self._truth_faults = injector.channel("truth") if injector is not None else None
+        self.injector_seed = injector.config.seed if injector is not None else 0
+        if self._control_faults is not None and not plan.simulated:
+            check_node_transmit_faults(injector.config, "control")  # type: ignore[union-attr]
         self.opened: list[can.BusABC] = []
 
-    def control(self) -> can.BusABC:
-        """A new handle on the control bus."""
+    def control(self, node_id: int | None = None) -> can.BusABC:
+        """A new handle on the control bus for node ``node_id`` (None: the tap)."""
         p = self.plan
         if p.simulated:
             bus = can.Bus(
@@ -325,6 +334,7 @@ class RigBuses:
                 clock=self.clock,
                 trace_channel=CHANNEL_NUMBER["control"],
                 faults=self._control_faults,
+                node_id=node_id,
             )
         elif p.interface == "virtual":
             bus = can.Bus(interface="virtual", channel=p.channel or f"hdhil-{self.run_id}-control")
@@ -340,10 +350,19 @@ class RigBuses:
                     f"cannot open the control bus ({p.interface} {p.channel}): {exc}"
                 ) from None
         self.opened.append(bus)
+        hook = self._control_faults
+        if hook is not None and not p.simulated and node_id is not None:
+            # No simulated channel between the nodes: each node puts its own frames
+            # through the channel's faults, with random draws of its own, timed by the
+            # run's clock (the cycle time in network lockstep).
+            own = ChannelFaults(hook.cfg, hook.name, self.injector_seed, hook.log,
+                                stream=f"node{node_id}")  # fmt: skip
+            clock = self.clock
+            return FaultyTransmitBus(bus, own, clock=lambda: clock.now, node_id=node_id)
         return bus
 
-    def truth(self) -> can.BusABC:
-        """A new handle on the truth channel."""
+    def truth(self, node_id: int | None = None) -> can.BusABC:
+        """A new handle on the truth channel for drive ``node_id`` (None: the tap)."""
         bus = can.Bus(
             interface="simbus",
             channel=f"hdhil-{self.run_id}-truth",
@@ -351,6 +370,7 @@ class RigBuses:
             clock=self.clock,
             trace_channel=CHANNEL_NUMBER["truth"],
             faults=self._truth_faults,
+            node_id=node_id,
         )
         self.opened.append(bus)
         return bus
@@ -389,7 +409,7 @@ def build_nodes(
         )
     Ts = plan.sample_period_s
     drive_ids = tuple(slot.node_id for slot in slots)
-    controller_bus = buses.control()
+    controller_bus = buses.control(layout.controller_node_id)
     site = NodeSite(
         bus=controller_bus,
         node_id=layout.controller_node_id,
@@ -404,7 +424,7 @@ def build_nodes(
     drives = []
     truth_handles = []
     for i, slot in enumerate(slots):
-        bus, truth = buses.control(), buses.truth()
+        bus, truth = buses.control(slot.node_id), buses.truth(slot.node_id)
         truth_handles.append(truth)
         make = drive_factories[i if len(drive_factories) > 1 else 0]
         drives.append(

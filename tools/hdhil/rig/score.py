@@ -88,6 +88,9 @@ class TorqueScorer(can.Listener):
             if self._T_true is None or msg.timestamp < self.skip_s:
                 return
             T_true = self._T_true
+            # Each truth frame scores one telemetry frame: a cycle whose truth is missing
+            # (truth faults) is not scored against the previous cycle's truth.
+            self._T_true = None
             e_raw = T_meas - T_true
             e_filt = T_filtered - T_true
             self.n += 1
