@@ -16,27 +16,47 @@ exactly as it would see a bad link; sensor faults act at the end of
 :meth:`hostsim.plant.Plant.sample`.  ``channel()``/``sensors()`` return ``None`` when
 nothing is configured, and the bus and plant keep their fault-free fast path.
 
-Timing model of the bus faults (the simulated bus delivers a frame, timestamped at the
-end of its transmission, as soon as a receiver polls):
+Timing model of the bus faults.  The simulated bus stamps a frame with the end of its
+transmission; in lockstep a frame is receivable only once the simulated clock has reached
+its delivery time (:class:`hdhil.can.simbus.SimClock`): deliveries due before the end of
+the current cycle (the next SYNC) are handed out in that cycle, in delivery-time order,
+later ones in the cycle that contains their time.  Nodes answer a frame at the time they
+received it.
 
 - ``loss_rate`` / bursts: the frame goes on the wire (it takes its time) but no node
   receives it.
 - ``silence`` / ``bus_off``: the node's frames never reach the wire (no wire time).
-  A sender is identified by the COB-IDs it transmits: ``node = n`` stands for the
-  CANopen identifiers of node n, the function codes every node of ``control.dbc``
-  transmits with its node-ID added (EMCY/TPDO1/TPDO2/SDO response/heartbeat: 0x080+n,
-  0x180+n, 0x280+n, 0x580+n, 0x700+n; :func:`hdhil.dbc.node_function_codes`); ``ids``
-  lists identifiers explicitly
-  (e.g. the controller's SYNC 0x080 and its RPDOs).
-- ``delay_us`` + uniform ``jitter_us``: added to the delivery timestamp (and so to the
-  time a receiver may answer); deliveries scheduled by one flush are handed out in
-  timestamp order, so a jittered frame can be overtaken.
+  ``node = n`` is the node by who sends: every frame node n transmits (a master's SYNC,
+  RPDOs, NMT and SDO requests included), known from the simulated bus handle the frame
+  was sent through (``SimBus(node_id=...)``: every node of ``hdhil run`` has one, on the
+  control and the truth channel) or from the node process's own bus
+  (:class:`FaultyTransmitBus`).  A frame from a handle without a node-ID (a tool) is
+  node n's when its identifier is one of node n's own COB-IDs (EMCY/TPDO1/TPDO2/SDO
+  response/heartbeat: 0x080+n, 0x180+n, 0x280+n, 0x580+n, 0x700+n;
+  :func:`hdhil.dbc.node_function_codes`).  ``ids`` lists identifiers explicitly, whoever
+  sends them.
+- ``delay_us`` + uniform ``jitter_us``: added to the delivery time.  A frame that stays
+  before the next SYNC is received later in the same cycle (and answered later); one
+  pushed past it is received in the next cycle, after that SYNC, as on a real bus: the
+  controller then counts a cycle without its sensor frame and a second one in the next
+  cycle (the interrupt runs once per SYNC).  The wire is not held up by a delay, and the
+  cycles stay ``k * Ts``: timestamps are simulated time whatever the delay.
 - ``duplicate_rate``: the frame is sent twice (the copy takes wire time again).
 - ``reorder_rate``: the frame is held back and delivered right after the next frame of
-  the channel (the two swap timestamps, so receive times stay monotonic).
+  the channel (the two swap timestamps, so receive times stay monotonic); when that next
+  frame is the next cycle's SYNC, the held frame arrives a cycle late.
 - ``corrupt_rate``: one random payload bit flipped (an error the CRC missed);
   ``dlc_rate``: the payload truncated or extended by 1-8 bytes (random bytes);
   ``error_frame_rate``: a python-can error frame follows the frame.
+
+On any other interface (``hdhil run --interface virtual`` or ``udp_multicast``, and
+``hdhil emulate``/``firmware`` on any bus) there is no simulated channel between the
+nodes: each node puts its own transmissions through the faults (:class:`FaultyTransmitBus`,
+with its own random draws), timed by the run's clock (the cycle time ``k * Ts`` in
+network lockstep) or the process's monotonic clock; error frames are refused there (a
+node cannot send one).  Truth faults act on the truth channel of ``hdhil run`` and
+``emulate``; the evaluation then scores only the samples whose truth arrived and reports
+how many had none.
 
 Every fault is one :class:`FaultRecord` in the log; nothing is injected unrecorded.
 
@@ -137,7 +157,8 @@ def _nonneg(obj: object, name: str, allow_inf: bool = False, hi: float | None = 
 @dataclass(frozen=True)
 class NodeWindow:
     """A node that stops transmitting: from ``start_s`` for ``duration_s`` (``inf`` =
-    for good).  The node is ``node`` (its CANopen COB-IDs) and/or the ``ids`` listed."""
+    for good).  The node is ``node`` (every frame it sends; see the module docstring)
+    and/or the ``ids`` listed (whoever sends them)."""
 
     start_s: float
     duration_s: float = field(default=math.inf, metadata={"allow_inf": True})

@@ -244,12 +244,13 @@ class _Channel:
         receivers = self.receivers
         released = False
         while inflight and inflight[0][0] < horizon:
-            t, _, sender, msg = heapq.heappop(inflight)
+            _, _, sender, msg = heapq.heappop(inflight)
             released = True
+            # A receiver's answer time moves when it takes the frame (recv/dispatch), not
+            # now: a node answering the first of several frames released together answers
+            # at that frame's time, not at the last one's.
             for bus in receivers.get(sender, ()):
                 bus._queue.append(msg)
-                if t > bus._last_rx:
-                    bus._last_rx = t
         if released and self.waiting:
             self.notify_waiting()
 
@@ -434,7 +435,10 @@ class SimBus(can.BusABC):
             with ch.lock:
                 ch.flush()
         if self._filters is None and self._queue:
-            return self._queue.popleft()
+            msg = self._queue.popleft()
+            if msg.timestamp > self._last_rx:  # only after a faulty release (see release)
+                self._last_rx = msg.timestamp
+            return msg
         if timeout == 0 and self._filters is None:
             return None
         return super().recv(timeout)
@@ -458,16 +462,24 @@ class SimBus(can.BusABC):
             if not queue:
                 return n
             msg = queue.popleft()
+            if msg.timestamp > self._last_rx:  # only after a faulty release (see release)
+                self._last_rx = msg.timestamp
             if matches is None or matches(msg):
                 handler(msg)
                 n += 1
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        msg = self._take(timeout)
+        if msg is not None and msg.timestamp > self._last_rx:  # after a faulty release
+            self._last_rx = msg.timestamp
+        return msg, False
+
+    def _take(self, timeout: float | None) -> can.Message | None:
         queue = self._queue
         if queue:
-            return queue.popleft(), False
+            return queue.popleft()
         if timeout == 0:
-            return None, False
+            return None
         ch = self._ch
         with self._ready:
             self._waiting = True
@@ -483,7 +495,7 @@ class SimBus(can.BusABC):
             finally:
                 self._waiting = False
                 ch.waiting -= 1
-            return (queue.popleft() if queue else None), False
+            return queue.popleft() if queue else None
 
     def pending(self) -> int:
         """Frames waiting in this bus's receive queue (after scheduling requested frames)."""
