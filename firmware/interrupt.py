@@ -3,7 +3,9 @@
 
 The controller node is the CANopen side (NMT master, the CiA 402 walk, SYNC, PDOs,
 SDO parameters, EMCY); the interrupt handler is the algorithm. On every sensor frame
-in operation the node decodes the drive's counts into an :class:`AdcSample`, calls the
+in operation the node decodes the drive's counts into an :class:`AdcSample` (or, in the
+CiA 402 cyclic synchronous torque mapping, its torque and position into a
+:class:`CstSample`), calls the
 handler once, and sends the :class:`IsrOutput`'s DAC code to the drive and its
 torques and velocity as telemetry (CTRL_TPDO1, and CTRL_TPDO2 with a control law).
 Anything with the members of :class:`InterruptHandlerModel` can be that handler: the
@@ -27,7 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
-__all__ = ["AdcSample", "InterruptHandlerModel", "IsrOutput", "StageHook"]
+__all__ = ["AdcSample", "CstSample", "InterruptHandlerModel", "IsrOutput", "StageHook"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -40,6 +42,18 @@ class AdcSample:
     tacho: int
     current: int
     encoder: int
+
+
+@dataclass(frozen=True, slots=True)
+class CstSample:
+    """The drive's sensor frame in the CiA 402 cyclic synchronous torque mapping:
+    torque actual value 0x6077 (per mille of the drive's rated torque 0x6076) and
+    position actual value 0x6064 (encoder increments, 32 bits).  The handler's sensor
+    source (:class:`firmware.stages.CstSource`) turns them into torque, angle and
+    velocity."""
+
+    torque_actual: int
+    position: int
 
 
 @dataclass(slots=True)
@@ -110,8 +124,9 @@ class InterruptHandlerModel(Protocol):
         """The DAC code to send outside operation (start-up, stop): zero torque."""
         ...
 
-    def __call__(self, sample: AdcSample) -> IsrOutput:
-        """One sample period: the drive's sensor counts in, the command and telemetry out.
+    def __call__(self, sample: AdcSample | CstSample) -> IsrOutput:
+        """One sample period: the drive's sensor counts (or, in the CiA 402 CST mapping,
+        its torque actual and position actual values) in, the command and telemetry out.
         The node reads the output before the next call, so it may be one reused object."""
         ...
 

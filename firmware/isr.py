@@ -81,11 +81,13 @@ from __future__ import annotations
 import math
 
 from hdhil.firmware.config import FirmwareConfig
-from hdhil.firmware.interrupt import AdcSample, IsrOutput, StageHook
+from hdhil.firmware.interrupt import AdcSample, CstSample, IsrOutput, StageHook
 from hdhil.firmware.lqg import LqgController
 from hdhil.firmware.lqg_design import LqgDesign, design_lqg
 from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
 from hdhil.firmware.stages import (
+    AdcSource,
+    CstSource,
     Differentiator,
     EncoderUnwrap,
     LowPass,
@@ -93,8 +95,6 @@ from hdhil.firmware.stages import (
     SensorPlausibility,
     StuckChannels,
     VelocityIntegrator,
-    adc_read,
-    calibrate,
     dac_write,
     expected_torque,
     filtered_torque,
@@ -105,6 +105,7 @@ __all__ = [
     "SENSOR_TORQUE_SIGN",
     "STAGES",
     "AdcSample",
+    "CstSample",
     "InterruptHandler",
     "IsrOutput",
     "StageHook",
@@ -449,6 +450,9 @@ class InterruptHandler:
             if cfg.plausibility_active
             else None
         )
+        #: The sensor source, stage 1 (:class:`firmware.stages.AdcSource`: the listing's
+        #: ADC read and calibration; :meth:`use_cst_source` for the CiA 402 CST mapping).
+        self.source: AdcSource | CstSource = AdcSource(cfg.adc, cfg.calibration)
         self._out = IsrOutput()
         #: Stage timing (:data:`StageHook`): called at every stage boundary when set.
         self.stage_hook: StageHook | None = None
@@ -486,35 +490,62 @@ class InterruptHandler:
         sample span the gap (:meth:`TorqueFilterChain.sample_missed`)."""
         self.chain.sample_missed()
 
+    def refresh_source(self) -> None:
+        """Rebuild the sensor source from :attr:`cfg` (a new calibration over SDO is used
+        from the next sample on); a CST source keeps its rated torque and velocity."""
+        source = self.source
+        if isinstance(source, CstSource):
+            new = self.use_cst_source(source.rated_torque_Nm)
+            new.differentiator = source.differentiator
+            new.primed = source.primed
+        else:
+            self.source = AdcSource(self.cfg.adc, self.cfg.calibration)
+
+    def use_cst_source(self, rated_torque_Nm: float) -> CstSource:
+        """Take the samples as :class:`CstSample` (CiA 402 torque actual 0x6077 and
+        position actual 0x6064) through :class:`firmware.stages.CstSource`, with the
+        drive's rated torque 0x6076 (Nm); returns the source."""
+        cfg = self.cfg
+        source = CstSource(
+            rated_torque_Nm,
+            cfg.calibration.encoder_counts_per_rev,
+            cfg.diff_tau_s,
+            cfg.sample_period_s,
+        )
+        self.source = source
+        return source
+
     def reset(self) -> None:
         """Back to power-on state (samplecount 0, filters cleared).  The output object
         is kept (it is overwritten by the next call)."""
         self.chain.reset()
+        if isinstance(self.source, CstSource):
+            self.source.reset()
         if self.control is not None:
             self.control.reset()
         if self.stuck is not None:
             self.stuck.reset()
         self.samplecount = 0
 
-    def __call__(self, sample: AdcSample) -> IsrOutput:
+    def __call__(self, sample: AdcSample | CstSample) -> IsrOutput:
         cfg = self.cfg
         k = self.samplecount
         stamp = self.stage_hook
         if stamp is not None:
             stamp(0)
         # DT1401Read(str_ch, end_ch, a2dsamples); Torque = CH6, Tacho = CH4, MotorCurrOut = CH5
-        Torque, Tacho, MotorCurrOut = adc_read(sample.torque, sample.tacho, sample.current, cfg.adc)
         # vel = Tacho * volt2radps; T_meas = Torque * volt2Nm;
-        T_meas, vel, current = calibrate(Torque, Tacho, MotorCurrOut, cfg.calibration)
+        # (the sensor source: AdcSource, or CstSource on 0x6077/0x6064 in the CST mapping)
+        T_meas, vel, current, encoder, Torque, Tacho = self.source(sample)
         if self.stuck is not None:  # a channel stuck while the motor turns (not in the listing)
-            self.stuck.step(T_meas, vel, sample.encoder, Torque, Tacho)
+            self.stuck.step(T_meas, vel, encoder, Torque, Tacho)
         if stamp is not None:
             stamp(1)
         # plausibility (not in the listing): implausible vel / pcsample replaced;
         # acc = Diff_filter(vel); T_mod; Delta_T; Torque_f; T_ripple = Kalman(...);
         # (recommended mode: the motor angle from pcsample, the drive's encoder count)
         chain = self.chain
-        acc, T_mod, Delta_T, Torque_f, ripple = chain.step(T_meas, vel, sample.encoder, stamp)
+        acc, T_mod, Delta_T, Torque_f, ripple = chain.step(T_meas, vel, encoder, stamp)
         out = self._out
         control = self.control
         if control is None:
@@ -541,7 +572,7 @@ class InterruptHandler:
         out.delta_T = Delta_T
         out.T_filtered = Torque_f
         out.ripple = ripple
-        out.encoder = sample.encoder & 0xFFFF  # pcsample &= 0x0000ffff;
+        out.encoder = encoder & 0xFFFF  # pcsample &= 0x0000ffff;
 
         self.samplecount = k + 1  # ++samplecount;
         if stamp is not None:

@@ -283,6 +283,8 @@ def apply_config(
     done = Applied()
     Ts = new.sample_period_s
     isr.cfg = new
+    if new.calibration != old.calibration or new.adc != old.adc:
+        isr.refresh_source()
     if new.reference != old.reference:
         isr.reference = ReferenceGenerator(new.reference, Ts)
     if new.ripple != old.ripple:
