@@ -43,6 +43,16 @@ def eds_path(node: NodeName) -> Path:
     return _data_dir() / f"{node}.eds"
 
 
+#: The drive mappings shipped here by name: the drive's DCF (None: the EDS defaults, the
+#: seed's raw ADC/DAC mapping; ``drive-cst.dcf``: CiA 402 cyclic synchronous torque).
+MAPPINGS: dict[str, str | None] = {"raw": None, "cst": "drive-cst.dcf"}
+
+
+def dcf_path(name: str) -> Path:
+    """Path of a device configuration file shipped here (e.g. ``drive-cst.dcf``)."""
+    return _data_dir() / name
+
+
 @cache
 def database(bus: BusName) -> cantools.database.can.Database:
     """The cantools database of ``bus`` (loaded once per process; cantools is imported

@@ -156,8 +156,10 @@ import can
 from hdhil.can.node import CanNode, pdo_cob_id
 from hdhil.canopen.cia402 import CONTROLWORD_OBJECT, STATUSWORD_OBJECT, State
 from hdhil.canopen.dcf import DcfConfigurator, configuration_writes
+from hdhil.canopen.mapping import dcf_layouts, layout_codec, od_layouts, peer_pdo_writes
 from hdhil.canopen.od import eds_index, index_of
-from hdhil.canopen.sdo import ABORT_DEVICE_STATE, SdoClient
+from hdhil.canopen.pdo import PdoLayout
+from hdhil.canopen.sdo import ABORT_DEVICE_STATE, SdoClient, abort_text
 from hdhil.canopen.services import (
     CanopenServices,
     EmcyCode,
@@ -165,11 +167,12 @@ from hdhil.canopen.services import (
     NmtState,
     ResetKind,
 )
-from hdhil.dbc import codec, eds_path
+from hdhil.dbc import FrameCodec, codec, eds_path
 from hdhil.firmware.config import FirmwareConfig
-from hdhil.firmware.interrupt import AdcSample, InterruptHandlerModel
+from hdhil.firmware.interrupt import AdcSample, CstSample, InterruptHandlerModel
 from hdhil.firmware.isr import InterruptHandler
 from hdhil.firmware.odlimits import check_od_limits
+from hdhil.firmware.stages import torque_command_per_mille
 from hdhil.firmware.parameters import (
     PARAMETERS,
     LiveParameters,
@@ -401,6 +404,26 @@ class ControllerNode(CanNode):
             if drive_dcf is not None
             else None
         )
+        #: The drive's PDOs as its DCF leaves them (its EDS defaults without a DCF), and
+        #: the writes that gave this node's own PDOs the matching mapping (empty: the
+        #: default mapping).  Raises ``ValueError`` for a mapping the firmware cannot run.
+        drive_od, self.drive_layouts = dcf_layouts(
+            eds_path("drive") if drive_dcf is None else drive_dcf, drive_node_id
+        )
+        self.pdo_writes = peer_pdo_writes(od, self.services.read, drive_od, self.drive_layouts)
+        for index, sub, value in self.pdo_writes:
+            try:
+                self.services.write(index, sub, value)
+            except Exception as exc:
+                raise ValueError(
+                    f"the controller cannot take 0x{index:04X}:{sub:02X} = 0x{value:X} "
+                    f"for the drive's mapping: {exc}"
+                ) from None
+        self._rated_index = eds_index(str(eds_path("drive")), "motor_rated_torque")
+        #: The drive's motor rated torque 0x6076 (Nm), read by SDO at boot in the CiA 402
+        #: CST mapping; None in the raw mapping (or before the read).
+        self.rated_torque_Nm: float | None = None
+        self._rated_requested = False
         self.walk = Cia402Walk(drive_node_id, self._on_controlword)
 
         self._phase = Phase.WAIT_BOOT
@@ -422,7 +445,9 @@ class ControllerNode(CanNode):
         self._walk_timeout_cycles = max(1, math.ceil(self.WALK_TIMEOUT_S / Ts - 1e-9))
 
         # Codecs are used by signal name: each layout is checked against the names this
-        # node packs and unpacks (a DBC with reordered signals fails here, loudly).
+        # node packs and unpacks (a DBC with reordered signals fails here, loudly).  In
+        # the default mapping they are control.dbc's; a mapping taken from the drive's DCF
+        # is encoded and decoded from this node's object dictionary (_mapped_codecs).
         self._sensor = codec("control", "DRIVE_TPDO1").expect(
             "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
         )
@@ -434,6 +459,15 @@ class ControllerNode(CanNode):
             "dtau_s_hat", "tau_lgd_hat", "tau_sD", "e_hat"
         )
         self._status = codec("control", "DRIVE_TPDO2").expect("statusword")
+        #: Which sensor objects the drive sends: "raw" (the seed's ADC counts and encoder)
+        #: or "cst" (CiA 402 torque actual 0x6077 and position actual 0x6064).
+        self.sensor_mapping = "raw"
+        self._sensor_picks: tuple[int, ...] = (0, 1, 2, 3)
+        self._command_picks: tuple[int, ...] = (0, 1, 2)
+        self._torque_per_volt = config.control.torque_per_volt
+        self._dbc_command = not self.pdo_writes
+        if self.pdo_writes:
+            self._mapped_codecs(od)
         self._command_msg = self._message(self._command.frame_id, self._command.length)
         self._telemetry_msg = self._message(self._telemetry.frame_id, self._telemetry.length)
         self._control_msg = self._message(
@@ -450,6 +484,51 @@ class ControllerNode(CanNode):
                                   (0x1801, self._control_telemetry)):  # fmt: skip
             pdo_cob_id(od, comm_index, frame)
         self.handle(self.sdo.response_id, self._on_sdo_response)
+
+    def _mapped_codecs(self, od: Any) -> None:
+        """Codecs of a mapping taken from the drive's DCF, from this node's live PDOs
+        (RPDO1 the sensor frame, RPDO2 the statusword, TPDO3 the command), with the
+        objects picked by name: the sensor frame must carry the seed's ADC channels and
+        encoder or the CiA 402 torque and position actual values, the command the
+        controlword and the DAC command or the target torque."""
+        layouts = od_layouts(od, self.services.read)
+
+        def live(kind: str, number: int, name: str) -> FrameCodec:
+            layout: PdoLayout = layouts[(kind, number)]
+            if not layout.valid:
+                raise ValueError(f"the controller's {kind.upper()}{number} ({name}) is not valid")
+            return layout_codec(od, layout, name)
+
+        def picks(frame: FrameCodec, names: tuple[str, ...]) -> tuple[int, ...] | None:
+            have = frame.signal_names
+            return tuple(have.index(n) for n in names) if set(names) <= set(have) else None
+
+        sensor = live("rpdo", 1, "DRIVE_TPDO1")
+        raw = picks(sensor, ("ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"))
+        cst = picks(sensor, ("torque_actual_value", "position_actual_value"))
+        if raw is None and cst is None:
+            raise ValueError(
+                f"the drive's sensor PDO maps ({', '.join(sensor.signal_names)}); the firmware "
+                "needs ADC_torque, ADC_tacho, ADC_current and ENC_count (raw mapping) or "
+                "torque_actual_value and position_actual_value (CiA 402 CST mapping)"
+            )
+        command = live("tpdo", 3, "DRIVE_RPDO1")
+        target = "DAC_cmd" if raw is not None else "target_torque"
+        order = picks(command, (target, "controlword"))
+        if order is None:
+            raise ValueError(
+                f"the drive's command PDO maps ({', '.join(command.signal_names)}); with the "
+                f"{'raw' if raw is not None else 'CST'} sensor objects it must map {target} "
+                "and controlword"
+            )
+        cycle = picks(command, ("cycle",))
+        self._command_picks = (*order, *(cycle or ()))
+        self._sensor = sensor
+        self._sensor_picks = raw if raw is not None else cst  # type: ignore[assignment]
+        self._command = command
+        self._status = live("rpdo", 2, "DRIVE_TPDO2").expect("statusword")
+        if raw is None:
+            self.sensor_mapping = "cst"
 
     @staticmethod
     def _message(frame_id: int, length: int) -> can.Message:
@@ -580,9 +659,14 @@ class ControllerNode(CanNode):
             own = cast(InterruptHandler, self.isr)
             self._send_command(own.startup_dac_counts, CONTROLWORD_ENABLE_OPERATION)
             return
-        torque, tacho, current, encoder = self._sensor.decode(msg.data)
-        out = self.isr(AdcSample(torque, tacho, current, encoder))
-        self._send_command(out.dac_counts, CONTROLWORD_ENABLE_OPERATION)
+        values = self._sensor.decode(msg.data)
+        if self.sensor_mapping == "raw":
+            a, b, c, d = self._sensor_picks
+            out = self.isr(AdcSample(values[a], values[b], values[c], values[d]))
+        else:
+            a, b = self._sensor_picks
+            out = self.isr(CstSample(values[a], values[b]))
+        self._send_command(out.dac_counts, CONTROLWORD_ENABLE_OPERATION, out.reference_V)
         if self.control_pdo_valid:
             self._telemetry_msg.data = self._telemetry.encode(
                 out.T_meas, out.tau_s_hat, out.velocity, out.current
@@ -642,12 +726,34 @@ class ControllerNode(CanNode):
                 active.discard(code)
                 self.services.emcy_clear(code)
 
-    def _send_command(self, dac_counts: int, controlword: int) -> None:
-        self._command_msg.data = self._command.encode(dac_counts, controlword, self._cycle & 0xFF)
+    def _send_command(self, dac_counts: int, controlword: int, volts: float | None = None) -> None:
+        if self._dbc_command:
+            data = self._command.encode(dac_counts, controlword, self._cycle & 0xFF)
+        else:
+            data = self._encode_mapped_command(dac_counts, controlword, volts)
+        self._command_msg.data = data
         self.bus.send(self._command_msg)
         self.diagnostics.commands_sent += 1
         self.walk.cw_sends += 1
         self._cycle += 1
+
+    def _encode_mapped_command(self, dac_counts: int, controlword: int, volts: float | None) -> bytes:
+        """The command PDO of a mapping from the DCF: the DAC code, or in the CST mapping
+        the target torque 0x6071 in per mille of the drive's rated torque (from the
+        handler's amplifier voltage, else the DAC code's), then the controlword and the
+        cycle counter if mapped."""
+        command: int = dac_counts
+        if self.sensor_mapping == "cst":
+            rated = self.rated_torque_Nm
+            if volts is None:
+                volts = self.config.dac.to_volts(dac_counts)
+            command = torque_command_per_mille(volts, self._torque_per_volt, rated) if rated else 0
+        values = [0] * len(self._command.signal_names)
+        for position, value in zip(
+            self._command_picks, (command, controlword, self._cycle & 0xFF), strict=False
+        ):
+            values[position] = value
+        return self._command.encode(*values)
 
     def _on_statusword_frame(self, msg: can.Message) -> None:
         if msg.is_remote_frame or len(msg.data) != self._status.length:
@@ -673,7 +779,10 @@ class ControllerNode(CanNode):
                 self._enter_safe(conf.error)
             elif conf.done:
                 self.diagnostics.dcf_writes = len(conf.writes)
-                self._start_drive()
+                self._after_configuration()
+            return
+        if self._rated_requested and self.rated_torque_Nm is None and self._phase is _WAIT_BOOT:
+            self._on_rated_torque(result)
             return
         if not result.ok:
             self.diagnostics.sdo_aborts += 1
@@ -728,18 +837,52 @@ class ControllerNode(CanNode):
         """The drive is up: configure it from its DCF first (if any), then start it."""
         conf = self.configurator
         if conf is None or conf.done:
-            self._start_drive()
+            self._after_configuration()
         elif not conf.started:
             self._configure_deadline = self._now + self.WALK_TIMEOUT_S
             conf.start()
             if conf.done:  # an empty DCF
-                self._start_drive()
+                self._after_configuration()
         elif conf.busy and self._now > self._configure_deadline:
             self._enter_safe(
                 f"drive (node {self.drive_node_id}) did not answer the DCF configuration "
                 f"within {_seconds(self.WALK_TIMEOUT_S)} s "
                 f"({conf.position} of {len(conf.writes)} writes done)"
             )
+
+    def _after_configuration(self) -> None:
+        """In the CiA 402 CST mapping, read the drive's motor rated torque 0x6076 by SDO
+        first (0x6071 and 0x6077 are per mille of it); then start the drive."""
+        if self.sensor_mapping != "cst" or self.rated_torque_Nm is not None:
+            self._start_drive()
+        elif not self._rated_requested:
+            self._rated_requested = True
+            self._configure_deadline = self._now + self.WALK_TIMEOUT_S
+            self.sdo.upload(self._rated_index, 0)
+        elif self._now > self._configure_deadline:
+            self.boot_error = (
+                f"drive (node {self.drive_node_id}) did not answer the read of its motor "
+                f"rated torque 0x{self._rated_index:04X} within {_seconds(self.WALK_TIMEOUT_S)} s"
+            )
+            self._enter_safe(self.boot_error)
+
+    def _on_rated_torque(self, result: Any) -> None:
+        """The answer to the 0x6076 read: the CST sensor source and command scale."""
+        what = f"drive (node {self.drive_node_id}) motor rated torque 0x{self._rated_index:04X}"
+        value = int.from_bytes(bytes(result.data[:4]).ljust(4, b"\0"), "little") if result.ok else 0
+        if not result.ok or value <= 0:
+            code = result.abort or 0
+            self.boot_error = (
+                f"{what}: read aborted 0x{code:08X} ({abort_text(code)})"
+                if not result.ok
+                else f"{what} is {value} mNm: the CST mapping needs a rated torque > 0"
+            )
+            self._enter_safe(self.boot_error)
+            return
+        self.rated_torque_Nm = value * 1e-3
+        if self._own_isr:
+            cast(InterruptHandler, self.isr).use_cst_source(self.rated_torque_Nm)
+        self._start_drive()
 
     def _start_drive(self) -> None:
         """NMT start of the drive, controller OPERATIONAL, walk from "shutdown"."""

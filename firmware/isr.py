@@ -513,6 +513,10 @@ class InterruptHandler:
             cfg.sample_period_s,
         )
         self.source = source
+        # The stuck-channel check tells a dead bridge or tacho by a reading that no longer
+        # wobbles while the motor turns; the amplifier's torque actual value is steady in
+        # per mille at a steady speed and there is no tacho, so it is off here.
+        self.stuck = None
         return source
 
     def reset(self) -> None:

@@ -78,6 +78,26 @@ class _IdFilter:
         ) in self.keys or frame.arbitration_id in self.ids
 
 
+def trace_decoder(trace: Path) -> FrameDecoder:
+    """The decoder of ``trace``: the project DBCs, with the drive's PDOs as the trace's
+    sidecar records them for a run in a mapping from a DCF (e.g. ``--mapping cst``: the
+    sensor frame ``DRIVE_TPDO1`` carries 0x6077 and 0x6064, decoded from the drive's EDS)."""
+    from hdhil.can.trace import read_metadata
+
+    meta = read_metadata(trace) if trace.is_file() else None
+    pdos = (meta or {}).get("drive_pdos")
+    if not pdos:
+        return default_decoder()
+    from hdhil.canopen.mapping import control_database, layouts_from_json
+    from hdhil.dbc import database
+
+    try:
+        control = control_database(layouts_from_json(pdos))
+    except ValueError as exc:
+        raise UserError(f"{trace}: {exc}") from None
+    return FrameDecoder({"control": control, "truth": database("truth")})
+
+
 def _parse_id_filter(values: list[str], decoder: FrameDecoder) -> tuple[_IdFilter, set[str]]:
     """``--id`` values (message names or hex identifiers) -> filter and selected names."""
     keys: set[tuple[bool, int]] = set()
@@ -301,7 +321,7 @@ def run(args: argparse.Namespace) -> int:
     want_table = args.csv is None and not want_stats
     if args.csv == "-" and want_stats:
         raise UserError("--csv - (stdout) cannot be combined with --stats/--json")
-    decoder = default_decoder()
+    decoder = trace_decoder(Path(args.trace))
     id_filter, names = _parse_id_filter(args.id, decoder) if args.id else (None, None)
     if args.csv is not None:
         _check_csv_target(str(args.csv), Path(args.trace))

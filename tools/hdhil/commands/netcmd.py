@@ -59,7 +59,14 @@ from hdhil.can.faults import (
 from hdhil.can.trace import BusTap, FrameCounter, check_trace_path, open_writer
 from hdhil.canopen.nmt import COMMAND_NAMES as NMT_COMMAND_NAMES
 from hdhil.canopen.nmt import nmt_frame
-from hdhil.commands.options import add_bus_options, add_fault_arguments, bus_named, open_bus
+from hdhil.commands.options import (
+    add_bus_options,
+    add_fault_arguments,
+    add_mapping_arguments,
+    bus_named,
+    drive_dcf_of,
+    open_bus,
+)
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import arg_int, arg_seconds
@@ -208,7 +215,7 @@ def run_firmware(args: argparse.Namespace) -> int:
                 fw,
                 node_id=CONTROLLER_NODE_ID,
                 boot_timeout_s=args.boot_timeout,
-                drive_dcf=args.drive_dcf,
+                drive_dcf=drive_dcf_of(args)[0],
             )
         except ValueError as exc:
             raise UserError(str(exc)) from None
@@ -426,12 +433,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=2.0,
         help="seconds to wait for the drive's boot-up",
     )
-    p.add_argument(
-        "--drive-dcf",
-        metavar="FILE",
-        default=None,
-        help="configure the drive at boot from this DCF (its ParameterValue entries, by SDO)",
-    )
+    add_mapping_arguments(p)
     add_fault_arguments(p, " (control.* on the controller's own frames)")
     p.set_defaults(func=run_firmware)
 

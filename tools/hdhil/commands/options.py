@@ -30,6 +30,60 @@ def add_fault_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
     )
 
 
+# ------------------------------------------------------------------ the drive's mapping
+
+
+def add_mapping_arguments(p: argparse.ArgumentParser) -> None:
+    """``--drive-dcf FILE`` or ``--mapping raw|cst`` (the DCF shipped for that name)."""
+    from hdhil.dbc import MAPPINGS
+
+    group = p.add_mutually_exclusive_group()
+    group.add_argument(
+        "--drive-dcf",
+        metavar="FILE",
+        default=None,
+        help="configure the drive at boot from this DCF (its ParameterValue entries, by "
+        "SDO); the controller's PDOs follow the drive's mapping",
+    )
+    group.add_argument(
+        "--mapping",
+        choices=list(MAPPINGS),
+        default=None,
+        help="the drive's PDO mapping by name: raw (the seed's ADC/DAC objects, the "
+        "default) or cst (CiA 402 cyclic synchronous torque: 0x6040 + 0x6071 in, 0x6077 + "
+        "0x6064 out; the DCF shipped as drive-cst.dcf)",
+    )
+
+
+def drive_dcf_of(args: argparse.Namespace) -> tuple[Path | None, str]:
+    """The DCF the options name (None: no configuration) and the mapping's label for
+    the trace's sidecar and the summary ("raw", "cst" or the DCF's file name)."""
+    from hdhil.canopen.mapping import mapping_dcf
+    from hdhil.core.files import check_input
+
+    if getattr(args, "drive_dcf", None):
+        path = check_input(args.drive_dcf, "DCF")
+        return path, path.name
+    name = getattr(args, "mapping", None) or "raw"
+    return mapping_dcf(name), name
+
+
+def mapping_metadata(dcf: Path | None, label: str, node_id: int = 2) -> dict[str, Any]:
+    """What a trace's sidecar records about a run in a mapping from a DCF: the mapping's
+    label, the DCF's name and the drive's PDOs (so ``evaluate`` and ``dump`` decode the
+    trace); empty for the default mapping.  A DCF canopen cannot read is a one-line
+    error."""
+    if dcf is None:
+        return {}
+    from hdhil.canopen.mapping import dcf_layouts, layouts_to_json
+
+    try:
+        _, layouts = dcf_layouts(dcf, node_id)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    return {"mapping": label, "drive_dcf": dcf.name, "drive_pdos": layouts_to_json(layouts)}
+
+
 # ------------------------------------------------------------------ CAN bus options
 
 #: The bit rate of the control bus when neither the command line, the environment

@@ -18,6 +18,9 @@ from hdhil.commands.options import (
     add_fault_arguments,
     bus_named,
     open_bus,
+    add_mapping_arguments,
+    drive_dcf_of,
+    mapping_metadata,
     resolve_bus_config,
 )
 from hdhil.commands.progress import Progress, add_quiet_argument, progress
@@ -153,6 +156,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="--realtime: after the run, measure the machine floor (the bare sleep+spin loop, "
         "no hdhil code) for S seconds (default: none)",
     )
+    add_mapping_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -251,6 +255,16 @@ def run(args: argparse.Namespace) -> int:
         "overrides": [str(p) for p in args.override],
         "calibration": str(args.calibration) if args.calibration is not None else None,
     }
+    drive_dcf, mapping_label = drive_dcf_of(args)
+    mapped = mapping_metadata(drive_dcf, mapping_label)
+    metadata.update(mapped)
+    factories: dict[str, Any] = {}
+    if drive_dcf is not None:
+        if args.compare_laws:
+            raise UserError("--compare-laws runs the default mapping; leave out --drive-dcf/--mapping")
+        from hdhil.rig.factories import dcf_controller
+
+        factories["controller_factory"] = dcf_controller(drive_dcf)
     if not args.realtime and (args.spin_us is not None or args.floor_s or args.mlock):
         raise UserError("--spin-us, --floor-s and --mlock need --realtime")
     rt_config = RealtimeConfig(spin_us=args.spin_us, floor_s=args.floor_s, mlock=args.mlock)
@@ -311,13 +325,19 @@ def run(args: argparse.Namespace) -> int:
                 realtime=args.realtime,
                 realtime_config=rt_config,
                 fault_log=args.fault_log,
+                **factories,
             )
     except ValueError as exc:
         raise UserError(str(exc)) from None
     if args.json:
-        json.dump(result.as_dict(), sys.stdout, indent=2)
+        summary = result.as_dict()
+        if mapped:
+            summary["mapping"] = mapped["mapping"]
+        json.dump(summary, sys.stdout, indent=2)
         print()
     else:
+        if mapped:
+            print(f"mapping: {mapped['mapping']} (the drive configured from {mapped['drive_dcf']})")
         print(format_result(result))
     if result.interrupted:
         return 130

@@ -42,16 +42,18 @@ from typing import Any
 import can
 import numpy as np
 
-from hdhil.dbc import codec
+from hdhil.dbc import FrameCodec, codec
 from hdhil.firmware.config import FirmwareConfig, paper_config, recommended_config
+from hdhil.firmware.interrupt import CstSample
 from hdhil.firmware.isr import TorqueFilterChain
-from hdhil.firmware.stages import adc_read, calibrate
+from hdhil.firmware.stages import CstSource, adc_read, calibrate
 
 #: Recording columns, in order.
 COLUMNS = (
     "adc_torque", "adc_tacho", "adc_current", "encoder",
     "T_meas_tele", "T_filtered_tele", "velocity_tele",
     "T_true", "T_ripple", "theta_motor", "omega_motor", "theta_output", "missed",
+    "torque_actual", "position_actual",
 )  # fmt: skip
 
 
@@ -83,6 +85,13 @@ class Recording:
     def __init__(self, sample_period_s: float) -> None:
         self.sample_period_s = sample_period_s
         self._cols = {name: array("d") for name in COLUMNS}
+        #: "raw" (the seed's ADC counts and encoder in ``adc_*``/``encoder``) or "cst"
+        #: (CiA 402 torque actual and position actual in ``torque_actual`` /
+        #: ``position_actual``, ``encoder`` their low 16 bits, the ADC columns NaN).
+        self.sensor_mapping = "raw"
+        #: The drive's motor rated torque 0x6076 (Nm) as read by the controller at boot
+        #: (its SDO answer in the trace); None in the raw mapping or before it is seen.
+        self.rated_torque_Nm: float | None = None
 
     def __len__(self) -> int:
         return len(self._cols["adc_torque"])
@@ -109,12 +118,24 @@ class RecordingListener(can.Listener):
     drive's statusword (``DRIVE_TPDO2``), only samples taken while the drive was in CiA 402
     OPERATION ENABLED are recorded: the start-up walk and the stop are not part of the
     experiment.
+
+    ``drive_pdos`` (what a trace's sidecar records for a run in a mapping from a DCF,
+    :func:`hdhil.canopen.mapping.layouts_to_json`): the drive's PDOs; with the CiA 402
+    CST mapping the sensor frame is decoded from the drive's EDS (torque actual 0x6077,
+    position actual 0x6064) and the drive's rated torque 0x6076 is taken from the
+    controller's SDO read of it at boot, as the firmware did.
     """
 
-    def __init__(self, sample_period_s: float) -> None:
+    def __init__(self, sample_period_s: float, drive_pdos: dict[str, Any] | None = None) -> None:
         self.recording = Recording(sample_period_s)
         self._sensor = codec("control", "DRIVE_TPDO1").expect(
             "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
+        )
+        self._cst: tuple[int, int] | None = None
+        if drive_pdos:
+            self._use_mapping(drive_pdos)
+        self._sdo = codec("control", "SDO_TX_DRIVE").expect(
+            "sdo_cs", "sdo_index", "sdo_sub", "sdo_data"
         )
         self._tele = codec("control", "CTRL_TPDO1").expect(
             "T_meas", "T_filtered", "velocity", "current"
@@ -136,6 +157,31 @@ class RecordingListener(can.Listener):
             (self._truth_motion.frame_id, True): self._on_truth_motion,
             (self._status.frame_id, False): self._on_statusword,
         }
+        if self._cst is not None:
+            self._dispatch[(self._sdo.frame_id, False)] = self._on_sdo_answer
+
+    def _use_mapping(self, drive_pdos: dict[str, Any]) -> None:
+        from hdhil.canopen.mapping import control_database, layouts_from_json
+
+        db = control_database(layouts_from_json(drive_pdos))
+        sensor = FrameCodec(db.get_message_by_name("DRIVE_TPDO1"), "control")
+        names = sensor.signal_names
+        if {"torque_actual_value", "position_actual_value"} <= set(names):
+            self._sensor = sensor
+            self._cst = (names.index("torque_actual_value"), names.index("position_actual_value"))
+            self.recording.sensor_mapping = "cst"
+        elif set(names) != {"ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"}:
+            raise ValueError(
+                f"the trace's sensor frame maps ({', '.join(names)}): neither the raw nor "
+                "the CiA 402 CST mapping"
+            )
+
+    def _on_sdo_answer(self, data: bytes) -> None:
+        """The drive's answer to the read of 0x6076 (expedited upload response, CiA 301
+        §7.2.4.3.6: command specifier 0x4x with the expedited bit)."""
+        cs, index, sub, value = self._sdo.decode(data)
+        if (int(cs) & 0xE2) == 0x42 and int(index) == 0x6076 and int(sub) == 0 and value > 0:
+            self.recording.rated_torque_Nm = float(value) * 1e-3
 
     def on_message_received(self, msg: can.Message) -> None:
         handler = self._dispatch.get((msg.arbitration_id, msg.is_extended_id))
@@ -150,7 +196,15 @@ class RecordingListener(can.Listener):
         self._enabled = (statusword & 0x6F) == 0x27
 
     def _on_sensor(self, data: bytes) -> None:
-        torque, tacho, current, encoder = self._sensor.decode(data)
+        nan = math.nan
+        if self._cst is None:
+            torque, tacho, current, encoder = self._sensor.decode(data)
+            actual = position = nan
+        else:
+            values = self._sensor.decode(data)
+            actual, position = values[self._cst[0]], values[self._cst[1]]
+            torque = tacho = current = nan
+            encoder = int(position) & 0xFFFF
         Ts = self.recording.sample_period_s
         last = self._last_sensor_t
         if last is not None and round((self._t - last) / Ts) <= 0:
@@ -162,7 +216,7 @@ class RecordingListener(can.Listener):
         t = self._truth
         self.recording.append_row(
             (torque, tacho, current, encoder, math.nan, math.nan, math.nan,
-             t[0], t[1], t[2], t[3], t[4], float(self._missed))
+             t[0], t[1], t[2], t[3], t[4], float(self._missed), actual, position)
         )  # fmt: skip
         self._missed = 0
         # The truth of one SYNC belongs to one sample: a sample whose truth frames never
@@ -187,10 +241,14 @@ class RecordingListener(can.Listener):
 
 
 def recording_from_trace(path: Path, sample_period_s: float = 1e-3) -> tuple[Recording, str]:
-    """Read a trace into a recording; returns it and a damage description ('' if clean)."""
+    """Read a trace into a recording; returns it and a damage description ('' if clean).
+    The drive's PDO mapping comes from the trace's sidecar JSON (the default mapping
+    without one)."""
+    from hdhil.can.trace import read_metadata
     from hdhil.can.tracefile import read_trace
 
-    listener = RecordingListener(sample_period_s)
+    meta = read_metadata(path) or {}
+    listener = RecordingListener(sample_period_s, meta.get("drive_pdos"))
     with read_trace(path) as trace:
         for msg in trace:
             listener.on_message_received(msg)
@@ -270,7 +328,10 @@ def offline_chain(
 
 
 def calibrated_signals(rec: Recording, cfg: FirmwareConfig) -> tuple[np.ndarray, np.ndarray]:
-    """T_meas and motor velocity from the recorded counts, through the firmware's stages."""
+    """T_meas and motor velocity from the recorded counts, through the firmware's stages
+    (in the CST mapping its :class:`firmware.stages.CstSource`)."""
+    if rec.sensor_mapping == "cst":
+        return _cst_signals(rec, cfg)
     T_meas = np.empty(len(rec))
     vel = np.empty(len(rec))
     for k, (q, tq, cu) in enumerate(
@@ -282,6 +343,30 @@ def calibrated_signals(rec: Recording, cfg: FirmwareConfig) -> tuple[np.ndarray,
         )
     ):
         T_meas[k], vel[k], _ = calibrate(*adc_read(q, tq, cu, cfg.adc), cfg.calibration)
+    return T_meas, vel
+
+
+def _cst_signals(rec: Recording, cfg: FirmwareConfig) -> tuple[np.ndarray, np.ndarray]:
+    rated = rec.rated_torque_Nm
+    if rated is None:
+        raise ValueError(
+            "the trace holds no answer to the controller's read of the drive's rated "
+            "torque 0x6076: the CST torque actual values cannot be scaled"
+        )
+    source = CstSource(
+        rated, cfg.calibration.encoder_counts_per_rev, cfg.diff_tau_s, cfg.sample_period_s
+    )
+    n = len(rec)
+    T_meas = np.empty(n)
+    vel = np.empty(n)
+    for k, (q, pos) in enumerate(
+        zip(
+            rec.column("torque_actual").astype(np.int64).tolist(),
+            rec.column("position_actual").astype(np.int64).tolist(),
+            strict=True,
+        )
+    ):
+        T_meas[k], vel[k] = source(CstSample(q, pos))[:2]
     return T_meas, vel
 
 

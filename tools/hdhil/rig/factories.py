@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal, Protocol
 
 import can
@@ -126,6 +127,24 @@ def scenario_controller(site: NodeSite, config: FirmwareConfig) -> ControllerNod
             f"the firmware's controller drives one joint; the layout has drives {list(drives)}"
         )
     return ControllerNode(site.bus, config, node_id=site.node_id, drive_node_id=drives[0])
+
+
+def dcf_controller(drive_dcf: Path) -> ControllerFactory:
+    """The firmware's controller node configuring its drive at boot from ``drive_dcf``
+    (CiA 306) and exchanging the PDOs that DCF maps (e.g. the CiA 402 CST mapping of
+    ``dbc/drive-cst.dcf``)."""
+
+    def make(site: NodeSite, config: FirmwareConfig) -> ControllerNode:
+        drives: Sequence[int] = site.drive_node_ids or (2,)
+        if len(drives) != 1:
+            raise ValueError(
+                f"the firmware's controller drives one joint; the layout has drives {list(drives)}"
+            )
+        return ControllerNode(
+            site.bus, config, node_id=site.node_id, drive_node_id=drives[0], drive_dcf=drive_dcf
+        )
+
+    return make
 
 
 def scenario_drive(scenario: Scenario) -> DriveFactory:

@@ -469,7 +469,7 @@ def build_listeners(
         )
         listeners.append(tracking)
     if evaluate:
-        recorder = RecordingListener(plan.sample_period_s)
+        recorder = RecordingListener(plan.sample_period_s, (metadata or {}).get("drive_pdos"))
         listeners.append(recorder)
     if trace is not None:
         offset = start_time if plan.simulated else 0.0
