@@ -172,7 +172,6 @@ from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.interrupt import AdcSample, CstSample, InterruptHandlerModel
 from hdhil.firmware.isr import InterruptHandler
 from hdhil.firmware.odlimits import check_od_limits
-from hdhil.firmware.stages import torque_command_per_mille
 from hdhil.firmware.parameters import (
     PARAMETERS,
     LiveParameters,
@@ -180,6 +179,7 @@ from hdhil.firmware.parameters import (
     apply_config,
     store_value,
 )
+from hdhil.firmware.stages import torque_command_per_mille
 from hdhil.firmware.walk import CONTROLWORD_ENABLE_OPERATION, Cia402Walk, WalkStep
 
 __all__ = [
@@ -404,13 +404,14 @@ class ControllerNode(CanNode):
             if drive_dcf is not None
             else None
         )
-        #: The drive's PDOs as its DCF leaves them (its EDS defaults without a DCF), and
-        #: the writes that gave this node's own PDOs the matching mapping (empty: the
-        #: default mapping).  Raises ``ValueError`` for a mapping the firmware cannot run.
-        drive_od, self.drive_layouts = dcf_layouts(
-            eds_path("drive") if drive_dcf is None else drive_dcf, drive_node_id
-        )
-        self.pdo_writes = peer_pdo_writes(od, self.services.read, drive_od, self.drive_layouts)
+        #: The drive's PDOs as its DCF leaves them (empty without a DCF), and the writes
+        #: that gave this node's own PDOs the matching mapping (empty: the default
+        #: mapping).  Raises ``ValueError`` for a mapping the firmware cannot run.
+        self.drive_layouts: dict[tuple[str, int], PdoLayout] = {}
+        self.pdo_writes: list[tuple[int, int, int]] = []
+        if drive_dcf is not None:
+            drive_od, self.drive_layouts = dcf_layouts(drive_dcf, drive_node_id)
+            self.pdo_writes = peer_pdo_writes(od, self.services.read, drive_od, self.drive_layouts)
         for index, sub, value in self.pdo_writes:
             try:
                 self.services.write(index, sub, value)
@@ -419,7 +420,10 @@ class ControllerNode(CanNode):
                     f"the controller cannot take 0x{index:04X}:{sub:02X} = 0x{value:X} "
                     f"for the drive's mapping: {exc}"
                 ) from None
-        self._rated_index = eds_index(str(eds_path("drive")), "motor_rated_torque")
+        # 0x6076, looked up by name in the drive's EDS when a mapping may need it
+        self._rated_index = (
+            eds_index(str(eds_path("drive")), "motor_rated_torque") if self.pdo_writes else 0
+        )
         #: The drive's motor rated torque 0x6076 (Nm), read by SDO at boot in the CiA 402
         #: CST mapping; None in the raw mapping (or before the read).
         self.rated_torque_Nm: float | None = None
@@ -529,6 +533,16 @@ class ControllerNode(CanNode):
         self._status = live("rpdo", 2, "DRIVE_TPDO2").expect("statusword")
         if raw is None:
             self.sensor_mapping = "cst"
+            # Seed 003's laws regulate the sensor torque tau_s = k (theta_l - theta_m)
+            # (Eq. 2, 8); 0x6077 is the amplifier's motor torque, a different quantity,
+            # so no law runs on it (at start-up or by a later SDO write of 0x2420:1).
+            if self.config.control.active:
+                raise ValueError(
+                    "the torque-control laws (seed 003) regulate the strain-gauge sensor "
+                    "torque; the CiA 402 CST mapping carries the amplifier's torque 0x6077 "
+                    "only: run them in the raw mapping"
+                )
+            self.services.add_validator(0x2420, 1, lambda law: ABORT_DEVICE_STATE if law else None)
 
     @staticmethod
     def _message(frame_id: int, length: int) -> can.Message:
@@ -737,7 +751,9 @@ class ControllerNode(CanNode):
         self.walk.cw_sends += 1
         self._cycle += 1
 
-    def _encode_mapped_command(self, dac_counts: int, controlword: int, volts: float | None) -> bytes:
+    def _encode_mapped_command(
+        self, dac_counts: int, controlword: int, volts: float | None
+    ) -> bytes:
         """The command PDO of a mapping from the DCF: the DAC code, or in the CST mapping
         the target torque 0x6071 in per mille of the drive's rated torque (from the
         handler's amplifier voltage, else the DAC code's), then the controlword and the

@@ -30,8 +30,8 @@ __all__ = [
     "dac_write",
     "expected_torque",
     "filtered_torque",
-    "torque_error",
     "torque_command_per_mille",
+    "torque_error",
 ]
 
 

@@ -73,9 +73,9 @@ def _reader(od: ObjectDictionary) -> Callable[[int, int], int]:
     return read
 
 
-def od_layouts(od: ObjectDictionary, read: Callable[[int, int], int] | None = None) -> dict[
-    tuple[str, int], PdoLayout
-]:
+def od_layouts(
+    od: ObjectDictionary, read: Callable[[int, int], int] | None = None
+) -> dict[tuple[str, int], PdoLayout]:
     """Every PDO of ``od`` (valid or not) as ``read`` gives its parameters (default: the
     DCF's ``ParameterValue`` where set, else the EDS default)."""
     read = read or _reader(od)
@@ -88,7 +88,9 @@ def od_layouts(od: ObjectDictionary, read: Callable[[int, int], int] | None = No
     return out
 
 
-def dcf_layouts(path: str | Path, node_id: int) -> tuple[ObjectDictionary, dict[tuple[str, int], PdoLayout]]:
+def dcf_layouts(
+    path: str | Path, node_id: int
+) -> tuple[ObjectDictionary, dict[tuple[str, int], PdoLayout]]:
     """The node's object dictionary read from the DCF at ``path`` and its PDOs as the
     DCF leaves them.  ``ValueError`` for a file canopen cannot read."""
     try:
@@ -102,16 +104,20 @@ def _by_name(od: ObjectDictionary) -> dict[str, ODVariable]:
     names: dict[str, ODVariable] = {}
     for index in od:
         obj = od[index]
-        variables = [obj] if isinstance(obj, ODVariable) else [
-            v for s, v in obj.subindices.items() if s > 0
-        ]
+        variables = (
+            [obj]
+            if isinstance(obj, ODVariable)
+            else [v for s, v in obj.subindices.items() if s > 0]
+        )
         for var in variables:
             names.setdefault(var.name, var)
     return names
 
 
 def _translate(
-    entries: Iterable[tuple[int, int, int]], peer_od: ObjectDictionary, own: dict[str, ODVariable],
+    entries: Iterable[tuple[int, int, int]],
+    peer_od: ObjectDictionary,
+    own: dict[str, ODVariable],
     what: str,
 ) -> list[int]:
     out = []

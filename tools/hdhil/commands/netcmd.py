@@ -257,7 +257,10 @@ def run_firmware(args: argparse.Namespace) -> int:
         verdict = None if stop.is_set() else stop_verdict(ctrl, cycles, done, Ts)
         summary = {"node": "controller", "operational_cycles": done,
                    "syncs_sent": d.syncs_sent, "sensor_frames": d.sensor_frames,
-                   "phase": str(ctrl.phase.value), "faults": injector.summary()}  # fmt: skip
+                   "phase": str(ctrl.phase.value), "mapping": ctrl.sensor_mapping,
+                   "faults": injector.summary()}  # fmt: skip
+        if ctrl.rated_torque_Nm is not None:
+            summary["rated_torque_Nm"] = ctrl.rated_torque_Nm
         if ctrl.phase == "safe":
             summary["safe_reason"] = d.safe_reason
         if pacer is not None:  # the real-time statistics, as in hdhil run --json

@@ -16,11 +16,11 @@ from hdhil.commands.options import (
     DEFAULT_BITRATE,
     add_bus_options,
     add_fault_arguments,
-    bus_named,
-    open_bus,
     add_mapping_arguments,
+    bus_named,
     drive_dcf_of,
     mapping_metadata,
+    open_bus,
     resolve_bus_config,
 )
 from hdhil.commands.progress import Progress, add_quiet_argument, progress
@@ -261,7 +261,9 @@ def run(args: argparse.Namespace) -> int:
     factories: dict[str, Any] = {}
     if drive_dcf is not None:
         if args.compare_laws:
-            raise UserError("--compare-laws runs the default mapping; leave out --drive-dcf/--mapping")
+            raise UserError(
+                "--compare-laws runs the default mapping; leave out --drive-dcf/--mapping"
+            )
         from hdhil.rig.factories import dcf_controller
 
         factories["controller_factory"] = dcf_controller(drive_dcf)

@@ -282,6 +282,19 @@ def harmonic_amplitude(
     return float(2.0 * abs(np.mean(e * z)))
 
 
+#: A raw error harmonic below this (Nm) has nothing to reduce: no dB figure (e.g. the CiA
+#: 402 CST mapping, whose torque actual value carries no gauge ripple).
+MIN_RAW_HARMONIC_NM = 1e-6
+
+
+def _reduction_dB(raw: float, amplitude: float) -> float:
+    """20 log10(raw / amplitude): the reduction of one error harmonic against raw; NaN
+    when raw has none to reduce, infinite when none is left."""
+    if not raw >= MIN_RAW_HARMONIC_NM:
+        return math.nan
+    return 20 * math.log10(raw / amplitude) if amplitude > 0 else math.inf
+
+
 def estimate_lag(x: np.ndarray, truth: np.ndarray, sample_period_s: float) -> float | None:
     """Delay (ms) of ``x`` behind ``truth``: argmin over d of mean (x(k) − truth(k−d))²."""
     n = len(x)
@@ -432,8 +445,7 @@ def evaluate(rec: Recording, cfg: FirmwareConfig, skip_s: float = 0.0) -> dict[s
                 for label, src, mult in HARMONICS}  # fmt: skip
         if raw_rms is None:
             raw_rms, raw_harm = rms, harm
-        reduction = {label: (20 * math.log10(raw_harm[label] / a) if a > 0 else math.inf)
-                     for label, a in harm.items()}  # fmt: skip
+        reduction = {label: _reduction_dB(raw_harm[label], a) for label, a in harm.items()}
         lag = estimate_lag(
             np.where(ok, x, 0.0)[k0:], np.where(ok, T_true, 0.0)[k0:], cfg.sample_period_s
         )
