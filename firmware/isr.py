@@ -432,7 +432,7 @@ class InterruptHandler:
     """
 
     def __init__(self, cfg: FirmwareConfig) -> None:
-        self.cfg = cfg
+        self._cfg = cfg
         self.chain = TorqueFilterChain(cfg)
         self.reference = ReferenceGenerator(cfg.reference, cfg.sample_period_s)
         self.control = TorqueControl(cfg) if cfg.control.active else None
@@ -456,6 +456,17 @@ class InterruptHandler:
         self._out = IsrOutput()
         #: Stage timing (:data:`StageHook`): called at every stage boundary when set.
         self.stage_hook: StageHook | None = None
+
+    @property
+    def cfg(self) -> FirmwareConfig:
+        """The configuration the handler runs; a new one (e.g. a calibration written over
+        SDO) also rebuilds the sensor source on it, used from the next sample on."""
+        return self._cfg
+
+    @cfg.setter
+    def cfg(self, cfg: FirmwareConfig) -> None:
+        self._cfg = cfg
+        self.refresh_source()
 
     @property
     def done(self) -> bool:

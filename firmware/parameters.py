@@ -282,9 +282,7 @@ def apply_config(
     """
     done = Applied()
     Ts = new.sample_period_s
-    isr.cfg = new
-    if new.calibration != old.calibration or new.adc != old.adc:
-        isr.refresh_source()
+    isr.cfg = new  # also rebuilds the sensor source on the new calibration
     if new.reference != old.reference:
         isr.reference = ReferenceGenerator(new.reference, Ts)
     if new.ripple != old.ripple:
