@@ -291,3 +291,24 @@ def test_the_torque_control_laws_are_refused_in_the_cst_mapping(capsys):
         assert ctrl.services.read(0x2420, 1) == 0
     finally:
         bus.shutdown()
+
+
+def test_other_trace_tools_read_a_cst_trace_or_say_why_not(tmp_path, capsys):
+    """``hdhil.api.read_trace`` decodes the standard objects; filter and identify, which
+    replay the raw ADC channels, refuse with the reason instead of finding no frames."""
+    from hdhil import api
+    from hdhil.cli import main
+
+    trace = tmp_path / "cst.blf"
+    assert main(["run", "--mapping", "cst", "--duration", "0.3", "--trace", str(trace),
+                 "--quiet", "--no-evaluate"]) == 0  # fmt: skip
+    capsys.readouterr()
+    cycles = api.read_trace(trace)
+    positions = cycles["position_actual_value"]
+    assert len(positions) >= 300 and np.nanmax(positions) > 1000
+    assert "ADC_torque_count" not in cycles
+    for command in (["filter", str(trace), "--out", str(tmp_path / "f.csv")],
+                    ["identify", str(trace)]):  # fmt: skip
+        assert main(command) == 2
+        assert "recorded in the cst mapping" in capsys.readouterr().err
+    assert not (tmp_path / "f.csv").exists()

@@ -95,8 +95,9 @@ def read_trace(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     per-cycle arrays: ``time_s`` (since the trace's first frame), ``sample`` and one
     array per signal that occurs (:func:`hdhil.can.cycles.read_cycles`)."""
     from hdhil.can.cycles import read_cycles
+    from hdhil.canopen.mapping import trace_decoder
 
-    return read_cycles(path)
+    return read_cycles(path, trace_decoder(Path(path)))
 
 
 def evaluate_trace(

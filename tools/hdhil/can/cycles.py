@@ -160,11 +160,14 @@ class CycleBuilder:
         self._flush()
 
 
-def read_cycles(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
+def read_cycles(
+    path: str | os.PathLike[str], decoder: FrameDecoder | None = None
+) -> dict[str, np.ndarray]:
     """A trace as per-cycle arrays: ``time_s``, ``sample`` and one float array per signal
     that occurred (names with units, as ``hdhil dump --csv`` writes them; NaN where a
-    cycle's frame is missing).  Damage in the trace is a :class:`ValueError` naming it."""
-    decoder = default_decoder()
+    cycle's frame is missing).  Damage in the trace is a :class:`ValueError` naming it.
+    ``decoder``: the trace's frame decoder (default: the project DBCs)."""
+    decoder = decoder or default_decoder()
     times: list[float] = []
     rows: list[list[float]] = []
 

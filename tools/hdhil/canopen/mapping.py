@@ -45,6 +45,8 @@ __all__ = [
     "layouts_to_json",
     "mapping_dcf",
     "peer_pdo_writes",
+    "raw_sensor_frames",
+    "trace_decoder",
 ]
 
 Write = tuple[int, int, int]
@@ -281,3 +283,39 @@ def control_database(drive_layouts: Mapping[tuple[str, int], PdoLayout]) -> Any:
         db.messages.append(message)
     db.refresh()
     return db
+
+
+def trace_decoder(trace: Path) -> Any:
+    """The frame decoder (:class:`hdhil.can.tracefile.FrameDecoder`) of ``trace``: the
+    project DBCs, with the drive's PDOs as the trace's sidecar records them for a run in
+    a mapping from a DCF (e.g. ``--mapping cst``: the sensor frame ``DRIVE_TPDO1``
+    carries 0x6077 and 0x6064, decoded from the drive's EDS).  ``ValueError`` for a
+    sidecar whose PDOs cannot be read."""
+    from hdhil.can.trace import read_metadata
+    from hdhil.can.tracefile import FrameDecoder, default_decoder
+    from hdhil.dbc import database
+
+    meta = read_metadata(trace) if Path(trace).is_file() else None
+    pdos = (meta or {}).get("drive_pdos")
+    if not pdos:
+        return default_decoder()
+    return FrameDecoder({"control": control_database(layouts_from_json(pdos)),
+                         "truth": database("truth")})  # fmt: skip
+
+
+def raw_sensor_frames(trace: Path) -> str | None:
+    """None if ``trace``'s sensor frames are the seed's raw ADC/encoder frames (no
+    sidecar mapping, or a DCF that keeps them); else the mapping's label from the
+    sidecar (what a command that replays the raw channels names in its error)."""
+    from hdhil.can.trace import read_metadata
+
+    meta = read_metadata(trace) if Path(trace).is_file() else None
+    pdos = (meta or {}).get("drive_pdos")
+    if not pdos:
+        return None
+    drive_od = canopen.import_od(str(eds_path("drive")), 2)
+    default = od_layouts(drive_od).get(("tpdo", 1))
+    recorded = layouts_from_json(pdos).get(("tpdo", 1))
+    if default is not None and recorded is not None and recorded.entries == default.entries:
+        return None
+    return str((meta or {}).get("mapping") or "a DCF")

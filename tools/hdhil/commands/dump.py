@@ -20,7 +20,6 @@ from hdhil.can.tracefile import (
     FrameKind,
     StatsAccumulator,
     TraceReadResult,
-    default_decoder,
     format_stats,
     read_trace,
 )
@@ -79,23 +78,15 @@ class _IdFilter:
 
 
 def trace_decoder(trace: Path) -> FrameDecoder:
-    """The decoder of ``trace``: the project DBCs, with the drive's PDOs as the trace's
-    sidecar records them for a run in a mapping from a DCF (e.g. ``--mapping cst``: the
-    sensor frame ``DRIVE_TPDO1`` carries 0x6077 and 0x6064, decoded from the drive's EDS)."""
-    from hdhil.can.trace import read_metadata
-
-    meta = read_metadata(trace) if trace.is_file() else None
-    pdos = (meta or {}).get("drive_pdos")
-    if not pdos:
-        return default_decoder()
-    from hdhil.canopen.mapping import control_database, layouts_from_json
-    from hdhil.dbc import database
+    """The decoder of ``trace`` (:func:`hdhil.canopen.mapping.trace_decoder`: the
+    project DBCs, with the drive's PDOs from the trace's sidecar for a run in a mapping
+    from a DCF); a sidecar whose PDOs cannot be read is a one-line error."""
+    from hdhil.canopen.mapping import trace_decoder as decoder_of
 
     try:
-        control = control_database(layouts_from_json(pdos))
+        return decoder_of(trace)
     except ValueError as exc:
         raise UserError(f"{trace}: {exc}") from None
-    return FrameDecoder({"control": control, "truth": database("truth")})
 
 
 def _parse_id_filter(values: list[str], decoder: FrameDecoder) -> tuple[_IdFilter, set[str]]:

@@ -60,6 +60,9 @@ def run(args: argparse.Namespace) -> int:
     target = _CsvTarget(args.out, path)
     try:
         if is_trace:
+            from hdhil.commands.options import require_raw_sensor_frames
+
+            require_raw_sensor_frames(path, "filter")
             summary = filter_trace(path, cfg, target.writer)
         else:
             summary = filter_signal_csv(path, compressed, cfg, target.writer)

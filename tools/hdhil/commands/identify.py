@@ -710,6 +710,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--plot {args.plot}: use a .png, .pdf or .svg file name")
     if args.plot is not None:
         check_output(args.plot, "--plot")
+    from hdhil.commands.options import require_raw_sensor_frames
+
+    require_raw_sensor_frames(args.trace, "identify")
     with progress(args, 3 if args.plot is not None else 2, "hdhil identify", "step") as bar:
         bar.describe("hdhil identify: reading the trace")
         data = chirp_data_from_trace(args.trace, firmware, per_volt)

@@ -84,6 +84,24 @@ def mapping_metadata(dcf: Path | None, label: str, node_id: int = 2) -> dict[str
     return {"mapping": label, "drive_dcf": dcf.name, "drive_pdos": layouts_to_json(layouts)}
 
 
+def require_raw_sensor_frames(trace: Path, command: str) -> None:
+    """A one-line error when ``trace`` was recorded in a mapping whose sensor frame is
+    not the seed's raw ADC/encoder frame (its sidecar says so): ``command`` replays the
+    raw channels."""
+    from hdhil.canopen.mapping import raw_sensor_frames
+
+    try:
+        mapping = raw_sensor_frames(trace)
+    except ValueError as exc:
+        raise UserError(f"{trace}: {exc}") from None
+    if mapping is not None:
+        raise UserError(
+            f"{trace} was recorded in the {mapping} mapping (its sidecar JSON): its sensor "
+            f"frames carry no ADC channels, which hdhil {command} replays; hdhil evaluate, "
+            "tune, plot and dump read it"
+        )
+
+
 # ------------------------------------------------------------------ CAN bus options
 
 #: The bit rate of the control bus when neither the command line, the environment
