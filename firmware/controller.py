@@ -136,6 +136,21 @@ cycle and the drive's SYNC consumer expects the overflow.  PDO-mapped process da
 counts, telemetry) is not mirrored into the OD; the
 controlword (0x6040) and the drive's statusword (0x2011) are, when they change.
 
+The drive's mapping (``drive_dcf``)
+----------------------------------
+Without a DCF the frames are the seed's raw ADC/DAC mapping, encoded with
+``control.dbc``'s compiled codecs.  With one, the controller configures the drive from it
+at boot (:mod:`hdhil.canopen.dcf`) and gives its own PDOs the matching mapping
+(:func:`hdhil.canopen.mapping.peer_pdo_writes`: the drive's TPDO is this node's RPDO with
+the same COB-ID, objects matched by name), written into its OD through the CiA 301
+checks; the frames are then encoded and decoded from that live mapping.  In the CiA 402
+cyclic synchronous torque mapping (``dbc/drive-cst.dcf``: 0x6040 + 0x6071 in, 0x6077 +
+0x6064 out) the controller reads the drive's rated torque 0x6076 by SDO before NMT
+start, the interrupt handler's sensor source becomes
+:class:`firmware.stages.CstSource` and the command goes out as 0x6071 in per mille
+(:func:`firmware.stages.torque_command_per_mille`); the seed-003 control laws, which
+regulate the sensor torque, are refused there.
+
 This module only moves frames and sequences the link: every computation is in
 :mod:`firmware.isr` and its stages.  It uses nothing but a python-can bus, so the same
 node drives the emulator on ``simbus`` or a real drive on SocketCAN/PCAN/Kvaser.  It never
