@@ -171,3 +171,9 @@ def test_sync_monitor_tells_duplicates_reordering_loss_and_restarts_apart():
     for c in (239, 240, 1, 2):  # the counter wraps: no restart, no loss
         assert m.accept(_sync(c), 0.0) == 0
     assert m.restarts == 0 and m.missed_syncs == 0
+    # SYNC 240 lost at the wrap: 1 after 239 is one SYNC missed, not a restart (the
+    # drive's plant must advance two periods); likewise 239, 240 and 1 lost before 2.
+    assert [m.accept(_sync(c), 0.0) for c in range(3, 240)] == [0] * 237
+    assert m.accept(_sync(1), 0.0) == 1 and m.restarts == 0
+    assert [m.accept(_sync(c), 0.0) for c in range(2, 239)] == [0] * 237
+    assert m.accept(_sync(2), 0.0) == 3 and m.restarts == 0 and m.missed_syncs == 4

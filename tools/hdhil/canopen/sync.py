@@ -152,7 +152,8 @@ class SyncMonitor:
         With a counter (CiA 301 §7.2.5), a repeated counter is a duplicate and a counter
         up to ``STALE_WINDOW`` steps behind the previous one is a reordered SYNC: both
         are counted and ignored, so they never advance the consumer's time.  Counter 1
-        further behind is a producer restart (not a jump).  Without a counter every SYNC
+        further behind is a producer restart (not a jump), unless it is at most
+        ``STALE_WINDOW`` steps ahead: the counter wrapped while SYNCs were lost.  Without a counter every SYNC
         is accepted (nothing tells a duplicate apart).
         """
         data = msg.data
@@ -171,7 +172,10 @@ class SyncMonitor:
             if behind <= self.STALE_WINDOW:
                 self.stale += 1
                 return None
-            if counter == 1 and last != self.overflow:
+            # Counter 1 a few steps after the last one is the wrap with the SYNCs in
+            # between lost (240 lost after 239, say), not a restart.
+            ahead = (counter - last) % self.overflow
+            if counter == 1 and ahead > self.STALE_WINDOW:
                 self.restarts += 1
                 self.last_counter = None
         return self.on_sync_frame(msg, now)
