@@ -153,8 +153,8 @@ class SyncMonitor:
         up to ``STALE_WINDOW`` steps behind the previous one is a reordered SYNC: both
         are counted and ignored, so they never advance the consumer's time.  Counter 1
         further behind is a producer restart (not a jump), unless it is at most
-        ``STALE_WINDOW`` steps ahead: the counter wrapped while SYNCs were lost.  Without a counter every SYNC
-        is accepted (nothing tells a duplicate apart).
+        ``STALE_WINDOW`` steps ahead: the counter wrapped while SYNCs were lost.  Without
+        a counter every SYNC is accepted (nothing tells a duplicate apart).
         """
         data = msg.data
         counter = data[0] if len(data) == 1 else None
