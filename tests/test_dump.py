@@ -374,6 +374,42 @@ def test_stats_of_1khz_schedule():
     assert slow["buses"]["control"]["over_limit"]
 
 
+def test_a_burst_of_sdo_frames_counts_spread_over_the_bus_duration():
+    """A DCF's configuration writes at boot: 100 SDO request/response pairs within 20 ms,
+    then the 1 kHz schedule for 1 s.  The bus's worst-case load is the schedule's plus
+    the burst's 200 frames spread over the second, not the burst's own rate."""
+    burst = []
+    for i in range(100):
+        for k, cob in enumerate((0x602, 0x582)):
+            burst.append(
+                can.Message(
+                    timestamp=i * 200e-6 + k * 100e-6,
+                    arbitration_id=cob,
+                    is_extended_id=False,
+                    data=bytes(8),
+                    channel=0,
+                )
+            )
+    cyclic = [
+        can.Message(
+            timestamp=m.timestamp + 0.02,
+            arbitration_id=m.arbitration_id,
+            is_extended_id=m.is_extended_id,
+            data=m.data,
+            channel=m.channel,
+        )
+        for m in schedule(1000)
+    ]
+    stats = dump.compute_stats(burst + cyclic, bitrate=1_000_000)
+    control = stats["buses"]["control"]
+    by_id = {s["id"]: s for s in stats["ids"]}
+    assert by_id[0x602]["load_percent"] > 60  # the burst's own rate: 5 kHz of 135 us
+    cyclic_load = (65 + 3 * 135) / 1000 * 100
+    burst_load = 200 * 135e-6 / control["duration"] * 100
+    assert control["load_percent"] == pytest.approx(cyclic_load + burst_load, rel=2e-3)
+    assert control["load_percent"] < 60 and not control["over_limit"]
+
+
 def test_stats_jitter_matches_numpy():
     rng = np.random.default_rng(7)
     jitter = rng.normal(0.0, 20e-6, 500)

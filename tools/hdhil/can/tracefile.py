@@ -927,6 +927,23 @@ class _BusStats:
 _BUS_ORDER = {name: i for i, name in enumerate(CHANNEL_NUMBER)}
 
 
+def _bus_share(
+    load: float | None, count: int, span: float, frame_percent: float, bus_span: float
+) -> float:
+    """One identifier's share of its bus's worst-case load (``load_percent`` of a bus).
+
+    A cyclic identifier, seen over at least half the bus's duration, counts with its own
+    rate.  A sporadic one (an SDO exchange, a burst of configuration writes at boot, a
+    single EMCY) would count with the rate inside its burst, which can exceed the whole
+    bus; it counts with its frames spread over the bus's duration instead.
+    """
+    if load is not None and span >= 0.5 * bus_span:
+        return load
+    if bus_span <= 0.0:
+        return 0.0
+    return count * frame_percent / bus_span
+
+
 def _bus_sort_key(bus: str) -> tuple[int, str]:
     return (_BUS_ORDER.get(bus, len(_BUS_ORDER) + (bus == UNKNOWN_BUS)), bus)
 
@@ -1053,7 +1070,10 @@ class StatsAccumulator:
         for an identifier seen once (or with no time span).
 
         ``buses``: per bus label: ``duration`` (s, first to last frame of that bus),
-        ``frames``, ``load_percent`` (worst-case load, sum over its identifiers),
+        ``frames``, ``load_percent`` (worst-case load, sum over its identifiers; an
+        identifier seen over less than half the bus's duration, such as a burst of SDO
+        frames at boot, counts with its frames spread over the bus's duration rather
+        than with the rate inside its burst),
         ``actual_load_percent`` (the frames' exact bits incl. real stuff bits,
         :mod:`hdhil.can.bittiming`, over the duration),
         ``over_limit`` (load above ``load_limit_percent``), ``unknown_ids`` (distinct),
@@ -1061,6 +1081,7 @@ class StatsAccumulator:
         """
         ids = []
         loads: dict[str, float] = {}
+        bus_spans = {name: b.last - b.first for name, b in self._buses.items()}
         for key in sorted(self._ids, key=lambda k: (_bus_sort_key(k[0]), k[1], k[2])):
             s = self._ids[key]
             bits = worst_case_frame_bits(s.payload, s.is_extended_id)
@@ -1074,7 +1095,9 @@ class StatsAccumulator:
                 period_ms, std_us, jmax_us = mean * 1e3, std * 1e6, jmax * 1e6
             else:
                 rate = period_ms = std_us = jmax_us = load = None
-            loads[s.bus] = loads.get(s.bus, 0.0) + (load or 0.0)
+            loads[s.bus] = loads.get(s.bus, 0.0) + _bus_share(
+                load, s.count, span, bits / self.bitrate * 100.0, bus_spans.get(s.bus, 0.0)
+            )
             ids.append(
                 {
                     "bus": s.bus,
