@@ -693,9 +693,15 @@ class PlausibilityConfig:
     max_rejections: int = PLAUSIBLE_REJECTIONS
     #: Stuck channel (:class:`firmware.stages.StuckChannels`): the torque or tacho reading
     #: unchanged for ``stuck_samples`` samples while the encoder turned at least
-    #: ``stuck_motion_rad`` (motor side) is a stuck sensor (EMCY 0x7300).
+    #: ``stuck_motion_rad`` (motor side) is a stuck sensor (torque: EMCY 0x7300).
     stuck_samples: int = 100
     stuck_motion_rad: float = 2.0
+    #: The tacho is stuck only if, besides, the encoder's mean velocity over those samples
+    #: differs from the held reading by more than ``stuck_tacho_radps`` plus
+    #: ``stuck_tacho_share`` of it (EMCY 0x7301): 2 rad/s is about 7 counts of the seed's
+    #: tacho channel (0.27 rad/s per count), far above its noise at a steady speed.
+    stuck_tacho_radps: float = 2.0
+    stuck_tacho_share: float = 0.05
 
     def __post_init__(self) -> None:
         if self.enabled is not None and not isinstance(self.enabled, bool):
@@ -708,7 +714,9 @@ class PlausibilityConfig:
                 "encoder_tolerance_counts": ">0",
             },
         )
-        check_fields(self, {"stuck_motion_rad": ">0"})
+        check_fields(
+            self, {"stuck_motion_rad": ">0", "stuck_tacho_radps": ">0", "stuck_tacho_share": ">=0"}
+        )
         n = self.stuck_samples
         if isinstance(n, bool) or not isinstance(n, int) or n < 2:
             raise ValueError(f"PlausibilityConfig.stuck_samples must be an integer >= 2, got {n!r}")

@@ -302,8 +302,11 @@ class ControllerDiagnostics:
     encoder_reseeds: int = 0
     plausibility_errors: int = 0
     #: Stuck sensor channels (torque or tacho reading unchanged while the motor turned,
-    #: :class:`firmware.stages.StuckChannels`), each announced by EMCY 0x7300.
+    #: :class:`firmware.stages.StuckChannels`), each announced by an EMCY: torque 0x7300,
+    #: tacho 0x7301 (manufacturer byte 0: the channel, 1 torque, 2 tacho).
     stuck_sensor_events: int = 0
+    #: Of those, the tacho's.
+    stuck_tacho_events: int = 0
     safe_reason: str | None = None
 
 
@@ -715,15 +718,21 @@ class ControllerNode(CanNode):
             self.request_stop(f"num_samples = {self.config.num_samples} reached")
 
     def _report_stuck(self, stuck: Any) -> None:
-        """EMCY 0x7300 "sensor error" when a channel gets stuck (manufacturer byte 0: 1
-        torque, 2 tacho), cleared when it reads again; the diagnostic counter follows."""
+        """An EMCY when a channel gets stuck, cleared when it reads again; the diagnostic
+        counters follow.  Codes (CiA 402 / IEC 61800-7-201, "sensor" family 0x73xx), with
+        the channel in manufacturer byte 0: torque 0x7300 "sensor error" with 1 (no more
+        specific code exists for a torque bridge), tacho 0x7301 "tacho fault" with 2."""
         self._stuck_revision = stuck.revision
         self.diagnostics.stuck_sensor_events = stuck.events
-        for channel, flag in ((1, stuck.torque_stuck), (2, stuck.tacho_stuck)):
+        self.diagnostics.stuck_tacho_events = getattr(stuck, "tacho_events", 0)
+        for code, channel, flag in (
+            (EmcyCode.SENSOR, 1, stuck.torque_stuck),
+            (EmcyCode.TACHO_FAULT, 2, stuck.tacho_stuck),
+        ):
             if flag:
-                self.services.emcy(EmcyCode.SENSOR, manufacturer=bytes((channel,)))
+                self.services.emcy(code, manufacturer=bytes((channel,)))
             else:
-                self.services.emcy_clear(EmcyCode.SENSOR, bytes((channel,)))
+                self.services.emcy_clear(code, bytes((channel,)))
 
     def _report_plausibility(self) -> None:
         """The plausibility stage's counters into the diagnostics, and its error flags on
@@ -753,7 +762,7 @@ class ControllerNode(CanNode):
                 self.services.emcy(code)
             elif not error and code in active:
                 active.discard(code)
-                self.services.emcy_clear(code)
+                self.services.emcy_clear(code, b"")  # not the stuck tacho's 0x7301
 
     def _send_command(self, dac_counts: int, controlword: int, volts: float | None = None) -> None:
         if self._dbc_command:

@@ -446,6 +446,9 @@ class InterruptHandler:
                 plausibility.stuck_samples,
                 plausibility.stuck_motion_rad,
                 cfg.calibration.encoder_counts_per_rev,
+                cfg.sample_period_s,
+                plausibility.stuck_tacho_radps,
+                plausibility.stuck_tacho_share,
             )
             if cfg.plausibility_active
             else None
@@ -498,8 +501,11 @@ class InterruptHandler:
 
     def sample_missed(self) -> None:
         """A sample period passed without a sample: the plausibility bounds of the next
-        sample span the gap (:meth:`TorqueFilterChain.sample_missed`)."""
+        sample span the gap (:meth:`TorqueFilterChain.sample_missed`), and so do the
+        stuck-channel check's periods."""
         self.chain.sample_missed()
+        if self.stuck is not None:
+            self.stuck.missed()
 
     def refresh_source(self) -> None:
         """Rebuild the sensor source from :attr:`cfg` (a new calibration over SDO is used

@@ -1,11 +1,17 @@
-"""Stuck torque channel: the firmware notices a reading that stops changing while the
-motor turns, announces it by EMCY 0x7300 and counts it; clean runs never trip it."""
+"""Stuck torque and tacho channels: the firmware notices a reading that stops changing
+while the motor turns, announces it by EMCY (torque 0x7300, tacho 0x7301) and counts it;
+clean runs never trip it."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
+from pathlib import Path
 
+import can
 import pytest
+from canopen.emcy import EMCY_STRUCT
 
 from hdhil.can.faults import with_fault_flags
 from hdhil.firmware.config import FirmwareConfig
@@ -61,3 +67,92 @@ def test_a_stuck_torque_sensor_in_a_run_raises_emcy_0x7300() -> None:
     assert result.frames.get("control 0x081 EMCY_CTRL", 0) >= 2  # raised, then cleared
     clean = run_lockstep(scenario, 2.0, evaluate=False)
     assert clean.controller["stuck_sensor_events"] == 0
+
+
+# ------------------------------------------------------------------------ stuck tacho
+TS = 1e-3
+RAD_PER_COUNT = 2 * math.pi / CPR
+
+
+def _tacho(check: StuckChannels, n: int, reading: float, counts_per_sample: int,
+           start: int = 0, volts: float = 1.0) -> int:  # fmt: skip
+    """``n`` samples of a constant tacho ``reading`` (rad/s) while the encoder moves
+    ``counts_per_sample``; the torque reading changes every sample (not stuck)."""
+    enc = start
+    for k in range(n):
+        check.step(0.001 * k, reading, enc & 0xFFFF, 1.0, volts)
+        enc += counts_per_sample
+    return enc
+
+
+def _checker() -> StuckChannels:
+    return StuckChannels(samples=100, motion_rad=2.0, counts_per_rev=CPR, sample_period_s=TS)
+
+
+def test_a_tacho_reading_held_while_the_encoder_shows_another_speed_is_stuck() -> None:
+    check = _checker()
+    counts = 30  # 30 counts per ms: 23.6 rad/s
+    _tacho(check, 150, 5.0, counts)  # the tacho says 5 rad/s
+    assert check.tacho_stuck and not check.torque_stuck
+    assert check.tacho_events == 1 and check.events == 1
+    check.step(1.0, 23.5, 0, 1.0, 1.0)  # it reads again: the flag falls
+    assert not check.tacho_stuck and check.tacho_events == 1
+
+
+@pytest.mark.parametrize("counts", [30, -30, 200])
+def test_a_constant_tacho_that_agrees_with_the_encoder_is_not_stuck(counts: int) -> None:
+    """A steady speed: the reading may stay put for long (noise below one count)."""
+    check = _checker()
+    _tacho(check, 2000, counts * RAD_PER_COUNT / TS, counts, start=40_000)
+    assert not check.tacho_stuck and check.tacho_events == 0
+
+
+def test_standstill_and_saturation_never_make_a_stuck_tacho() -> None:
+    check = _checker()
+    _tacho(check, 1000, 50.0, 0)  # the encoder does not move: nothing to judge by
+    _tacho(check, 1000, 50.0, 30, volts=9.995)  # at full scale: saturation, not stuck
+    assert not check.tacho_stuck and check.tacho_events == 0
+
+
+def test_lost_samples_count_as_time_for_the_encoder_velocity() -> None:
+    """Every other sample lost: the encoder moves twice as far between the samples seen;
+    with the gaps counted the velocities agree (no false alarm)."""
+    check = _checker()
+    v = 30 * RAD_PER_COUNT / TS
+    enc = 0
+    for k in range(2000):
+        check.step(0.001 * k, v, enc & 0xFFFF, 1.0, 1.0)
+        check.missed()
+        enc += 60
+    assert not check.tacho_stuck
+
+
+def test_a_stuck_tacho_in_a_run_raises_emcy_0x7301_and_counts() -> None:
+    scenario = load_scenario("speed-chirp")  # the motor speed keeps changing
+    flags = ["sensors.stuck=[{channel='tacho',start_s=1.0}]"]
+    stuck = dataclasses.replace(scenario, faults=with_fault_flags(scenario.faults, flags))
+    codes: list[tuple[int, int]] = []
+
+    class Emcy(can.Listener):
+        def on_message_received(self, msg: can.Message) -> None:
+            if msg.arbitration_id == 0x081 and not msg.is_extended_id:
+                code, _register, manufacturer = EMCY_STRUCT.unpack(bytes(msg.data))
+                codes.append((code, manufacturer[0]))
+
+    result = run_lockstep(stuck, 3.0, evaluate=False, extra_listeners=[Emcy()])
+    assert result.faults and result.faults["stuck"] > 0
+    assert result.controller["stuck_tacho_events"] == 1
+    assert result.controller["stuck_sensor_events"] == 1
+    assert (0x7301, 2) in codes  # "tacho fault", channel 2 in manufacturer byte 0
+    assert (0x7300, 1) not in codes  # the torque channel is fine
+
+
+def test_no_stuck_channel_on_clean_runs_of_the_shipped_scenarios() -> None:
+    """The golden summaries (every shipped scenario at its full duration, standstill
+    phases included; ``tests/test_golden.py`` checks the runs still give them) count no
+    stuck channel."""
+    golden = json.loads((Path(__file__).parent / "data" / "golden.json").read_text())
+    controllers = [s["controller"] for key, s in golden.items() if key.startswith("summary/")]
+    assert len(controllers) >= 8
+    for c in controllers:
+        assert c["stuck_sensor_events"] == 0 and c["stuck_tacho_events"] == 0
