@@ -147,28 +147,35 @@ seed = [1, 2]
 """
 
 
-def test_failing_and_raising_variants_are_recorded_and_the_campaign_goes_on(tmp_path, capsys):
-    # Every control frame lost: the drive never reaches operation, the run raises.  The
-    # clean variants have a whole-run RMS error of about 0.27 Nm: 0.2 fails them, 1.0 passes them.
+def test_stopped_and_errored_variants_are_recorded_and_the_campaign_goes_on(tmp_path, capsys):
+    # Every control frame lost: the drive never reaches operation, the run stops in
+    # start-up (a verdict: it fails its criteria, with the reason).  The clean variants
+    # have a whole-run RMS error of about 0.27 Nm: 0.2 fails them, 1.0 passes them.
     for threshold, clean_status in ((0.2, "fail"), (1.0, "pass")):
         path = _campaign(tmp_path, FAILING.format(threshold=threshold))
         out = tmp_path / f"out-{threshold}"
         assert main(["campaign", str(path), "--workers", "2", "--out", str(out), "--json"]) == 1
         summary = json.loads(capsys.readouterr().out)
-        assert summary["errors"] == 2 and summary["recorded"] == 4
+        assert summary["errors"] == 0 and summary["recorded"] == 4
         head, *rows = (out / "results.csv").read_text().splitlines()
         status = head.split(",").index("status")
         by_loss = {}
         for line in rows:
             cells = line.split(",")
             by_loss.setdefault(cells[2], []).append(cells[status])
-        assert by_loss == {"0.0": [clean_status] * 2, "1.0": ["error"] * 2}
+        assert by_loss == {"0.0": [clean_status] * 2, "1.0": ["fail"] * 2}
         assert "did not reach operation enabled" in (out / "results.csv").read_text()
         assert "did not reach operation enabled" in (out / "report.md").read_text()
-    # A re-run keeps the results and runs again only the variants that raised.
+    # A re-run keeps the results and runs again only the variants that raised: two
+    # stored records are turned into errors, as a worker that failed would leave them.
+    stored = sorted((out / "runs").glob("*.json"))
+    for record in stored[:2]:
+        data = json.loads(record.read_text())
+        data.update(result=None, error="RuntimeError: the worker's environment failed")
+        record.write_text(json.dumps(data))
     assert main(["campaign", str(path), "--workers", "1", "--out", str(out), "--json"]) == 1
     again = json.loads(capsys.readouterr().out)
-    assert again["ran"] == 2 and again["resumed"] == 2 and again["errors"] == 2
+    assert again["ran"] == 2 and again["resumed"] == 2 and again["errors"] == 0
 
 
 RESUME = """

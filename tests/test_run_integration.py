@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import can
 import pytest
@@ -250,13 +251,20 @@ def test_ctrl_c_leaves_a_valid_trace(tmp_path, suffix, signame):
         text=True,
     )
     deadline = time.monotonic() + 60
-    while not trace.exists() or trace.stat().st_size == 0:
+
+    def temporaries() -> list[Path]:
+        return [p for p in tmp_path.iterdir() if ".hdhil-" in p.name]
+
+    # The trace is written to a temporary beside it, renamed into place when complete.
+    while not temporaries():
         assert time.monotonic() < deadline, "the run never started writing its trace"
         time.sleep(0.05)
     time.sleep(1.0)
+    assert not trace.exists()
     proc.send_signal(getattr(signal, signame))
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
+    assert not temporaries()
     assert "Traceback" not in err
     result = json.loads(out)
     assert result["interrupted"] and 0 < result["cycles"] < 600_000
@@ -301,17 +309,27 @@ def test_sigkill_loses_at_most_the_last_second_of_a_line_based_trace(tmp_path, s
          "--no-evaluate"],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
+
+    def growing() -> Path | None:  # the temporary the trace is written to until complete
+        found = list(tmp_path.glob(f".{trace.name}.hdhil-*.tmp/{trace.name}"))
+        return found[0] if found else None
+
     try:
         deadline = time.monotonic() + 60
-        while not trace.exists() or trace.stat().st_size < 100_000:
+        while (tmp := growing()) is None or tmp.stat().st_size < 100_000:
             assert time.monotonic() < deadline, "the run never wrote its trace"
             time.sleep(0.05)
-        before_n, before_t = last_time(trace)
+        before_n, before_t = last_time(tmp)
         time.sleep(1.0)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
     finally:
         proc.kill()
+    # The writer process finishes the file on its own and renames it into place.
+    deadline = time.monotonic() + 60
+    while not trace.exists() or growing() is not None:
+        assert time.monotonic() < deadline, "the writer never finished the trace"
+        time.sleep(0.05)
     after_n, after_t = last_time(trace)
     assert after_n >= before_n and after_t >= before_t
 

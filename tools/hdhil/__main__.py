@@ -1,7 +1,5 @@
 """``python -m hdhil``: the same as the ``hdhil`` command."""
 
-import sys
+from hdhil.console import run
 
-from hdhil.cli import main
-
-sys.exit(main())
+run()

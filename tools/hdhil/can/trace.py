@@ -18,13 +18,19 @@ and costs the 1 kHz loop about 0.5 us a frame instead of 1.2 (parent CPU time,
 median of 5 runs of 70 000 frames).  The pipe is bounded: a
 writer that falls behind makes the run wait, it never drops a frame.  If the run dies
 (even by SIGKILL) the child reads what was sent up to then and closes the file properly.
+
+Traces are written atomically (:class:`WriterProcess`): to a temporary beside the target,
+renamed into place when complete, as every output of hdhil
+(:mod:`hdhil.core.files`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import multiprocessing.util
 import operator
+import os
 import signal
 import struct
 import time
@@ -35,7 +41,15 @@ from typing import Any
 import can
 
 from hdhil.can.simbus import SimBus, received_copy
-from hdhil.core.files import check_output
+from hdhil.core.errors import UserError
+from hdhil.core.files import (
+    check_output,
+    commit_temporary_dir,
+    discard_temporary,
+    release_temporary,
+    temporary_dir_for,
+    write_text,
+)
 
 #: Formats python-can's Logger writes and its LogReader reads, by extension.  python-can's
 #: SQLite writer (``.db``) is left out: its writer thread dropped frames at the end of a
@@ -138,24 +152,51 @@ def _pin_header_dates(unix_s: float) -> None:
             module.datetime = _TraceStart  # type: ignore[attr-defined]
 
 
-def _writer_main(path: str, frames: Any, status: Any, frames_w: Any, offset: float) -> None:
-    """The child: open the writer, write every batch until the pipe closes, close the file.
+def _stopping_signals() -> set[int]:
+    """Ctrl-C, SIGTERM and a hang-up: the signals the run, not its writer, answers."""
+    return {s for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)) if s}
+
+
+def _writer_main(
+    tmp_dir: str,
+    target: str,
+    shown: str,
+    frames: Any,
+    status: Any,
+    frames_w: Any,
+    offset: float,
+    metadata: dict[str, Any] | None,
+) -> None:
+    """The child: open the writer, write every batch until the pipe closes, close the file
+    and rename it into place.
+
+    The file is written as ``tmp_dir/<the trace's name>`` (python-can picks the format
+    from the name) and renamed over ``target`` only once closed, so an existing trace is
+    never half overwritten; then the sidecar ``metadata`` is written beside it.  End of
+    input, whether the run stopped, was interrupted or died (even by SIGKILL), finalises
+    and keeps the trace of what happened.  On an error the temporary is removed and
+    ``target`` left as it was.
 
     Reports ``("ready", None)`` or ``("error", text)`` at start, and ``("done", frames
     written)`` or ``("error", text)`` at the end, on ``status``.  Signals meant for the run
-    (Ctrl-C reaches the whole process group) are ignored: the run decides when to stop,
-    and end of input is what ends the child.  ``offset`` is added to every timestamp.
+    (Ctrl-C and a hang-up reach the whole process group) are ignored: the run decides when
+    to stop, and end of input is what ends the child.  ``offset`` is added to every
+    timestamp.
     """
     frames_w.close()  # the parent's end: with it open here, the input would never end
+    for sig in _stopping_signals():
+        signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _stopping_signals())  # blocked by the parent
     if offset:
         _pin_header_dates(offset)
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, signal.SIG_IGN)
+    work = Path(tmp_dir)
+    label = f"trace {shown}"
     try:
-        writer = can.Logger(path)
+        writer = can.Logger(str(work / Path(target).name))
     except (OSError, ValueError, ImportError, NotImplementedError) as exc:
         text = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
-        status.send(("error", f"cannot write trace {path}: {text}"))
+        discard_temporary(work)
+        status.send(("error", f"cannot write trace {shown}: {text}"))
         return
     status.send(("ready", None))
     written = 0
@@ -170,13 +211,22 @@ def _writer_main(path: str, frames: Any, status: Any, frames_w: Any, offset: flo
                 writer.on_message_received(_message(f, offset))
                 written += 1
     except OSError as exc:
-        error = f"cannot write trace {path}: {exc.strerror or exc}"
+        error = f"cannot write trace {shown}: {exc.strerror or exc}"
     finally:
         try:
             writer.stop()
         except OSError as exc:
-            error = error or f"cannot close trace {path}: {exc.strerror or exc}"
-    status.send(("error", error) if error else ("done", written))
+            error = error or f"cannot close trace {shown}: {exc.strerror or exc}"
+    if error is None:
+        try:
+            commit_temporary_dir(work, Path(target), label)
+            if metadata is not None:
+                write_metadata(Path(shown), metadata)
+        except (UserError, ValueError) as exc:
+            error = str(exc)
+    discard_temporary(work)
+    with contextlib.suppress(OSError):
+        status.send(("error", error) if error else ("done", written))
 
 
 _pack = _RECORD.pack
@@ -192,13 +242,22 @@ class WriterProcess(can.Listener):
     ``time_offset`` (s) is added to every frame's timestamp as it is written: simulated
     time starts at 0, the file gets the wall-clock time of the run's start plus it.
 
+    The trace is written to a temporary beside ``path`` and renamed over it when the
+    file is complete (:func:`_writer_main`), with its sidecar ``metadata``
+    (:func:`write_metadata`) written right after: only a regular file is ever replaced,
+    and never half.  A run that is interrupted or dies still gets a valid trace of every
+    frame handed over; a writer that fails leaves ``path`` as it was.
+
     A :class:`can.Listener`: ``on_message_received`` copies the frame's fields into the
     current batch; full batches go through a pipe.  ``stop`` sends the rest, waits for the
     child to close the file and checks that it wrote every frame it was given.
     """
 
-    def __init__(self, path: Path, time_offset: float = 0.0) -> None:
+    def __init__(self, path: Path, time_offset: float = 0.0,
+                 metadata: dict[str, Any] | None = None) -> None:  # fmt: skip
         check_trace_path(path)
+        target = check_output(path, "trace")
+        assert target is not None
         self.path = path
         self.time_offset = time_offset
         self.sent = 0
@@ -207,13 +266,26 @@ class WriterProcess(can.Listener):
         self._batch_started = 0.0
         methods = multiprocessing.get_all_start_methods()
         ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+        try:
+            self._tmp = temporary_dir_for(target)
+        except OSError as exc:
+            raise ValueError(f"cannot write trace {path}: {exc.strerror or exc}") from None
         frames_r, frames_w = ctx.Pipe(duplex=False)
         status_r, status_w = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(
-            target=_writer_main, args=(str(path), frames_r, status_w, frames_w, time_offset),
+            target=_writer_main,
+            args=(str(self._tmp), str(target), str(path), frames_r, status_w, frames_w,
+                  time_offset, metadata),
             daemon=False, name=f"hdhil trace writer {path.name}",
         )  # fmt: skip
-        self._proc.start()
+        # Signals stay blocked across the fork: a Ctrl-C reaching the whole process group
+        # must not hit the child before it has set them to be ignored (it unblocks then).
+        blocked = _stopping_signals()
+        previous = signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
+        try:
+            self._proc.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
         frames_r.close()  # only the child reads frames, only the child reports
         status_w.close()
         self._frames = frames_w
@@ -224,7 +296,11 @@ class WriterProcess(can.Listener):
         kind, detail = self._report()
         if kind != "ready":
             self._proc.join()
+            discard_temporary(self._tmp)
             raise ValueError(detail)
+        # The child renames or removes the temporary from now on, even after this
+        # process is gone: removing it at this process's exit would lose the trace.
+        release_temporary(self._tmp)
 
     def _report(self) -> tuple[str, Any]:
         try:
@@ -294,12 +370,27 @@ class WriterProcess(can.Listener):
             kind, detail = self._report()
             self._proc.join(WRITER_EXIT_TIMEOUT_S)
             self._status.close()
+            if kind != "done":  # the child failed or died: nothing of it may stay behind
+                discard_temporary(self._tmp)
         if kind == "error":
             raise WriterError(detail)
         if detail != self.sent:
             raise WriterError(
                 f"the trace writer wrote {detail} of {self.sent} frames to {self.path}"
             )
+
+
+def file_in_progress(path: Path) -> Path:
+    """The file this process is writing for trace ``path`` right now (the temporary a
+    :class:`WriterProcess` writes, renamed over ``path`` when complete), or ``path``
+    itself when none is being written: for watching a trace grow during a run."""
+    path = Path(path)
+    pattern = f".{path.name}.hdhil-{os.getpid()}-*.tmp"
+    for tmp in sorted(path.parent.glob(pattern)):
+        inside = tmp / path.name
+        if inside.exists():
+            return inside
+    return path
 
 
 class FrameCounter(can.Listener):
@@ -423,21 +514,16 @@ def metadata_path(trace: Path) -> Path:
 def write_metadata(trace: Path, metadata: dict[str, Any]) -> Path:
     """Write ``metadata`` (scenario, seed, start time, ...) as JSON next to ``trace``.
 
-    Written to a temporary file and renamed, so a reader never sees half of it; an
-    existing path that is not a regular file is left alone (ValueError)."""
+    Through :func:`hdhil.core.files.write_text`: written to a temporary file and renamed,
+    so a reader never sees half of it; an existing path that is not a regular file is
+    left alone (ValueError)."""
     import json
-    import os
 
     target = metadata_path(trace)
-    if target.exists() and not target.is_file():
-        raise ValueError(f"cannot write {target}: it exists and is not a regular file")
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
     try:
-        tmp.write_text(json.dumps(metadata, indent=1, sort_keys=True) + "\n")
-        os.replace(tmp, target)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise ValueError(f"cannot write {target}: {exc.strerror or exc}") from None
+        write_text(target, json.dumps(metadata, indent=1, sort_keys=True) + "\n", "sidecar")
+    except UserError as exc:
+        raise ValueError(f"cannot write {target}: {exc}") from None
     return target
 
 

@@ -56,7 +56,7 @@ from hdhil.can.faults import (
     parse_fault_flags,
     with_fault_flags,
 )
-from hdhil.can.trace import BusTap, FrameCounter, check_trace_path, open_writer
+from hdhil.can.trace import BusTap, FrameCounter, WriterError, WriterProcess, check_trace_path
 from hdhil.canopen.nmt import COMMAND_NAMES as NMT_COMMAND_NAMES
 from hdhil.canopen.nmt import nmt_frame
 from hdhil.commands.options import (
@@ -80,7 +80,13 @@ from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig.loop import NodeLoop, controller_expects_answer, serve
 from hdhil.rig.realtime import RealtimeLoop
 from hdhil.rig.runner import stop_on_signals
-from hdhil.rig.verdict import drive_verdict, format_verdict, stop_verdict
+from hdhil.rig.verdict import (
+    dcf_refused,
+    drive_verdict,
+    format_verdict,
+    startup_verdict,
+    stop_verdict,
+)
 
 #: The logger's pause when no frame is waiting (s): short against a 1 ms cycle.
 IDLE_SLEEP_S = 0.0002
@@ -224,8 +230,11 @@ def run_firmware(args: argparse.Namespace) -> int:
             ctrl.boot(time.monotonic())
             # Wait for the drive's boot-up (or the timeout) while producing heartbeats.
             serve(ctrl, stop.is_set, lambda: ctrl.phase != "wait-boot" or bool(ctrl.boot_error))
-            if ctrl.boot_error:
+            if dcf_refused(ctrl):  # the user's DCF has to change: an input error
                 raise UserError(ctrl.boot_error)
+            if ctrl.boot_error and not stop.is_set():
+                # No boot-up (or no SDO answer) from the drive: a stop, told as a verdict.
+                return _boot_failed(ctrl, injector, cycles)
             pacer = RealtimeLoop(Ts) if args.realtime else None
             loop = NodeLoop(
                 [ctrl],
@@ -280,6 +289,22 @@ def run_firmware(args: argparse.Namespace) -> int:
         injector.log.close()
 
 
+def _boot_failed(ctrl: ControllerNode, injector: FaultInjector, cycles: int) -> int:
+    """``hdhil firmware``'s verdict when the drive never booted or answered: the JSON
+    summary with it, the one-line reason on stderr, exit code 1."""
+    d = ctrl.diagnostics
+    node = ctrl.drive_node_id if hasattr(ctrl, "drive_node_id") else None
+    verdict = startup_verdict(ctrl, str(ctrl.boot_error), node, 0, cycles,
+                              ctrl.config.sample_period_s)  # fmt: skip
+    summary = {"node": "controller", "operational_cycles": 0, "syncs_sent": d.syncs_sent,
+               "sensor_frames": d.sensor_frames, "phase": str(ctrl.phase.value),
+               "safe_reason": d.safe_reason, "faults": injector.summary(),
+               "verdict": verdict}  # fmt: skip
+    print(json.dumps(summary))
+    print(f"hdhil: firmware {format_verdict(verdict)}", file=sys.stderr)
+    return 1
+
+
 def _sync_cycles(
     loop: NodeLoop,
     ctrl: ControllerNode,
@@ -314,21 +339,25 @@ def run_log(args: argparse.Namespace) -> int:
         if truth is not None:
             buses[CHANNEL_NUMBER["truth"]] = truth
         counter = FrameCounter()
-        try:
-            writer = open_writer(Path(args.trace))
-        except ValueError as exc:
-            raise UserError(str(exc)) from None
-        tap = BusTap(buses, [writer, counter])
-        t_end = time.monotonic() + args.duration if args.duration else float("inf")
-        try:
-            with stop_on_signals() as stop:
+        with stop_on_signals() as stop:  # from here on, Ctrl-C ends the log cleanly
+            try:
+                # written to a temporary, renamed into place when complete (also on Ctrl-C)
+                writer = WriterProcess(Path(args.trace))
+            except ValueError as exc:
+                raise UserError(str(exc)) from None
+            tap = BusTap(buses, [writer, counter])
+            t_end = time.monotonic() + args.duration if args.duration else float("inf")
+            try:
                 while not stop.is_set() and time.monotonic() < t_end:
                     if not tap.poll():
                         time.sleep(IDLE_SLEEP_S)
-            stopped_by_signal = stop.is_set()
-            tap.poll()
-        finally:
-            tap.stop()  # flushes and closes the trace
+                stopped_by_signal = stop.is_set()
+                tap.poll()
+            finally:
+                try:
+                    tap.stop()  # flushes and closes the trace, renames it into place
+                except WriterError as exc:
+                    raise UserError(str(exc)) from None
         print(json.dumps({"trace": args.trace, "frames": counter.total}))
     finally:
         for bus in buses.values():

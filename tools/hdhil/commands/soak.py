@@ -52,6 +52,7 @@ import can
 import numpy as np
 from scipy import stats
 
+from hdhil.can.trace import file_in_progress
 from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
@@ -300,11 +301,8 @@ class _BlockRecorder:
         end_sample = controller.isr.samplecount
         torque, tracking = self.scorer.take()
         health = filter_health(controller)
-        trace_MB = (
-            self.trace.stat().st_size / MB
-            if self.trace is not None and self.trace.exists()
-            else None
-        )
+        growing = file_in_progress(self.trace) if self.trace is not None else None
+        trace_MB = growing.stat().st_size / MB if growing is not None and growing.exists() else None
         symmetric = (
             math.isfinite(health.covariance_asymmetry)
             and health.covariance_asymmetry <= self.limits.asymmetry_rel * health.covariance_scale

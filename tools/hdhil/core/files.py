@@ -25,6 +25,7 @@ import contextlib
 import json
 import os
 import re
+import shutil
 import signal
 import stat
 import sys
@@ -183,10 +184,18 @@ def load_json(path: str | Path, what: str = "") -> Any:
 _LIVE: set[str] = set()
 
 
+def _unlink(name: str) -> None:
+    """Remove a temporary file, or a temporary directory and what it holds."""
+    with contextlib.suppress(OSError):
+        if os.path.isdir(name) and not os.path.islink(name):
+            shutil.rmtree(name, ignore_errors=True)
+        else:
+            os.unlink(name)
+
+
 def _remove_live() -> None:
     for name in list(_LIVE):
-        with contextlib.suppress(OSError):
-            os.unlink(name)
+        _unlink(name)
         _LIVE.discard(name)
 
 
@@ -270,8 +279,7 @@ def _remove_stale(target: Path) -> None:
                 continue
             m = re.match(r"(\d+)-", entry.name[len(prefix) :])
             if m and int(m.group(1)) != os.getpid() and not _pid_alive(int(m.group(1))):
-                with contextlib.suppress(OSError):
-                    os.unlink(entry.path)
+                _unlink(entry.path)
 
 
 def temporary_for(target: Path) -> Path:
@@ -285,6 +293,34 @@ def temporary_for(target: Path) -> Path:
     os.close(fd)
     _LIVE.add(name)
     return Path(name)
+
+
+def temporary_dir_for(target: Path) -> Path:
+    """A new empty private directory beside ``target``, registered for removal, for a
+    writer that must be given ``target``'s own file name (python-can's ``Logger`` picks
+    the format from every suffix: ``run.asc.gz``): it writes ``DIR / target.name``,
+    which :func:`commit_temporary_dir` renames into place."""
+    _remove_stale(target)
+    name = tempfile.mkdtemp(
+        prefix=f".{target.name}.hdhil-{os.getpid()}-", suffix=".tmp", dir=target.parent
+    )
+    _LIVE.add(name)
+    return Path(name)
+
+
+def commit_temporary_dir(tmp_dir: Path, target: Path, label: str) -> None:
+    """Rename ``tmp_dir / target.name`` over ``target`` (as :func:`commit_temporary`),
+    then remove ``tmp_dir``; on an error both are removed and ``target`` is left."""
+    try:
+        commit_temporary(tmp_dir / target.name, target, label)
+    finally:
+        discard_temporary(tmp_dir)
+
+
+def release_temporary(tmp: Path) -> None:
+    """Stop tracking ``tmp`` for removal at exit: another process (the trace writer)
+    owns it now and renames or removes it itself."""
+    _LIVE.discard(str(tmp))
 
 
 def commit_temporary(tmp: Path, target: Path, label: str) -> None:
@@ -307,8 +343,8 @@ def commit_temporary(tmp: Path, target: Path, label: str) -> None:
 
 
 def discard_temporary(tmp: Path) -> None:
-    with contextlib.suppress(OSError):
-        os.unlink(tmp)
+    """Remove temporary file (or directory) ``tmp``, if it is still there."""
+    _unlink(str(tmp))
     _LIVE.discard(str(tmp))
 
 

@@ -62,6 +62,8 @@ def bench_campaign(
         for k in dict.fromkeys((1, n)):
             with tempfile.TemporaryDirectory(prefix="hdhil-bench-campaign-") as tmp:
                 run = run_campaign(campaign, grid, Path(tmp), lambda k=k: local_executor(k))
+                if run.interrupted:  # Ctrl-C: the campaign kept what it had; bench stops
+                    raise KeyboardInterrupt
                 if len(run.records) != len(grid) or any(
                     r.error for r in run.records.values()
                 ):  # pragma: no cover - a broken campaign is not a figure

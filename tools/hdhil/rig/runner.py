@@ -47,7 +47,8 @@ from hdhil.can.faults import (
     check_node_transmit_faults,
 )
 from hdhil.can.simbus import SimBus, SimClock
-from hdhil.can.trace import BusTap, FrameCounter, WriterProcess, write_metadata
+from hdhil.can.trace import BusTap, FrameCounter, WriterProcess
+from hdhil.canopen.cia402 import State
 from hdhil.core.dataconf import ConfigError, from_dict, merge
 from hdhil.core.files import load_toml
 from hdhil.dbc import CHANNEL_NUMBER, database
@@ -68,7 +69,7 @@ from hdhil.rig.factories import (
 from hdhil.rig.loop import NodeLoop, controller_expects_answer
 from hdhil.rig.realtime import RealtimeConfig, RealtimeLoop, WallClock, format_realtime
 from hdhil.rig.score import TorqueScorer, TrackingScorer
-from hdhil.rig.verdict import format_verdict, stop_verdict
+from hdhil.rig.verdict import dcf_refused, format_verdict, startup_verdict, stop_verdict
 
 _run_ids = itertools.count(1)
 
@@ -198,6 +199,7 @@ def _controller_diagnostics(controller: ControllerNode) -> dict[str, Any]:
         "encoder_reseeds": d.encoder_reseeds,
         "plausibility_errors": d.plausibility_errors,
         "stuck_sensor_events": d.stuck_sensor_events,
+        "stuck_tacho_events": d.stuck_tacho_events,
         "covariance_resets": getattr(kalman, "covariance_resets", 0),
         "covariance_finite": finite,
         "covariance_min_eigenvalue": (
@@ -473,8 +475,7 @@ def build_listeners(
         listeners.append(recorder)
     if trace is not None:
         offset = start_time if plan.simulated else 0.0
-        listeners.insert(0, WriterProcess(trace, time_offset=offset))
-        write_metadata(trace, {
+        sidecar = {
             "scenario": plan.scenario.name, "seed": plan.seed,
             "duration_s": plan.cycles * plan.sample_period_s,
             "sample_period_s": plan.sample_period_s,
@@ -484,7 +485,9 @@ def build_listeners(
             "bitrate": plan.bitrate, "actuation": plan.actuation,
             "channels": dict(CHANNEL_NUMBER), "control_law": control.law.name.lower(),
             **(metadata or {}),
-        })  # fmt: skip
+        }  # fmt: skip
+        # the sidecar is written with the finished trace (both renamed into place)
+        listeners.insert(0, WriterProcess(trace, time_offset=offset, metadata=sidecar))
     listeners += extra
     return RunListeners(counter, scorer, tracking, recorder, listeners)
 
@@ -503,22 +506,48 @@ class PhaseCounts:
     operation: int = 0  # interrupts run in operation
     stop: int = 0
     interrupted: bool = False
+    #: Why start-up failed (the drive never reached "operation enabled"), else None.
+    startup_failure: str | None = None
+    #: The node that failed to start (the first drive not in operation enabled).
+    startup_node: int | None = None
+    #: Ended by ``KeyboardInterrupt`` (Ctrl-C with no stop request polled, or a second one).
+    keyboard: bool = False
 
 
-def start_up(loop: NodeLoop, controller: ControllerNode, drives: Sequence[DriveNode]) -> None:
+def _node_id(drive: DriveNode) -> int | None:
+    return getattr(getattr(drive, "config", None), "node_id", None)
+
+
+def start_up(
+    loop: NodeLoop, controller: ControllerNode, drives: Sequence[DriveNode]
+) -> tuple[str, int | None] | None:
     """Power-on: every node boots; the controller starts the drives (NMT) and walks them to
-    "operation enabled" (CiA 402) over the PDOs."""
+    "operation enabled" (CiA 402) over the PDOs.
+
+    Returns None once the controller is operational, else ``(why, node)``: a start-up that
+    fails (no boot-up, a drive that never reaches operation enabled, e.g. under heavy
+    frame loss) is a stop like any other, reported as the run's verdict (exit code 1).  A
+    drive refusing a value of the user's DCF is an input error (:class:`ConfigError`,
+    exit code 2): the file has to change, not the bus."""
     loop.boot()
     while controller.phase != "operational":
-        if controller.boot_error:
+        if dcf_refused(controller):
             raise ConfigError(controller.boot_error)
+        failed = [d for d in drives if d.drive_state != State.OPERATION_ENABLED]
+        node = _node_id(failed[0]) if failed else None
+        if controller.boot_error:
+            return controller.boot_error, node
         if controller.phase == "safe" or loop.k >= MAX_STARTUP_CYCLES:
-            states = ", ".join(str(d.drive_state) for d in drives)
-            raise ConfigError(
-                f"the drive did not reach operation enabled within {loop.k} cycles "
-                f"(controller phase {controller.phase}, drive {states})"
+            states = ", ".join(
+                f"node {_node_id(d)} {getattr(d.drive_state, 'name', d.drive_state)}"
+                for d in drives
             )
+            return (
+                f"the drive did not reach operation enabled within {loop.k} start-up cycles "
+                f"(controller phase {controller.phase}, drive {states})"
+            ), node
         loop.cycle()
+    return None
 
 
 def operate(
@@ -570,8 +599,14 @@ def run_phases(
     counts = PhaseCounts()
     controller = nodes.controller
     try:
-        start_up(loop, controller, nodes.drives)
+        failure = start_up(loop, controller, nodes.drives)
         counts.startup = loop.k
+        if failure is not None:
+            counts.startup_failure, counts.startup_node = failure
+            operation_end = loop.k
+            shut_down(loop, controller)  # NMT stop / disable whatever did start
+            counts.stop = loop.k - operation_end
+            return counts
         if pacer is not None:
             pacer.begin_recording()  # statistics cover the cycles in operation
         counts.interrupted = operate(
@@ -591,7 +626,7 @@ def run_phases(
         if pacer is not None and not counts.interrupted:
             pacer.measure_floor()  # the bare loop in the same process state
     except KeyboardInterrupt:
-        counts.interrupted = True
+        counts.interrupted = counts.keyboard = True
     return counts
 
 
@@ -726,6 +761,11 @@ def run_lockstep(
             if injector is not None:
                 injector.log.close()  # every injected fault is on disk
             blas.restore_original_limits()
+    if counts.keyboard and stop_requested is None:
+        # A caller that polls no stop request (bench, tune, a script) gets Ctrl-C as it
+        # came, once the trace is closed and the buses released: a loop around runs must
+        # end, not start the next run.
+        raise KeyboardInterrupt
     result = _result(plan, nodes, listening, counts, wall, frames_sent, trace, injector, pacer,
                      evaluate_skip_s)  # fmt: skip
     result.start_time = start_time if plan.simulated else None
@@ -799,7 +839,18 @@ def _result(
         realtime=pacer.result() if pacer is not None else None,
         recording=recorder.recording if recorder is not None else None,
         verdict=(
-            None if counts.interrupted else stop_verdict(nodes.controller, plan.cycles, done, Ts)
+            None
+            if counts.interrupted
+            else startup_verdict(
+                nodes.controller,
+                counts.startup_failure,
+                counts.startup_node,
+                counts.startup,
+                plan.cycles,
+                Ts,
+            )
+            if counts.startup_failure is not None
+            else stop_verdict(nodes.controller, plan.cycles, done, Ts)
         ),
     )
 

@@ -67,6 +67,43 @@ def stop_verdict(
     }
 
 
+def dcf_refused(controller: Any) -> bool:
+    """Whether the controller's boot failed because the drive refused a value of the
+    user's DCF (an input error, exit code 2), rather than on the bus (an SDO timeout,
+    abort 0x05040000: a stop, exit code 1)."""
+    conf = getattr(controller, "configurator", None)
+    error = getattr(conf, "error", None)
+    return bool(error) and "abort 0x05040000" not in error
+
+
+def startup_verdict(
+    controller: Any,
+    reason: str,
+    node: int | None,
+    startup_cycles: int,
+    cycles_planned: int,
+    sample_period_s: float,
+) -> dict[str, Any]:
+    """The verdict of a run whose start-up failed: ``node`` (the drive that did not reach
+    "operation enabled", or the controller's own id), phase ``start-up``, ``reason``, the
+    start-up cycles spent, and the EMCYs as in :func:`stop_verdict`.  The run did no
+    cycle in operation: ``cycle`` is 0."""
+    own = getattr(controller, "node_id", 1)
+    return {
+        "stopped_early": True,
+        "node": node if node is not None else own,
+        "phase": "start-up",
+        "controller_phase": str(getattr(controller.phase, "value", controller.phase)),
+        "reason": reason,
+        "cycle": 0,
+        "cycles_planned": cycles_planned,
+        "startup_cycles": startup_cycles,
+        "time_s": 0.0,
+        "emcy_sent": last_emcy_sent(controller.services, own),
+        "emcy_received": last_emcy_received(controller.services),
+    }
+
+
 def format_verdict(verdict: dict[str, Any]) -> str:
     """One line: ``stopped early at cycle N of M (t s) by node n (phase): reason; EMCY ...``."""
     where = (
@@ -74,10 +111,17 @@ def format_verdict(verdict: dict[str, Any]) -> str:
         if "cycle" in verdict
         else "at "
     )
-    parts = [
-        f"stopped early {where}({verdict['time_s']:.3f} s) by node {verdict['node']} "
-        f"({verdict['phase']}): {verdict['reason']}"
-    ]
+    if verdict.get("phase") == "start-up":
+        parts = [
+            f"stopped in start-up after {verdict.get('startup_cycles', 0)} cycles, none of "
+            f"the {verdict.get('cycles_planned', 0)} planned run, by node {verdict['node']}: "
+            f"{verdict['reason']}"
+        ]
+    else:
+        parts = [
+            f"stopped early {where}({verdict['time_s']:.3f} s) by node {verdict['node']} "
+            f"({verdict['phase']}): {verdict['reason']}"
+        ]
     for key, what in (("emcy_received", "EMCY received"), ("emcy_sent", "EMCY sent")):
         e = verdict.get(key)
         if e:

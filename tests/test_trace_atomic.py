@@ -1,0 +1,190 @@
+"""Traces are written atomically: to a temporary beside the target, renamed into place when
+complete; an interrupted or killed run still leaves a valid trace of what happened (read
+back with python-can's own readers) and its sidecar; an existing trace is never half
+overwritten; temporaries never stay behind."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import can
+import pytest
+
+from hdhil.can.trace import BATCH_FRAMES, WriterError, WriterProcess, metadata_path
+
+
+def _command() -> list[str]:
+    script = Path(sys.executable).with_name("hdhil")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "hdhil"]
+
+
+def _temporaries(directory: Path) -> list[str]:
+    return [p.name for p in directory.iterdir() if ".hdhil-" in p.name]
+
+
+def _wait_for_temporary(directory: Path, proc: subprocess.Popen, timeout: float = 60) -> None:
+    """Until the run's trace temporary exists (the run is under way)."""
+    deadline = time.monotonic() + timeout
+    while not _temporaries(directory):
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline, "the run never started its trace"
+        time.sleep(0.02)
+
+
+def _read_all(path: Path) -> list[can.Message]:
+    with can.LogReader(str(path)) as reader:
+        return list(reader)
+
+
+@pytest.mark.parametrize(
+    ("suffix", "sig"),
+    [(".blf", signal.SIGINT), (".asc", signal.SIGTERM), (".log.gz", signal.SIGINT)],
+)
+def test_an_interrupted_run_keeps_a_valid_trace_and_its_sidecar(tmp_path, suffix, sig):
+    trace = tmp_path / f"run{suffix}"
+    old = b"the previous trace\n"
+    trace.write_bytes(old)
+    proc = subprocess.Popen(
+        [*_command(), "run", "--duration", "60", "--no-evaluate", "--trace", str(trace)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        _wait_for_temporary(tmp_path, proc)
+        time.sleep(0.8)
+        # While the run writes, the old trace is untouched (never half overwritten).
+        assert trace.read_bytes() == old
+        proc.send_signal(sig)
+        _out, err = proc.communicate(timeout=60)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    frames = _read_all(trace)
+    assert len(frames) > 100  # the trace of what happened, not the old file
+    syncs = [m for m in frames if m.arbitration_id == 0x080 and not m.is_extended_id]
+    assert syncs and len(syncs) < 60_000  # stopped early: fewer SYNCs than 60 s
+    times = [m.timestamp for m in frames]
+    assert times == sorted(times)
+    sidecar = json.loads(metadata_path(trace).read_text())
+    assert sidecar["scenario"] == "free-motion"
+    assert not _temporaries(tmp_path)
+
+
+def test_a_blf_trace_of_a_run_interrupted_twice_is_complete(tmp_path):
+    """A second Ctrl-C interrupts at once: the writer still closes the BLF file properly
+    (python-can's BLFReader reads it to the end) and renames it into place."""
+    trace = tmp_path / "twice.blf"
+    proc = subprocess.Popen(
+        [*_command(), "run", "--duration", "60", "--no-evaluate", "--trace", str(trace)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        _wait_for_temporary(tmp_path, proc)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.01)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    with can.BLFReader(str(trace)) as reader:
+        frames = list(reader)
+    assert frames
+    assert metadata_path(trace).exists()
+    assert not _temporaries(tmp_path)
+
+
+def test_a_killed_run_leaves_the_complete_trace_in_place(tmp_path):
+    """SIGKILL of the run: the writer process reads every batch handed over, closes the
+    file and renames it over the old trace; the temporary is gone."""
+    trace = tmp_path / "killed.blf"
+    trace.write_bytes(b"old")
+    script = textwrap.dedent(f"""
+        import os, signal, can
+        from pathlib import Path
+        from hdhil.can.trace import BATCH_FRAMES, WriterProcess
+        w = WriterProcess(Path({str(trace)!r}), metadata={{"kind": "test"}})
+        for i in range(2 * BATCH_FRAMES):
+            w.on_message_received(can.Message(timestamp=i * 1e-3, arbitration_id=0x80,
+                                              data=bytes([i & 0xFF]), channel=0))
+        os.kill(os.getpid(), signal.SIGKILL)
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], timeout=60)
+    assert proc.returncode == -9
+    deadline = time.monotonic() + 30
+    while (_temporaries(tmp_path) or not metadata_path(trace).exists()) and (
+        time.monotonic() < deadline
+    ):
+        time.sleep(0.05)
+    with can.BLFReader(str(trace)) as reader:
+        data = [bytes(m.data) for m in reader]
+    assert data == [bytes([i & 0xFF]) for i in range(2 * BATCH_FRAMES)]
+    assert json.loads(metadata_path(trace).read_text()) == {"kind": "test"}
+    assert not _temporaries(tmp_path)
+
+
+def test_a_failed_writer_leaves_the_old_trace_and_no_temporary(tmp_path):
+    """The writer process dies mid-run (killed): the run is told (WriterError), the old
+    trace is kept byte for byte, and the half-written temporary is removed."""
+    trace = tmp_path / "old.blf"
+    trace.write_bytes(b"previous")
+    w = WriterProcess(trace, metadata={"kind": "test"})
+    for i in range(BATCH_FRAMES + 1):
+        w.on_message_received(
+            can.Message(timestamp=i * 1e-3, arbitration_id=0x80, data=b"\x01", channel=0)
+        )
+    assert _temporaries(tmp_path)
+    os.kill(w._proc.pid, signal.SIGKILL)
+    w._proc.join(30)
+    with pytest.raises(WriterError):
+        w.stop()
+    assert trace.read_bytes() == b"previous"
+    assert not metadata_path(trace).exists()
+    assert not _temporaries(tmp_path)
+
+
+def test_a_trace_that_became_a_fifo_is_not_replaced(tmp_path):
+    """The target is checked again when the finished trace is renamed: a path that is no
+    longer a regular file is left alone and the trace discarded, with an error."""
+    trace = tmp_path / "swap.blf"
+    w = WriterProcess(trace)
+    w.on_message_received(can.Message(arbitration_id=0x80, data=b"", channel=0))
+    os.mkfifo(trace)
+    with pytest.raises(WriterError, match="FIFO"):
+        w.stop()
+    assert trace.is_fifo()
+    assert not _temporaries(tmp_path)
+
+
+def test_log_interrupted_keeps_a_valid_trace(tmp_path):
+    """``hdhil log`` writes through the same writer: Ctrl-C gives a valid trace."""
+    trace = tmp_path / "log.asc"
+    channel = f"hdhil-atomic-log-{time.monotonic_ns()}"
+    proc = subprocess.Popen(
+        [*_command(), "log", "--interface", "virtual", "--channel", channel, str(trace)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        _wait_for_temporary(tmp_path, proc)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert json.loads(out)["frames"] == 0
+    with can.ASCReader(str(trace)) as reader:
+        assert list(reader) == []
+    assert not _temporaries(tmp_path)
