@@ -82,6 +82,41 @@ def test_a_delayed_frame_is_receivable_only_when_the_clock_reaches_it():
         rx.shutdown()
 
 
+def test_a_node_answers_a_delayed_frame_at_the_time_it_received_that_frame():
+    """Two delayed frames come due in one step; the receiver answers the first at its
+    receive time, not at the second's (a bus attached before the faults were set takes
+    the fault-aware path too)."""
+    inj = FaultInjector(from_dict(FaultConfig, {"control": {"delay_us": 300.0}}))
+    clock = SimClock(horizon=TS)
+    name = f"t-timing-{next(_names)}"
+    rx = can.Bus(interface="simbus", channel=name, clock=clock)  # before the faults
+    tx = can.Bus(interface="simbus", channel=name, clock=clock, faults=inj.channel("control"))
+    try:
+        for fid in (0x100, 0x101):
+            tx.send(can.Message(arbitration_id=fid, is_extended_id=False, data=bytes(8)))
+        seen = []
+
+        def answer(msg: can.Message) -> None:
+            seen.append(msg)
+            if msg.arbitration_id == 0x100:
+                rx.send(can.Message(arbitration_id=0x200, is_extended_id=False, data=b"\x01"))
+
+        rx.dispatch(answer)
+        a, b = seen
+        reply = tx.recv(0)
+        assert reply is not None and reply.arbitration_id == 0x200
+        assert a.timestamp < b.timestamp < TS
+        # The wire is free when 0x100 arrives; the reply goes on it then (a 1-byte frame
+        # takes at most 65 us at 1 Mbit/s) and arrives 300 us after its end: not started
+        # at 0x101's receive time.
+        sent_for = reply.timestamp - 300e-6
+        assert 0 < sent_for - a.timestamp <= 65e-6
+        assert sent_for < b.timestamp
+    finally:
+        tx.shutdown()
+        rx.shutdown()
+
+
 def test_jitter_of_200us_changes_receive_times_but_stays_within_the_cycle(tmp_path):
     clean, clean_frames, _ = _run(tmp_path)
     jit, jit_frames, _ = _run(tmp_path, "control.jitter_us=200")

@@ -361,7 +361,10 @@ class SimBus(can.BusABC):
             if faults is not None:
                 if ch.faults is not None and ch.faults is not faults:
                     raise ValueError(f"simbus channel {name!r} already has other faults")
-                ch.faults = faults
+                if ch.faults is None:
+                    ch.faults = faults
+                    for bus in ch.buses:
+                        bus._use_fault_path()
             self._ch = ch
             self._queue: deque[can.Message] = deque()
             self._ready = threading.Condition(ch.lock)
@@ -371,6 +374,8 @@ class SimBus(can.BusABC):
             #: The CANopen node-ID of the node that sends through this handle (None: not
             #: known); silence and bus-off windows of that node stop all its frames.
             self.node_id = node_id
+            if ch.faults is not None:
+                self._use_fault_path()
             with ch.lock:  # a frame in flight is routed to the old set or the new one
                 ch.attach(self)
         self.channel_info = f"simbus channel {name!r} at {ch.bitrate} bit/s"
@@ -431,17 +436,31 @@ class SimBus(can.BusABC):
         """Next received frame; without receive filters this skips python-can's generic
         filter loop (the 1 kHz path polls with ``timeout=0`` several times a cycle)."""
         ch = self._ch
+        if ch.pending:
+            with ch.lock:
+                ch.flush()
+        if self._filters is None and self._queue:
+            return self._queue.popleft()
+        if timeout == 0 and self._filters is None:
+            return None
+        return super().recv(timeout)
+
+    def _recv_faulty(self, timeout: float | None = None) -> can.Message | None:
+        """:meth:`recv` on a channel with a fault hook: in-flight deliveries that have
+        come due are released too, and the answer time moves to the frame taken."""
+        ch = self._ch
         if ch.pending or ch.inflight:
             with ch.lock:
                 ch.flush()
         if self._filters is None and self._queue:
             msg = self._queue.popleft()
-            if msg.timestamp > self._last_rx:  # only after a faulty release (see release)
-                self._last_rx = msg.timestamp
-            return msg
-        if timeout == 0 and self._filters is None:
+        elif timeout == 0 and self._filters is None:
             return None
-        return super().recv(timeout)
+        else:
+            msg = super().recv(timeout)
+        if msg is not None and msg.timestamp > self._last_rx:
+            self._last_rx = msg.timestamp
+        return msg
 
     def dispatch(self, handler: Callable[[can.Message], object]) -> int:
         """Hand every frame waiting for this bus (and passing its receive filters) to
@@ -456,30 +475,47 @@ class SimBus(can.BusABC):
         matches = None if self._filters is None else self._matches_filters
         n = 0
         while True:
+            if ch.pending:
+                with ch.lock:
+                    ch.flush()
+            if not queue:
+                return n
+            msg = queue.popleft()
+            if matches is None or matches(msg):
+                handler(msg)
+                n += 1
+
+    def _dispatch_faulty(self, handler: Callable[[can.Message], object]) -> int:
+        """:meth:`dispatch` on a channel with a fault hook (see :meth:`_recv_faulty`)."""
+        ch = self._ch
+        queue = self._queue
+        matches = None if self._filters is None else self._matches_filters
+        n = 0
+        while True:
             if ch.pending or ch.inflight:
                 with ch.lock:
                     ch.flush()
             if not queue:
                 return n
             msg = queue.popleft()
-            if msg.timestamp > self._last_rx:  # only after a faulty release (see release)
+            if msg.timestamp > self._last_rx:
                 self._last_rx = msg.timestamp
             if matches is None or matches(msg):
                 handler(msg)
                 n += 1
 
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        msg = self._take(timeout)
-        if msg is not None and msg.timestamp > self._last_rx:  # after a faulty release
-            self._last_rx = msg.timestamp
-        return msg, False
+    def _use_fault_path(self) -> None:
+        """Receive through the fault-aware ``recv``/``dispatch`` (the channel got a fault
+        hook); the plain ones stay free of its checks."""
+        self.recv = self._recv_faulty  # type: ignore[method-assign]
+        self.dispatch = self._dispatch_faulty  # type: ignore[method-assign]
 
-    def _take(self, timeout: float | None) -> can.Message | None:
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         queue = self._queue
         if queue:
-            return queue.popleft()
+            return queue.popleft(), False
         if timeout == 0:
-            return None
+            return None, False
         ch = self._ch
         with self._ready:
             self._waiting = True
@@ -495,7 +531,7 @@ class SimBus(can.BusABC):
             finally:
                 self._waiting = False
                 ch.waiting -= 1
-            return queue.popleft() if queue else None
+            return (queue.popleft() if queue else None), False
 
     def pending(self) -> int:
         """Frames waiting in this bus's receive queue (after scheduling requested frames)."""
