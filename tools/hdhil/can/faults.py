@@ -374,6 +374,11 @@ class ChannelFaults:
         self._bus_off = [(w, w.cob_ids) for w in cfg.bus_off]
         self._held: can.Message | None = None  # a frame waiting to be reordered
 
+    @property
+    def held(self) -> can.Message | None:
+        """The frame held back for reordering (delivered after the channel's next one)."""
+        return self._held
+
     def blocked(self, msg: can.Message, t: float, sender: int | None = None) -> bool:
         """True when the sender of ``msg`` is silent or bus-off at ``t`` (frame dropped
         before the wire; logged).

@@ -86,9 +86,9 @@ class SimClock:
 
 
 class _Channel:
-    __slots__ = ("bitrate", "buses", "busy_until", "clock", "delivered", "faults", "frames",
-                 "inflight", "label", "latest_request", "lock", "name", "pending", "receivers",
-                 "seq", "timing", "waiting")  # fmt: skip
+    __slots__ = ("_held_sender", "bitrate", "buses", "busy_until", "clock", "delivered",
+                 "faults", "frames", "inflight", "label", "latest_request", "lock", "name",
+                 "pending", "receivers", "seq", "timing", "waiting")  # fmt: skip
 
     def __init__(self, name: str, clock: SimClock, bitrate: int, label: str | int,
                  timing: str) -> None:  # fmt: skip
@@ -119,6 +119,8 @@ class _Channel:
         #: the others when the clock's horizon has passed their time.  Always empty
         #: without a hook.
         self.inflight: list[tuple[float, int, SimBus, can.Message]] = []
+        #: The sender of the frame the fault hook holds back for reordering.
+        self._held_sender: SimBus | None = None
         #: Deliveries made so far (the order of equal delivery times).
         self.delivered = 0
 
@@ -230,10 +232,17 @@ class _Channel:
             frame_s = self.bits(msg) / self.bitrate if self.timing != "none" else 0.0
             end = start + frame_s
             self.frames += 1
+            held = faults.held  # a frame held back for reordering, sent by _held_sender
             delivered, self.busy_until = faults.transmit(msg, end, frame_s)
             for m in delivered:
                 self.delivered += 1
-                heapq.heappush(inflight, (m.timestamp, self.delivered, sender, m))
+                # A reordered frame comes out after another sender's frame: it is still
+                # its own sender's, which every other node receives (that sender included
+                # only with receive_own_messages), not the frame that released it.
+                origin = self._held_sender if held is not None and m is held else sender
+                heapq.heappush(inflight, (m.timestamp, self.delivered, origin, m))
+            if faults.held is not None and faults.held is not held:
+                self._held_sender = sender
         self.release()
 
     def release(self) -> None:
