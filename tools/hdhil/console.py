@@ -12,6 +12,9 @@ process with exit code 130 and the one line ``hdhil: interrupted``, never a trac
 2. **The command** (:func:`hdhil.cli.main`): Ctrl-C raises ``KeyboardInterrupt`` as
    usual, so ``finally`` blocks remove temporary files and close traces; long loops poll
    a stop request and end at a clean point (:func:`hdhil.rig.runner.stop_on_signals`).
+   A Ctrl-C that lands in an object's finalizer (a bus closed by the garbage collector),
+   where Python would swallow the exception and the command run on, is raised again
+   10 ms later instead.
 3. **Exit**, after the command returned its code: the output is complete; what is left is
    the interpreter's own shut-down (joining the trace writer process, which renames the
    finished trace into place, and thread and module clean-up, where a ``KeyboardInterrupt``
@@ -29,6 +32,8 @@ import contextlib
 import os
 import signal
 import sys
+import threading
+from types import FrameType
 from typing import NoReturn
 
 _SIGNALS = tuple(
@@ -43,6 +48,28 @@ def _interrupted_during_start_up(signum: int, frame: object) -> None:
         os.write(2, b"hdhil: interrupted\n")
     finally:
         os._exit(130)
+
+
+def _in_finalizer(frame: FrameType | None) -> bool:
+    """Whether ``frame`` runs inside an object's finalizer (``__del__``, a weakref or
+    multiprocessing finalizer), where Python swallows an exception ("Exception ignored
+    in ...") and the command would go on as if Ctrl-C had never come."""
+    while frame is not None:
+        code = frame.f_code
+        if code.co_name == "__del__" or "Finalize" in getattr(code, "co_qualname", ""):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _keyboard_interrupt(signum: int, frame: FrameType | None) -> None:
+    """Ctrl-C while a command runs: ``KeyboardInterrupt`` where the command is, or, if
+    that is inside a finalizer (which would swallow it), the same signal again a moment
+    later, once the finalizer is done."""
+    if _in_finalizer(frame):
+        threading.Timer(0.01, os.kill, (os.getpid(), signum)).start()
+        return
+    raise KeyboardInterrupt
 
 
 def with_ignored() -> None:
@@ -69,7 +96,7 @@ def run() -> NoReturn:
     # Stretch 2: Ctrl-C is KeyboardInterrupt again; main turns SIGTERM/SIGHUP into it
     # while it runs and puts the start-up handler back when it returns.
     if signal.getsignal(signal.SIGINT) is _interrupted_during_start_up:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGINT, _keyboard_interrupt)
     try:
         code = main()
     except KeyboardInterrupt:  # a second Ctrl-C while main was already ending

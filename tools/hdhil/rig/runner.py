@@ -995,7 +995,9 @@ def stop_on_signals() -> Iterator[threading.Event]:
 
     def request_stop(signum: int, frame: object) -> None:
         stop.set()
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        # the second Ctrl-C: whatever raised KeyboardInterrupt before (the console's own)
+        outer = previous.get(signal.SIGINT)
+        signal.signal(signal.SIGINT, outer if callable(outer) else signal.default_int_handler)
 
     previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
