@@ -256,6 +256,20 @@ def test_run_on_the_virtual_bus_injects_control_faults(tmp_path):
     assert repeats > 0  # the duplicated SYNCs are on the bus
 
 
+def test_run_on_the_virtual_bus_with_loss_goes_on_in_cycle_time():
+    """5 % loss on the virtual bus: a dropped answer closes its cycle after a short wait
+    and costs the nodes one cycle of their time (not half a second of their heartbeat
+    timers), so the run goes on as on the simulated bus, or stops with the controller's
+    own reason."""
+    r = run_lockstep(_scenario("control.loss_rate=0.05", "seed=1"), duration_s=0.5,
+                     interface="virtual", evaluate=False)  # fmt: skip
+    assert r.faults["loss"] > 20
+    assert r.verdict is None and r.cycles == 500
+    # Cycles whose sensor frame or command was lost: more SYNCs than samples.
+    assert r.controller["syncs_sent"] > r.cycles + r.startup_cycles
+    assert r.wall_s < 20
+
+
 def test_run_on_the_virtual_bus_refuses_what_a_node_cannot_inject():
     with pytest.raises(ConfigError, match="error_frame_rate"):
         run_lockstep(_scenario("control.error_frame_rate=0.1"), duration_s=0.1,
