@@ -8,10 +8,10 @@ firmware's own output (its CTRL_TPDO1 telemetry, quantised to 0.004 Nm) within
 0.003 Nm RMS at 5 % loss; without the gaps it differs by about 0.4 Nm (the test checks
 that too, so it can tell the two apart).
 
-Under reordering and duplication the replay follows the SYNC counter
-(:class:`hdhil.rig.evaluate.SamplePeriods`): a duplicated or late SYNC starts no period, a
-sensor frame held back past the next SYNC counts in the period it reached the firmware,
-a second frame in a period is not taken.
+Under reordering and duplication too: a second sensor frame in one period is not taken
+(the firmware runs its interrupt once per SYNC), and a frame held back past the next SYNC
+counts where it reached the firmware (the simulated bus delivers a held frame as its own
+sender's, so the controller receives it; it used to go out as the releasing frame's).
 """
 
 from __future__ import annotations
@@ -28,7 +28,6 @@ from hdhil.cli import main
 from hdhil.firmware.config import FirmwareConfig, recommended_config
 from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig.evaluate import (
-    SamplePeriods,
     calibrated_signals,
     candidate_signals,
     missed_cycles,
@@ -103,62 +102,35 @@ def test_filter_command_reproduces_the_firmware_on_a_lossy_trace(lossy_trace, tm
 
 
 # ------------------------------------------------------- reordering and duplication
-def _periods(events: list[tuple[str, int | None]]) -> list[int | None]:
-    """Feed ``("S", counter)`` SYNCs and ``("T", None)`` sensor frames (1 ms apart)."""
-    p = SamplePeriods(1e-3)
-    out: list[int | None] = []
-    for k, (kind, counter) in enumerate(events):
-        if kind == "S":
-            p.sync(counter)
-        else:
-            out.append(p.sensor(k * 1e-3))
-    return out
+DISORDER = {
+    "reorder_rate": ["control.reorder_rate=0.01"],
+    "reorder_5": ["control.reorder_rate=0.05"],
+    "duplicate_rate": ["control.duplicate_rate=0.01"],
+    "mixed": ["control.reorder_rate=0.01", "control.duplicate_rate=0.01",
+              "control.loss_rate=0.02"],
+}  # fmt: skip
 
 
-def test_sample_periods_follow_the_sync_counter() -> None:
-    # clean: one sample per period, none missed
-    assert _periods([("S", 1), ("T", None), ("S", 2), ("T", None)]) == [0, 0]
-    # a SYNC lost on the bus (counter jumps by 2): one period without a sample
-    assert _periods([("S", 1), ("T", None), ("S", 3), ("T", None)]) == [0, 1]
-    # a duplicated SYNC starts no period; a second sensor frame in a period is not taken
-    assert _periods([("S", 1), ("S", 1), ("T", None), ("T", None), ("S", 2), ("T", None)]) == [
-        0,
-        None,
-        0,
-    ]
-    # SYNC 2 held back behind SYNC 3: period 2 had no sample, the late SYNC starts none
-    assert _periods([("S", 1), ("T", None), ("S", 3), ("S", 2), ("T", None)]) == [0, 1]
-    # a sensor frame held back past the next SYNC counts in the period it arrived in
-    assert _periods([("S", 1), ("S", 2), ("T", None), ("T", None)]) == [1, None]
-    # the counter wraps (overflow 240), with the 240 held back behind the 1
-    events = [("S", c) for c in range(225, 240)] + [("S", 1), ("S", 240), ("T", None)]
-    assert _periods(events)[-1] == 16  # periods 225..239 and 240 without a sample
-    # a smaller overflow (10) is learnt from the counters seen
-    events = [("S", c) for c in (8, 9, 10, 1, 2)] + [("T", None)]
-    assert _periods(events) == [4]  # periods 8, 9, 10 and 1 without a sample
-
-
-@pytest.fixture(scope="module", params=["reorder_rate", "duplicate_rate", "mixed"])
+@pytest.fixture(
+    scope="module", params=[(k, seed) for k in DISORDER for seed in (1, 4)],
+    ids=lambda p: f"{p[0]}-seed{p[1]}",
+)  # fmt: skip
 def disordered_trace(request, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    flags = {
-        "reorder_rate": ["control.reorder_rate=0.01"],
-        "duplicate_rate": ["control.duplicate_rate=0.01"],
-        "mixed": ["control.reorder_rate=0.01", "control.duplicate_rate=0.01",
-                  "control.loss_rate=0.02"],
-    }[request.param]  # fmt: skip
-    trace = tmp_path_factory.mktemp("order") / f"{request.param}.blf"
+    name, seed = request.param
+    trace = tmp_path_factory.mktemp("order") / f"{name}-{seed}.blf"
     scenario = load_scenario("free-motion")
-    faults = with_fault_flags(scenario.faults, flags)
-    result = run_lockstep(dataclasses.replace(scenario, faults=faults), 3.0, trace=trace,
-                          evaluate=False)  # fmt: skip
+    faults = with_fault_flags(scenario.faults, [*DISORDER[name], f"seed={seed}"])
+    result = run_lockstep(dataclasses.replace(scenario, faults=faults), 3.0, seed=seed,
+                          trace=trace, evaluate=False)  # fmt: skip
     assert result.verdict is None
     assert result.faults and sum(result.faults.values()) > 10  # the faults did act
     return trace
 
 
 def test_offline_candidates_reproduce_the_firmware_under_reordering(disordered_trace) -> None:
-    """1 % reordered and/or duplicated frames (and 2 % loss in the mix): the replay sees
-    the samples the firmware took, in its periods, within the telemetry's quantisation."""
+    """1 % and 5 % reordered, 1 % duplicated frames, and all with 2 % loss: the replay
+    sees the samples the firmware took, in its periods, within the telemetry's
+    quantisation (before the bus fix: 0.014 Nm RMS at 1 % reordering)."""
     fw = FirmwareConfig()
     rec, damage = recording_from_trace(disordered_trace, fw.sample_period_s)
     assert not damage
@@ -168,8 +140,5 @@ def test_offline_candidates_reproduce_the_firmware_under_reordering(disordered_t
     (name,) = [k for k in signals if k.startswith("kalman recommended")]
     assert _rms(signals[name][ok] - tele[ok]) <= GOAL_NM
     # The telemetry's own T_meas says which sample the firmware used: the same every cycle.
-    # With loss on top (mixed), a sensor frame may reach the firmware before the SYNC
-    # that started its period reaches the trace (both reordered): at most 1 in 1000.
     T_meas, _ = calibrated_signals(rec, fw)
-    wrong = np.abs(T_meas[ok] - rec.column("T_meas_tele")[ok]) > 0.005
-    assert wrong.sum() <= (0 if "mixed" not in disordered_trace.name else len(wrong) // 1000)
+    assert np.max(np.abs(T_meas[ok] - rec.column("T_meas_tele")[ok])) < 0.005

@@ -69,102 +69,6 @@ def missed_cycles(previous_s: float | None, now_s: float, sample_period_s: float
     return max(0, round((now_s - previous_s) / sample_period_s) - 1)
 
 
-class SamplePeriods:
-    """Which sensor frames the firmware used, and how many sample periods it missed
-    before each, told from the control bus's frames in the order they were delivered (a
-    trace, or the run's tap live).
-
-    The firmware runs its interrupt once per SYNC period, with the first sensor frame
-    received in that period; it skips any other frame of the period and tells its filter
-    chain of every period that had none (:mod:`hdhil.firmware.controller`, the sensor
-    hold at each SYNC).  Periods are told by the SYNC counter (CiA 301, 1..overflow): a
-    new counter value starts the next period, a jump of n means n - 1 SYNCs lost on the
-    bus (periods the drive sent nothing in); a counter seen again (a duplicated SYNC) or
-    behind the current one (a reordered SYNC) starts no period.  A sensor frame held back
-    on the bus is delivered, and logged, after the next SYNC: it counts in the period it
-    reached the firmware, as it did there.  So the replay sees exactly the samples the
-    firmware saw, in the order and in the periods it used them, under loss, duplication
-    and reordering.
-
-    Without SYNC frames (a trace holding only sensor frames) the periods come from the
-    sensor frames' timestamps (:func:`missed_cycles`; a frame less than half a period
-    after the last one used is a second frame of that period).
-    """
-
-    #: A SYNC counter up to this far behind the current one (modulo the overflow value)
-    #: is late (reordered), not a jump of almost a whole counter round.
-    LATE_WINDOW = 16
-    #: The largest SYNC counter overflow value (CiA 301 object 0x1019: 2..240); the
-    #: controller's default.  A smaller one is learnt from the largest counter seen.
-    MAX_OVERFLOW = 240
-
-    __slots__ = ("_counter", "_last_t", "_max", "_missed", "_open", "_used", "_wrapped",
-                 "sample_period_s")  # fmt: skip
-
-    def __init__(self, sample_period_s: float) -> None:
-        self.sample_period_s = sample_period_s
-        self._counter: int | None = None
-        self._max = 0
-        self._wrapped = False  # the counter has gone round once
-        self._open = False  # a SYNC period has begun
-        self._used = False  # the open period's sample was taken
-        self._missed = 0
-        self._last_t: float | None = None
-
-    @property
-    def synced(self) -> bool:
-        """Whether SYNC frames have been seen (periods from the counter)."""
-        return self._open
-
-    def sync(self, counter: int | None) -> None:
-        """A SYNC frame was delivered; ``counter`` its CiA 301 counter (None: without)."""
-        if counter is None or counter == 0 or self._counter is None:
-            periods = 1
-        else:
-            prev = self._counter
-            top = max(self._max, prev)
-            window = max(1, min(self.LATE_WINDOW, top // 4))  # a small overflow: a small one
-            # the overflow value: the largest counter seen (240, CiA 301's largest, when
-            # the counters came near it: the 240 itself may be the SYNC lost or late)
-            overflow = max(top, self.MAX_OVERFLOW) if top > self.MAX_OVERFLOW - window else top
-            if counter == prev:
-                return  # seen again (duplicated): no new period
-            if counter > prev:
-                if self._wrapped and prev <= window and overflow - counter + prev <= window:
-                    self._max = max(self._max, counter)
-                    return  # late, from the round before the wrap
-                periods = counter - prev
-            elif prev - counter <= window:
-                return  # behind (reordered): no new period
-            else:  # wrapped: overflow, then 1
-                periods = counter + overflow - prev
-                self._wrapped = True
-        if counter:
-            self._counter = counter
-            self._max = max(self._max, counter)
-        if self._open:
-            self._missed += (0 if self._used else 1) + periods - 1
-        self._open = True
-        self._used = False
-
-    def sensor(self, t: float) -> int | None:
-        """A sensor frame delivered at ``t``: None if the firmware did not use it (a second
-        frame of its period, or before the first SYNC), else the periods missed before it
-        since the last sample used."""
-        if self._open:
-            if self._used:
-                return None
-            self._used = True
-        else:
-            last = self._last_t
-            if last is not None and round((t - last) / self.sample_period_s) <= 0:
-                return None
-            self._missed += missed_cycles(last, t, self.sample_period_s)
-            self._last_t = t
-        missed, self._missed = self._missed, 0
-        return missed
-
-
 #: Butterworth cut-offs (Hz) evaluated as baselines.
 BUTTERWORTH_CUTOFFS_HZ = (10.0, 20.0, 50.0, 100.0)
 #: Harmonics scored: (label, source, multiple).
@@ -244,10 +148,9 @@ class RecordingListener(can.Listener):
         self._status = codec("control", "DRIVE_TPDO2").expect("statusword")
         self._enabled: bool | None = None  # unknown until a statusword is seen
         self._t = 0.0  # timestamp of the frame being handled
-        self._periods = SamplePeriods(sample_period_s)
-        self._sync = codec("control", "SYNC").expect("sync_counter")
+        self._last_sensor_t: float | None = None
+        self._missed = 0  # periods without a sensor frame since the last recorded sample
         self._dispatch = {
-            (self._sync.frame_id, False): self._on_sync,
             (self._sensor.frame_id, False): self._on_sensor,
             (self._tele.frame_id, False): self._on_telemetry,
             (self._truth_torque.frame_id, True): self._on_truth_torque,
@@ -292,10 +195,6 @@ class RecordingListener(can.Listener):
         # CiA 402 statusword bits 0-3, 5, 6: 0b0100111 = OPERATION ENABLED.
         self._enabled = (statusword & 0x6F) == 0x27
 
-    def _on_sync(self, data: bytes) -> None:
-        counter = self._sync.decode(data)[0] if len(data) == self._sync.length else None
-        self._periods.sync(int(counter) if counter is not None else None)
-
     def _on_sensor(self, data: bytes) -> None:
         nan = math.nan
         if self._cst is None:
@@ -306,14 +205,20 @@ class RecordingListener(can.Listener):
             actual, position = values[self._cst[0]], values[self._cst[1]]
             torque = tacho = current = nan
             encoder = int(position) & 0xFFFF
-        missed = self._periods.sensor(self._t)
-        if missed is None or self._enabled is False:
-            return  # not a sample the firmware took (SamplePeriods), or not in operation
+        Ts = self.recording.sample_period_s
+        last = self._last_sensor_t
+        if last is not None and round((self._t - last) / Ts) <= 0:
+            return  # a second sensor frame in one period: the firmware ignores it too
+        self._missed += missed_cycles(last, self._t, Ts)
+        self._last_sensor_t = self._t
+        if self._enabled is False:
+            return
         t = self._truth
         self.recording.append_row(
             (torque, tacho, current, encoder, math.nan, math.nan, math.nan,
-             t[0], t[1], t[2], t[3], t[4], float(missed), actual, position)
+             t[0], t[1], t[2], t[3], t[4], float(self._missed), actual, position)
         )  # fmt: skip
+        self._missed = 0
         # The truth of one SYNC belongs to one sample: a sample whose truth frames never
         # came (truth faults) has none, rather than the previous sample's.
         self._truth = [math.nan] * 5

@@ -57,7 +57,7 @@ from hdhil.core.errors import UserError
 from hdhil.core.files import AtomicOutput, check_input, load_toml
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
-from hdhil.rig.evaluate import SamplePeriods
+from hdhil.rig.evaluate import missed_cycles
 
 #: Output columns, in order.
 OUTPUT_COLUMNS = (
@@ -316,60 +316,46 @@ def _collect(summary: FilterSummary, chain: TorqueFilterChain) -> None:
     summary.covariance_resets = getattr(chain.kalman, "covariance_resets", 0)
 
 
-def _sensor_frames(
-    path: Path, summary: FilterSummary, sample_period_s: float
-) -> Iterator[tuple[float, tuple[int, ...], int]]:
-    """``(timestamp, (torque, tacho, current, encoder), missed)`` of every DRIVE_TPDO1
-    frame the firmware took as a sample, with the sample periods it missed before it
-    (:class:`hdhil.rig.evaluate.SamplePeriods`: told by the SYNC counter, so duplicated
-    and reordered frames count as they did in the firmware)."""
+def _sensor_frames(path: Path, summary: FilterSummary) -> Iterator[tuple[float, tuple[int, ...]]]:
+    """``(timestamp, (torque, tacho, current, encoder))`` of every DRIVE_TPDO1 frame."""
     from hdhil.can.tracefile import read_trace
     from hdhil.dbc import codec
 
     sensor = codec("control", "DRIVE_TPDO1").expect(
         "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
     )
-    sync = codec("control", "SYNC").expect("sync_counter")
-    frame_id, sync_id = sensor.frame_id, sync.frame_id
+    frame_id = sensor.frame_id
     length = sensor.length
     decode = sensor.decode
-    periods = SamplePeriods(sample_period_s)
     trace = read_trace(path)
     with trace:
         t0 = trace.first_time or 0.0
         for msg in trace:
-            if msg.is_extended_id:
-                continue
-            if msg.arbitration_id == sync_id:
-                if not (msg.is_remote_frame or msg.is_error_frame):
-                    ok = len(msg.data) == sync.length
-                    periods.sync(int(sync.decode(msg.data)[0]) if ok else None)
-                continue
-            if msg.arbitration_id != frame_id:
+            if msg.arbitration_id != frame_id or msg.is_extended_id:
                 continue
             if msg.is_remote_frame or msg.is_error_frame or len(msg.data) != length:
                 summary.malformed_frames += 1
                 continue
-            t = msg.timestamp - t0
-            missed = periods.sensor(t)
-            if missed is not None:  # else a frame the firmware did not take
-                yield t, decode(msg.data), missed  # type: ignore[misc]
+            yield msg.timestamp - t0, decode(msg.data)  # type: ignore[misc]
     summary.damage = [d.describe(trace.path) for d in trace.damage]
 
 
 def filter_trace(path: Path, cfg: FirmwareConfig, writer: Any) -> FilterSummary:
     """Filter the DRIVE_TPDO1 frames of a trace through the firmware's interrupt
-    handler (ADC read, calibration, :class:`TorqueFilterChain`), writing output rows:
-    the samples the firmware took, with its skipped updates for the periods it missed."""
+    handler (ADC read, calibration, :class:`TorqueFilterChain`), writing output rows."""
     isr = InterruptHandler(cfg)
     summary = FilterSummary(cfg, cfg.ripple.phase_source, "DRIVE_TPDO1 frames")
     writerow = writer.writerow
     n = 0
-    for t, (torque, tacho, current, encoder), missed in _sensor_frames(
-        path, summary, cfg.sample_period_s
-    ):
-        for _ in range(missed):  # periods without a sample: the interrupt was told of each
+    Ts = cfg.sample_period_s
+    previous: float | None = None
+    for t, (torque, tacho, current, encoder) in _sensor_frames(path, summary):
+        # Periods without a sensor frame: the firmware's interrupt was told of each.
+        if previous is not None and round((t - previous) / Ts) <= 0:
+            continue  # a second sensor frame in one period: the firmware ignores it too
+        for _ in range(missed_cycles(previous, t, Ts)):
             isr.sample_missed()
+        previous = t
         out = isr(AdcSample(torque, tacho, current, encoder))
         writerow((t, out.T_meas, out.acceleration, out.T_expected, out.ripple, out.T_filtered))
         n += 1
