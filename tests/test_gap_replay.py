@@ -108,11 +108,14 @@ DISORDER = {
     "duplicate_rate": ["control.duplicate_rate=0.01"],
     "mixed": ["control.reorder_rate=0.01", "control.duplicate_rate=0.01",
               "control.loss_rate=0.02"],
+    # seed 3 loses the statusword frame that says "operation enabled": the replay starts
+    # at the firmware's first telemetry instead of 80 samples late (0.065 Nm before)
+    "loss_jitter": ["control.loss_rate=0.05", "control.jitter_us=200"],
 }  # fmt: skip
 
 
 @pytest.fixture(
-    scope="module", params=[(k, seed) for k in DISORDER for seed in (1, 4)],
+    scope="module", params=[(k, seed) for k in DISORDER for seed in (1, 3)],
     ids=lambda p: f"{p[0]}-seed{p[1]}",
 )  # fmt: skip
 def disordered_trace(request, tmp_path_factory: pytest.TempPathFactory) -> Path:

@@ -117,7 +117,9 @@ class RecordingListener(can.Listener):
     telemetry that follows fills the row's telemetry columns.  When the trace carries the
     drive's statusword (``DRIVE_TPDO2``), only samples taken while the drive was in CiA 402
     OPERATION ENABLED are recorded: the start-up walk and the stop are not part of the
-    experiment.
+    experiment.  The firmware's telemetry answering a sensor frame also shows operation
+    (its interrupt runs only then), so a lost statusword frame does not delay the first
+    sample the replay takes behind the firmware's.
 
     ``drive_pdos`` (what a trace's sidecar records for a run in a mapping from a DCF,
     :func:`hdhil.canopen.mapping.layouts_to_json`): the drive's PDOs; with the CiA 402
@@ -150,6 +152,8 @@ class RecordingListener(can.Listener):
         self._t = 0.0  # timestamp of the frame being handled
         self._last_sensor_t: float | None = None
         self._missed = 0  # periods without a sensor frame since the last recorded sample
+        #: The last sensor frame's row while the statusword says "not in operation".
+        self._pending: tuple[float, ...] | None = None
         self._dispatch = {
             (self._sensor.frame_id, False): self._on_sensor,
             (self._tele.frame_id, False): self._on_telemetry,
@@ -211,21 +215,28 @@ class RecordingListener(can.Listener):
             return  # a second sensor frame in one period: the firmware ignores it too
         self._missed += missed_cycles(last, self._t, Ts)
         self._last_sensor_t = self._t
-        if self._enabled is False:
-            return
         t = self._truth
-        self.recording.append_row(
-            (torque, tacho, current, encoder, math.nan, math.nan, math.nan,
-             t[0], t[1], t[2], t[3], t[4], float(self._missed), actual, position)
-        )  # fmt: skip
-        self._missed = 0
+        row = (torque, tacho, current, encoder, math.nan, math.nan, math.nan,
+               t[0], t[1], t[2], t[3], t[4], float(self._missed), actual, position)  # fmt: skip
         # The truth of one SYNC belongs to one sample: a sample whose truth frames never
         # came (truth faults) has none, rather than the previous sample's.
         self._truth = [math.nan] * 5
+        if self._enabled is False:
+            self._pending = row  # recorded if the firmware's telemetry answers it
+            return
+        self.recording.append_row(row)
+        self._missed = 0
 
     def _on_telemetry(self, data: bytes) -> None:
         if self._enabled is False:
-            return
+            # The firmware runs its interrupt, and sends this, only in operation: the
+            # statusword saying so was lost (it is sent on change, then every 100 ms).
+            if self._pending is None:
+                return
+            self._enabled = True
+            self.recording.append_row(self._pending)
+            self._missed = 0
+        self._pending = None
         T_meas, T_filtered, velocity, _current = self._tele.decode(data)
         rec = self.recording
         rec.set_last("T_meas_tele", T_meas)
