@@ -166,6 +166,10 @@ class NodeLoop:
         sim_clock = self.sim_clock
         if pacer is not None:
             pacer.wait(k)  # wall clock: a WallClock reads real time by itself
+            if sim_clock is not None:  # its cycles end on the same time base (a cycle
+                # that starts late still has a period for its frames)
+                sim_clock.horizon = max((k + 1) * self.period_s,
+                                        sim_clock.now + self.period_s)  # fmt: skip
         elif sim_clock is not None:
             sim_clock.now = k * self.period_s
             # The step ends at the next SYNC: a delivery due later waits in flight.

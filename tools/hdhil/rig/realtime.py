@@ -174,12 +174,11 @@ class WallClock(SimClock):
 
     __slots__ = ("t0_ns",)
 
-    #: Nothing is held in flight in real time: a delivery is handed out at the next poll,
-    #: stamped with its (possibly delayed) time.
-    horizon = math.inf
-
     def __init__(self) -> None:
         self.t0_ns = _now_ns()
+        #: The end of the current cycle on this clock, set by the node loop: a delayed
+        #: frame due later waits for its cycle, as in lockstep.
+        self.horizon = math.inf
 
     @property  # type: ignore[override]
     def now(self) -> float:  # type: ignore[override]
