@@ -548,6 +548,15 @@ class SensorPlausibility:
     (:meth:`missed`, a lost sensor frame) the prediction spans 1 + g periods and the
     velocity bound grows by g periods too.
 
+    **Late samples.**  A sensor frame carries no sample number, and one delayed or
+    reordered past the next SYNC reaches the firmware in the next cycle, after a period
+    it counted as missed; the firmware runs it as that cycle's sample and skips the
+    cycle's own frame.  So after g missed periods, and b periods by which the last sample
+    lagged the firmware's cycles, the increment may span any whole number of periods n
+    from 1 to 1 + g + b: it passes when it is within the tolerance of one of them, and
+    1 + g + b - n (at most :attr:`MAX_BEHIND`) is the new lag.  Without a gap or a lag
+    the check is the one-period check above.
+
     **No lock-out.**  At most ``max_rejections`` implausible samples in a row are
     replaced per channel; the next one is accepted as the new level (a real jump, or a
     sensor that stays off: the velocity reference is re-seeded, or the encoder is
@@ -567,6 +576,7 @@ class SensorPlausibility:
     """
 
     __slots__ = (
+        "_behind",
         "_dv_max",
         "_e_bad",
         "_e_good",
@@ -596,6 +606,8 @@ class SensorPlausibility:
         "tacho_reseeds",
     )
 
+    #: Periods a sample may lag the firmware's cycles (late frames) and still pass.
+    MAX_BEHIND = 2
     _MASK = 0xFFFF
     _HALF = 0x8000
 
@@ -626,6 +638,7 @@ class SensorPlausibility:
         self._v_prev: float | None = None
         self._since = 1
         self._gap = 0  # sample periods missed since the last step
+        self._behind = 0  # periods the last sample lagged the firmware's cycles (late)
         self._v_bad = self._v_good = 0
         self._raw_last: int | None = None
         self._offset = 0.0  # replaced minus measured increments (counts)
@@ -686,7 +699,28 @@ class SensorPlausibility:
                     d -= 0x10000
                 predicted = (v_prev + v) * self._half_Ts_counts * (1 + gap)
                 tol = self._tolerance
-                if -tol <= d - predicted <= tol:
+                span = gap + self._behind
+                if span:
+                    # A sensor frame carries no sample number: the sample that ends a
+                    # gap may be the late frame of its first period, and the one after
+                    # a late sample spans the period it lagged too.  Any whole number of
+                    # periods from one to 1 + gap + behind passes; the periods it
+                    # matched tell how far this sample lags the firmware's cycles.
+                    one = (v_prev + v) * self._half_Ts_counts
+                    n = 1 + span
+                    lo, hi = (one, one * n) if one >= 0 else (one * n, one)
+                    plausible = lo - tol <= d <= hi + tol
+                    if plausible and abs(one) > tol:
+                        periods = min(n, max(1, round(d / one)))
+                        predicted = one * periods
+                        self._behind = min(self.MAX_BEHIND, n - periods)
+                    elif plausible:
+                        predicted = one * n
+                        self._behind = 0
+                    plausible = plausible and -tol <= d - predicted <= tol
+                else:
+                    plausible = -tol <= d - predicted <= tol
+                if plausible:
                     self._e_bad = 0
                     if self.encoder_error:
                         self._encoder_good()

@@ -304,3 +304,48 @@ def test_run_over_udp_multicast_injects_faults_in_a_private_namespace(netns, tmp
                "control.error_frame_rate=0.1", "--trace", "")  # fmt: skip
     out, err = p.communicate(timeout=120)
     assert p.returncode == 2 and err.count("\n") == 1 and "error_frame_rate" in err
+
+
+# --------------------------------------------------------------- late sensor frames
+def test_a_late_sample_after_a_missed_period_passes_the_encoder_check():
+    """The controller counted a period as missed, then the late frame of that period came
+    (one period's increment; it ran the interrupt on it and skipped the period's own
+    frame), then the next sample two periods on: neither increment is an encoder glitch,
+    and a glitch still is one."""
+    from hdhil.firmware.config import PlausibilityConfig
+    from hdhil.firmware.stages import SensorPlausibility
+
+    cpr, v = 8000, 150.0  # rad/s: 191 counts a period, far beyond the 20-count tolerance
+    per = v * 1e-3 * cpr / (2 * math.pi)
+    check = SensorPlausibility(PlausibilityConfig(), 1e-3, cpr, check_encoder=True)
+    counts = [round(k * per) & 0xFFFF for k in range(12)]
+    for k in (0, 1, 2, 3):
+        check.step(v, counts[k])
+    check.missed()  # period 4: no frame in its cycle
+    _, c4 = check.step(v, counts[4])  # ... it came late, in period 5's cycle
+    late_rejected = check.rejected
+    _, c6 = check.step(v, counts[6])  # period 5's frame was skipped as the second
+    assert (late_rejected, check.rejected) == (False, False)
+    assert (c4, c6) == (counts[4], counts[6])  # no offset added
+    _, c7 = check.step(v, counts[7])  # in step again: one period
+    assert not check.rejected and c7 == counts[7]
+    # Two periods without a gap or a late sample before: a glitch (replaced).
+    check.step(v, counts[9])
+    assert check.rejected
+    # After a missed period, 200 counts more than two periods' increment: a glitch.
+    check = SensorPlausibility(PlausibilityConfig(), 1e-3, cpr, check_encoder=True)
+    for k in (0, 1, 2):
+        check.step(v, counts[k])
+    check.missed()
+    check.step(v, (counts[4] + 200) & 0xFFFF)
+    assert check.rejected
+
+
+def test_reordered_sensor_frames_reach_the_controller_late_without_encoder_rejections(tmp_path):
+    r, frames, ctrl = _run(tmp_path, "control.reorder_rate=0.01", "seed=0", duration=1.0)
+    d = ctrl.diagnostics
+    assert r.faults["reorder"] > 20 and r.verdict is None
+    late = [m for m in frames if m.channel == 0 and m.arbitration_id == 0x182]
+    assert d.extra_sensor_frames > 3 and d.sensor_frames_missed > 3  # late frames
+    assert r.controller["encoder_rejections"] == 0 and r.controller["kalman_skipped"] == 0
+    assert len(late) > 1000
