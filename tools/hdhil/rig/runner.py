@@ -105,7 +105,8 @@ class RunResult:
     drive: dict[str, Any] = field(default_factory=dict)
     realtime: dict[str, Any] | None = None
     #: Unix time of simulated time 0 in the trace (the wall clock at the run's start,
-    #: or ``start_time``); ``None`` when the control bus is a real interface.
+    #: or ``start_time``); ``None`` in real time on another interface than ``simbus``
+    #: (:attr:`RunPlan.clock_time`).
     start_time: float | None = None
     #: The per-cycle recording (:class:`hdhil.rig.evaluate.Recording`) when the run
     #: evaluated; not part of :meth:`as_dict`.
@@ -258,6 +259,15 @@ class RunPlan:
         """The control bus is the in-process simulated bus (lockstep in simulated time)."""
         return self.interface == "simbus"
 
+    @property
+    def clock_time(self) -> bool:
+        """Every frame the tap hands on carries the run's clock (the cycle time ``k * Ts``
+        in lockstep): always on the simulated bus; on any other interface in lockstep,
+        where the tap stamps the control frames itself (:class:`CycleStampedTap`).  Not
+        for another interface in real time, whose frames keep the interface's own
+        (wall-clock or hardware) timestamps."""
+        return self.simulated or not self.realtime
+
 
 def plan_run(
     scenario: Scenario,
@@ -305,6 +315,42 @@ def plan_run(
 
 
 # ---------------------------------------------------------------------- the buses
+class CycleStampedTap:
+    """The host tap's handle on a control bus other than ``simbus`` in lockstep: every
+    frame it receives is stamped with the run's clock at that moment, the cycle time
+    ``k * Ts`` of the cycle in which the frame reached the tap.
+
+    python-can's ``virtual`` bus stamps frames with the wall clock when they are sent and
+    ``udp_multicast`` with the kernel's receive time, so a lockstep run (1 s simulated in
+    about 0.2 s) would hand the listeners wall-clock control frames next to truth frames
+    in simulated time: the evaluation pairs sensor frames with truth and counts missed
+    periods by timestamp, and found nothing to pair.  Stamped here, the control frames
+    carry the time base of the truth channel and of the firmware's own cycles; what the
+    bus really changes stays: a frame the bus (or a fault) holds past its cycle is
+    stamped with the cycle in which it arrived, as the firmware received it.  Within one
+    cycle the frames share one timestamp and keep their order of arrival; the tap puts the
+    truth channel first on a tie (:func:`build_nodes`), as on ``simbus``, where truth is
+    stamped at the sample instant and every control frame after its time on the wire.
+
+    Everything else is the wrapped bus.  Received frames are the tap's own copies
+    (python-can's buses hand each receiver its own :class:`can.Message`)."""
+
+    def __init__(self, bus: can.BusABC, clock: SimClock) -> None:
+        self.bus = bus
+        self._clock = clock
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "bus":  # not set yet (copy, pickle): no recursion
+            raise AttributeError(name)
+        return getattr(self.bus, name)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        msg = self.bus.recv(timeout)
+        if msg is not None:
+            msg.timestamp = self._clock.now
+        return msg
+
+
 class RigBuses:
     """Opens the run's python-can buses, one handle per node and per tap, and closes
     every one it opened. The control bus follows the run's interface; the truth
@@ -440,6 +486,11 @@ def build_nodes(
         )
     tap_buses = {CHANNEL_NUMBER["control"]: buses.control(),
                  CHANNEL_NUMBER["truth"]: buses.truth()}  # fmt: skip
+    if not plan.simulated and plan.clock_time:
+        # Control frames in the cycle time, truth first on a tie (CycleStampedTap).
+        tap_buses = {CHANNEL_NUMBER["truth"]: tap_buses[CHANNEL_NUMBER["truth"]],
+                     CHANNEL_NUMBER["control"]: CycleStampedTap(
+                         tap_buses[CHANNEL_NUMBER["control"]], buses.clock)}  # fmt: skip
     return RigNodes(controller, drives, controller_bus, truth_handles[0], tap_buses)
 
 
@@ -465,7 +516,8 @@ def build_listeners(
 ) -> RunListeners:
     """The tap's listeners, the trace writer first (it sees every frame as it came).
 
-    On the simulated bus the trace's times are simulated time plus ``start_time``; the
+    In lockstep (on any interface) and on the simulated bus the trace's times are the
+    run's clock plus ``start_time`` (:attr:`RunPlan.clock_time`); the
     trace's sidecar JSON gets the run's settings and ``metadata``."""
     counter, scorer = FrameCounter(), TorqueScorer()
     listeners: list[can.Listener] = [counter, scorer]
@@ -480,13 +532,13 @@ def build_listeners(
         recorder = RecordingListener(plan.sample_period_s, (metadata or {}).get("drive_pdos"))
         listeners.append(recorder)
     if trace is not None:
-        offset = start_time if plan.simulated else 0.0
+        offset = start_time if plan.clock_time else 0.0
         sidecar = {
             "scenario": plan.scenario.name, "seed": plan.seed,
             "duration_s": plan.cycles * plan.sample_period_s,
             "sample_period_s": plan.sample_period_s,
-            "start_time": start_time if plan.simulated else None,
-            "start_time_utc": _utc(start_time) if plan.simulated else None,
+            "start_time": start_time if plan.clock_time else None,
+            "start_time_utc": _utc(start_time) if plan.clock_time else None,
             "time_offset_s": offset, "interface": plan.interface or "python-can configuration",
             "bitrate": plan.bitrate, "actuation": plan.actuation,
             "channels": dict(CHANNEL_NUMBER), "control_law": control.law.name.lower(),
@@ -785,7 +837,7 @@ def run_lockstep(
         raise KeyboardInterrupt
     result = _result(plan, nodes, listening, counts, wall, frames_sent, trace, injector, pacer,
                      evaluate_skip_s)  # fmt: skip
-    result.start_time = start_time if plan.simulated else None
+    result.start_time = start_time if plan.clock_time else None
     return result
 
 
