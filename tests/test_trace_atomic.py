@@ -39,6 +39,22 @@ def _wait_for_temporary(directory: Path, proc: subprocess.Popen, timeout: float 
         time.sleep(0.02)
 
 
+def _wait_for_frames(
+    directory: Path, name: str, proc: subprocess.Popen, timeout: float = 60
+) -> None:
+    """Until the writer has put frames into the run's trace temporary (the file inside it
+    is no longer empty): the run is in its loop, whatever the machine's load."""
+    deadline = time.monotonic() + timeout
+    while not any(
+        (d / name).exists() and (d / name).stat().st_size > 0
+        for d in directory.iterdir()
+        if ".hdhil-" in d.name and d.is_dir()
+    ):
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline, "the run never wrote a frame"
+        time.sleep(0.02)
+
+
 def _read_all(path: Path) -> list[can.Message]:
     with can.LogReader(str(path)) as reader:
         return list(reader)
@@ -88,10 +104,9 @@ def test_a_blf_trace_of_a_run_interrupted_twice_is_complete(tmp_path):
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
-        _wait_for_temporary(tmp_path, proc)
-        time.sleep(0.5)
+        _wait_for_frames(tmp_path, trace.name, proc)
         proc.send_signal(signal.SIGINT)
-        time.sleep(0.01)
+        time.sleep(0.01)  # the second Ctrl-C lands while the run is ending
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=60)
     finally:
@@ -132,6 +147,51 @@ def test_a_killed_run_leaves_the_complete_trace_in_place(tmp_path):
         data = [bytes(m.data) for m in reader]
     assert data == [bytes([i & 0xFF]) for i in range(2 * BATCH_FRAMES)]
     assert json.loads(metadata_path(trace).read_text()) == {"kind": "test"}
+    assert not _temporaries(tmp_path)
+
+
+class _Interrupted(Exception):
+    """What this test's SIGINT handler raises (not KeyboardInterrupt, which ends pytest)."""
+
+
+def test_a_ctrl_c_as_a_batch_is_handed_over_neither_loses_nor_repeats_frames(tmp_path):
+    """Ctrl-C lands the moment a batch has gone into the pipe, before it is counted: the
+    handler runs once the batch is counted, so ``stop`` sends nothing twice and the trace
+    holds every frame exactly once (before, the batch went again: "wrote 1024 of 512")."""
+    trace = tmp_path / "race.blf"
+    w = WriterProcess(trace)
+    pipe = w._frames
+
+    class InterruptedAfterWrite:
+        closed = property(lambda self: pipe.closed)
+
+        def send_bytes(self, data: bytes) -> None:
+            pipe.send_bytes(data)
+            os.kill(os.getpid(), signal.SIGINT)
+
+        def close(self) -> None:
+            pipe.close()
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise _Interrupted
+
+    previous = signal.signal(signal.SIGINT, interrupt)
+    try:
+        w._frames = InterruptedAfterWrite()  # type: ignore[assignment]
+        with pytest.raises(_Interrupted):
+            for i in range(BATCH_FRAMES):
+                w.on_message_received(
+                    can.Message(timestamp=i * 1e-3, arbitration_id=0x80,
+                                data=i.to_bytes(2, "big"), channel=0)
+                )  # fmt: skip
+        assert i == BATCH_FRAMES - 1  # the handler ran once the batch was out
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        w._frames = pipe
+    w.stop()
+    with can.BLFReader(str(trace)) as reader:
+        data = [bytes(m.data) for m in reader]
+    assert data == [i.to_bytes(2, "big") for i in range(BATCH_FRAMES)]
     assert not _temporaries(tmp_path)
 
 

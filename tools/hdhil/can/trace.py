@@ -33,8 +33,9 @@ import operator
 import os
 import signal
 import struct
+import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -229,6 +230,44 @@ def _writer_main(
         status.send(("error", error) if error else ("done", written))
 
 
+@contextlib.contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Hold back the stopping signals' Python handlers for the block, then run them.
+
+    Handing a batch to the writer is a pipe write plus the count of frames sent; a
+    Ctrl-C raising ``KeyboardInterrupt`` between the two (or between two chunks of a
+    batch larger than the pipe) would leave the count short, so that ``stop`` sends the
+    same batch again (duplicated frames, "wrote N of M" error), or leave half a batch in
+    the pipe (the writer discards the trace).  A signal that arrives in the block is noted
+    and its handler, whichever is in place when the block ends, runs then.  Python runs
+    signal handlers in the main thread only: elsewhere there is nothing to hold back.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+
+    def note(signum: int, frame: object) -> None:
+        if signum not in caught:
+            caught.append(signum)
+
+    previous: dict[int, Any] = {}
+    try:
+        for sig in _stopping_signals():
+            if signal.getsignal(sig) is not signal.SIG_IGN:
+                previous[sig] = signal.signal(sig, note)
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for sig in caught:
+            handler = signal.getsignal(sig)
+            if callable(handler):
+                handler(sig, None)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(sig)
+
+
 _pack = _RECORD.pack
 
 
@@ -348,16 +387,18 @@ class WriterProcess(can.Listener):
     def _send(self) -> None:
         if not self._batched:
             return
-        try:
-            self._frames.send_bytes(self._batch)
-        except OSError as exc:
-            raise WriterError(
-                f"the trace writer for {self.path} is gone ({exc.strerror or exc}); "
-                f"the trace holds at most {self.sent} frames"
-            ) from None
-        self.sent += self._batched
-        self._batch = bytearray()
-        self._batched = 0
+        # The batch goes whole or not at all, and is counted with it (_signals_deferred).
+        with _signals_deferred():
+            try:
+                self._frames.send_bytes(self._batch)
+            except OSError as exc:
+                raise WriterError(
+                    f"the trace writer for {self.path} is gone ({exc.strerror or exc}); "
+                    f"the trace holds at most {self.sent} frames"
+                ) from None
+            self.sent += self._batched
+            self._batch = bytearray()
+            self._batched = 0
 
     def stop(self) -> None:
         """Hand on the last frames, let the child close the file, check the count."""
