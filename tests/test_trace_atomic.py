@@ -248,3 +248,29 @@ def test_log_interrupted_keeps_a_valid_trace(tmp_path):
     with can.ASCReader(str(trace)) as reader:
         assert list(reader) == []
     assert not _temporaries(tmp_path)
+
+
+def test_a_second_signal_while_the_first_sets_the_stop_request_does_not_hang():
+    """Two stopping signals back to back: the second one's handler runs while the first
+    one's is setting the stop request (holding the event's lock, which is not reentrant).
+    Before, it set the event again and waited for that lock for ever."""
+    script = textwrap.dedent("""
+        import os, signal, threading
+        from hdhil.rig.runner import stop_on_signals
+
+        class SecondSignalInside(type(threading.Condition())):
+            def __enter__(self):
+                held = super().__enter__()
+                os.kill(os.getpid(), signal.SIGTERM)  # arrives while the lock is held
+                return held
+
+        with stop_on_signals() as stop:
+            stop._cond = SecondSignalInside(threading.Lock())
+            os.kill(os.getpid(), signal.SIGTERM)
+        print("stopped" if stop.is_set() else "not stopped")
+    """)
+    proc = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "stopped"

@@ -1063,11 +1063,17 @@ def stop_on_signals() -> Iterator[threading.Event]:
         return
 
     def request_stop(signum: int, frame: object) -> None:
-        stop.set()
-        # the second Ctrl-C: whatever raised KeyboardInterrupt before (the console's own)
+        # The second Ctrl-C: whatever raised KeyboardInterrupt before (the console's own).
+        # Put in place before the event is set: Event.set takes a lock that is not
+        # reentrant, and a second Ctrl-C whose handler ran inside this one's set() and
+        # set the event again waited for that lock for ever (a run that never ended).
         outer = previous.get(signal.SIGINT)
         signal.signal(signal.SIGINT, outer if callable(outer) else signal.default_int_handler)
+        if not requested:  # a stopping signal whose handler runs inside this one's set()
+            requested.append(signum)
+            stop.set()
 
+    requested: list[int] = []
     previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield stop
