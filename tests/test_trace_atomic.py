@@ -195,6 +195,49 @@ def test_a_ctrl_c_as_a_batch_is_handed_over_neither_loses_nor_repeats_frames(tmp
     assert not _temporaries(tmp_path)
 
 
+def test_a_ctrl_c_amid_a_poll_of_frames_keeps_every_frame_handed_over(tmp_path):
+    """Ctrl-C lands while ``on_frames`` appends a poll's frames to the batch: the frames
+    appended so far are written and counted alike (before, they were written but not
+    counted: "wrote 5 of 0 frames" when the trace was closed)."""
+    trace = tmp_path / "amid.blf"
+    w = WriterProcess(trace)
+
+    class SignalsWhenRead(can.Message):
+        armed = False
+
+        @property
+        def data(self) -> bytearray:  # type: ignore[override]
+            if self.armed:
+                os.kill(os.getpid(), signal.SIGINT)  # handled at the next call: mid-loop
+            return bytearray(b"\x05")
+
+        @data.setter
+        def data(self, value: object) -> None:
+            pass
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise _Interrupted
+
+    frames = [can.Message(timestamp=i * 1e-3, arbitration_id=0x80, data=bytes([i]), channel=0)
+              for i in range(5)]  # fmt: skip
+    signalling = SignalsWhenRead(timestamp=5e-3, arbitration_id=0x80, channel=0)
+    frames.append(signalling)
+    frames += [can.Message(timestamp=6e-3, arbitration_id=0x80, data=b"\x06", channel=0)]
+    previous = signal.signal(signal.SIGINT, interrupt)
+    try:
+        signalling.armed = True
+        with pytest.raises(_Interrupted):
+            w.on_frames(frames)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    w.stop()
+    with can.BLFReader(str(trace)) as reader:
+        written = [bytes(m.data) for m in reader]
+    assert written[:5] == [bytes([i]) for i in range(5)]  # none lost
+    assert w.sent == len(written) >= 5  # and every one written counted
+    assert not _temporaries(tmp_path)
+
+
 def test_a_failed_writer_leaves_the_old_trace_and_no_temporary(tmp_path):
     """The writer process dies mid-run (killed): the run is told (WriterError), the old
     trace is kept byte for byte, and the half-written temporary is removed."""

@@ -353,7 +353,7 @@ class WriterProcess(can.Listener):
     def on_message_received(self, msg: can.Message) -> None:
         """Append the frame to the batch; ``msg.channel`` must be a channel number (0-255),
         as the run's tap stamps it."""
-        if not self._batched:
+        if not self._batch:
             self._batch_started = time.monotonic()
         data = msg.data
         self._batch += _pack(msg.timestamp, msg.arbitration_id,
@@ -368,7 +368,7 @@ class WriterProcess(can.Listener):
 
     def on_frames(self, frames: list[can.Message]) -> None:
         """:meth:`on_message_received` for each frame, in one call."""
-        if not self._batched:
+        if not self._batch:
             self._batch_started = time.monotonic()
         batch = self._batch  # appended in place
         for msg in frames:
@@ -385,7 +385,7 @@ class WriterProcess(can.Listener):
             self._send()
 
     def _send(self) -> None:
-        if not self._batched:
+        if not self._batch:
             return
         # The batch goes whole or not at all, and is counted with it (_signals_deferred).
         with _signals_deferred():
@@ -396,7 +396,9 @@ class WriterProcess(can.Listener):
                     f"the trace writer for {self.path} is gone ({exc.strerror or exc}); "
                     f"the trace holds at most {self.sent} frames"
                 ) from None
-            self.sent += self._batched
+            # Counted from the bytes (fixed-size records, each appended whole): a Ctrl-C
+            # between appending a frame and counting it cannot make the two disagree.
+            self.sent += len(self._batch) // _RECORD.size
             self._batch = bytearray()
             self._batched = 0
 
