@@ -510,12 +510,18 @@ def run(args: argparse.Namespace) -> int:
     )
     window = tuple(args.window) if args.window is not None else None
     fig = make_figure(data, title, window)  # type: ignore[arg-type]
+    return _save(fig, args.out, damage)
+
+
+def _save(fig: Figure, out: Path, damage: object) -> int:
+    """Write ``fig`` to ``out`` through the output helper (a regular file, replaced
+    atomically); exit code 1 when the trace was damaged, else 0."""
     try:
-        with atomic_path(args.out, "--out") as tmp:
+        with atomic_path(out, "--out") as tmp:
             fig.savefig(tmp, dpi=100)
     except (OSError, ValueError) as exc:
-        raise UserError(f"--out {args.out}: cannot write ({exc})") from None
-    print(f"hdhil plot: wrote {args.out}")
+        raise UserError(f"--out {out}: cannot write ({exc})") from None
+    print(f"hdhil plot: wrote {out}")
     if damage:
         print(f"hdhil: warning: {damage}", file=sys.stderr)
         return 1
@@ -534,12 +540,4 @@ def _run_fig8(args: argparse.Namespace, scenario: Any) -> int:
         "after seed 003 (Vertechy et al.) Fig. 8, seed sign convention"
     )
     fig = make_fig8(data, title, skip)
-    try:
-        fig.savefig(args.out, dpi=100)
-    except (OSError, ValueError) as exc:
-        raise UserError(f"--out {args.out}: cannot write ({exc})") from None
-    print(f"hdhil plot: wrote {args.out}")
-    if damage:
-        print(f"hdhil: warning: {damage}", file=sys.stderr)
-        return 1
-    return 0
+    return _save(fig, args.out, damage)
