@@ -14,12 +14,12 @@ the source; the merged one is made from them each time.
 from __future__ import annotations
 
 import argparse
-import os
 from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
 from hdhil.core.errors import UserError
+from hdhil.core.files import atomic_path
 
 
 def merged_database() -> Any:
@@ -75,14 +75,12 @@ def export(out: Path) -> int:
     if not out.parent.is_dir():
         raise UserError(f"{out}: directory {out.parent} does not exist")
     text = merged_dbc_text()
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text, encoding="cp1252", errors="strict", newline="\r\n")
-        os.replace(tmp, out)
-    except (OSError, UnicodeEncodeError) as exc:
-        tmp.unlink(missing_ok=True)
-        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
-        raise UserError(f"cannot write {out}: {reason}") from None
+    with atomic_path(out) as tmp:
+        try:
+            tmp.write_text(text, encoding="cp1252", errors="strict", newline="\r\n")
+        except (OSError, UnicodeEncodeError) as exc:
+            reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+            raise UserError(f"cannot write {out}: {reason}") from None
     return text.count("\nBO_ ")
 
 
