@@ -613,11 +613,13 @@ class ControllerNode(CanNode):
                     f"{_seconds(self.boot_timeout_s)} s: check power, node-ID and bit rate"
                 )
                 self._enter_safe(self.boot_error)
-        if self._own_isr and self.isr.chain.plausibility.revision != self._plausibility_revision:
-            self._report_plausibility()
-        stuck = getattr(self.isr, "stuck", None) if self._own_isr else None
-        if stuck is not None and stuck.revision != self._stuck_revision:
-            self._report_stuck(stuck)
+        if self._own_isr:  # our InterruptHandler: its plausibility and stuck-channel flags
+            isr = self.isr
+            if isr.chain.plausibility.revision != self._plausibility_revision:
+                self._report_plausibility()
+            stuck = isr.stuck
+            if stuck is not None and stuck.revision != self._stuck_revision:
+                self._report_stuck(stuck)
         counters = self.services.counters
         self.diagnostics.emcy_sent = counters.emcy_sent
         self.diagnostics.emcy_received = counters.emcy_received
