@@ -120,3 +120,18 @@ def test_free_motion_trace_unchanged(tmp_path: Path) -> None:
     trace = tmp_path / "golden.blf"
     _hdhil("run", "--duration", "2", "--seed", "1", "--trace", str(trace))
     _check("trace/free-motion", _trace_digest(trace))
+
+
+#: Scenarios whose whole trace is digested beside free-motion: a load, a misalignment
+#: and the torque-control laws, so a move of the plant, the nodes or the trace path
+#: that changes any frame of them fails here.
+TRACED = ("torque-steps", "misalignment", "lqg-tracking", "lqg-experiment")
+
+
+@pytest.mark.parametrize("scenario", TRACED)
+def test_scenario_trace_and_evaluation_unchanged(scenario: str, tmp_path: Path) -> None:
+    trace = tmp_path / "golden.blf"
+    _hdhil("run", "--scenario", scenario, "--duration", "2", "--seed", "1", "--trace", str(trace))
+    _check(f"trace/{scenario}", _trace_digest(trace))
+    evaluated = json.loads(_hdhil("evaluate", str(trace), "--json"))
+    _check(f"evaluate/{scenario}", _rounded(evaluated))
