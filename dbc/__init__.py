@@ -297,7 +297,7 @@ def worst_case_frame_bits(length: int, extended: bool = False) -> int:
 
     Base frame: 47 + 8n bits plus at most floor((34 + 8n - 1) / 4) stuff bits (the
     34 stuffable header/CRC bits and 8n data bits); extended frame: 67 + 8n plus
-    floor((54 + 8n - 1) / 4).  See DESIGN.md, "Frame budget".
+    floor((54 + 8n - 1) / 4).  See docs/design.md, "Frame budget".
     """
     if extended:
         return 67 + 8 * length + (54 + 8 * length - 1) // 4

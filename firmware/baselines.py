@@ -7,13 +7,13 @@ so they can be mixed.  Neither is what the seed's filter does; they are what a
 designer would try first, which is why they are the baselines.
 
 - :class:`ButterworthLowPass`: the seed's own earlier torque filter.  Listing A.1's
-  revision history reads "01/11/95 hdt Butterworth filter for torque" (seed 000,
+  revision history reads "01/11/95 hdt Butterworth filter for torque" ([Taghirad97],
   Appendix A.1, ``free_kalman.c`` header), replaced on 18/04/96 by the Kalman filter;
   the code of that Butterworth filter is not printed, so order and cut-off are ours.
   §4 argues against it: "This is more efficient than simple low-pass filtering,
   because it uses the known structure of the torque signal."
 - :class:`TrackingNotchBank`: second-order IIR notches whose centre frequencies
-  follow multiples of the measured motor velocity (seed 000 §4: the ripple is at 2x
+  follow multiples of the measured motor velocity ([Taghirad97] §4: the ripple is at 2x
   and 4x the motor velocity).  Not in the seed.
 
 Non-finite samples are not skipped: like any IIR filter a NaN input poisons the
@@ -40,7 +40,7 @@ def _check_period(sample_period_s: float) -> float:
 class ButterworthLowPass:
     """Butterworth low-pass, ``order`` poles at ``cutoff_Hz`` (-3 dB), sampled at Ts.
 
-    Provenance: seed 000, listing A.1 revision note "01/11/95 hdt Butterworth filter
+    Provenance: [Taghirad97], listing A.1 revision note "01/11/95 hdt Butterworth filter
     for torque" (the filter itself is not printed).  Design:
     ``scipy.signal.butter(order, cutoff_Hz, fs=1/Ts)`` (bilinear transform with
     pre-warping, so the -3 dB point is exactly at ``cutoff_Hz``); unity gain at DC.
@@ -118,7 +118,7 @@ class TrackingNotchBank:
     """A cascade of second-order IIR notches at ``multiples`` x the measured motor
     velocity, retuned every sample.
 
-    Provenance: not in the seed.  The ripple of seed 000 §4 sits at 2x and 4x the
+    Provenance: not in the seed.  The ripple of [Taghirad97] §4 sits at 2x and 4x the
     motor velocity, so a notch that follows those frequencies is the obvious
     non-model-based alternative to the Kalman filter.  Each notch is the standard
     second-order notch (S. J. Orfanidis, *Introduction to Signal Processing*, 1996,

@@ -1,8 +1,8 @@
-"""Typed configuration of the ported firmware (the 1 kHz interrupt handler of seed 000).
+"""Typed configuration of the ported firmware (the 1 kHz interrupt handler of [Taghirad97]).
 
-Every value the C listing of seed 000 (``000_ae0a3dbe24949b7c.txt``,
-Appendix A.1 ``free_kalman.c``, and A.2) kept in a global variable, a host mailbox or a
-literal inside a function is a field here, with the listing's value as the default.
+Every value the C listing of [Taghirad97] (Appendix A.1 ``free_kalman.c``, and A.2) kept
+in a global variable, a host mailbox or a literal inside a function is a field here, with
+the listing's value as the default.
 All classes are frozen dataclasses that check their ranges in ``__post_init__`` and
 raise ``ValueError`` naming the field and the allowed range, so that
 ``hdhil.core.dataconf.from_dict`` turns a bad scenario value into a one-line ``ConfigError``.
@@ -99,7 +99,7 @@ PhaseSource = Literal["encoder", "tacho"]
 
 
 class Wave(enum.IntEnum):
-    """Reference wave types (seed 000, listing A.1: ``int wavetype = 0; /* no wave
+    """Reference wave types ([Taghirad97], listing A.1: ``int wavetype = 0; /* no wave
     generation by default */`` and ``ref_fl = reference_generation(wavetype)``).
 
     The listing includes ``servo_refgen.h`` but does not print ``reference_generation``;
@@ -113,12 +113,12 @@ class Wave(enum.IntEnum):
     TRIANGLE = 3
     STEP = 4
     SAWTOOTH = 5
-    CHIRP = 6  # linear frequency sweep (seed 003 Fig. 5: identification by a chirp)
+    CHIRP = 6  # linear frequency sweep ([Vertechy] Fig. 5: identification by a chirp)
 
 
 @dataclass(frozen=True)
 class ReferenceConfig:
-    """The reference generator's host mailboxes (seed 000, listing A.1 ``main()``:
+    """The reference generator's host mailboxes ([Taghirad97], listing A.1 ``main()``:
     ``copy(parm_ptr, &Nbias ...)``, ``Namplitude``, ``wavetype``, ``freq``, ``duty``).
 
     The listing receives ``Nbias`` / ``Namplitude`` as host numbers and converts them
@@ -144,9 +144,9 @@ class ReferenceConfig:
     index (no accumulated state to drift).  ``rise = fall = 0`` are zero edge times:
     here every edge (square, step) is instantaneous, which is what those zeros give.
 
-    ``chirp_end_Hz`` and ``chirp_duration_s`` (not in the seeds) are for ``wave =
+    ``chirp_end_Hz`` and ``chirp_duration_s`` (not in the papers) are for ``wave =
     "chirp"`` only: a linear sweep from ``frequency_Hz`` to ``chirp_end_Hz`` over
-    ``chirp_duration_s``, repeated (seed 003 Fig. 5: "obtained experimentally by
+    ``chirp_duration_s``, repeated ([Vertechy] Fig. 5: "obtained experimentally by
     commanding tau_m with a chirp function").
     """
 
@@ -176,9 +176,9 @@ class ReferenceConfig:
 class Calibration:
     """Sensor gains, volts to physical units, and the encoder resolution.
 
-    - ``volt2Nm = 6.6``: torque sensor gain, seed 000, Table 1 (6.60 Nm/V, 2 %
+    - ``volt2Nm = 6.6``: torque sensor gain, [Taghirad97], Table 1 (6.60 Nm/V, 2 %
       consistency over 8 experiments) and listing A.1 ``float volt2Nm = 6.6``.
-    - ``volt2radps = 56.2565``: tachometer gain, seed 000, listing A.1
+    - ``volt2radps = 56.2565``: tachometer gain, [Taghirad97], listing A.1
       ``float volt2radps = 56.2565``.
     - ``volt2amp``: the servo amplifier's current-monitor scaling (A per V).  Not in
       the seed: the listing stores ``MotorCurrOut`` in volts, uncalibrated; 1.0 keeps
@@ -215,13 +215,13 @@ class Calibration:
             )
 
 
-#: Paper mode: process-noise variance of a motor-locked oscillator block (seed 000 §4 and
+#: Paper mode: process-noise variance of a motor-locked oscillator block ([Taghirad97] §4 and
 #: listing A.1, ``Q = 1e3 I``).
 PAPER_Q_MOTOR = 1e3
 #: Paper mode: process-noise variance of the misalignment block (listing A.2,
 #: ``Q[2][2] = Q[3][3] = 5e-2``).
 PAPER_Q_OUTPUT = 5e-2
-#: Paper mode: measurement-noise variance R (seed 000 §4 and listing A.1, ``R = 1.0``).
+#: Paper mode: measurement-noise variance R ([Taghirad97] §4 and listing A.1, ``R = 1.0``).
 PAPER_R = 1.0
 #: Paper mode: initial covariance P = p0·I (listing A.1, ``P[i][i] = 1.0``).
 PAPER_P0 = 1.0
@@ -238,7 +238,7 @@ PAPER_P0 = 1.0
 #: misalignment / speed-chirp (1e-6: 6.8 / 7.2 / 0.9 / 6.8 %, tracks the drift worse).
 RECOMMENDED_Q_HARMONIC = 3e-6
 #: Recommended mode: random-walk variance per step of an output-angle harmonic's
-#: coefficients (misalignment, seed 000 §5).  Its frequency is 1/gear_ratio of the motor
+#: coefficients (misalignment, [Taghirad97] §5).  Its frequency is 1/gear_ratio of the motor
 #: harmonics', so what it learns wrongly (e.g. a start-up transient taken for
 #: misalignment while P is still wide) is unlearned only over output revolutions: with
 #: 1e-5 a wrong 0.9 Nm start took over 100 s to fall below 0.02 Nm at 120 rad/s, with
@@ -285,8 +285,8 @@ class Oscillator:
     """One harmonic of the ripple model: a frequency locked to the motor or output angle.
 
     Its angular frequency is ``multiple * velocity`` (``source = "motor"``: the meshing
-    ripple, seed 000 §4, ω1 = 2θ̇, ω2 = 4θ̇) or ``multiple * velocity / gear_ratio``
-    (``source = "output"``: the misalignment block, seed 000 §5, ω3 = vel / Gear Ratio;
+    ripple, [Taghirad97] §4, ω1 = 2θ̇, ω2 = 4θ̇) or ``multiple * velocity / gear_ratio``
+    (``source = "output"``: the misalignment block, [Taghirad97] §5, ω3 = vel / Gear Ratio;
     listing A.2 ``om2 = velocity * sample_period / 100.0``), where ``velocity`` is the
     motor velocity in rad/s.  Equivalently, its phase is ``multiple * φ`` with φ the
     motor angle, resp. the output angle φ / gear_ratio.
@@ -294,7 +294,7 @@ class Oscillator:
     ``q`` depends on the filter mode (:class:`RippleFilterConfig`):
 
     - paper mode: the process-noise variance of both states of the second-order
-      oscillator block of seed 000 Eq. 6 (the diagonal of Q: 1e3 in §4 and listing A.1,
+      oscillator block of [Taghirad97] Eq. 6 (the diagonal of Q: 1e3 in §4 and listing A.1,
       5e-2 for the misalignment block of listing A.2 ``Q[2][2] = Q[3][3] = 5e-2``);
     - recommended mode: the random-walk variance per step of the harmonic's two
       coefficients (a, b) of ``a cos(m φ) + b sin(m φ)``, in Nm².
@@ -331,7 +331,7 @@ def _default_q(mode: str, source: str) -> float:
 class RippleFilterConfig:
     """The torque-ripple filter: the harmonics it models, its mode and its tuning.
 
-    ``mode = "paper"``: the prediction-type Kalman filter of seed 000 (Eqs. 5-10,
+    ``mode = "paper"``: the prediction-type Kalman filter of [Taghirad97] (Eqs. 5-10,
     listing A.1 / A.2 ``Kalman``), :class:`firmware.ripple.RippleKalman`.  One
     second-order oscillator block per :class:`Oscillator`, rotated each step by the
     tachometer velocity; ``r`` is R (Eq. 7), ``p0`` the initial covariance P = p0·I
@@ -457,7 +457,7 @@ SECTION5_RIPPLE = RippleFilterConfig(
 RECOMMENDED_RIPPLE = RippleFilterConfig()
 
 #: Recommended mode with the §5 harmonics: 2x, 4x motor angle and 1x output angle
-#: (misalignment, seed 000 §5; q = 1e-4), plus the residual torque; P(0) = 25 Nm²·I for
+#: (misalignment, [Taghirad97] §5; q = 1e-4), plus the residual torque; P(0) = 25 Nm²·I for
 #: a misalignment of up to 5 Nm.  The output harmonic costs some true torque around the
 #: output frequency and 0.6 % up to a few Hz (see :data:`RECOMMENDED_Q_OUTPUT`).
 RECOMMENDED_SECTION5_RIPPLE = RippleFilterConfig(
@@ -470,15 +470,15 @@ RECOMMENDED_SECTION5_RIPPLE = RippleFilterConfig(
 
 
 class Law(enum.IntEnum):
-    """Which torque-control law the interrupt runs (seed 003 §IV, Fig. 7).
+    """Which torque-control law the interrupt runs ([Vertechy] §IV, Fig. 7).
 
     A plain integer code, so that a later SDO write (UNSIGNED8) can select it; in a
     scenario file it is written by name (``law = "jtf1"``).
 
     - ``NONE`` (0, the default): no torque control; the handler generates the
-      reference voltage of seed 000 (``reference_generation`` → ``write_dac0``), exactly
+      reference voltage of [Taghirad97] (``reference_generation`` → ``write_dac0``), exactly
       as before.
-    - ``JTF1`` (1): seed 003 Eq. 4, the LQG regulator (k1..k4 from the LQ design).
+    - ``JTF1`` (1): [Vertechy] Eq. 4, the LQG regulator (k1..k4 from the LQ design).
     - ``JTF1_FF`` (2): Eq. 4 with the desired-torque-derivative feedforward of §IV
       ("more demanding applications": ``e2 = τs' − τsD'`` and the gain k5 on ``τsD'``).
     - ``JTF2`` (3): PD JTF of refs. [17, 18], ``k3 = 0``, ``k4 = 1 + Jm/Jl``.
@@ -499,7 +499,7 @@ class Law(enum.IntEnum):
 
 @dataclass(frozen=True)
 class DesiredTorqueConfig:
-    """The desired sensor torque ``τsD`` as a waveform (seed 003 §VI: ``τsD = 20
+    """The desired sensor torque ``τsD`` as a waveform ([Vertechy] §VI: ``τsD = 20
     sin(0.4 π t)`` Nm, the default).
 
     The default amplitude is **-20 Nm**: the configuration is in the product sign (see
@@ -550,10 +550,10 @@ class DesiredTorqueConfig:
 
 @dataclass(frozen=True)
 class FrictionModelConfig:
-    """The motor-disturbance model ``τ̂d`` of seed 003 Eq. 5 (JTF1 with friction
+    """The motor-disturbance model ``τ̂d`` of [Vertechy] Eq. 5 (JTF1 with friction
     compensation, ``τm,2 = -[k1 (τ̂s - τsD) + k2 τ̂s' + k3 τ̂lg + k4 τsD] - τ̂d``).
 
-    Seed 003 §VI (``003_cab3072408ebe226.txt``): "the experimentally determined motor
+    [Vertechy] §VI ([Vertechy]): "the experimentally determined motor
     friction torque model ``τ̂d = [-13.7 sign(ϑ̇m)(1 + tanh(|ϑ̇m|/2) - 4)]/2`` Nm, the
     controller implements (5) instead of (4)".  Printed garbled; the reading we take
     (the one that reproduces the seed's ``max(τsD + τ̂d) ≈ 33.7`` Nm with ``τsD`` ≤ 20
@@ -589,10 +589,10 @@ class FrictionModelConfig:
         return -self.coulomb_Nm * math.tanh(velocity_radps / self.velocity_scale_radps)
 
 
-#: Seed 003 §VI: the experiment's motor friction model (13.7 Nm, 2 rad/s at the motor).
+#: [Vertechy] §VI: the experiment's motor friction model (13.7 Nm, 2 rad/s at the motor).
 SEED_FRICTION_MODEL = FrictionModelConfig(coulomb_Nm=13.7, velocity_scale_radps=2.0)
 
-#: Seed 003 §V: the estimates JTF2 and JTF3 take in the literature ("the estimates τ̂s
+#: [Vertechy] §V: the estimates JTF2 and JTF3 take in the literature ("the estimates τ̂s
 #: and τ̂s' are obtained by simply feeding the torque sensor measurement y through basic
 #: low-pass and derivative filters"): ``"filters"``; ``"observer"`` takes them from the
 #: LQG observer (Eq. 8), as JTF1 does.
@@ -612,14 +612,14 @@ JTF_LOWPASS_HZ = 50.0
 #: runs into the torque limit for any derivative cut-off up to 300 Hz (max |e| of
 #: JTF3 at 50 Hz low-pass: 7.9 Nm at 50 Hz, 3.0 Nm at 200 Hz, 2.24 Nm at 300 Hz, all
 #: saturating) and is stable from 350 Hz on (2.13 Nm, no saturation).  400 Hz keeps a
-#: margin; it leaves the sensor noise almost unfiltered in τ̂s', which is seed 003 §V's
+#: margin; it leaves the sensor noise almost unfiltered in τ̂s', which is [Vertechy] §V's
 #: point ("this may degrade JTF control performance since built-in joint-torque
-#: sensors are usually affected by noise w having significant variance").  (The seed-000
+#: sensors are usually affected by noise w having significant variance").  (The [Taghirad97]
 #: listing's ``Diff_filter``, H(s) = s / (0.005 s + 1), has 31.8 Hz.)
 JTF_DERIVATIVE_HZ = 400.0
 
 
-#: The listing's start-up pause (s): ``000_ae0a3dbe24949b7c.txt``, listing A.1 ``main()``,
+#: The listing's start-up pause (s): [Taghirad97], listing A.1 ``main()``,
 #: ``for (pause=0; pause < 0xffff; pause++);`` "Allow for mech. time constant", between
 #: ``write_dac0( Vbias )`` and the first interrupt.  The seed gives no clock; on the
 #: TMS320C30 the listing names (``C30 node``) at 33 MHz, 60 ns per instruction cycle, an
@@ -631,9 +631,9 @@ LISTING_SETTLE_S = 0.016
 
 
 #: Plausibility: the largest motor acceleration (rad/s², motor side) the joint can do.
-#: The seeds give no motor data, so this is the drive emulator's default motor
+#: The papers give no motor data, so this is the drive emulator's default motor
 #: (``hostsim.plant.AmplifierConfig`` / ``DriveTrainConfig``, representative of an
-#: RHS-20-class drive, not from the seeds): current limit 6 A x torque constant
+#: RHS-20-class drive, not from the papers): current limit 6 A x torque constant
 #: 0.06 Nm/A = 0.36 Nm at the motor shaft, over the rotor and wave-generator inertia
 #: 0.3 kg m² / 100² = 3e-5 kg m², is 12 000 rad/s² with the load uncoupled (the load only
 #: lowers it), times a margin of 1.5 for a flexspline that unwinds into the motor:
@@ -641,7 +641,7 @@ LISTING_SETTLE_S = 0.016
 #: shipped scenarios is far below it (README, "Real-time mode and faults").
 PLAUSIBLE_ACCELERATION_RADPS2 = 18_000.0
 #: Plausibility: the tachometer noise band (rad/s) added to the velocity bound.  The
-#: firmware's tacho channel (12-bit, +/-10 V, 56.2565 rad/s per V; seed 000 listing A.1
+#: firmware's tacho channel (12-bit, +/-10 V, 56.2565 rad/s per V; [Taghirad97] listing A.1
 #: ``volt2radps``) has an LSB of 0.275 rad/s; two samples each within half an LSB of
 #: quantisation and 4 sigma of a 0.05 rad/s rms noise (``hostsim.plant.SensorConfig``)
 #: differ by at most 0.275 + 0.4 rad/s; rounded up to 1 rad/s.
@@ -662,12 +662,12 @@ PLAUSIBLE_REJECTIONS = 5
 @dataclass(frozen=True)
 class PlausibilityConfig:
     """The sensor plausibility stage (:class:`firmware.stages.SensorPlausibility`; not in
-    the seeds).  It runs right after calibration and bounds what one sample can change.
+    the papers).  It runs right after calibration and bounds what one sample can change.
 
     - ``enabled``: ``true`` checks, ``false`` passes every sample through unchecked
       (the seed's handler).  Unset (``None``, the default) means: on, except in paper
       mode (``ripple.mode = "paper"``), which is listing A.1 exactly
-      (``000_ae0a3dbe24949b7c.txt``, listing A.1 ``c_int10``: ``vel = Tacho *
+      ([Taghirad97], listing A.1 ``c_int10``: ``vel = Tacho *
       volt2radps; acc = Diff_filter( vel);`` uses every sample as read).  A paper
       configuration gets the stage only when it asks for it with ``enabled = true``.
       :attr:`FirmwareConfig.plausibility_active` is the resolved value.
@@ -732,18 +732,18 @@ ControlFeedback = Literal["T_meas", "T_filtered"]
 
 @dataclass(frozen=True)
 class ControlConfig:
-    """Joint-torque control of seed 003 in the interrupt handler (:mod:`firmware.isr`).
+    """Joint-torque control of [Vertechy] in the interrupt handler (:mod:`firmware.isr`).
 
     With ``law = NONE`` (the default) nothing here is used and the firmware behaves as
-    the seed-000 port always did.  With a law, the handler's "reference generation"
-    stage runs the LQG regulator of seed 003 (observer Eq. 8 + law Eq. 4) on the
+    the [Taghirad97] port always did.  With a law, the handler's "reference generation"
+    stage runs the LQG regulator of [Vertechy] (observer Eq. 8 + law Eq. 4) on the
     measured torque and writes the motor torque command to the DAC.  The design (LQ
     gains, Kalman gain, discrete observer) is computed once, when the handler is built,
     by :func:`firmware.lqg_design.design_lqg` from the fields below; no gain is hard-coded.
 
     - ``law``: :class:`Law` (plain integer code, SDO-writable later).
-    - ``joint``: Jm, Jl, k, c for the design (seed 003 §I-II: 2.5, 0.7, 6300, 11.8).
-    - ``weights``: q1, q2, W, V (seed 003 §VI: 500, 0.1, 0.12, 1e4).
+    - ``joint``: Jm, Jl, k, c for the design ([Vertechy] §I-II: 2.5, 0.7, 6300, 11.8).
+    - ``weights``: q1, q2, W, V ([Vertechy] §VI: 500, 0.1, 0.12, 1e4).
     - ``feedforward``: how k3, k4, k5 are chosen, ``lq`` (Friedland's LQ gains, the
       seed's numbers) or ``exact`` (zero static error, ``G0 = B⁺E``).
     - ``observer``: discretisation of Eq. 8 (``zoh-kalman`` or ``zoh-observer``).
@@ -751,9 +751,9 @@ class ControlConfig:
       t(k + delay_samples): 1 for the synchronous RPDO (``--actuation next-sync``), 0
       for ``immediate``; ``predict`` applies Eq. 4 to the one-step prediction
       (:class:`firmware.lqg.LqgController`).
-    - ``feedback``: the torque the regulator measures: ``T_meas`` (default, seed 003:
+    - ``feedback``: the torque the regulator measures: ``T_meas`` (default, [Vertechy]:
       the LQG's own Kalman filter does the filtering) or ``T_filtered`` (after the
-      seed-000 ripple filter, for a joint with angle-locked torque ripple).
+      [Taghirad97] ripple filter, for a joint with angle-locked torque ripple).
     - ``desired``: ``τsD`` (:class:`DesiredTorqueConfig`).
     - ``torque_per_volt``: the actuator calibration, output-referred motor torque per
       DAC volt (Nm/V).  It **must match the drive** (``hostsim``:
@@ -765,7 +765,7 @@ class ControlConfig:
     - ``friction``: the motor-friction model of Eq. 5 (:class:`FrictionModelConfig`);
       off by default (Eq. 4).  :data:`SEED_FRICTION_MODEL` is the seed's experiment.
     - ``estimates``: where the law takes ``τ̂s`` and ``τ̂s'`` from: ``observer`` (Eq. 8,
-      the default, for every law) or ``filters`` (seed 003 §V: JTF2 and JTF3 as the
+      the default, for every law) or ``filters`` ([Vertechy] §V: JTF2 and JTF3 as the
       literature builds them, a first-order low-pass at ``lowpass_Hz`` and a
       band-limited differentiator at ``derivative_Hz`` on the measured torque, no
       prediction; :data:`JTF_LOWPASS_HZ`, :data:`JTF_DERIVATIVE_HZ`).  With
@@ -796,7 +796,7 @@ class ControlConfig:
             )
         if self.estimates == "filters" and self.law in (Law.JTF1, Law.JTF1_FF):
             raise ValueError(
-                "control.estimates = 'filters' is for jtf2 and jtf3 (seed 003 §V); JTF1 "
+                "control.estimates = 'filters' is for jtf2 and jtf3 ([Vertechy] §V); JTF1 "
                 "needs the observer's exogenous-torque estimate"
             )
         check_fields(self, {"lowpass_Hz": ">0", "derivative_Hz": ">0"})
@@ -828,7 +828,7 @@ class ControlConfig:
         return self.law is not Law.NONE
 
 
-#: JTF1 + feedforward tuned for the seed-003 §VI tracking scenario (link moved as
+#: JTF1 + feedforward tuned for the [Vertechy] §VI tracking scenario (link moved as
 #: ``θl = 20° sin 2πt``, ``τsD = 20 sin 0.4πt``), max |e| <= 0.3 Nm
 #: (:mod:`firmware.tracking`, where the numbers and the reasons are).  The seed's LQ
 #: loop gains k1, k2 (q1 = 500, q2 = 0.1) are kept; three things change, and each is
@@ -857,7 +857,7 @@ JTF1_FF_TRACKING = ControlConfig(
 
 @dataclass(frozen=True)
 class FirmwareConfig:
-    """Everything the ported interrupt handler needs (seed 000, listing A.1).
+    """Everything the ported interrupt handler needs ([Taghirad97], listing A.1).
 
     - ``sample_period_s = 1e-3``: listing ``float sample_period = 0.001``, in (0, 1] s.
     - ``num_samples``: listing ``numsamples`` mailbox (``while (samplecount <
@@ -872,8 +872,8 @@ class FirmwareConfig:
     - ``adc`` / ``dac``: 12-bit, +/-10 V converters (our choice: the seed names the
       DT1401 board but prints neither its resolution nor its range;
       :class:`hdhil.core.converter.Converter`).
-    - ``control``: seed 003's joint-torque control (:class:`ControlConfig`); off by
-      default (``law = none``), in which case the handler is the seed-000 port unchanged.
+    - ``control``: [Vertechy]'s joint-torque control (:class:`ControlConfig`); off by
+      default (``law = none``), in which case the handler is the [Taghirad97] port unchanged.
     - ``startup_settle_s``: the listing's start-up (``main()``: ``write_dac0( Vbias
       ); /* Allow for mech. time constant */ for (pause=0; pause < 0xffff; pause++);``
       before ``t1_start()``): once the drive is in operation the controller outputs
@@ -882,7 +882,7 @@ class FirmwareConfig:
       listing's pause (:data:`LISTING_SETTLE_S`) in paper mode, none in recommended
       mode (:attr:`startup_settle_cycles`).
     - ``plausibility``: bounds on velocity and encoder changes per sample
-      (:class:`PlausibilityConfig`, not in the seeds); on by default, off in paper
+      (:class:`PlausibilityConfig`, not in the papers); on by default, off in paper
       mode unless ``plausibility.enabled = true`` (:attr:`plausibility_active`).
     """
 
@@ -943,7 +943,7 @@ class FirmwareConfig:
     def plausibility_active(self) -> bool:
         """Whether the plausibility stage runs: ``plausibility.enabled`` if set,
         otherwise on in recommended mode and off in paper mode (paper mode is listing
-        A.1 sample for sample, ``000_ae0a3dbe24949b7c.txt``, listing A.1 ``c_int10``)."""
+        A.1 sample for sample, [Taghirad97], listing A.1 ``c_int10``)."""
         enabled = self.plausibility.enabled
         return self.ripple.mode != "paper" if enabled is None else enabled
 

@@ -1,6 +1,6 @@
 """The controller node: the ported interrupt handler behind a CANopen link.
 
-On the seed's DSP a hardware timer fired ``c_int10`` every sample period (seed 000,
+On the seed's DSP a hardware timer fired ``c_int10`` every sample period ([Taghirad97],
 listing A.1, ``t1_schedule_intr(c_int10, sample_period)``).  Over CAN the timer becomes
 the SYNC the controller produces, and the ADC read becomes the drive's synchronous TPDO:
 
@@ -11,13 +11,13 @@ the SYNC the controller produces, and the ADC read becomes the drive's synchrono
    ``DRIVE_RPDO1`` and the logged variables in the telemetry ``CTRL_TPDO1``, both before
    SYNC k+1.
 
-With a torque-control law active (seed 003, :class:`firmware.config.ControlConfig`)
+With a torque-control law active ([Vertechy], :class:`firmware.config.ControlConfig`)
 ``CTRL_TPDO1.T_filtered`` carries the LQG estimate ``τ̂s`` instead of the ripple
 filter's torque, and a second telemetry frame ``CTRL_TPDO2`` (0x281) follows with
 ``τ̂s'``, ``τ̂lgd``, ``τsD`` and the estimated error ``e``.  Without a law ``CTRL_TPDO2`` is
 not sent at all: the PDO is not valid, as CANopen marks it with bit 31 of its COB-ID
 (``dbc/controller.eds`` object 0x1801 defaults to 0x80000281, and the node keeps that bit
-in step with the law), and the bus carries exactly the seed-000 schedule.  Worst-case
+in step with the law), and the bus carries exactly the [Taghirad97] schedule.  Worst-case
 control-bus load: 44 % without, 57.5 % with a law.
 
 CANopen roles (CiA 301, :mod:`hdhil.canopen.services`)
@@ -148,7 +148,7 @@ cyclic synchronous torque mapping (``dbc/drive-cst.dcf``: 0x6040 + 0x6071 in, 0x
 0x6064 out) the controller reads the drive's rated torque 0x6076 by SDO before NMT
 start, the interrupt handler's sensor source becomes
 :class:`firmware.stages.CstSource` and the command goes out as 0x6071 in per mille
-(:func:`firmware.stages.torque_command_per_mille`); the seed-003 control laws, which
+(:func:`firmware.stages.torque_command_per_mille`); the [Vertechy] control laws, which
 regulate the sensor torque, are refused there.
 
 This module only moves frames and sequences the link: every computation is in
@@ -551,12 +551,12 @@ class ControllerNode(CanNode):
         self._status = live("rpdo", 2, "DRIVE_TPDO2").expect("statusword")
         if raw is None:
             self.sensor_mapping = "cst"
-            # Seed 003's laws regulate the sensor torque tau_s = k (theta_l - theta_m)
+            # [Vertechy]'s laws regulate the sensor torque tau_s = k (theta_l - theta_m)
             # (Eq. 2, 8); 0x6077 is the amplifier's motor torque, a different quantity,
             # so no law runs on it (at start-up or by a later SDO write of 0x2420:1).
             if self.config.control.active:
                 raise ValueError(
-                    "the torque-control laws (seed 003) regulate the strain-gauge sensor "
+                    "the torque-control laws ([Vertechy]) regulate the strain-gauge sensor "
                     "torque; the CiA 402 CST mapping carries the amplifier's torque 0x6077 "
                     "only: run them in the raw mapping"
                 )

@@ -9,7 +9,7 @@ CiA 402 cyclic synchronous torque mapping, its torque and position into a
 handler once, and sends the :class:`IsrOutput`'s DAC code to the drive and its
 torques and velocity as telemetry (CTRL_TPDO1, and CTRL_TPDO2 with a control law).
 Anything with the members of :class:`InterruptHandlerModel` can be that handler: the
-firmware's port of seed 000 listing A.1 (:class:`firmware.isr.InterruptHandler`) or a
+firmware's port of [Taghirad97] listing A.1 (:class:`firmware.isr.InterruptHandler`) or a
 law of your own, handed to the node with ``ControllerNode(..., isr=handler)`` (or
 through a controller factory, :mod:`hdhil.rig.factories`).
 
@@ -68,7 +68,7 @@ class IsrOutput:
     map at the angle measured at k.  ``encoder`` is the pulse count masked to 16 bits
     (listing ``pcsample &= 0x0000ffff``), so in 0..65535.  Units: Nm, rad/s, A, rad/s².
 
-    Torque control (seed 003, only with a control law; 0 otherwise), all in the product
+    Torque control ([Vertechy], only with a control law; 0 otherwise), all in the product
     convention (module docstring): ``tau_s_hat`` / ``dtau_s_hat`` the observer's
     sensor torque and its derivative (Nm, Nm/s), ``tau_lgd_hat`` the exogenous torque
     ``τlgd = τl + τg − τd Jl/Jm`` (Nm), ``tau_sD`` / ``dtau_sD`` the desired torque and

@@ -1,6 +1,6 @@
-"""The 1 kHz interrupt body ``c_int10`` of seed 000, listing A.1, stage by stage.
+"""The 1 kHz interrupt body ``c_int10`` of [Taghirad97], listing A.1, stage by stage.
 
-Seed: ``000_ae0a3dbe24949b7c.txt``, Appendix A.1 ``free_kalman.c``.
+Source: [Taghirad97], Appendix A.1 ``free_kalman.c``.
 The handler, as printed (abridged)::
 
     DT1401Read( str_ch, end_ch, a2dsamples);
@@ -42,11 +42,11 @@ the encoder count the listing reads, as the motor angle: see
 The firmware never sees ground truth: its only input is :class:`AdcSample`, the raw
 counts of the drive's sensor frame.
 
-Torque control (seed 003, ``003_cab3072408ebe226.txt``)
+Torque control ([Vertechy], [Vertechy])
 --------------------------------------------------------------------------
 With a control law configured (:class:`firmware.config.ControlConfig`, ``law`` other
 than ``none``) the line ``ref_fl = reference_generation(wavetype)`` becomes the LQG
-joint-torque regulator of seed 003 (:class:`TorqueControl`): the observer of Eq. 8
+joint-torque regulator of [Vertechy] (:class:`TorqueControl`): the observer of Eq. 8
 and the law of Eq. 4 (JTF1, JTF1 with the ``τsD'`` feedforward of §IV, JTF2, JTF3) run
 on the calibrated measured torque ``T_meas``; the motor torque command is converted to
 DAC volts with the actuator calibration ``torque_per_volt``, clipped at the torque
@@ -61,7 +61,7 @@ the regulator on a joint with angle-locked ripple); its cost per sample is in
 Sign mapping, the one place where it happens (:data:`SENSOR_TORQUE_SIGN`):
 
 ================================  =====================  ==========================
-quantity                          product convention     seed 003 / firmware.lqg*
+quantity                          product convention     [Vertechy] / firmware.lqg*
 ================================  =====================  ==========================
 sensor torque, its derivative     ``T`` (= T_meas)       ``τs = -T``
 desired sensor torque             ``T_D`` (config)       ``τsD = -T_D``
@@ -71,7 +71,7 @@ tracking error (estimated)        ``e = T̂ - T_D``        ``τ̂s - τsD = -e``
 ================================  =====================  ==========================
 
 Product convention: a torque is positive when the motor drives the load forward (the
-emulator's ``T_true``, the telemetry, the DBC).  Seed 003 counts the sensor torque the
+emulator's ``T_true``, the telemetry, the DBC).  [Vertechy] counts the sensor torque the
 other way (``τs = k (θl - θm)``, §II); torques acting on the motor or on the link
 (``τm``, ``τd``, ``τl``, ``τg``) are positive forward in both.
 """
@@ -130,7 +130,7 @@ STAGES: tuple[tuple[str, str], ...] = (
     ("dac_output", "DAC write, outputs"),
 )
 
-#: Seed 003's sensor torque per product-convention torque: ``τs = -T`` (module docstring).
+#: [Vertechy]'s sensor torque per product-convention torque: ``τs = -T`` (module docstring).
 SENSOR_TORQUE_SIGN = -1.0
 
 
@@ -296,7 +296,7 @@ class TorqueFilterChain:
 
 
 class TorqueControl:
-    """The LQG joint-torque regulator of seed 003 as the handler's torque-control stage.
+    """The LQG joint-torque regulator of [Vertechy] as the handler's torque-control stage.
 
     Built once from :class:`firmware.config.ControlConfig`: :func:`firmware.lqg_design.design_lqg`
     computes the LQ gains (Eqs. 4, 6), the Kalman gain (Eq. 8) and the discrete
@@ -314,12 +314,12 @@ class TorqueControl:
        really applies, saturated and quantised;
     5. the outputs (:class:`IsrOutput`) in the product convention.
 
-    Eq. 5 (seed 003 §IV-VI, friction compensation): with ``cfg.control.friction``
+    Eq. 5 ([Vertechy] §IV-VI, friction compensation): with ``cfg.control.friction``
     active, the model ``τ̂d`` of the tachometer velocity is subtracted from the command
     and added to the torque the observer is told acts on the motor, so the observer's
     third state is ``τ̂lg`` (``LqgController.step(..., tau_d_hat=τ̂d)``).
 
-    Seed 003 §V estimates (``cfg.control.estimates = "filters"``, JTF2/JTF3 only): the
+    [Vertechy] §V estimates (``cfg.control.estimates = "filters"``, JTF2/JTF3 only): the
     law takes ``τ̂s`` from a first-order low-pass and ``τ̂s'`` from a band-limited
     differentiator of the measured torque (:class:`firmware.stages.LowPass`,
     :class:`firmware.stages.Differentiator`), acting at once on the current sample
@@ -384,7 +384,7 @@ class TorqueControl:
         tau_d = None if friction is None else friction.torque(velocity)
         request = ctrl.step(s * T, s * T_D, s * dT_D, tau_d)
         if self._filters:
-            # seed 003 §V: JTF2/JTF3 on low-pass and derivative filters of y = τs^m
+            # [Vertechy] §V: JTF2/JTF3 on low-pass and derivative filters of y = τs^m
             k1, k2, k4 = self._gains
             ts_hat = self.lowpass.step(s * T)
             dts_hat = self.derivative.step(s * T)
@@ -428,7 +428,7 @@ class InterruptHandler:
 
     With a control law (``cfg.control.law`` not ``none``) :attr:`control` is the
     :class:`TorqueControl` stage and replaces ``reference_generation``; otherwise it is
-    None and the handler is the seed-000 port as before.
+    None and the handler is the [Taghirad97] port as before.
     """
 
     def __init__(self, cfg: FirmwareConfig) -> None:
@@ -578,7 +578,7 @@ class InterruptHandler:
             out.dac_counts = dac_write(ref_fl, cfg.dac)
             out.reference_V = ref_fl
         else:
-            # seed 003: LQG torque control on the measured torque -> write_dac0(tau_m / Nm per V)
+            # [Vertechy]: LQG torque control on the measured torque -> write_dac0(tau_m / Nm per V)
             control(k, Torque_f if self._feedback_filtered else T_meas, out, chain.velocity)
             if stamp is not None:
                 stamp(6)

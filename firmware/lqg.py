@@ -1,4 +1,4 @@
-"""The runtime LQG joint-torque regulator of seed 003 (``003_cab3072408ebe226.txt``):
+"""The runtime LQG joint-torque regulator of [Vertechy] ():
 observer update (Eq. 8, discretised) and control law (Eq. 4 / Eq. 5), once per sample.
 
 The offline design it runs (gains, Kalman gain, discrete observer, loop analysis) is
@@ -14,7 +14,7 @@ __all__ = ["LqgController"]
 
 
 class LqgController:
-    """Runtime LQG regulator of seed 003: observer (Eq. 8, discretised) + Eq. 4 / Eq. 5.
+    """Runtime LQG regulator of [Vertechy]: observer (Eq. 8, discretised) + Eq. 4 / Eq. 5.
 
     Call :meth:`step` once per sample with the measured sensor torque; it returns the
     motor torque command (seed sign convention, output-shaft units).  Scalar arithmetic
@@ -134,7 +134,7 @@ class LqgController:
     def _observer_predict(
         self, z0: float, z1: float, z2: float, u: float, y: float
     ) -> tuple[float, float, float]:
-        """Observer time update ``z(k+1) = Ad z(k) + Bd [u; y]`` (seed 003 Eq. 8, discretised
+        """Observer time update ``z(k+1) = Ad z(k) + Bd [u; y]`` ([Vertechy] Eq. 8, discretised
         as in the module docstring)."""
         return (
             self._a00 * z0 + self._a01 * z1 + self._a02 * z2 + self._bu0 * u + self._by0 * y,

@@ -1,6 +1,6 @@
-"""LQG joint-torque control of a flexible joint (seed 003: Vertechy et al., "Linear-
+"""LQG joint-torque control of a flexible joint ([Vertechy]: Vertechy et al., "Linear-
 Quadratic-Gaussian Torque Control: Application to a Flexible Joint of a Rehabilitation
-Exoskeleton", ``003_cab3072408ebe226.txt``).
+Exoskeleton", [Vertechy]).
 
 Offline design, pure numerics: Riccati equations, discretisation, loop analysis; no
 CAN, no plant.  The runtime controller that runs a design once per sample
@@ -8,7 +8,7 @@ CAN, no plant.  The runtime controller that runs a design once per sample
 
 Sign convention (kept exactly as in the seed, inside this module only)
 ----------------------------------------------------------------------
-Seed 003 §II defines the sensor torque as ``tau_s = k (theta_l - theta_m)``: a
+[Vertechy] §II defines the sensor torque as ``tau_s = k (theta_l - theta_m)``: a
 *positive* motor torque ``tau_m`` winds the spring the other way and makes ``tau_s``
 *negative* (``B`` below has ``-k/Jm``).  To hold ``tau_s = tau_s^D`` (Eq. 2 at
 equilibrium) the motor therefore has to deliver
@@ -21,7 +21,7 @@ load), so a caller working in the plant's convention passes
 ``tau_s_measured = -T_meas`` and ``tau_sD = -T_desired`` and applies the returned
 ``tau_m`` unchanged (the motor torque has the same sign in both conventions).
 
-Model (seed 003 Eqs. 1-3, 7)
+Model ([Vertechy] Eqs. 1-3, 7)
 ----------------------------
 Two-mass joint reduced to the output shaft (Jm, Jl, k, c), ``J = Jm Jl / (Jm + Jl)``::
 
@@ -90,7 +90,7 @@ printed ``[199, 19854, 289]`` (+0.5 %, +0.7 %, -0.1 %; ``L3 = sqrt(V/W)``).  W a
 standard deviation (variance 0.0144) gives ``[332, 55028, 833]``; V as a standard
 deviation (1e8) gives ``[1243, 772301, 28868]``.
 
-**One reading of W (the only one in this project).**  Seed 003 §I: "torque sensor
+**One reading of W (the only one in this project).**  [Vertechy] §I: "torque sensor
 variance W = 0.12 Nm (measured with the motor driver turned on)".  W is the variance
 of each torque sample, 0.12 Nm², measured on the sampled signal at the loop's 1 kHz
 (:data:`W_SAMPLE_PERIOD_S`; the seed does not state its rate, 1 ms is the rig's).  The
@@ -129,7 +129,7 @@ the form (``z`` = a-priori estimate of x at sample k from the samples before k):
   half-sample of lag on ``y``; same poles as above (``exp(s Ts)``).
 
 Actuation delay.  With synchronous PDOs the command computed from the sample at
-``t(k)`` acts from ``t(k+1)`` (DESIGN.md, timing semantics).  :class:`LqgController`
+``t(k)`` acts from ``t(k+1)`` (docs/design.md, timing semantics).  :class:`LqgController`
 feeds its observer the torque actually acting in each interval (the previous command
 when ``delay_samples = 1``) and, with ``predict=True`` (default), applies Eq. 4 to the
 one-step prediction ``z(k+1)`` — the state when the command takes effect.
@@ -233,7 +233,7 @@ class DesignError(ValueError):
 
 
 class ControlLaw(enum.Enum):
-    """Joint-torque-feedback laws compared in seed 003 (§IV, Fig. 7)."""
+    """Joint-torque-feedback laws compared in [Vertechy] (§IV, Fig. 7)."""
 
     #: Eq. 4 (or Eq. 5 with a motor-disturbance model): LQ gains k1..k4.
     JTF1 = "jtf1"
@@ -264,14 +264,14 @@ class Feedforward(enum.Enum):
 
 @dataclass(frozen=True)
 class JointParams:
-    """Flexible-joint parameters, all reduced to the output shaft (seed 003 §I-II).
+    """Flexible-joint parameters, all reduced to the output shaft ([Vertechy] §I-II).
 
     Attributes:
-        Jm: motor-side inertia [kg m²]; seed 003 §I, AG1 "motor shaft inertia reduced
+        Jm: motor-side inertia [kg m²]; [Vertechy] §I, AG1 "motor shaft inertia reduced
             to the joint output shaft J_m = 2.5 Kgm²".
-        Jl: link-side inertia [kg m²]; seed 003 §I, test-rig link "J_l = 0.7 Kg m²".
-        k: joint torsional stiffness [Nm/rad]; seed 003 §I, "k = 6.3 kNm/rad".
-        c: joint damping [Nms/rad]; seed 003 §II, half-power bandwidth, "c = 11.8".
+        Jl: link-side inertia [kg m²]; [Vertechy] §I, test-rig link "J_l = 0.7 Kg m²".
+        k: joint torsional stiffness [Nm/rad]; [Vertechy] §I, "k = 6.3 kNm/rad".
+        c: joint damping [Nms/rad]; [Vertechy] §II, half-power bandwidth, "c = 11.8".
     """
 
     Jm: float = 2.5
@@ -284,18 +284,18 @@ class JointParams:
 
     @property
     def J(self) -> float:
-        """Reduced inertia ``J = Jm Jl / (Jm + Jl)`` (seed 003, after Eq. 2) [kg m²]."""
+        """Reduced inertia ``J = Jm Jl / (Jm + Jl)`` ([Vertechy], after Eq. 2) [kg m²]."""
         return self.Jm * self.Jl / (self.Jm + self.Jl)
 
     @property
     def natural_frequency_hz(self) -> float:
-        """``sqrt(k/J) / 2π`` (seed 003 §II: "≈ 17 Hz" for the defaults) [Hz]."""
+        """``sqrt(k/J) / 2π`` ([Vertechy] §II: "≈ 17 Hz" for the defaults) [Hz]."""
         return math.sqrt(self.k / self.J) / (2.0 * math.pi)
 
 
 @dataclass(frozen=True)
 class LqgWeights:
-    """Tuning of the LQG regulator (seed 003 §IV-VI).
+    """Tuning of the LQG regulator ([Vertechy] §IV-VI).
 
     Attributes:
         q1: weight on ``(tau_s - tau_s^D)²`` (seed: 500).  Enters Q *linearly*, see the
@@ -341,7 +341,7 @@ class LqGains:
 def error_model(
     params: JointParams, derivative_ff: bool = False
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(A, B, E)`` of seed 003 Eq. 3.3 (``E`` gains a column ``-c/J`` on ``τsD'``
+    """``(A, B, E)`` of [Vertechy] Eq. 3.3 (``E`` gains a column ``-c/J`` on ``τsD'``
     when ``derivative_ff``, the §IV variant with ``e2 = τs' - τsD'``)."""
     p = params
     kj = p.k / p.J
@@ -354,7 +354,7 @@ def error_model(
 
 
 def observer_model(params: JointParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``(A', B', Γ, C)`` of the observer meta-system, seed 003 Eq. 7.2."""
+    """``(A', B', Γ, C)`` of the observer meta-system, [Vertechy] Eq. 7.2."""
     p = params
     Ap = np.array([[0.0, 1.0, 0.0], [-p.k / p.J, -p.c / p.J, p.k / p.Jl], [0.0, 0.0, 0.0]])
     Bp = np.array([[0.0], [-p.k / p.Jm], [0.0]])
@@ -414,7 +414,7 @@ def _solve_care(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> n
 
 def lq_riccati(params: JointParams, weights: LqgWeights) -> np.ndarray:
     """Stabilising solution P of ``AᵀP + PA - PBR⁻¹BᵀP + Q = 0`` with
-    ``Q = diag(q1, q2)``, ``R = 1`` (seed 003 Eqs. 3, 6; weights linear, see module doc).
+    ``Q = diag(q1, q2)``, ``R = 1`` ([Vertechy] Eqs. 3, 6; weights linear, see module doc).
 
     Raises :class:`DesignError` when (A, Q^½) is not detectable (``q1 = q2 = 0`` on an
     undamped joint) or the solver fails.
@@ -441,7 +441,7 @@ def lq_riccati(params: JointParams, weights: LqgWeights) -> np.ndarray:
 def _exogenous_gain(
     Acl: np.ndarray, B: np.ndarray, P: np.ndarray, E: np.ndarray, A0: np.ndarray | None = None
 ) -> np.ndarray:
-    """Friedland's steady-state gain on exogenous inputs (seed 003 ref. [26]).
+    """Friedland's steady-state gain on exogenous inputs ([Vertechy] ref. [26]).
 
     For ``e' = A e + B u + E x0``, ``x0' = A0 x0`` and cost ``∫ eᵀQe + uᵀRu`` (R = 1),
     the costate ``λ = P e + N x0`` gives ``Aclᵀ N + N A0 + P E = 0`` and
@@ -459,7 +459,7 @@ def design_lq(
     *,
     feedforward: Feedforward = Feedforward.LQ,
 ) -> LqGains:
-    """LQ gains k1..k5 of seed 003 Eqs. 4 and 6 (and the §IV τsD' feedforward k5).
+    """LQ gains k1..k5 of [Vertechy] Eqs. 4 and 6 (and the §IV τsD' feedforward k5).
 
     ``[k1, k2] = R⁻¹BᵀP`` from :func:`lq_riccati`; ``[k3, k4, k5]`` from Friedland's
     exogenous-input solution (``Feedforward.LQ``, reproduces the seed) or the
@@ -477,7 +477,7 @@ def design_lq(
 
 
 def jtf2_gains(params: JointParams = JointParams(), weights: LqgWeights = LqgWeights()) -> LqGains:
-    """JTF2 of seed 003 §IV (refs. [17, 18]): k3 = 0, k4 = 1 + Jm/Jl.
+    """JTF2 of [Vertechy] §IV (refs. [17, 18]): k3 = 0, k4 = 1 + Jm/Jl.
 
     k1, k2 are taken from the LQ design (the seed compares the laws with the same
     feedback part, Fig. 7); k4 = 1 + Jm/Jl = Jm/J is the zero-error feedforward on τsD.
@@ -487,7 +487,7 @@ def jtf2_gains(params: JointParams = JointParams(), weights: LqgWeights = LqgWei
 
 
 def jtf3_gains(params: JointParams = JointParams(), weights: LqgWeights = LqgWeights()) -> LqGains:
-    """JTF3 of seed 003 §IV (refs. [19, 20]): k3 = 0, k4 = 1 (k1, k2 from the LQ design)."""
+    """JTF3 of [Vertechy] §IV (refs. [19, 20]): k3 = 0, k4 = 1 (k1, k2 from the LQ design)."""
     g = design_lq(params, weights)
     return LqGains(g.k1, g.k2, 0.0, 1.0, 0.0)
 
@@ -511,7 +511,7 @@ def gains_for_law(
 
 
 def kalman_riccati(params: JointParams, W: float, V: float) -> np.ndarray:
-    """Stabilising P of ``A'P + PA'ᵀ - PCᵀW⁻¹CP + ΓVΓᵀ = 0`` (seed 003 Eqs. 7-8)."""
+    """Stabilising P of ``A'P + PA'ᵀ - PCᵀW⁻¹CP + ΓVΓᵀ = 0`` ([Vertechy] Eqs. 7-8)."""
     Ap, _, G, C = observer_model(params)
     if not (W > 0 and V > 0 and math.isfinite(W) and math.isfinite(V)):
         raise ValueError(f"need W > 0 and V > 0 (finite), got W={W!r}, V={V!r}")
@@ -537,7 +537,7 @@ def design_kalman(
 
 @dataclass(frozen=True, eq=False)
 class DiscreteObserver:
-    """Discrete form of the observer of seed 003 Eq. 8 (see module docstring)::
+    """Discrete form of the observer of [Vertechy] Eq. 8 (see module docstring)::
 
         x̂(k)   = z(k) + M (y(k) - C z(k))
         z(k+1) = Ad z(k) + Bd [tau_m(k); y(k)]
@@ -624,7 +624,7 @@ def discretize_observer(
 
 @dataclass(frozen=True, eq=False)
 class LqgDesign:
-    """Everything the LQG regulator of seed 003 needs, designed from params and weights.
+    """Everything the LQG regulator of [Vertechy] needs, designed from params and weights.
 
     Build it with :func:`design_lqg`.
     """

@@ -2,7 +2,7 @@
 
 What fraction of a true torque at frequency f survives in ``T_filtered``?  An ideal
 ripple canceller has gain 1 everywhere except at the ripple harmonics.  The paper
-filter (seed 000, listing A.1) does not: it models all of y = T_meas − T_exp as ripple,
+filter ([Taghirad97], listing A.1) does not: it models all of y = T_meas − T_exp as ripple,
 so slow true torque that the inertia-only T_exp misses is absorbed by its oscillators.
 
 Method: simulation through the real thing, not a model of it.  The firmware's own

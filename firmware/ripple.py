@@ -12,8 +12,8 @@ Two filters, selected by :attr:`firmware.config.RippleFilterConfig.mode`:
 Paper filter
 ------------
 
-:class:`RippleKalman` ports ``Kalman(Delta_T, velocity, sample_period)`` of seed 000
-(``000_ae0a3dbe24949b7c.txt``, Appendix A.1 ``free_kalman.c`` and
+:class:`RippleKalman` ports ``Kalman(Delta_T, velocity, sample_period)`` of [Taghirad97]
+([Taghirad97], Appendix A.1 ``free_kalman.c`` and
 A.2), which implements the text's Eqs. 5-10, generalised from the listing's fixed
 two blocks to a bank of any number of harmonic-oscillator blocks
 (:class:`firmware.config.Oscillator`), so the same code runs
@@ -62,7 +62,7 @@ __all__ = ["HarmonicKalman", "RippleKalman"]
 
 
 class RippleKalman:
-    """Time-varying, prediction-type Kalman filter of the torque ripple (seed 000,
+    """Time-varying, prediction-type Kalman filter of the torque ripple ([Taghirad97],
     Eqs. 5-10; listing A.1 / A.2 ``Kalman``), one :meth:`step` per interrupt.
 
     **State persists between calls.**  The printed listing declares ``x``, ``P``,

@@ -1,6 +1,6 @@
-"""The pure stages of the 1 kHz interrupt handler ``c_int10`` (seed 000, listing A.1).
+"""The pure stages of the 1 kHz interrupt handler ``c_int10`` ([Taghirad97], listing A.1).
 
-Seed: ``000_ae0a3dbe24949b7c.txt``, Appendix A.1 ``free_kalman.c``.
+Source: [Taghirad97], Appendix A.1 ``free_kalman.c``.
 Each function or class here ports one line (or one helper function) of ``c_int10``;
 none touches a bus, a clock or any global state.  The torque-ripple Kalman filter is
 in :mod:`firmware.ripple`, the sequencing of the stages in :mod:`firmware.isr`.
@@ -40,7 +40,7 @@ def adc_read(torque: int, tacho: int, current: int, adc: Converter) -> tuple[flo
 
     Ports ``DT1401Read(str_ch, end_ch, a2dsamples)`` and the channel picks
     ``Tacho = a2dsamples[DT140X_CH4]; MotorCurrOut = a2dsamples[DT140X_CH5];
-    Torque = a2dsamples[DT140X_CH6]`` (seed 000, listing A.1, ``c_int10``).  On the
+    Torque = a2dsamples[DT140X_CH6]`` ([Taghirad97], listing A.1, ``c_int10``).  On the
     DT1401 the driver returns volts; on our CAN link the drive sends counts, which
     ``adc`` (12 bit, +/-10 V) turns back into volts.
     """
@@ -52,7 +52,7 @@ def calibrate(
 ) -> tuple[float, float, float]:
     """Volts to physical units: ``(T_meas [Nm], vel [rad/s], current [A])``.
 
-    Ports ``vel = Tacho * volt2radps`` and ``T_meas = Torque * volt2Nm`` (seed 000,
+    Ports ``vel = Tacho * volt2radps`` and ``T_meas = Torque * volt2Nm`` ([Taghirad97],
     listing A.1, ``c_int10``; gains 56.2565 rad/s/V and 6.6 Nm/V, Table 1).  The
     torque offset is subtracted before scaling (not in the listing).  The listing
     logs ``MotorCurrOut`` in volts; ``cal.volt2amp`` (default 1) scales it to amperes.
@@ -85,7 +85,7 @@ def tustin_differentiator(
 class Differentiator:
     """Band-limited differentiator, velocity to acceleration (listing ``Diff_filter``).
 
-    Seed 000, listing A.1, ``Diff_filter``: "Discretized Differentiator Filter
+    [Taghirad97], listing A.1, ``Diff_filter``: "Discretized Differentiator Filter
     H(s) = s / (0.005 s + 1), discretized by tustin method for Ts = 1 ms", with
     ``nd = {181.818181818182, -181.818181818182}``, ``dd = {1.0, -0.81818181818182}``
     and the difference equation ``a = nd[0]*v + nd[1]*v_1 - dd[1]*a_1``.
@@ -147,7 +147,7 @@ class Differentiator:
 
 class AdcSource:
     """Sensor source of the seed's raw mapping: the listing's ``DT1401Read`` and the
-    calibration lines (seed 000, listing A.1, ``c_int10``: ``Tacho = a2dsamples[CH4];
+    calibration lines ([Taghirad97], listing A.1, ``c_int10``: ``Tacho = a2dsamples[CH4];
     MotorCurrOut = a2dsamples[CH5]; Torque = a2dsamples[CH6]; vel = Tacho *
     volt2radps; T_meas = Torque * volt2Nm``), on the counts of the drive's sensor frame
     (:class:`firmware.interrupt.AdcSample`).
@@ -175,7 +175,7 @@ class AdcSource:
 class CstSource:
     """Sensor source of the CiA 402 cyclic synchronous torque mapping, in place of the
     ADC read and calibration: the drive's torque actual value 0x6077 and position actual
-    value 0x6064 (:class:`firmware.interrupt.CstSample`).  Not in the seeds.
+    value 0x6064 (:class:`firmware.interrupt.CstSample`).  Not in the papers.
 
     - ``T_meas = 0x6077 * 1e-3 * rated_torque_Nm``: CiA 402 scales 0x6077 in per mille
       of 0x6076 motor rated torque, which the controller reads from the drive by SDO at
@@ -240,10 +240,10 @@ def torque_command_per_mille(volts: float, torque_per_volt: float, rated_torque_
 
 
 class LowPass:
-    """First-order low-pass ``1 / (s/ωc + 1)``, Tustin at Ts (not in the seeds' listings).
+    """First-order low-pass ``1 / (s/ωc + 1)``, Tustin at Ts (not in the papers' listings).
 
     The "basic low-pass filter" through which the JTF laws of the literature feed the
-    torque sensor measurement (seed 003 §V, ``003_cab3072408ebe226.txt``: "the estimates
+    torque sensor measurement ([Vertechy] §V: "the estimates
     τ̂s and τ̂s' are obtained by simply feeding the torque sensor measurement y through
     basic low-pass and derivative filters").  ``y = b (x + x_1) + a y_1`` with ``a =
     (2τ - Ts) / (2τ + Ts)``, ``b = Ts / (2τ + Ts)``, ``τ = 1 / (2π cutoff)``; unity gain
@@ -282,7 +282,7 @@ class EncoderUnwrap:
     """Unwraps the 16-bit wrapping encoder count (listing ``pcsample``) into a count that
     keeps growing: the motor angle for the recommended ripple filter.
 
-    Seed 000, listing A.1, ``c_int10``: ``copy(PB_LAT_RD_ADDR, &pcsample, ...)`` reads
+    [Taghirad97], listing A.1, ``c_int10``: ``copy(PB_LAT_RD_ADDR, &pcsample, ...)`` reads
     the quadrature decoder's 16-bit count and ``pcsample &= 0x0000ffff`` stores it; the
     listing never unwraps it.  Unwrapping is ours: each sample adds the difference of
     successive counts taken as a signed 16-bit number (int16 arithmetic), so crossing
@@ -376,7 +376,7 @@ class StuckChannels:
     **Torque.**  A torque bridge whose ADC reading does not change by a single count for
     ``stuck_samples`` samples in a row, while the encoder moved by at least
     ``stuck_motion_rad`` of motor angle over those samples, is stuck: a turning motor
-    sweeps the torque ripple (seed 000 §2: two and four times the motor angle) through
+    sweeps the torque ripple ([Taghirad97] §2: two and four times the motor angle) through
     many counts.  The controller sends EMCY 0x7300 "sensor error" with 1, the torque
     channel, in manufacturer byte 0.
 
@@ -526,7 +526,7 @@ class SensorPlausibility:
     """Bounds on what one sample may change: tacho spikes and encoder glitches are
     replaced by the prediction (not in the seed; the listing uses every sample as read).
 
-    It runs right after ``calibrate`` (seed 000, listing A.1: after ``vel = Tacho *
+    It runs right after ``calibrate`` ([Taghirad97], listing A.1: after ``vel = Tacho *
     volt2radps``, before ``acc = Diff_filter( vel)``) and never reads anything but the
     sensor frame's values.  Limits come from :class:`firmware.config.PlausibilityConfig`.
 
@@ -781,7 +781,7 @@ class SensorPlausibility:
 def expected_torque(acc: float, J_load: float, gear_ratio: float) -> float:
     """The crude expected torque: the load's inertial torque.
 
-    Ports ``T_mod = J_load * acc / Gain`` (seed 000, listing A.1, ``c_int10``;
+    Ports ``T_mod = J_load * acc / Gain`` ([Taghirad97], listing A.1, ``c_int10``;
     §4: "the expected torque can be estimated simply by the inertial part of the
     output torque which is the load inertia multiplied to the load acceleration").
     ``acc`` is the motor acceleration, so ``acc / gear_ratio`` is the load's.
@@ -790,13 +790,13 @@ def expected_torque(acc: float, J_load: float, gear_ratio: float) -> float:
 
 
 def torque_error(T_meas: float, T_expected: float) -> float:
-    """The Kalman filter's measurement y(k) = T_meas(k) − T_exp(k) (seed 000, §4 text
+    """The Kalman filter's measurement y(k) = T_meas(k) − T_exp(k) ([Taghirad97], §4 text
     under Eq. 6; listing A.1 ``Delta_T = T_meas - T_mod``)."""
     return T_meas - T_expected
 
 
 def filtered_torque(T_meas: float, ripple_predicted: float) -> float:
-    """The ripple-free torque, ``Torque_f = T_meas - T_ripple`` (seed 000, listing A.1).
+    """The ripple-free torque, ``Torque_f = T_meas - T_ripple`` ([Taghirad97], listing A.1).
 
     ``ripple_predicted`` is the ripple the Kalman filter predicted for this sample
     at the previous interrupt (prediction-type filter, Eq. 8; listing comment
@@ -822,7 +822,7 @@ _NONE, _STEP, _SINE, _CHIRP, _SQUARE, _TRIANGLE = (
 class ReferenceGenerator:
     """The reference voltage for the servo amplifier at sample k (t = k·Ts).
 
-    Ports ``ref_fl = reference_generation(wavetype)`` (seed 000, listing A.1,
+    Ports ``ref_fl = reference_generation(wavetype)`` ([Taghirad97], listing A.1,
     ``c_int10``; parameters from the ``main()`` mailboxes).  The body of
     ``reference_generation`` (``servo_refgen.h``) is NOT printed in the seed, so
     these definitions are ours, with b = bias, A = amplitude, f = frequency,
@@ -921,7 +921,7 @@ class ReferenceGenerator:
 def dac_write(volts: float, dac: Converter) -> int:
     """The DAC code for a voltage: quantize (nearest) and saturate.
 
-    Ports ``write_dac0(ref_fl)`` (seed 000, listing A.1, ``c_int10``; "floatV for
+    Ports ``write_dac0(ref_fl)`` ([Taghirad97], listing A.1, ``c_int10``; "floatV for
     MAX-100 servo").  On our link the code travels in the command frame; NaN gives 0.
     """
     return dac.to_counts(volts)

@@ -1,6 +1,6 @@
-"""Seed 003 §VI tracking simulation, without the bus: the figures of the control laws.
+"""[Vertechy] §VI tracking simulation, without the bus: the figures of the control laws.
 
-Seed 003 (``003_cab3072408ebe226.txt``) §VI, Fig. 7: the regulator
+[Vertechy] () §VI, Fig. 7: the regulator
 tracks ``τsD = 20 sin(0.4 π t)`` Nm while the output link is moved as ``θl = 20 sin(2 π t)``
 deg, with ``τd = τg = W = 0``; "the tracking error obtained with JTF1 is |e| <= 0.3 Nm",
 and JTF1 beats JTF3 and JTF2.
@@ -8,7 +8,7 @@ and JTF1 beats JTF3 and JTF2.
 :func:`simulate_tracking` closes the firmware's own torque-control stage
 (:class:`firmware.isr.TorqueControl`: design from the configuration, observer Eq. 8, law
 Eq. 4, the sign mapping, the torque limit, the 12-bit DAC and its quantisation, the
-applied torque fed back to the observer) around the motor side of seed 003 Eq. 1 with
+applied torque fed back to the observer) around the motor side of [Vertechy] Eq. 1 with
 the link on its prescribed trajectory (:class:`TrackingPlant`), in the 1 ms loop with
 one sample of transport delay (the synchronous RPDO) by default.  The plant is linear,
 so one matrix exponential per sample integrates it exactly (the link motion comes from
@@ -113,20 +113,20 @@ __all__ = ["TrackingPlant", "simulate_tracking", "tracking_table"]
 
 @dataclass(frozen=True)
 class TrackingPlant:
-    """The seed-003 §VI simulation plant: motor side of Eq. 1, link on a prescribed sine.
+    """The [Vertechy] §VI simulation plant: motor side of Eq. 1, link on a prescribed sine.
 
     ``Jm θm'' = τm + k (θl − θm) + c (θl' − θm')`` with ``θl = A sin(2 π f t)``
     (``A = link_amplitude_deg``, ``f = link_frequency_Hz``), everything reduced to the
     output; ``τd = τg = 0``.  The motor starts where a rigid joint would (no twist,
     moving with the link), like :class:`hostsim.plant.LinkMotionConfig`.  The sensor
     reads the spring torque ``τs = k (θl − θm)`` (reported in the product sign ``T =
-    -τs``), plus white noise of variance ``noise_W`` Nm² per sample (seed 003 §I: W =
+    -τs``), plus white noise of variance ``noise_W`` Nm² per sample ([Vertechy] §I: W =
     0.12; 0 in the seed's simulation), rounded to ``adc_lsb_Nm`` (0: not quantised).
     The motor torque follows the command through a first-order lag ``current_lag_s``
     (0: at once).
 
     Attributes:
-        joint: the true joint (default: seed 003 §I-II, as the design assumes).
+        joint: the true joint (default: [Vertechy] §I-II, as the design assumes).
         link_amplitude_deg, link_frequency_Hz: the link trajectory (seed: 20°, 1 Hz).
         noise_W: torque-measurement noise variance per sample (Nm²).
         adc_lsb_Nm: torque-measurement quantisation step (Nm).
@@ -203,7 +203,7 @@ def simulate_tracking(
             DAC).  Its ``torque_per_volt`` is taken to be the drive's (the command acts
             exactly as ``DAC volts × torque_per_volt``).
         duration_s: simulated time (s).
-        plant: the plant (default: seed 003 §VI, no noise).
+        plant: the plant (default: [Vertechy] §VI, no noise).
         law: override ``control.law`` (for tables).
         evaluate_from_s: the figures ignore the start-up transient before this time.
         record: also return the time series (``t``, ``T``, ``T_D``, ``T_hat``,

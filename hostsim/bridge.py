@@ -1,9 +1,9 @@
-"""The built-in strain-gauge torque sensor of the flexspline (seed 000 §2, Eqs. 1-4).
+"""The built-in strain-gauge torque sensor of the flexspline ([Taghirad97] §2, Eqs. 1-4).
 
-Seed: ``000_ae0a3dbe24949b7c.txt`` (Taghirad, CIM-TR-97-06), §2
+Source: [Taghirad97] (Taghirad, CIM-TR-97-06), §2
 "Built-in torque sensor", Figs. 2-5.  Pure numerics: no CAN, no I/O, no clock.
 
-Geometry (seed 000 §2, Fig. 2): four rosettes on the flexspline diaphragm, 90° apart.
+Geometry ([Taghirad97] §2, Fig. 2): four rosettes on the flexspline diaphragm, 90° apart.
 A rosette holds two gauges mounted perpendicular to each other (at ±45° to the axis,
 so that they read the torsional shear), which gives eight gauges R1..R8:
 
@@ -23,7 +23,7 @@ others are under tension".  We keep the sign of Eq. 1 (odd gauges ``+ε_t``, eve
 direction that gives ``ε_t > 0`` and a positive bridge output; the seed's clockwise
 torque is then a negative one.  This is a sign convention only.
 
-Strain of gauge j (seed 000 Eq. 1, Hashimoto's model)::
+Strain of gauge j ([Taghirad97] Eq. 1, Hashimoto's model)::
 
     ε_j = σ_j ε_t + Ψ_n cos 2(β − α_j) + σ_j Ψ_s sin 2(β − α_j)
 
@@ -35,7 +35,7 @@ both gauges of a rosette (``Ψ_n cos 2β``) and a shear part of opposite sign in
 two (``±Ψ_s sin 2β``).  Hence for one rosette ε_1 − ε_2 = 2 ε_t + Ψ_0 sin 2β with
 Ψ_0 = 2 Ψ_s (Eq. 2), and the rosette at 90° gives 2 ε_t + Ψ_0 sin(2β − π) (Eq. 3).
 
-Bridge (seed 000 Eq. 4, Fig. 3)::
+Bridge ([Taghirad97] Eq. 4, Fig. 3)::
 
     E_out = K/4 (ε_1 + ε_3 − ε_2 − ε_4) E_sup = K ε_t E_sup
 
@@ -88,9 +88,9 @@ __all__ = [
 ]
 
 GAUGE_COUNT = 8
-#: Nominal angular position of gauges R1..R8 on the diaphragm (seed 000 Fig. 2).
+#: Nominal angular position of gauges R1..R8 on the diaphragm ([Taghirad97] Fig. 2).
 NOMINAL_ANGLE_DEG: tuple[float, ...] = (0.0, 0.0, 90.0, 90.0, 180.0, 180.0, 270.0, 270.0)
-#: s_j = σ_j: +1 for odd gauges (R1, R3, ...), −1 for even (seed 000 Eqs. 1 and 4).
+#: s_j = σ_j: +1 for odd gauges (R1, R3, ...), −1 for even ([Taghirad97] Eqs. 1 and 4).
 BRIDGE_SIGN: tuple[int, ...] = (1, -1, 1, -1, 1, -1, 1, -1)
 
 
@@ -99,7 +99,7 @@ def bridge_output_V(
     gauge_factors: np.ndarray | list[float] | tuple[float, ...] | float,
     supply_V: float,
 ) -> float:
-    """Bridge output voltage E_out for 4 or 8 gauge strains (seed 000 Eq. 4).
+    """Bridge output voltage E_out for 4 or 8 gauge strains ([Taghirad97] Eq. 4).
 
     ``E_out = E_sup / n · Σ_j s_j K_j ε_j`` with s = (+, −, +, −, ...): for n = 4 and a
     common gauge factor K this is Eq. 4, ``K/4 (ε1 + ε3 − ε2 − ε4) E_sup``; for n = 8
@@ -117,17 +117,17 @@ def bridge_output_V(
 
 @dataclass(frozen=True)
 class BridgeConfig:
-    """The emulated torque sensor: gauges, bridge, amplifier (seed 000 §2).
+    """The emulated torque sensor: gauges, bridge, amplifier ([Taghirad97] §2).
 
     - ``volt2Nm`` 6.62 Nm/V: the TRUE small-signal gain of the emulated chain (torque
-      per volt at the amplifier output).  Seed 000 Table 1 measured 6.60 Nm/V; the
+      per volt at the amplifier output).  [Taghirad97] Table 1 measured 6.60 Nm/V; the
       emulator's sensor is deliberately a little different, so that a firmware that
       assumes 6.6 has a 0.3 % gain error until the sensor is calibrated (``hdhil
-      calibrate``, seed 000 §3).  The torsional strain per Nm follows from it
+      calibrate``, [Taghirad97] §3).  The torsional strain per Nm follows from it
       (:attr:`StrainGaugeBridge.strain_per_Nm`): with perfect gauges and 6.6 Nm/V it is
       1 / (6.6 · 1000 · 2 · 10 V) = 7.58e-6 per Nm, i.e. 303 µε at the rated 40 Nm.
     - ``gauge_factor`` K = 2.0: a typical foil gauge (not given in the seed).
-    - ``supply_V`` 10 V and ``amplifier_gain`` 1000: seed 000 §2.
+    - ``supply_V`` 10 V and ``amplifier_gain`` 1000: [Taghirad97] §2.
     - ``wave_normal_strain`` Ψ_n and ``wave_shear_strain`` Ψ_s, 150 µε each: the
       amplitudes of the strain the elliptical wave generator induces at a gauge (common
       and differential part, see the module docstring; Ψ_0 = 2 Ψ_s in Eq. 2).  Not
@@ -141,7 +141,7 @@ class BridgeConfig:
       gauge-factor tolerance with the radial and angular positioning errors (§2).
       Default: within ±0.5 %.
     - ``nonlinearity``: cubic gauge nonlinearity, the reading error at the rated
-      torque as a fraction of it (``rated_torque_Nm`` 40 Nm, seed 000 §2):
+      torque as a fraction of it (``rated_torque_Nm`` 40 Nm, [Taghirad97] §2):
       ``ΔT = nonlinearity · T_rated · (T / T_rated)³``.  Default 0.1 %.
     - ``hysteresis_Nm`` / ``hysteresis_span_Nm``: gauge hysteresis (Dahl model,
       :class:`GaugeHysteresis`): loop half-height 0.02 Nm (0.05 % of the rated
@@ -150,7 +150,7 @@ class BridgeConfig:
 
     With these defaults the residual 2β modulation is 0.073 Nm in amplitude
     (:attr:`StrainGaugeBridge.modulation_amplitude_Nm`): well below the 0.6 Nm
-    gear-meshing ripple, which stays the dominant ripple (seed 000 §4: "a small
+    gear-meshing ripple, which stays the dominant ripple ([Taghirad97] §4: "a small
     fraction of the torque ripples are caused by the non-ideal torque measurement").
     """
 
@@ -220,7 +220,7 @@ class BridgeConfig:
 
 
 class StrainGaugeBridge:
-    """Eight gauges, the Wheatstone bridge and its amplifier (seed 000 §2, Eqs. 1-4).
+    """Eight gauges, the Wheatstone bridge and its amplifier ([Taghirad97] §2, Eqs. 1-4).
 
     Two equivalent evaluations:
 
@@ -257,7 +257,7 @@ class StrainGaugeBridge:
 
     # ------------------------------------------------------------------ gauge by gauge
     def strains(self, torque_Nm: float, beta_rad: float) -> np.ndarray:
-        """Strains of R1..R8 (seed 000 Eq. 1, see the module docstring).
+        """Strains of R1..R8 ([Taghirad97] Eq. 1, see the module docstring).
 
         ``torque_Nm``: the torque whose torsional strain the gauges see; ``beta_rad``:
         the wave generator's angle relative to the gauges.
@@ -278,7 +278,7 @@ class StrainGaugeBridge:
         )
 
     def amplified_V(self, torque_Nm: float, beta_rad: float) -> float:
-        """Amplifier output (gain 1000, seed 000 §2) from the eight strains."""
+        """Amplifier output (gain 1000, [Taghirad97] §2) from the eight strains."""
         return self.cfg.amplifier_gain * self.bridge_V(torque_Nm, beta_rad)
 
     # ------------------------------------------------------------------ closed form

@@ -1,6 +1,6 @@
-"""The torque-sensor calibration rig of seed 000 §3, emulated.
+"""The torque-sensor calibration rig of [Taghirad97] §3, emulated.
 
-Seed 000 (``000_ae0a3dbe24949b7c.txt``) §3: "we locked the harmonic
+[Taghirad97] () §3: "we locked the harmonic
 drive wave generator, and applied a known torque on the flexspline ... using arm and
 weight method ... loading and unloading some weight on the arm, in both direction.
 This experiment is repeated at different flexspline positions ... Also low-range and
@@ -15,7 +15,7 @@ What the emulated rig does (pure numerics, no CAN):
 
 1. The drive's own :class:`hostsim.plant.Plant` is put in the locked state
    (:meth:`Plant.hold_locked`): wave generator fixed, the flexspline carrying the arm's
-   torque.  Its sensor chain is the real one: gauges and bridge (seed 000 §2, with their
+   torque.  Its sensor chain is the real one: gauges and bridge ([Taghirad97] §2, with their
    positioning errors, nonlinearity and hysteresis), amplifier, noise, 12-bit ADC.  The
    ADC counts are turned back into volts with the same converter the firmware uses
    and averaged over ``samples`` readings per load step.
@@ -59,10 +59,10 @@ G_N_PER_KG = 9.80665  # standard gravity
 
 @dataclass(frozen=True)
 class CalibrationRig:
-    """The arm-and-weight experiment (seed 000 §3).
+    """The arm-and-weight experiment ([Taghirad97] §3).
 
     - ``positions`` 4 flexspline positions x ``ranges_Nm`` (5 Nm low range, 40 Nm full
-      range = the rated torque, seed 000 §2) = the seed's eight experiments (Table 1).
+      range = the rated torque, [Taghirad97] §2) = the seed's eight experiments (Table 1).
     - ``steps`` 5 weights per direction; ``samples`` 200 ADC readings averaged per load
       step (0.2 s at 1 kHz).
     - ``arm_length_m`` 0.5 m: only turns torques into the masses the report lists.
@@ -114,12 +114,12 @@ class Experiment:
 
 @dataclass(frozen=True)
 class CalibrationResult:
-    """Table 1 of seed 000 for the emulated sensor, plus the emulator's truth."""
+    """Table 1 of [Taghirad97] for the emulated sensor, plus the emulator's truth."""
 
     seed: int
     rig: CalibrationRig
     experiments: tuple[Experiment, ...]
-    gain_Nm_per_V: float  #: mean of the experiments' gains (seed 000 §3)
+    gain_Nm_per_V: float  #: mean of the experiments' gains ([Taghirad97] §3)
     consistency: float  #: sample std / mean of the gains (a fraction; Table 1: 0.02)
     true_gain_Nm_per_V: float  #: the emulated chain's small-signal gain (BridgeConfig)
 
@@ -177,7 +177,7 @@ def calibrate(
     seed: int = 0,
     on_experiment: Callable[[int, int], object] | None = None,
 ) -> CalibrationResult:
-    """Run the emulated calibration of seed 000 §3 and return its Table 1.
+    """Run the emulated calibration of [Taghirad97] §3 and return its Table 1.
 
     Deterministic for a given ``seed``: it seeds the plant's sensor noise and the
     rig's own draws (the first position's modulation phase, the lever-arm errors).

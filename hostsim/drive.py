@@ -1,6 +1,6 @@
 """The drive node: the plant emulator behind a CiA 301 / CiA 402 CANopen device.
 
-Timing (DESIGN.md, "Timing semantics"): on SYNC k the drive integrates the plant from
+Timing (docs/design.md, "Timing semantics"): on SYNC k the drive integrates the plant from
 t(k-1) to t(k) holding the amplifier input set at SYNC k-1 (zero-order hold), samples its
 sensors at t(k), sends the sensor TPDO and the ground-truth frames, then activates the
 command latched during cycle k-1 (CiA 301 synchronous RPDO, "actuate at next SYNC").
@@ -15,7 +15,7 @@ Delays this gives for a command computed from the sample at t(k):
 Ground truth goes to a separate bus (``truth.dbc``), never to the control bus: every SYNC
 in OPERATIONAL, right after the sensor TPDO, ``TRUTH_TORQUE`` (torque and ripple),
 ``TRUTH_MOTION`` (angles and velocities) and ``TRUTH_JOINT`` (``tau_ext = tau_l + tau_g``
-and ``tau_d`` of seed 003 Eq. 1, ``tau_m`` acting and commanded), all sampled at t(k)
+and ``tau_d`` of [Vertechy] Eq. 1, ``tau_m`` acting and commanded), all sampled at t(k)
 like the sensors.
 
 The CANopen device (node-ID 2, ``dbc/drive.eds``)

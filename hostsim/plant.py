@@ -5,14 +5,14 @@ This module is pure numerics: no CAN, no I/O, no wall clock.  The drive node cal
 decoded from the DAC command, then :meth:`Plant.sample` for the ADC/encoder counts
 it transmits, and reads the noise-free truth properties for the scoring channel.
 
-Signal chain (seed 000, listing A.1: ``write_dac0`` drives the MAX-100 servo
+Signal chain ([Taghirad97], listing A.1: ``write_dac0`` drives the MAX-100 servo
 amplifier, ``DT1401Read`` samples tacho, current monitor and torque bridge,
 ``pcsample`` is the quadrature count)::
 
     V_dac --amplifier--> i --Kt--> motor torque --harmonic drive--> load <-- tau_l
-                                    (two-mass flexible joint, seed 003 Eq. 1)
+                                    (two-mass flexible joint, [Vertechy] Eq. 1)
     T_true + mesh ripple + misalignment --gauges, bridge, amplifier--> ADC_torque
-        (hostsim.bridge: seed 000 §2, Eqs. 1-4; + wave-generator residual at 2 beta)
+        (hostsim.bridge: [Taghirad97] §2, Eqs. 1-4; + wave-generator residual at 2 beta)
     omega_m --tacho--> ADC_tacho ; i --monitor--> ADC_current
     theta_m --quadrature--> ENC_count
 
@@ -23,46 +23,46 @@ Conventions (all angles in rad, all velocities in rad/s, all torques in Nm):
 * "Motor side" quantities (``theta_motor``, ``omega_motor``, ``motor_torque``,
   the tachometer and the encoder) are at the motor shaft / wave generator.
 * The mechanical model works with every inertia, stiffness, damping and friction
-  **reduced to the output shaft** exactly as seed 003 Eq. 1, with the reduced motor
+  **reduced to the output shaft** exactly as [Vertechy] Eq. 1, with the reduced motor
   angle ``q_m = theta_motor / N`` (N = gear ratio, ideal lossless transmission, so
   the motor torque reduced to the output is ``N * Kt * i``).
 * ``T_transmitted`` is the torque the flexspline transmits to the load, positive when
-  the motor drives the load forward: ``k (q_m - q_l) + c (dq_m - dq_l)``.  Seed 003
+  the motor drives the load forward: ``k (q_m - q_l) + c (dq_m - dq_l)``.  [Vertechy]
   defines the sensor torque with the opposite sign, ``tau_s = k (theta_l -
   theta_m)``: ``T_spring = k (q_m - q_l) = -tau_s`` and ``T_transmitted = -(tau_s + c
   (dtheta_l - dtheta_m))``.  With that sign the load equation of Eq. 1 reads
   ``J_l ddq_l = T_transmitted + tau_l + tau_g`` (the output bearings' friction, not in
-  the seed, counts as part of ``tau_l``), which is what the seed-000 firmware
+  the seed, counts as part of ``tau_l``), which is what the [Taghirad97] firmware
   assumes when it models the free-motion torque as ``J_load * acc / Gain`` (listing
   A.1, ``T_mod``).
 * ``T_true`` is the torque an ideal torque sensor reads (what the scorer compares the
   firmware's torque with): ``T_transmitted`` by default (the flexspline gauges of seed
   000), or ``T_spring = -tau_s`` with ``SensorConfig.torque_measures = "spring"`` (seed
   003's sensor torque, the variable of its Eq. 2).
-* The external load torque ``tau_l`` (seed 003 Eq. 1) is the sum of the value held
+* The external load torque ``tau_l`` ([Vertechy] Eq. 1) is the sum of the value held
   with :meth:`Plant.set_load_torque` and the profile of :class:`LoadTorqueConfig`,
   which the plant evaluates itself from its own clock at every sub-step.
-* External torques keep their sign between the plant and seed 003 (both count angles
+* External torques keep their sign between the plant and [Vertechy] (both count angles
   and torques positive forward, on both shafts); only the sensor torque flips.  The
   seed's ``tau_d`` (motor disturbance), ``tau_l`` (environment) and ``tau_g``
   (gravity) are :attr:`Plant.motor_disturbance`, :attr:`Plant.environment_torque` and
   :attr:`Plant.gravity_torque` as they are.
 
-The flexible joint of seed 003 (Vertechy et al., §I-II, Eqs. 1-2, Fig. 4)
+The flexible joint of [Vertechy] (Vertechy et al., §I-II, Eqs. 1-2, Fig. 4)
 --------------------------------------------------------------------------
-The same model serves the seed-003 exoskeleton joint (AG1): ``J_motor`` 2.5,
+The same model serves the [Vertechy] exoskeleton joint (AG1): ``J_motor`` 2.5,
 ``J_load`` 0.7 kg m², ``k_flex`` 6300 Nm/rad, ``c_flex`` 11.8 Nm s/rad, gear ratio 100
 (natural frequency ``sqrt(k/J) / 2 pi`` = 17.08 Hz with ``J = J_m J_l / (J_m + J_l)``,
 damping ratio ``c / (2 sqrt(k J))`` = 0.1005).  What that joint adds, each independent
 of the harmonic-drive ripple model (ripple, bridge modulation and misalignment can be
 on or off with any of them):
 
-* a prescribed link trajectory (:class:`LinkMotionConfig`, seed 003 §VI
+* a prescribed link trajectory (:class:`LinkMotionConfig`, [Vertechy] §VI
   ``theta_l = 20 sin(2 pi t) deg``): the environment moves the link with infinite
   impedance, the motor side integrates against the spring/damper, and the torque the
   environment must apply is truth (:attr:`Plant.external_torque`);
 * gravity on the link (:class:`GravityConfig`, ``tau_g = mgl sin(theta_l + offset)``);
-* the motor disturbance friction of seed 003 §VI, mapped onto ``coulomb_motor`` /
+* the motor disturbance friction of [Vertechy] §VI, mapped onto ``coulomb_motor`` /
   ``friction_smoothing`` / ``b_motor`` (see :class:`DriveTrainConfig`);
 * a torque sensor that measures the spring torque only, as the seed defines it
   (``SensorConfig.torque_measures = "spring"``, ``tau_s = k (theta_l - theta_m)``),
@@ -72,7 +72,7 @@ on or off with any of them):
   calibration must hold the same number).
 
 Truth for the joint-torque control work: :attr:`Plant.external_torque` (``tau_l +
-tau_g`` of seed 003 Eq. 1, i.e. ``J_l ddq_l - T_transmitted``),
+tau_g`` of [Vertechy] Eq. 1, i.e. ``J_l ddq_l - T_transmitted``),
 :attr:`Plant.motor_disturbance` (``tau_d``), :attr:`Plant.motor_torque_output`
 (``tau_m``) and :attr:`Plant.motor_torque_command_output`.
 
@@ -124,21 +124,21 @@ __all__ = [
 ]
 
 TWO_PI = 2.0 * math.pi
-ENCODER_MODULUS = 1 << 16  # 16-bit wrapping quadrature counter (seed 000: short pcsample)
+ENCODER_MODULUS = 1 << 16  # 16-bit wrapping quadrature counter ([Taghirad97]: short pcsample)
 _NOISE_BLOCK = 4096  # standard normals drawn from the generator at a time
 
 
 @dataclass(frozen=True)
 class AmplifierConfig:
-    """Servo amplifier in current mode (seed 000 listing A.1: "floatV for MAX-100 servo").
+    """Servo amplifier in current mode ([Taghirad97] listing A.1: "floatV for MAX-100 servo").
 
     ``i_cmd = clip(gain_A_per_V * V_dac, -current_limit_A, +current_limit_A)``; the
     current follows ``i_cmd`` through a first-order lag of time constant
     ``current_lag_s`` (the closed current loop; 0 = ideal, i = i_cmd at once).  The
     motor torque at the motor shaft is ``torque_constant_Nm_per_A * i``.
 
-    The seeds give no amplifier or motor data; all defaults are representative of a
-    brushed servo motor on an RHS-20-class harmonic drive, not from the seeds
+    The papers give no amplifier or motor data; all defaults are representative of a
+    brushed servo motor on an RHS-20-class harmonic drive, not from the papers
     (a 0.4 ms lag is a ~400 Hz current loop).
     """
 
@@ -161,40 +161,40 @@ class AmplifierConfig:
 
 @dataclass(frozen=True)
 class DriveTrainConfig:
-    """Two-mass flexible joint, everything reduced to the OUTPUT shaft (seed 003 Eq. 1).
+    """Two-mass flexible joint, everything reduced to the OUTPUT shaft ([Vertechy] Eq. 1).
 
     ``J_m ddq_m = tau_m + tau_d + k (q_l - q_m) + c (dq_l - dq_m)``
     ``J_l ddq_l = tau_l + tau_g - k (q_l - q_m) - c (dq_l - dq_m)``
 
     with ``q_m = theta_motor / gear_ratio``, ``tau_m = gear_ratio * Kt * i``, the motor
     disturbance ``tau_d = -b_motor dq_m - coulomb_motor tanh(dq_m / friction_smoothing)``
-    (motor bearings + wave generator, seed 003: "friction and ripple effects of both
+    (motor bearings + wave generator, [Vertechy]: "friction and ripple effects of both
     motor and harmonic drive", here friction only, see :class:`RippleConfig`) and the
     load-side friction ``-b_load dq_l - coulomb_load tanh(dq_l / friction_smoothing)``
     added to the external ``tau_l + tau_g`` (:meth:`Plant.set_load_torque`).
 
     Defaults and their sources:
 
-    * ``gear_ratio`` 100: seed 000 §2 (RHS series, 100:1) and listing (``Gain = 100``).
+    * ``gear_ratio`` 100: [Taghirad97] §2 (RHS series, 100:1) and listing (``Gain = 100``).
     * ``J_motor`` 0.3 kg m²: a 3e-5 kg m² rotor (+ wave generator) times 100²;
-      representative of an RHS-20-class harmonic drive, not from the seeds.
+      representative of an RHS-20-class harmonic drive, not from the papers.
     * ``b_motor`` 1.7 Nm s/rad and ``coulomb_motor`` 1.2 Nm (output-referred, i.e.
       0.017 Nm s/rad and 0.012 Nm at the motor): representative of an RHS-20-class
-      harmonic drive, not from the seeds; tuned together with ``J_motor`` so that the
-      free-motion step of seed 000 Fig. 8 settles to ~156 rad/s with a ~0.19 s
+      harmonic drive, not from the papers; tuned together with ``J_motor`` so that the
+      free-motion step of [Taghirad97] Fig. 8 settles to ~156 rad/s with a ~0.19 s
       mechanical time constant (flat from 0.8 s to 1.1 s).
     * ``friction_smoothing`` 0.01 rad/s at the output (1 rad/s at the motor): the
-      width of the tanh Coulomb model; a numerical choice, not from the seeds.
+      width of the tanh Coulomb model; a numerical choice, not from the papers.
     * ``k_flex`` 1.0e4 Nm/rad and ``c_flex`` 5 Nm s/rad: flexspline torsional stiffness
       and structural damping, representative of an RHS-20-class harmonic drive, not
-      from the seeds (seed 003's 6.3 kNm/rad and 11.8 Nm s/rad belong to a different
+      from the papers ([Vertechy]'s 6.3 kNm/rad and 11.8 Nm s/rad belong to a different
       joint that includes a sensor hub).  With the default inertias the locked-free
       natural frequency ``sqrt(k (1/J_m + 1/J_l))`` is 783 rad/s (125 Hz).
-    * ``J_load`` 1.725e-2 kg m²: seed 000 listing A.1 (``J_load``).
+    * ``J_load`` 1.725e-2 kg m²: [Taghirad97] listing A.1 (``J_load``).
     * ``b_load`` 0.01 Nm s/rad and ``coulomb_load`` 0.05 Nm: output bearings of the
-      free-motion test stand; representative, not from the seeds.
+      free-motion test stand; representative, not from the papers.
 
-    The seed-003 joint (§I: "motor shaft inertia reduced to the joint output shaft
+    The [Vertechy] joint (§I: "motor shaft inertia reduced to the joint output shaft
     J_m = 2.5 Kgm²", "overall joint torsional stiffness ... k = 6.3 kNm/rad", rigid
     link J_l = 0.7 Kgm²; §II: c = 11.8 Nms/rad) is ``J_motor = 2.5``, ``J_load =
     0.7``, ``k_flex = 6300``, ``c_flex = 11.8``, ``gear_ratio = 100`` (§I).  Its motor
@@ -247,22 +247,22 @@ class DriveTrainConfig:
 
     @property
     def natural_frequency_radps(self) -> float:
-        """Undamped flexspline mode ``sqrt(k (1/J_m + 1/J_l))`` in rad/s (seed 003 Eq. 2)."""
+        """Undamped flexspline mode ``sqrt(k (1/J_m + 1/J_l))`` in rad/s ([Vertechy] Eq. 2)."""
         return math.sqrt(self.k_flex * (1.0 / self.J_motor + 1.0 / self.J_load))
 
     @property
     def natural_frequency_Hz(self) -> float:
-        """``sqrt(k/J) / 2 pi`` in Hz: seed 003 §II "≈ 17 Hz" (17.08 Hz for AG1)."""
+        """``sqrt(k/J) / 2 pi`` in Hz: [Vertechy] §II "≈ 17 Hz" (17.08 Hz for AG1)."""
         return self.natural_frequency_radps / TWO_PI
 
     @property
     def reduced_inertia(self) -> float:
-        """``J = J_m J_l / (J_m + J_l)`` in kg m² (seed 003, below Eq. 2)."""
+        """``J = J_m J_l / (J_m + J_l)`` in kg m² ([Vertechy], below Eq. 2)."""
         return self.J_motor * self.J_load / (self.J_motor + self.J_load)
 
     @property
     def damping_ratio(self) -> float:
-        """Damping ratio of the joint mode of seed 003 Eq. 2, ``c / (2 sqrt(k J))``
+        """Damping ratio of the joint mode of [Vertechy] Eq. 2, ``c / (2 sqrt(k J))``
         (spring/damper only; motor and load friction not included)."""
         return self.c_flex / (2.0 * math.sqrt(self.k_flex * self.reduced_inertia))
 
@@ -274,26 +274,26 @@ class RippleConfig:
     ``mesh = amp2 sin(2 theta_motor + phase2) + amp4 sin(4 theta_motor + phase4)``
     ``misalignment = (misalignment_pp / 2) sin(theta_output + misalignment_phase)``
 
-    * 2x and 4x MOTOR angle: gear meshing in two zones (seed 000 §4: "a real torque
+    * 2x and 4x MOTOR angle: gear meshing in two zones ([Taghirad97] §4: "a real torque
       oscillation ... twice the motor velocity, for the gear teeth in harmonic drives
       are meshing in two zones"; Fig. 8: peaks at 312 and 624 rad/s at 156 rad/s).
       The sensor's own 2x modulation (§2 Eq. 2) is NOT here: it comes out of the
       gauge model (:class:`hostsim.bridge.StrainGaugeBridge`, ``PlantConfig.bridge``).
-    * OUTPUT angle: misalignment of drive shaft and load (seed 000 §5: frequency
+    * OUTPUT angle: misalignment of drive shaft and load ([Taghirad97] §5: frequency
       equals the output shaft velocity; 10 Nm p-p before re-assembly, < 2 Nm after).
       A side load that the sensor picks up ("many torque sensors exhibit the limitation
       of being sensitive to the torques applied on the direction perpendicular to their
       axis of measurement", §5): measurement path, like the meshing ripple.
 
     Modelling choice: both are added to the torque the gauges see (the measurement
-    path) and do not drive the mechanics.  Seed 000 §4 says the meshing ripple is a
+    path) and do not drive the mechanics.  [Taghirad97] §4 says the meshing ripple is a
     real torque oscillation; leaving it out of the dynamics keeps the ground truth
     exactly separable, ``T_meas_clean = T_true + T_ripple`` (see the module
     docstring), which is what the Kalman filter is scored against.  Being locked to
     angle, both are also present (as static, position-dependent offsets) at standstill.
 
     Default amplitudes (0.6 Nm and 0.25 Nm, about 19 and 8 LSB of the 12-bit torque
-    channel at 6.6 Nm/V) and phases are chosen to look like seed 000 Fig. 8/9; the
+    channel at 6.6 Nm/V) and phases are chosen to look like [Taghirad97] Fig. 8/9; the
     seed's text gives no numbers for them.  Misalignment is off by default.
     """
 
@@ -323,7 +323,7 @@ LoadKind = Literal["none", "constant", "square", "sine", "steps"]
 
 @dataclass(frozen=True)
 class LoadTorqueConfig:
-    """External torque on the output, ``tau_l + tau_g`` of seed 003 Eq. 1, as a profile.
+    """External torque on the output, ``tau_l + tau_g`` of [Vertechy] Eq. 1, as a profile.
 
     Positive drives the load forward (a negative torque brakes a forward-running
     load).  The plant evaluates it from its own clock at the start of every
@@ -415,27 +415,27 @@ LinkMotionKind = Literal["none", "hold", "sine", "person"]
 PERSON_COMPONENTS = 5
 #: ``person`` link motion: the band its frequencies are drawn from (Hz).  A person moving
 #: a handle over ±60° by hand does so in slow, uneven strokes of one to several seconds;
-#: the upper end also keeps the link within seed 003's "motor rotor maximum velocity
+#: the upper end also keeps the link within [Vertechy]'s "motor rotor maximum velocity
 #: equal to 1000rpm" (§I), 1.05 rad/s at the output (see :meth:`LinkMotionConfig.components`).
 PERSON_BAND_HZ = (0.05, 0.25)
 
 
 @dataclass(frozen=True)
 class LinkMotionConfig:
-    """A prescribed trajectory of the output link (seed 003 §VI simulation conditions).
+    """A prescribed trajectory of the output link ([Vertechy] §VI simulation conditions).
 
-    Seed 003 §VI: "the controller attempts to track tau_s^D while the output link is
+    [Vertechy] §VI: "the controller attempts to track tau_s^D while the output link is
     moved according to a given trajectory", ``theta_l = 20 sin(2 pi t)`` deg.  The
     environment has infinite impedance: with a kind other than ``none`` the load angle
     and velocity follow the prescription exactly, whatever the joint does, and the
-    motor side integrates against the spring/damper (seed 003 Eq. 1, first line, with
+    motor side integrates against the spring/damper ([Vertechy] Eq. 1, first line, with
     ``theta_l(t)`` an input).  With ``A = amplitude_deg``, ``f = frequency_Hz``,
     ``theta_0 = offset_deg`` (all converted to rad), at the plant's time t:
 
     - ``none``: the link is free (the default): it obeys Eq. 1, second line.
     - ``hold``: ``theta_l = theta_0`` (link clamped, e.g. a user gripping the handle).
-    - ``sine``: ``theta_l = theta_0 + A sin(2 pi f t)`` (seed 003 §VI: A = 20°, f = 1 Hz).
-    - ``person``: a person-like motion of the handle (seed 003 §VI experiment: "the end
+    - ``sine``: ``theta_l = theta_0 + A sin(2 pi f t)`` ([Vertechy] §VI: A = 20°, f = 1 Hz).
+    - ``person``: a person-like motion of the handle ([Vertechy] §VI experiment: "the end
       link is moved in the range theta_l in [-60, 60] deg by a human user who acts on the
       sensorized handle").  The seed gives no trajectory; our model is a sum of
       :data:`PERSON_COMPONENTS` sinusoids ``theta_l = theta_0 + sum_i a_i sin(2 pi f_i t
@@ -445,7 +445,7 @@ class LinkMotionConfig:
       same ``motion_seed`` gives the same motion on any machine.  The amplitudes are
       scaled so that the largest ``|theta_l - theta_0|`` over the first
       ``horizon_s`` seconds is ``A`` (60° for the seed's range) unless that would make
-      the link faster than ``max_velocity_radps`` (seed 003 §I: 1000 rpm at the motor,
+      the link faster than ``max_velocity_radps`` ([Vertechy] §I: 1000 rpm at the motor,
       1.047 rad/s at the output through the 100:1 reduction), in which case the
       velocity bound sets the scale.  Smooth to every derivative, so the environment
       torque it takes (the handle torque) is smooth too.
@@ -557,14 +557,14 @@ class LinkMotionConfig:
 
 @dataclass(frozen=True)
 class GravityConfig:
-    """Gravity on the output link, ``tau_g`` of seed 003 Eq. 1.
+    """Gravity on the output link, ``tau_g`` of [Vertechy] Eq. 1.
 
     ``tau_g = mgl_Nm * sin(theta_l + offset_deg)`` (Nm at the output, positive forward),
     with ``mgl_Nm`` the link's mass x g x distance of its centre of mass from the axis.
     ``offset_deg`` is the link's angle from the upright position at ``theta_l = 0``: 0
     puts the unstable equilibrium at ``theta_l = 0`` (gravity pushes away from it),
     180 makes ``theta_l = 0`` the hanging position (``tau_g = -mgl sin theta_l``,
-    restoring).  Default 0 Nm: seed 003 §VI, "the joint axis is vertical so that tau_g
+    restoring).  Default 0 Nm: [Vertechy] §VI, "the joint axis is vertical so that tau_g
     = 0".  In free motion it is held over each sub-step (like the Coulomb friction);
     with a prescribed link motion it changes only :attr:`Plant.environment_torque`.
     """
@@ -590,20 +590,20 @@ class SensorConfig:
     """Analog sensors ahead of the 12-bit ADC, and the motor encoder.
 
     * Torque: the strain-gauge bridge through its amplifier (``PlantConfig.bridge``,
-      seed 000 §2), ``V = (T_true + T_ripple) / volt2Nm_true + torque_offset_V +
+      [Taghirad97] §2), ``V = (T_true + T_ripple) / volt2Nm_true + torque_offset_V +
       noise`` (see the module docstring); ``torque_offset_V`` is the bridge
       amplifier's electrical zero offset.
     * Tachometer on the motor: ``V = omega_motor / volt2radps + noise``; 56.2565 rad/s
-      per V is seed 000 listing A.1 (``volt2radps``).
+      per V is [Taghirad97] listing A.1 (``volt2radps``).
     * Amplifier current monitor: ``V = i / current_monitor_A_per_V + noise``
-      (representative, not from the seeds).
+      (representative, not from the papers).
     * Quadrature encoder on the motor, ``encoder_counts_per_rev`` counts per motor
-      revolution (8000 = 2000 lines x 4; representative, not from the seeds), read as
-      a 16-bit wrapping count (seed 000 listing: ``short pcsample``).
+      revolution (8000 = 2000 lines x 4; representative, not from the papers), read as
+      a 16-bit wrapping count ([Taghirad97] listing: ``short pcsample``).
 
     Noise standard deviations are in physical units (Nm, rad/s at the motor, A),
     white and Gaussian, one independent draw per sample; representative values, not
-    from the seeds, except for seed 003's torque sensor: "torque sensor variance W =
+    from the papers, except for [Vertechy]'s torque sensor: "torque sensor variance W =
     0.12 Nm (measured with the motor driver turned on)" (§I; the unit is Nm², a
     variance, as its use in the Kalman filter of Eq. 8 shows) is
     ``torque_noise_Nm = sqrt(0.12) = 0.3464`` Nm per sample.  The seed measured it on
@@ -613,8 +613,8 @@ class SensorConfig:
 
     ``torque_measures``: what the ideal torque sensor reads, :attr:`Plant.T_true`.
     ``"transmitted"`` (default): the flexspline torque ``k (q_m - q_l) + c (dq_m -
-    dq_l)``, spring and damper (the flexspline gauges of seed 000).  ``"spring"``: the
-    spring torque ``k (q_m - q_l) = -tau_s`` only, the sensor torque of seed 003
+    dq_l)``, spring and damper (the flexspline gauges of [Taghirad97]).  ``"spring"``: the
+    spring torque ``k (q_m - q_l) = -tau_s`` only, the sensor torque of [Vertechy]
     (§II: ``tau_s = k (theta_l - theta_m)``; the variable of Eq. 2, so the joint
     response is exactly the second-order system the seed identifies in Fig. 5).
     """
@@ -707,7 +707,7 @@ class PlantConfig:
         """Motor torque at the output per amplifier input volt (Nm/V): ``N Kt g``.
 
         ``gear_ratio * torque_constant_Nm_per_A * gain_A_per_V``: the steady-state
-        output-referred motor torque (``tau_m`` of seed 003 Eq. 1) per DAC volt, below
+        output-referred motor torque (``tau_m`` of [Vertechy] Eq. 1) per DAC volt, below
         the current limit.  A firmware that commands torque through the DAC needs the
         same constant as its actuator calibration.
         """
@@ -724,7 +724,7 @@ class PlantConfig:
 def steady_state_motor_velocity(cfg: PlantConfig, volts: float, load_Nm: float = 0.0) -> float:
     """Motor velocity (rad/s) the plant settles to at a constant amplifier input.
 
-    Torque balance at the output (seed 003 Eq. 1 with all accelerations zero and the
+    Torque balance at the output ([Vertechy] Eq. 1 with all accelerations zero and the
     Coulomb friction as a sign function)::
 
         N Kt i + tau_l = (b_m + b_l) w_out + (C_m + C_l) sign(w_out),  i = clip(g V)
@@ -765,7 +765,7 @@ class RippleParts(NamedTuple):
 
 
 def continuous_model(cfg: PlantConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Linear part of amplifier + seed 003 Eq. 1 as ``dz/dt = A z + B u``.
+    """Linear part of amplifier + [Vertechy] Eq. 1 as ``dz/dt = A z + B u``.
 
     State ``z = [d, w_m, w_l, i, q_l]`` with the flexspline twist ``d = q_m - q_l``
     (output-referred), reduced motor velocity ``w_m = dq_m/dt``, load velocity ``w_l``,
@@ -809,7 +809,7 @@ def discrete_model(cfg: PlantConfig, h: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def prescribed_model(cfg: PlantConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Motor side of seed 003 Eq. 1 against a prescribed link (:class:`LinkMotionConfig`).
+    """Motor side of [Vertechy] Eq. 1 against a prescribed link (:class:`LinkMotionConfig`).
 
     State ``z = [d, w_m, i, s, co]``: twist ``d = q_m - q_l`` (output-referred), reduced
     motor velocity, motor current and the exosystem ``s = sin(w t)``, ``co = cos(w t)``
@@ -954,7 +954,7 @@ class Plant:
         self._tau_load = 0.0
         self._profile = None if cfg.load.kind == "none" else cfg.load.value
         self._const_loads = (0.0,) * self._substeps
-        # gravity and prescribed link motion (seed 003)
+        # gravity and prescribed link motion ([Vertechy])
         self._mgl = cfg.gravity.mgl_Nm
         self._g_off = math.radians(cfg.gravity.offset_deg)
         self._link = cfg.link if cfg.link.active else None
@@ -983,7 +983,7 @@ class Plant:
 
     # ------------------------------------------------------------------ dynamics
     def set_load_torque(self, torque_Nm: float) -> None:
-        """External torque on the load, ``tau_l`` of seed 003 Eq. 1 (Nm, output).
+        """External torque on the load, ``tau_l`` of [Vertechy] Eq. 1 (Nm, output).
 
         Positive drives the load forward.  Held until changed; 0 is free motion.  Adds
         to the gravity torque (:class:`GravityConfig`).  With a prescribed link motion
@@ -1003,7 +1003,7 @@ class Plant:
         return self._tau_load + (0.0 if profile is None else profile(self._t))
 
     def hold_locked(self, theta_motor: float, torque_Nm: float) -> None:
-        """Static state of the calibration rig (seed 000 §3): wave generator locked.
+        """Static state of the calibration rig ([Taghirad97] §3): wave generator locked.
 
         The motor shaft (wave generator) is held at ``theta_motor`` (rad, unwrapped)
         and the flexspline carries ``torque_Nm`` (an arm and weight on the output):
@@ -1210,7 +1210,7 @@ class Plant:
 
         Mesh ripple and misalignment (:class:`RippleConfig`) are torques the gauges
         see; the gauge nonlinearity and hysteresis act on their sum with ``T_true``;
-        the bridge's wave-generator residual (seed 000 §2 Eqs. 1-4) depends on
+        the bridge's wave-generator residual ([Taghirad97] §2 Eqs. 1-4) depends on
         :attr:`beta` only.  All as torque-equivalents at the true gain.
         """
         r = self.cfg.ripple
@@ -1298,7 +1298,7 @@ class Plant:
 
         :attr:`T_transmitted` (default) or, with ``SensorConfig.torque_measures =
         "spring"``, :attr:`T_spring`.  Positive when the motor drives the load forward
-        (see the module docstring for seed 003's opposite sign).
+        (see the module docstring for [Vertechy]'s opposite sign).
         """
         dt_cfg = self.cfg.drivetrain
         if self._spring_only:
@@ -1308,13 +1308,13 @@ class Plant:
     @property
     def T_transmitted(self) -> float:
         """Torque the joint transmits to the link, ``k (q_m - q_l) + c (dq_m - dq_l)``
-        (Nm, output): ``-(tau_s + c (dtheta_l - dtheta_m))`` in seed 003's terms."""
+        (Nm, output): ``-(tau_s + c (dtheta_l - dtheta_m))`` in [Vertechy]'s terms."""
         dt_cfg = self.cfg.drivetrain
         return dt_cfg.k_flex * self._d + dt_cfg.c_flex * (self._wm - self._wl)
 
     @property
     def T_spring(self) -> float:
-        """Spring torque ``k (q_m - q_l)`` (Nm, output): ``-tau_s`` of seed 003 §II."""
+        """Spring torque ``k (q_m - q_l)`` (Nm, output): ``-tau_s`` of [Vertechy] §II."""
         return self.cfg.drivetrain.k_flex * self._d
 
     @property
@@ -1343,11 +1343,11 @@ class Plant:
 
         ``beta = theta_motor + theta_output``.  The gauges sit on the flexspline, which
         carries the output.  In a cup-type harmonic drive with the circular spline fixed
-        (seed 000 §1) the flexspline turns AGAINST the wave generator, at 1/N of its
+        ([Taghirad97] §1) the flexspline turns AGAINST the wave generator, at 1/N of its
         speed; the plant's convention (positive motor -> positive output, module
         docstring) hides that reversal, so relative to the gauges the wave generator
         turns by ``theta_motor + theta_output``, i.e. (N + 1) / N times the motor angle.
-        The bridge's residual modulation is at ``2 beta`` (seed 000 §2, Eqs. 2-3):
+        The bridge's residual modulation is at ``2 beta`` ([Taghirad97] §2, Eqs. 2-3):
         1.01 x the 2x meshing frequency for N = 100, which the seed does not resolve
         ("also twice the motor speed", §4).
         """
@@ -1393,10 +1393,10 @@ class Plant:
         """Electromagnetic motor torque ``Kt i`` in Nm at the MOTOR shaft (x N at the output)."""
         return self.cfg.amplifier.torque_constant_Nm_per_A * self._i
 
-    # ------------------------------------------------------------------ seed-003 truth
+    # ------------------------------------------------------------------ [Vertechy] truth
     @property
     def motor_torque_output(self) -> float:
-        """Motor torque reduced to the output, ``N Kt i`` (Nm): ``tau_m`` of seed 003
+        """Motor torque reduced to the output, ``N Kt i`` (Nm): ``tau_m`` of [Vertechy]
         Eq. 1 as it acts (after the current lag and the current limit)."""
         return self._n * self.cfg.amplifier.torque_constant_Nm_per_A * self._i
 
@@ -1409,7 +1409,7 @@ class Plant:
 
     @property
     def motor_disturbance(self) -> float:
-        """``tau_d`` of seed 003 Eq. 1 (Nm, output): every torque on the motor inertia
+        """``tau_d`` of [Vertechy] Eq. 1 (Nm, output): every torque on the motor inertia
         except ``tau_m`` and the joint's, ``-b_m dq_m - C_m tanh(dq_m / eps)`` (the
         motor friction, :class:`DriveTrainConfig`).  Same sign in the seed and here."""
         d = self.cfg.drivetrain
@@ -1417,13 +1417,13 @@ class Plant:
 
     @property
     def gravity_torque(self) -> float:
-        """``tau_g`` of seed 003 Eq. 1 at the present link angle (Nm, :class:`GravityConfig`)."""
+        """``tau_g`` of [Vertechy] Eq. 1 at the present link angle (Nm, :class:`GravityConfig`)."""
         return self.cfg.gravity.torque(self._ql)
 
     @property
     def load_friction_torque(self) -> float:
         """The output bearings' friction on the link, ``-b_l dq_l - C_l tanh(dq_l / eps)``
-        (Nm).  Seed 003 has no such term: it belongs to its ``tau_l``."""
+        (Nm).  [Vertechy] has no such term: it belongs to its ``tau_l``."""
         d = self.cfg.drivetrain
         return -d.b_load * self._wl - self._cl * math.tanh(self._wl * self._inv_eps)
 
@@ -1431,7 +1431,7 @@ class Plant:
     def link_acceleration(self) -> float:
         """Link angular acceleration ``ddtheta_l`` (rad/s²) at :attr:`time`.
 
-        Free link: ``(T_transmitted + tau_l + tau_g + friction) / J_l`` (seed 003 Eq. 1,
+        Free link: ``(T_transmitted + tau_l + tau_g + friction) / J_l`` ([Vertechy] Eq. 1,
         second line); prescribed link: the prescription's.
         """
         if self._link is not None:
@@ -1442,13 +1442,13 @@ class Plant:
 
     @property
     def external_torque(self) -> float:
-        """All torque on the link except the joint's (Nm): ``tau_l + tau_g`` of seed 003.
+        """All torque on the link except the joint's (Nm): ``tau_l + tau_g`` of [Vertechy].
 
-        ``J_l ddtheta_l - T_transmitted``, i.e. in seed 003's terms (Eq. 1, second line)
+        ``J_l ddtheta_l - T_transmitted``, i.e. in [Vertechy]'s terms (Eq. 1, second line)
         ``tau_l + tau_g = J_l ddtheta_l + k (theta_l - theta_m) + c (dtheta_l -
         dtheta_m)``.  The plant's and the seed's external torques have the same sign.
         The output-bearing friction (:attr:`load_friction_torque`, not in the seed)
-        counts as part of ``tau_l``.  This is what the seed-003 Kalman filter
+        counts as part of ``tau_l``.  This is what the [Vertechy] Kalman filter
         estimates as ``tau_lg`` (and, with ``tau_d``, ``tau_lgd = tau_lg - tau_d
         J_l / J_m``).
         """
@@ -1460,7 +1460,7 @@ class Plant:
 
     @property
     def environment_torque(self) -> float:
-        """``tau_l`` of seed 003 Eq. 1 (Nm): the torque the environment applies to the link.
+        """``tau_l`` of [Vertechy] Eq. 1 (Nm): the torque the environment applies to the link.
 
         Free link: :attr:`load_torque`.  Prescribed link: what it takes to impose the
         motion, ``J_l ddtheta_l - T_transmitted - tau_g - friction``.

@@ -4,7 +4,7 @@ needs from a plant.
 The drive node is the CANopen device (NMT, heartbeat, CiA 402 state machine, PDOs,
 EMCY); the plant is the physics behind it. The node holds no physics: on SYNC k it
 advances the plant by one period with the amplifier input of the past period, reads the
-sensors and sends them (DESIGN.md, "Timing semantics"). Any object with the members
+sensors and sends them (docs/design.md, "Timing semantics"). Any object with the members
 below can stand behind the node: the emulator's own :class:`hostsim.plant.Plant`
 (harmonic drive, flexible joint, strain-gauge sensor with ripple) or a model of your
 own (README, "Plugging in a plant"; a rigid inertia in ``tests/test_plant_model.py``).

@@ -29,17 +29,17 @@ Layout of a scenario file::
 Shipped scenarios live in ``hdhil/hostsim/scenarios/*.toml`` (package data) and are
 addressed by file stem; any other ``.toml`` file is addressed by path:
 
-- ``free-motion``: seed 000 Fig. 8-9, step to ~156 rad/s, 2x/4x ripple;
-- ``misalignment``: seed 000 §5 Fig. 10-11, constant ~156 rad/s, 10 Nm p-p
+- ``free-motion``: [Taghirad97] Fig. 8-9, step to ~156 rad/s, 2x/4x ripple;
+- ``misalignment``: [Taghirad97] §5 Fig. 10-11, constant ~156 rad/s, 10 Nm p-p
   misalignment at the output angle, 15 s (3.7 output revolutions);
 - ``speed-chirp``: triangle sweep of the motor between ~20 and ~200 rad/s, 20 s;
 - ``torque-steps``: load-torque steps of 0.5-1 Nm at 98-171 rad/s, 6 s;
-- ``chirp``: seed 003 Fig. 5, the exoskeleton joint under a motor-torque chirp;
-- ``lqg-tracking``: seed 003 §VI Fig. 7, JTF1 with the link moved 20° sin 2πt;
-- ``lqg-experiment``: seed 003 §VI Fig. 8, JTF1 with the Eq. 5 friction compensation
+- ``chirp``: [Vertechy] Fig. 5, the exoskeleton joint under a motor-torque chirp;
+- ``lqg-tracking``: [Vertechy] §VI Fig. 7, JTF1 with the link moved 20° sin 2πt;
+- ``lqg-experiment``: [Vertechy] §VI Fig. 8, JTF1 with the Eq. 5 friction compensation
   while a person moves the link over ±60°;
-- ``lqg-misalignment``: seed 003's regulator on the ripple-filtered torque of a joint
-  with seed 000's meshing ripple and misalignment.
+- ``lqg-misalignment``: [Vertechy]'s regulator on the ripple-filtered torque of a joint
+  with [Taghirad97]'s meshing ripple and misalignment.
 
 Every
 mistake (unknown name, missing file, TOML syntax, unknown key, wrong type, value out

@@ -1,4 +1,4 @@
-"""Line-by-line ports of seed ``000_ae0a3dbe24949b7c.txt``'s C listings, shared by the
+"""Line-by-line ports of [Taghirad97]'s C listings, shared by the
 tests that hold the firmware against them (ripple filter, paper mode)."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import math
 
 
 class ListingKF:
-    """Seed 000, listing A.1 / A.2 ``Kalman``, loop for loop, with its locals made static."""
+    """[Taghirad97], listing A.1 / A.2 ``Kalman``, loop for loop, with its locals made static."""
 
     def __init__(self, a2: bool) -> None:
         self.a2 = a2

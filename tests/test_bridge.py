@@ -1,4 +1,4 @@
-"""The strain-gauge torque sensor (hostsim.bridge; seed 000 §2, Eqs. 1-4)."""
+"""The strain-gauge torque sensor (hostsim.bridge; [Taghirad97] §2, Eqs. 1-4)."""
 
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ def harmonics(bridge: StrainGaugeBridge, torque: float = 0.0) -> np.ndarray:
 
 
 def test_eq4_for_hand_computed_strains() -> None:
-    """E_out = K/4 (e1 + e3 - e2 - e4) E_sup (seed 000 Eq. 4), four gauges."""
+    """E_out = K/4 (e1 + e3 - e2 - e4) E_sup ([Taghirad97] Eq. 4), four gauges."""
     strains = [100e-6, -50e-6, 80e-6, -30e-6]
     # 2.0 / 4 * (100 + 80 + 50 + 30) e-6 * 10 V = 1.3 mV
     assert bridge_output_V(strains, 2.0, 10.0) == pytest.approx(1.3e-3, rel=1e-12)

@@ -1,4 +1,4 @@
-"""The calibration rig of seed 000 §3 (hostsim.calibration) and ``hdhil calibrate``."""
+"""The calibration rig of [Taghirad97] §3 (hostsim.calibration) and ``hdhil calibrate``."""
 
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ def test_recovers_the_true_gain_within_one_percent(default_results) -> None:
     for seed, r in default_results.items():
         assert r.true_gain_Nm_per_V == pytest.approx(6.62)
         assert abs(r.error) < 0.01, seed
-        assert 0.001 <= r.consistency <= 0.05, seed  # seed 000 Table 1: 2 %
+        assert 0.001 <= r.consistency <= 0.05, seed  # [Taghirad97] Table 1: 2 %
         assert len(r.experiments) == 8  # four positions x low and full range (Table 1)
         assert {e.range_Nm for e in r.experiments} == {5.0, 40.0}
         gains = np.array([e.gain_Nm_per_V for e in r.experiments])
@@ -198,7 +198,7 @@ def test_cli_user_errors_are_one_line(argv: list[str], message: str, capsys) -> 
 
 
 def test_calibrate_plot_draws_figs_6_7_and_lever_error_sets_the_consistency(tmp_path, capsys):
-    """``hdhil calibrate --plot`` writes seed 000 Figs. 6-7; ``--lever-error 0.02`` is the
+    """``hdhil calibrate --plot`` writes [Taghirad97] Figs. 6-7; ``--lever-error 0.02`` is the
     documented rig setting that gives Table 1's 2 % consistency (median over seeds), the
     default 0.5 % a quarter of it."""
     import json

@@ -1,4 +1,4 @@
-"""Seed 003 joint-torque control laws in the firmware, closed over the CAN link.
+"""[Vertechy] joint-torque control laws in the firmware, closed over the CAN link.
 
 Configuration (firmware.config.ControlConfig), the controller node's torque-control
 telemetry (CTRL_TPDO2), the lqg-tracking scenario, and the §VI tracking figures of
@@ -190,7 +190,7 @@ def table() -> dict[str, dict]:
 
 
 def test_seed_fig7_ranking_and_the_feedforward_reaches_0_3_nm(table) -> None:
-    """Seed 003 §VI: JTF1 < JTF3 < JTF2 in tracking error; JTF1 + feedforward <= 0.3 Nm."""
+    """[Vertechy] §VI: JTF1 < JTF3 < JTF2 in tracking error; JTF1 + feedforward <= 0.3 Nm."""
     e = {law: row["max_abs_e"] for law, row in table.items()}
     rms = {law: row["rms_e"] for law, row in table.items()}
     assert e["jtf1"] < e["jtf3"] < e["jtf2"]

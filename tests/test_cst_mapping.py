@@ -273,7 +273,7 @@ def test_hdhil_run_evaluate_and_dump_in_the_cst_mapping(tmp_path, capsys):
 
 
 def test_the_torque_control_laws_are_refused_in_the_cst_mapping(capsys):
-    """Seed 003's laws regulate the sensor torque; 0x6077 is the motor torque."""
+    """[Vertechy]'s laws regulate the sensor torque; 0x6077 is the motor torque."""
     from canopen.sdo import SdoAbortedError
 
     from hdhil.canopen.sdo import ABORT_DEVICE_STATE

@@ -82,7 +82,7 @@ def test_truth_and_control_identifiers_cannot_be_confused():
 
 
 def test_worst_case_frame_bits_match_design_budget():
-    # DESIGN.md: SYNC (1 byte) <= 65 us and an 8-byte PDO <= 135 us at 1 Mbit/s.
+    # docs/design.md: SYNC (1 byte) <= 65 us and an 8-byte PDO <= 135 us at 1 Mbit/s.
     assert worst_case_frame_bits(1) == 65
     assert worst_case_frame_bits(8) == 135
     assert worst_case_frame_bits(0) == 47 + 33 // 4

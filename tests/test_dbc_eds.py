@@ -144,7 +144,7 @@ def test_node_ids_in_dbc_match_the_pdo_cob_ids():
 
 
 def test_control_telemetry_pdo_is_tpdo2_of_the_controller_and_invalid_by_default():
-    """CTRL_TPDO2 (seed 003 torque control): COB-ID 0x280 + node-ID (pre-defined TPDO2),
+    """CTRL_TPDO2 ([Vertechy] torque control): COB-ID 0x280 + node-ID (pre-defined TPDO2),
     mapped from object 0x2002 in the controller's EDS, not valid (COB-ID bit 31) in the
     default configuration, which runs no control law."""
     msg = database("control").get_message_by_name("CTRL_TPDO2")

@@ -1,5 +1,5 @@
 """Tests of the pure firmware stages (firmware/stages.py) and their configuration
-(firmware/config.py), ported from seed 000, listing A.1 ``c_int10``."""
+(firmware/config.py), ported from [Taghirad97], listing A.1 ``c_int10``."""
 
 from __future__ import annotations
 
@@ -43,7 +43,7 @@ LSB = 10.0 / 2048  # 12-bit, +/-10 V
 
 # --------------------------------------------------------------------- differentiator
 def test_differentiator_coefficients_equal_the_listing_at_1ms() -> None:
-    # Seed 000, listing A.1, Diff_filter: nd = {181.818181818182, -181.818181818182},
+    # [Taghirad97], listing A.1, Diff_filter: nd = {181.818181818182, -181.818181818182},
     # dd = {1.00000000000000, -0.81818181818182}.
     d = Differentiator(tau_s=0.005, sample_period_s=1e-3)
     expected_nd = (181.818181818182, -181.818181818182)
@@ -292,7 +292,7 @@ def test_mode_defaults_fill_unset_tuning() -> None:
     rec = RippleFilterConfig(oscillators=(Oscillator("motor", 2.0), Oscillator("motor", 4.0, 7e-6)))
     assert [o.q for o in rec.oscillators] == [3e-6, 7e-6]  # an explicit q is kept
     assert RippleFilterConfig(r=2.0).r == 2.0
-    # q 1e-4 for an output harmonic; p0 25 Nm^2 with one (seed 000 §5: up to 5 Nm)
+    # q 1e-4 for an output harmonic; p0 25 Nm^2 with one ([Taghirad97] §5: up to 5 Nm)
     assert [o.q for o in RECOMMENDED_SECTION5_RIPPLE.oscillators] == [3e-6, 3e-6, 1e-4]
     assert RECOMMENDED_SECTION5_RIPPLE.p0 == 25.0 and RECOMMENDED_RIPPLE.p0 == 1.0
     assert SECTION5_RIPPLE.p0 == 1.0  # listing: P = I

@@ -1,4 +1,4 @@
-"""The flexible joint of seed 003 in the plant: parameters, prescribed link motion,
+"""The flexible joint of [Vertechy] in the plant: parameters, prescribed link motion,
 gravity, friction, saturation, sensor noise, and its truth frames on the bus."""
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from hdhil.hostsim.plant import (
 from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig.runner import run_lockstep
 
-#: Seed 003 §I-II, reduced to the output shaft; friction off unless a test adds it.
+#: [Vertechy] §I-II, reduced to the output shaft; friction off unless a test adds it.
 SEED003 = DriveTrainConfig(
     gear_ratio=100.0,
     J_motor=2.5,
@@ -45,7 +45,7 @@ SEED003 = DriveTrainConfig(
 )
 QUIET = SensorConfig(torque_noise_Nm=0.0, tacho_noise_radps=0.0, current_noise_A=0.0)
 NO_RIPPLE = RippleConfig(amp2_Nm=0.0, amp4_Nm=0.0, misalignment_pp_Nm=0.0)
-#: Seed 003 §VI: theta_l = 20 sin(2 pi t) deg.
+#: [Vertechy] §VI: theta_l = 20 sin(2 pi t) deg.
 SEED_LINK = LinkMotionConfig(kind="sine", amplitude_deg=20.0, frequency_Hz=1.0)
 #: 20 Nm per amplifier volt at the output (N 100 x Kt 0.1 x 2 A/V), limit 150 Nm.
 AMP = AmplifierConfig(
@@ -53,7 +53,7 @@ AMP = AmplifierConfig(
 )
 
 
-#: The seed-003 sensor: a strain-gauged hub, ±120 Nm on ±10 V, no wave-generator modulation.
+#: The [Vertechy] sensor: a strain-gauged hub, ±120 Nm on ±10 V, no wave-generator modulation.
 HUB = BridgeConfig.perfect(
     volt2Nm=12.0, wave_normal_strain=0.0, wave_shear_strain=0.0, rated_torque_Nm=120.0
 )
@@ -70,7 +70,7 @@ def seed_plant(**changes: object) -> Plant:
 
 
 def test_seed_003_joint_parameters_give_17_hz_and_the_seed_damping() -> None:
-    """Seed 003 §II: sqrt(k/J)/2 pi ≈ 17 Hz, J = Jm Jl / (Jm + Jl); c = 11.8 Nms/rad."""
+    """[Vertechy] §II: sqrt(k/J)/2 pi ≈ 17 Hz, J = Jm Jl / (Jm + Jl); c = 11.8 Nms/rad."""
     d = SEED003
     assert d.reduced_inertia == pytest.approx(2.5 * 0.7 / 3.2)
     assert d.natural_frequency_Hz == pytest.approx(17.08, abs=0.01)
@@ -92,7 +92,7 @@ def test_chirp_scenario_is_the_seed_joint() -> None:
 
 
 def test_spring_torque_step_response_is_seed_eq_2() -> None:
-    """Free link, motor torque step: the spring torque follows seed 003 Eq. 2 exactly.
+    """Free link, motor torque step: the spring torque follows [Vertechy] Eq. 2 exactly.
 
     Plant sign T = -tau_s: T'' + (c/J) T' + (k/J) T = (k/J_m) tau_m, from rest.
     """
@@ -121,7 +121,7 @@ def test_spring_torque_step_response_is_seed_eq_2() -> None:
 
 
 def motor_side_reference(cfg: PlantConfig, volts: float, t_end: float) -> np.ndarray:
-    """Seed 003 Eq. 1, first line, with theta_l(t) prescribed, written out independently.
+    """[Vertechy] Eq. 1, first line, with theta_l(t) prescribed, written out independently.
 
     State [q_m, w_m] (output-referred), viscous friction only, ideal amplifier.
     """
@@ -160,7 +160,7 @@ def test_prescribed_link_follows_the_trajectory_exactly_and_motor_matches_eq_1()
 
 
 def test_external_torque_truth_is_link_inertia_times_acceleration_plus_joint_torque() -> None:
-    """Seed 003 Eq. 1 second line: tau_l + tau_g = J_l ddθl + k(θl − θm) + c(θ̇l − θ̇m)."""
+    """[Vertechy] Eq. 1 second line: tau_l + tau_g = J_l ddθl + k(θl − θm) + c(θ̇l − θ̇m)."""
     gravity = GravityConfig(mgl_Nm=8.0, offset_deg=30.0)
     plant = seed_plant(
         link=replace(SEED_LINK, offset_deg=10.0),
@@ -261,7 +261,7 @@ def test_link_motion_is_composable_with_the_ripple_model() -> None:
 
 
 def test_gravity_on_a_free_link_matches_an_independent_integration() -> None:
-    """Seed 003 Eq. 1 with tau_g = mgl sin(θl + offset), solved by solve_ivp."""
+    """[Vertechy] Eq. 1 with tau_g = mgl sin(θl + offset), solved by solve_ivp."""
     gravity = GravityConfig(mgl_Nm=15.0, offset_deg=180.0)  # hanging: restoring
     plant = seed_plant(gravity=gravity, substeps=40)
     d = plant.cfg.drivetrain
@@ -335,7 +335,7 @@ def test_motor_torque_saturates_at_the_amplifier_current_limit() -> None:
 
 
 def test_torque_sensor_noise_variance_is_the_seeds_w() -> None:
-    """Seed 003 §I: variance W = 0.12 Nm², through the sensor, ADC and firmware calibration."""
+    """[Vertechy] §I: variance W = 0.12 Nm², through the sensor, ADC and firmware calibration."""
     scenario = load_scenario("chirp")
     fw = from_dict(FirmwareConfig, scenario.firmware, "firmware")
     plant = Plant(scenario.plant, seed=11)

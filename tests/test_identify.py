@@ -1,4 +1,4 @@
-"""``hdhil identify``: the seed-003 joint's resonance from a chirp run (seed 003 Fig. 5),
+"""``hdhil identify``: the [Vertechy] joint's resonance from a chirp run ([Vertechy] Fig. 5),
 and the firmware's chirp reference that drives it."""
 
 from __future__ import annotations
@@ -98,7 +98,7 @@ def exact_response(band_Hz: tuple[float, float] = (4.0, 56.0)) -> FrequencyRespo
 
 
 def test_half_power_and_log_decrement_on_the_exact_response() -> None:
-    """Seed 003 §II on Eq. 2's exact response: both methods recover zeta = 0.1005."""
+    """[Vertechy] §II on Eq. 2's exact response: both methods recover zeta = 0.1005."""
     fr = exact_response()
     hp = half_power(fr)
     zeta, fn = 0.10051658, 17.082301
@@ -117,7 +117,7 @@ def test_half_power_and_log_decrement_on_the_exact_response() -> None:
 
 
 def test_identify_recovers_the_joint_from_a_chirp_run(hdhil, chirp_trace, tmp_path) -> None:
-    """Seed 003 Fig. 5 on the emulator: fn within 2 %, c within 10 %, log decrement
+    """[Vertechy] Fig. 5 on the emulator: fn within 2 %, c within 10 %, log decrement
     within 15 % of the half-power bandwidth."""
     figure = tmp_path / "bode.png"
     code, out, err = hdhil("identify", chirp_trace, "--json", "--plot", figure)
@@ -201,7 +201,7 @@ def test_identify_errors_are_one_line_exit_2(hdhil, tmp_path, make, match) -> No
 
 
 def test_identify_rejects_a_trace_without_a_resonance(hdhil, tmp_path) -> None:
-    """A free-motion step run (seed 000) has no chirp: no resonance in an excited band."""
+    """A free-motion step run ([Taghirad97]) has no chirp: no resonance in an excited band."""
     trace = tmp_path / "fm.blf"
     run_lockstep(load_scenario("free-motion"), duration_s=5.0, trace=trace, evaluate=False)
     code, _, err = hdhil("identify", trace, "--scenario", "free-motion")

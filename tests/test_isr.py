@@ -1,5 +1,5 @@
-"""Tests of the ported interrupt body (firmware/isr.py; seed 000, listing A.1 ``c_int10``),
-and of its seed-003 torque-control stage."""
+"""Tests of the ported interrupt body (firmware/isr.py; [Taghirad97], listing A.1 ``c_int10``),
+and of its [Vertechy] torque-control stage."""
 
 from __future__ import annotations
 
@@ -244,7 +244,7 @@ def _free_motion_at_constant_speed(cfg: FirmwareConfig, n: int) -> tuple[list, l
 
 @pytest.mark.parametrize("cfg", [PAPER, RECOMMENDED], ids=["paper", "recommended"])
 def test_handler_cancels_ripple_from_adc_counts(cfg: FirmwareConfig) -> None:
-    # seed 000, Fig. 9: the filtered torque keeps far less ripple than the measured one
+    # [Taghirad97], Fig. 9: the filtered torque keeps far less ripple than the measured one
     meas, filt = _free_motion_at_constant_speed(cfg, 3000)
     rms_meas = float(np.sqrt(np.mean(np.square(meas[-1000:]))))
     rms_filt = float(np.sqrt(np.mean(np.square(filt[-1000:]))))
@@ -253,7 +253,7 @@ def test_handler_cancels_ripple_from_adc_counts(cfg: FirmwareConfig) -> None:
 
 
 # ----------------------------------------------------------------------------- torque control
-# Seed 003 (LQG joint-torque control) in the handler: firmware/isr.py TorqueControl.
+# [Vertechy] (LQG joint-torque control) in the handler: firmware/isr.py TorqueControl.
 
 CONTROL_FIELDS = (
     "tau_s_hat",
@@ -334,7 +334,7 @@ def test_gains_follow_the_configuration_not_constants() -> None:
     b = InterruptHandler(_control_cfg(weights=LqgWeights(q1=2000.0))).control
     c = InterruptHandler(_control_cfg(joint=JointParams(Jl=1.4))).control
     assert a is not None and b is not None and c is not None
-    assert a.design.gains.k1 == pytest.approx(-18.25, abs=0.01)  # seed 003 §VI: -18.3
+    assert a.design.gains.k1 == pytest.approx(-18.25, abs=0.01)  # [Vertechy] §VI: -18.3
     assert b.design.gains.k1 < a.design.gains.k1 < 0
     assert c.design.gains.k3 != a.design.gains.k3
     assert a.controller.law is ControlLaw.JTF1

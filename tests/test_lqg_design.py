@@ -1,6 +1,6 @@
-"""LQG design of seed 003 (firmware.lqg) and ``hdhil design lqg``.
+"""LQG design of [Vertechy] (firmware.lqg) and ``hdhil design lqg``.
 
-The plant used for closed-loop checks is built here from seed 003 Eq. 1 (two masses,
+The plant used for closed-loop checks is built here from [Vertechy] Eq. 1 (two masses,
 angles and velocities), independently of the Eq. 2/7 models inside firmware.lqg, so
 the sign convention and the reduction to Eq. 2 are checked too.
 """
@@ -39,15 +39,15 @@ from hdhil.firmware.lqg_design import (
     observer_model,
 )
 
-SEED_K = (-18.3, -0.33, -2.81, 3.62)  # seed 003 §VI
-SEED_L = (199.0, 19854.0, 289.0)  # seed 003 §VI
+SEED_K = (-18.3, -0.33, -2.81, 3.62)  # [Vertechy] §VI
+SEED_L = (199.0, 19854.0, 289.0)  # [Vertechy] §VI
 TS = 1e-3
 
 # ----------------------------------------------------------------------------- helpers
 
 
 class Joint:
-    """Seed 003 Eq. 1, states [θm, θm', θl, θl'], exact ZOH over Ts for inputs
+    """[Vertechy] Eq. 1, states [θm, θm', θl, θl'], exact ZOH over Ts for inputs
     [τm + τd (motor side), τl + τg (link side)]; ``tau_s = k (θl - θm)``."""
 
     def __init__(self, p: JointParams, Ts: float = TS) -> None:

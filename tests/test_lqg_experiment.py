@@ -1,4 +1,4 @@
-"""Seed 003 §VI experiment (Fig. 8): the person-moved link, the experiment's motor
+"""[Vertechy] §VI experiment (Fig. 8): the person-moved link, the experiment's motor
 friction, JTF1 with the Eq. 5 friction compensation, its scoring from the trace alone,
 the §V filter-based JTF2/JTF3, and ``hdhil plot --figure fig8``."""
 
@@ -27,7 +27,7 @@ from hdhil.firmware.lqg import LqgController
 from hdhil.hostsim.plant import LinkMotionConfig, Plant, PlantConfig
 from hdhil.hostsim.scenario import load_scenario
 
-MAX_OUTPUT_SPEED = 1000.0 * 2 * math.pi / 60.0 / 100.0  # seed 003 §I: 1000 rpm, 100:1
+MAX_OUTPUT_SPEED = 1000.0 * 2 * math.pi / 60.0 / 100.0  # [Vertechy] §I: 1000 rpm, 100:1
 
 
 # ------------------------------------------------------------------ person-like motion
@@ -75,7 +75,7 @@ def _experiment_plant(**drivetrain) -> PlantConfig:
 
 def test_person_link_is_integrated_exactly_and_its_torque_is_truth() -> None:
     """Without Coulomb friction the exosystem makes the step exact for any sub-step count;
-    the handle torque is J_l theta_l'' - T_transmitted (seed 003 Eq. 1, second line)."""
+    the handle torque is J_l theta_l'' - T_transmitted ([Vertechy] Eq. 1, second line)."""
     cfg = _experiment_plant(coulomb_motor=0.0)
     coarse = Plant(dataclasses.replace(cfg, substeps=1))
     fine = Plant(dataclasses.replace(cfg, substeps=32))

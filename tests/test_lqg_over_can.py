@@ -1,4 +1,4 @@
-"""Seed 003 §VI over the CAN link: the four control laws side by side from one command."""
+"""[Vertechy] §VI over the CAN link: the four control laws side by side from one command."""
 
 from __future__ import annotations
 

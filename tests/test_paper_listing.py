@@ -1,7 +1,7 @@
 """Paper mode is listing A.1: ``hdhil filter --paper`` (and the paper-mode interrupt
 handler) against a line-by-line port of the listing's arithmetic kept here.
 
-Seed ``000_ae0a3dbe24949b7c.txt``, Appendix A.1 ``free_kalman.c``: ``c_int10`` (``vel =
+Source: [Taghirad97], Appendix A.1 ``free_kalman.c``: ``c_int10`` (``vel =
 Tacho * volt2radps; acc = Diff_filter( vel); T_meas = Torque * volt2Nm; T_mod = J_load *
 acc / Gain; Delta_T = T_meas - T_mod; Torque_f = T_meas - T_ripple; T_ripple = Kalman
 (Delta_T, vel, sample_period);``), ``Diff_filter`` and ``Kalman`` loop for loop, with the

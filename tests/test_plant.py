@@ -163,7 +163,7 @@ def free_motion_velocity(times: list[float]) -> dict[float, float]:
 
 
 def test_free_motion_step_reaches_156_rad_s_and_is_flat() -> None:
-    """Seed 000 Fig. 8: velocity about 156 rad/s, almost flat from 0.8 s to 1.1 s."""
+    """[Taghirad97] Fig. 8: velocity about 156 rad/s, almost flat from 0.8 s to 1.1 s."""
     window = [0.8 + 0.01 * j for j in range(31)]
     w = free_motion_velocity([0.05, 0.2, 1.0, *window])
     assert w[0.05] == 0.0
@@ -220,7 +220,7 @@ def test_flexspline_oscillates_at_the_analytic_natural_frequency() -> None:
 
 
 def test_seed_003_joint_rings_near_17_hz() -> None:
-    """Seed 003 §II: J_m 2.5, J_l 0.7 kg m², k 6.3 kNm/rad, c 11.8 -> "about 17 Hz"."""
+    """[Vertechy] §II: J_m 2.5, J_l 0.7 kg m², k 6.3 kNm/rad, c 11.8 -> "about 17 Hz"."""
     plant = make(
         drivetrain={
             "J_motor": 2.5,
@@ -245,7 +245,7 @@ def test_seed_003_joint_rings_near_17_hz() -> None:
 
 
 def reference_rhs(cfg: PlantConfig, volts: float, tau_load: float):
-    """Seed 003 Eq. 1 + first-order amplifier, written out independently of the plant.
+    """[Vertechy] Eq. 1 + first-order amplifier, written out independently of the plant.
 
     State y = [q_m, q_l, dq_m, dq_l, i] (angles at the output), coulomb friction off.
     """
@@ -317,7 +317,7 @@ def test_substeps_converge() -> None:
 
 
 def test_transmitted_torque_is_load_inertia_times_acceleration_plus_friction() -> None:
-    """J_l ddq_l = T_true - load friction: what the seed-000 firmware's T_mod assumes."""
+    """J_l ddq_l = T_true - load friction: what the [Taghirad97] firmware's T_mod assumes."""
     plant = make()
     d = plant.cfg.drivetrain
     run(plant, 0.654296875, 0.1)
@@ -421,7 +421,7 @@ def _peak(freqs: np.ndarray, spectrum: np.ndarray, lo: float, hi: float) -> tupl
 
 
 def test_torque_ripple_peaks_at_2x_4x_motor_and_1x_output_velocity() -> None:
-    """Seed 000 Fig. 8 (312 and 624 rad/s at 156 rad/s) and §5 (output velocity).
+    """[Taghirad97] Fig. 8 (312 and 624 rad/s at 156 rad/s) and §5 (output velocity).
 
     Measured through the noisy 12-bit torque channel at 1 kHz over a constant-speed
     window long enough to resolve the slow misalignment line.
@@ -533,7 +533,7 @@ def test_noise_has_the_configured_standard_deviation_in_physical_units() -> None
 
 
 def test_bridge_modulation_is_locked_to_twice_the_relative_wave_generator_angle() -> None:
-    """Seed 000 §2: the gauges' residual is at 2 beta, beta = theta_m + theta_out.
+    """[Taghirad97] §2: the gauges' residual is at 2 beta, beta = theta_m + theta_out.
 
     Mesh ripple, gauge nonlinearity and hysteresis off: the torque reading minus
     T_true is then exactly a cos 2 beta + b sin 2 beta, with the bridge's amplitude; a
@@ -694,7 +694,7 @@ def test_steady_state_relation_matches_the_simulation(volts: float, load: float)
 
 # --------------------------------------------------------------------------- regression
 
-#: Recorded with the plant before the seed-003 extensions (link motion, gravity, spring
+#: Recorded with the plant before the [Vertechy] extensions (link motion, gravity, spring
 #: sensing, joint truth): the harmonic-drive scenarios must not change.  Final T_true,
 #: T_ripple, motor velocity, output angle and the sums of the four sensor readings after
 #: 3 s of a step plus a slow sine at the amplifier, noise seed 7.

@@ -28,7 +28,7 @@ COUNTS_PER_RAD = CPR / (2 * math.pi)
 #: The one-sample velocity bound: noise band + largest acceleration x Ts.
 BOUND = CFG.tacho_noise_radps + CFG.max_acceleration_radps2 * TS
 M = CFG.max_rejections
-#: One tacho volt in rad/s (seed 000 listing A.1 ``volt2radps``).
+#: One tacho volt in rad/s ([Taghirad97] listing A.1 ``volt2radps``).
 VOLT = 56.2565
 
 

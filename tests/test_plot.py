@@ -1,4 +1,4 @@
-"""Tests of ``hdhil plot`` (tools/hdhil/plot.py): the seed 000 Figs. 8-11 views of a trace,
+"""Tests of ``hdhil plot`` (tools/hdhil/plot.py): the [Taghirad97] Figs. 8-11 views of a trace,
 the flat-velocity window and the spectrum peak finder (Fig. 8: peaks at 2x and 4x the
 motor velocity)."""
 
@@ -34,7 +34,7 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 # ---------------------------------------------------------------------------- analysis
 def test_spectrum_peaks_of_two_sines_in_noise() -> None:
-    """Seed 000 Fig. 8: 0.3 s at 156 rad/s gives peaks at 312 and 624 rad/s."""
+    """[Taghirad97] Fig. 8: 0.3 s at 156 rad/s gives peaks at 312 and 624 rad/s."""
     rng = np.random.default_rng(1)
     t = np.arange(300) * Ts
     x = (0.6 * np.sin(312.0 * t + 0.4) + 0.25 * np.sin(624.0 * t + 1.3) + 0.1 * t
@@ -69,7 +69,7 @@ def test_flat_velocity_window() -> None:
 # ------------------------------------------------------------------ emulated traces
 @pytest.fixture(scope="module")
 def traces(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """2 s of free motion (seed 000 Fig. 8-9) and 3 s of misalignment (Figs. 10-11); the
+    """2 s of free motion ([Taghirad97] Fig. 8-9) and 3 s of misalignment (Figs. 10-11); the
     misalignment trace also without truth and with the drive's sensor frames only."""
     from hdhil.rig.runner import run_lockstep
 
@@ -99,7 +99,7 @@ def _data(path: Path, scenario: str) -> PlotData:
 
 
 def test_free_motion_spectrum_peaks_at_2x_and_4x_velocity(traces: dict[str, Path]) -> None:
-    """Seed 000 Fig. 8: peaks at twice and four times the (flat) motor velocity."""
+    """[Taghirad97] Fig. 8: peaks at twice and four times the (flat) motor velocity."""
     data = _data(traces["free"], "free-motion")
     k0, k1 = flat_velocity_window(data.velocity, Ts)
     v = float(np.mean(data.velocity[k0:k1]))

@@ -115,7 +115,7 @@ def test_ripple_is_the_map_at_the_measured_angle_before_the_update() -> None:
 
 
 def test_initial_covariance() -> None:
-    # 1 Nm^2; 25 Nm^2 with an output harmonic (seed 000 §5: up to 10 Nm p-p misalignment)
+    # 1 Nm^2; 25 Nm^2 with an output harmonic ([Taghirad97] §5: up to 10 Nm p-p misalignment)
     np.testing.assert_array_equal(HarmonicKalman(RECOMMENDED_RIPPLE, GEAR).P, np.eye(5))
     np.testing.assert_array_equal(
         HarmonicKalman(RECOMMENDED_SECTION5_RIPPLE, GEAR).P, 25.0 * np.eye(7)
@@ -201,7 +201,7 @@ def test_paper_filter_fails_the_same_signal(drive_signal) -> None:
 
 
 def test_output_harmonic_removes_misalignment() -> None:
-    # seed 000 §5: a torque signature at the output angle; 1 Nm amplitude (2 Nm p-p, the
+    # [Taghirad97] §5: a torque signature at the output angle; 1 Nm amplitude (2 Nm p-p, the
     # text's value after re-assembly), motor at 120 rad/s, so 0.19 Hz: it takes a few
     # output revolutions to tell it from the slowly varying true torque
     rng = np.random.default_rng(3)

@@ -1,4 +1,4 @@
-"""Tests of the torque-ripple Kalman filter (firmware/ripple.py; seed 000, Eqs. 5-10,
+"""Tests of the torque-ripple Kalman filter (firmware/ripple.py; [Taghirad97], Eqs. 5-10,
 listing A.1 / A.2 ``Kalman``)."""
 
 from __future__ import annotations
@@ -78,7 +78,7 @@ def rot(wt: float) -> np.ndarray:
 
 
 class EquationsKF:
-    """Seed 000, Eqs. 5-10 written the textbook way (Eq. 8 in innovation form)."""
+    """[Taghirad97], Eqs. 5-10 written the textbook way (Eq. 8 in innovation form)."""
 
     def __init__(self, cfg: RippleFilterConfig, sample_period: float, gear: float) -> None:
         self.w = [o.multiple / (gear if o.source == "output" else 1.0) for o in cfg.oscillators]
@@ -164,7 +164,7 @@ def _ripple(theta: float) -> float:
 
 def test_converges_on_pure_ripple_at_constant_velocity() -> None:
     kf = RippleKalman(LISTING_A1_RIPPLE, T, GEAR)
-    vel = 156.0  # seed 000 §4: peaks at 312 and 624 rad/s at 156 rad/s
+    vel = 156.0  # [Taghirad97] §4: peaks at 312 and 624 rad/s at 156 rad/s
     errors = []
     for k in range(1000):
         predicted_next = kf.step(_ripple(vel * k * T), vel)

@@ -52,7 +52,7 @@ def test_two_second_lockstep_run_over_the_bus(free_motion, tmp_path):
     assert by_name["DRIVE_TPDO2"] >= 4
     # Frames of the DBC that are not addressed to a node are not "unknown" to it.
     assert r.controller["unknown_frames"] == 0 and r.drive["unknown_frames"] == 0
-    # The free-motion experiment of seed 000 Fig. 8: the motor runs up to about 156 rad/s.
+    # The free-motion experiment of [Taghirad97] Fig. 8: the motor runs up to about 156 rad/s.
     assert 140 < r.velocity_final < 170
     # The filter removes most of the ripple: filtered error well below raw error.
     assert r.torque["samples"] == 2000

@@ -1,6 +1,6 @@
 """Tests of ``hdhil tune`` (tools/hdhil/tune.py): maximum innovation-likelihood tuning of the
 recommended ripple filter, and of the innovation attributes it reads from the firmware's
-filters (firmware/ripple.py ``RippleKalman`` / ``HarmonicKalman``, seed 000 Eqs. 8-10)."""
+filters (firmware/ripple.py ``RippleKalman`` / ``HarmonicKalman``, [Taghirad97] Eqs. 8-10)."""
 
 from __future__ import annotations
 
@@ -179,7 +179,7 @@ def test_with_tuning_sets_each_harmonic_group() -> None:
 # ------------------------------------------------------------------- emulated trace, CLI
 @pytest.fixture(scope="module")
 def traces(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """A 3 s misalignment run (seed 000 §5), and the same trace without the truth channel
+    """A 3 s misalignment run ([Taghirad97] §5), and the same trace without the truth channel
     and with only the controller's frames (no DRIVE_TPDO1)."""
     from hdhil.rig.runner import run_lockstep
 

@@ -33,12 +33,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "plot": ("plot", "draw the seed's torque figures (Figs. 8-11) from a trace"),
     "calibrate": (
         "calibrate",
-        "calibrate the emulated torque sensor (arm and weights, seed 000 §3)",
+        "calibrate the emulated torque sensor (arm and weights, [Taghirad97] §3)",
     ),
-    "design": ("design", "controller design (LQG joint-torque regulator of seed 003)"),
+    "design": ("design", "controller design (LQG joint-torque regulator of [Vertechy])"),
     "identify": (
         "identify",
-        "natural frequency and damping of the joint from a chirp trace (seed 003 Fig. 5)",
+        "natural frequency and damping of the joint from a chirp trace ([Vertechy] Fig. 5)",
     ),
     "emulate": ("netcmd", "run the drive emulator alone on a CAN interface"),
     "firmware": ("netcmd", "run the controller firmware alone on a CAN interface"),

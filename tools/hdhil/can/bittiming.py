@@ -2,7 +2,7 @@
 
 The time a frame occupies the wire depends on its content: the stuffing rule inserts a
 complementary bit after five identical bits from the start-of-frame to the end of the
-CRC sequence.  DESIGN.md's budget uses the worst case (``hdhil.dbc.worst_case_frame_bits``);
+CRC sequence.  docs/design.md's budget uses the worst case (``hdhil.dbc.worst_case_frame_bits``);
 this module gives the real number for one frame, so a simulated bus can time frames the
 way a 1 Mbit/s wire does and a trace's actual bus load can be measured.
 

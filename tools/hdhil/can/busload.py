@@ -1,6 +1,6 @@
 """Control-bus budget: worst-case load of the cyclic schedule described in the DBC.
 
-DESIGN.md, "Frame budget": a classical base frame with n data bytes takes at most
+docs/design.md, "Frame budget": a classical base frame with n data bytes takes at most
 47 + 8n bits (incl. the 3-bit interframe space) plus floor((34 + 8n - 1)/4) stuff bits.
 The cyclic schedule is every message with a ``GenMsgCycleTime`` attribute; its worst-case
 load is the sum of worst-case frame times over one cycle divided by the cycle.
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from hdhil.dbc import BusName, database, worst_case_frame_bits
 
 #: Above this worst-case load the schedule leaves too little room for SDO, heartbeat,
-#: EMCY and retransmissions (DESIGN.md: keep it at or below 60 %).
+#: EMCY and retransmissions (docs/design.md: keep it at or below 60 %).
 LOAD_LIMIT = 0.60
 
 

@@ -21,7 +21,7 @@ Timing model: frames are serialised on the channel like on a real wire.
   transmission.
 - A frame's duration is its exact bit count at the bit rate (``timing="exact"``,
   default: CRC and the real stuff bits, :mod:`hdhil.can.bittiming`) or its worst case
-  (``timing="worst-case"``, DESIGN.md's budget).  ``bitrate=0`` turns timing off: frames
+  (``timing="worst-case"``, docs/design.md's budget).  ``bitrate=0`` turns timing off: frames
   are delivered as they are sent, stamped with the clock's time (the ground-truth side
   channel; with a fault hook they still go through the scheduler).
 - Requested frames are scheduled when a receiver next polls, so all requests made at

@@ -22,8 +22,8 @@ from hdhil.rig.calibration import (
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "calibrate",
-        help="calibrate the emulated torque sensor (arm and weights, seed 000 §3)",
-        description="Emulate the torque-sensor calibration of seed 000 §3 on a scenario's "
+        help="calibrate the emulated torque sensor (arm and weights, [Taghirad97] §3)",
+        description="Emulate the torque-sensor calibration of [Taghirad97] §3 on a scenario's "
         "drive: wave generator locked, known torques loaded and unloaded in both directions "
         "at several flexspline positions, low range (5 Nm) and full range (40 Nm).  Prints "
         "the gain (mean of the least-squares slopes), the consistency measure (std / mean) "
@@ -59,13 +59,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=CalibrationRig.lever_error,
         metavar="FRACTION",
         help="relative standard deviation of the arm's effective length per mounting "
-        "(default: %(default)s; 0.02 reproduces seed 000 Table 1's 2 %% consistency)",
+        "(default: %(default)s; 0.02 reproduces [Taghirad97] Table 1's 2 %% consistency)",
     )
     p.add_argument(
         "--plot",
         metavar="FIG.png",
         default=None,
-        help="draw seed 000 Figs. 6-7 (torque against bridge voltage per experiment, "
+        help="draw [Taghirad97] Figs. 6-7 (torque against bridge voltage per experiment, "
         "low range and full range) into FIG (.png, .pdf, .svg)",
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
@@ -120,12 +120,12 @@ def run(args: argparse.Namespace) -> int:
             gain = result.gain_Nm_per_V
             print(f"  wrote {args.out}: [firmware.calibration] volt2Nm = {gain:.6g}")
         if args.plot:
-            print(f"  wrote {args.plot}: seed 000 Figs. 6-7")
+            print(f"  wrote {args.plot}: [Taghirad97] Figs. 6-7")
     return 0
 
 
 def _plot(path: str, result: object, scenario: str) -> None:
-    """Seed 000 Figs. 6-7 into ``path``
+    """[Taghirad97] Figs. 6-7 into ``path``
     (:func:`hdhil.commands.seedfigs.make_calibration_figure`)."""
     from pathlib import Path
 
@@ -139,7 +139,7 @@ def _plot(path: str, result: object, scenario: str) -> None:
     r = result
     title = (
         f"hdhil calibrate: scenario {scenario}, seed {r.seed}: gain {r.gain_Nm_per_V:.4f} Nm/V, "  # type: ignore[attr-defined]
-        f"consistency {100 * r.consistency:.2f} % (seed 000 Table 1: 6.60 Nm/V, 2 %)"  # type: ignore[attr-defined]
+        f"consistency {100 * r.consistency:.2f} % ([Taghirad97] Table 1: 6.60 Nm/V, 2 %)"  # type: ignore[attr-defined]
     )
     fig = make_calibration_figure(result, title)
     try:

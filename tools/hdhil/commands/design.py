@@ -1,4 +1,4 @@
-"""``hdhil design lqg``: the LQG torque regulator of seed 003, designed from parameters.
+"""``hdhil design lqg``: the LQG torque regulator of [Vertechy], designed from parameters.
 
 Prints the LQ gains k1..k5 (Eq. 4 and the §IV τsD' feedforward), the continuous
 Kalman gain L (Eq. 8), the closed-loop poles, the discrete observer actually used at
@@ -49,14 +49,14 @@ _DEFAULTS = {**vars(JointParams()), **vars(LqgWeights()), "Ts": 1e-3}
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "design",
-        help="controller design (LQG joint-torque regulator of seed 003)",
+        help="controller design (LQG joint-torque regulator of [Vertechy])",
         description="Controller design tools.",
     )
     sub = parser.add_subparsers(dest="design_command", metavar="DESIGN", required=True)
     p = sub.add_parser(
         "lqg",
-        help="LQ gains, Kalman gain and 1 kHz observer of the seed-003 LQG regulator",
-        description="Design the LQG joint-torque regulator of seed 003 (Vertechy et al.): "
+        help="LQ gains, Kalman gain and 1 kHz observer of the [Vertechy] LQG regulator",
+        description="Design the LQG joint-torque regulator of [Vertechy] (Vertechy et al.): "
         "LQ gains k1..k5 (Eqs. 4, 6), continuous Kalman gain L (Eq. 8), closed-loop poles, "
         "the discrete observer at Ts and the sampled loop with one sample of actuation "
         "delay.  Defaults are the seed's values; torques use the seed's sign convention "
@@ -165,7 +165,7 @@ def format_design(design: LqgDesign, delay: int, predict: bool) -> str:
     )
     j2, j3 = design.gains_for(ControlLaw.JTF2), design.gains_for(ControlLaw.JTF3)
     lines = [
-        "LQG joint-torque regulator (seed 003), sign convention tau_s = k (theta_l - theta_m)",
+        "LQG joint-torque regulator ([Vertechy]), sign convention tau_s = k (theta_l - theta_m)",
         f"  joint: Jm = {p.Jm:g} kg m², Jl = {p.Jl:g} kg m², k = {p.k:g} Nm/rad, "
         f"c = {p.c:g} Nms/rad (J = {p.J:.6g} kg m², f_n = {p.natural_frequency_hz:.4g} Hz)",
         f"  weights: q1 = {w.q1:g}, q2 = {w.q2:g} (Q = diag(q1, q2), R = 1); "

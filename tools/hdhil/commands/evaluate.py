@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _tracking(trace: Path, fw: FirmwareConfig, skip_s: float) -> dict | None:
-    """Seed 003 tracking figures from the trace alone (desired torque and estimates from
+    """[Vertechy] tracking figures from the trace alone (desired torque and estimates from
     the controller's CTRL_TPDO2, truth from the truth channel), or None without
     torque-control telemetry.  The joint's Jl/Jm and whether the law compensates the
     friction (Eq. 5) come from ``--scenario``."""

@@ -1,6 +1,6 @@
 """``hdhil identify TRACE``: the flexible joint's resonance from an open-loop chirp.
 
-Seed 003 (Vertechy et al., ``003_cab3072408ebe226.txt``) §II, Fig. 5:
+[Vertechy] (Vertechy et al., [Vertechy]) §II, Fig. 5:
 "the spectrum of the joint sensor torque tau_s in response to the motor torque command
 tau_m (both reduced to the output shaft) ... is obtained experimentally by commanding
 tau_m with a chirp function.  As (2) predicts, the test-rig possesses a marked natural
@@ -55,7 +55,7 @@ the drive's sensor and command frames):
    then reaches the band's low edge); on a Welch estimate it reads about 2 % high (the
    segment window smooths H, which shortens the decay).
 5. Damping coefficient ``c = 2 zeta wn J`` (``c/J = 2 zeta wn``) with ``J = J_m J_l /
-   (J_m + J_l)`` from the known inertias (seed 003 §I: J_m = 2.5 and J_l = 0.7 kg m²;
+   (J_m + J_l)`` from the known inertias ([Vertechy] §I: J_m = 2.5 and J_l = 0.7 kg m²;
    default: the scenario's ``J_motor``/``J_load``, or ``--inertias``), and the
    stiffness ``k = J wn²``.  Also reported: the static gain ``K = peak |H| x 2 zeta
    sqrt(1 - zeta²)``, which should be ``J_l / (J_m + J_l)`` if both calibrations
@@ -277,7 +277,7 @@ def _crossing(f: np.ndarray, mag: np.ndarray, j: int, level: float) -> float:
 
 
 def half_power(fr: FrequencyResponse) -> HalfPower:
-    """The seed's half-power bandwidth method on ``fr`` (seed 003 §II)."""
+    """The seed's half-power bandwidth method on ``fr`` ([Vertechy] §II)."""
     f, mag = fr.f, fr.magnitude
     lo, hi = fr.band
     i = lo + int(np.nanargmax(mag[lo : hi + 1]))
@@ -394,7 +394,7 @@ class Identification:
 
     @property
     def J(self) -> float:
-        """``J = J_m J_l / (J_m + J_l)`` (seed 003, below Eq. 2)."""
+        """``J = J_m J_l / (J_m + J_l)`` ([Vertechy], below Eq. 2)."""
         return self.J_motor * self.J_load / (self.J_motor + self.J_load)
 
     def damping(self, fn_Hz: float, zeta: float) -> float:
@@ -563,7 +563,7 @@ def _pct(value: float, reference: float) -> str:
 
 
 def make_figure(ident: Identification, title: str = "") -> Any:
-    """Bode magnitude (seed 003 Fig. 5) with the peak and half-power points, the phase
+    """Bode magnitude ([Vertechy] Fig. 5) with the peak and half-power points, the phase
     and the coherence of the estimate over the excited band, and the band-passed impulse
     response with the peaks of the logarithmic decrement; legends beside the axes."""
     from matplotlib.figure import Figure
@@ -607,7 +607,7 @@ def make_figure(ident: Identification, title: str = "") -> Any:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
 
-    # Phase: the measured H1's and the fit's, unwrapped over the band (seed 003 Fig. 5
+    # Phase: the measured H1's and the fit's, unwrapped over the band ([Vertechy] Fig. 5
     # shows the magnitude only; the phase crossing -90 deg at fn checks the reading).
     phase = np.degrees(np.unwrap(np.angle(fr.H[lo : hi + 1])))
     fit_phase = np.degrees(np.unwrap(np.angle(1.0 / (1.0 - r * r + 2j * zeta * r))))
@@ -653,11 +653,11 @@ def make_figure(ident: Identification, title: str = "") -> Any:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "identify",
-        help="natural frequency and damping of the joint from a chirp trace (seed 003 Fig. 5)",
+        help="natural frequency and damping of the joint from a chirp trace ([Vertechy] Fig. 5)",
         description="Estimate the frequency response sensor torque / motor torque command "
         "(Welch H1) from a trace of an open-loop chirp (hdhil run --scenario chirp), and the "
         "joint's natural frequency, damping ratio and damping coefficient by the half-power "
-        "bandwidth method, cross-checked by the logarithmic decrement (seed 003 §II).",
+        "bandwidth method, cross-checked by the logarithmic decrement ([Vertechy] §II).",
     )
     p.add_argument("trace", type=Path, help="trace written by hdhil run")
     p.add_argument(

@@ -1,6 +1,6 @@
 """``hdhil plot TRACE --out FIG.png``: the seed's torque figures, drawn from a trace.
 
-Seed 000 (``000_ae0a3dbe24949b7c.txt``) shows its results in four
+[Taghirad97] () shows its results in four
 figures; this command draws the same views of any hdhil trace (or a real drive's), in a
 3 x 2 grid:
 
@@ -126,7 +126,7 @@ def spectrum_peaks(
 ) -> np.ndarray:
     """The ``count`` strongest local maxima of ``power`` at ``omega >= min_omega``, as
     angular frequencies (same unit as ``omega``), in increasing order.  Each is refined by
-    a parabola through log-power at the maximum and its two neighbours.  Seed 000 Fig. 8:
+    a parabola through log-power at the maximum and its two neighbours.  [Taghirad97] Fig. 8:
     for a 156 rad/s motor these are the ripple peaks at 312 and 624 rad/s."""
     omega = np.asarray(omega, dtype=np.float64)
     power = np.asarray(power, dtype=np.float64)
@@ -451,7 +451,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="draw the seed's torque figures (Figs. 8-11) from a trace",
         description="Measured torque and velocity, the torque spectrum at constant speed "
         "with 2x/4x velocity markers, measured vs filtered (and true) torque, and the "
-        "misalignment view against the output angle (seed 000 Figs. 8-11).",
+        "misalignment view against the output angle ([Taghirad97] Figs. 8-11).",
     )
     p.add_argument("trace", type=Path, help="trace file (.blf, .asc, .log, .csv, .trc)")
     p.add_argument(
@@ -467,7 +467,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--figure",
         choices=("ripple", "fig8"),
         default="ripple",
-        help="ripple: seed 000 Figs. 8-11 (default); fig8: seed 003 Fig. 8, the four "
+        help="ripple: [Taghirad97] Figs. 8-11 (default); fig8: [Vertechy] Fig. 8, the four "
         "panels of the LQG experiment (needs a torque-control trace, e.g. scenario "
         "lqg-experiment)",
     )
@@ -506,7 +506,7 @@ def run(args: argparse.Namespace) -> int:
         run += f", recorded {meta['start_time_utc']}"
     title = (
         f"{args.trace.name}: scenario {name}{run}, {len(data)} samples, {data.mode} filter, "
-        f"{truth}\nafter seed 000 (Taghirad, CIM-TR-97-06) Figs. 8-11"
+        f"{truth}\nafter [Taghirad97] (Taghirad, CIM-TR-97-06) Figs. 8-11"
     )
     window = tuple(args.window) if args.window is not None else None
     fig = make_figure(data, title, window)  # type: ignore[arg-type]
@@ -529,7 +529,7 @@ def _save(fig: Figure, out: Path, damage: object) -> int:
 
 
 def _run_fig8(args: argparse.Namespace, scenario: Any) -> int:
-    """``hdhil plot --figure fig8``: seed 003 Fig. 8 (:mod:`hdhil.commands.seedfigs`)."""
+    """``hdhil plot --figure fig8``: [Vertechy] Fig. 8 (:mod:`hdhil.commands.seedfigs`)."""
     from hdhil.commands.seedfigs import fig8_data, make_fig8
 
     data, damage = fig8_data(args.trace)
@@ -537,7 +537,7 @@ def _run_fig8(args: argparse.Namespace, scenario: Any) -> int:
     name = scenario.name if scenario else "(not given)"
     title = (
         f"{args.trace.name}: scenario {name}, {len(data)} samples; figures from t >= {skip:g} s\n"
-        "after seed 003 (Vertechy et al.) Fig. 8, seed sign convention"
+        "after [Vertechy] (Vertechy et al.) Fig. 8, seed sign convention"
     )
     fig = make_fig8(data, title, skip)
     return _save(fig, args.out, damage)

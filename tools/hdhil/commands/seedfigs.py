@@ -1,7 +1,7 @@
 """Figures that redraw a seed's figure from this project's data (used by ``hdhil plot
 --figure fig8`` and ``hdhil calibrate --plot``; not a subcommand of its own).
 
-- :func:`fig8_data` / :func:`make_fig8`: seed 003 (``003_cab3072408ebe226.txt``) Fig. 8,
+- :func:`fig8_data` / :func:`make_fig8`: [Vertechy] () Fig. 8,
   "Performance of the proposed LQG torque regulator (experimental results)", four
   panels from top to bottom: (1) the raw sensor torque τs^m and the Kalman estimate
   τ̂s; (2) the external-torque estimate τ̂l and the handle's measurement τl^m (here the
@@ -14,7 +14,7 @@
   ``+20 sin(0.4 π t)`` as printed.  Everything comes from the trace: the controller's
   telemetry (``CTRL_TPDO1``, ``CTRL_TPDO2``: τ̂s, τ̂lgd, τsD), the drive's command
   (``TRUTH_JOINT.tau_m_cmd``) and the truth channel.
-- :func:`make_calibration_figure`: seed 000 (``000_ae0a3dbe24949b7c.txt``) Figs. 6-7,
+- :func:`make_calibration_figure`: [Taghirad97] () Figs. 6-7,
   "Torque sensor calibration results for low-range loading" / "... full-range
   loading": the applied torque against the bridge voltage of every experiment with its
   least-squares line, one panel per range.
@@ -37,7 +37,7 @@ __all__ = ["Fig8Data", "fig8_data", "make_calibration_figure", "make_fig8"]
 
 @dataclass
 class Fig8Data:
-    """Time series of seed 003 Fig. 8, one row per control telemetry sample, in the
+    """Time series of [Vertechy] Fig. 8, one row per control telemetry sample, in the
     seed's sign convention (Nm, deg, rad/s)."""
 
     t: np.ndarray
@@ -102,7 +102,7 @@ def fig8_data(trace: Path) -> tuple[Fig8Data, str]:
         damage = "; ".join(d.describe(str(trace)) for d in frames.damage)
     if len(rows) < 2:
         raise UserError(
-            f"{trace}: no torque-control telemetry (CTRL_TPDO2) to draw seed 003 Fig. 8 from; "
+            f"{trace}: no torque-control telemetry (CTRL_TPDO2) to draw [Vertechy] Fig. 8 from; "
             "record a run with a control law (e.g. hdhil run --scenario lqg-experiment --trace)"
         )
     a = np.array(rows, dtype=float)
@@ -125,7 +125,7 @@ def fig8_data(trace: Path) -> tuple[Fig8Data, str]:
 
 
 def make_fig8(d: Fig8Data, title: str, skip_s: float = 0.0) -> Figure:
-    """Seed 003 Fig. 8's four panels (module docstring); the figures in the legends
+    """[Vertechy] Fig. 8's four panels (module docstring); the figures in the legends
     (max |e|, the τ̂l − τl^m range, the τm envelope) are over ``t >= skip_s``."""
     fig = Figure(figsize=(11, 11))
     axes = fig.subplots(4, 1, sharex=True)
@@ -173,7 +173,7 @@ def make_fig8(d: Fig8Data, title: str, skip_s: float = 0.0) -> Figure:
 
 
 def make_calibration_figure(result: Any, title: str) -> Figure:
-    """Seed 000 Figs. 6-7: torque against bridge voltage per experiment, fitted lines,
+    """[Taghirad97] Figs. 6-7: torque against bridge voltage per experiment, fitted lines,
     one panel per load range (``result`` a :class:`hdhil.hostsim.calibration.CalibrationResult`)."""
     ranges = sorted({e.range_Nm for e in result.experiments})
     fig = Figure(figsize=(6.0 * len(ranges), 5.0))
@@ -187,7 +187,7 @@ def make_calibration_figure(result: Any, title: str) -> Figure:
             line = np.array([v.min(), v.max()])
             ax.plot(line, e.gain_Nm_per_V * (line - e.offset_V), lw=0.7, color=pts.get_color())
         kind = "low-range" if rng == ranges[0] and len(ranges) > 1 else "full-range"
-        ax.set_title(f"seed 000 Fig. {fig_no}: {kind} loading (±{rng:g} Nm)", fontsize=9)
+        ax.set_title(f"[Taghirad97] Fig. {fig_no}: {kind} loading (±{rng:g} Nm)", fontsize=9)
         ax.set_xlabel("bridge amplifier output / V")
         ax.set_ylabel("applied torque / Nm")
         ax.grid(True, lw=0.3)

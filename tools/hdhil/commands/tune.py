@@ -1,7 +1,7 @@
 """``hdhil tune TRACE``: pick the recommended ripple filter's Q and R from recorded data by
 maximum innovation likelihood.
 
-Seed 000 (``000_ae0a3dbe24949b7c.txt``) chooses Q = 1e3·I and R = 1 for
+[Taghirad97] () chooses Q = 1e3·I and R = 1 for
 its filter (§4, text under Eq. 10, Fig. 9) and 5e-2 for the misalignment block (§5,
 listing A.2) without saying how.  This tool estimates them from a recording instead,
 using only what the firmware itself sees, so it works on a real drive's traces:
@@ -12,7 +12,7 @@ using only what the firmware itself sees, so it works on a real drive's traces:
   firmware's own :class:`firmware.isr.TorqueFilterChain`.  Telemetry and ground truth are
   never used for tuning.
 - **Parameters** (searched as log10, within :data:`LOG10_BOUNDS`): one q shared by the
-  motor-locked harmonics (seed 000 §4, 2x/4x motor angle), one q for the output-locked
+  motor-locked harmonics ([Taghirad97] §4, 2x/4x motor angle), one q for the output-locked
   harmonics if any are configured (§5, misalignment), ``residual_q`` and ``r``.  The
   harmonics, ``p0``, ``phase_source`` and ``standstill_radps`` are held at the scenario's
   values.
@@ -117,7 +117,7 @@ FATOL_NATS = 1e-7
 @dataclass(frozen=True)
 class FilterInputs:
     """What the ripple filter is fed at each sample, computed by the firmware's stages:
-    ``delta_T`` = y = T_meas − T_exp (Nm, seed 000 §4), ``velocity`` (rad/s, tachometer)
+    ``delta_T`` = y = T_meas − T_exp (Nm, [Taghirad97] §4), ``velocity`` (rad/s, tachometer)
     and ``angle``, the motor angle the recommended filter takes its phase from (rad)."""
 
     delta_T: np.ndarray
@@ -194,7 +194,7 @@ def paper_innovations(
     stop: int | None = None,
     missed: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Innovations and their variances S = R + C P Cᵀ of the paper filter (seed 000
+    """Innovations and their variances S = R + C P Cᵀ of the paper filter ([Taghirad97]
     Eqs. 8-10, listing A.1 :class:`firmware.ripple.RippleKalman`) with the seed's tuning,
     run inside the firmware's chain (``cfg`` in paper mode, :func:`paper_config`)."""
     chain = TorqueFilterChain(paper_config(cfg))

@@ -1,7 +1,7 @@
 """The converters (12-bit, +/-10 V by default; not from the seed) between the firmware
 and the drive.
 
-The seed's DSP board (DT1401 A/D, DAC0 to the MAX-100 servo amplifier; seed 000,
+The seed's DSP board (DT1401 A/D, DAC0 to the MAX-100 servo amplifier; [Taghirad97],
 listing A.1, ``DT1401Read`` / ``write_dac0``) works in volts; on the CAN link the
 drive transmits ADC counts and receives DAC counts.  This module is the one place
 that defines how counts and volts relate, so both nodes agree by construction.
@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 class Converter:
     """A bipolar converter, 12 bits and +/-10 V by default.
 
-    The defaults are ours: seed 000's listing names the DT1401 board (``DT140X.h``,
+    The defaults are ours: [Taghirad97]'s listing names the DT1401 board (``DT140X.h``,
     ``DT1401Read``) but prints neither its resolution nor its input range; 12 bits and
     +/-10 V are the common figures of that class of board, not from the seed.
     """

@@ -1,9 +1,9 @@
-"""``hdhil calibrate``: the torque-sensor calibration of seed 000 §3 on the emulated drive.
+"""``hdhil calibrate``: the torque-sensor calibration of [Taghirad97] §3 on the emulated drive.
 
 Runs the arm-and-weight experiment of :mod:`hostsim.calibration` (wave generator
 locked, known torques loaded and unloaded in both directions, at several flexspline
 positions, low range and full range) on the drive of a scenario, and prints a result
-in the form of seed 000 Table 1: the gain (mean of the experiments' least-squares
+in the form of [Taghirad97] Table 1: the gain (mean of the experiments' least-squares
 slopes) and the consistency measure (standard deviation / mean).  Because this is an
 emulator it also prints the sensor's true gain and the calibration error.
 
@@ -47,7 +47,7 @@ def write_calibration(path: str | Path, result: CalibrationResult, scenario: str
         text = json.dumps({"firmware": {"calibration": {"volt2Nm": gain}}}, indent=2) + "\n"
     else:
         text = (
-            "# hdhil calibrate: arm-and-weight calibration of the torque sensor (seed 000 §3)\n"
+            "# hdhil calibrate: arm-and-weight calibration of the torque sensor ([Taghirad97] §3)\n"
             f"# scenario {scenario or '-'}, seed {result.seed}, "
             f"{len(result.experiments)} experiments, "
             f"consistency {100 * result.consistency:.2f} %\n"
@@ -94,7 +94,7 @@ def format_result(result: CalibrationResult, scenario: str = "") -> str:
     """The Table-1-like text report."""
     rig = result.rig
     lines = [
-        "hdhil calibrate: arm-and-weight calibration of the torque sensor (seed 000 §3)",
+        "hdhil calibrate: arm-and-weight calibration of the torque sensor ([Taghirad97] §3)",
         f"  drive of scenario {scenario or '-'}, seed {result.seed}; wave generator locked;",
         f"  loading 0 -> +max -> 0 -> -max -> 0 in {rig.steps} weights per direction, "
         f"{rig.samples} ADC samples averaged per load",
@@ -111,7 +111,7 @@ def format_result(result: CalibrationResult, scenario: str = "") -> str:
     verdict = "within" if abs(result.error) <= GOAL else "OUTSIDE"
     lines += [
         "",
-        "  Torque sensor gain    Consistency measure   (seed 000 Table 1: 6.60 Nm/V, 2 %)",
+        "  Torque sensor gain    Consistency measure   ([Taghirad97] Table 1: 6.60 Nm/V, 2 %)",
         f"  {result.gain_Nm_per_V:.3f} Nm/V           {100 * result.consistency:.2f} %",
         "",
         f"  emulator's true gain {result.true_gain_Nm_per_V:.4f} Nm/V: calibration error "

@@ -12,7 +12,7 @@ the same code.
 - ``firmware``: the filtered torque the controller reported in its telemetry;
 - the two Kalman filter modes, re-run offline through the firmware's own
   :class:`firmware.isr.TorqueFilterChain` on the recorded counts (paper mode is listing A.1
-  / the 6th-order model of seed 000 §5; recommended mode is the angle-locked filter);
+  / the 6th-order model of [Taghirad97] §5; recommended mode is the angle-locked filter);
 - baselines: the listing's 2nd-order Butterworth low-pass at several cut-offs (revision note
   "01/11/95 hdt Butterworth filter for torque") and a notch bank tracking 2x/4x motor
   velocity.

@@ -15,7 +15,7 @@ buses opened and its nodes built (:class:`RigBuses`, :func:`build_nodes`), its l
 set up (:func:`build_listeners`), then it goes through start-up, operation and stop
 (:func:`run_phases`) and is scored (:func:`_result`).
 
-Lockstep (DESIGN.md): SYNC k is sent at simulated time k*Ts; every node then handles what
+Lockstep (docs/design.md): SYNC k is sent at simulated time k*Ts; every node then handles what
 the bus delivers until the cycle is quiet, and SYNC k+1 follows at once.  The result is
 deterministic and bit-identical for a given seed, and as fast as the host allows.
 """
@@ -979,8 +979,8 @@ def format_result(r: RunResult) -> str:
 
 
 #: The laws ``--compare-laws`` runs, as ``(label, trace suffix, [firmware.control]
-#: overrides)``: the seed's three (seed 003 §IV: JTF1 = Eq. 4 with the LQ design, JTF2
-#: k3 = 0, k4 = 1 + Jm/Jl, JTF3 k3 = 0, k4 = 1), JTF2 and JTF3 as seed 003 §V says the
+#: overrides)``: the seed's three ([Vertechy] §IV: JTF1 = Eq. 4 with the LQ design, JTF2
+#: k3 = 0, k4 = 1 + Jm/Jl, JTF3 k3 = 0, k4 = 1), JTF2 and JTF3 as [Vertechy] §V says the
 #: literature builds them (τ̂s, τ̂s' from a low-pass and a derivative filter of the
 #: measurement, ``estimates = "filters"``, cut-offs ``firmware.config.JTF_LOWPASS_HZ``,
 #: ``JTF_DERIVATIVE_HZ``), and JTF1 with desired-torque-derivative feedforward tuned for
@@ -1008,7 +1008,7 @@ WITHOUT_FRICTION_COMPENSATION = (
 def format_tracking(rows: list[dict[str, Any]]) -> str:
     """The tracking table: e = T_true − T_desired, the observer's exogenous-torque
     estimate against its truth (τlgd, or τlg with Eq. 5) and against the true external
-    torque τl + τg (the handle torque of seed 003's experiment), and the envelope of the
+    torque τl + τg (the handle torque of [Vertechy]'s experiment), and the envelope of the
     commanded motor torque (:class:`hdhil.rig.score.TrackingScore`)."""
     lines = [
         "  torque tracking vs truth (e = T_true − T_desired; τ̂: the observer's τlgd, "

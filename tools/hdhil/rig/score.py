@@ -137,14 +137,14 @@ class TorqueScorer(can.Listener):
         )
 
 
-#: Seed 003 §VI (``003_cab3072408ebe226.txt``), the experiment: "the proposed controller
+#: [Vertechy] §VI ([Vertechy]), the experiment: "the proposed controller
 #: is able to keep the torque sensor tracking error e within ±0.5 Nm" (Nm).
 TRACKING_GOAL_NM = 0.5
 
 
 @dataclass(frozen=True)
 class TrackingScore:
-    """Joint-torque tracking against truth (seed 003 §VI, ``003_cab3072408ebe226.txt``).
+    """Joint-torque tracking against truth ([Vertechy] §VI).
 
     - ``max_abs_error`` / ``rms_error``: ``e = T_true − T_desired`` (the seed's tracking
       error e; Fig. 8, third panel: "within ±0.5 Nm");
@@ -180,7 +180,7 @@ class TrackingScorer(can.Listener):
     Pairs the controller's ``CTRL_TPDO2`` (desired torque ``tau_sD`` and the estimated
     lumped disturbance ``tau_lgd_hat``) with the truth of the same sample instant
     (``TRUTH_TORQUE.T_true``, ``TRUTH_JOINT.tau_ext``, ``tau_d`` and ``tau_m_cmd``).  The
-    true lumped disturbance of seed 003 Eq. 3 is tau_lgd = tau_l + tau_g − tau_d·Jl/Jm,
+    true lumped disturbance of [Vertechy] Eq. 3 is tau_lgd = tau_l + tau_g − tau_d·Jl/Jm,
     so ``jl_over_jm`` is the joint's inertia ratio; with ``friction_compensated`` (Eq. 5)
     the observer estimates tau_lg = tau_l + tau_g instead.  Only telemetry at or after
     ``skip_s`` counts.  Everything it needs is on the two buses, so a trace alone scores
