@@ -16,8 +16,8 @@ from hdhil.firmware.config import FirmwareConfig
 from hdhil.hostsim.bridge import BridgeConfig
 from hdhil.hostsim.calibration import CalibrationRig, calibrate, load_sequence
 from hdhil.hostsim.plant import PlantConfig
-from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig.calibration import load_calibration
+from hdhil.rig.scenario import load_scenario
 
 
 @pytest.fixture(scope="module")

@@ -130,7 +130,8 @@ def test_a_variant_is_what_hdhil_run_json_prints_for_the_same_settings(
     # ... and the row of results.csv carries its figures.
     head, *rows = (smoke_local / "results.csv").read_text().splitlines()
     row = dict(zip(head.split(","), rows[int(variant.id) - 1].split(","), strict=True))
-    assert float(row["filtered_rms_err_Nm"]) == printed["torque"]["rms_error_filtered"]
+    assert float(row["filtered_rms_err_Nm"]) == printed["headline"]["value_Nm"]
+    assert float(row["filtered_rms_err_whole_run_Nm"]) == printed["torque"]["rms_error_filtered"]
     assert int(row["cycles"]) == printed["cycles"] == 1000
 
 
@@ -150,8 +151,9 @@ seed = [1, 2]
 def test_stopped_and_errored_variants_are_recorded_and_the_campaign_goes_on(tmp_path, capsys):
     # Every control frame lost: the drive never reaches operation, the run stops in
     # start-up (a verdict: it fails its criteria, with the reason).  The clean variants
-    # have a whole-run RMS error of about 0.27 Nm: 0.2 fails them, 1.0 passes them.
-    for threshold, clean_status in ((0.2, "fail"), (1.0, "pass")):
+    # have a filtered RMS error of about 0.024 Nm from the scenario's evaluation start
+    # (0.3 s): 0.01 fails them, 1.0 passes them.
+    for threshold, clean_status in ((0.01, "fail"), (1.0, "pass")):
         path = _campaign(tmp_path, FAILING.format(threshold=threshold))
         out = tmp_path / f"out-{threshold}"
         assert main(["campaign", str(path), "--workers", "2", "--out", str(out), "--json"]) == 1
@@ -355,9 +357,10 @@ def test_an_early_stop_is_recorded_with_the_runs_own_reason():
     result = json.loads((Path(__file__).parent / "data" / "campaign-stopped-run.json").read_text())
     metrics, verdicts, reasons = judge(variant, result, None, criteria)
     assert metrics["stopped_early"] is True and metrics["cycles"] == 402
+    # A run stopped early has no evaluation: the error criterion cannot pass.
     assert verdicts == {
         "stopped_early == false": False,
-        "filtered_rms_err_Nm < 0.25": True,
+        "filtered_rms_err_Nm < 0.25": False,
         "covariance_finite == true": True,
     }
     assert reasons[0] == (

@@ -15,6 +15,7 @@ import can
 import cantools
 import numpy as np
 import pytest
+from runs import lockstep
 
 from hdhil.can.busload import schedule_load
 from hdhil.core.dataconf import ConfigError, from_dict
@@ -32,7 +33,7 @@ from hdhil.firmware.isr import AdcSample, InterruptHandler
 from hdhil.firmware.lqg_design import ControlLaw, Feedforward, LqgWeights, ObserverMethod
 from hdhil.firmware.tracking import TrackingPlant, simulate_tracking, tracking_table
 from hdhil.hostsim.plant import Plant
-from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.scenario import load_scenario
 
 #: The seed's design on the lqg-tracking actuator (20 Nm/V, 150 Nm).
 SEED = ControlConfig(law=Law.JTF1, torque_per_volt=20.0, torque_limit_Nm=150.0)
@@ -168,11 +169,10 @@ def test_node_sends_ctrl_tpdo2_only_with_a_law() -> None:
 
     (That its content is the handler's output is tested in tests/test_controller_canopen.py.)
     """
-    from hdhil.hostsim.scenario import load_scenario
-    from hdhil.rig.runner import run_lockstep
+    from hdhil.rig.scenario import load_scenario
 
     def frames(name: str) -> tuple[dict[str, int], int]:
-        r = run_lockstep(load_scenario(name), duration_s=0.05, trace=None, evaluate=False)
+        r = lockstep(load_scenario(name), duration_s=0.05, trace=None, evaluate=False)
         return {n.split()[-1]: c for n, c in r.frames.items()}, r.cycles
 
     plain, _ = frames("free-motion")

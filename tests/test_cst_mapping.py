@@ -27,7 +27,7 @@ from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant
-from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.scenario import load_scenario
 
 _ids = itertools.count()
 CST = mapping_dcf("cst")

@@ -13,6 +13,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from runs import lockstep
 
 from hdhil.can import tracefile as dump
 from hdhil.cli import main
@@ -681,11 +682,10 @@ def test_decode_frame_api():
 
 def test_stats_report_actual_load_and_cycle_counter_gaps(tmp_path, capsys):
     """A run's trace with frames removed: the counters' gaps show exactly what is missing."""
-    from hdhil.hostsim.scenario import load_scenario
-    from hdhil.rig.runner import run_lockstep
+    from hdhil.rig.scenario import load_scenario
 
     full = tmp_path / "full.blf"
-    run_lockstep(load_scenario("free-motion"), duration_s=0.5, trace=full, evaluate=False)
+    lockstep(load_scenario("free-motion"), duration_s=0.5, trace=full, evaluate=False)
     with can.LogReader(str(full)) as reader:
         frames = list(reader)
     syncs = [i for i, m in enumerate(frames) if m.arbitration_id == 0x080 and not m.is_extended_id]

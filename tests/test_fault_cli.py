@@ -33,7 +33,7 @@ from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
-from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.scenario import load_scenario
 
 TS = 1e-3
 SENSOR = codec("control", "DRIVE_TPDO1")
@@ -101,8 +101,8 @@ def _captured_scenario(monkeypatch, args: list[str]):
     class Probe(Exception):
         pass
 
-    def probe(scenario, *a, **k):
-        seen.append(scenario)
+    def probe(request, *a, **k):
+        seen.append(request.scenario)
         raise Probe
 
     monkeypatch.setattr(run_module, "run_lockstep", probe)

@@ -17,14 +17,14 @@ import sys
 
 import can
 import pytest
+from runs import lockstep
 from test_multiprocess import GROUP_CONTROL, _hdhil, netns  # noqa: F401  (the namespace fixture)
 
 from hdhil.can.faults import FaultConfig, FaultInjector, FaultyTransmitBus, with_fault_flags
 from hdhil.can.simbus import SimClock
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.dbc import database, node_ids
-from hdhil.hostsim.scenario import load_scenario
-from hdhil.rig.runner import run_lockstep
+from hdhil.rig.scenario import load_scenario
 
 TS = 1e-3
 _names = itertools.count()
@@ -44,7 +44,7 @@ def _run(tmp_path, *flags: str, duration: float = 0.6, **kwargs):
     def keep(node):  # the controller, for its counters after the run
         controller["node"] = node
 
-    result = run_lockstep(_scenario(*flags), duration_s=duration, trace=trace, start_time=0.0,
+    result = lockstep(_scenario(*flags), duration_s=duration, trace=trace, start_time=0.0,
                           monitor=keep, monitor_every=1, **kwargs)  # fmt: skip
     with can.BLFReader(trace) as reader:
         frames = list(reader)
@@ -244,7 +244,7 @@ def test_truth_silenced_from_the_start_leaves_nothing_to_score(tmp_path):
 # --------------------------------------------------------------- other interfaces
 def test_run_on_the_virtual_bus_injects_control_faults(tmp_path):
     trace = tmp_path / "virtual.blf"
-    r = run_lockstep(
+    r = lockstep(
         _scenario("control.duplicate_rate=0.05"), duration_s=0.3, trace=trace,
         interface="virtual", evaluate=False,
     )  # fmt: skip
@@ -261,7 +261,7 @@ def test_run_on_the_virtual_bus_with_loss_goes_on_in_cycle_time():
     and costs the nodes one cycle of their time (not half a second of their heartbeat
     timers), so the run goes on as on the simulated bus, or stops with the controller's
     own reason."""
-    r = run_lockstep(_scenario("control.loss_rate=0.05", "seed=1"), duration_s=0.5,
+    r = lockstep(_scenario("control.loss_rate=0.05", "seed=1"), duration_s=0.5,
                      interface="virtual", evaluate=False)  # fmt: skip
     assert r.faults["loss"] > 20
     assert r.verdict is None and r.cycles == 500
@@ -272,7 +272,7 @@ def test_run_on_the_virtual_bus_with_loss_goes_on_in_cycle_time():
 
 def test_run_on_the_virtual_bus_refuses_what_a_node_cannot_inject():
     with pytest.raises(ConfigError, match="error_frame_rate"):
-        run_lockstep(_scenario("control.error_frame_rate=0.1"), duration_s=0.1,
+        lockstep(_scenario("control.error_frame_rate=0.1"), duration_s=0.1,
                      interface="virtual", evaluate=False)  # fmt: skip
 
 

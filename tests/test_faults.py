@@ -8,12 +8,13 @@ import math
 
 import can
 import pytest
+from runs import lockstep
 
 from hdhil.can.faults import FaultConfig, FaultInjector, FaultLog, node_ids
 from hdhil.can.simbus import SimClock
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.hostsim.plant import Plant, PlantConfig
-from hdhil.hostsim.scenario import scenario_from_dict
+from hdhil.rig.scenario import scenario_from_dict
 
 _names = itertools.count()
 
@@ -299,8 +300,7 @@ def test_inf_duration_window_is_allowed():
 def _lockstep(monkeypatch, faults: dict | None, seed: int = 0):
     """``hdhil.rig.runner.run_lockstep`` on free-motion with ``faults`` on the control channel
     (attached by wrapping ``can.Bus`` until run_lockstep takes a faults argument)."""
-    from hdhil.hostsim.scenario import load_scenario
-    from hdhil.rig import runner as run
+    from hdhil.rig.scenario import load_scenario
 
     inj = FaultInjector(from_dict(FaultConfig, {"seed": seed, "control": faults or {}}))
     real_bus = can.Bus
@@ -312,7 +312,7 @@ def _lockstep(monkeypatch, faults: dict | None, seed: int = 0):
 
     with monkeypatch.context() as m:
         m.setattr(can, "Bus", bus)
-        result = run.run_lockstep(load_scenario("free-motion"), evaluate=False)
+        result = lockstep(load_scenario("free-motion"), evaluate=False)
     return result, inj
 
 

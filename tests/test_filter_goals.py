@@ -9,14 +9,14 @@ separate from true torque; the whole-run figure is printed by ``hdhil run`` too)
 from __future__ import annotations
 
 import pytest
+from runs import lockstep
 
-from hdhil.hostsim.scenario import load_scenario
-from hdhil.rig.runner import run_lockstep
+from hdhil.rig.scenario import load_scenario
 
 
 def _evaluate(name: str, duration_s: float | None = None) -> dict[str, dict]:
     sc = load_scenario(name)
-    r = run_lockstep(sc, duration_s=duration_s, trace=None,
+    r = lockstep(sc, duration_s=duration_s, trace=None,
                      evaluate_skip_s=sc.evaluate_from_s)  # fmt: skip
     by_name = {c["name"].split(" (")[0]: c for c in r.evaluation["candidates"]}
     by_name["firmware"] = next(c for c in r.evaluation["candidates"]

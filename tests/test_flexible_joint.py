@@ -9,6 +9,7 @@ from dataclasses import replace
 import can
 import numpy as np
 import pytest
+from runs import lockstep
 from scipy.integrate import solve_ivp
 
 from hdhil.core.dataconf import ConfigError, from_dict
@@ -27,8 +28,7 @@ from hdhil.hostsim.plant import (
     RippleConfig,
     SensorConfig,
 )
-from hdhil.hostsim.scenario import load_scenario
-from hdhil.rig.runner import run_lockstep
+from hdhil.rig.scenario import load_scenario
 
 #: [Vertechy] §I-II, reduced to the output shaft; friction off unless a test adds it.
 SEED003 = DriveTrainConfig(
@@ -389,7 +389,7 @@ def test_truth_joint_and_motor_torque_frames_are_published_and_decodable(tmp_pat
         },
     )
     trace = tmp_path / "joint.blf"
-    result = run_lockstep(scenario, trace=trace, evaluate=False)
+    result = lockstep(scenario, trace=trace, evaluate=False)
     names = {name.split()[-1]: n for name, n in result.frames.items()}
     # Truth is published on every SYNC while the drive is operational: the 500 cycles of
     # operation plus the start-up walk and the stop.

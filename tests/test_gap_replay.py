@@ -22,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from runs import lockstep
 
 from hdhil.can.faults import with_fault_flags
 from hdhil.cli import main
 from hdhil.firmware.config import FirmwareConfig, recommended_config
-from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig.evaluate import (
     calibrated_signals,
     candidate_signals,
@@ -34,7 +34,7 @@ from hdhil.rig.evaluate import (
     offline_chain,
     recording_from_trace,
 )
-from hdhil.rig.runner import run_lockstep
+from hdhil.rig.scenario import load_scenario
 
 GOAL_NM = 0.003
 
@@ -44,7 +44,7 @@ def lossy_trace(tmp_path_factory: pytest.TempPathFactory) -> Path:
     trace = tmp_path_factory.mktemp("gaps") / "loss5.blf"
     scenario = load_scenario("free-motion")
     faults = with_fault_flags(scenario.faults, ["control.loss_rate=0.05"])
-    result = run_lockstep(dataclasses.replace(scenario, faults=faults), 3.0, trace=trace,
+    result = lockstep(dataclasses.replace(scenario, faults=faults), 3.0, trace=trace,
                           evaluate=False)  # fmt: skip
     assert result.verdict is None  # 5 % loss: the run completes
     return trace
@@ -123,7 +123,7 @@ def disordered_trace(request, tmp_path_factory: pytest.TempPathFactory) -> Path:
     trace = tmp_path_factory.mktemp("order") / f"{name}-{seed}.blf"
     scenario = load_scenario("free-motion")
     faults = with_fault_flags(scenario.faults, [*DISORDER[name], f"seed={seed}"])
-    result = run_lockstep(dataclasses.replace(scenario, faults=faults), 3.0, seed=seed,
+    result = lockstep(dataclasses.replace(scenario, faults=faults), 3.0, seed=seed,
                           trace=trace, evaluate=False)  # fmt: skip
     assert result.verdict is None
     assert result.faults and sum(result.faults.values()) > 10  # the faults did act

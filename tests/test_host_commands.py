@@ -10,7 +10,7 @@ from hdhil.cli import main
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant
-from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.scenario import load_scenario
 
 
 @pytest.fixture

@@ -10,6 +10,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from runs import lockstep
 
 from hdhil import cli
 from hdhil.commands.identify import FrequencyResponse, half_power, log_decrement
@@ -17,8 +18,7 @@ from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.dbc import codec
 from hdhil.firmware.config import FirmwareConfig, ReferenceConfig, Wave
 from hdhil.firmware.stages import ReferenceGenerator
-from hdhil.hostsim.scenario import load_scenario
-from hdhil.rig.runner import run_lockstep
+from hdhil.rig.scenario import load_scenario
 
 #: Goals on the emulator (the issue): fn within 2 %, c within 10 %, and the logarithmic
 #: decrement agreeing with the half-power bandwidth within 15 %.
@@ -41,7 +41,7 @@ def hdhil(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]):
 def chirp_trace(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The shipped chirp scenario, end to end over the bus (20 s simulated)."""
     trace = tmp_path_factory.mktemp("chirp") / "c.blf"
-    result = run_lockstep(load_scenario("chirp"), trace=trace, evaluate=False)
+    result = lockstep(load_scenario("chirp"), trace=trace, evaluate=False)
     assert result.cycles == 20000 and not result.interrupted
     return trace
 
@@ -203,7 +203,7 @@ def test_identify_errors_are_one_line_exit_2(hdhil, tmp_path, make, match) -> No
 def test_identify_rejects_a_trace_without_a_resonance(hdhil, tmp_path) -> None:
     """A free-motion step run ([Taghirad97]) has no chirp: no resonance in an excited band."""
     trace = tmp_path / "fm.blf"
-    run_lockstep(load_scenario("free-motion"), duration_s=5.0, trace=trace, evaluate=False)
+    lockstep(load_scenario("free-motion"), duration_s=5.0, trace=trace, evaluate=False)
     code, _, err = hdhil("identify", trace, "--scenario", "free-motion")
     assert code == 2 and err.count("\n") == 1
     assert "resonance" in err or "half power" in err
@@ -214,7 +214,7 @@ def test_identify_plot_has_phase_and_coherence_panels(chirp_trace) -> None:
     second-order resonance does) and the coherence next to the impulse response."""
     from hdhil.commands.identify import chirp_data_from_trace, identify, make_figure, model_values
     from hdhil.firmware.config import FirmwareConfig
-    from hdhil.hostsim.scenario import load_scenario
+    from hdhil.rig.scenario import load_scenario
 
     plant = load_scenario("chirp").plant
     data = chirp_data_from_trace(chirp_trace, FirmwareConfig(), plant.torque_per_volt)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import can
 import pytest
+from runs import lockstep
 from test_plant_model import VOLT2NM, VOLT2RADPS, rigid_drive
 
 from hdhil.core.converter import Converter
@@ -20,9 +21,8 @@ from hdhil.dbc import CHANNEL_NUMBER, codec
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller import ControllerNode
 from hdhil.firmware.interrupt import AdcSample, InterruptHandlerModel, IsrOutput
-from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig.factories import NodeSite
-from hdhil.rig.runner import run_lockstep
+from hdhil.rig.scenario import load_scenario
 
 W_REF = 40.0  # rad/s
 KP = 0.05  # V per rad/s: time constant J / (k Kp) = 0.005 / 0.05 = 0.1 s
@@ -82,7 +82,7 @@ def test_the_example_handler_is_an_interrupt_handler_model():
 
 def test_a_handler_of_ones_own_closes_the_loop_in_the_lockstep_runner():
     seen = _Velocity()
-    r = run_lockstep(
+    r = lockstep(
         load_scenario("free-motion"),
         duration_s=1.0,
         evaluate=False,
@@ -103,7 +103,7 @@ def test_a_handler_of_ones_own_closes_the_loop_in_the_lockstep_runner():
 
 
 def test_a_handler_of_ones_own_is_timed_as_a_whole_in_real_time_mode():
-    r = run_lockstep(
+    r = lockstep(
         load_scenario("free-motion"),
         duration_s=0.05,
         evaluate=False,

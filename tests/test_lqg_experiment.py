@@ -25,7 +25,7 @@ from hdhil.firmware.config import (
 from hdhil.firmware.isr import SENSOR_TORQUE_SIGN, IsrOutput, TorqueControl
 from hdhil.firmware.lqg import LqgController
 from hdhil.hostsim.plant import LinkMotionConfig, Plant, PlantConfig
-from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.scenario import load_scenario
 
 MAX_OUTPUT_SPEED = 1000.0 * 2 * math.pi / 60.0 / 100.0  # [Vertechy] §I: 1000 rpm, 100:1
 

@@ -5,12 +5,13 @@ the run ends with a one-line error that says so."""
 from __future__ import annotations
 
 import pytest
+from runs import lockstep
 
 from hdhil.hostsim.drive import DriveNode
-from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig import loop
 from hdhil.rig.factories import NodeSite, scenario_drive
-from hdhil.rig.runner import SilentPeerError, run_lockstep
+from hdhil.rig.runner import SilentPeerError
+from hdhil.rig.scenario import load_scenario
 
 
 def test_a_drive_that_goes_silent_ends_a_virtual_bus_run_with_the_reason(monkeypatch):
@@ -30,5 +31,5 @@ def test_a_drive_that_goes_silent_ends_a_virtual_bus_run_with_the_reason(monkeyp
         return drive
 
     with pytest.raises(SilentPeerError, match="went silent"):
-        run_lockstep(scenario, duration_s=1.0, interface="virtual", evaluate=False,
+        lockstep(scenario, duration_s=1.0, interface="virtual", evaluate=False,
                      drive_factories=[falls_silent])  # fmt: skip

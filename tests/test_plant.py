@@ -23,7 +23,7 @@ from hdhil.hostsim.plant import (
     steady_state_motor_velocity,
     steady_state_volts,
 )
-from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.scenario import load_scenario
 
 LSB = 10.0 / 2048  # 12-bit, +/-10 V (the converter spec shared with the firmware)
 QUIET = SensorConfig(torque_noise_Nm=0.0, tacho_noise_radps=0.0, current_noise_A=0.0)
@@ -147,18 +147,18 @@ def test_steady_state_velocity_matches_torque_balance(
 def free_motion_velocity(times: list[float]) -> dict[float, float]:
     """Motor velocity of the free-motion scenario at the given times (ms grid)."""
     scn = load_scenario("free-motion")
-    ref = scn.firmware["reference"]
+    ref = scn.firmware.reference
     plant = Plant(scn.plant, seed=scn.seed)
     dac = scn.plant.dac
-    step_V = dac.to_volts(dac.to_counts(ref["bias_V"] + ref["amplitude_V"]))
-    bias_V = dac.to_volts(dac.to_counts(ref["bias_V"]))
+    step_V = dac.to_volts(dac.to_counts(ref.bias_V + ref.amplitude_V))
+    bias_V = dac.to_volts(dac.to_counts(ref.bias_V))
     wanted = {round(t * 1000): t for t in times}
     out: dict[float, float] = {}
     for k in range(max(wanted) + 1):
         if k in wanted:
             out[wanted[k]] = plant.omega_motor
         t = k * 1e-3
-        plant.advance(step_V if t >= ref["step_time_s"] - 1e-12 else bias_V, 1e-3)
+        plant.advance(step_V if t >= ref.step_time_s - 1e-12 else bias_V, 1e-3)
     return out
 
 

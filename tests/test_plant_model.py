@@ -17,6 +17,7 @@ import math
 
 import can
 import pytest
+from runs import lockstep
 
 from hdhil.cli import main
 from hdhil.core.converter import Converter
@@ -24,9 +25,8 @@ from hdhil.dbc import CHANNEL_NUMBER, codec
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant_model import PlantModel
-from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig.factories import NodeSite
-from hdhil.rig.runner import run_lockstep
+from hdhil.rig.scenario import load_scenario
 
 FW = FirmwareConfig()
 #: Sensor gains equal to what the firmware assumes (its calibration), so it reads truth.
@@ -126,7 +126,7 @@ def test_the_example_plant_is_a_plant_model():
 
 def test_a_rigid_inertia_runs_in_the_lockstep_runner_as_its_physics_says():
     frames = _Frames()
-    r = run_lockstep(
+    r = lockstep(
         load_scenario("free-motion"),
         duration_s=0.5,
         seed=1,

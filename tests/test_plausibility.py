@@ -13,13 +13,13 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from runs import lockstep
 
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.firmware.config import FirmwareConfig, PlausibilityConfig, paper_config
 from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
 from hdhil.firmware.stages import Differentiator, SensorPlausibility
-from hdhil.hostsim.scenario import load_scenario
-from hdhil.rig.runner import run_lockstep
+from hdhil.rig.scenario import load_scenario
 
 TS = 1e-3
 CFG = PlausibilityConfig()
@@ -361,7 +361,7 @@ def _run(faults: dict | None, enabled: bool = True, paper: bool = False, log: Pa
     if faults is not None:
         overrides["faults"] = faults
     scenario = load_scenario("free-motion", overrides)
-    r = run_lockstep(scenario, fault_log=log, evaluate_skip_s=scenario.evaluate_from_s)
+    r = lockstep(scenario, fault_log=log, evaluate_skip_s=scenario.evaluate_from_s)
     fw = next(c for c in r.evaluation["candidates"] if c["name"].startswith("firmware"))
     return r, fw["rms_error"]
 
@@ -425,7 +425,7 @@ def test_a_saturated_tacho_is_bridged_announced_and_cleared(tmp_path: Path) -> N
     }
     trace = tmp_path / "run.log"
     scenario = load_scenario("free-motion", {"faults": faults})
-    r = run_lockstep(scenario, trace=trace, evaluate_skip_s=scenario.evaluate_from_s)
+    r = lockstep(scenario, trace=trace, evaluate_skip_s=scenario.evaluate_from_s)
     _, rms_off = _run(faults, enabled=False)
     rms_on = next(c for c in r.evaluation["candidates"] if c["name"].startswith("firmware"))
     assert r.cycles == 2000 and not r.interrupted

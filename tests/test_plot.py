@@ -11,6 +11,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from runs import lockstep
 
 from hdhil.can.tracefile import read_trace
 from hdhil.cli import main
@@ -25,8 +26,8 @@ from hdhil.commands.plot import (
 )
 from hdhil.core.dataconf import from_dict
 from hdhil.firmware.config import FirmwareConfig
-from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig.evaluate import recording_from_trace
+from hdhil.rig.scenario import load_scenario
 
 Ts = 1e-3
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -71,12 +72,10 @@ def test_flat_velocity_window() -> None:
 def traces(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """2 s of free motion ([Taghirad97] Fig. 8-9) and 3 s of misalignment (Figs. 10-11); the
     misalignment trace also without truth and with the drive's sensor frames only."""
-    from hdhil.rig.runner import run_lockstep
-
     d = tmp_path_factory.mktemp("plot")
     out = {"free": d / "free.blf", "mis": d / "mis.blf"}
-    run_lockstep(load_scenario("free-motion"), duration_s=2.0, trace=out["free"], evaluate=False)
-    run_lockstep(load_scenario("misalignment"), duration_s=3.0, trace=out["mis"], evaluate=False)
+    lockstep(load_scenario("free-motion"), duration_s=2.0, trace=out["free"], evaluate=False)
+    lockstep(load_scenario("misalignment"), duration_s=3.0, trace=out["mis"], evaluate=False)
     out["no_truth"], out["sensor_only"], out["no_sensor"] = (
         d / "no_truth.blf", d / "sensor_only.blf", d / "no_sensor.blf")  # fmt: skip
     with (

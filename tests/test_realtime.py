@@ -17,6 +17,7 @@ from types import SimpleNamespace
 
 import can
 import pytest
+from runs import lockstep
 
 from hdhil.cli import main
 from hdhil.core.dataconf import ConfigError, from_dict
@@ -24,7 +25,6 @@ from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
 from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
 from hdhil.firmware.stages import Differentiator, ReferenceGenerator, SensorPlausibility
-from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig import ostuning as ostuning
 from hdhil.rig import realtime as realtime
 from hdhil.rig.realtime import (
@@ -39,7 +39,7 @@ from hdhil.rig.realtime import (
     histogram,
     percentiles,
 )
-from hdhil.rig.runner import run_lockstep
+from hdhil.rig.scenario import load_scenario
 
 STAT_KEYS = ("jitter_us", "latency_us", "isr_us", "cycle_work_us", "sleep_overshoot_us")
 PCT_KEYS = {"p50", "p99", "p99.9", "max", "mean"}
@@ -194,7 +194,7 @@ def test_steal_report_over_an_interval():
 
 
 def test_fixed_spin_window_is_used():
-    r = run_lockstep(load_scenario("free-motion"), duration_s=0.05, evaluate=False,
+    r = lockstep(load_scenario("free-motion"), duration_s=0.05, evaluate=False,
                      realtime=True, realtime_config=RealtimeConfig(spin_us=150))  # fmt: skip
     pace = r.realtime["pacing"]
     assert pace["spin_us"] == 150 and pace["spin_us_range"] == [150, 150]
@@ -251,7 +251,7 @@ def test_refused_privileges_are_reported_and_the_run_goes_on(monkeypatch):
         monkeypatch.setattr(os, "sched_setscheduler", _refuse(errno.EPERM))
     monkeypatch.setattr(ostuning, "set_timer_slack", _refuse(errno.EPERM))
     monkeypatch.setattr(ostuning, "lock_memory", _refuse(errno.ENOMEM))
-    r = run_lockstep(load_scenario("free-motion"), duration_s=0.1, evaluate=False,
+    r = lockstep(load_scenario("free-motion"), duration_s=0.1, evaluate=False,
                      realtime=True, realtime_config=RealtimeConfig(mlock=True))  # fmt: skip
     rt = r.realtime
     _check_stats(rt, 100)
@@ -290,7 +290,7 @@ def test_threads_started_during_the_loop_do_not_inherit_sched_fifo():
 
 def test_switched_off_measures_are_neither_applied_nor_refused():
     cfg = RealtimeConfig(affinity=False, timer_slack=False, fifo=False, mlock=False)
-    r = run_lockstep(load_scenario("free-motion"), duration_s=0.05, evaluate=False,
+    r = lockstep(load_scenario("free-motion"), duration_s=0.05, evaluate=False,
                      realtime=True, realtime_config=cfg)  # fmt: skip
     assert r.realtime["refused"] == []
     assert r.realtime["applied"] == ["gc disabled during the loop (collected before)"]
@@ -335,7 +335,7 @@ def test_affinity_avoids_a_cpu_with_another_rt_task(monkeypatch):
     allowed = sorted(os.sched_getaffinity(0))
     busy_cpu = allowed[-1]
     monkeypatch.setattr(ostuning, "rt_tasks_per_cpu", lambda: {busy_cpu: 3})
-    r = run_lockstep(load_scenario("free-motion"), duration_s=0.02, evaluate=False,
+    r = lockstep(load_scenario("free-motion"), duration_s=0.02, evaluate=False,
                      realtime=True)  # fmt: skip
     chosen = allowed[-2] if len(allowed) > 1 else busy_cpu
     affinity = [a for a in r.realtime["applied"] if a.startswith("affinity")]
@@ -435,7 +435,7 @@ def test_realtime_trace_timestamps_are_wall_time(tmp_path):
     """The simbus clock follows wall time: the trace spans at least the paced duration
     (pacing never runs early; checked loosely, no upper bound)."""
     trace = tmp_path / "rt.blf"
-    r = run_lockstep(load_scenario("free-motion"), duration_s=0.1, trace=trace,
+    r = lockstep(load_scenario("free-motion"), duration_s=0.1, trace=trace,
                      evaluate=False, realtime=True)  # fmt: skip
     why = (r.interrupted, r.controller, r.drive, r.realtime)
     assert r.cycles == 100, why
@@ -446,21 +446,21 @@ def test_realtime_trace_timestamps_are_wall_time(tmp_path):
 
 
 def test_lockstep_run_has_no_realtime_section():
-    r = run_lockstep(load_scenario("free-motion"), duration_s=0.02, evaluate=False)
+    r = lockstep(load_scenario("free-motion"), duration_s=0.02, evaluate=False)
     assert r.realtime is None
 
 
 def test_realtime_on_the_virtual_interface():
     """Documented choice: --realtime works on any python-can interface, virtual included;
     the statistics cover every cycle in which the interrupt ran."""
-    r = run_lockstep(load_scenario("free-motion"), duration_s=0.1, interface="virtual",
+    r = lockstep(load_scenario("free-motion"), duration_s=0.1, interface="virtual",
                      evaluate=False, realtime=True)  # fmt: skip
     assert r.cycles == 100
     _check_stats(r.realtime, 100)
 
 
 def test_lqg_run_times_the_control_stage():
-    r = run_lockstep(load_scenario("lqg-tracking"), duration_s=0.05, evaluate=False,
+    r = lockstep(load_scenario("lqg-tracking"), duration_s=0.05, evaluate=False,
                      realtime=True)  # fmt: skip
     _check_stats(r.realtime, 50)
     assert r.realtime["stages_us"]["control_reference"]["p50"] > 0

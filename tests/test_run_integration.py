@@ -8,12 +8,12 @@ from pathlib import Path
 
 import can
 import pytest
+from runs import lockstep
 
 from hdhil.cli import main
 from hdhil.dbc import CHANNEL_NUMBER, codec
-from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig import runner as run_module
-from hdhil.rig.runner import run_lockstep
+from hdhil.rig.scenario import load_scenario
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +32,7 @@ def _decoded(path):
 
 def test_two_second_lockstep_run_over_the_bus(free_motion, tmp_path):
     trace = tmp_path / "run.blf"
-    r = run_lockstep(free_motion, duration_s=2.0, seed=3, trace=trace)
+    r = lockstep(free_motion, duration_s=2.0, seed=3, trace=trace)
     assert r.cycles == 2000 and not r.interrupted
     # Power-on to operation enabled (NMT start, CiA 402 walk) and the stop take a few cycles.
     assert 0 < r.startup_cycles <= 10 and 0 < r.stop_cycles <= 10
@@ -70,7 +70,7 @@ def test_two_second_lockstep_run_over_the_bus(free_motion, tmp_path):
 
 def test_truth_never_reaches_the_control_bus(free_motion, tmp_path):
     trace = tmp_path / "run.asc"
-    run_lockstep(free_motion, duration_s=0.2, seed=1, trace=trace)
+    lockstep(free_motion, duration_s=0.2, seed=1, trace=trace)
     for channel, _can_id, extended, _t, _data in _decoded(trace):
         assert extended == (channel == CHANNEL_NUMBER["truth"])
 
@@ -83,9 +83,9 @@ def _relative(frames):
 
 def test_same_seed_gives_an_identical_decoded_trace(free_motion, tmp_path):
     a, b, c = tmp_path / "a.blf", tmp_path / "b.blf", tmp_path / "c.blf"
-    run_lockstep(free_motion, duration_s=0.5, seed=7, trace=a)
-    run_lockstep(free_motion, duration_s=0.5, seed=7, trace=b)
-    run_lockstep(free_motion, duration_s=0.5, seed=8, trace=c)
+    lockstep(free_motion, duration_s=0.5, seed=7, trace=a)
+    lockstep(free_motion, duration_s=0.5, seed=7, trace=b)
+    lockstep(free_motion, duration_s=0.5, seed=8, trace=c)
     assert _relative(_decoded(a)) == _relative(_decoded(b))
     assert _relative(_decoded(a)) != _relative(_decoded(c))
 
@@ -98,7 +98,7 @@ def test_trace_times_start_at_the_wall_clock_or_the_given_start(free_motion, tmp
 
     before = time.time()
     now = tmp_path / "now.blf"
-    r = run_lockstep(free_motion, duration_s=0.1, seed=7, trace=now, evaluate=False)
+    r = lockstep(free_motion, duration_s=0.1, seed=7, trace=now, evaluate=False)
     after = time.time()
     first = _decoded(now)[0][3]
     assert before - 0.01 <= first <= after
@@ -109,7 +109,7 @@ def test_trace_times_start_at_the_wall_clock_or_the_given_start(free_motion, tmp
     pinned = 1767323045.0  # 2026-01-02T03:04:05Z
     a, b, asc = tmp_path / "a.log", tmp_path / "b.log", tmp_path / "a.asc"
     for path in (a, b, asc):
-        run_lockstep(free_motion, duration_s=0.1, seed=7, trace=path, evaluate=False,
+        lockstep(free_motion, duration_s=0.1, seed=7, trace=path, evaluate=False,
                      start_time=pinned)  # fmt: skip
     assert _decoded(a) == _decoded(b)
     assert pinned <= _decoded(a)[0][3] < pinned + 1e-3  # the first frame ends its wire time
@@ -122,7 +122,7 @@ def test_trace_times_start_at_the_wall_clock_or_the_given_start(free_motion, tmp
     assert header[0].startswith("date ") and day in header[0], header
     assert header[3].startswith("Begin Triggerblock") and day in header[3], header
     blf = tmp_path / "p.blf"
-    run_lockstep(free_motion, duration_s=0.1, seed=7, trace=blf, evaluate=False,
+    lockstep(free_motion, duration_s=0.1, seed=7, trace=blf, evaluate=False,
                  start_time=pinned)  # fmt: skip
     with can.BLFReader(str(blf)) as reader:
         assert reader.start_timestamp == pytest.approx(pinned, abs=1e-3)
@@ -153,7 +153,7 @@ def test_tap_draining_every_cycle_or_in_batches_hands_listeners_the_same_frames(
     for every in (1, batch):
         monkeypatch.setattr(run_module, "TAP_EVERY_CYCLES", every)
         recorder = _Recorder()
-        run_lockstep(free_motion, duration_s=0.2, seed=2, extra_listeners=[recorder])
+        lockstep(free_motion, duration_s=0.2, seed=2, extra_listeners=[recorder])
         seen[every] = recorder
     one, batched = seen[1], seen[batch]
     assert len(one.frames) > 1400
@@ -163,7 +163,7 @@ def test_tap_draining_every_cycle_or_in_batches_hands_listeners_the_same_frames(
 
 def test_sync_counter_and_command_cycle_count_up(free_motion, tmp_path):
     trace = tmp_path / "run.blf"
-    run_lockstep(free_motion, duration_s=0.3, seed=1, trace=trace)
+    lockstep(free_motion, duration_s=0.3, seed=1, trace=trace)
     sync, cmd = codec("control", "SYNC"), codec("control", "DRIVE_RPDO1")
     frames = _decoded(trace)
     counters = [sync.decode(d)[0] for ch, i, _, _, d in frames if ch == 0 and i == sync.frame_id]
@@ -177,14 +177,14 @@ def test_sync_counter_and_command_cycle_count_up(free_motion, tmp_path):
 
 
 def test_command_is_applied_one_period_later_with_synchronous_actuation(free_motion):
-    late = run_lockstep(free_motion, duration_s=0.3, seed=1, trace=None, actuation="next-sync")
-    early = run_lockstep(free_motion, duration_s=0.3, seed=1, trace=None, actuation="immediate")
+    late = lockstep(free_motion, duration_s=0.3, seed=1, trace=None, actuation="next-sync")
+    early = lockstep(free_motion, duration_s=0.3, seed=1, trace=None, actuation="immediate")
     # The same reference applied one sample earlier runs the motor up slightly sooner.
     assert early.velocity_final > late.velocity_final > 0
 
 
 def test_virtual_interface_runs_the_same_loop(free_motion):
-    r = run_lockstep(free_motion, duration_s=0.2, seed=1, trace=None, interface="virtual")
+    r = lockstep(free_motion, duration_s=0.2, seed=1, trace=None, interface="virtual")
     by_name = {name.split()[-1]: n for name, n in r.frames.items()}
     assert r.cycles == 200 and by_name["CTRL_TPDO1"] == 200
 
@@ -387,7 +387,7 @@ def test_sigkill_loses_at_most_the_last_second_of_a_line_based_trace(tmp_path, s
 def test_logger_drops_no_frame_over_a_60_s_full_rate_run(free_motion, tmp_path):
     """Issue: the logger never drops a frame; count check over 60 s at the full 1 kHz rate."""
     trace = tmp_path / "minute.blf"
-    r = run_lockstep(free_motion, duration_s=60.0, trace=trace, evaluate=False)
+    r = lockstep(free_motion, duration_s=60.0, trace=trace, evaluate=False)
     assert r.cycles == 60_000
     with can.LogReader(str(trace)) as reader:
         per_channel = {0: 0, 1: 0}

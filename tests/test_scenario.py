@@ -1,4 +1,4 @@
-"""Scenario files: loading, overrides and error reporting (hostsim.scenario)."""
+"""Scenario files: loading, overrides and error reporting (hdhil.rig.scenario)."""
 
 from __future__ import annotations
 
@@ -14,9 +14,9 @@ from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.stages import ReferenceGenerator
 from hdhil.hostsim.plant import Plant, PlantConfig, steady_state_motor_velocity
-from hdhil.hostsim.scenario import Scenario, list_scenarios, load_scenario
+from hdhil.rig.scenario import Scenario, list_scenarios, load_scenario
 
-SHIPPED = Path(__file__).resolve().parents[1] / "hostsim" / "scenarios"
+SHIPPED = Path(__file__).resolve().parents[1] / "tools" / "hdhil" / "rig" / "scenarios"
 
 MINIMAL = """\
 [scenario]
@@ -53,20 +53,20 @@ def test_free_motion_by_name_and_by_path_agree(tmp_path: Path) -> None:
     assert by_path == by_name
     assert load_scenario(copy) == by_name  # a Path works too
     assert by_name.name == "free-motion"
-    assert by_name.firmware["reference"]["wave"] == "step"
+    assert by_name.firmware.reference.wave.name == "STEP"
 
 
 def test_free_motion_step_is_an_exact_dac_code() -> None:
     """The step reaches the amplifier unchanged through the 12-bit DAC."""
     scn = load_scenario("free-motion")
-    amplitude = scn.firmware["reference"]["amplitude_V"]
+    amplitude = scn.firmware.reference.amplitude_V
     dac = scn.plant.dac
     assert dac.to_volts(dac.to_counts(amplitude)) == amplitude
 
 
 def test_minimal_file_gets_defaults(tmp_path: Path) -> None:
     scn = load_scenario(write(tmp_path, MINIMAL))
-    assert scn == Scenario("tiny", "", 0.5, 0, PlantConfig(), {})
+    assert scn == Scenario("tiny", "", 0.5, 0, PlantConfig(), FirmwareConfig())
 
 
 def test_overrides_merge_into_the_file() -> None:
@@ -85,8 +85,8 @@ def test_overrides_merge_into_the_file() -> None:
     assert scn.plant.drivetrain.J_motor == base.plant.drivetrain.J_motor
     assert scn.plant.ripple == base.plant.ripple
     assert scn.plant.substeps == 8
-    assert scn.firmware["reference"]["amplitude_V"] == 0.5
-    assert scn.firmware["reference"]["step_time_s"] == base.firmware["reference"]["step_time_s"]
+    assert scn.firmware.reference.amplitude_V == 0.5
+    assert scn.firmware.reference.step_time_s == base.firmware.reference.step_time_s
     # the shipped scenario itself is untouched by an earlier override
     assert load_scenario("free-motion") == base
 
@@ -128,7 +128,9 @@ def test_malformed_toml_reports_the_line(tmp_path: Path) -> None:
         ("[plant.drivetrain]\nJ_load = -1.0\n", r"J_load must be > 0"),
         ("[plant.adc]\nbits = 40\n", r"bits must be 2\.\.16"),
         ("[plant]\ndrivetrain = 3\n", r"plant\.drivetrain: expected a table"),
-        ("[bus]\nbitrate = 500000\n", r"unknown table \[bus\]"),
+        ("[buses]\nbitrate = 500000\n", r"unknown table \[buses\]"),
+        ("[bus]\nbitrate = 5\n", r"bus.bitrate must be"),
+        ("[link]\nactuation = 'later'\n", r"link.actuation: must be one of"),
         ("firmware = 3\n", r"firmware: expected a table"),
     ],
 )

@@ -21,14 +21,14 @@ from typing import Any
 
 import numpy as np
 import pytest
+from runs import lockstep
 
 import hdhil.commands.soak as soak
 from hdhil.cli import main
 from hdhil.commands.soak import Block, SoakLimits, SoakReport, run_soak, stationarity
 from hdhil.core.dataconf import ConfigError
 from hdhil.firmware.controller import ControllerNode
-from hdhil.hostsim.scenario import load_scenario
-from hdhil.rig.runner import run_lockstep
+from hdhil.rig.scenario import load_scenario
 
 VERDICTS = [
     "run completed",
@@ -302,7 +302,7 @@ def test_bad_input_is_a_one_line_error(
 
 def test_run_lockstep_monitor_is_called_every_n_samples() -> None:
     seen: list[int] = []
-    run_lockstep(
+    lockstep(
         load_scenario("free-motion"),
         duration_s=1.0,
         evaluate=False,
@@ -311,4 +311,4 @@ def test_run_lockstep_monitor_is_called_every_n_samples() -> None:
     )
     assert seen == [300, 600, 900]
     with pytest.raises(ConfigError, match="monitor_every"):
-        run_lockstep(load_scenario("free-motion"), duration_s=0.01, monitor=print, monitor_every=0)
+        lockstep(load_scenario("free-motion"), duration_s=0.01, monitor=print, monitor_every=0)

@@ -13,7 +13,7 @@ from hdhil.cli import main
 from hdhil.commands.soak import run_soak
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
-from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.scenario import load_scenario
 
 
 def _dcf(tmp_path: Path, values: dict[str, str]) -> Path:

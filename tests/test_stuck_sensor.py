@@ -12,12 +12,12 @@ from pathlib import Path
 import can
 import pytest
 from canopen.emcy import EMCY_STRUCT
+from runs import lockstep
 
 from hdhil.can.faults import with_fault_flags
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.stages import StuckChannels
-from hdhil.hostsim.scenario import load_scenario
-from hdhil.rig.runner import run_lockstep
+from hdhil.rig.scenario import load_scenario
 
 CPR = FirmwareConfig().calibration.encoder_counts_per_rev
 
@@ -61,11 +61,11 @@ def test_a_stuck_torque_sensor_in_a_run_raises_emcy_0x7300() -> None:
     scenario = load_scenario("free-motion")
     flags = ["sensors.stuck=[{channel='torque',start_s=1.0,duration_s=0.3}]"]
     stuck = dataclasses.replace(scenario, faults=with_fault_flags(scenario.faults, flags))
-    result = run_lockstep(stuck, 2.0, evaluate=False)
+    result = lockstep(stuck, 2.0, evaluate=False)
     assert result.faults and result.faults["stuck"] > 0
     assert result.controller["stuck_sensor_events"] == 1
     assert result.frames.get("control 0x081 EMCY_CTRL", 0) >= 2  # raised, then cleared
-    clean = run_lockstep(scenario, 2.0, evaluate=False)
+    clean = lockstep(scenario, 2.0, evaluate=False)
     assert clean.controller["stuck_sensor_events"] == 0
 
 
@@ -139,7 +139,7 @@ def test_a_stuck_tacho_in_a_run_raises_emcy_0x7301_and_counts() -> None:
                 code, _register, manufacturer = EMCY_STRUCT.unpack(bytes(msg.data))
                 codes.append((code, manufacturer[0]))
 
-    result = run_lockstep(stuck, 3.0, evaluate=False, extra_listeners=[Emcy()])
+    result = lockstep(stuck, 3.0, evaluate=False, extra_listeners=[Emcy()])
     assert result.faults and result.faults["stuck"] > 0
     assert result.controller["stuck_tacho_events"] == 1
     assert result.controller["stuck_sensor_events"] == 1

@@ -12,6 +12,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from runs import lockstep
 
 from hdhil.can.tracefile import read_trace
 from hdhil.cli import main
@@ -34,7 +35,7 @@ from hdhil.firmware.config import (
 )
 from hdhil.firmware.isr import TorqueFilterChain
 from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
-from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.scenario import load_scenario
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -181,11 +182,9 @@ def test_with_tuning_sets_each_harmonic_group() -> None:
 def traces(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """A 3 s misalignment run ([Taghirad97] §5), and the same trace without the truth channel
     and with only the controller's frames (no DRIVE_TPDO1)."""
-    from hdhil.rig.runner import run_lockstep
-
     d = tmp_path_factory.mktemp("tune")
     full = d / "mis.blf"
-    run_lockstep(load_scenario("misalignment"), duration_s=3.0, trace=full, evaluate=False)
+    lockstep(load_scenario("misalignment"), duration_s=3.0, trace=full, evaluate=False)
     no_truth, no_sensor = d / "no_truth.blf", d / "no_sensor.blf"
     with (
         read_trace(full) as trace,

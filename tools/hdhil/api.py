@@ -1,61 +1,144 @@
-"""hdhil from Python: run a scenario, read a trace into arrays, evaluate a trace.
+"""hdhil from Python: resolve and run a scenario, read a trace into arrays, score a trace.
 
-The command line is a thin layer over these functions; a script or a notebook can call
-them directly (the README's "Python API" section runs this module's example)::
+The commands are thin layers over these functions; a script or a notebook calls them
+directly (``docs/api.md``; the same names are importable from :mod:`hdhil`)::
 
-    import hdhil.api as hd
+    import hdhil
 
-    result = hd.run("free-motion", duration_s=1.0, trace="run.blf")
-    print(result.torque["rms_error_filtered"])        # the run's figures, as run --json
-    arrays = hd.cycle_arrays(result)                  # per-cycle numpy arrays
-    table = hd.read_trace("run.blf")                  # a trace as per-cycle arrays
-    scores = hd.evaluate_trace("run.blf")             # the evaluation table, as a dict
+    request = hdhil.resolve("free-motion", duration_s=1.0, seed=3)
+    result = hdhil.run(request, trace="run.blf")
+    print(result.headline)                        # the figure `hdhil run` leads with
+    arrays = hdhil.cycle_arrays(result)           # per-cycle numpy arrays
+    table = hdhil.read_trace("run.blf")           # a trace as per-cycle arrays
+    scores = hdhil.evaluate_trace("run.blf")      # the evaluation, as `evaluate --json`
 
-Arrays are keyed by signal name with its unit (``T_meas_Nm``, ``velocity_radps``), as
-``hdhil dump --csv`` writes them.
+Arguments are checked as the command line checks its options: a wrong type is a
+``TypeError`` naming the argument, a value out of range or a bad scenario a
+``ValueError`` (:class:`hdhil.core.errors.ConfigError`) naming the key or the argument.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["cycle_arrays", "evaluate_trace", "read_trace", "run"]
+__all__ = ["cycle_arrays", "evaluate_trace", "load_scenario", "read_trace", "resolve", "run"]
 
 
-def run(
-    scenario: str | os.PathLike[str] = "free-motion",
+def _path_arg(value: Any, name: str, optional: bool = True) -> Path | None:
+    if value is None and optional:
+        return None
+    if isinstance(value, bytes) or not isinstance(value, (str, os.PathLike)):
+        raise TypeError(f"{name} must be a str or os.PathLike, got {type(value).__name__}")
+    text = os.fspath(value)
+    if not isinstance(text, str):
+        raise TypeError(f"{name} must be a str path, got {type(text).__name__}")
+    return Path(text)
+
+
+def load_scenario(scenario: str | os.PathLike[str], overrides: dict[str, Any] | None = None) -> Any:
+    """A scenario (a shipped name or a TOML file), typed (:class:`hdhil.rig.scenario.Scenario`)."""
+    from hdhil.rig.scenario import load_scenario as load
+
+    path = _path_arg(scenario, "scenario", optional=False)
+    if overrides is not None and not isinstance(overrides, dict):
+        raise TypeError(f"overrides must be a dict, got {type(overrides).__name__}")
+    return load(str(path), overrides)
+
+
+def resolve(
+    scenario: Any = "free-motion",
     *,
     duration_s: float | None = None,
     seed: int | None = None,
+    overrides: Sequence[str | os.PathLike[str] | dict[str, Any]] | dict[str, Any] | None = None,
+    faults: Sequence[str] = (),
+    calibration: str | os.PathLike[str] | None = None,
+    mapping: str | None = None,
+    drive_dcf: str | os.PathLike[str] | None = None,
+    evaluate_from_s: float | None = None,
+) -> Any:
+    """The :class:`hdhil.rig.request.RunRequest` for ``scenario`` (a shipped name, a TOML
+    file or a :class:`~hdhil.rig.scenario.Scenario`) with ``overrides`` (nested dicts in
+    the scenario file's layout, or TOML files, in order), ``faults`` (``--fault`` flags:
+    ``"control.loss_rate=0.05"``), a calibration file, a mapping (``"raw"``, ``"cst"``)
+    or a DCF, duration, seed and evaluation start; as ``hdhil run`` resolves its options."""
+    from hdhil.rig.request import resolve as resolve_request
+    from hdhil.rig.scenario import Scenario
+
+    if not isinstance(scenario, Scenario):
+        scenario = _path_arg(scenario, "scenario", optional=False)
+    for name, value in (("duration_s", duration_s), ("evaluate_from_s", evaluate_from_s)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise TypeError(f"{name} must be a number, got {type(value).__name__}")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
+        raise TypeError(f"seed must be an int, got {type(seed).__name__}")
+    if overrides is None:
+        items: list[Any] = []
+    elif isinstance(overrides, dict):
+        items = [overrides]
+    elif isinstance(overrides, (list, tuple)):
+        items = [o if isinstance(o, dict) else _path_arg(o, "overrides") for o in overrides]
+    else:
+        raise TypeError(f"overrides must be a dict or a list, got {type(overrides).__name__}")
+    if isinstance(faults, (str, bytes)) or not all(isinstance(f, str) for f in faults):
+        raise TypeError("faults must be a list of 'KEY=VALUE' strings")
+    if mapping is not None and not isinstance(mapping, str):
+        raise TypeError(f"mapping must be a str, got {type(mapping).__name__}")
+    return resolve_request(
+        scenario if not isinstance(scenario, Path) else str(scenario),
+        overrides=items,
+        faults=list(faults),
+        calibration=_path_arg(calibration, "calibration"),
+        mapping=mapping,
+        drive_dcf=_path_arg(drive_dcf, "drive_dcf"),
+        duration_s=duration_s,
+        seed=seed,
+        evaluate_from_s=evaluate_from_s,
+    )
+
+
+def run(
+    scenario: Any = "free-motion",
+    *,
     trace: str | os.PathLike[str] | None = None,
-    overrides: dict[str, Any] | None = None,
     start_time: float | None = None,
     evaluate: bool = True,
+    controller_factory: Any = None,
+    drive_factories: Sequence[Any] | None = None,
+    **settings: Any,
 ) -> Any:
-    """Run ``scenario`` (a shipped name or a TOML file) in lockstep on the simulated bus,
-    as ``hdhil run`` does, and return its :class:`hdhil.rig.runner.RunResult`:
-    ``result.as_dict()`` is what ``hdhil run --json`` prints, and with ``evaluate``
-    :func:`cycle_arrays` gives the per-cycle signals.  ``overrides`` is a nested dict in
-    the scenario file's layout merged over it (e.g. ``{"firmware": {"ripple": {"mode":
-    "paper"}}}``); ``trace`` writes a trace (format from the extension) and its sidecar
-    JSON; ``start_time`` (Unix seconds) pins the trace's dates."""
-    from hdhil.hostsim.scenario import load_scenario
+    """Run a scenario in lockstep on the simulated bus, as ``hdhil run`` does, and return
+    its :class:`hdhil.rig.runner.RunResult` (``result.as_dict()`` is ``run --json``).
+
+    ``scenario`` is a :class:`~hdhil.rig.request.RunRequest`, or anything :func:`resolve`
+    takes, with its keyword ``settings`` (``duration_s``, ``seed``, ``overrides`` ...).
+    ``trace`` writes a trace (format from the extension) and its sidecar JSON;
+    ``start_time`` (Unix seconds) pins the trace's dates. ``controller_factory`` and
+    ``drive_factories`` plug in your own nodes (:mod:`hdhil.rig.factories`)."""
+    from hdhil.rig.request import RunRequest
     from hdhil.rig.runner import run_lockstep
 
-    sc = load_scenario(str(scenario), overrides)
+    request = scenario if isinstance(scenario, RunRequest) else resolve(scenario, **settings)
+    if isinstance(scenario, RunRequest) and settings:
+        raise TypeError(f"run() of a RunRequest takes no {', '.join(sorted(settings))}")
+    if not isinstance(evaluate, bool):
+        raise TypeError(f"evaluate must be a bool, got {type(evaluate).__name__}")
+    if start_time is not None and (
+        isinstance(start_time, bool) or not isinstance(start_time, (int, float))
+    ):
+        raise TypeError(f"start_time must be a number, got {type(start_time).__name__}")
     return run_lockstep(
-        sc,
-        duration_s,
-        seed,
-        Path(trace) if trace is not None else None,
+        request,
+        trace=_path_arg(trace, "trace"),
         evaluate=evaluate,
-        evaluate_skip_s=sc.evaluate_from_s,
         start_time=start_time,
-        metadata={"scenario_source": str(scenario), "overrides": []},
+        controller_factory=controller_factory,
+        drive_factories=drive_factories,
     )
 
 
@@ -104,19 +187,15 @@ def evaluate_trace(
     path: str | os.PathLike[str], scenario: str | None = None, skip_s: float | None = None
 ) -> dict[str, Any]:
     """Score the firmware's filter and the alternatives against the ground truth in a
-    trace, as ``hdhil evaluate --json`` does.  The scenario defaults to the one in the
-    trace's sidecar JSON; ``skip_s`` to that scenario's ``evaluate_from_s`` (0 without
-    one)."""
-    from hdhil.commands.options import scenario_for_trace
-    from hdhil.core.dataconf import from_dict
-    from hdhil.firmware.config import FirmwareConfig
-    from hdhil.rig.evaluate import evaluate, recording_from_trace
+    trace, as ``hdhil evaluate --json`` does: with the run recorded in the trace's sidecar
+    (or ``scenario``), from its evaluation start unless ``skip_s`` is given."""
+    from hdhil.rig.trace_score import score_trace
 
-    sc, _source = scenario_for_trace(Path(path), scenario)
-    fw = from_dict(FirmwareConfig, sc.firmware, "firmware") if sc else FirmwareConfig()
-    if skip_s is None:
-        skip_s = sc.evaluate_from_s if sc is not None else 0.0
-    rec, damage = recording_from_trace(Path(path), fw.sample_period_s)
+    trace = _path_arg(path, "path", optional=False)
+    assert trace is not None
+    if skip_s is not None and (isinstance(skip_s, bool) or not isinstance(skip_s, (int, float))):
+        raise TypeError(f"skip_s must be a number, got {type(skip_s).__name__}")
+    scores, damage = score_trace(trace, scenario, skip_s)
     if damage:
         raise ValueError(damage)
-    return evaluate(rec, fw, skip_s)
+    return scores

@@ -76,10 +76,10 @@ from hdhil.firmware.isr import (
 from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
 from hdhil.firmware.stages import Differentiator, SensorPlausibility, adc_read, calibrate
 from hdhil.hostsim.plant import Plant
-from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig.ostuning import cpu_steal_ns, steal_report
 from hdhil.rig.realtime import RealtimeConfig, format_steal
 from hdhil.rig.runner import run_lockstep
+from hdhil.rig.scenario import load_scenario
 
 #: Scenarios of the lockstep section, with the order of their ripple model.
 LOCKSTEP_SCENARIOS: tuple[tuple[str, str], ...] = (

@@ -11,12 +11,12 @@ from hdhil.core.errors import UserError
 from hdhil.core.files import atomic_path, check_output
 from hdhil.core.numbers import arg_int
 from hdhil.hostsim.calibration import CalibrationRig, calibrate
-from hdhil.hostsim.scenario import list_scenarios, load_scenario
 from hdhil.rig.calibration import (
     GOAL,
     format_result,
     write_calibration,
 )
+from hdhil.rig.scenario import list_scenarios, load_scenario
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -90,7 +90,7 @@ from hdhil.dbc import codec
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.stages import adc_read, calibrate
 from hdhil.hostsim.plant import PlantConfig
-from hdhil.hostsim.scenario import list_scenarios, load_scenario
+from hdhil.rig.scenario import list_scenarios, load_scenario
 
 __all__ = [
     "DEFAULT_SEGMENT_S",

@@ -76,10 +76,10 @@ from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant
-from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig.loop import NodeLoop, controller_expects_answer, serve
 from hdhil.rig.realtime import RealtimeLoop
 from hdhil.rig.runner import stop_on_signals
+from hdhil.rig.scenario import load_scenario
 from hdhil.rig.verdict import (
     dcf_refused,
     drive_verdict,

@@ -9,9 +9,47 @@ from typing import Any
 from hdhil.core.errors import UserError
 
 
-def add_fault_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
-    """``--fault KEY=VALUE`` (repeatable) and ``--fault-log FILE``."""
-    p.add_argument(
+def add_scenario_arguments(
+    p: argparse.ArgumentParser, *, default: str | None = "free-motion", what: str = ""
+) -> None:
+    """The options every command that runs a scenario takes, in one group:
+    ``--scenario --duration --seed --override --fault --fault-log --calibration`` and
+    ``--mapping``/``--drive-dcf``; :func:`request_from_args` resolves them into a
+    :class:`hdhil.rig.request.RunRequest`."""
+    from hdhil.core.numbers import arg_int, arg_seconds
+    from hdhil.dbc import MAPPINGS
+    from hdhil.rig.scenario import list_scenarios
+
+    g = p.add_argument_group("scenario" + (f" ({what})" if what else ""))
+    g.add_argument(
+        "--scenario",
+        default=default,
+        help=f"scenario name or TOML file (shipped: {', '.join(list_scenarios())}; "
+        "default: %(default)s)",
+    )
+    g.add_argument(
+        "--duration",
+        type=arg_seconds(),
+        default=None,
+        metavar="S",
+        help="simulated seconds (default: the scenario's)",
+    )
+    g.add_argument(
+        "--seed",
+        type=arg_int(0, 2**63 - 1),
+        default=None,
+        help="noise seed of the plant (default: the scenario's)",
+    )
+    g.add_argument(
+        "--override",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="TOML file deep-merged into the scenario, e.g. [firmware.ripple] written by "
+        "`hdhil tune --out` (repeatable, in order)",
+    )
+    g.add_argument(
         "--fault",
         action="append",
         default=[],
@@ -19,69 +57,57 @@ def add_fault_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
         help="inject a fault: a key of the scenario's [faults] table, dotted, and a TOML "
         "value, merged over the table (the flag wins; repeatable), e.g. "
         "control.loss_rate=0.05, control.jitter_us=200, sensors.tacho_spike_rate=0.001, "
-        "seed=3, 'control.silence=[{node=2,start_s=1,duration_s=0.5}]'" + what,
+        "seed=3, 'control.silence=[{node=2,start_s=1,duration_s=0.5}]'",
     )
-    p.add_argument(
+    g.add_argument(
         "--fault-log",
         type=Path,
         default=None,
         metavar="FILE",
         help="write every injected fault as JSON lines",
     )
-
-
-# ------------------------------------------------------------------ the drive's mapping
-
-
-def add_mapping_arguments(p: argparse.ArgumentParser) -> None:
-    """``--drive-dcf FILE`` or ``--mapping raw|cst`` (the DCF shipped for that name)."""
-    from hdhil.dbc import MAPPINGS
-
-    group = p.add_mutually_exclusive_group()
-    group.add_argument(
+    g.add_argument(
+        "--calibration",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="calibration file written by `hdhil calibrate --out` (the firmware uses its gain)",
+    )
+    mapping = g.add_mutually_exclusive_group()
+    mapping.add_argument(
         "--drive-dcf",
         metavar="FILE",
         default=None,
         help="configure the drive at boot from this DCF (its ParameterValue entries, by "
         "SDO); the controller's PDOs follow the drive's mapping",
     )
-    group.add_argument(
+    mapping.add_argument(
         "--mapping",
         choices=list(MAPPINGS),
         default=None,
-        help="the drive's PDO mapping by name: raw (the seed's ADC/DAC objects, the "
+        help="the drive's PDO mapping by name: raw ([Taghirad97]'s ADC/DAC objects, the "
         "default) or cst (CiA 402 cyclic synchronous torque: 0x6040 + 0x6071 in, 0x6077 + "
         "0x6064 out; the DCF shipped as drive-cst.dcf)",
     )
 
 
-def drive_dcf_of(args: argparse.Namespace) -> tuple[Path | None, str]:
-    """The DCF the options name (None: no configuration) and the mapping's label for
-    the trace's sidecar and the summary ("raw", "cst" or the DCF's file name)."""
-    from hdhil.canopen.mapping import mapping_dcf
-    from hdhil.core.files import check_input
+def request_from_args(args: argparse.Namespace, **settings: Any) -> Any:
+    """The :class:`hdhil.rig.request.RunRequest` the scenario options name (plus
+    ``settings``: ``evaluate_from_s``, ``actuation``, ``bitrate`` ...); a mistake is a
+    one-line :class:`ConfigError` naming the file, key or flag."""
+    from hdhil.rig.request import resolve
 
-    if getattr(args, "drive_dcf", None):
-        path = check_input(args.drive_dcf, "DCF")
-        return path, path.name
-    name = getattr(args, "mapping", None) or "raw"
-    return mapping_dcf(name), name
-
-
-def mapping_metadata(dcf: Path | None, label: str, node_id: int = 2) -> dict[str, Any]:
-    """What a trace's sidecar records about a run in a mapping from a DCF: the mapping's
-    label, the DCF's name and the drive's PDOs (so ``evaluate`` and ``dump`` decode the
-    trace); empty for the default mapping.  A DCF canopen cannot read is a one-line
-    error."""
-    if dcf is None:
-        return {}
-    from hdhil.canopen.mapping import dcf_layouts, layouts_to_json
-
-    try:
-        _, layouts = dcf_layouts(dcf, node_id)
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-    return {"mapping": label, "drive_dcf": dcf.name, "drive_pdos": layouts_to_json(layouts)}
+    return resolve(
+        args.scenario,
+        overrides=list(getattr(args, "override", []) or []),
+        faults=list(getattr(args, "fault", []) or []),
+        calibration=getattr(args, "calibration", None),
+        mapping=getattr(args, "mapping", None),
+        drive_dcf=getattr(args, "drive_dcf", None),
+        duration_s=getattr(args, "duration", None),
+        seed=getattr(args, "seed", None),
+        **settings,
+    )
 
 
 def require_raw_sensor_frames(trace: Path, command: str) -> None:
@@ -220,47 +246,68 @@ def open_bus(
     return bus, resolved
 
 
-# ------------------------------------------------------------------ a trace's scenario
+# ------------------------------------------------------------------ single options
+
+
+def add_fault_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
+    """``--fault KEY=VALUE`` (repeatable) and ``--fault-log FILE`` alone."""
+    p.add_argument(
+        "--fault",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="inject a fault: a key of the scenario's [faults] table, dotted, and a TOML "
+        "value, merged over the table (the flag wins; repeatable), e.g. "
+        "control.loss_rate=0.05, control.jitter_us=200, sensors.tacho_spike_rate=0.001, "
+        "seed=3, 'control.silence=[{node=2,start_s=1,duration_s=0.5}]'" + what,
+    )
+    p.add_argument(
+        "--fault-log",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write every injected fault as JSON lines",
+    )
+
+
+def add_mapping_arguments(p: argparse.ArgumentParser) -> None:
+    """``--drive-dcf FILE`` or ``--mapping raw|cst`` alone."""
+    from hdhil.dbc import MAPPINGS
+
+    group = p.add_mutually_exclusive_group()
+    group.add_argument(
+        "--drive-dcf",
+        metavar="FILE",
+        default=None,
+        help="configure the drive at boot from this DCF (its ParameterValue entries, by "
+        "SDO); the controller's PDOs follow the drive's mapping",
+    )
+    group.add_argument(
+        "--mapping",
+        choices=list(MAPPINGS),
+        default=None,
+        help="the drive's PDO mapping by name: raw ([Taghirad97]'s ADC/DAC objects, the "
+        "default) or cst (CiA 402 cyclic synchronous torque: 0x6040 + 0x6071 in, 0x6077 + "
+        "0x6064 out; the DCF shipped as drive-cst.dcf)",
+    )
+
+
+def drive_dcf_of(args: argparse.Namespace) -> tuple[Path | None, str]:
+    """The DCF the mapping options name (None: no configuration) and its label."""
+    from hdhil.canopen.mapping import mapping_dcf
+    from hdhil.core.files import check_input
+
+    if getattr(args, "drive_dcf", None):
+        path = check_input(args.drive_dcf, "DCF")
+        return path, path.name
+    name = getattr(args, "mapping", None) or "raw"
+    return mapping_dcf(name), name
 
 
 def scenario_for_trace(trace: Path, given: str | None) -> tuple[Any, str]:
-    """The scenario a trace was recorded with, and where that came from.
+    """The scenario a trace was recorded with (:func:`hdhil.rig.sidecar.request_for_trace`)
+    and where that came from; ``(None, note)`` without one."""
+    from hdhil.rig.sidecar import request_for_trace
 
-    ``--scenario`` wins; else the trace's sidecar JSON (written by ``hdhil run``/``soak``)
-    names it, with the override files of the run where they still exist; else ``None``
-    (the firmware defaults).  Returns ``(scenario or None, note)``."""
-    from hdhil.can.trace import metadata_path, read_metadata
-    from hdhil.core.dataconf import merge
-    from hdhil.hostsim.scenario import load_scenario
-
-    if given:
-        return load_scenario(given), "--scenario"
-    meta = read_metadata(trace)
-    if not meta or not meta.get("scenario"):
-        return None, "no scenario recorded with the trace"
-    source = str(meta.get("scenario_source") or meta["scenario"])
-    overrides: dict[str, Any] = {}
-    for path in meta.get("overrides") or []:
-        from hdhil.rig.runner import read_toml
-
-        try:
-            overrides = merge(overrides, read_toml(Path(path)))
-        except (OSError, ValueError, UserError):
-            return load_scenario(str(meta["scenario"])), (
-                f"{metadata_path(trace).name} (override {path} unreadable: left out)"
-            )
-    try:
-        scenario = load_scenario(source, overrides or None)
-    except (OSError, ValueError, UserError):
-        scenario = load_scenario(str(meta["scenario"]))
-    if meta.get("calibration"):
-        import dataclasses
-
-        from hdhil.rig.calibration import load_calibration
-
-        try:
-            firmware = merge(scenario.firmware, load_calibration(Path(meta["calibration"])))
-            scenario = dataclasses.replace(scenario, firmware=firmware)
-        except (OSError, ValueError, UserError):
-            return scenario, f"{metadata_path(trace).name} (calibration file unreadable)"
-    return scenario, metadata_path(trace).name
+    request, note = request_for_trace(trace, given)
+    return (request.scenario if request is not None else None), note

@@ -4,38 +4,28 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from hdhil.can.faults import with_fault_flags
 from hdhil.commands.options import (
-    DEFAULT_BITRATE,
     add_bus_options,
-    add_fault_arguments,
-    add_mapping_arguments,
+    add_scenario_arguments,
     bus_named,
-    drive_dcf_of,
-    mapping_metadata,
     open_bus,
+    request_from_args,
     resolve_bus_config,
 )
 from hdhil.commands.progress import Progress, add_quiet_argument, progress
-from hdhil.core.dataconf import from_dict, merge
-from hdhil.core.errors import ConfigError, UserError
-from hdhil.core.numbers import arg_float, arg_int, arg_seconds
-from hdhil.firmware.config import FirmwareConfig
-from hdhil.firmware.odlimits import check_od_limits
-from hdhil.hostsim.scenario import list_scenarios, load_scenario
+from hdhil.core.errors import UserError
+from hdhil.core.numbers import arg_float, arg_seconds
 from hdhil.rig.realtime import RealtimeConfig
 from hdhil.rig.runner import (
     compare_laws,
     format_result,
     format_tracking,
-    read_toml,
     run_lockstep,
     stop_on_signals,
 )
@@ -50,23 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "one process (lockstep, simulated time), log a trace and score the "
         "filtered torque against ground truth.",
     )
-    p.add_argument(
-        "--scenario",
-        default="free-motion",
-        help=f"scenario name or TOML file (shipped: {', '.join(list_scenarios())})",
-    )
-    p.add_argument(
-        "--duration",
-        type=arg_seconds(),
-        default=None,
-        help="simulated seconds (default: the scenario's)",
-    )
-    p.add_argument(
-        "--seed",
-        type=arg_int(0, 2**63 - 1),
-        default=None,
-        help="noise seed (default: the scenario's)",
-    )
+    add_scenario_arguments(p)
     p.add_argument(
         "--trace",
         default="hdhil-run.blf",
@@ -82,13 +56,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     add_quiet_argument(p)
-    p.add_argument(
-        "--calibration",
-        type=Path,
-        default=None,
-        help="calibration file written by `hdhil calibrate --out` (the firmware uses its gain)",
-    )
-    add_fault_arguments(p)
     p.add_argument(
         "--compare-laws",
         action="store_true",
@@ -109,19 +76,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "evaluate_from_s; the whole-run RMS figure is printed as well)",
     )
     p.add_argument(
-        "--override",
-        type=Path,
-        action="append",
-        default=[],
-        metavar="FILE",
-        help="TOML file deep-merged into the scenario, e.g. [firmware.ripple] written by "
-        "`hdhil tune --out` (repeatable)",
-    )
-    p.add_argument(
         "--actuation",
         choices=("next-sync", "immediate"),
-        default="next-sync",
-        help="when the drive applies a command (default: %(default)s)",
+        default=None,
+        help="when the drive applies a command (default: the scenario's [link] actuation, "
+        "next-sync)",
     )
     add_bus_options(
         p,
@@ -156,22 +115,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="--realtime: after the run, measure the machine floor (the bare sleep+spin loop, "
         "no hdhil code) for S seconds (default: none)",
     )
-    add_mapping_arguments(p)
     p.set_defaults(func=run)
 
 
 def _control_bus(
     args: argparse.Namespace,
-) -> tuple[str, str | None, int, Callable[[], Any] | None]:
+) -> tuple[str, str | None, int | None, Callable[[], Any] | None]:
     """Interface, channel, bit rate and bus factory of the run's control bus.
 
     Without ``--interface`` the run is on the simulated bus at ``--bitrate`` or 1 Mbit/s
     (python-can's environment and configuration file describe real interfaces, not the
     simulation).  With it, python-can's own factory opens the bus, the environment and
     configuration file filling what the command line leaves out."""
-    if not bus_named(args):
-        bitrate = getattr(args, "bitrate", DEFAULT_BITRATE)
-        return "simbus", getattr(args, "channel", None), bitrate, None
+    if not bus_named(args):  # the scenario's [bus] bit rate unless --bitrate names one
+        return "simbus", getattr(args, "channel", None), getattr(args, "bitrate", None), None
     resolved = resolve_bus_config(args)
     interface = str(resolved["interface"])
     if interface == "simbus":
@@ -223,79 +180,37 @@ def parse_start_time(text: str | None) -> float | None:
     return value
 
 
-def _strip_source(message: str) -> str:
-    """A scenario error without the scenario file's name in front (``path: ...``)."""
-    head, sep, rest = message.partition(": ")
-    return rest if sep and head.endswith(".toml") else message
-
-
 def run(args: argparse.Namespace) -> int:
-    scenario = load_scenario(args.scenario)  # its own mistakes name the scenario file
-    overrides: dict[str, Any] = {}
-    for path in args.override:
-        overrides = merge(overrides, read_toml(path))
-        try:  # a mistake an override brings in names the override file
-            scenario = load_scenario(args.scenario, overrides)
-            check_od_limits(from_dict(FirmwareConfig, scenario.firmware, "firmware"))
-        except ConfigError as exc:
-            raise ConfigError(f"override file {path}: {_strip_source(str(exc))}") from None
-    if args.fault:
-        scenario = dataclasses.replace(
-            scenario, faults=with_fault_flags(scenario.faults, args.fault)
-        )
-    if args.calibration is not None:
-        from hdhil.rig.calibration import load_calibration
-
-        firmware = merge(scenario.firmware, load_calibration(args.calibration))
-        scenario = dataclasses.replace(scenario, firmware=firmware)
+    if args.compare_laws and (args.mapping or args.drive_dcf):
+        raise UserError("--compare-laws runs the default mapping; leave out --drive-dcf/--mapping")
+    interface, channel, bitrate, factory = _control_bus(args)
+    request = request_from_args(
+        args, evaluate_from_s=args.skip, actuation=args.actuation, bitrate=bitrate
+    )
     trace = Path(args.trace) if args.trace else None
     start_time = parse_start_time(args.start_time)
-    metadata = {
-        "scenario_source": args.scenario,
-        "overrides": [str(p) for p in args.override],
-        "calibration": str(args.calibration) if args.calibration is not None else None,
-    }
-    drive_dcf, mapping_label = drive_dcf_of(args)
-    mapped = mapping_metadata(drive_dcf, mapping_label)
-    metadata.update(mapped)
-    factories: dict[str, Any] = {}
-    if drive_dcf is not None:
-        if args.compare_laws:
-            raise UserError(
-                "--compare-laws runs the default mapping; leave out --drive-dcf/--mapping"
-            )
-        from hdhil.rig.factories import dcf_controller
-
-        factories["controller_factory"] = dcf_controller(drive_dcf)
     if not args.realtime and (args.spin_us is not None or args.floor_s or args.mlock):
         raise UserError("--spin-us, --floor-s and --mlock need --realtime")
     rt_config = RealtimeConfig(spin_us=args.spin_us, floor_s=args.floor_s, mlock=args.mlock)
     try:
-        interface, channel, bitrate, factory = _control_bus(args)
         with stop_on_signals() as stop, contextlib.ExitStack() as stack:
             if args.compare_laws:
                 rows = compare_laws(
-                    scenario,
-                    duration_s=args.duration,
-                    seed=args.seed,
+                    request,
                     trace=trace,
                     interface=interface,
-                    actuation=args.actuation,
-                    bitrate=bitrate,
                     channel=channel,
                     open_control_bus=factory,
                     start_time=start_time,
-                    metadata=metadata,
                     stop_requested=stop.is_set,
-                    evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,
                     realtime=args.realtime,
                     realtime_config=rt_config,
                 )
                 if args.json:
-                    json.dump({"scenario": scenario.name, "laws": rows}, sys.stdout, indent=2)
+                    json.dump({"scenario": request.name, "laws": rows}, sys.stdout, indent=2)
                     print()
                 else:
-                    print(f"hdhil run --compare-laws: scenario {scenario.name}")
+                    print(f"hdhil run --compare-laws: scenario {request.name}")
                     print(format_tracking(rows))
                 if stop.is_set():
                     return 130
@@ -304,42 +219,35 @@ def run(args: argparse.Namespace) -> int:
                     print(f"hdhil: run {row['law']}: {format_verdict(row['verdict'])}",
                           file=sys.stderr)  # fmt: skip
                 return 1 if stopped else 0
-            duration = args.duration if args.duration is not None else scenario.duration_s
-            bar = progress(args, duration, f"hdhil run {scenario.name}", "s")
+            bar = progress(args, request.duration_s, f"hdhil run {request.name}", "s")
             stack.enter_context(bar)
             result = run_lockstep(
-                scenario,
-                args.duration,
-                args.seed,
-                trace,
-                interface,
-                args.actuation,
-                bitrate,
-                channel,
+                request,
+                trace=trace,
+                interface=interface,
+                channel=channel,
                 open_control_bus=factory,
                 start_time=start_time,
-                metadata=metadata,
                 monitor=_progress_monitor(bar),
                 monitor_every=PROGRESS_EVERY_SAMPLES,
                 stop_requested=stop.is_set,
                 evaluate=args.evaluate,
-                evaluate_skip_s=scenario.evaluate_from_s if args.skip is None else args.skip,
                 realtime=args.realtime,
                 realtime_config=rt_config,
                 fault_log=args.fault_log,
-                **factories,
             )
     except ValueError as exc:
         raise UserError(str(exc)) from None
     if args.json:
         summary = result.as_dict()
-        if mapped:
-            summary["mapping"] = mapped["mapping"]
+        if request.mapping.dcf is not None:
+            summary["mapping"] = request.mapping.label
         json.dump(summary, sys.stdout, indent=2)
         print()
     else:
-        if mapped:
-            print(f"mapping: {mapped['mapping']} (the drive configured from {mapped['drive_dcf']})")
+        if request.mapping.dcf is not None:
+            m = request.mapping
+            print(f"mapping: {m.label} (the drive configured from {m.dcf.name})")
         print(format_result(result))
     if result.interrupted:
         return 130

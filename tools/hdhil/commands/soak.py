@@ -59,8 +59,8 @@ from hdhil.core.errors import UserError
 from hdhil.core.numbers import FLOAT32_MAX, arg_float, arg_int, arg_seconds
 from hdhil.firmware.config import FirmwareConfig, Law
 from hdhil.firmware.controller import ControllerNode
-from hdhil.hostsim.scenario import Scenario, list_scenarios, load_scenario
 from hdhil.rig.runner import RunResult, run_lockstep, stop_on_signals
+from hdhil.rig.scenario import Scenario, list_scenarios, load_scenario
 from hdhil.rig.score import TorqueScore, TorqueScorer, TrackingScore, TrackingScorer
 from hdhil.rig.verdict import format_verdict
 

@@ -101,6 +101,8 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "") -> T:
     Raises ``ConfigError`` naming the dotted key for unknown keys, wrong types,
     and any ``ValueError`` the dataclass's own ``__post_init__`` checks raise.
     """
+    if isinstance(data, cls):  # already built (a typed scenario's table)
+        return data
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - set(fields))

@@ -60,11 +60,11 @@ from importlib import metadata, resources
 from pathlib import Path
 from typing import Any
 
+from hdhil.can.trace import metadata_path
 from hdhil.core.dataconf import ConfigError, from_dict, merge
 from hdhil.core.files import load_toml
-from hdhil.firmware.config import FirmwareConfig
-from hdhil.hostsim.scenario import load_scenario, scenario_from_dict
-from hdhil.rig.variant import WALL_CLOCK_KEYS, RunSettings, run_settings, scenario_data
+from hdhil.rig.scenario import load_scenario, scenario_data, scenario_from_dict
+from hdhil.rig.variant import WALL_CLOCK_KEYS, RunSettings, run_settings
 
 if sys.version_info >= (3, 11):
     pass
@@ -97,6 +97,18 @@ def _get(path: str) -> Callable[[dict[str, Any]], Any]:
                 return None
             value = value[key]
         return value
+
+    return get
+
+
+def _candidate(prefix: str, field_name: str) -> Callable[[dict], Any]:
+    """A figure of the evaluation's row whose name starts with ``prefix``."""
+
+    def get(result: dict[str, Any]) -> Any:
+        for row in (result.get("evaluation") or {}).get("candidates") or ():
+            if str(row.get("name", "")).startswith(prefix):
+                return row.get(field_name)
+        return None
 
     return get
 
@@ -144,15 +156,32 @@ METRICS: dict[str, Metric] = {
     "stopped_early": Metric("cycles < duration / sample period", "bool", lambda r: None),
     "simulated_s": Metric("simulated_s", "float", _get("simulated_s")),
     "cycles": Metric("cycles", "int", _get("cycles")),
+    "headline_Nm": Metric("headline.value_Nm", "float", _get("headline.value_Nm")),
     "filtered_rms_err_Nm": Metric(
-        "torque.rms_error_filtered", "float", _get("torque.rms_error_filtered")
+        "evaluation.candidates[firmware].rms_error (from the evaluation start)",
+        "float",
+        _firmware_candidate("rms_error"),
     ),
-    "filtered_max_err_Nm": Metric(
-        "torque.max_error_filtered", "float", _get("torque.max_error_filtered")
+    "filtered_to_raw": Metric(
+        "evaluation.candidates[firmware].rms_ratio", "float", _firmware_candidate("rms_ratio")
     ),
-    "raw_rms_err_Nm": Metric("torque.rms_error_raw", "float", _get("torque.rms_error_raw")),
-    "filtered_to_raw": Metric("torque.filtered_to_raw", "float", _get("torque.filtered_to_raw")),
-    "true_rms_Nm": Metric("torque.rms_true", "float", _get("torque.rms_true")),
+    "raw_rms_err_Nm": Metric(
+        "evaluation.candidates[raw].rms_error (from the evaluation start)",
+        "float",
+        _candidate("raw", "rms_error"),
+    ),
+    "filtered_rms_err_whole_run_Nm": Metric(
+        "torque.rms_error_filtered (whole run)", "float", _get("torque.rms_error_filtered")
+    ),
+    "filtered_max_err_whole_run_Nm": Metric(
+        "torque.max_error_filtered (whole run)", "float", _get("torque.max_error_filtered")
+    ),
+    "raw_rms_err_whole_run_Nm": Metric(
+        "torque.rms_error_raw (whole run)", "float", _get("torque.rms_error_raw")
+    ),
+    "true_rms_whole_run_Nm": Metric(
+        "torque.rms_true (whole run)", "float", _get("torque.rms_true")
+    ),
     "eval_rms_err_Nm": Metric(
         "evaluation.candidates[firmware].rms_error", "float", _firmware_candidate("rms_error")
     ),
@@ -359,7 +388,7 @@ _TRACE_FORMATS = ("blf", "asc", "log", "csv", "trc")
 
 
 def _campaign_dir() -> Path:
-    return Path(str(resources.files("hdhil.hostsim").joinpath("campaigns")))
+    return Path(str(resources.files("hdhil.rig").joinpath("campaigns")))
 
 
 def list_campaigns() -> list[str]:
@@ -593,7 +622,7 @@ def expand(campaign: Campaign) -> list[Variant]:
             )
             try:
                 scenario = load_scenario(base, overrides or None)
-                fw = from_dict(FirmwareConfig, scenario.firmware, "firmware")
+                fw = scenario.firmware
                 seed = point.get("seed")
                 if seed is not None and (
                     isinstance(seed, bool) or not isinstance(seed, int) or seed < 0
@@ -635,6 +664,7 @@ def execute_variant(settings: RunSettings) -> dict[str, Any]:
     t0 = time.perf_counter()
     result: dict[str, Any] | None = None
     trace: bytes | None = None
+    sidecar: bytes | None = None
     error = None
     try:
         if settings.trace_suffix and multiprocessing.current_process().daemon:
@@ -642,7 +672,7 @@ def execute_variant(settings: RunSettings) -> dict[str, Any]:
                 "the trace writer cannot start its process in a daemonic worker (Dask: "
                 "start the workers with DASK_DISTRIBUTED__WORKER__DAEMON=False)"
             )
-        result, trace = run_settings(settings)
+        result, trace, sidecar = run_settings(settings)
         result = {k: v for k, v in result.items() if k not in WALL_CLOCK_KEYS}
     except Exception as exc:  # a variant's failure is data, not the campaign's
         error = f"{type(exc).__name__}: {exc}".splitlines()[0]
@@ -650,6 +680,7 @@ def execute_variant(settings: RunSettings) -> dict[str, Any]:
         "result": result,
         "error": error,
         "trace": trace,
+        "sidecar": sidecar,
         "wall_s": time.perf_counter() - t0,
         "worker": f"{socket.gethostname()}:{os.getpid()}",
     }
@@ -780,6 +811,8 @@ def run_campaign(
         if outcome.get("trace") is not None:
             trace_dir.mkdir(exist_ok=True)
             _write_atomic(_trace_path(trace_dir, v), outcome["trace"])
+            if outcome.get("sidecar") is not None:
+                _write_atomic(metadata_path(_trace_path(trace_dir, v)), outcome["sidecar"])
         rec = Record(v, outcome["result"], outcome["error"], outcome["wall_s"], outcome["worker"])
         rec.metrics, rec.verdicts, rec.reasons = judge(v, rec.result, rec.error, campaign.criteria)
         if store:

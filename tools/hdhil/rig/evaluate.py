@@ -108,6 +108,23 @@ class Recording:
         if col:
             col[-1] = value
 
+    def operation(self) -> Recording:
+        """The samples the firmware ran its interrupt on: from the first to the last row
+        its telemetry answered (the drive may be enabled a cycle before the firmware's
+        loop starts, and stays enabled through the stop), so sample 0 is the firmware's
+        first interrupt, as in ``hdhil run``'s cycle count and the tracking score. The
+        whole recording when no row was answered (a trace of firmware without telemetry)."""
+        answered = np.flatnonzero(np.isfinite(self.column("T_meas_tele")))
+        if answered.size == 0 or (answered[0] == 0 and answered[-1] == len(self) - 1):
+            return self
+        first, last = int(answered[0]), int(answered[-1]) + 1
+        out = Recording(self.sample_period_s)
+        out.sensor_mapping = self.sensor_mapping
+        out.rated_torque_Nm = self.rated_torque_Nm
+        for name, col in self._cols.items():
+            out._cols[name] = col[first:last]
+        return out
+
 
 class RecordingListener(can.Listener):
     """Builds a :class:`Recording` from control-bus and truth frames (live or from a trace).
@@ -421,7 +438,9 @@ def candidate_signals(rec: Recording, cfg: FirmwareConfig) -> dict[str, np.ndarr
 
 
 def evaluate(rec: Recording, cfg: FirmwareConfig, skip_s: float = 0.0) -> dict[str, Any]:
-    """Score every candidate against truth; returns a JSON-ready dict."""
+    """Score every candidate against truth over the firmware's samples
+    (:meth:`Recording.operation`) from ``skip_s``; returns a JSON-ready dict."""
+    rec = rec.operation()
     n = len(rec)
     T_true = rec.column("T_true")
     valid = np.isfinite(T_true)

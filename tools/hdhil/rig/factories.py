@@ -18,7 +18,7 @@ handler of your own (:class:`hdhil.firmware.interrupt.InterruptHandlerModel`). E
     def rigid_drive(site: NodeSite) -> DriveNode:
         return DriveNode(site.bus, RigidInertia(), site.drive_config(), truth_bus=site.truth_bus)
 
-    run_lockstep(scenario, drive_factories=[rigid_drive])
+    run_lockstep(resolve("free-motion"), drive_factories=[rigid_drive])
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant
-from hdhil.hostsim.scenario import Scenario
+from hdhil.rig.scenario import Scenario
 
 #: The buses a node can sit on: the CAN control bus, and the truth channel that exists
 #: only in simulation (ground truth for scoring; the firmware never reads it).

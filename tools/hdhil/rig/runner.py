@@ -49,13 +49,12 @@ from hdhil.can.faults import (
 from hdhil.can.simbus import SimBus, SimClock
 from hdhil.can.trace import BusTap, FrameCounter, WriterProcess
 from hdhil.canopen.cia402 import State
-from hdhil.core.dataconf import ConfigError, from_dict, merge
+from hdhil.core.dataconf import ConfigError, merge
 from hdhil.core.files import load_toml
 from hdhil.dbc import CHANNEL_NUMBER, database
 from hdhil.firmware.config import FirmwareConfig, Law
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveNode
-from hdhil.hostsim.scenario import Scenario
 from hdhil.rig.evaluate import RecordingListener, format_evaluation
 from hdhil.rig.evaluate import evaluate as evaluate_recording
 from hdhil.rig.factories import (
@@ -63,12 +62,17 @@ from hdhil.rig.factories import (
     DriveFactory,
     NodeSite,
     RigLayout,
+    dcf_controller,
     scenario_controller,
     scenario_drive,
 )
+from hdhil.rig.headline import format_headline, headline
 from hdhil.rig.loop import NodeLoop, controller_expects_answer
 from hdhil.rig.realtime import RealtimeConfig, RealtimeLoop, WallClock, format_realtime
+from hdhil.rig.request import RunRequest
+from hdhil.rig.scenario import Scenario, scenario_data, scenario_from_dict
 from hdhil.rig.score import TorqueScorer, TrackingScorer
+from hdhil.rig.sidecar import run_metadata
 from hdhil.rig.verdict import dcf_refused, format_verdict, startup_verdict, stop_verdict
 
 _run_ids = itertools.count(1)
@@ -114,6 +118,10 @@ class RunResult:
     #: Why the run stopped before its planned end (:func:`hdhil.rig.verdict.stop_verdict`),
     #: ``None`` when it completed or was interrupted.
     verdict: dict[str, Any] | None = None
+    #: The run's one figure (:func:`hdhil.rig.headline.headline`), None without one.
+    headline: dict[str, Any] | None = None
+    #: What the run's scenario scores (:attr:`hdhil.rig.scenario.Scenario.scored`).
+    scored: tuple[str, ...] = ("ripple",)
 
     @property
     def real_time_factor(self) -> float:
@@ -235,24 +243,46 @@ def _frames_sent(control: can.BusABC, truth: can.BusABC) -> dict[str, int]:
 # ---------------------------------------------------------------------- the plan
 @dataclass(frozen=True)
 class RunPlan:
-    """What a run will do, resolved from the scenario and the caller's options before
-    anything is opened (every check that can fail without a bus fails here)."""
+    """Where and how a :class:`RunRequest` will run, checked before anything is opened
+    (every check that can fail without a bus fails here)."""
 
-    scenario: Scenario
-    firmware: FirmwareConfig
-    seed: int
-    cycles: int  # interrupts to run in operation
+    request: RunRequest
     interface: str | None
     channel: str | None
-    bitrate: int
-    actuation: str
     realtime: bool
-    layout: RigLayout
     load: ScheduleLoad
 
     @property
+    def scenario(self) -> Scenario:
+        return self.request.scenario
+
+    @property
+    def firmware(self) -> FirmwareConfig:
+        return self.request.firmware
+
+    @property
+    def seed(self) -> int:
+        return self.request.seed
+
+    @property
+    def cycles(self) -> int:
+        return self.request.cycles
+
+    @property
+    def bitrate(self) -> int:
+        return self.request.bitrate
+
+    @property
+    def actuation(self) -> str:
+        return self.request.actuation
+
+    @property
+    def layout(self) -> RigLayout:
+        return self.request.layout
+
+    @property
     def sample_period_s(self) -> float:
-        return self.firmware.sample_period_s
+        return self.request.sample_period_s
 
     @property
     def simulated(self) -> bool:
@@ -270,48 +300,24 @@ class RunPlan:
 
 
 def plan_run(
-    scenario: Scenario,
-    duration_s: float | None,
-    seed: int | None,
-    interface: str | None,
-    actuation: str,
-    bitrate: int,
-    channel: str | None,
-    realtime: bool,
-    layout: RigLayout | None,
+    request: RunRequest, interface: str | None, channel: str | None, realtime: bool
 ) -> RunPlan:
-    """Resolve and check a run's settings (one-line :class:`ConfigError` otherwise)."""
-    fw_config = from_dict(FirmwareConfig, scenario.firmware, "firmware")
-    Ts = fw_config.sample_period_s
-    duration = scenario.duration_s if duration_s is None else duration_s
-    if not duration > 0:
-        raise ConfigError(f"duration must be > 0 s, got {duration}")
-    cycles = round(duration / Ts)
-    if cycles < 1:
-        raise ConfigError(f"duration {duration:g} s is less than one sample period ({Ts:g} s)")
-    if fw_config.num_samples:
-        cycles = min(cycles, fw_config.num_samples)
-    load = schedule_load("control", bitrate, Ts)
+    """Check that ``request``'s cyclic schedule fits its bus (one-line :class:`ConfigError`
+    otherwise)."""
+    if not isinstance(request, RunRequest):
+        raise TypeError(
+            f"run_lockstep takes a RunRequest (hdhil.rig.request.resolve), got "
+            f"{type(request).__name__}"
+        )
+    Ts = request.sample_period_s
+    load = schedule_load("control", request.bitrate, Ts)
     if load.worst_case_load > 1.0:
         raise ConfigError(
             f"the cyclic schedule needs {load.worst_case_load:.0%} of a "
-            f"{bitrate} bit/s bus at {Ts * 1e3:g} ms: it cannot run"
+            f"{request.bitrate} bit/s bus at {Ts * 1e3:g} ms: it cannot run"
         )
-    if actuation not in ("next-sync", "immediate"):
-        raise ConfigError(f"actuation must be 'next-sync' or 'immediate', got {actuation!r}")
-    return RunPlan(
-        scenario=scenario,
-        firmware=fw_config,
-        seed=scenario.seed if seed is None else seed,
-        cycles=cycles,
-        interface=interface,
-        channel=channel,
-        bitrate=bitrate,
-        actuation=actuation,
-        realtime=realtime,
-        layout=layout or RigLayout(),
-        load=load,
-    )
+    return RunPlan(request=request, interface=interface, channel=channel, realtime=realtime,
+                   load=load)  # fmt: skip
 
 
 # ---------------------------------------------------------------------- the buses
@@ -525,7 +531,10 @@ def build_listeners(
     control = plan.firmware.control
     if control.law != Law.NONE:
         tracking = TrackingScorer(
-            control.joint.Jl / control.joint.Jm, evaluate_skip_s, control.friction.active
+            control.joint.Jl / control.joint.Jm,
+            evaluate_skip_s,
+            control.friction.active,
+            plan.sample_period_s,
         )
         listeners.append(tracking)
     if evaluate:
@@ -695,70 +704,53 @@ def run_phases(
 
 # ---------------------------------------------------------------------- the run
 def run_lockstep(
-    scenario: Scenario,
-    duration_s: float | None = None,
-    seed: int | None = None,
+    request: RunRequest,
+    *,
     trace: Path | None = None,
     interface: str | None = "simbus",
-    actuation: str = "next-sync",
-    bitrate: int = 1_000_000,
     channel: str | None = None,
-    stop_requested: Callable[[], bool] | None = None,
-    evaluate: bool = True,
-    evaluate_skip_s: float = 0.0,
-    fault_log: Path | None = None,
+    open_control_bus: Callable[[], can.BusABC] | None = None,
     realtime: bool = False,
-    extra_listeners: Sequence[can.Listener] = (),
+    realtime_config: RealtimeConfig | None = None,
+    evaluate: bool = True,
+    stop_requested: Callable[[], bool] | None = None,
     monitor: Callable[[ControllerNode], None] | None = None,
     monitor_every: int = 1000,
-    realtime_config: RealtimeConfig | None = None,
-    *,
-    layout: RigLayout | None = None,
-    controller_factory: ControllerFactory = scenario_controller,
+    extra_listeners: Sequence[can.Listener] = (),
+    fault_log: Path | None = None,
+    controller_factory: ControllerFactory | None = None,
     drive_factories: Sequence[DriveFactory] | None = None,
-    open_control_bus: Callable[[], can.BusABC] | None = None,
     start_time: float | None = None,
     metadata: dict[str, Any] | None = None,
 ) -> RunResult:
-    """Run ``scenario`` in lockstep and return the scored result.
+    """Run ``request`` (:func:`hdhil.rig.request.resolve`) and return the scored result.
 
-    ``stop_requested`` is polled at every cycle boundary; when it returns True the run
-    ends there, after the cycle's frames are all handled and logged (how Ctrl-C and
-    SIGTERM end a run without losing a frame).
+    Where: ``interface`` (``simbus``, the in-process simulated bus, by default; any
+    python-can interface, opened by ``open_control_bus`` when given) and ``channel``;
+    ``realtime`` paces SYNC by the wall clock instead of lockstep (``realtime_config``:
+    spin window, machine-floor reference). ``trace`` writes a trace and its sidecar
+    JSON, which carries the request (``start_time``: Unix time of simulated time 0).
 
-    ``evaluate`` records every cycle (96 bytes per cycle) and, after the run, scores the
-    firmware's filter against truth side by side with the paper/recommended Kalman modes
-    and the baselines (:mod:`hdhil.rig.evaluate`).  Without it memory stays flat and only the
-    streaming RMS score is kept.
-
-    ``realtime`` paces SYNC by the wall clock at the sample period instead of running as
-    fast as possible, and reports jitter, latency and deadline misses
-    (:mod:`hdhil.rig.realtime`); ``realtime_config`` sets its spin window and machine-floor
-    reference.
-
-    ``extra_listeners`` are added to the host tap after the run's own (they see every frame
-    of both buses, as a logger does).  ``monitor`` is called with the controller at
-    the cycle boundary after every ``monitor_every`` samples in operation; on the
-    simulated bus the tap has then seen every frame of those samples (how
-    :mod:`hdhil.commands.soak` reads the firmware's filter health per block).
-
-    The nodes come from factories (:mod:`hdhil.rig.factories`): ``controller_factory``
-    builds the controller, ``drive_factories`` one drive per slot of ``layout`` (one
-    factory for all, or one per slot; default: the scenario's plant).
-
-    ``start_time`` (Unix seconds; default: the wall clock now, whole milliseconds) is what
-    simulated time 0 becomes in the trace; a trace also gets ``TRACE.json`` beside it with
-    the scenario, seed, start time and bus (:func:`hdhil.can.trace.write_metadata`), plus
-    ``metadata``.  ``open_control_bus`` opens the control bus on a real interface (one
-    handle per node and for the tap).
+    ``evaluate`` records every cycle and scores the run once it ends
+    (:mod:`hdhil.rig.evaluate`); without it memory stays flat. ``stop_requested`` is
+    polled at every cycle boundary (how Ctrl-C ends a run without losing a frame);
+    ``monitor`` gets the controller every ``monitor_every`` samples; ``extra_listeners``
+    see every frame of both buses. The nodes come from factories
+    (:mod:`hdhil.rig.factories`): by default the firmware's controller (configuring its
+    drive from the request's DCF, if any) and one emulated drive per layout slot.
     """
-    plan = plan_run(scenario, duration_s, seed, interface, actuation, bitrate, channel,
-                    realtime, layout)  # fmt: skip
+    plan = plan_run(request, interface, channel, realtime)
     if monitor is not None and monitor_every < 1:
         raise ConfigError(f"monitor_every must be >= 1 sample, got {monitor_every}")
+    scenario = request.scenario
     Ts = plan.sample_period_s
     pacer = RealtimeLoop(Ts, realtime_config) if realtime else None  # checks its options
     factories = drive_factories or [scenario_drive(scenario)]
+    if controller_factory is None:
+        dcf = request.mapping.dcf
+        controller_factory = dcf_controller(dcf) if dcf is not None else scenario_controller
+    metadata = {**run_metadata(request), **(metadata or {})}
+    evaluate_skip_s = request.evaluate_from_s
     # Injected faults (the scenario's [faults] table), reproducible by their seed and logged.
     injector = (
         FaultInjector(scenario.faults, FaultLog(fault_log)) if scenario.faults is not None else None
@@ -855,9 +847,15 @@ def _result(
 ) -> RunResult:
     """The scored result of a finished run, every figure from the run itself."""
     recorder, tracking = listening.recorder, listening.tracking
+    scored = plan.scenario.scored
     evaluation = (
         evaluate_recording(recorder.recording, plan.firmware, evaluate_skip_s)
-        if recorder is not None and not counts.interrupted
+        if recorder is not None and not counts.interrupted and "ripple" in scored
+        else None
+    )
+    tracked = (
+        {"law": plan.firmware.control.law.name.lower(), **tracking.result().as_dict()}
+        if tracking is not None
         else None
     )
     names = _frame_names()
@@ -898,11 +896,9 @@ def _result(
         trace=str(trace) if trace is not None else None,
         evaluation=evaluation,
         faults=injector.summary() if injector is not None else None,
-        tracking=(
-            {"law": plan.firmware.control.law.name.lower(), **tracking.result().as_dict()}
-            if tracking is not None
-            else None
-        ),
+        tracking=tracked,
+        headline=headline(scored, evaluation, tracked, evaluate_skip_s),
+        scored=scored,
         controller=_controller_diagnostics(nodes.controller),
         drive=drive,
         realtime=pacer.result() if pacer is not None else None,
@@ -937,6 +933,7 @@ def format_result(r: RunResult) -> str:
         f"  real-time factor   {r.real_time_factor:.1f}x",
         f"  motor velocity     final {r.velocity_final:.1f} rad/s, peak {r.velocity_peak:.1f} rad/s"
         " (telemetry)",
+        format_headline(r.headline),
         "  frames on the buses:",
     ]
     lines += [f"    {name:<34} {n:>8}" for name, n in r.frames.items()]
@@ -946,14 +943,16 @@ def format_result(r: RunResult) -> str:
         f"  control bus load   {r.worst_case_load:.1%} worst case at "
         f"{r.bitrate / 1e6:g} Mbit/s ({verdict})"
     )
-    if t["samples"]:
+    if "ripple" not in r.scored:
+        pass  # the telemetry's torque is the law's estimate: no filter to score
+    elif t["samples"]:
         lines.append(
-            f"  torque vs truth    {t['samples']} samples: RMS true torque {t['rms_true']:.4f} Nm;"
-            f" RMS error raw {t['rms_error_raw']:.4f} Nm, filtered {t['rms_error_filtered']:.4f}"
-            f" Nm ({t['filtered_to_raw']:.1%} of raw)"
+            f"  whole run          {t['samples']} telemetry samples: RMS true torque "
+            f"{t['rms_true']:.4f} Nm; RMS error raw {t['rms_error_raw']:.4f} Nm, filtered "
+            f"{t['rms_error_filtered']:.4f} Nm ({t['filtered_to_raw']:.1%} of raw)"
         )
     else:
-        lines.append("  torque vs truth    no telemetry/truth pairs were seen")
+        lines.append("  whole run          no telemetry/truth pairs were seen")
     if r.faults is not None:
         injected = ", ".join(f"{kind} {n}" for kind, n in r.faults.items()) or "none"
         lines.append(f"  faults injected    {injected}")
@@ -1026,20 +1025,21 @@ def format_tracking(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def compare_laws(scenario: Scenario, **kwargs: Any) -> list[dict[str, Any]]:
-    """Run ``scenario`` once per law of :data:`COMPARED_LAWS` (and without friction
+def compare_laws(request: RunRequest, **kwargs: Any) -> list[dict[str, Any]]:
+    """Run ``request`` once per law of :data:`COMPARED_LAWS` (and without friction
     compensation if the scenario has it), each closed over the bus."""
     rows = []
     trace: Path | None = kwargs.pop("trace", None)
     laws = list(COMPARED_LAWS)
-    friction = scenario.firmware.get("control", {}).get("friction", {})
-    if friction.get("coulomb_Nm", 0.0) > 0.0:
+    scenario = request.scenario
+    if scenario.firmware.control.friction.coulomb_Nm > 0.0:
         laws.insert(1, WITHOUT_FRICTION_COMPENSATION)
         laws[0] = ("JTF1 with friction comp. (Eq. 5)", "jtf1", {"law": "jtf1"})
+    base = scenario_data(scenario)
     for label, slug, control in laws:
-        firmware = merge(scenario.firmware, {"control": control})
+        variant = scenario_from_dict(merge(base, {"firmware": {"control": control}}), label)
         law_trace = _suffixed(trace, slug) if trace else None
-        r = run_lockstep(dataclasses.replace(scenario, firmware=firmware), trace=law_trace,
+        r = run_lockstep(dataclasses.replace(request, scenario=variant), trace=law_trace,
                          evaluate=False, **kwargs)  # fmt: skip
         if r.tracking is None:
             raise ConfigError(f"{scenario.name}: no tracking telemetry for {label}")

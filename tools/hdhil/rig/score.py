@@ -183,8 +183,9 @@ class TrackingScorer(can.Listener):
     true lumped disturbance of [Vertechy] Eq. 3 is tau_lgd = tau_l + tau_g − tau_d·Jl/Jm,
     so ``jl_over_jm`` is the joint's inertia ratio; with ``friction_compensated`` (Eq. 5)
     the observer estimates tau_lg = tau_l + tau_g instead.  Only telemetry at or after
-    ``skip_s`` counts.  Everything it needs is on the two buses, so a trace alone scores
-    a run (``hdhil evaluate TRACE``).
+    ``skip_s`` counts, from the first telemetry frame (the first sample in operation).
+    Everything it needs is on the two buses, so a trace alone scores a run
+    (``hdhil evaluate TRACE``).
     """
 
     def __init__(
@@ -192,12 +193,9 @@ class TrackingScorer(can.Listener):
         jl_over_jm: float,
         skip_s: float = 0.0,
         friction_compensated: bool = False,
-        time_offset: float | None = 0.0,
+        sample_period_s: float = 1e-3,
     ) -> None:
-        #: Subtracted from every timestamp before ``skip_s`` applies: 0 on the live buses,
-        #: a trace's ``time_offset_s`` (:func:`trace_time_offset`); None takes the first
-        #: frame's timestamp as time 0.
-        self.time_offset = time_offset
+        self.sample_period_s = sample_period_s
         self.skip_s = skip_s
         self.jl_over_jm = jl_over_jm
         self.friction_compensated = friction_compensated
@@ -211,6 +209,7 @@ class TrackingScorer(can.Listener):
             (self._truth.frame_id, True): self._on_truth,
             (self._joint.frame_id, True): self._on_joint,
         }
+        self._t0: float | None = None
         self._T_true: float | None = None
         self._tau_lgd: float | None = None
         self._tau_ext = 0.0
@@ -225,8 +224,6 @@ class TrackingScorer(can.Listener):
         self._within = 0
 
     def on_message_received(self, msg: can.Message) -> None:
-        if self.time_offset is None:
-            self.time_offset = msg.timestamp
         handler = self._keys.get((msg.arbitration_id, msg.is_extended_id))
         if handler is not None and len(msg.data) == 8:
             handler(msg)
@@ -241,10 +238,16 @@ class TrackingScorer(can.Listener):
         self._tau_lgd = tau_ext if self.friction_compensated else tau_ext - tau_d * self.jl_over_jm
 
     def _on_tele(self, msg: can.Message) -> None:
+        # The controller sends this telemetry from its first interrupt in operation: that
+        # frame is sample 0, so ``skip_s`` is counted as the evaluation counts it.
+        if self._t0 is None:
+            self._t0 = msg.timestamp
         if (
             self._T_true is None
             or self._tau_lgd is None
-            or msg.timestamp - self.time_offset < self.skip_s  # type: ignore[operator]
+            # frames of one cycle go on the wire after a varying number of others:
+            # within half a period of the boundary is the boundary's sample
+            or msg.timestamp - self._t0 < self.skip_s - 0.5 * self.sample_period_s
         ):
             return
         _dtau, tau_lgd_hat, tau_sD, _e_hat = self._tele.decode(msg.data)

@@ -3,11 +3,9 @@ prints: the unit of work of a campaign (:mod:`hdhil.rig.campaign`).
 
 A variant travels to a worker process (or a Dask worker on another machine) as plain data:
 the fully resolved scenario in its TOML layout (:func:`scenario_data`, every default filled
-in, so the worker needs no scenario file) and the run settings.  The worker rebuilds the
-:class:`~hdhil.hostsim.scenario.Scenario` with :func:`~hdhil.hostsim.scenario.scenario_from_dict`
-(the function ``hdhil run`` loads a scenario with) and calls
-:func:`~hdhil.rig.runner.run_lockstep` with the same arguments ``hdhil run`` passes for the
-same options, so a variant's result is the result ``hdhil run --json`` prints for it.
+in, so the worker needs no scenario file) and the run settings.  The worker resolves them
+into the :class:`~hdhil.rig.request.RunRequest` ``hdhil run`` would make of the same
+options, so a variant's result is the result ``hdhil run --json`` prints for it.
 """
 
 from __future__ import annotations
@@ -17,35 +15,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hdhil.core.dataconf import to_dict
-from hdhil.hostsim.scenario import Scenario, scenario_from_dict
+from hdhil.can.trace import metadata_path
+from hdhil.rig.request import resolve
 from hdhil.rig.runner import run_lockstep
+from hdhil.rig.scenario import scenario_data, scenario_from_dict
+
+__all__ = ["WALL_CLOCK_KEYS", "RunSettings", "run_settings", "scenario_data"]
 
 #: Keys of ``hdhil run --json`` that measure the host, not the run: left out of a
 #: variant's stored result so that the same variant gives the same record anywhere.
 WALL_CLOCK_KEYS = ("wall_s", "real_time_factor", "realtime", "trace", "start_time")
-
-
-def scenario_data(scenario: Scenario) -> dict[str, Any]:
-    """The scenario in its TOML layout with every default filled in (plain data).
-
-    ``scenario_from_dict(scenario_data(s)) == s``: the form sent to workers and hashed
-    to recognise a variant's settings.
-    """
-    data: dict[str, Any] = {
-        "scenario": {
-            "name": scenario.name,
-            "description": scenario.description,
-            "duration_s": scenario.duration_s,
-            "seed": scenario.seed,
-            "evaluate_from_s": scenario.evaluate_from_s,
-        },
-        "plant": to_dict(scenario.plant),
-        "firmware": scenario.firmware,
-    }
-    if scenario.faults is not None:
-        data["faults"] = to_dict(scenario.faults)
-    return data
 
 
 @dataclass(frozen=True)
@@ -65,26 +44,22 @@ class RunSettings:
     trace_suffix: str | None = None
 
 
-def run_settings(settings: RunSettings) -> tuple[dict[str, Any], bytes | None]:
-    """Run one variant; return ``hdhil run --json``'s dictionary and the trace's bytes.
+def run_settings(settings: RunSettings) -> tuple[dict[str, Any], bytes | None, bytes | None]:
+    """Run one variant; return ``hdhil run --json``'s dictionary, the trace's bytes and
+    its sidecar JSON's bytes (None without a trace).
 
-    Raises what the run raises (a configuration the runner refuses, a drive that never
-    reaches operation): the caller records it.
+    The variant is resolved as ``hdhil run`` resolves its options
+    (:func:`hdhil.rig.request.resolve`). Raises what the run raises (a configuration the
+    runner refuses, a drive that never reaches operation): the caller records it.
     """
     scenario = scenario_from_dict(settings.scenario, "variant")
+    request = resolve(scenario, duration_s=settings.duration_s, seed=settings.seed)
     with tempfile.TemporaryDirectory(prefix="hdhil-variant-") as tmp:
         trace = Path(tmp) / f"trace{settings.trace_suffix}" if settings.trace_suffix else None
-        result = run_lockstep(
-            scenario,
-            settings.duration_s,
-            settings.seed,
-            trace,
-            "simbus",
-            "next-sync",
-            1_000_000,
-            None,
-            evaluate=True,
-            evaluate_skip_s=scenario.evaluate_from_s,
-        )
-        data = trace.read_bytes() if trace is not None and trace.is_file() else None
-    return result.as_dict(), data
+        result = run_lockstep(request, trace=trace, evaluate=True)
+        data = sidecar = None
+        if trace is not None and trace.is_file():
+            data = trace.read_bytes()
+            side = metadata_path(trace)
+            sidecar = side.read_bytes() if side.is_file() else None
+    return result.as_dict(), data, sidecar

@@ -1,0 +1,251 @@
+"""Scenarios: a named experiment as data (a TOML file), loaded once into typed configuration.
+
+A scenario describes both nodes and what is scored, so it lives above them: the drive's
+physics (``[plant]``, :class:`hdhil.hostsim.plant.PlantConfig`), the firmware
+(``[firmware]``, :class:`hdhil.firmware.config.FirmwareConfig`), injected faults
+(``[faults]``), the bus (``[bus]``), the SYNC link (``[link]``) and the evaluation
+(``[scenario] evaluate_from_s`` and ``scores``). Every table is typed and validated
+here, so a mistake is one :class:`~hdhil.core.dataconf.ConfigError` naming the key.
+
+Shipped scenarios are package data (``hdhil/rig/scenarios/*.toml``) addressed by file
+stem; any other ``.toml`` file by path. :func:`scenario_data` is the inverse of
+:func:`scenario_from_dict`: the plain form a trace's sidecar, a campaign worker and a
+:class:`hdhil.rig.request.RunRequest` carry. The keys are listed in
+``docs/reference/scenario-keys.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+from hdhil.can.faults import FaultConfig
+from hdhil.core.dataconf import ConfigError, from_dict, merge, to_dict
+from hdhil.core.errors import UserError
+from hdhil.core.files import load_toml
+from hdhil.firmware.config import FirmwareConfig, Law
+from hdhil.hostsim.plant import PlantConfig
+
+__all__ = [
+    "BusConfig",
+    "LinkConfig",
+    "Scenario",
+    "list_scenarios",
+    "load_scenario",
+    "scenario_data",
+    "scenario_from_dict",
+]
+
+_TOP_LEVEL = ("scenario", "plant", "firmware", "faults", "bus", "link")
+
+#: What an evaluation can score: the torque-ripple filter against the true torque, and
+#: the torque-control law's tracking of its desired torque ([Vertechy]).
+Score = Literal["ripple", "tracking"]
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """The control bus: its bit rate (bit/s) sets the frames' time on the wire."""
+
+    bitrate: int = 1_000_000
+
+    def __post_init__(self) -> None:
+        if isinstance(self.bitrate, bool) or not 10_000 <= self.bitrate <= 8_000_000:
+            raise ValueError(f"bus.bitrate must be 10000..8000000 bit/s, got {self.bitrate!r}")
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """When the drive applies a command: at the next SYNC (CiA 402 cyclic synchronous
+    modes) or as soon as it arrives."""
+
+    actuation: Literal["next-sync", "immediate"] = "next-sync"
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One experiment, typed: duration, noise seed, both nodes' configuration, faults,
+    bus, link and what is scored from when."""
+
+    name: str
+    description: str
+    duration_s: float
+    seed: int
+    plant: PlantConfig = field(default_factory=PlantConfig)
+    firmware: FirmwareConfig = field(default_factory=FirmwareConfig)
+    #: Where the evaluation starts (s): after the motor has turned enough for any filter
+    #: to tell ripple from torque (ripple at standstill is a static offset).
+    evaluate_from_s: float = 0.0
+    #: Injected faults (the optional ``[faults]`` table); None = a healthy setup.
+    faults: FaultConfig | None = None
+    bus: BusConfig = field(default_factory=BusConfig)
+    link: LinkConfig = field(default_factory=LinkConfig)
+    #: What the evaluation scores; empty = by the law (:attr:`scored`).
+    scores: tuple[Score, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name.strip():
+            raise ValueError(f"scenario.name must be a non-empty string, got {self.name!r}")
+        if "\n" in self.name or "\r" in self.name:
+            raise ValueError("scenario.name must be one line")
+        if not (isinstance(self.duration_s, (int, float)) and self.duration_s > 0):
+            raise ValueError(f"scenario.duration_s must be > 0, got {self.duration_s!r}")
+        if self.duration_s == float("inf"):
+            raise ValueError("scenario.duration_s must be finite")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"scenario.seed must be an integer >= 0, got {self.seed!r}")
+        if not 0.0 <= self.evaluate_from_s < self.duration_s:
+            raise ValueError(
+                f"scenario.evaluate_from_s must be in [0, duration_s), got {self.evaluate_from_s!r}"
+            )
+        if not isinstance(self.firmware, FirmwareConfig):
+            raise ValueError(f"firmware must be a FirmwareConfig, got {self.firmware!r}")
+
+    @property
+    def scored(self) -> tuple[Score, ...]:
+        """What the evaluation scores: ``scores`` if given, else the tracking of a
+        torque-control law or, without one, the ripple filter."""
+        if self.scores:
+            return self.scores
+        return ("tracking",) if self.firmware.control.law != Law.NONE else ("ripple",)
+
+
+@dataclass(frozen=True)
+class _Header:
+    """The ``[scenario]`` table (validated on its own so errors name ``scenario.*``)."""
+
+    name: str
+    duration_s: float
+    description: str = ""
+    seed: int = 0
+    evaluate_from_s: float = 0.0
+    scores: tuple[Score, ...] = ()
+
+
+def _scenario_dir() -> Path:
+    return Path(str(resources.files("hdhil.rig").joinpath("scenarios")))
+
+
+def list_scenarios() -> list[str]:
+    """Names (file stems) of the shipped scenarios, sorted."""
+    return sorted(p.stem for p in _scenario_dir().glob("*.toml") if p.is_file())
+
+
+def _table(data: dict[str, Any], key: str) -> dict[str, Any]:
+    value = data.get(key, {})
+    if not isinstance(value, dict):
+        raise ConfigError(f"{key}: expected a table, got {value!r}")
+    return value
+
+
+def scenario_from_dict(data: dict[str, Any], source: str = "scenario") -> Scenario:
+    """Build a :class:`Scenario` from the plain-data form of a scenario file.
+
+    ``source`` only prefixes error messages (a file name, say).
+    """
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a table, got {data!r}")
+    unknown = sorted(set(data) - set(_TOP_LEVEL))
+    if unknown:
+        raise ConfigError(
+            f"{source}: unknown table [{unknown[0]}] (known: {', '.join(_TOP_LEVEL)})"
+        )
+    if "scenario" not in data:
+        raise ConfigError(f"{source}: missing [scenario] table (name, duration_s, ...)")
+    try:
+        header_data = _table(data, "scenario")
+        for key in ("name", "duration_s"):
+            if key not in header_data:
+                raise ConfigError(f"missing key scenario.{key}")
+        header = from_dict(_Header, header_data, "scenario")
+        faults_data = data.get("faults")
+        faults = None
+        if faults_data is not None:
+            if not isinstance(faults_data, dict):
+                raise ConfigError(f"faults: expected a table, got {faults_data!r}")
+            faults = from_dict(FaultConfig, faults_data, "faults")
+        return Scenario(
+            name=header.name,
+            description=header.description,
+            duration_s=header.duration_s,
+            seed=header.seed,
+            plant=from_dict(PlantConfig, _table(data, "plant"), "plant"),
+            firmware=from_dict(FirmwareConfig, _table(data, "firmware"), "firmware"),
+            evaluate_from_s=header.evaluate_from_s,
+            faults=faults,
+            bus=from_dict(BusConfig, _table(data, "bus"), "bus"),
+            link=from_dict(LinkConfig, _table(data, "link"), "link"),
+            scores=header.scores,
+        )
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+    except ValueError as exc:  # Scenario.__post_init__
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def scenario_data(scenario: Scenario) -> dict[str, Any]:
+    """The scenario in its TOML layout with every default filled in (plain data):
+    ``scenario_from_dict(scenario_data(s)) == s``."""
+    header: dict[str, Any] = {
+        "name": scenario.name,
+        "description": scenario.description,
+        "duration_s": scenario.duration_s,
+        "seed": scenario.seed,
+        "evaluate_from_s": scenario.evaluate_from_s,
+    }
+    if scenario.scores:
+        header["scores"] = list(scenario.scores)
+    data: dict[str, Any] = {
+        "scenario": header,
+        "plant": to_dict(scenario.plant),
+        "firmware": to_dict(scenario.firmware),
+        "bus": to_dict(scenario.bus),
+        "link": to_dict(scenario.link),
+    }
+    if scenario.faults is not None:
+        data["faults"] = to_dict(scenario.faults)
+    return data
+
+
+def scenario_path(name_or_path: str) -> Path:
+    """A shipped scenario's file for a bare name; otherwise the path as given."""
+    text = str(name_or_path)
+    looks_like_path = text.endswith(".toml") or "/" in text or "\\" in text
+    if not looks_like_path:
+        path = _scenario_dir() / f"{text}.toml"
+        if path.is_file():
+            return path
+        known = ", ".join(list_scenarios()) or "none"
+        raise ConfigError(
+            f"unknown scenario {text!r} (known: {known}; or give a path to a .toml file)"
+        )
+    path = Path(text)
+    if not path.exists():
+        raise ConfigError(f"scenario file not found: {text}")
+    return path  # load_toml refuses what is not a regular file, naming it
+
+
+def scenario_file_data(name_or_path: str | Path) -> tuple[Path, dict[str, Any]]:
+    """The scenario file's path and its plain data (not validated yet)."""
+    path = scenario_path(str(name_or_path))
+    try:
+        return path, load_toml(path, "scenario file")
+    except UserError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
+    """Load a shipped scenario by name (``"free-motion"``) or a ``.toml`` file by path.
+
+    ``overrides`` is a nested dict in the file's layout (for example
+    ``{"scenario": {"seed": 7}, "plant": {"drivetrain": {"b_motor": 2.0}}}``),
+    deep-merged over the file before validation.
+    """
+    path, data = scenario_file_data(name_or_path)
+    if overrides:
+        if not isinstance(overrides, dict):
+            raise ConfigError(f"overrides must be a nested dict, got {overrides!r}")
+        data = merge(data, overrides)
+    return scenario_from_dict(data, str(path))
