@@ -1,71 +1,15 @@
 """The built-in strain-gauge torque sensor of the flexspline ([Taghirad97] §2, Eqs. 1-4).
 
-Source: [Taghirad97] (Taghirad, CIM-TR-97-06), §2
-"Built-in torque sensor", Figs. 2-5.  Pure numerics: no CAN, no I/O, no clock.
+Eight gauges in four rosettes on the flexspline diaphragm, wired as a Wheatstone bridge:
+each gauge reads the torsional strain plus the elliptical wave of the wave generator
+(Hashimoto's model, [Taghirad97] Eq. 1); with perfect placement the wave terms cancel
+(Eq. 3) and the bridge gives K ε_t E_sup (Eq. 4). Circumferential positioning errors and
+per-gauge sensitivity errors leave a residual at twice the wave-generator angle, the
+sensor's own ripple (§2, §4). A cubic nonlinearity and a Dahl hysteresis, small by
+default, make the calibration of §3 realistic.
 
-Geometry ([Taghirad97] §2, Fig. 2): four rosettes on the flexspline diaphragm, 90° apart.
-A rosette holds two gauges mounted perpendicular to each other (at ±45° to the axis,
-so that they read the torsional shear), which gives eight gauges R1..R8:
-
-=======  ==========  ===========  =====================================
-rosette  gauges      nominal α    reading for a torque (Eq. 1)
-=======  ==========  ===========  =====================================
-A        R1, R2      0°           R1: +ε_t + ε_w,  R2: −ε_t + ε_w'
-B        R3, R4      90°          R3: +ε_t + ε_w,  R4: −ε_t + ε_w'
-C        R5, R6      180°         (the "reverse position" of A, §2)
-D        R7, R8      270°
-=======  ==========  ===========  =====================================
-
-The seed: "for a clockwise torque ... R1 is under compression while R2 is under
-tension.  Similarly all odd-indexed strain-gauges are under compression, while the
-others are under tension".  We keep the sign of Eq. 1 (odd gauges ``+ε_t``, even
-``−ε_t``) and let a *positive* transmitted torque (``Plant.T_true > 0``) be the
-direction that gives ``ε_t > 0`` and a positive bridge output; the seed's clockwise
-torque is then a negative one.  This is a sign convention only.
-
-Strain of gauge j ([Taghirad97] Eq. 1, Hashimoto's model)::
-
-    ε_j = σ_j ε_t + Ψ_n cos 2(β − α_j) + σ_j Ψ_s sin 2(β − α_j)
-
-with σ_j = +1 for odd, −1 for even gauges, ε_t = strain_per_Nm · T the torsional
-strain, β the angle of the wave generator's major axis relative to the gauges and
-α_j = nominal α + circumferential positioning error of gauge j.  The elliptical
-deformation of the flexspline gives each ±45° gauge a normal-strain part common to
-both gauges of a rosette (``Ψ_n cos 2β``) and a shear part of opposite sign in the
-two (``±Ψ_s sin 2β``).  Hence for one rosette ε_1 − ε_2 = 2 ε_t + Ψ_0 sin 2β with
-Ψ_0 = 2 Ψ_s (Eq. 2), and the rosette at 90° gives 2 ε_t + Ψ_0 sin(2β − π) (Eq. 3).
-
-Bridge ([Taghirad97] Eq. 4, Fig. 3)::
-
-    E_out = K/4 (ε_1 + ε_3 − ε_2 − ε_4) E_sup = K ε_t E_sup
-
-Eight gauges: each bridge arm holds two gauges in series (R1+R5, R2+R6, R3+R7,
-R4+R8; Fig. 3 is not reproduced in the text, this wiring is ours), so the arm's
-relative resistance change is the mean of its two gauges' and, with the gauge factor
-K_j = K (1 + δ_j) of each gauge, ::
-
-    E_out = E_sup / n · Σ_j s_j K_j ε_j          (n = 4: exactly Eq. 4; n = 8: ours)
-
-with s_j = +1 for odd and −1 for even gauges.  With perfect placement (α_j nominal,
-δ_j = 0) the wave terms cancel exactly — sin 2β + sin(2β − π) = 0 (Eq. 3) and the
-common-mode ``Ψ_n`` cancels within each rosette — and E_out = K ε_t E_sup.  With
-positioning errors a residual modulation at exactly twice the wave-generator angle
-remains (§2: "radial, circumferential, and angular positioning error"; §4: the
-sensor's own ripple is also at twice the motor speed).  The amplifier multiplies
-E_out by 1000 and the bridge is fed with 10 V (§2, last paragraph).
-
-Modelled positioning errors:
-
-- circumferential: ``position_error_deg`` per gauge, added to α_j;
-- radial and angular: their effect is a gauge whose sensitivity differs from the
-  others' (§2); they are lumped with the gauge-factor tolerance in the per-gauge
-  ``sensitivity_error`` δ_j.
-
-Beyond the seed (documented, configurable, small by default): a cubic gauge
-nonlinearity and a rate-independent gauge hysteresis (Dahl model), both expressed as
-torque-equivalents on the torsional channel (:class:`GaugeHysteresis`,
-:meth:`StrainGaugeBridge.nonlinearity_Nm`).  They make the calibration of §3 realistic
-(a consistency measure that is not zero).
+Pure numerics: no CAN, no I/O, no clock. The geometry, the sign convention and the
+equations as ported are in ``docs/sensor-model.md``.
 """
 
 from __future__ import annotations

@@ -360,7 +360,7 @@ def test_an_early_stop_is_recorded_with_the_runs_own_reason():
     # A run stopped early has no evaluation: the error criterion cannot pass.
     assert verdicts == {
         "stopped_early == false": False,
-        "filtered_rms_err_Nm < 0.25": False,
+        "filtered_rms_err_Nm < 0.1": False,
         "covariance_finite == true": True,
     }
     assert reasons[0] == (

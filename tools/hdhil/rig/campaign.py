@@ -1,42 +1,18 @@
 """Campaigns: one firmware against a grid of scenario variants, run in parallel, each
 given a verdict.
 
-A campaign file (TOML) names base scenarios, axes over any scenario key (crossed, or
-zipped in groups), criteria over the metrics of ``hdhil run --json`` and what to keep::
+A campaign file (TOML; ``docs/campaigns.md``) names base scenarios, axes over any
+scenario key (crossed, or zipped in groups), criteria over the metrics of a run
+(:data:`METRICS`) and what to keep. Every variant is resolved as ``hdhil run`` resolves
+its options and validated before anything runs. A variant is recognised by a digest of
+its full settings and the hdhil version; its record is stored as
+``DIR/runs/<digest>.json`` the moment it arrives, so an interrupted campaign keeps what
+finished and a re-run only runs what has no result yet.
 
-    [campaign]
-    name = "loss-robustness"
-    description = "..."
-    scenarios = ["free-motion"]          # names or .toml paths (relative to this file)
-    duration_s = 2.0                     # optional: every variant's duration
-    keep_trace = false                   # true: DIR/traces/<variant>.<trace_format>
-    trace_format = "blf"
-    criteria = ["stopped_early == false", "filtered_rms_err_Nm < 0.2"]
-    plots = ["raw_rms_err_Nm"]           # metrics plotted besides the criteria's
-
-    [axes]                               # crossed, in this order
-    firmware.ripple.mode = ["paper", "recommended"]
-    faults.control.loss_rate = [0.0, 0.01, 0.05]
-
-    [[zip]]                              # each group moves together, crossed with the rest
-    seed = { range = [0, 10] }           # 0..9 (Python's range: start, stop[, step])
-    faults.seed = { range = [100, 110] }
-
-``seed`` is the run's noise seed (``hdhil run --seed``); every other key is a dotted key
-of the scenario file's layout (``scenario.*``, ``plant.*``, ``firmware.*``, ``faults.*``)
-deep-merged over the base scenario.  Every variant is built and validated (scenario,
-firmware configuration, criteria, metrics) before anything runs.
-
-A variant is recognised by a digest of its full settings (the resolved scenario with
-every default, duration, seed, trace option and the hdhil version): its record is
-stored as ``DIR/runs/<digest>.json`` the moment it arrives, so an interrupted campaign
-keeps what finished and a re-run only runs what has no result yet (variants that raised
-run again: the cause may have been the worker's environment).
-
-Execution goes through a :class:`concurrent.futures.Executor`: a local process pool, or
-a Dask cluster through ``distributed.Client.get_executor()`` (the same interface), so
-the two share this code.  A variant that raises is recorded with its error and never
-stops the campaign; a variant whose worker was lost is submitted again.
+Execution goes through a :class:`concurrent.futures.Executor`: a local process pool or
+a Dask cluster (``distributed.Client.get_executor()``), so both share this code. A
+variant that raises is recorded with its error and never stops the campaign; a variant
+whose worker was lost is submitted again.
 """
 
 from __future__ import annotations

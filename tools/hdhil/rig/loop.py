@@ -1,35 +1,17 @@
 """The one node loop: how every node runs, in one process or one per process.
 
-A *cycle* of the loop is: wait for the cycle's deadline (only with a pacer,
-:class:`hdhil.rig.realtime.RealtimeLoop`), run every node's timers (``tick``), let the
-SYNC producer (the controller) start the cycle with SYNC, then handle frames until the
-cycle is complete. What "complete" means depends on the bus, not on the caller:
+A cycle: wait for the deadline (only with a pacer, :class:`hdhil.rig.realtime.RealtimeLoop`),
+run every node's timers, let the SYNC producer start the cycle, then handle frames
+until the cycle is complete. On the simulated bus (``pump``) delivery is immediate: the
+nodes are polled until a round in which none sent a frame. On any other python-can bus
+the loop handles frames until the producer has answered the cycle's sensor frame or
+:data:`CYCLE_TIMEOUT_S` passed; a timed-out cycle is closed and counted, and the
+controller's sensor hold decides whether the peer is gone. Without a SYNC producer (a
+drive or a logger alone) a cycle is one receive slice (:data:`RECV_SLICE_S`).
+Listeners that only read (the host tap) are drained every ``listen_every`` cycles.
 
-- on the simulated bus (``pump``) delivery is immediate: the nodes are polled in turn
-  until a round in which none of them requested a control-bus frame (after such a
-  round every node's queue is empty); nothing is waited for;
-- on any other python-can bus frames take time to come back: the loop handles frames
-  until the producer has answered the cycle's sensor frame (its answer counter moved)
-  or :data:`CYCLE_TIMEOUT_S` passed (5 ms while no sensor frame is expected: before the
-  drive has sent its first one; with a pacer, never past the next cycle's deadline).
-  A cycle that times out is closed and counted (:attr:`NodeLoop.timeouts`); the
-  controller's sensor hold then decides whether the peer is gone (its own
-  ``sensor_hold_cycles``), so a dropped frame costs one late cycle, not the run;
-- without a SYNC producer (a drive or a logger alone) a cycle is one receive slice
-  (:data:`RECV_SLICE_S`): the node's timers run at least that often.
-
-Listeners that only read (the host tap, :class:`hdhil.can.trace.BusTap`) are drained
-every ``listen_every`` cycles and whenever the loop waits.
-
-Used by ``hdhil run`` (lockstep on ``simbus``, network lockstep on ``virtual`` or a
-real interface, ``--realtime``), by ``hdhil emulate`` / ``hdhil firmware`` (one node per
-process) and by the tests' served drive.
-
-Cycle timeout: one value everywhere, :data:`CYCLE_TIMEOUT_S`. It has to be long against
-a peer process that is briefly descheduled on a loaded machine (a cycle closed too
-early costs a sensor sample) and short against the controller's sensor hold (10 cycles
-by default), which is what declares a silent drive: 10 x 0.5 s = 5 s at most from the
-last sensor frame to the safe state on a lockstep network.
+Used by ``hdhil run`` (lockstep on ``simbus``, network lockstep on another interface,
+``--realtime``), ``hdhil emulate`` / ``hdhil firmware`` and the tests' served drive.
 """
 
 from __future__ import annotations

@@ -1,43 +1,21 @@
 """``hdhil filter INPUT --out OUT.csv``: run the firmware's torque filter offline.
 
-The filtering is the firmware's own code, not a copy: each sample goes through
-:class:`firmware.isr.TorqueFilterChain` (differentiator, expected torque, ripple Kalman
-filter in the configured mode), so the output is what the controller would compute
-on the same samples.
+The filtering is the firmware's own code, not a copy, so the output is what the
+controller computes on the same samples. Inputs: a signal CSV (``time``, ``T_meas`` in
+Nm, ``velocity`` in rad/s, optionally the 16-bit ``encoder``; or the unit-suffixed
+columns ``hdhil dump --csv`` writes), which goes through
+:class:`firmware.isr.TorqueFilterChain`; or a trace written by ``hdhil run``, whose
+``DRIVE_TPDO1`` ADC counts go through the whole interrupt handler
+(:class:`firmware.isr.InterruptHandler`: ADC read, calibration, the same chain).
+Without an encoder the recommended filter takes its phase from the integrated velocity.
+Non-finite values reach the filter, which skips and counts them; anything else that is
+not a number is an error naming the line.
 
-Inputs:
-
-- a **signal CSV**: a header line with the columns ``time``, ``T_meas`` (Nm) and
-  ``velocity`` (motor velocity, rad/s), optionally ``encoder`` (the 16-bit motor
-  encoder count), or the same with units as ``hdhil dump --csv`` writes them
-  (``time_s``, ``T_meas_Nm``, ``velocity_radps``, ``ENC_count``); other columns
-  are ignored, and an empty ``T_meas``/``velocity`` cell is a missing sample
-  (NaN).  Without an ``encoder`` column the
-  recommended filter takes its harmonic phase from the integrated velocity
-  (``phase_source = "tacho"``).  Non-finite values (``nan``, ``inf``) are passed to
-  the filter, which skips and counts them; anything else that is not a number is an
-  error naming the line.
-- a **trace** written by ``hdhil run`` (``.blf``, ``.asc``, ``.log``, ``.csv``, ``.trc``,
-  optionally ``.gz``; a ``.csv`` is a trace when its header is python-can's): the
-  drive's ``DRIVE_TPDO1`` frames, i.e. the raw ADC counts and encoder count the
-  firmware received, go through the firmware's interrupt handler
-  (:class:`firmware.isr.InterruptHandler`: ADC read, calibration, the same chain), so
-  the result is exactly what the firmware computed, given the same configuration.
-  ``time`` is the frame's time since the trace's first frame.
-
-Output: a CSV with exactly the columns ``time_s,T_meas_Nm,acceleration_radps2,
-T_expected_Nm,ripple_Nm,T_filtered_Nm`` (units in the names; ``T_filtered = T_meas -
-ripple``), numbers in Python's shortest
-round-trip form.  The file is written to a temporary name and renamed at the end, so
-a failed run leaves no half-written output.
-
-Configuration: the default :class:`firmware.config.FirmwareConfig` (recommended
-filter), ``--config FILE.toml`` (a scenario file, whose ``[firmware...]`` tables are
-used, or a file holding the firmware tables at top level), ``--paper`` for the seed's
-filter (:func:`firmware.config.paper_config`).
-
-Exit codes: 0 done; 1 the trace is damaged (everything readable was filtered); 2 a
-user error (one line on stderr).
+Output: a CSV ``time_s,T_meas_Nm,acceleration_radps2,T_expected_Nm,ripple_Nm,
+T_filtered_Nm``, written atomically. Configuration: the firmware defaults, ``--config``
+(a scenario file or firmware tables) or ``--paper`` ([Taghirad97] listing A.1).
+Exit codes: 0 done; 1 the trace is damaged (what was readable is filtered); 2 a user
+error.
 """
 
 from __future__ import annotations

@@ -1,41 +1,15 @@
 """Operating-system settings for a real-time loop, and what the kernel tells about it.
 
-:class:`ProcessTuning` applies, where permitted, what makes a periodic loop on a general
-purpose Linux more deterministic, reports each setting as applied or refused (with the
-reason), and undoes everything when the loop ends:
-
-- ``gc``: ``gc.collect()`` before the loop and ``gc.disable()`` during it.  A generation-2
-  collection in the middle of a cycle costs milliseconds once the heap holds the
-  scenario, the DBC and the CANopen object dictionaries.  The loop itself allocates
-  little, so memory stays flat over minutes without the collector (reference counting
-  frees everything that is not cyclic).
-- ``affinity``: :func:`os.sched_setaffinity` to one CPU: no migrations, warm caches.  The
-  CPU is the last allowed one that runs no other user-space real-time task
-  (:func:`rt_tasks_per_cpu`): two ``SCHED_FIFO`` loops on one CPU take turns and together
-  exceed the RT throttling limit, which parks both for tens of milliseconds.
-- ``timer slack``: ``prctl(PR_SET_TIMERSLACK, 1)`` (Linux, via :mod:`ctypes`): the kernel
-  may otherwise delay a sleeping task's wake-up by up to 50 µs to batch timers.  Linux
-  gives real-time tasks no slack at all, so it only matters when ``SCHED_FIFO`` is refused.
-- ``SCHED_FIFO``: :func:`os.sched_setscheduler` with real-time priority
-  :data:`FIFO_PRIORITY` (root or CAP_SYS_NICE only).  It keeps other processes from
-  preempting the loop and bounds the tail on a loaded machine; the kernel's RT
-  throttling still guarantees others a share.  With ``SCHED_RESET_ON_FORK``: a thread or
-  process started during the loop (a trace writer, say) runs under the normal policy;
-  inheriting ``SCHED_FIFO`` and the loop's CPU, it could only run while the loop sleeps,
-  and a loop waiting for it would spin forever.
-- ``mlockall`` (off by default): ``mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT)``
-  (Linux, via :mod:`ctypes`; root, CAP_IPC_LOCK or a large enough ``RLIMIT_MEMLOCK``):
-  pages the process touches stay resident, so the loop never waits for a page to come
-  back from swap.  ``MCL_ONFAULT`` locks pages as they are touched instead of faulting
-  in every mapping at once.
-
-The readers of ``/proc``: the kernel's RT throttling limit (:func:`rt_share_limit`), the
-real-time tasks per CPU (:func:`rt_tasks_per_cpu`) and the hypervisor's steal time
-(:func:`cpu_steal_ns`), which a guest cannot avoid, only count.  What each setting did
-on a measured machine is in the README's figures section, not here.
-
-Not done here: a ``PREEMPT_RT`` kernel, isolated CPUs (``isolcpus``, ``nohz_full``),
-interrupts steered away from the loop's CPU: the next steps on a dedicated bench PC.
+:class:`ProcessTuning` applies, where permitted, what makes a periodic loop on a
+general-purpose Linux more deterministic, reports each setting as applied or refused
+with the reason, and undoes everything when the loop ends: the garbage collector off
+during the loop, the process pinned to one CPU with no other real-time task,
+``PR_SET_TIMERSLACK`` of 1 ns, ``SCHED_FIFO`` (with ``SCHED_RESET_ON_FORK``, so a trace
+writer started during the loop runs under the normal policy) and, on request,
+``mlockall``. The readers of ``/proc`` give the kernel's RT throttling limit
+(:func:`rt_share_limit`), the real-time tasks per CPU (:func:`rt_tasks_per_cpu`) and
+the hypervisor's steal time (:func:`cpu_steal_ns`). Why each setting matters is in
+``docs/design.md``, "Real time".
 """
 
 from __future__ import annotations

@@ -1,23 +1,19 @@
 """``hdhil run``: a full emulated run in one process, lockstep on the simulated bus.
 
-The nodes share python-can channels and nothing else:
+The nodes share python-can channels and nothing else: the controller
+(:class:`firmware.controller.ControllerNode`) and the drives
+(:class:`hostsim.drive.DriveNode`, publishing ground truth on the truth channel) on the
+control bus, and the host tap (:class:`hdhil.can.trace.BusTap`: trace writer, frame
+counter, scorers) listening on both. The runner builds no node itself: they come from
+factories (:mod:`hdhil.rig.factories`), one per slot of the request's layout, and run in
+the one node loop (:mod:`hdhil.rig.loop`). A :class:`~hdhil.rig.request.RunRequest` is
+planned (:func:`plan_run`), its buses opened and its nodes built, then it goes through
+start-up, operation and stop (:func:`run_phases`) and is scored once (:func:`_result`,
+headline first).
 
-- the controller (:class:`firmware.controller.ControllerNode`) on the control bus,
-- the drives (by default one :class:`hostsim.drive.DriveNode`) on the control bus,
-  publishing ground truth on the truth channel,
-- the host tap (:class:`hdhil.can.trace.BusTap`) listening on both: trace writer, frame
-  counter and the scorer that compares telemetry with truth.
-
-The runner builds no node itself: they come from factories (:mod:`hdhil.rig.factories`),
-one per slot of a :class:`~hdhil.rig.factories.RigLayout` (node-IDs and buses), and run
-in the one node loop (:mod:`hdhil.rig.loop`). A run is planned (:func:`plan_run`), its
-buses opened and its nodes built (:class:`RigBuses`, :func:`build_nodes`), its listeners
-set up (:func:`build_listeners`), then it goes through start-up, operation and stop
-(:func:`run_phases`) and is scored (:func:`_result`).
-
-Lockstep (docs/design.md): SYNC k is sent at simulated time k*Ts; every node then handles what
-the bus delivers until the cycle is quiet, and SYNC k+1 follows at once.  The result is
-deterministic and bit-identical for a given seed, and as fast as the host allows.
+Lockstep (``docs/design.md``, "Timing semantics"): SYNC k is sent at simulated time
+k·Ts; every node handles what the bus delivers until the cycle is quiet, and SYNC k+1
+follows at once: deterministic for a given seed, as fast as the host allows.
 """
 
 from __future__ import annotations
