@@ -320,7 +320,7 @@ class TraceReadResult:
             if self.compressed:
                 raise ValueError(f"{self.format} traces cannot be read gzip-compressed")
             if self.format == ".mf4":
-                from hdhil.can.trace import MF4_MISSING, mf4_available
+                from hdhil.can.traces.formats import MF4_MISSING, mf4_available
 
                 if not mf4_available():
                     raise TraceError(MF4_MISSING)

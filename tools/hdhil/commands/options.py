@@ -229,7 +229,7 @@ def scenario_for_trace(trace: Path, given: str | None) -> tuple[Any, str]:
     ``--scenario`` wins; else the trace's sidecar JSON (written by ``hdhil run``/``soak``)
     names it, with the override files of the run where they still exist; else ``None``
     (the firmware defaults).  Returns ``(scenario or None, note)``."""
-    from hdhil.can.trace import metadata_path, read_metadata
+    from hdhil.can.traces.sidecar import metadata_path, read_metadata
     from hdhil.core.dataconf import merge
     from hdhil.hostsim.scenario import load_scenario
 

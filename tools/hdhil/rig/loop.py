@@ -18,7 +18,7 @@ cycle is complete. What "complete" means depends on the bus, not on the caller:
 - without a SYNC producer (a drive or a logger alone) a cycle is one receive slice
   (:data:`RECV_SLICE_S`): the node's timers run at least that often.
 
-Listeners that only read (the host tap, :class:`hdhil.can.trace.BusTap`) are drained
+Listeners that only read (the host tap, :class:`hdhil.can.traces.tap.BusTap`) are drained
 every ``listen_every`` cycles and whenever the loop waits.
 
 Used by ``hdhil run`` (lockstep on ``simbus``, network lockstep on ``virtual`` or a

@@ -5,7 +5,7 @@ The nodes share python-can channels and nothing else:
 - the controller (:class:`firmware.controller.ControllerNode`) on the control bus,
 - the drives (by default one :class:`hostsim.drive.DriveNode`) on the control bus,
   publishing ground truth on the truth channel,
-- the host tap (:class:`hdhil.can.trace.BusTap`) listening on both: trace writer, frame
+- the host tap (:class:`hdhil.can.traces.tap.BusTap`) listening on both: trace writer, frame
   counter and the scorer that compares telemetry with truth.
 
 The runner builds no node itself: they come from factories (:mod:`hdhil.rig.factories`),
@@ -47,7 +47,8 @@ from hdhil.can.faults import (
     check_node_transmit_faults,
 )
 from hdhil.can.simbus import SimBus, SimClock
-from hdhil.can.trace import BusTap, FrameCounter, WriterProcess
+from hdhil.can.traces.tap import BusTap, FrameCounter
+from hdhil.can.traces.writer import WriterProcess
 from hdhil.canopen.cia402 import State
 from hdhil.core.dataconf import ConfigError, from_dict, merge
 from hdhil.core.files import load_toml
@@ -131,7 +132,7 @@ class RunResult:
 def _suffixed(trace: Path, label: str) -> Path:
     """``run.blf`` -> ``run-LABEL.blf``; the whole format extension is kept
     (``run.asc.gz`` -> ``run-LABEL.asc.gz``)."""
-    from hdhil.can.trace import trace_format
+    from hdhil.can.traces.formats import trace_format
 
     fmt, compressed = trace_format(trace)
     ext = fmt + (".gz" if compressed else "")
@@ -748,7 +749,7 @@ def run_lockstep(
 
     ``start_time`` (Unix seconds; default: the wall clock now, whole milliseconds) is what
     simulated time 0 becomes in the trace; a trace also gets ``TRACE.json`` beside it with
-    the scenario, seed, start time and bus (:func:`hdhil.can.trace.write_metadata`), plus
+    the scenario, seed, start time and bus (:func:`hdhil.can.traces.sidecar.write_metadata`), plus
     ``metadata``.  ``open_control_bus`` opens the control bus on a real interface (one
     handle per node and for the tap).
     """
