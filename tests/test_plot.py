@@ -12,7 +12,7 @@ import can
 import numpy as np
 import pytest
 
-from hdhil.can.tracefile import read_trace
+from hdhil.can.traces.reader import read_trace
 from hdhil.cli import main
 from hdhil.commands.plot import (
     PlotData,

@@ -286,12 +286,12 @@ def control_database(drive_layouts: Mapping[tuple[str, int], PdoLayout]) -> Any:
 
 
 def trace_decoder(trace: Path) -> Any:
-    """The frame decoder (:class:`hdhil.can.tracefile.FrameDecoder`) of ``trace``: the
+    """The frame decoder (:class:`hdhil.can.traces.decode.FrameDecoder`) of ``trace``: the
     project DBCs, with the drive's PDOs as the trace's sidecar records them for a run in
     a mapping from a DCF (e.g. ``--mapping cst``: the sensor frame ``DRIVE_TPDO1``
     carries 0x6077 and 0x6064, decoded from the drive's EDS).  ``ValueError`` for a
     sidecar whose PDOs cannot be read."""
-    from hdhil.can.tracefile import FrameDecoder, default_decoder
+    from hdhil.can.traces.decode import FrameDecoder, default_decoder
     from hdhil.can.traces.sidecar import read_metadata
     from hdhil.dbc import database
 

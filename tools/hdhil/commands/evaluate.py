@@ -78,7 +78,7 @@ def _tracking(trace: Path, fw: FirmwareConfig, skip_s: float) -> dict | None:
     the controller's CTRL_TPDO2, truth from the truth channel), or None without
     torque-control telemetry.  The joint's Jl/Jm and whether the law compensates the
     friction (Eq. 5) come from ``--scenario``."""
-    from hdhil.can.tracefile import read_trace
+    from hdhil.can.traces.reader import read_trace
     from hdhil.rig.score import TrackingScorer, trace_time_offset
 
     c = fw.control

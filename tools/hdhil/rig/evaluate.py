@@ -255,7 +255,7 @@ def recording_from_trace(path: Path, sample_period_s: float = 1e-3) -> tuple[Rec
     """Read a trace into a recording; returns it and a damage description ('' if clean).
     The drive's PDO mapping comes from the trace's sidecar JSON (the default mapping
     without one)."""
-    from hdhil.can.tracefile import read_trace
+    from hdhil.can.traces.reader import read_trace
     from hdhil.can.traces.sidecar import read_metadata
 
     meta = read_metadata(path) or {}

@@ -83,7 +83,7 @@ def _column(names: list[str], column: str) -> int | None:
     return None
 
 
-#: Trace formats (``hdhil.can.tracefile.READERS``), without importing python-can up front.
+#: Trace formats (``hdhil.can.traces.reader.READERS``), without importing python-can up front.
 TRACE_EXTENSIONS = (".blf", ".asc", ".log", ".csv", ".trc", ".mf4")
 _CAN_CSV_HEADER = "timestamp,arbitration_id"
 
@@ -318,7 +318,7 @@ def _collect(summary: FilterSummary, chain: TorqueFilterChain) -> None:
 
 def _sensor_frames(path: Path, summary: FilterSummary) -> Iterator[tuple[float, tuple[int, ...]]]:
     """``(timestamp, (torque, tacho, current, encoder))`` of every DRIVE_TPDO1 frame."""
-    from hdhil.can.tracefile import read_trace
+    from hdhil.can.traces.reader import read_trace
     from hdhil.dbc import codec
 
     sensor = codec("control", "DRIVE_TPDO1").expect(
