@@ -52,6 +52,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
+from hdhil.can.traces.formats import SUPPORTED_SUFFIXES as TRACE_EXTENSIONS
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
 from hdhil.core.files import AtomicOutput, check_input, load_toml
@@ -83,8 +84,6 @@ def _column(names: list[str], column: str) -> int | None:
     return None
 
 
-#: Trace formats (``hdhil.can.traces.reader.READERS``), without importing python-can up front.
-TRACE_EXTENSIONS = (".blf", ".asc", ".log", ".csv", ".trc", ".mf4")
 _CAN_CSV_HEADER = "timestamp,arbitration_id"
 
 __all__ = [

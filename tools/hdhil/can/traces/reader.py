@@ -26,24 +26,22 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import can
+from can.io.player import MESSAGE_READERS
 
 from hdhil.can.traces import formats
 from hdhil.can.traces.formats import (
     MF4_MISSING,
+    SUPPORTED_SUFFIXES,
     supported_extensions,
     trace_format,
 )
 from hdhil.core.errors import UserError
 from hdhil.core.files import check_input
 
-#: Reader class per (lower-case) file extension.
+#: Reader class per (lower-case) file extension: python-can's own table, the one
+#: :class:`can.LogReader` picks from, for the formats hdhil writes.
 READERS: dict[str, type[can.io.generic.MessageReader]] = {
-    ".blf": can.BLFReader,
-    ".asc": can.ASCReader,
-    ".log": can.CanutilsLogReader,
-    ".csv": can.CSVReader,
-    ".trc": can.TRCReader,
-    ".mf4": can.MF4Reader,
+    suffix: MESSAGE_READERS[suffix] for suffix in SUPPORTED_SUFFIXES
 }
 
 #: Formats read from a file name rather than a stream (no gzip, no byte counting).
