@@ -15,7 +15,15 @@ import numpy as np
 import pytest
 from runs import lockstep
 
-from hdhil.can import tracefile as dump
+from hdhil.can.traces.decode import (
+    DecodedFrame,
+    FrameKind,
+    classify_frame,
+    decode_frame,
+    default_decoder,
+)
+from hdhil.can.traces.reader import _CSV_HEADER, MAX_DAMAGE, TraceError, read_trace
+from hdhil.can.traces.stats import compute_stats
 from hdhil.cli import main
 from hdhil.commands import dump as dump_command
 from hdhil.dbc import database
@@ -198,20 +206,20 @@ def test_every_format_round_trips(tmp_path, suffix):
     cycles = 30
     frames = make_frames(cycles)
     trace = write_trace(tmp_path / f"trace{suffix}", frames)
-    decoded: dict[str, list[dump.DecodedFrame]] = {}
-    kinds: dict[dump.FrameKind, int] = {}
-    with dump.read_trace(trace) as result:
+    decoded: dict[str, list[DecodedFrame]] = {}
+    kinds: dict[FrameKind, int] = {}
+    with read_trace(trace) as result:
         for msg in result:
-            frame = dump.classify_frame(msg)
+            frame = classify_frame(msg)
             kinds[frame.kind] = kinds.get(frame.kind, 0) + 1
-            if dump.decode_frame(msg) is not None:
+            if decode_frame(msg) is not None:
                 decoded.setdefault(frame.message, []).append(frame)
     assert not result.damage
     assert result.frame_count == len(frames)
     assert kinds == {
-        dump.FrameKind.DECODED: 4 * cycles,
-        dump.FrameKind.UNKNOWN: 1,
-        dump.FrameKind.MALFORMED: 1,
+        FrameKind.DECODED: 4 * cycles,
+        FrameKind.UNKNOWN: 1,
+        FrameKind.MALFORMED: 1,
     }
     for name in ("SYNC", "DRIVE_TPDO1", "CTRL_TPDO1", "TRUTH_TORQUE"):
         got = decoded[name]
@@ -351,7 +359,7 @@ def schedule(cycles: int, jitter_s: np.ndarray | None = None) -> list[can.Messag
 
 
 def test_stats_of_1khz_schedule():
-    stats = dump.compute_stats(schedule(1000), bitrate=1_000_000)
+    stats = compute_stats(schedule(1000), bitrate=1_000_000)
     assert stats["frames"] == 4000 and stats["unknown"] == 1000
     by_id = {s["id"]: s for s in stats["ids"]}
     assert set(by_id) == {0x80, 0x181, 0x182, 0x381}
@@ -370,7 +378,7 @@ def test_stats_of_1khz_schedule():
     assert control["unknown_ids"] == 1 and control["unknown_frames"] == 1000
     assert control["duration"] == pytest.approx(0.999 + 300e-6)
     assert not control["over_limit"]
-    slow = dump.compute_stats(schedule(100), bitrate=500_000)
+    slow = compute_stats(schedule(100), bitrate=500_000)
     assert slow["buses"]["control"]["load_percent"] == pytest.approx(94.0)
     assert slow["buses"]["control"]["over_limit"]
 
@@ -401,7 +409,7 @@ def test_a_burst_of_sdo_frames_counts_spread_over_the_bus_duration():
         )
         for m in schedule(1000)
     ]
-    stats = dump.compute_stats(burst + cyclic, bitrate=1_000_000)
+    stats = compute_stats(burst + cyclic, bitrate=1_000_000)
     control = stats["buses"]["control"]
     by_id = {s["id"]: s for s in stats["ids"]}
     assert by_id[0x602]["load_percent"] > 60  # the burst's own rate: 5 kHz of 135 us
@@ -414,7 +422,7 @@ def test_a_burst_of_sdo_frames_counts_spread_over_the_bus_duration():
 def test_stats_jitter_matches_numpy():
     rng = np.random.default_rng(7)
     jitter = rng.normal(0.0, 20e-6, 500)
-    stats = dump.compute_stats(schedule(500, jitter))
+    stats = compute_stats(schedule(500, jitter))
     sync = next(s for s in stats["ids"] if s["name"] == "SYNC")
     times = np.arange(500) * 1e-3 + jitter
     periods = np.diff(times)
@@ -469,7 +477,7 @@ def _bad_files(tmp_path: Path) -> dict[str, Path]:
     files["random_blf"].write_bytes(random)
     files["random_csv"].write_bytes(random)
     files["text_as_asc"].write_text("hello\nworld\n")
-    files["header_only_csv"].write_text(dump._CSV_HEADER)
+    files["header_only_csv"].write_text(_CSV_HEADER)
     files["unsupported"].write_text("0.0 1 181 Rx d 8 00 00 00 00 00 00 00 00\n")
     return files
 
@@ -497,8 +505,8 @@ def test_bad_files_are_a_one_line_error(tmp_path, capsys, kind):
     lines = err.splitlines()
     assert len(lines) == 1 and lines[0].startswith("hdhil: error: ")
     assert str(path) in lines[0]
-    with pytest.raises(dump.TraceError):
-        dump.read_trace(path)
+    with pytest.raises(TraceError):
+        read_trace(path)
 
 
 # ----------------------------------------------------------------------- damaged files
@@ -639,16 +647,16 @@ def test_many_damaged_lines_stop_reading(tmp_path):
     for i in range(100, 400):
         lines[i] = "broken\n"
     trace.write_text("".join(lines))
-    with dump.read_trace(trace) as result:
+    with read_trace(trace) as result:
         count = sum(1 for _ in result)
     assert count == 99
-    assert len(result.damage) == dump.MAX_DAMAGE + 1
+    assert len(result.damage) == MAX_DAMAGE + 1
     assert "stopped reading" in result.damage[-1].reason
 
 
 def test_clean_read_has_no_damage_and_streams(tmp_path):
     trace = write_trace(tmp_path / "t.log", make_frames(10))
-    result = dump.read_trace(trace)
+    result = read_trace(trace)
     first = next(iter(result))
     assert first.channel == 0 and first.arbitration_id == 0x80
     rest = list(result)
@@ -663,21 +671,21 @@ def test_clean_read_has_no_damage_and_streams(tmp_path):
 
 def test_decode_frame_api():
     msg = _msg(0.5, "CTRL_TPDO1", cycle_values(3)["CTRL_TPDO1"], None)
-    frame = dump.decode_frame(msg)
+    frame = decode_frame(msg)
     assert frame is not None
     assert frame.message == "CTRL_TPDO1" and frame.bus == "control" and frame.id_text == "181"
     assert frame.signals["T_meas"] == pytest.approx(0.013 * 3 - 5.0, abs=0.002)
     unknown = can.Message(arbitration_id=0x181, is_extended_id=True, data=bytes(8))
-    assert dump.decode_frame(unknown) is None
-    assert dump.classify_frame(unknown).kind is dump.FrameKind.UNKNOWN
-    assert dump.classify_frame(unknown).bus == "?"
+    assert decode_frame(unknown) is None
+    assert classify_frame(unknown).kind is FrameKind.UNKNOWN
+    assert classify_frame(unknown).bus == "?"
     short = can.Message(arbitration_id=0x181, is_extended_id=False, data=bytes(7), channel=0)
-    assert dump.decode_frame(short) is None
-    assert dump.classify_frame(short).kind is dump.FrameKind.MALFORMED
+    assert decode_frame(short) is None
+    assert classify_frame(short).kind is FrameKind.MALFORMED
     truth_on_control = _msg(0.0, "TRUTH_TORQUE", {"T_true": 1.0, "T_ripple": 0.0}, 0)
-    frame = dump.classify_frame(truth_on_control)
-    assert frame.kind is dump.FrameKind.DECODED and frame.on_wrong_bus
-    assert "WRONG BUS" in dump.default_decoder().describe(frame)
+    frame = classify_frame(truth_on_control)
+    assert frame.kind is FrameKind.DECODED and frame.on_wrong_bus
+    assert "WRONG BUS" in default_decoder().describe(frame)
 
 
 def test_stats_report_actual_load_and_cycle_counter_gaps(tmp_path, capsys):

@@ -12,7 +12,7 @@ import can
 import numpy as np
 import pytest
 
-from hdhil.can.trace import open_writer
+from hdhil.can.traces.writer import open_writer
 from hdhil.cli import main
 from hdhil.dbc import codec
 from hdhil.firmware.config import FirmwareConfig, paper_config

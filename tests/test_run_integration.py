@@ -346,7 +346,7 @@ def test_sigkill_loses_at_most_the_last_second_of_a_line_based_trace(tmp_path, s
     import sys
     import time
 
-    from hdhil.can.tracefile import read_trace
+    from hdhil.can.traces.reader import read_trace
 
     def last_time(path) -> tuple[int, float]:
         with read_trace(path) as trace:

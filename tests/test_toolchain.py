@@ -154,9 +154,9 @@ def test_mf4_round_trip(tmp_path, capsys):
 
 
 def test_mf4_without_asammdf_is_a_clear_error(tmp_path, monkeypatch, capsys):
-    import hdhil.can.trace as trace
+    import hdhil.can.traces.formats as formats
 
-    monkeypatch.setattr(trace, "mf4_available", lambda: False)
+    monkeypatch.setattr(formats, "mf4_available", lambda: False)
     assert main(["run", "--duration", "0.05", "--trace", str(tmp_path / "x.mf4")]) == 2
     err = capsys.readouterr().err
     assert "asammdf" in err and "hdhil[mf4]" in err and not (tmp_path / "x.mf4").exists()

@@ -18,7 +18,8 @@ from pathlib import Path
 import can
 import pytest
 
-from hdhil.can.trace import BATCH_FRAMES, WriterError, WriterProcess, metadata_path
+from hdhil.can.traces.sidecar import metadata_path
+from hdhil.can.traces.writer import BATCH_FRAMES, WriterError, WriterProcess
 
 
 def _command() -> list[str]:
@@ -129,7 +130,7 @@ def test_a_killed_run_leaves_the_complete_trace_in_place(tmp_path):
     script = textwrap.dedent(f"""
         import os, signal, can
         from pathlib import Path
-        from hdhil.can.trace import BATCH_FRAMES, WriterProcess
+        from hdhil.can.traces.writer import BATCH_FRAMES, WriterProcess
         w = WriterProcess(Path({str(trace)!r}), metadata={{"kind": "test"}})
         for i in range(2 * BATCH_FRAMES):
             w.on_message_received(can.Message(timestamp=i * 1e-3, arbitration_id=0x80,

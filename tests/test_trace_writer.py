@@ -12,7 +12,8 @@ import can
 import pytest
 
 from hdhil.can.simbus import SimClock
-from hdhil.can.trace import BATCH_FRAMES, BusTap, FrameCounter, WriterProcess, open_writer
+from hdhil.can.traces.tap import BusTap, FrameCounter
+from hdhil.can.traces.writer import BATCH_FRAMES, WriterProcess, open_writer
 from hdhil.core.errors import UserError
 
 
@@ -89,7 +90,7 @@ def test_the_file_is_closed_and_complete_when_the_run_is_killed(tmp_path):
     script = textwrap.dedent(f"""
         import os, signal, can
         from pathlib import Path
-        from hdhil.can.trace import BATCH_FRAMES, WriterProcess
+        from hdhil.can.traces.writer import BATCH_FRAMES, WriterProcess
         w = WriterProcess(Path({str(trace)!r}))
         for i in range(2 * BATCH_FRAMES):
             w.on_message_received(can.Message(timestamp=i * 1e-3, arbitration_id=0x80,

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from runs import lockstep
 
-from hdhil.can.tracefile import read_trace
+from hdhil.can.traces.reader import read_trace
 from hdhil.cli import main
 from hdhil.commands.tune import (
     filter_inputs,

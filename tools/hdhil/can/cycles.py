@@ -32,7 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hdhil.can.tracefile import DecodedFrame, FrameDecoder, FrameKind, default_decoder, read_trace
+from hdhil.can.traces.decode import DecodedFrame, FrameDecoder, FrameKind, default_decoder
+from hdhil.can.traces.reader import read_trace
 
 #: The message whose arrival opens a row: the drive's sensor frame of sample k.
 SAMPLE_MESSAGE = "DRIVE_TPDO1"

@@ -286,13 +286,13 @@ def control_database(drive_layouts: Mapping[tuple[str, int], PdoLayout]) -> Any:
 
 
 def trace_decoder(trace: Path) -> Any:
-    """The frame decoder (:class:`hdhil.can.tracefile.FrameDecoder`) of ``trace``: the
+    """The frame decoder (:class:`hdhil.can.traces.decode.FrameDecoder`) of ``trace``: the
     project DBCs, with the drive's PDOs as the trace's sidecar records them for a run in
     a mapping from a DCF (e.g. ``--mapping cst``: the sensor frame ``DRIVE_TPDO1``
     carries 0x6077 and 0x6064, decoded from the drive's EDS).  ``ValueError`` for a
     sidecar whose PDOs cannot be read."""
-    from hdhil.can.trace import read_metadata
-    from hdhil.can.tracefile import FrameDecoder, default_decoder
+    from hdhil.can.traces.decode import FrameDecoder, default_decoder
+    from hdhil.can.traces.sidecar import read_metadata
     from hdhil.dbc import database
 
     meta = read_metadata(trace) if Path(trace).is_file() else None
@@ -307,7 +307,7 @@ def raw_sensor_frames(trace: Path) -> str | None:
     """None if ``trace``'s sensor frames are the seed's raw ADC/encoder frames (no
     sidecar mapping, or a DCF that keeps them); else the mapping's label from the
     sidecar (what a command that replays the raw channels names in its error)."""
-    from hdhil.can.trace import read_metadata
+    from hdhil.can.traces.sidecar import read_metadata
 
     meta = read_metadata(trace) if Path(trace).is_file() else None
     pdos = (meta or {}).get("drive_pdos")

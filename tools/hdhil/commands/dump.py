@@ -14,15 +14,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from hdhil.can.tracefile import (
-    DecodedFrame,
-    FrameDecoder,
-    FrameKind,
-    StatsAccumulator,
-    TraceReadResult,
-    format_stats,
-    read_trace,
-)
+from hdhil.can.traces.decode import DecodedFrame, FrameDecoder, FrameKind
+from hdhil.can.traces.reader import TraceReadResult, read_trace
+from hdhil.can.traces.stats import StatsAccumulator, format_stats
 from hdhil.core.errors import UserError
 from hdhil.core.files import AtomicOutput
 from hdhil.core.numbers import arg_int

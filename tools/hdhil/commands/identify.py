@@ -155,7 +155,7 @@ def chirp_data_from_trace(
     DAC) x ``torque_per_volt``; 0 while the controlword does not enable the drive.
     Cycles without a command (the trace's last, typically) are dropped.
     """
-    from hdhil.can.tracefile import read_trace
+    from hdhil.can.traces.reader import read_trace
 
     sensor = codec("control", "DRIVE_TPDO1").expect(
         "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"

@@ -56,7 +56,8 @@ from hdhil.can.faults import (
     parse_fault_flags,
     with_fault_flags,
 )
-from hdhil.can.trace import BusTap, FrameCounter, WriterError, WriterProcess, check_trace_path
+from hdhil.can.traces.tap import BusTap, FrameCounter
+from hdhil.can.traces.writer import WriterError, WriterProcess, check_trace_path
 from hdhil.canopen.nmt import COMMAND_NAMES as NMT_COMMAND_NAMES
 from hdhil.canopen.nmt import nmt_frame
 from hdhil.commands.options import (

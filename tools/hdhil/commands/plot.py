@@ -484,7 +484,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``hdhil plot``: 0 written, 1 written from a damaged trace (2 via UserError)."""
-    from hdhil.can.trace import read_metadata
+    from hdhil.can.traces.sidecar import read_metadata
     from hdhil.commands.options import scenario_for_trace
     from hdhil.core.dataconf import from_dict
     from hdhil.rig.evaluate import recording_from_trace

@@ -57,7 +57,7 @@ class Fig8Data:
 
 def fig8_data(trace: Path) -> tuple[Fig8Data, str]:
     """Read a trace of a torque-control run into :class:`Fig8Data` (and a damage note)."""
-    from hdhil.can.tracefile import read_trace
+    from hdhil.can.traces.reader import read_trace
     from hdhil.dbc import codec
 
     t1 = codec("control", "CTRL_TPDO1").expect("T_meas", "T_filtered", "velocity", "current")

@@ -52,7 +52,7 @@ import can
 import numpy as np
 from scipy import stats
 
-from hdhil.can.trace import file_in_progress
+from hdhil.can.traces.writer import file_in_progress
 from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError

@@ -36,7 +36,7 @@ from importlib import metadata, resources
 from pathlib import Path
 from typing import Any
 
-from hdhil.can.trace import metadata_path
+from hdhil.can.traces.sidecar import metadata_path
 from hdhil.core.dataconf import ConfigError, from_dict, merge
 from hdhil.core.files import load_toml
 from hdhil.rig.scenario import load_scenario, scenario_data, scenario_from_dict

@@ -272,8 +272,8 @@ def recording_from_trace(path: Path, sample_period_s: float = 1e-3) -> tuple[Rec
     """Read a trace into a recording; returns it and a damage description ('' if clean).
     The drive's PDO mapping comes from the trace's sidecar JSON (the default mapping
     without one)."""
-    from hdhil.can.trace import read_metadata
-    from hdhil.can.tracefile import read_trace
+    from hdhil.can.traces.reader import read_trace
+    from hdhil.can.traces.sidecar import read_metadata
 
     meta = read_metadata(path) or {}
     listener = RecordingListener(sample_period_s, meta.get("drive_pdos"))

@@ -30,6 +30,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
+from hdhil.can.traces.formats import SUPPORTED_SUFFIXES as TRACE_EXTENSIONS
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
 from hdhil.core.files import AtomicOutput, check_input, load_toml
@@ -61,8 +62,6 @@ def _column(names: list[str], column: str) -> int | None:
     return None
 
 
-#: Trace formats (``hdhil.can.tracefile.READERS``), without importing python-can up front.
-TRACE_EXTENSIONS = (".blf", ".asc", ".log", ".csv", ".trc", ".mf4")
 _CAN_CSV_HEADER = "timestamp,arbitration_id"
 
 __all__ = [
@@ -296,7 +295,7 @@ def _collect(summary: FilterSummary, chain: TorqueFilterChain) -> None:
 
 def _sensor_frames(path: Path, summary: FilterSummary) -> Iterator[tuple[float, tuple[int, ...]]]:
     """``(timestamp, (torque, tacho, current, encoder))`` of every DRIVE_TPDO1 frame."""
-    from hdhil.can.tracefile import read_trace
+    from hdhil.can.traces.reader import read_trace
     from hdhil.dbc import codec
 
     sensor = codec("control", "DRIVE_TPDO1").expect(

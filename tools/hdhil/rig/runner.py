@@ -3,7 +3,7 @@
 The nodes share python-can channels and nothing else: the controller
 (:class:`firmware.controller.ControllerNode`) and the drives
 (:class:`hostsim.drive.DriveNode`, publishing ground truth on the truth channel) on the
-control bus, and the host tap (:class:`hdhil.can.trace.BusTap`: trace writer, frame
+control bus, and the host tap (:class:`hdhil.can.traces.tap.BusTap`: trace writer, frame
 counter, scorers) listening on both. The runner builds no node itself: they come from
 factories (:mod:`hdhil.rig.factories`), one per slot of the request's layout, and run in
 the one node loop (:mod:`hdhil.rig.loop`). A :class:`~hdhil.rig.request.RunRequest` is
@@ -43,7 +43,8 @@ from hdhil.can.faults import (
     check_node_transmit_faults,
 )
 from hdhil.can.simbus import SimBus, SimClock
-from hdhil.can.trace import BusTap, FrameCounter, WriterProcess
+from hdhil.can.traces.tap import BusTap, FrameCounter
+from hdhil.can.traces.writer import WriterProcess
 from hdhil.canopen.cia402 import State
 from hdhil.core.dataconf import ConfigError, merge
 from hdhil.core.files import load_toml
@@ -135,7 +136,7 @@ class RunResult:
 def _suffixed(trace: Path, label: str) -> Path:
     """``run.blf`` -> ``run-LABEL.blf``; the whole format extension is kept
     (``run.asc.gz`` -> ``run-LABEL.asc.gz``)."""
-    from hdhil.can.trace import trace_format
+    from hdhil.can.traces.formats import trace_format
 
     fmt, compressed = trace_format(trace)
     ext = fmt + (".gz" if compressed else "")

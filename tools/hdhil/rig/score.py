@@ -286,7 +286,7 @@ def trace_time_offset(trace: Path) -> float | None:
     metadata (then its first frame is taken as time 0)."""
     import json
 
-    from hdhil.can.trace import metadata_path
+    from hdhil.can.traces.sidecar import metadata_path
 
     meta = metadata_path(trace)
     try:

@@ -1,6 +1,6 @@
 """What a trace's sidecar JSON says about the run that wrote it, and the run read back.
 
-Every trace hdhil writes gets ``TRACE.json`` beside it (:mod:`hdhil.can.trace`). For a
+Every trace hdhil writes gets ``TRACE.json`` beside it (:mod:`hdhil.can.traces.writer`). For a
 run it carries the resolved :class:`~hdhil.rig.request.RunRequest` (``request``), so
 ``hdhil evaluate``, ``plot``, ``tune`` and :func:`hdhil.api.evaluate_trace` score a trace
 with the very settings it ran with (firmware, evaluation start, mapping), whatever
@@ -13,7 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from hdhil.can.trace import metadata_path, read_metadata
+from hdhil.can.traces.sidecar import metadata_path, read_metadata
 from hdhil.core.dataconf import ConfigError, merge
 from hdhil.core.errors import UserError
 from hdhil.rig.request import RunRequest, resolve

@@ -29,7 +29,7 @@ def tracking_from_trace(trace: Path, fw: FirmwareConfig, skip_s: float) -> dict[
     """[Vertechy] tracking figures from the trace alone (desired torque and estimates from
     the controller's CTRL_TPDO2, truth from the truth channel), or None without
     torque-control telemetry."""
-    from hdhil.can.tracefile import read_trace
+    from hdhil.can.traces.reader import read_trace
     from hdhil.rig.score import TrackingScorer
 
     c = fw.control

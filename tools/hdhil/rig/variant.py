@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hdhil.can.trace import metadata_path
+from hdhil.can.traces.sidecar import metadata_path
 from hdhil.rig.request import resolve
 from hdhil.rig.runner import run_lockstep
 from hdhil.rig.scenario import scenario_data, scenario_from_dict

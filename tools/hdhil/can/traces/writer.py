@@ -1,27 +1,20 @@
-"""Trace logging: every frame of the control bus and the truth channel into one file.
+"""The trace writer: every frame a run's tap hands over, into one file.
 
-The writer is python-can's :func:`can.Logger`, chosen by the file extension: ``.blf``
-(default), ``.asc``, ``.log`` (candump), ``.csv``, ``.trc``, ``.mf4`` (ASAM MDF 4, needs
-asammdf: the ``mf4`` extra); the text formats also gzip-compressed
-(``.asc.gz``, ``.log.gz``, ...).  A simulated run stamps its frames with simulated time
+The writer is python-can's :func:`can.Logger`, chosen by the file extension
+(:mod:`hdhil.can.traces.formats`).  A simulated run stamps its frames with simulated time
 plus the wall-clock time at its start (``time_offset``), so traces carry real dates and
 tools that expect them (can-utils, asammdf, Vector's) read them as any logger's.
 
-Frames are stamped with the python-can channel number of their bus
-(:data:`hdhil.dbc.CHANNEL_NUMBER`: control 0, truth 1) so a dump can tell the buses
-apart; formats without channels (CSV) still decode because truth frames use 29-bit
-identifiers.
-
 :class:`WriterProcess` runs that writer in a child process: the run hands it frames in
-batches through a pipe, so formatting and compressing the file happens on the other core
-and costs the 1 kHz loop about 0.5 us a frame instead of 1.2 (parent CPU time,
-median of 5 runs of 70 000 frames).  The pipe is bounded: a
-writer that falls behind makes the run wait, it never drops a frame.  If the run dies
-(even by SIGKILL) the child reads what was sent up to then and closes the file properly.
+batches through a pipe, so formatting and compressing the file happens on the other core,
+off the 1 kHz loop.  The pipe is bounded: a writer that falls behind makes the run wait,
+it never drops a frame.  Handing a batch on is safe against Ctrl-C (a batch goes whole or
+not at all, and is counted with it).  If the run dies (even by SIGKILL) the child reads
+what was sent up to then and closes the file properly.
 
-Traces are written atomically (:class:`WriterProcess`): to a temporary beside the target,
-renamed into place when complete, as every output of hdhil
-(:mod:`hdhil.core.files`).
+Traces are written atomically: to a temporary beside the target, renamed into place when
+complete, with the sidecar (:mod:`hdhil.can.traces.sidecar`) right after, as every output
+of hdhil (:mod:`hdhil.core.files`).
 """
 
 from __future__ import annotations
@@ -29,19 +22,26 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import multiprocessing.util
-import operator
 import os
 import signal
 import struct
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import can
 
-from hdhil.can.simbus import SimBus, received_copy
+from hdhil.can.traces import formats
+from hdhil.can.traces.formats import (
+    GZIP_SUFFIXES,
+    MF4_MISSING,
+    SUPPORTED_SUFFIXES,
+    supported_formats,
+    trace_format,
+)
+from hdhil.can.traces.sidecar import write_metadata
 from hdhil.core.errors import UserError
 from hdhil.core.files import (
     check_output,
@@ -49,39 +49,7 @@ from hdhil.core.files import (
     discard_temporary,
     release_temporary,
     temporary_dir_for,
-    write_text,
 )
-
-#: Formats python-can's Logger writes and its LogReader reads, by extension.  python-can's
-#: SQLite writer (``.db``) is left out: its writer thread dropped frames at the end of a
-#: run (python-can 4.6), and a trace must hold every frame.
-SUPPORTED_SUFFIXES = (".blf", ".asc", ".log", ".csv", ".trc", ".mf4")
-
-#: Formats python-can writes gzip-compressed when ``.gz`` follows (``run.asc.gz``).
-GZIP_SUFFIXES = (".asc", ".log", ".csv", ".trc")
-
-#: The message when ``.mf4`` is asked for without asammdf installed.
-MF4_MISSING = "writing and reading .mf4 traces needs asammdf: pip install 'hdhil[mf4]'"
-
-
-def trace_format(path: Path) -> tuple[str, bool]:
-    """``(format extension, gzip-compressed)`` of ``path``, e.g. ``(".asc", True)``."""
-    suffixes = [s.lower() for s in path.suffixes]
-    if suffixes and suffixes[-1] == ".gz":
-        return (suffixes[-2] if len(suffixes) >= 2 else ""), True
-    return (suffixes[-1] if suffixes else ""), False
-
-
-def supported_formats() -> str:
-    """The writable formats, for messages and help texts."""
-    return f"{', '.join(SUPPORTED_SUFFIXES)} (and {', '.join(GZIP_SUFFIXES)} with .gz)"
-
-
-def mf4_available() -> bool:
-    """Whether asammdf, which python-can's MF4 writer and reader need, is installed."""
-    import importlib.util
-
-    return importlib.util.find_spec("asammdf") is not None
 
 
 def check_trace_path(path: Path) -> None:
@@ -93,7 +61,7 @@ def check_trace_path(path: Path) -> None:
             f"unsupported trace format {shown or '(none)'!r} for {path}: "
             f"use one of {supported_formats()}"
         )
-    if fmt == ".mf4" and not mf4_available():
+    if fmt == ".mf4" and not formats.mf4_available():
         raise ValueError(MF4_MISSING)
     if path.parent and not path.parent.exists():
         raise ValueError(f"cannot write trace {path}: directory {path.parent} does not exist")
@@ -434,150 +402,3 @@ def file_in_progress(path: Path) -> Path:
         if inside.exists():
             return inside
     return path
-
-
-class FrameCounter(can.Listener):
-    """Counts frames per (channel, identifier)."""
-
-    def __init__(self) -> None:
-        self.counts: dict[tuple[int, int], int] = {}
-
-    def on_message_received(self, msg: can.Message) -> None:
-        key = (msg.channel, msg.arbitration_id)
-        self.counts[key] = self.counts.get(key, 0) + 1
-
-    def on_frames(self, frames: list[can.Message]) -> None:
-        counts = self.counts
-        get = counts.get
-        for msg in frames:
-            key = (msg.channel, msg.arbitration_id)
-            counts[key] = get(key, 0) + 1
-
-    @property
-    def total(self) -> int:
-        return sum(self.counts.values())
-
-
-_timestamp = operator.attrgetter("timestamp")
-
-
-def _frames_callback(listener: can.Listener) -> Callable[[list[can.Message]], object]:
-    """``listener.on_frames``, or a loop over ``on_message_received``."""
-    on_frames = getattr(listener, "on_frames", None)
-    if on_frames is not None:
-        return on_frames
-    callback = listener.on_message_received
-
-    def one_by_one(frames: list[can.Message]) -> None:
-        for msg in frames:
-            callback(msg)
-
-    return one_by_one
-
-
-def _drain(channel: int, bus: can.BusABC) -> Callable[[Callable[[can.Message], object]], int]:
-    """A function handing every frame waiting on ``bus`` to its argument, stamped with
-    ``channel``; it returns how many."""
-    if isinstance(bus, SimBus) and bus.trace_channel == channel:
-        return bus.dispatch  # frames already carry the channel number
-    recv = bus.recv
-
-    def drain(append: Callable[[can.Message], object]) -> int:
-        n = 0
-        while (msg := recv(0)) is not None:
-            append(msg if msg.channel == channel else _stamped(msg, channel))
-            n += 1
-        return n
-
-    return drain
-
-
-def _stamped(msg: can.Message, channel: int) -> can.Message:
-    """A copy of a received frame carrying the trace's channel number."""
-    copy = received_copy(msg, channel)
-    copy.timestamp = msg.timestamp
-    return copy
-
-
-class BusTap:
-    """Drains listen-only buses and hands each frame, channel-stamped, to listeners.
-
-    ``buses`` maps a channel number to the bus that listens on it.  The frame handed on is
-    the received frame itself when it already carries that channel number (``simbus`` with
-    ``trace_channel``), else a fresh :class:`can.Message` carrying it (received frames are
-    shared between receivers and are never modified).
-
-    A listener with an ``on_frames(frames)`` method gets each poll's frames in one call
-    (:class:`WriterProcess`, :class:`FrameCounter`, the scorers); any other
-    :class:`can.Listener` gets them one by one through ``on_message_received``.
-    """
-
-    def __init__(self, buses: dict[int, can.BusABC], listeners: Iterable[can.Listener]) -> None:
-        self.listeners = list(listeners)
-        self._deliver = [_frames_callback(listener) for listener in self.listeners]
-        self._drains = [_drain(channel, bus) for channel, bus in buses.items()]
-
-    def poll(self) -> int:
-        """Hand on every waiting frame, all channels merged in timestamp order.
-
-        Frames of one bus arrive in order; across buses the timestamp decides (the truth
-        frame of cycle k, stamped at the sample instant t(k), precedes the telemetry of
-        cycle k).  Ties keep channel order (the sort is stable).
-        """
-        batch: list[can.Message] = []
-        append = batch.append
-        channels = 0
-        for drain in self._drains:
-            channels += drain(append) > 0
-        if not batch:
-            return 0
-        if channels > 1:
-            batch.sort(key=_timestamp)
-        for deliver in self._deliver:
-            deliver(batch)
-        return len(batch)
-
-    def stop(self) -> None:
-        """Flush and close every listener (writers close their files)."""
-        for listener in self.listeners:
-            listener.stop()
-
-
-# ------------------------------------------------------------------ metadata sidecar
-
-#: The sidecar file next to a trace: ``run.blf`` -> ``run.blf.json``.
-METADATA_SUFFIX = ".json"
-
-
-def metadata_path(trace: Path) -> Path:
-    """Where the metadata of ``trace`` is stored: the trace's name plus ``.json``."""
-    return trace.with_name(trace.name + METADATA_SUFFIX)
-
-
-def write_metadata(trace: Path, metadata: dict[str, Any]) -> Path:
-    """Write ``metadata`` (scenario, seed, start time, ...) as JSON next to ``trace``.
-
-    Through :func:`hdhil.core.files.write_text`: written to a temporary file and renamed,
-    so a reader never sees half of it; an existing path that is not a regular file is
-    left alone (ValueError)."""
-    import json
-
-    target = metadata_path(trace)
-    try:
-        write_text(target, json.dumps(metadata, indent=1, sort_keys=True) + "\n", "sidecar")
-    except UserError as exc:
-        raise ValueError(f"cannot write {target}: {exc}") from None
-    return target
-
-
-def read_metadata(trace: Path) -> dict[str, Any] | None:
-    """The sidecar metadata of ``trace`` (:func:`write_metadata`), or ``None`` if there
-    is none or it is not a JSON object."""
-    import json
-
-    path = metadata_path(Path(trace))
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) else None

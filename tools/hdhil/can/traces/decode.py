@@ -1,0 +1,273 @@
+"""Decoding frames with the DBCs.
+
+:class:`FrameDecoder` classifies a :class:`can.Message` (decoded, unknown, malformed,
+error or remote frame) and decodes it with cantools into a :class:`DecodedFrame`;
+:func:`classify_frame` and :func:`decode_frame` do so with the project's control and
+truth DBCs.  Decoding never needs channel numbers: control frames use 11-bit identifiers
+and truth frames 29-bit ones, so a frame is looked up by ``(is_extended_id,
+arbitration_id)`` across both DBCs (an identifier defined in two is refused).  Channel
+numbers, where the format stores them, only label the bus.  :meth:`FrameDecoder.describe`
+is ``hdhil dump``'s table line, each value printed exactly to its DBC resolution.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import can
+
+if TYPE_CHECKING:
+    from cantools.database.can import Database
+    from cantools.database.can import Message as DbcMessage
+
+from hdhil.dbc import CHANNEL_NUMBER, database
+
+#: Bus label per python-can channel number (inverse of :data:`hdhil.dbc.CHANNEL_NUMBER`).
+BUS_OF_CHANNEL: dict[int, str] = {number: name for name, number in CHANNEL_NUMBER.items()}
+
+#: Bus label of a frame with neither channel information nor a known identifier.
+UNKNOWN_BUS = "?"
+
+
+class FrameKind(enum.Enum):
+    """What a frame turned out to be."""
+
+    DECODED = "decoded"  #: known identifier, right length, decoded
+    UNKNOWN = "unknown"  #: identifier in neither DBC
+    MALFORMED = "malformed"  #: known identifier, payload length differs from the DBC
+    ERROR = "error"  #: error frame
+    REMOTE = "remote"  #: remote frame
+
+    __hash__ = object.__hash__  # members are singletons; Enum's hash is slow Python code
+
+
+@dataclass(frozen=True, slots=True)
+class DecodedFrame:
+    """One frame, classified and (if ``kind`` is DECODED) decoded to physical values.
+
+    ``bus`` is the label used for grouping: from the channel when the trace has one
+    (``control``/``truth``, ``chN`` for other numbers), else from the DBC that defines
+    the identifier, else ``"?"``.  ``message_bus`` is the DBC the identifier belongs to
+    (``None`` if unknown); a frame whose channel disagrees is ``on_wrong_bus``.
+    """
+
+    time: float
+    bus: str
+    arbitration_id: int
+    is_extended_id: bool
+    kind: FrameKind
+    data: bytes
+    message: str | None = None
+    message_bus: str | None = None
+    signals: dict[str, float | int] = field(default_factory=dict)
+    definition: DbcMessage | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def id_text(self) -> str:
+        """Identifier as hex: 3 digits for base frames, 8 for extended ones."""
+        return format_id(self.arbitration_id, self.is_extended_id)
+
+    @property
+    def on_wrong_bus(self) -> bool:
+        return (
+            self.message_bus is not None
+            and self.bus in CHANNEL_NUMBER
+            and self.bus != self.message_bus
+        )
+
+
+def format_id(arbitration_id: int, extended: bool) -> str:
+    return f"{arbitration_id:08X}" if extended else f"{arbitration_id:03X}"
+
+
+def _decimals(value: float) -> int:
+    """Decimal places needed to print multiples of ``value`` exactly (at most 9)."""
+    for digits in range(10):
+        scaled = abs(value) * 10**digits
+        if abs(scaled - round(scaled)) < 1e-9 * max(1.0, scaled):
+            return digits
+    return 9
+
+
+@dataclass(frozen=True)
+class _SignalFormat:
+    name: str
+    column: str  # "Message.Signal"
+    unit: str
+    decimals: int | None  # None: IEEE float signal
+    is_float32: bool
+    unit_suffix: str  # " Nm", or "" without a unit
+
+    def text(self, value: float | int) -> str:
+        """Table text: resolution-exact for scaled integers, 6 significant digits for floats."""
+        if self.decimals is None:
+            return f"{value:.6g}"
+        if self.decimals == 0:
+            return str(round(value))
+        return f"{value:.{self.decimals}f}"
+
+    def csv(self, value: float | int) -> str:
+        """CSV text: exact (shortest round-trip repr for IEEE floats)."""
+        if self.decimals is None:
+            if self.is_float32:  # the shortest text that reads back as the same float32
+                import numpy as np
+
+                return str(np.float32(value))
+            return repr(float(value))
+        return self.text(value)
+
+
+def _signal_formats(message: DbcMessage) -> tuple[_SignalFormat, ...]:
+    formats = []
+    for sig in message.signals:
+        if sig.is_float:
+            decimals = None
+        else:
+            decimals = max(_decimals(float(sig.scale)), _decimals(float(sig.offset)))
+        formats.append(
+            _SignalFormat(
+                name=sig.name,
+                column=f"{message.name}.{sig.name}",
+                unit=sig.unit or "",
+                decimals=decimals,
+                is_float32=sig.is_float and sig.length == 32,
+                unit_suffix=f" {sig.unit}" if sig.unit else "",
+            )
+        )
+    return tuple(formats)
+
+
+class FrameDecoder:
+    """Classifies and decodes frames against a set of DBCs (default: control and truth).
+
+    The lookup ``(is_extended_id, arbitration_id) -> (bus, message)`` is built once; an
+    identifier defined in two DBCs is refused.
+    """
+
+    def __init__(self, databases: Mapping[str, Database] | None = None) -> None:
+        if databases is None:
+            databases = {bus: database(bus) for bus in CHANNEL_NUMBER}
+        self.databases = dict(databases)
+        self.lookup: dict[tuple[bool, int], tuple[str, DbcMessage]] = {}
+        self.formats: dict[str, tuple[_SignalFormat, ...]] = {}
+        for bus, db in self.databases.items():
+            for message in db.messages:
+                key = (bool(message.is_extended_frame), int(message.frame_id))
+                if key in self.lookup:
+                    other = self.lookup[key]
+                    raise ValueError(
+                        f"identifier {format_id(key[1], key[0])} is defined twice: "
+                        f"{other[0]}.{other[1].name} and {bus}.{message.name}"
+                    )
+                self.lookup[key] = (bus, message)
+                self.formats[message.name] = _signal_formats(message)
+        self.by_name: dict[str, tuple[str, DbcMessage]] = {
+            m.name: (bus, m) for bus, m in self.lookup.values()
+        }
+
+    def columns(self, messages: Iterable[str] | None = None) -> list[str]:
+        """``Message.Signal`` column names in DBC order (optionally only ``messages``)."""
+        wanted = None if messages is None else set(messages)
+        return [
+            fmt.column
+            for name, formats in self.formats.items()
+            if wanted is None or name in wanted
+            for fmt in formats
+        ]
+
+    def classify(self, msg: can.Message, decode: bool = True) -> DecodedFrame:
+        """Classify ``msg`` and, if ``decode`` and it is a well-formed known frame, decode it."""
+        ext = bool(msg.is_extended_id)
+        arb = int(msg.arbitration_id)
+        data = bytes(msg.data or b"")
+        entry = None if msg.is_error_frame else self.lookup.get((ext, arb))
+        message_bus, definition = entry if entry is not None else (None, None)
+        channel = msg.channel
+        if isinstance(channel, int):
+            bus = BUS_OF_CHANNEL.get(channel, f"ch{channel}")
+        else:
+            bus = message_bus or UNKNOWN_BUS
+        if msg.is_error_frame:
+            kind = FrameKind.ERROR
+        elif msg.is_remote_frame:
+            kind = FrameKind.REMOTE
+        elif definition is None:
+            kind = FrameKind.UNKNOWN
+        elif len(data) != definition.length:
+            kind = FrameKind.MALFORMED
+        else:
+            kind = FrameKind.DECODED
+        signals: dict[str, float | int] = {}
+        if kind is FrameKind.DECODED and decode:
+            try:
+                signals = dict(definition.decode(data, decode_choices=False))  # type: ignore[union-attr, arg-type]
+            except Exception:
+                kind = FrameKind.MALFORMED
+        return DecodedFrame(
+            time=float(msg.timestamp),
+            bus=bus,
+            arbitration_id=arb,
+            is_extended_id=ext,
+            kind=kind,
+            data=data,
+            message=definition.name if definition is not None else None,
+            message_bus=message_bus,
+            signals=signals,
+            definition=definition,
+        )
+
+    def decode(self, msg: can.Message) -> DecodedFrame | None:
+        """The decoded frame, or ``None`` if ``msg`` is not a well-formed known data frame."""
+        frame = self.classify(msg)
+        return frame if frame.kind is FrameKind.DECODED else None
+
+    def describe(self, frame: DecodedFrame) -> str:
+        """The table line of ``frame``: time, bus, ID, name, signals (or raw data and a flag)."""
+        name = frame.message or ""
+        kind = frame.kind
+        if kind is FrameKind.DECODED:
+            signals = frame.signals
+            body = "  ".join(
+                f"{fmt.name}={fmt.text(signals[fmt.name])}{fmt.unit_suffix}"
+                for fmt in self.formats[name]
+                if fmt.name in signals
+            )
+        else:
+            raw = frame.data.hex(" ").upper()
+            if kind is FrameKind.UNKNOWN:
+                name, body = "UNKNOWN", f"[{len(frame.data)}] {raw}"
+            elif kind is FrameKind.MALFORMED:
+                expected = frame.definition.length if frame.definition is not None else "?"
+                body = f"MALFORMED: {len(frame.data)} bytes, DBC says {expected}: {raw}"
+            elif kind is FrameKind.ERROR:
+                name, body = "ERROR FRAME", raw
+            else:
+                body = "REMOTE frame request"
+        if frame.on_wrong_bus:
+            body += f"  (WRONG BUS: defined in {frame.message_bus}.dbc)"
+        id_text = "-" if kind is FrameKind.ERROR else frame.id_text
+        return f"{frame.time:12.6f}  {frame.bus:<7}  {id_text:<8}  {name:<12}  {body}".rstrip()
+
+
+_DEFAULT_DECODER: FrameDecoder | None = None
+
+
+def default_decoder() -> FrameDecoder:
+    """The shared decoder for the project's control and truth DBCs."""
+    global _DEFAULT_DECODER
+    if _DEFAULT_DECODER is None:
+        _DEFAULT_DECODER = FrameDecoder()
+    return _DEFAULT_DECODER
+
+
+def classify_frame(msg: can.Message, decode: bool = True) -> DecodedFrame:
+    """Classify (and decode) ``msg`` with the project DBCs; see :meth:`FrameDecoder.classify`."""
+    return default_decoder().classify(msg, decode)
+
+
+def decode_frame(msg: can.Message) -> DecodedFrame | None:
+    """Decode ``msg`` with the project DBCs; ``None`` unless it is a well-formed known frame."""
+    return default_decoder().decode(msg)

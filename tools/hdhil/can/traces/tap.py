@@ -1,0 +1,125 @@
+"""The host tap: a run's listen-only buses drained into its listeners.
+
+:class:`BusTap` hands every frame of the control bus and the truth channel, merged in
+timestamp order and stamped with the python-can channel number of its bus
+(:data:`hdhil.dbc.CHANNEL_NUMBER`: control 0, truth 1), to the run's listeners: the trace
+writer, :class:`FrameCounter`, the scorers.  The channel number lets a dump tell the buses
+apart; formats without channels (CSV) still decode because truth frames use 29-bit
+identifiers.  Listeners get each poll's frames in one call where they can take them.
+"""
+
+from __future__ import annotations
+
+import operator
+from collections.abc import Callable, Iterable
+
+import can
+
+from hdhil.can.simbus import SimBus, received_copy
+
+
+class FrameCounter(can.Listener):
+    """Counts frames per (channel, identifier)."""
+
+    def __init__(self) -> None:
+        self.counts: dict[tuple[int, int], int] = {}
+
+    def on_message_received(self, msg: can.Message) -> None:
+        key = (msg.channel, msg.arbitration_id)
+        self.counts[key] = self.counts.get(key, 0) + 1
+
+    def on_frames(self, frames: list[can.Message]) -> None:
+        counts = self.counts
+        get = counts.get
+        for msg in frames:
+            key = (msg.channel, msg.arbitration_id)
+            counts[key] = get(key, 0) + 1
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+
+_timestamp = operator.attrgetter("timestamp")
+
+
+def _frames_callback(listener: can.Listener) -> Callable[[list[can.Message]], object]:
+    """``listener.on_frames``, or a loop over ``on_message_received``."""
+    on_frames = getattr(listener, "on_frames", None)
+    if on_frames is not None:
+        return on_frames
+    callback = listener.on_message_received
+
+    def one_by_one(frames: list[can.Message]) -> None:
+        for msg in frames:
+            callback(msg)
+
+    return one_by_one
+
+
+def _drain(channel: int, bus: can.BusABC) -> Callable[[Callable[[can.Message], object]], int]:
+    """A function handing every frame waiting on ``bus`` to its argument, stamped with
+    ``channel``; it returns how many."""
+    if isinstance(bus, SimBus) and bus.trace_channel == channel:
+        return bus.dispatch  # frames already carry the channel number
+    recv = bus.recv
+
+    def drain(append: Callable[[can.Message], object]) -> int:
+        n = 0
+        while (msg := recv(0)) is not None:
+            append(msg if msg.channel == channel else _stamped(msg, channel))
+            n += 1
+        return n
+
+    return drain
+
+
+def _stamped(msg: can.Message, channel: int) -> can.Message:
+    """A copy of a received frame carrying the trace's channel number."""
+    copy = received_copy(msg, channel)
+    copy.timestamp = msg.timestamp
+    return copy
+
+
+class BusTap:
+    """Drains listen-only buses and hands each frame, channel-stamped, to listeners.
+
+    ``buses`` maps a channel number to the bus that listens on it.  The frame handed on is
+    the received frame itself when it already carries that channel number (``simbus`` with
+    ``trace_channel``), else a fresh :class:`can.Message` carrying it (received frames are
+    shared between receivers and are never modified).
+
+    A listener with an ``on_frames(frames)`` method gets each poll's frames in one call
+    (:class:`WriterProcess`, :class:`FrameCounter`, the scorers); any other
+    :class:`can.Listener` gets them one by one through ``on_message_received``.
+    """
+
+    def __init__(self, buses: dict[int, can.BusABC], listeners: Iterable[can.Listener]) -> None:
+        self.listeners = list(listeners)
+        self._deliver = [_frames_callback(listener) for listener in self.listeners]
+        self._drains = [_drain(channel, bus) for channel, bus in buses.items()]
+
+    def poll(self) -> int:
+        """Hand on every waiting frame, all channels merged in timestamp order.
+
+        Frames of one bus arrive in order; across buses the timestamp decides (the truth
+        frame of cycle k, stamped at the sample instant t(k), precedes the telemetry of
+        cycle k).  Ties keep channel order (the sort is stable).
+        """
+        batch: list[can.Message] = []
+        append = batch.append
+        channels = 0
+        for drain in self._drains:
+            channels += drain(append) > 0
+        if not batch:
+            return 0
+        if channels > 1:
+            batch.sort(key=_timestamp)
+        for deliver in self._deliver:
+            deliver(batch)
+        return len(batch)
+
+    def stop(self) -> None:
+        """Flush and close every listener (writers close their files)."""
+        for listener in self.listeners:
+            listener.stop()
