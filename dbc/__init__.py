@@ -44,7 +44,8 @@ def eds_path(node: NodeName) -> Path:
 
 
 #: The drive mappings shipped here by name: the drive's DCF (None: the EDS defaults, the
-#: seed's raw ADC/DAC mapping; ``drive-cst.dcf``: CiA 402 cyclic synchronous torque).
+#: raw ADC/DAC mapping of [Taghirad97]'s signals; ``drive-cst.dcf``: CiA 402 cyclic
+#: synchronous torque).
 MAPPINGS: dict[str, str | None] = {"raw": None, "cst": "drive-cst.dcf"}
 
 

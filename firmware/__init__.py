@@ -1,1 +1,2 @@
-"""Ported controller firmware: the 1 kHz interrupt handler of the first seed, stage by stage."""
+"""Ported controller firmware: the 1 kHz interrupt handler of [Taghirad97], stage by stage,
+and the LQG joint-torque control of [Vertechy]."""

@@ -3,21 +3,18 @@
 Both are stages in the style of :mod:`firmware.stages`: :meth:`step` filters one sample
 (as firmware would, every interrupt), :meth:`filter` a whole numpy array offline.  The
 two paths run the same recursion from the same state and leave the same state behind,
-so they can be mixed.  Neither is what the seed's filter does; they are what a
+so they can be mixed.  Neither is the ripple filter of [Taghirad97]; they are what a
 designer would try first, which is why they are the baselines.
 
-- :class:`ButterworthLowPass`: the seed's own earlier torque filter.  Listing A.1's
-  revision history reads "01/11/95 hdt Butterworth filter for torque" ([Taghirad97],
-  Appendix A.1, ``free_kalman.c`` header), replaced on 18/04/96 by the Kalman filter;
-  the code of that Butterworth filter is not printed, so order and cut-off are ours.
-  §4 argues against it: "This is more efficient than simple low-pass filtering,
-  because it uses the known structure of the torque signal."
-- :class:`TrackingNotchBank`: second-order IIR notches whose centre frequencies
-  follow multiples of the measured motor velocity ([Taghirad97] §4: the ripple is at 2x
-  and 4x the motor velocity).  Not in the seed.
+- :class:`ButterworthLowPass`: the filter listing A.1's revision notes name ("01/11/95
+  hdt Butterworth filter for torque", replaced by the Kalman filter); its code is not
+  printed, so order and cut-off are ours.
+- :class:`TrackingNotchBank`: second-order IIR notches whose centre frequencies follow
+  2x and 4x the measured motor velocity, where the ripple of [Taghirad97] §4 sits.  Not
+  in the papers.
 
-Non-finite samples are not skipped: like any IIR filter a NaN input poisons the
-state until :meth:`reset` (the Kalman filters skip and count them instead).
+Non-finite samples are not skipped: like any IIR filter a NaN input poisons the state
+until :meth:`reset` (the Kalman filters skip and count them instead).
 """
 
 from __future__ import annotations
@@ -118,7 +115,7 @@ class TrackingNotchBank:
     """A cascade of second-order IIR notches at ``multiples`` x the measured motor
     velocity, retuned every sample.
 
-    Provenance: not in the seed.  The ripple of [Taghirad97] §4 sits at 2x and 4x the
+    Provenance: not in the papers.  The ripple of [Taghirad97] §4 sits at 2x and 4x the
     motor velocity, so a notch that follows those frequencies is the obvious
     non-model-based alternative to the Kalman filter.  Each notch is the standard
     second-order notch (S. J. Orfanidis, *Introduction to Signal Processing*, 1996,

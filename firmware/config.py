@@ -1,35 +1,19 @@
 """Typed configuration of the ported firmware (the 1 kHz interrupt handler of [Taghirad97]).
 
-Every value the C listing of [Taghirad97] (Appendix A.1 ``free_kalman.c``, and A.2) kept
+Every value the C listing of [Taghirad97] (Appendix A.1 ``free_kalman.c``, and A.2) keeps
 in a global variable, a host mailbox or a literal inside a function is a field here, with
-the listing's value as the default.
-All classes are frozen dataclasses that check their ranges in ``__post_init__`` and
-raise ``ValueError`` naming the field and the allowed range, so that
-``hdhil.core.dataconf.from_dict`` turns a bad scenario value into a one-line ``ConfigError``.
+the listing's value as the default; the torque control of [Vertechy] is
+:class:`ControlConfig`.  All classes are frozen dataclasses that check their ranges in
+``__post_init__``, so ``hdhil.core.dataconf.from_dict`` turns a bad scenario value into a
+one-line ``ConfigError`` naming the key (docs/reference/scenario-keys.md lists them).
 
 The ripple filter has two modes (:class:`RippleFilterConfig`): ``"paper"`` is the
-seed's prediction-type Kalman filter exactly as listing A.1 / A.2 implement it
-(:class:`firmware.ripple.RippleKalman`); ``"recommended"`` (the default) is our
-angle-locked harmonic regression filter (:class:`firmware.ripple.HarmonicKalman`),
-which keeps the low-frequency torque the paper filter absorbs.  The paper filters are
-kept as the named presets :data:`LISTING_A1_RIPPLE`, :data:`LISTING_A2_RIPPLE` and
-:data:`SECTION5_RIPPLE`; :func:`paper_config` / :func:`recommended_config` switch a
-whole :class:`FirmwareConfig` between the modes.
-
-Example (plain data, as from a TOML scenario)::
-
-    from hdhil.core.dataconf import from_dict
-    cfg = from_dict(FirmwareConfig, {
-        "reference": {"wave": "step", "amplitude_V": 1.0, "step_time_s": 0.1},
-        "ripple": {"mode": "paper",
-                   "oscillators": [{"source": "motor", "multiple": 2.0},
-                                   {"source": "output", "multiple": 1.0, "q": 5e-2}]},
-    })
-
-or, in a scenario file::
-
-    [firmware.ripple]
-    mode = "paper"          # listing A.1 (4th order, Q = 1e3 I, R = 1)
+prediction-type Kalman filter of [Taghirad97] exactly as listings A.1 / A.2 implement it
+(:class:`firmware.ripple.RippleKalman`; presets :data:`LISTING_A1_RIPPLE`,
+:data:`LISTING_A2_RIPPLE`, :data:`SECTION5_RIPPLE`); ``"recommended"`` (the default) is
+our angle-locked harmonic regression filter (:class:`firmware.ripple.HarmonicKalman`),
+which keeps the low-frequency torque the paper filter absorbs.  :func:`paper_config` /
+:func:`recommended_config` switch a whole :class:`FirmwareConfig` between the modes.
 """
 
 from __future__ import annotations
@@ -136,8 +120,8 @@ class ReferenceConfig:
 
     Left out, with the reason: the listing's globals ``theta``, ``rise`` and ``fall``
     (listing A.1, ``float theta = 0 ...; float rise = 0.0; float fall = 0.0;``).  They
-    belong to ``reference_generation`` (``servo_refgen.h``), whose body the seed does not
-    print, and ``main()`` never writes them from the host (it copies ``Nbias``,
+    belong to ``reference_generation`` (``servo_refgen.h``), whose body [Taghirad97] does
+    not print, and ``main()`` never writes them from the host (it copies ``Nbias``,
     ``sample_period``, ``numsamples``, ``Namplitude``, ``wavetype``, ``freq``, ``duty``
     only), so they keep their initial 0 for every run the listing makes.  ``theta`` is
     the generator's running angle: here the phase ``2π f k Ts`` computed from the sample
@@ -181,12 +165,12 @@ class Calibration:
     - ``volt2radps = 56.2565``: tachometer gain, [Taghirad97], listing A.1
       ``float volt2radps = 56.2565``.
     - ``volt2amp``: the servo amplifier's current-monitor scaling (A per V).  Not in
-      the seed: the listing stores ``MotorCurrOut`` in volts, uncalibrated; 1.0 keeps
+      the papers: the listing stores ``MotorCurrOut`` in volts, uncalibrated; 1.0 keeps
       that behaviour.
-    - ``torque_offset_V``: bridge offset subtracted before scaling (not in the seed;
+    - ``torque_offset_V``: bridge offset subtracted before scaling (not in the papers;
       the listing assumes a zeroed bridge amplifier).
     - ``encoder_counts_per_rev = 8000``: quadrature counts per motor revolution of the
-      encoder behind the listing's 16-bit ``pcsample``.  The seed does not give it; 8000
+      encoder behind the listing's 16-bit ``pcsample``.  [Taghirad97] does not give it; 8000
       (2000 lines x 4) is the drive emulator's default
       (``hostsim.plant.SensorConfig.encoder_counts_per_rev``).  It **must match the
       drive**: the recommended ripple filter takes its harmonic phase from
@@ -249,8 +233,8 @@ RECOMMENDED_Q_OUTPUT = 1e-4
 #: Recommended mode: initial variance P(0) = p0·I (Nm²) without an output-angle harmonic:
 #: the meshing ripple and the residual torque's start value are known to within ~1 Nm.
 RECOMMENDED_P0 = 1.0
-#: Recommended mode: P(0) = p0·I (Nm²) when an output-angle harmonic is configured.  Seed
-#: 000 §5 reports a misalignment of 10 Nm peak to peak before re-assembly (< 2 Nm after),
+#: Recommended mode: P(0) = p0·I (Nm²) when an output-angle harmonic is configured.  [Taghirad97]
+#: §5 reports a misalignment of 10 Nm peak to peak before re-assembly (< 2 Nm after),
 #: i.e. up to 5 Nm amplitude: a prior of (5 Nm)².  It must hold for the residual too,
 #: whose start value r = y(0) contains the misalignment at the start angle.  Measured on
 #: the emulated 10 Nm p-p misalignment at 156 rad/s (15 s, 3.7 output revolutions):
@@ -409,7 +393,7 @@ class RippleFilterConfig:
 
     @property
     def order(self) -> int:
-        """Order of the harmonic ripple model as the seed counts it: 2 x oscillators
+        """Order of the harmonic ripple model as [Taghirad97] counts it: 2 x oscillators
         ("fourth-order harmonic oscillator", §4; "sixth order model", §5)."""
         return 2 * len(self.oscillators)
 
@@ -503,10 +487,10 @@ class DesiredTorqueConfig:
     sin(0.4 π t)`` Nm, the default).
 
     The default amplitude is **-20 Nm**: the configuration is in the product sign (see
-    below) and the seed's ``τs`` is ``-T``, so ``T_D = -20 sin(0.4 π t)`` is the seed's
+    below) and [Vertechy]'s ``τs`` is ``-T``, so ``T_D = -20 sin(0.4 π t)`` is its
     ``τsD = +20 sin(0.4 π t)``.  The sign matters relative to the link motion of the §VI
     scenario (``θl = 20° sin 2πt``, angles have the same sign in both conventions): the
-    two error components add differently (JTF2: 5.4 Nm max |e| as the seed, 5.8 Nm with
+    two error components add differently (JTF2: 5.4 Nm max |e| as in the paper, 5.8 Nm with
     the sign flipped; :mod:`firmware.tracking`).
 
     The waves are the reference generator's (:class:`firmware.stages.ReferenceGenerator`,
@@ -514,7 +498,7 @@ class DesiredTorqueConfig:
     ``amplitude_Nm`` A, ``frequency_Hz`` f, ``duty``, ``step_time_s``, and for a chirp
     ``chirp_end_Hz``, ``chirp_duration_s`` (e.g. a closed-loop sweep).  Torques are in the
     product convention (positive when the motor drives the load, like ``T_meas``; see
-    :mod:`firmware.isr` for the mapping to the seed's ``τs``).  The derivative ``τsD'``
+    :mod:`firmware.isr` for the mapping to [Vertechy]'s ``τs``).  The derivative ``τsD'``
     (feedforward of ``JTF1_FF`` and the one-sample prediction) is the central difference
     of the wave over ±1 sample, exact to 2.6e-7 relative for the default sine; for the
     discontinuous waves (square, step) it is an impulse of 2 samples.
@@ -553,10 +537,10 @@ class FrictionModelConfig:
     """The motor-disturbance model ``τ̂d`` of [Vertechy] Eq. 5 (JTF1 with friction
     compensation, ``τm,2 = -[k1 (τ̂s - τsD) + k2 τ̂s' + k3 τ̂lg + k4 τsD] - τ̂d``).
 
-    [Vertechy] §VI ([Vertechy]): "the experimentally determined motor
+    [Vertechy] §VI: "the experimentally determined motor
     friction torque model ``τ̂d = [-13.7 sign(ϑ̇m)(1 + tanh(|ϑ̇m|/2) - 4)]/2`` Nm, the
     controller implements (5) instead of (4)".  Printed garbled; the reading we take
-    (the one that reproduces the seed's ``max(τsD + τ̂d) ≈ 33.7`` Nm with ``τsD`` ≤ 20
+    (the one that reproduces the paper's ``max(τsD + τ̂d) ≈ 33.7`` Nm with ``τsD`` ≤ 20
     Nm, ``hostsim.plant.DriveTrainConfig``) is a friction that opposes the motion,
     tops out at 13.7 Nm and is smooth through rest::
 
@@ -565,10 +549,10 @@ class FrictionModelConfig:
     with ``ω`` the motor velocity the firmware measures (tachometer, rad/s at the motor
     shaft) and ``velocity_scale_radps`` the ``2`` of ``|ϑ̇m|/2`` read at the motor shaft
     (2 rad/s, i.e. 0.02 rad/s at the output).  Torques at the output, the same sign in
-    the product convention and the seed's (``firmware.isr``).
+    the product convention and [Vertechy]'s (``firmware.isr``).
 
     ``coulomb_Nm = 0`` (the default) switches the compensation off: the law is Eq. 4 and
-    the observer's third state is ``τlgd``; with a model it is ``τlg`` (seed §V: "the
+    the observer's third state is ``τlgd``; with a model it is ``τlg`` ([Vertechy] §V: "the
     substitution in (8) of τm,1 with (τm,2 + τ̂d) enables to find τ̂lg instead of
     τ̂lgd"), on a vertical joint (τg = 0) the external torque ``τl``.
     """
@@ -599,14 +583,14 @@ SEED_FRICTION_MODEL = FrictionModelConfig(coulomb_Nm=13.7, velocity_scale_radps=
 Estimates = Literal["observer", "filters"]
 
 #: Cut-off (Hz) of the first-order low-pass giving τ̂s for the ``filters`` estimates.
-#: The seed gives none.  It must pass the 17 Hz joint mode the PD law damps with little
+#: [Vertechy] gives none.  It must pass the 17 Hz joint mode the PD law damps with little
 #: phase lag (18.8° at 17 Hz) while cutting the sensor noise (W = 0.12 Nm² per sample,
 #: 0.35 Nm rms) to ~0.14 Nm rms (the noise bandwidth of a 50 Hz first-order low-pass is
 #: 78.5 Hz of the 500 Hz Nyquist band).  20-100 Hz change the noise-free §VI figure by
 #: less than 0.15 Nm.
 JTF_LOWPASS_HZ = 50.0
 #: Cut-off (Hz) of the band-limited differentiator ``s / (s/ωd + 1)`` giving τ̂s' for the
-#: ``filters`` estimates.  The seed gives none; the loop decides it.  With the seed's k1,
+#: ``filters`` estimates.  [Vertechy] gives none; the loop decides it.  With its k1,
 #: k2 (q1 = 500, q2 = 0.1: the derivative term alone closes a loop near 130 Hz) and one
 #: sample of actuation delay, the §VI tracking loop (``firmware.tracking``, noise-free)
 #: runs into the torque limit for any derivative cut-off up to 300 Hz (max |e| of
@@ -621,7 +605,7 @@ JTF_DERIVATIVE_HZ = 400.0
 
 #: The listing's start-up pause (s): [Taghirad97], listing A.1 ``main()``,
 #: ``for (pause=0; pause < 0xffff; pause++);`` "Allow for mech. time constant", between
-#: ``write_dac0( Vbias )`` and the first interrupt.  The seed gives no clock; on the
+#: ``write_dac0( Vbias )`` and the first interrupt.  The paper gives no clock; on the
 #: TMS320C30 the listing names (``C30 node``) at 33 MHz, 60 ns per instruction cycle, an
 #: empty counting loop takes about 4 cycles per pass (increment, compare, delayed branch):
 #: 65 535 × 4 × 60 ns ≈ 16 ms.  An estimate, stated as one: the pause is far shorter than
@@ -638,7 +622,7 @@ LISTING_SETTLE_S = 0.016
 #: 0.3 kg m² / 100² = 3e-5 kg m², is 12 000 rad/s² with the load uncoupled (the load only
 #: lowers it), times a margin of 1.5 for a flexspline that unwinds into the motor:
 #: 18 000 rad/s², 18 rad/s per 1 ms sample.  The fastest clean change measured on the
-#: shipped scenarios is far below it (README, "Real-time mode and faults").
+#: shipped scenarios is far below it (docs/figures.md, "Faults").
 PLAUSIBLE_ACCELERATION_RADPS2 = 18_000.0
 #: Plausibility: the tachometer noise band (rad/s) added to the velocity bound.  The
 #: firmware's tacho channel (12-bit, +/-10 V, 56.2565 rad/s per V; [Taghirad97] listing A.1
@@ -665,7 +649,7 @@ class PlausibilityConfig:
     the papers).  It runs right after calibration and bounds what one sample can change.
 
     - ``enabled``: ``true`` checks, ``false`` passes every sample through unchecked
-      (the seed's handler).  Unset (``None``, the default) means: on, except in paper
+      (the listing's handler).  Unset (``None``, the default) means: on, except in paper
       mode (``ripple.mode = "paper"``), which is listing A.1 exactly
       ([Taghirad97], listing A.1 ``c_int10``: ``vel = Tacho *
       volt2radps; acc = Diff_filter( vel);`` uses every sample as read).  A paper
@@ -698,8 +682,8 @@ class PlausibilityConfig:
     stuck_motion_rad: float = 2.0
     #: The tacho is stuck only if, besides, the encoder's mean velocity over those samples
     #: differs from the held reading by more than ``stuck_tacho_radps`` plus
-    #: ``stuck_tacho_share`` of it (EMCY 0x7301): 2 rad/s is about 7 counts of the seed's
-    #: tacho channel (0.27 rad/s per count), far above its noise at a steady speed.
+    #: ``stuck_tacho_share`` of it (EMCY 0x7301): 2 rad/s is about 7 counts of the
+    #: [Taghirad97] tacho channel (0.27 rad/s per count), far above its noise at a steady speed.
     stuck_tacho_radps: float = 2.0
     stuck_tacho_share: float = 0.05
 
@@ -745,7 +729,7 @@ class ControlConfig:
     - ``joint``: Jm, Jl, k, c for the design ([Vertechy] §I-II: 2.5, 0.7, 6300, 11.8).
     - ``weights``: q1, q2, W, V ([Vertechy] §VI: 500, 0.1, 0.12, 1e4).
     - ``feedforward``: how k3, k4, k5 are chosen, ``lq`` (Friedland's LQ gains, the
-      seed's numbers) or ``exact`` (zero static error, ``G0 = B⁺E``).
+      paper's numbers) or ``exact`` (zero static error, ``G0 = B⁺E``).
     - ``observer``: discretisation of Eq. 8 (``zoh-kalman`` or ``zoh-observer``).
     - ``delay_samples`` / ``predict``: the command computed at sample k acts from
       t(k + delay_samples): 1 for the synchronous RPDO (``--actuation next-sync``), 0
@@ -763,7 +747,7 @@ class ControlConfig:
       to it and to the DAC range (±10 V · ``torque_per_volt``).  Default 36 Nm, the
       default plant's current limit (6 A · 0.06 Nm/A · 100).
     - ``friction``: the motor-friction model of Eq. 5 (:class:`FrictionModelConfig`);
-      off by default (Eq. 4).  :data:`SEED_FRICTION_MODEL` is the seed's experiment.
+      off by default (Eq. 4).  :data:`SEED_FRICTION_MODEL` is [Vertechy]'s experiment.
     - ``estimates``: where the law takes ``τ̂s`` and ``τ̂s'`` from: ``observer`` (Eq. 8,
       the default, for every law) or ``filters`` ([Vertechy] §V: JTF2 and JTF3 as the
       literature builds them, a first-order low-pass at ``lowpass_Hz`` and a
@@ -830,22 +814,22 @@ class ControlConfig:
 
 #: JTF1 + feedforward tuned for the [Vertechy] §VI tracking scenario (link moved as
 #: ``θl = 20° sin 2πt``, ``τsD = 20 sin 0.4πt``), max |e| <= 0.3 Nm
-#: (:mod:`firmware.tracking`, where the numbers and the reasons are).  The seed's LQ
+#: (docs/papers.md has the numbers and the reasons).  [Vertechy]'s LQ
 #: loop gains k1, k2 (q1 = 500, q2 = 0.1) are kept; three things change, and each is
 #: needed:
 #:
-#: - ``JTF1_FF``: the seed's own ``τsD'`` feedforward (§IV, "more demanding
+#: - ``JTF1_FF``: the paper's own ``τsD'`` feedforward (§IV, "more demanding
 #:   applications");
 #: - ``feedforward = exact``: zero-static-error gains on the exogenous inputs (k3 =
 #:   -Jm/Jl, k4 = 1 + Jm/Jl, k5 = Jm c/(J k)) instead of the LQ compromise, which
 #:   leaves -4 % of τsD and +3 % of τlgd as a static error;
-#: - ``V = 1e7`` (seed: 1e4): a faster observer of the exogenous torque τlgd, whose
+#: - ``V = 1e7`` (paper: 1e4): a faster observer of the exogenous torque τlgd, whose
 #:   Wiener-process model lags a moving link by ~17 ms x τlgd' at V = 1e4.
 #:
-#: The price is precision (seed §V: larger V/W is "more accurate but less precise"):
-#: with the seed's sensor noise (W = 0.12 Nm² per sample) the noise part of e is
-#: about twice the seed design's and the command noise reaches a 150 Nm torque limit.
-#: A tuning for the noise-free §VI scenario (the seed's simulation), not for a noisy
+#: The price is precision ([Vertechy] §V: larger V/W is "more accurate but less precise"):
+#: with the paper's sensor noise (W = 0.12 Nm² per sample) the noise part of e is
+#: about twice the paper design's and the command noise reaches a 150 Nm torque limit.
+#: A tuning for the noise-free §VI scenario (the paper's simulation), not for a noisy
 #: joint.  ``torque_per_volt`` and ``torque_limit_Nm`` are the defaults; set them to
 #: the drive's.
 JTF1_FF_TRACKING = ControlConfig(
@@ -869,7 +853,7 @@ class FirmwareConfig:
       (:data:`RECOMMENDED_RIPPLE`), not the listing's filter; :func:`paper_config`
       gives the same configuration with the paper filter (:data:`LISTING_A1_RIPPLE`
       for the default harmonics).
-    - ``adc`` / ``dac``: 12-bit, +/-10 V converters (our choice: the seed names the
+    - ``adc`` / ``dac``: 12-bit, +/-10 V converters (our choice: [Taghirad97] names the
       DT1401 board but prints neither its resolution nor its range;
       :class:`hdhil.core.converter.Converter`).
     - ``control``: [Vertechy]'s joint-torque control (:class:`ControlConfig`); off by
@@ -958,7 +942,7 @@ def _same_harmonics(ripple: RippleFilterConfig, mode: FilterMode) -> RippleFilte
 
 
 def paper_config(cfg: FirmwareConfig) -> FirmwareConfig:
-    """``cfg`` with the seed's paper filter (for ``--paper`` flags and comparisons).
+    """``cfg`` with the paper filter of [Taghirad97] (for ``--paper`` flags and comparisons).
 
     A config already in paper mode is returned unchanged (its tuning is kept).  Otherwise
     the ripple filter becomes the paper filter with the same harmonics and the paper's

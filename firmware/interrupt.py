@@ -1,22 +1,18 @@
 """The seam between the controller node and its interrupt handler: what
 :class:`firmware.controller.ControllerNode` needs from the 1 kHz interrupt body.
 
-The controller node is the CANopen side (NMT master, the CiA 402 walk, SYNC, PDOs,
-SDO parameters, EMCY); the interrupt handler is the algorithm. On every sensor frame
-in operation the node decodes the drive's counts into an :class:`AdcSample` (or, in the
-CiA 402 cyclic synchronous torque mapping, its torque and position into a
-:class:`CstSample`), calls the
-handler once, and sends the :class:`IsrOutput`'s DAC code to the drive and its
-torques and velocity as telemetry (CTRL_TPDO1, and CTRL_TPDO2 with a control law).
-Anything with the members of :class:`InterruptHandlerModel` can be that handler: the
-firmware's port of [Taghirad97] listing A.1 (:class:`firmware.isr.InterruptHandler`) or a
-law of your own, handed to the node with ``ControllerNode(..., isr=handler)`` (or
-through a controller factory, :mod:`hdhil.rig.factories`).
-
-With another handler the node keeps its CANopen behaviour; what belongs to the
-firmware's own stages is left out: the sensor plausibility EMCYs (0x7301, 0x7305) and
-the parameter objects that retune the stages over SDO, which refuse writes (abort
-0x08000022). The handler never sees ground truth: its only input is the sensor frame.
+The controller node is the CANopen side (NMT master, the CiA 402 walk, SYNC, PDOs, SDO
+parameters, EMCY); the interrupt handler is the algorithm.  On every sensor frame in
+operation the node decodes the drive's counts into an :class:`AdcSample` (in the CiA 402
+cyclic synchronous torque mapping, a :class:`CstSample`), calls the handler once, and
+sends the :class:`IsrOutput`'s DAC code to the drive and its torques and velocity as
+telemetry.  Anything with the members of :class:`InterruptHandlerModel` can be that
+handler: the port of [Taghirad97] listing A.1 (:class:`firmware.isr.InterruptHandler`)
+or a law of your own, handed over with ``ControllerNode(..., isr=handler)`` or through a
+controller factory (:mod:`hdhil.rig.factories`).  With another handler the node keeps
+its CANopen behaviour but leaves out what belongs to the firmware's own stages (the
+plausibility EMCYs, the stage parameters over SDO, which refuse writes with 0x08000022).
+The handler never sees ground truth.
 
 :data:`StageHook` is the other seam here: a callable the firmware's handler calls at
 each stage boundary of an interrupt, so a host can time the stages (``hdhil run
@@ -69,7 +65,7 @@ class IsrOutput:
     (listing ``pcsample &= 0x0000ffff``), so in 0..65535.  Units: Nm, rad/s, A, rad/s².
 
     Torque control ([Vertechy], only with a control law; 0 otherwise), all in the product
-    convention (module docstring): ``tau_s_hat`` / ``dtau_s_hat`` the observer's
+    convention (:mod:`firmware.isr`): ``tau_s_hat`` / ``dtau_s_hat`` the observer's
     sensor torque and its derivative (Nm, Nm/s), ``tau_lgd_hat`` the exogenous torque
     ``τlgd = τl + τg − τd Jl/Jm`` (Nm), ``tau_sD`` / ``dtau_sD`` the desired torque and
     its derivative, ``e_hat = tau_s_hat − tau_sD``, ``tau_m_request`` the law's motor

@@ -1,79 +1,24 @@
 """The 1 kHz interrupt body ``c_int10`` of [Taghirad97], listing A.1, stage by stage.
 
-Source: [Taghirad97], Appendix A.1 ``free_kalman.c``.
-The handler, as printed (abridged)::
+Each sample the handler reads the drive's ADC counts and encoder (:class:`AdcSample`),
+calibrates, differentiates the velocity, computes the expected torque ``J_load acc /
+Gain``, subtracts the ripple predicted at the previous sample and runs the ripple filter
+(:class:`TorqueFilterChain`: the listing's filter in ``"paper"`` mode, our angle-locked
+one in ``"recommended"`` mode), then generates the reference and writes the DAC.  The
+listing's timer bookkeeping, its "data ready" flag, channel CH3 and its memory copies are
+not ported (docs/papers.md says why).  The handler never sees ground truth.
 
-    DT1401Read( str_ch, end_ch, a2dsamples);
-    Tacho = a2dsamples[DT140X_CH4]; MotorCurrOut = a2dsamples[DT140X_CH5];
-    Torque = a2dsamples[DT140X_CH6];
-    vel      = Tacho * volt2radps;
-    acc      = Diff_filter( vel);
-    T_meas   = Torque * volt2Nm ;
-    T_mod    = J_load * acc / Gain;
-    Delta_T  = T_meas - T_mod;
-    Torque_f = T_meas - T_ripple;
-    T_ripple = Kalman (Delta_T, vel, sample_period);
-    ref_fl   = reference_generation(wavetype);
-    write_dac0( ref_fl );
-    copy(&T_meas ...); copy(&vel ...); copy(&MotorCurrOut ...); copy(&Torque_f ...);
-    pcsample &= 0x0000ffff; ... ++samplecount;
+With a control law configured (:class:`firmware.config.ControlConfig`) the reference
+generator becomes the LQG joint-torque regulator of [Vertechy] (:class:`TorqueControl`):
+observer Eq. 8 and law Eq. 4 (Eq. 5 with friction compensation) on the measured torque,
+the command converted to DAC volts with ``torque_per_volt`` and clipped, and the torque
+really output fed back to the observer.  Its estimate ``τ̂s`` is what the telemetry sends
+as the filtered torque; the ripple filter keeps running.
 
-Not ported, with the reason:
-
-- the timer read-out ``timecnt`` and its ``copy(&timecnt, time_sample_ptr++ ...)``,
-  ``timemark`` (the listing's "blank dummy", ``0xffffffff``) and ``time_samplecount``
-  (``+= 3`` per interrupt, copied to ``parm_ptr + 10`` at the end): interrupt-timing
-  bookkeeping for the host; here cycle timing is measured by the host loop
-  (``hdhil run --realtime``) and every frame carries its timestamp;
-- ``Samples_Ready`` (``main()``, copied to ``parm_ptr + 1`` when done): the host's
-  "data ready" flag; here the telemetry streams every sample and the run ends on
-  ``num_samples``;
-- channel CH3: ``DT140XInit(str_ch, end_ch)`` scans ``DT140X_CH3`` .. ``DT140X_CH6`` but
-  the handler reads only CH4-CH6 (``NUM_CHANNELS 4``); CH3's sample is never used, so
-  the sensor frame does not carry it;
-- the GRAM copies ``copy(&T_meas, sample_ptr++ ...)``: the caller logs
-  :class:`IsrOutput` (the telemetry frames).
-
-The ripple filter is the listing's (``ripple.mode = "paper"``) or our recommended
-angle-locked filter (``"recommended"``, the default), which also uses ``pcsample``,
-the encoder count the listing reads, as the motor angle: see
-:class:`TorqueFilterChain`.
-
-The firmware never sees ground truth: its only input is :class:`AdcSample`, the raw
-counts of the drive's sensor frame.
-
-Torque control ([Vertechy], [Vertechy])
---------------------------------------------------------------------------
-With a control law configured (:class:`firmware.config.ControlConfig`, ``law`` other
-than ``none``) the line ``ref_fl = reference_generation(wavetype)`` becomes the LQG
-joint-torque regulator of [Vertechy] (:class:`TorqueControl`): the observer of Eq. 8
-and the law of Eq. 4 (JTF1, JTF1 with the ``τsD'`` feedforward of §IV, JTF2, JTF3) run
-on the calibrated measured torque ``T_meas``; the motor torque command is converted to
-DAC volts with the actuator calibration ``torque_per_volt``, clipped at the torque
-limit and the DAC range, and the torque the DAC really outputs is reported back to the
-observer (``LqgController.set_applied``).  The regulator's Kalman filter takes over the
-ripple filter's role for the control: its estimate ``τ̂s`` is what the telemetry sends
-as the filtered torque.  The ripple filter still runs (its ``T_filtered`` stays in
-:class:`IsrOutput`, its state stays warm, and ``feedback = "T_filtered"`` can feed it to
-the regulator on a joint with angle-locked ripple); its cost per sample is in
-``hdhil bench``'s stage table.
-
-Sign mapping, the one place where it happens (:data:`SENSOR_TORQUE_SIGN`):
-
-================================  =====================  ==========================
-quantity                          product convention     [Vertechy] / firmware.lqg*
-================================  =====================  ==========================
-sensor torque, its derivative     ``T`` (= T_meas)       ``τs = -T``
-desired sensor torque             ``T_D`` (config)       ``τsD = -T_D``
-motor torque command              ``τm``                 ``τm`` (same sign)
-exogenous torque on the link      ``τlgd``               ``τlgd`` (same sign)
-tracking error (estimated)        ``e = T̂ - T_D``        ``τ̂s - τsD = -e``
-================================  =====================  ==========================
-
-Product convention: a torque is positive when the motor drives the load forward (the
-emulator's ``T_true``, the telemetry, the DBC).  [Vertechy] counts the sensor torque the
-other way (``τs = k (θl - θm)``, §II); torques acting on the motor or on the link
-(``τm``, ``τd``, ``τl``, ``τg``) are positive forward in both.
+Sign mapping, in one place (:data:`SENSOR_TORQUE_SIGN`): a torque is positive when the
+motor drives the load (the emulator, the telemetry, the DBC); [Vertechy] counts the
+sensor torque the other way (``τs = -T``, ``τsD = -T_D``, tracking error ``-e``); motor,
+link and exogenous torques have the same sign in both.
 """
 
 from __future__ import annotations
@@ -305,7 +250,7 @@ class TorqueControl:
 
     1. ``τsD`` at k from the desired-torque wave, ``τsD'`` by the central difference
        over k ± 1 (the wave is known ahead);
-    2. observer update and Eq. 4 on the measured torque, mapped to the seed's sign
+    2. observer update and Eq. 4 on the measured torque, mapped to [Vertechy]'s sign
        (module docstring): ``τm = LqgController.step(-T, -T_D, -T_D')``;
     3. ``τm`` clipped at ``torque_limit_Nm``, converted to volts (``τm /
        torque_per_volt``) and to the DAC code (rounding, saturation at the code range);

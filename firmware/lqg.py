@@ -1,9 +1,9 @@
-"""The runtime LQG joint-torque regulator of [Vertechy] ():
-observer update (Eq. 8, discretised) and control law (Eq. 4 / Eq. 5), once per sample.
+"""The runtime LQG joint-torque regulator of [Vertechy]: observer update (Eq. 8,
+discretised) and control law (Eq. 4 / Eq. 5), once per sample.
 
 The offline design it runs (gains, Kalman gain, discrete observer, loop analysis) is
-:mod:`firmware.lqg_design`, where the model, the sign convention (the seed's, inside
-these two modules only) and the sources of every equation are described.
+:mod:`firmware.lqg_design`; torques use [Vertechy]'s sign convention inside these two
+modules only.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ class LqgController:
     """Runtime LQG regulator of [Vertechy]: observer (Eq. 8, discretised) + Eq. 4 / Eq. 5.
 
     Call :meth:`step` once per sample with the measured sensor torque; it returns the
-    motor torque command (seed sign convention, output-shaft units).  Scalar arithmetic
+    motor torque command ([Vertechy]'s sign convention, output-shaft units).  Scalar arithmetic
     on preallocated float attributes (no numpy in the loop; its time per call is in
     ``hdhil bench``'s stage table).
 
@@ -93,9 +93,9 @@ class LqgController:
     ) -> float:
         """One sample: observer update, then Eq. 4 (or Eq. 5 if ``tau_d_hat`` is given).
 
-        With ``tau_d_hat`` (a model of the motor disturbance τd, seed §VI), the command
+        With ``tau_d_hat`` (a model of the motor disturbance τd, [Vertechy] §VI), the command
         is ``tau_m,2 = -[...] - τ̂d`` (Eq. 5) and the observer is driven by
-        ``tau_m,2 + τ̂d`` (seed §V), so its third state estimates ``tau_lg`` instead of
+        ``tau_m,2 + τ̂d`` ([Vertechy] §V), so its third state estimates ``tau_lg`` instead of
         ``tau_lgd``.  ``tau_sD_dot`` is used by ``JTF1_FF`` (and by the prediction).
         """
         y = tau_s_measured

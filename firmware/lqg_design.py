@@ -1,176 +1,20 @@
-"""LQG joint-torque control of a flexible joint ([Vertechy]: Vertechy et al., "Linear-
-Quadratic-Gaussian Torque Control: Application to a Flexible Joint of a Rehabilitation
-Exoskeleton", [Vertechy]).
+"""LQG joint-torque control of a flexible joint ([Vertechy]): the offline design.
 
-Offline design, pure numerics: Riccati equations, discretisation, loop analysis; no
-CAN, no plant.  The runtime controller that runs a design once per sample
-(observer update + control law) is :class:`firmware.lqg.LqgController`.
+Pure numerics, no CAN and no plant: the LQ gains k1..k5 from the continuous Riccati
+equation of the error model (Eq. 3) with Friedland's steady-state gains on the constant
+exogenous inputs (:func:`design_lq`), the steady-state Kalman gain L of the observer
+meta-system (Eq. 7), its discretisation for the 1 kHz loop (:func:`discretize_observer`:
+``zoh-kalman``, the default, or ``zoh-observer``), and the closed loop with one sample of
+actuation delay, also with the link clamped (:func:`loop_analysis`).  The runtime
+controller that runs a design once per sample is :class:`firmware.lqg.LqgController`.
 
-Sign convention (kept exactly as in the seed, inside this module only)
-----------------------------------------------------------------------
-[Vertechy] §II defines the sensor torque as ``tau_s = k (theta_l - theta_m)``: a
-*positive* motor torque ``tau_m`` winds the spring the other way and makes ``tau_s``
-*negative* (``B`` below has ``-k/Jm``).  To hold ``tau_s = tau_s^D`` (Eq. 2 at
-equilibrium) the motor therefore has to deliver
-``tau_m = -(1 + Jm/Jl) tau_s^D + (Jm/Jl) tau_lgd``,
-which is why the seed's k4 (Eq. 4: ``tau_m = -[... + k4 tau_s^D]``) is positive.
-Every torque handed to or returned by this module (``tau_s``, ``tau_s^D``, ``tau_lgd``,
-``tau_m``, ``tau_d``) is in that convention, reduced to the output shaft.
-``hostsim.plant`` reports ``T_true = -tau_s`` (positive when the motor drives the
-load), so a caller working in the plant's convention passes
-``tau_s_measured = -T_meas`` and ``tau_sD = -T_desired`` and applies the returned
-``tau_m`` unchanged (the motor torque has the same sign in both conventions).
-
-Model ([Vertechy] Eqs. 1-3, 7)
-----------------------------
-Two-mass joint reduced to the output shaft (Jm, Jl, k, c), ``J = Jm Jl / (Jm + Jl)``::
-
-    tau_s'' + (c/J) tau_s' + (k/J) tau_s = (k/Jl) tau_lgd - (k/Jm) tau_m      (Eq. 2)
-    tau_lgd = tau_l + tau_g - tau_d Jl/Jm
-
-Control design model (Eq. 3), error state ``e = [tau_s - tau_s^D, tau_s']``, exogenous
-input ``tau_0 = [tau_lgd, tau_s^D]`` with ``tau_0' = 0``::
-
-    e' = A e + B tau_m + E tau_0
-    A = [[0, 1], [-k/J, -c/J]],  B = [0, -k/Jm]ᵀ,  E = [[0, 0], [k/Jl, -k/J]]
-
-Observer meta-system (Eq. 7), meta-state ``x = [tau_s, tau_s', tau_lgd]``,
-``tau_lgd' = v`` (Wiener process of intensity V), ``y = tau_s^m = C x + w``
-(variance W)::
-
-    A' = [[0, 1, 0], [-k/J, -c/J, k/Jl], [0, 0, 0]],  B' = [0, -k/Jm, 0]ᵀ,
-    Γ = [0, 0, 1]ᵀ,  C = [1, 0, 0]
-
-The reading of the seed that reproduces its printed numbers (§VI)
------------------------------------------------------------------
-**LQ gains (Eqs. 4, 6).**  The printed gains come out of the CARE when the weights
-enter *linearly*, ``Q = diag(q1, q2)``, ``R = 1``, i.e. the cost actually minimised is
-``∫ q1 (tau_s - tau_s^D)² + q2 tau_s'² + tau_m² dt`` — not the ``q1², q2²`` printed in
-Eq. 6.  With ``G = R⁻¹BᵀP`` and ``u = tau_m = -G e - G0 tau_0`` the seed's gains are
-``[k1, k2] = G`` and ``[k3, k4] = G0`` with the sign of Eq. 4 as printed, and G0 is
-Friedland's steady-state gain for exogenous inputs (ref. [26]): the costate
-``λ = P e + N tau_0`` with ``tau_0' = A0 tau_0`` gives
-``(A - B G)ᵀ N + N A0 + P E = 0``, ``G0 = R⁻¹ Bᵀ N``; for ``A0 = 0``
-``G0 = -R⁻¹ Bᵀ (A - B G)⁻ᵀ P E``.  With the seed's Jm, Jl, k, c, q1, q2 this gives
-``k1..k4 = -18.252, -0.32990, -2.8561, 3.6558`` against the printed
-``-18.3, -0.33, -2.81, 3.62`` (-0.26 %, -0.03 %, +1.6 %, +1.0 %).
-
-Readings that do *not* reproduce the numbers:
-
-- ``Q = diag(q1², q2²)`` (Eq. 6 as printed): ``k1..k4 = -495.4, -0.626, -3.54, 4.53``.
-- ``G0 = +R⁻¹Bᵀ(Aᵀ - PBR⁻¹Bᵀ)⁻¹PE`` (the sign-flipped costate solution):
-  ``k3, k4 = +2.86, -3.66`` (wrong signs).
-- Zero-steady-state-error feedforward ``G0 = B⁺E`` (``k3 = -Jm/Jl``,
-  ``k4 = 1 + Jm/Jl``): ``-3.571, 4.571`` (27 % off); offered as
-  :attr:`Feedforward.EXACT`.
-- A discrete-time LQ design at Ts = 1 ms (DARE on the ZOH model):
-  ``k1..k4 = -10.6, -0.224, -3.09, 3.96``.
-
-The residual 1-1.6 % on k3, k4 is not rounding of the *gains*: any G0 of this form has
-``k3/k4 = E[1,0]/E[1,1] = -Jm/(Jm+Jl) = -0.78125`` exactly, while the printed values
-give -0.7762 (at most -0.7787 allowing for their rounding).  It is the parameters: with
-``Jl = 0.7125`` kg m² instead of the rounded 0.7 (nothing else changed) all four gains
-*and* the three Kalman gains below are reproduced within 0.22 %.
-
-Consequence (documented, tested): the LQ feedforward is the optimal *compromise*
-between error and effort, not a zero-error feedforward.  The closed-loop equilibrium
-for constant ``tau_0`` is the minimiser of ``eᵀQe + uᵀRu`` subject to
-``A e + B u + E tau_0 = 0`` (the costate's stationarity conditions are exactly the KKT
-conditions of that static problem), so with the seed's weights the static error is
-``e = -0.0401 tau_s^D + 0.0313 tau_lgd`` (about -0.9 % of ``tau_s^D`` when the link is
-at rest, ``tau_lgd = tau_s``).  Zero static error needs ``k3 = -Jm/Jl`` and
-``k4 = Jm/J = 1 + Jm/Jl`` whatever k1, k2 are (equilibrium of Eq. 3 with ``e = 0``):
-JTF2's k4 is exactly that, with k3 = 0 (no disturbance compensation); JTF3's ``k4 = 1``
-leaves an error even without disturbance.
-
-**Kalman gain (Eq. 8).**  ``L = P Cᵀ W⁻¹`` from the filter CARE
-``A'P + PA'ᵀ - P Cᵀ W⁻¹ C P + Γ V Γᵀ = 0`` with W = 0.12 and V = 1e4 taken as numbers
-in one and the same convention gives ``L = [199.99, 19997.8, 288.68]`` against the
-printed ``[199, 19854, 289]`` (+0.5 %, +0.7 %, -0.1 %; ``L3 = sqrt(V/W)``).  W as a
-standard deviation (variance 0.0144) gives ``[332, 55028, 833]``; V as a standard
-deviation (1e8) gives ``[1243, 772301, 28868]``.
-
-**One reading of W (the only one in this project).**  [Vertechy] §I: "torque sensor
-variance W = 0.12 Nm (measured with the motor driver turned on)".  W is the variance
-of each torque sample, 0.12 Nm², measured on the sampled signal at the loop's 1 kHz
-(:data:`W_SAMPLE_PERIOD_S`; the seed does not state its rate, 1 ms is the rig's).  The
-emulated sensor of a "seed noise" variant therefore has a standard deviation of
-``sqrt(W) = 0.3464`` Nm per sample (``hostsim.plant.SensorConfig.torque_noise_Nm``).
-The continuous filter of Eq. 8 needs intensities: white noise whose 1 ms samples have
-variance W has intensity ``W · 1 ms`` (Nm² s), and the seed's V is read in the same
-convention, ``V · 1 ms``.  The Kalman gain L depends on V/W only, so L is the printed
-one under this reading too, and the discrete filter at any Ts (``Rd = W · 1 ms / Ts``,
-Van Loan ``Qd`` from ``V · 1 ms``) has exactly the gain it has with W and V taken as
-bare intensities (a common factor on Qd and Rd does not change a DARE's gain).  At
-Ts = 1 ms, ``Rd = W``: the design assumes the very noise the emulated sensor has, and
-its predicted innovation variance (0.147 Nm²) is what a run measures (tested).  A
-1000x different reading, a per-sample Rd = W next to V taken as an intensity, is the
-design with V = 1e7 (as :data:`firmware.config.JTF1_FF_TRACKING` chooses explicitly).
-
-Discretisation for the 1 kHz loop
----------------------------------
-k1..k5 are static gains and are used as they are.  The observer (Eq. 8) is a
-continuous filter; :func:`discretize_observer` offers two discrete versions, both in
-the form (``z`` = a-priori estimate of x at sample k from the samples before k)::
-
-    x̂(k)   = z(k) + M (y(k) - C z(k))                   current estimate (used by Eq. 4)
-    z(k+1) = Ad z(k) + Bd [tau_m(k); y(k)]              tau_m(k): torque acting on [t_k, t_k+1)
-
-- ``zoh-kalman`` (default): the meta-system (A', B', Γ) discretised by zero-order hold,
-  process noise ``Qd = ∫_0^Ts e^{A's} Γ V' Γᵀ e^{A'ᵀs} ds`` (Van Loan) with ``V' = V ·
-  1 ms``, measurement noise ``Rd = W · 1 ms / Ts`` (the per-sample variance at Ts of
-  the white noise whose 1 ms samples have variance W: "One reading of W"), steady-state
-  gain from the DARE: ``M = P Cᵀ (C P Cᵀ + Rd)⁻¹``, ``Ad = Φ (I - M C)``,
-  ``Bd = [Γu, Φ M]``.  Its poles map onto the continuous observer poles
-  (-55.6 ± 143.1j, -110.3 rad/s, i.e. |s| ≈ 24 Hz and 18 Hz, far below the 500 Hz
-  Nyquist frequency) to better than 1e-6 relative.
-- ``zoh-observer``: the continuous observer itself, ``(A' - L C, [B', L])``, discretised
-  by ZOH with ``y`` held over the sample (``M = 0``): exactly the seed's L, an extra
-  half-sample of lag on ``y``; same poles as above (``exp(s Ts)``).
-
-Actuation delay.  With synchronous PDOs the command computed from the sample at
-``t(k)`` acts from ``t(k+1)`` (docs/design.md, timing semantics).  :class:`LqgController`
-feeds its observer the torque actually acting in each interval (the previous command
-when ``delay_samples = 1``) and, with ``predict=True`` (default), applies Eq. 4 to the
-one-step prediction ``z(k+1)`` — the state when the command takes effect.
-:func:`loop_analysis` gives the discrete closed-loop poles and margins.
-
-Robustness: the link is not always free.  The separation principle covers the plant
-of Eq. 2 with ``tau_lgd`` exogenous.  When the link is held (stiff contact, a user
-gripping the handle) ``tau_lgd = tau_s + (c/k) tau_s' + Jl theta_l''`` depends on the
-state and the disturbance estimate closes another loop: with the link clamped the seed's
-design (V = 1e4) is still stable at 1 kHz with one sample of delay, but only just
-(max |z| = 0.9924, gain margin 3.5 dB, phase margin 22 deg); V = 5e3 is marginal
-(0.9998) and V <= 3e3 is unstable, for JTF3 too, and also without delay at 100 kHz, so
-this is a property of the seed's design, not of the discretisation.
-:func:`loop_analysis` ``clamped=True`` and the CLI report it.
-
-Seed §VI simulation (Fig. 7: ``tau_s^D = 20 sin(0.4 pi t)``, link moved as
-``theta_l = 20 deg sin(2 pi t)``, no noise), reproduced in the tests with this
-module's observer at 1 kHz: max |e| is about 1.2 Nm for JTF1, 2.1 for JTF3, 5.4 for
-JTF2 -- the seed's ranking, but not its "|e| <= 0.3 Nm" (true states instead of the
-observer still give 0.73 Nm; the zero-error feedforward 0.38 Nm).  With the link held
-still JTF1 gives 0.18 Nm.
-
-Desired-torque-derivative feedforward (seed §IV, "more demanding applications")
--------------------------------------------------------------------------------
-``e = [tau_s - tau_s^D, tau_s' - tau_s^D']``, ``tau_0 = [tau_lgd, tau_s^D, tau_s^D']``,
-``E = [[0, 0, 0], [k/Jl, -k/J, -c/J]]`` (``tau_s^D'' ≈ 0``), ``tau_0' = 0`` as in Eq.
-3.2: same A, B, Q so k1, k2 (and k3, k4) are unchanged, and
-``k5 = G0[2] = k4 c / k`` (0.00685 s for the seed).  The law is
-``tau_m = -[k1 (tau_s - tau_s^D) + k2 (tau_s' - tau_s^D') + k3 tau_lgd + k4 tau_s^D
-+ k5 tau_s^D']``.  (Modelling ``tau_s^D`` as a ramp instead, ``A0`` with
-``(tau_s^D)' = tau_s^D'``, would give k5 = -0.0050 s; the zero-error value is
-``Jm c / (J k)`` = 0.00856 s.)  Caveat: the feedforward relies on ``τ̂s'``, which the
-observer gets wrong at low frequency whenever ``tau_lgd`` drifts (a lag ``δ`` in
-``τ̂lgd`` comes with an error ``(k J / (c Jl)) δ`` ≈ 417 δ in ``τ̂s'``, the direction
-the measurement cannot resolve at DC).  On a free link (``tau_lgd`` constant) it cuts
-the ramp-tracking error more than tenfold; with the link held still, where
-``tau_lgd`` follows ``tau_s``, it makes the §VI sine tracking worse (0.18 -> 0.44 Nm).
-
-Motor torque saturation is the caller's job: clip the returned command and report the
-clipped value with :meth:`LqgController.set_applied` so the observer is fed the torque
-that really acts.
+Torques handed to or returned by this module are in [Vertechy]'s sign convention
+(``tau_s = k (theta_l - theta_m)``), reduced to the output shaft; ``firmware.isr`` maps
+the product convention onto it.  The weights enter as Q = diag(q1, q2), R = 1: the
+reading that reproduces the printed gains.  One reading of W: W is the variance of each
+1 kHz torque sample (0.12 Nm²), V is read in the same convention, and L depends on V/W
+only.  The model, the readings that do not reproduce the paper, and why its tracking
+figure does not reproduce are in docs/papers.md.
 """
 
 from __future__ import annotations
@@ -223,8 +67,8 @@ __all__ = [
     "zoh",
 ]
 
-#: The sample period at which the seed's torque-sensor variance W is read (s): W is the
-#: variance of each 1 kHz sample (module docstring, "One reading of W").
+#: The sample period at which [Vertechy]'s torque-sensor variance W is read (s): W is
+#: the variance of each 1 kHz sample (module docstring, "One reading of W").
 W_SAMPLE_PERIOD_S = 1e-3
 
 
@@ -247,7 +91,7 @@ class ControlLaw(enum.Enum):
 
 
 class ObserverMethod(enum.Enum):
-    """How the continuous observer of Eq. 8 becomes a 1 kHz filter (module docstring)."""
+    """How the continuous observer of Eq. 8 becomes a 1 kHz filter (docs/papers.md)."""
 
     ZOH_KALMAN = "zoh-kalman"
     ZOH_OBSERVER = "zoh-observer"
@@ -256,7 +100,7 @@ class ObserverMethod(enum.Enum):
 class Feedforward(enum.Enum):
     """How k3, k4, k5 (the gains on the exogenous inputs) are chosen."""
 
-    #: Friedland's steady-state LQ gain for exogenous inputs (reproduces the seed).
+    #: Friedland's steady-state LQ gain for exogenous inputs (reproduces the paper).
     LQ = "lq"
     #: Zero steady-state error: ``G0 = B⁺E`` (k3 = -Jm/Jl, k4 = 1 + Jm/Jl, k5 = Jm c/(J k)).
     EXACT = "exact"
@@ -298,13 +142,13 @@ class LqgWeights:
     """Tuning of the LQG regulator ([Vertechy] §IV-VI).
 
     Attributes:
-        q1: weight on ``(tau_s - tau_s^D)²`` (seed: 500).  Enters Q *linearly*, see the
-            module docstring (Eq. 6 prints ``q1²`` but the printed gains need ``q1``).
-        q2: weight on ``tau_s'²`` (seed: 0.1), linearly as q1.
-        W: variance of each 1 kHz torque sample (seed §I: "torque sensor variance
+        q1: weight on ``(tau_s - tau_s^D)²`` ([Vertechy]: 500).  Enters Q *linearly*, see
+            docs/papers.md (Eq. 6 prints ``q1²`` but the printed gains need ``q1``).
+        q2: weight on ``tau_s'²`` ([Vertechy]: 0.1), linearly as q1.
+        W: variance of each 1 kHz torque sample ([Vertechy] §I: "torque sensor variance
             W = 0.12") [Nm²]; the emulated sensor's noise is ``sqrt(W)`` per sample
             (module docstring, "One reading of W").
-        V: the Wiener process ``tau_lgd' = v`` in the same convention (seed §VI:
+        V: the Wiener process ``tau_lgd' = v`` in the same convention ([Vertechy] §VI:
             V = 1e4); only V/W sets the Kalman gain.
     """
 
@@ -462,7 +306,7 @@ def design_lq(
     """LQ gains k1..k5 of [Vertechy] Eqs. 4 and 6 (and the §IV τsD' feedforward k5).
 
     ``[k1, k2] = R⁻¹BᵀP`` from :func:`lq_riccati`; ``[k3, k4, k5]`` from Friedland's
-    exogenous-input solution (``Feedforward.LQ``, reproduces the seed) or the
+    exogenous-input solution (``Feedforward.LQ``, reproduces the paper) or the
     zero-static-error feedforward ``B⁺E`` (``Feedforward.EXACT``).
     """
     A, B, _ = error_model(params)
@@ -479,7 +323,7 @@ def design_lq(
 def jtf2_gains(params: JointParams = JointParams(), weights: LqgWeights = LqgWeights()) -> LqGains:
     """JTF2 of [Vertechy] §IV (refs. [17, 18]): k3 = 0, k4 = 1 + Jm/Jl.
 
-    k1, k2 are taken from the LQ design (the seed compares the laws with the same
+    k1, k2 are taken from the LQ design ([Vertechy] compares the laws with the same
     feedback part, Fig. 7); k4 = 1 + Jm/Jl = Jm/J is the zero-error feedforward on τsD.
     """
     g = design_lq(params, weights)
@@ -582,7 +426,7 @@ def discretize_observer(
     method: ObserverMethod = ObserverMethod.ZOH_KALMAN,
     L: np.ndarray | None = None,
 ) -> DiscreteObserver:
-    """The 1 kHz observer (module docstring, "Discretisation").
+    """The 1 kHz observer (docs/papers.md, "Discretisation for the 1 kHz loop").
 
     ``zoh-kalman``: DARE on the ZOH meta-system with Van Loan ``Qd`` from the intensity
     ``V · 1 ms`` and ``Rd = W · 1 ms / Ts`` (W the per-sample variance at 1 kHz; module

@@ -1,27 +1,19 @@
 """Frequency response of the firmware's torque filter: true torque in, filtered torque out.
 
 What fraction of a true torque at frequency f survives in ``T_filtered``?  An ideal
-ripple canceller has gain 1 everywhere except at the ripple harmonics.  The paper
-filter ([Taghirad97], listing A.1) does not: it models all of y = T_meas − T_exp as ripple,
-so slow true torque that the inertia-only T_exp misses is absorbed by its oscillators.
+ripple canceller has gain 1 everywhere except at the ripple harmonics.  The paper filter
+of [Taghirad97] does not: it models all of y = T_meas − T_exp as ripple, so its
+oscillators absorb slow true torque that the inertia-only T_exp misses.
 
-Method: simulation through the real thing, not a model of it.  The firmware's own
-:class:`firmware.isr.TorqueFilterChain` is run at a constant motor speed (tachometer
-velocity = the speed; encoder count = floor(θ · counts_per_rev / 2π) mod 2¹⁶ with
-θ = speed · t, as the drive emulator counts) on a torque ``A cos(2π f t)`` with no
-ripple, and the component of ``T_filtered`` at f is measured after the filter has
-settled.  At constant speed T_exp is 0 after the differentiator's start-up, so the
-input reaches both y and T_meas, as a true torque does.
-
-Both filters are linear in the torque for a given speed profile (their gains and
-covariances do not depend on the data), so the response to the sinusoid alone is the
-difference between a run with the sinusoid and a reference run with zero torque: this
-cancels the differentiator's start-up transient (the first sample sees a velocity step
-from 0) exactly.  The gain is then the Hann-windowed demodulation of that difference at
-f over the measurement window, divided by A (a complex number; its magnitude is the
-gain).  The filters are time-varying (they rotate with the angle), so a sinusoid also
-produces components at other frequencies (f ± harmonic frequencies); the windowed
-demodulation measures only the component at f.
+Method: simulation through the real thing.  The firmware's own
+:class:`firmware.isr.TorqueFilterChain` runs at a constant motor speed (tacho and
+encoder as the drive emulator produces them) on a torque ``A cos(2π f t)`` without
+ripple.  Both filters are linear in the torque for a given speed profile, so the
+response is the difference between a run with the sinusoid and a reference run with
+zero torque (which cancels the differentiator's start-up transient exactly),
+demodulated at f over a Hann window and divided by A.  The filters rotate with the
+angle, so a sinusoid also produces components at f ± the harmonic frequencies; only the
+component at f is measured.
 """
 
 from __future__ import annotations

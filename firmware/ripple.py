@@ -1,50 +1,23 @@
-"""Kalman filters of the harmonic-drive torque ripple: the paper's and our recommended one.
+"""Kalman filters of the harmonic-drive torque ripple: [Taghirad97]'s and our recommended one.
 
 Two filters, selected by :attr:`firmware.config.RippleFilterConfig.mode`:
 
-- :class:`RippleKalman` (``mode = "paper"``): the seed's filter, exactly as listing A.1
-  implements it (below).
+- :class:`RippleKalman` (``mode = "paper"``): ``Kalman(Delta_T, velocity, sample_period)``
+  of [Taghirad97] listings A.1 and A.2 (Eqs. 5-10), in the listing's update order,
+  generalised from its two blocks to a bank of any number of harmonic oscillators
+  rotated by Φ(k) from the tacho velocity, so the same code runs §4 / A.1 (2x and 4x
+  motor), A.2 (2x motor and the misalignment at the output) and the 6th-order model of
+  §5.  It returns the ripple predicted for the next sample, which ``c_int10`` subtracts
+  from the next measured torque.  Unlike the listing it keeps its state between calls.
 - :class:`HarmonicKalman` (``mode = "recommended"``, the default): our angle-locked
-  harmonic regression Kalman filter, which keeps the low-frequency torque the paper
-  filter absorbs and takes the harmonic phase from the encoder instead of integrating
-  the tachometer.  See its docstring for the design and why.
+  harmonic regression with a residual-torque state, which keeps the low-frequency torque
+  the paper filter absorbs and takes the harmonic phase from the encoder instead of
+  integrating the tachometer (see its docstring for the design and why).
 
-Paper filter
-------------
-
-:class:`RippleKalman` ports ``Kalman(Delta_T, velocity, sample_period)`` of [Taghirad97]
-([Taghirad97], Appendix A.1 ``free_kalman.c`` and
-A.2), which implements the text's Eqs. 5-10, generalised from the listing's fixed
-two blocks to a bank of any number of harmonic-oscillator blocks
-(:class:`firmware.config.Oscillator`), so the same code runs
-
-- the 4th-order model of §4 / listing A.1 (2x and 4x motor velocity),
-- listing A.2 (2x motor velocity and the misalignment block at the output velocity,
-  still 4th order although the §5 text speaks of a 6th-order model),
-- the 6th-order model of §5 (2x, 4x and the misalignment block).
-
-Model (Eqs. 5, 6), with n = 2 x (number of blocks) states::
-
-    x(k+1) = Φ(k) x(k) + w(k),      Φ(k) = blockdiag(Φ_1(k), ..., Φ_m(k))
-    y(k)   = C x(k) + v(k),         C = [1 0 1 0 ... 1 0]
-    Φ_i(k) = [[cos ω_i T, sin ω_i T], [-sin ω_i T, cos ω_i T]]
-
-Filter (Eqs. 8-10), in the listing's order and grouping::
-
-    K = Φ P Cᵀ / (R + C P Cᵀ)                (Eq. 9, "***** 1 *****")
-    P ← Q + (Φ − K C) P Φᵀ                    (Eq. 10, "***** 2 *****")
-    x ← (Φ − K C) x + K y                     (Eq. 8, "***** 3 *****")
-    return C x                                ("Torque_ripple = x[0] + x[2]")
-
-The return value is x̂(k+1|k)'s output: the ripple predicted for the NEXT sample,
-which ``c_int10`` subtracts from the next measured torque.
-
-Known weakness of the paper filter (measured, :mod:`firmware.response`): the whole of
-y = T_meas − T_exp goes into the oscillators, so any slow torque the inertia-only
-T_exp misses (friction, load torque, bridge offset) is taken for ripple: at standstill
-Φ = I and the filter removes 100 % of it; the gain from true torque at 0-5 Hz to
-filtered torque is 0.05-0.02 at 20 rad/s and 0.53 at 156 rad/s (recommended filter:
-1.000 at 0-2 Hz, >= 0.996 at 5 Hz, at both speeds).
+The paper filter's known weakness, measured by :mod:`firmware.response`: it takes any
+slow torque its inertia-only model misses for ripple (the gain from a 0-5 Hz true
+torque to the filtered torque is 0.02-0.05 at 20 rad/s and 0.53 at 156 rad/s; the
+recommended filter's is 1.000).  docs/papers.md has the model and its equations.
 """
 
 from __future__ import annotations
@@ -389,9 +362,9 @@ def _kernel(harmonics: int) -> Callable[..., float]:
 
 class HarmonicKalman:
     """Angle-locked harmonic regression Kalman filter of the torque ripple (recommended
-    mode).  **Our design**, not the seed's; it keeps the seed's structure (a Kalman filter
+    mode).  **Our design**, not [Taghirad97]'s; it keeps its structure (a Kalman filter
     on y = T_meas − T_exp whose ripple estimate is subtracted from T_meas) and changes
-    what the seed's filter gets wrong.
+    what the paper filter gets wrong.
 
     Why (measured weaknesses of :class:`RippleKalman`):
 
@@ -417,11 +390,11 @@ class HarmonicKalman:
       not integrated; a tachometer-integrated φ is the fallback for data without an
       encoder (:attr:`RippleFilterConfig.phase_source`).  An unknown constant offset
       of φ (the encoder's power-on count) only rotates (a_i, b_i).
-    - **Prediction form without lag** (the seed's Eqs. 8-10 spirit): at sample k,
+    - **Prediction form without lag** (in the spirit of [Taghirad97] Eqs. 8-10): at sample k,
       ``ripple(k) = C_ripple(k) x̂(k|k−1)`` (harmonic columns only, *not* r) and the
       filtered torque is ``T_filtered(k) = T_meas(k) − ripple(k)``; only then is x̂
       updated with y(k).  The ripple estimate uses information up to k − 1, like the
-      seed's, but it is evaluated at the angle measured at k, so it has no phase lag.
+      paper filter's, but it is evaluated at the angle measured at k, so it has no phase lag.
     - **Why low-frequency torque passes**: the residual r takes the DC and slow part
       of the innovation (its q_r is large), while the harmonic columns average to
       zero over a revolution and cannot represent DC.  At any non-zero constant speed

@@ -146,7 +146,7 @@ class Differentiator:
 
 
 class AdcSource:
-    """Sensor source of the seed's raw mapping: the listing's ``DT1401Read`` and the
+    """Sensor source of the raw mapping: the listing's ``DT1401Read`` and the
     calibration lines ([Taghirad97], listing A.1, ``c_int10``: ``Tacho = a2dsamples[CH4];
     MotorCurrOut = a2dsamples[CH5]; Torque = a2dsamples[CH6]; vel = Tacho *
     volt2radps; T_meas = Torque * volt2Nm``), on the counts of the drive's sensor frame
@@ -331,14 +331,14 @@ class EncoderUnwrap:
 
 class VelocityIntegrator:
     """Motor angle integrated from the tachometer velocity: the fallback phase source of
-    the recommended ripple filter for data without an encoder (not in the seed).
+    the recommended ripple filter for data without an encoder (not in the papers).
 
     Trapezoidal rule, φ(0) = 0, φ(k) = φ(k−1) + Ts (ω(k) + ω(k−1)) / 2.  It needs only
     the velocity measured up to k, so φ(k) is available at k.  (The paper filter's
     oscillators advance by ω(k)·Ts from k to k+1, i.e. forward Euler.)  A non-finite
     velocity is skipped: φ is held and the last finite velocity kept.  The angle
     inherits the tachometer's errors: its noise integrates into a random walk and a
-    quantisation bias (0.27 rad/s per ADC count on the seed's channel) into a phase
+    quantisation bias (0.27 rad/s per ADC count on the listing's channel) into a phase
     drift, which the filter has to follow by adapting its coefficients.
     """
 
@@ -371,7 +371,7 @@ class VelocityIntegrator:
 
 class StuckChannels:
     """A torque or tacho channel stuck at one reading while the motor turns (not in the
-    seeds).
+    papers).
 
     **Torque.**  A torque bridge whose ADC reading does not change by a single count for
     ``stuck_samples`` samples in a row, while the encoder moved by at least
@@ -524,7 +524,7 @@ class StuckChannels:
 
 class SensorPlausibility:
     """Bounds on what one sample may change: tacho spikes and encoder glitches are
-    replaced by the prediction (not in the seed; the listing uses every sample as read).
+    replaced by the prediction (not in the papers; the listing uses every sample as read).
 
     It runs right after ``calibrate`` ([Taghirad97], listing A.1: after ``vel = Tacho *
     volt2radps``, before ``acc = Diff_filter( vel)``) and never reads anything but the
@@ -824,7 +824,7 @@ class ReferenceGenerator:
 
     Ports ``ref_fl = reference_generation(wavetype)`` ([Taghirad97], listing A.1,
     ``c_int10``; parameters from the ``main()`` mailboxes).  The body of
-    ``reference_generation`` (``servo_refgen.h``) is NOT printed in the seed, so
+    ``reference_generation`` (``servo_refgen.h``) is NOT printed in [Taghirad97], so
     these definitions are ours, with b = bias, A = amplitude, f = frequency,
     p = frac(f t) the phase in cycles:
 
@@ -837,9 +837,9 @@ class ReferenceGenerator:
     - CHIRP:    b + A sin(2π (f t' + (f1 − f) t'² / (2 T))), t' = t mod T: a linear
       sweep from f = ``frequency_Hz`` to f1 = ``chirp_end_Hz`` over T =
       ``chirp_duration_s``, then again from f (continuous when (f + f1) T / 2 is a
-      whole number of cycles).  Starts at b with a rising slope, like the sine.  Seed
-      003 Fig. 5 identifies the joint "by commanding tau_m with a chirp function"; the
-      seed gives no sweep parameters.  Both frequencies must lie below Nyquist.
+      whole number of cycles).  Starts at b with a rising slope, like the sine.  [Vertechy]
+      Fig. 5 identifies the joint "by commanding tau_m with a chirp function"; the
+      paper gives no sweep parameters.  Both frequencies must lie below Nyquist.
     - STEP:     b for t < step_time, b + A from then on.  The step sample is the
       first k with k·Ts >= step_time (to within 1e-9 of a sample, so that 0.1 s at
       1 ms steps at k = 100 despite rounding).

@@ -17,9 +17,9 @@ FAULT                       0x0080 fault reset  rising edge of bit 7 (transition
                                                 a second fault, or a refused reset, -> safe
 ==========================  ==================  ==========================================
 
-The walk back (stop): 0x0007 "disable operation" (transition 5), then 0x0006 "shutdown"
-(transition 6), then "stopped".  The node (:mod:`hdhil.firmware.controller`) sends the
-controlword, handles the phases and the timeouts; this class only decides.
+The walk back (stop): 0x0007 "disable operation" (5), then 0x0006 "shutdown" (6).  The
+node (:mod:`hdhil.firmware.controller`) sends the controlword and handles the phases and
+timeouts; this class only decides.
 """
 
 from __future__ import annotations

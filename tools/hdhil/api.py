@@ -160,13 +160,14 @@ _RECORDING_NAMES = {
 
 
 def cycle_arrays(result: Any) -> dict[str, np.ndarray]:
-    """The per-cycle signals of a :func:`run` (samples in operation): ``time_s`` (the
+    """The per-cycle signals of a :func:`run` (the firmware's samples): ``time_s`` (the
     sample instants k·Ts), the drive's ADC counts and encoder, the controller's telemetry
     and the emulator's ground truth, as float arrays (NaN where a frame was missing).
     Needs a run with ``evaluate=True`` (it records every cycle)."""
     rec = getattr(result, "recording", None)
     if rec is None:
         raise ValueError("the run kept no per-cycle recording: run it with evaluate=True")
+    rec = rec.operation()  # the firmware's samples, as the run counts them
     out = {"time_s": np.arange(len(rec)) * rec.sample_period_s}
     for column, name in _RECORDING_NAMES.items():
         out[name] = rec.column(column).copy()

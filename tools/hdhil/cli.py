@@ -57,7 +57,38 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
 }
 
-__all__ = ["COMMANDS", "ConfigError", "UserError", "build_parser", "main"]
+__all__ = ["COMMANDS", "ConfigError", "UserError", "build_parser", "main", "version"]
+
+
+def version() -> str:
+    """The installed distribution's version (``importlib.metadata``), or ``"unknown"``
+    when hdhil runs without being installed."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as distribution_version
+
+    try:
+        return distribution_version("hdhil")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: print ``hdhil <version>`` and exit 0.  The version is looked up
+    only when asked for, so other commands do not pay for importlib.metadata."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, **_: object) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS,
+                         help="print the version and exit")  # fmt: skip
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: object,
+        option_string: str | None = None,
+    ) -> NoReturn:
+        print(f"hdhil {version()}")
+        parser.exit(0)
 
 
 def _requested(argv: Sequence[str]) -> str | None:
@@ -92,6 +123,7 @@ def build_parser(
         epilog="exit codes: 0 completed, 1 stopped early by a fault reaction or failed "
         "verdict, 2 usage or input error, 130 interrupted",
     )
+    parser.add_argument("--version", action=_VersionAction)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     loaded: set[str] = set()
     for name, (module_name, help_text) in COMMANDS.items():

@@ -1,22 +1,16 @@
 """A trace as tidy data: one row per control cycle, one column per signal, units in the
 column names.
 
-A CAN trace holds about seven frames per 1 ms cycle; a per-frame table is mostly empty
-cells.  Here the frames of one cycle are put side by side:
-
-- a row is one **sample**, opened by the drive's sensor frame ``DRIVE_TPDO1`` (sampled at
-  the SYNC instant t(k)); it carries the SYNC counter of that cycle, the truth frames of
-  the same instant (the emulator sends them just before the sensor frame, stamped t(k)),
-  and the controller's answers that follow before the next sample (``DRIVE_RPDO1`` with
-  its ``cycle`` counter, ``CTRL_TPDO1``, ``CTRL_TPDO2``);
-- which frames are cyclic comes from the DBCs (messages with a cycle time,
-  ``GenMsgCycleTime``); the event-driven statusword (``DRIVE_TPDO2``) is carried forward
-  as the drive's state in each row;
-- the first columns are ``time_s`` (the sample's time since the trace's first frame)
-  and ``sample`` (0, 1, 2, ...); then ``SIGNAL_UNIT`` for every signal that occurred in
-  the trace (``T_meas_Nm``, ``velocity_radps``, ``ADC_torque_count``,
-  ``sync_counter_cycle``), in DBC order; a cell is empty where that cycle's frame was
-  missing (lost frame, start-up).
+A CAN trace holds about seven frames per 1 ms cycle, so a per-frame table is mostly empty
+cells.  Here a row is one **sample**, opened by the drive's sensor frame ``DRIVE_TPDO1``
+(sampled at the SYNC instant): it carries that cycle's SYNC counter, the truth frames of
+the same instant and the controller's answers that follow before the next sample
+(``DRIVE_RPDO1`` with its ``cycle`` counter, ``CTRL_TPDO1``, ``CTRL_TPDO2``).  Which
+frames are cyclic comes from the DBCs (``GenMsgCycleTime``); the event-driven statusword
+is carried forward as the drive's state.  The columns are ``time_s`` (since the trace's
+first frame), ``sample``, then ``SIGNAL_UNIT`` for every signal in the trace
+(``T_meas_Nm``, ``velocity_radps``, ``sync_counter_cycle``, ...) in DBC order; a cell is
+empty where that cycle's frame is missing.
 
 :func:`read_cycles` gives the same table as numpy arrays (NaN where empty).
 """

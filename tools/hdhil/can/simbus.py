@@ -1,53 +1,23 @@
 """A deterministic, simulated-time CAN bus that plugs into python-can as interface ``simbus``.
 
 python-can's own ``virtual`` interface stamps frames with wall-clock time and deep-copies
-every frame for every receiver (about 4 us a copy).  For lockstep runs we want the
-opposite: simulated timestamps, bit-identical delivery order, and a bus that behaves like a
-real 1 Mbit/s wire.  ``SimBus`` is an ordinary :class:`can.BusABC`, so nodes written against
-python-can run on it unchanged and run on SocketCAN, PCAN, ``virtual`` or ``udp_multicast``
-just the same::
+every frame for every receiver.  Lockstep runs need the opposite: simulated timestamps,
+bit-identical delivery order, and a bus that behaves like a real 1 Mbit/s wire.
+``SimBus`` is an ordinary :class:`can.BusABC`, so nodes written against python-can run on
+it unchanged, and on SocketCAN, PCAN, ``virtual`` or ``udp_multicast`` just the same.
 
-    clock = SimClock()
-    a = can.Bus(interface="simbus", channel="control", clock=clock)
-    b = can.Bus(interface="simbus", channel="control", clock=clock)
+Timing: a node requests a frame at the clock's time (or when it received the frame it
+answers); when the wire is free every frame requested by then competes and the lowest
+identifier wins; the frame is delivered, timestamped, at the end of its exact bit time
+(:mod:`hdhil.can.bittiming`; ``timing="worst-case"`` for docs/design.md's budget,
+``bitrate=0`` for untimed delivery, as on the truth channel).  With a fault hook
+(``faults``, :mod:`hdhil.can.faults`) a frame is receivable only once the simulated
+clock reaches its delivery time, so a frame delayed past the next SYNC arrives in the
+next cycle; without one the channel keeps its fault-free path.  ``node_id`` names the
+node that owns a handle, so a silence or bus-off of that node stops all it sends.
 
-Timing model: frames are serialised on the channel like on a real wire.
-
-- A node requests a frame at the clock's time, or at the time it last received a frame if
-  that is later (it cannot answer a frame before receiving it); nodes compute in zero
-  simulated time.
-- When the wire becomes free, every frame requested by then competes and the lowest
-  identifier wins arbitration; a frame is delivered, timestamped, at the end of its
-  transmission.
-- A frame's duration is its exact bit count at the bit rate (``timing="exact"``,
-  default: CRC and the real stuff bits, :mod:`hdhil.can.bittiming`) or its worst case
-  (``timing="worst-case"``, docs/design.md's budget).  ``bitrate=0`` turns timing off: frames
-  are delivered as they are sent, stamped with the clock's time (the ground-truth side
-  channel; with a fault hook they still go through the scheduler).
-- Requested frames are scheduled when a receiver next polls, so all requests made at
-  one instant take part in the arbitration.
-- With a fault hook, a frame is receivable only once the simulated clock has reached
-  its delivery time: deliveries due at or after the clock's ``horizon`` (the end of the
-  lockstep step, :class:`SimClock`) wait in flight and are handed out, in delivery-time
-  order, in the step that contains their time.  A sensor frame delayed past the next
-  SYNC therefore arrives after that SYNC, in the next cycle, as on a real bus.
-
-``faults``: a :class:`hdhil.can.faults.ChannelFaults` hook
-(``FaultInjector.channel("control")``) makes the channel lossy, late, noisy
-(:mod:`hdhil.can.faults`); any bus of the channel may pass it.  Without one the channel keeps
-its fault-free path.
-
-``node_id``: the CANopen node-ID of the node that owns the handle: a ``silence`` or
-``bus_off`` window of node n stops every frame sent through a handle of node n,
-whatever its identifier (the SYNC and RPDOs of a master included).  Handles without one
-(taps, tools) are judged by the identifiers they send.
-
-``trace_channel``: the channel number received frames carry (``msg.channel``), e.g. the
-trace channel of the bus; by default the channel name.
-
-Delivery: one immutable-by-convention :class:`can.Message` per sent frame is queued for
-every other bus on the channel (and for the sender when ``receive_own_messages``).
-Receivers must not mutate received messages.
+Delivery: one :class:`can.Message` per sent frame is queued for every other bus on the
+channel (and for the sender with ``receive_own_messages``); receivers must not mutate it.
 """
 
 from __future__ import annotations

@@ -1,75 +1,22 @@
 """CiA 402 drive state machine (power drive system, PDS FSA), pure and bus-agnostic.
 
 CiA 402-2 / IEC 61800-7-201, clause "PDS finite state automaton": the drive is in one of
-eight states; the controlword (0x6040) commands transitions, the statusword (0x6041)
+eight states; the controlword (0x6040) commands transitions 0-16, the statusword (0x6041)
 reports the state, and a fault takes the drive to FAULT REACTION ACTIVE and then FAULT.
 Nothing here touches a bus or a clock: the drive node feeds controlwords, faults and
 elapsed time in, and reads the statusword, ``torque_enabled`` and ``torque_output(...)``.
 
-Transitions (numbers as in CiA 402-2 / IEC 61800-7-201 figure "PDS FSA")::
-
-    0  Start                   -> NOT READY TO SWITCH ON   automatic (power on, self-init)
-    1  NOT READY TO SWITCH ON  -> SWITCH ON DISABLED       automatic (init complete)
-    2  SWITCH ON DISABLED      -> READY TO SWITCH ON       Shutdown
-    3  READY TO SWITCH ON      -> SWITCHED ON              Switch on
-    4  SWITCHED ON             -> OPERATION ENABLED        Enable operation
-    5  OPERATION ENABLED       -> SWITCHED ON              Disable operation
-    6  SWITCHED ON             -> READY TO SWITCH ON       Shutdown
-    7  READY TO SWITCH ON      -> SWITCH ON DISABLED       Disable voltage / Quick stop
-    8  OPERATION ENABLED       -> READY TO SWITCH ON       Shutdown
-    9  OPERATION ENABLED       -> SWITCH ON DISABLED       Disable voltage
-    10 SWITCHED ON             -> SWITCH ON DISABLED       Disable voltage / Quick stop
-    11 OPERATION ENABLED       -> QUICK STOP ACTIVE        Quick stop
-    12 QUICK STOP ACTIVE       -> SWITCH ON DISABLED       quick stop done (option 0-4)
-                                                          or Disable voltage
-    13 any                     -> FAULT REACTION ACTIVE    fault (``fault(code)``)
-    14 FAULT REACTION ACTIVE   -> FAULT                    automatic (reaction done)
-    15 FAULT                   -> SWITCH ON DISABLED       Fault reset (0->1 of bit 7)
-    16 QUICK STOP ACTIVE       -> OPERATION ENABLED        Enable operation (option 5-8)
-
-"Switch on + enable operation" (0x000F) in READY TO SWITCH ON runs 3 and then 4
-(CiA 402-2 command table: automatic transition after SWITCHED ON).
-
-Controlword commands (bits 7 fault reset, 3 enable operation, 2 quick stop (active low),
-1 enable voltage, 0 switch on; x = don't care), CiA 402-2 table "command coding":
-
-    Shutdown            0xxx x110   e.g. 0x0006
-    Switch on           0xxx 0111   e.g. 0x0007   (same pattern: Disable operation)
-    Enable operation    0xxx 1111   e.g. 0x000F   (same pattern: Switch on + enable op.)
-    Disable voltage     0xxx xx0x   e.g. 0x0000
-    Quick stop          0xxx x01x   e.g. 0x0002
-    Fault reset         0->1 edge of bit 7, e.g. 0x0080
-
-While bit 7 is set no other command is decoded (the other commands all need bit 7 = 0).
-
-Statusword (0x6041), bits set here:
-
-    0 ready to switch on   1 switched on   2 operation enabled   3 fault
-    4 voltage enabled (``voltage_present``: high voltage applied to the power stage)
-    5 quick stop (active low: 0 only in QUICK STOP ACTIVE)
-    6 switch on disabled   7 warning (``warning``)   9 remote (``remote``)
-    10 target reached (``target_reached``, or the quick-stop ramp has finished)
-    11 internal limit active (``internal_limit_active``)
-    12 CST: "drive follows the command value" (OPERATION ENABLED in mode CST)
-
 Modes of operation 0x6060/0x6061: cyclic synchronous torque (CST, 10) is the supported
-mode and the default; "no mode" (0) is accepted and makes the drive ignore its target.
-Any other mode is rejected (``set_mode`` returns False, the display keeps its value; the
-SDO layer answers 0x06090030 "value range of parameter exceeded").
+mode and the default; "no mode" (0) makes the drive ignore its target; any other mode is
+rejected (``set_mode`` returns False).  Quick stop (option code 0x605A) and the fault
+reaction (0x605E) ramp the torque being applied linearly to zero over
+``quick_stop_time_s`` / ``fault_reaction_time_s`` (our stand-in for the torque slope
+0x6087); quick stop options 5-8 then stay in QUICK STOP ACTIVE until Enable operation
+(transition 16).  ``torque_enabled`` is True only in OPERATION ENABLED, the only state in
+which the drive follows its torque target.
 
-Quick stop in a torque mode (quick stop option code 0x605A, CiA 402-2): 0 = "disable drive
-function": torque off at once and straight on to SWITCH ON DISABLED (11 then 12); 1-4 =
-slow-down / quick-stop ramp / current / voltage limit: the torque being applied when the
-quick stop began ramps linearly to zero over ``quick_stop_time_s`` (our stand-in for the
-torque slope 0x6087), then transition 12; 5-8 = the same ramp, then the drive stays in
-QUICK STOP ACTIVE (target reached set) and Enable operation brings it back (16).  The fault
-reaction (0x605E) ramps the same way over ``fault_reaction_time_s`` (0 = torque off at
-once, i.e. "disable drive"); then transition 14.
-
-``torque_enabled`` is True only in OPERATION ENABLED: only then does the drive follow its
-torque target.  ``torque_output(target)`` gives the torque demand to apply: the target in
-OPERATION ENABLED (mode CST), the frozen last demand times the ramp factor while a quick
-stop or fault reaction ramps down, and 0 otherwise.
+The transition table, the controlword coding and the statusword bits set here are in
+docs/canopen.md, "The CiA 402 state machine".
 """
 
 from __future__ import annotations

@@ -5,21 +5,16 @@ parameters say; its controller must send what the drive receives and decode what
 sends.  This module derives the controller's side from the drive's, so nothing about a
 mapping is typed twice:
 
-- :func:`dcf_layouts`: the drive's valid PDOs (:class:`hdhil.canopen.pdo.PdoLayout`) as
-  the DCF leaves them (its ``ParameterValue`` lines over the EDS defaults);
-- :func:`peer_pdo_writes`: the writes that give the controller the matching PDOs: a
-  transmit PDO of the drive is a receive PDO of the controller with the same COB-ID, and
-  the other way round; each mapped object is the controller's object of the same name
-  (``statusword`` is 0x6041 in the drive and 0x2011 in the controller), with the same
-  data type;
-- :func:`layout_codec`: a compiled frame codec (:class:`hdhil.dbc.FrameCodec`) for a live
-  layout, its signals named and typed from the object dictionary;
+- :func:`dcf_layouts`: the drive's valid PDOs as the DCF leaves them;
+- :func:`peer_pdo_writes`: the writes that give the controller the matching PDOs (a
+  transmit PDO of the drive is a receive PDO of the controller with the same COB-ID,
+  each mapped object the controller's object of the same name and data type);
+- :func:`layout_codec`: a compiled frame codec for a live layout, typed from the object
+  dictionary;
 - :func:`control_database`: ``control.dbc`` with the PDO messages a non-default mapping
-  changes replaced by messages built from the drive's EDS, so tools decode a trace of
-  that mapping (the DBC stays the description of the default mapping);
-- :data:`MAPPINGS`: the mappings shipped with the package by name (``raw``: the seed's
-  ADC/DAC mapping, no DCF; ``cst``: ``dbc/drive-cst.dcf``, the CiA 402 cyclic
-  synchronous torque mapping).
+  changes rebuilt from the drive's EDS, so tools decode a trace of that mapping;
+- :data:`MAPPINGS`: the shipped mappings by name (``raw``: the EDS defaults, no DCF;
+  ``cst``: ``dbc/drive-cst.dcf``, CiA 402 cyclic synchronous torque).
 """
 
 from __future__ import annotations
@@ -304,7 +299,7 @@ def trace_decoder(trace: Path) -> Any:
 
 
 def raw_sensor_frames(trace: Path) -> str | None:
-    """None if ``trace``'s sensor frames are the seed's raw ADC/encoder frames (no
+    """None if ``trace``'s sensor frames are the raw ADC/encoder frames (no
     sidecar mapping, or a DCF that keeps them); else the mapping's label from the
     sidecar (what a command that replays the raw channels names in its error)."""
     from hdhil.can.traces.sidecar import read_metadata

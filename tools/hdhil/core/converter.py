@@ -1,14 +1,14 @@
-"""The converters (12-bit, +/-10 V by default; not from the seed) between the firmware
-and the drive.
+"""The converters between the firmware and the drive: counts and volts, one definition.
 
-The seed's DSP board (DT1401 A/D, DAC0 to the MAX-100 servo amplifier; [Taghirad97],
-listing A.1, ``DT1401Read`` / ``write_dac0``) works in volts; on the CAN link the
-drive transmits ADC counts and receives DAC counts.  This module is the one place
-that defines how counts and volts relate, so both nodes agree by construction.
+The DSP board of [Taghirad97] (DT1401 A/D, DAC0 to the MAX-100 servo amplifier; listing
+A.1, ``DT1401Read`` / ``write_dac0``) works in volts; on the CAN link the drive transmits
+ADC counts and receives DAC counts.  This module is the one place that defines how
+counts and volts relate, so both nodes agree by construction.  12 bits and +/-10 V are
+our defaults; the papers give neither.
 
-A converter with ``bits`` bits and full scale ``full_scale_V`` has the two's
-complement code range ``[-2**(bits-1), 2**(bits-1) - 1]`` and an LSB of
-``full_scale_V / 2**(bits-1)``.  Conversions saturate at the code range.
+A converter with ``bits`` bits and full scale ``full_scale_V`` has the two's complement
+code range ``[-2**(bits-1), 2**(bits-1) - 1]`` and an LSB of ``full_scale_V /
+2**(bits-1)``.  Conversions saturate at the code range.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ class Converter:
 
     The defaults are ours: [Taghirad97]'s listing names the DT1401 board (``DT140X.h``,
     ``DT1401Read``) but prints neither its resolution nor its input range; 12 bits and
-    +/-10 V are the common figures of that class of board, not from the seed.
+    +/-10 V are the common figures of that class of board, not from the papers.
     """
 
     bits: int = 12

@@ -32,6 +32,7 @@ __all__ = [
     "BusConfig",
     "LinkConfig",
     "Scenario",
+    "ScenarioHeader",
     "list_scenarios",
     "load_scenario",
     "scenario_data",
@@ -113,8 +114,10 @@ class Scenario:
 
 
 @dataclass(frozen=True)
-class _Header:
-    """The ``[scenario]`` table (validated on its own so errors name ``scenario.*``)."""
+class ScenarioHeader:
+    """The ``[scenario]`` table: the experiment's name and description, its simulated
+    duration in operation (s), the plant's noise seed, where the evaluation starts (s)
+    and what it scores (``ripple``, ``tracking``; empty: by the control law)."""
 
     name: str
     duration_s: float
@@ -159,7 +162,7 @@ def scenario_from_dict(data: dict[str, Any], source: str = "scenario") -> Scenar
         for key in ("name", "duration_s"):
             if key not in header_data:
                 raise ConfigError(f"missing key scenario.{key}")
-        header = from_dict(_Header, header_data, "scenario")
+        header = from_dict(ScenarioHeader, header_data, "scenario")
         faults_data = data.get("faults")
         faults = None
         if faults_data is not None:
