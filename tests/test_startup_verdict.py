@@ -8,9 +8,9 @@ import json
 import time
 from pathlib import Path
 
+from hdhil.analysis.soak import run_soak
 from hdhil.can.faults import with_fault_flags
 from hdhil.cli import main
-from hdhil.commands.soak import run_soak
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
 from hdhil.hostsim.scenario import load_scenario
