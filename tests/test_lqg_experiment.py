@@ -198,7 +198,7 @@ def test_plot_draws_fig8(experiment, tmp_path, capsys) -> None:
     assert main(["plot", str(trace), "--figure", "fig8", "--scenario", "lqg-experiment",
                  "--out", str(png)]) == 0  # fmt: skip
     assert png.stat().st_size > 20_000
-    from hdhil.commands.seedfigs import fig8_data
+    from hdhil.analysis.paper_figures import fig8_data
 
     data, damage = fig8_data(trace)
     assert damage == ""

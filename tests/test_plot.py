@@ -1,6 +1,6 @@
-"""Tests of ``hdhil plot`` (tools/hdhil/plot.py): the [Taghirad97] Figs. 8-11 views of a trace,
-the flat-velocity window and the spectrum peak finder (Fig. 8: peaks at 2x and 4x the
-motor velocity)."""
+"""Tests of ``hdhil plot`` (hdhil.analysis.ripple_figures): the [Taghirad97] Figs. 8-11
+views of a trace, the flat-velocity window and the spectrum peak finder (Fig. 8: peaks at
+2x and 4x the motor velocity)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,7 @@ import can
 import numpy as np
 import pytest
 
-from hdhil.can.tracefile import read_trace
-from hdhil.cli import main
-from hdhil.commands.plot import (
+from hdhil.analysis.ripple_figures import (
     PlotData,
     flat_velocity_window,
     make_figure,
@@ -23,6 +21,8 @@ from hdhil.commands.plot import (
     spectrum_peaks,
     torque_spectrum,
 )
+from hdhil.can.tracefile import read_trace
+from hdhil.cli import main
 from hdhil.core.dataconf import from_dict
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.hostsim.scenario import load_scenario
