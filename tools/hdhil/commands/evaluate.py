@@ -1,4 +1,11 @@
-"""``hdhil evaluate``: score the firmware's and offline filters against ground truth."""
+"""``hdhil evaluate``: score the firmware's and offline filters against ground truth.
+
+The scores are :func:`hdhil.rig.evaluate.evaluate`'s, plus the torque-control tracking
+figures of :func:`hdhil.analysis.tracking.tracking_from_trace` when the trace carries
+controller telemetry.  This module finds the trace's scenario, checks that there is
+something to score, and prints the table or JSON.  Exit codes: 0 done, 1 done on a
+damaged trace, 2 input error (one line).
+"""
 
 from __future__ import annotations
 
@@ -9,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hdhil.analysis.tracking import tracking_from_trace
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import arg_seconds
 from hdhil.firmware.config import FirmwareConfig
@@ -55,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
             "nothing to score against (`hdhil filter` runs the filter without truth)"
         )
     ev = evaluate(rec, fw, args.skip)
-    tracking = _tracking(args.trace, fw, args.skip)
+    tracking = tracking_from_trace(args.trace, fw, args.skip)
     if tracking is not None:
         ev["tracking"] = tracking
     if args.json:
@@ -71,24 +79,3 @@ def run(args: argparse.Namespace) -> int:
         print(f"hdhil: warning: {damage}", file=sys.stderr)
         return 1
     return 0
-
-
-def _tracking(trace: Path, fw: FirmwareConfig, skip_s: float) -> dict | None:
-    """[Vertechy] tracking figures from the trace alone (desired torque and estimates from
-    the controller's CTRL_TPDO2, truth from the truth channel), or None without
-    torque-control telemetry.  The joint's Jl/Jm and whether the law compensates the
-    friction (Eq. 5) come from ``--scenario``."""
-    from hdhil.can.tracefile import read_trace
-    from hdhil.rig.score import TrackingScorer, trace_time_offset
-
-    c = fw.control
-    scorer = TrackingScorer(
-        c.joint.Jl / c.joint.Jm, skip_s, c.friction.active, trace_time_offset(trace)
-    )
-    with read_trace(trace) as frames:
-        for msg in frames:
-            scorer.on_message_received(msg)
-    if not scorer.n:
-        return None
-    law = c.law.name.lower() if c.active else "(from trace)"
-    return {"law": law, **scorer.result().as_dict()}
