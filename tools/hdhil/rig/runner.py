@@ -740,7 +740,7 @@ def run_lockstep(
     of both buses, as a logger does).  ``monitor`` is called with the controller at
     the cycle boundary after every ``monitor_every`` samples in operation; on the
     simulated bus the tap has then seen every frame of those samples (how
-    :mod:`hdhil.commands.soak` reads the firmware's filter health per block).
+    :mod:`hdhil.analysis.soak` reads the firmware's filter health per block).
 
     The nodes come from factories (:mod:`hdhil.rig.factories`): ``controller_factory``
     builds the controller, ``drive_factories`` one drive per slot of ``layout`` (one
