@@ -522,7 +522,7 @@ class HarmonicKalman:
     def innovation_variance(self) -> float:
         """Its predicted variance S(k) = C(k) P(k|k−1) C(k)ᵀ + R (Nm²), the same S the
         step divides by; with the model right, e(k) ~ N(0, S(k)) and
-        Σ ½(log 2πS + e²/S) is the negative log-likelihood :mod:`hdhil.commands.tune` minimises.
+        Σ ½(log 2πS + e²/S) is the negative log-likelihood :mod:`hdhil.analysis.tuning` minimises.
         NaN whenever :attr:`innovation` is."""
         return self._innovation_variance
 

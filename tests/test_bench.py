@@ -1,4 +1,4 @@
-"""Tests of ``hdhil bench`` (tools/hdhil/bench.py): the report's structure on a tiny run.
+"""Tests of ``hdhil bench`` (hdhil.analysis.benchmarks): the report's structure on a tiny run.
 
 Only the shape of the report and the sanity of its figures (positive, finite) are
 checked, never a timing threshold: the machines running the tests are shared and noisy.
@@ -12,8 +12,13 @@ import os
 
 import pytest
 
+from hdhil.analysis.benchmarks import (
+    LOCKSTEP_SCENARIOS,
+    REALTIME_GOALS,
+    format_bench,
+    run_benchmarks,
+)
 from hdhil.cli import main
-from hdhil.commands.bench import LOCKSTEP_SCENARIOS, REALTIME_GOALS, format_bench, run_benchmarks
 from hdhil.firmware.isr import STAGES
 
 
@@ -139,7 +144,7 @@ def test_text_report_and_json_roundtrip(report: dict) -> None:
 
 
 def test_realtime_section_can_be_left_out(report: dict, monkeypatch) -> None:
-    import hdhil.commands.bench as bench
+    import hdhil.analysis.benchmarks as bench
 
     def fail(*args: object, **kwargs: object) -> None:
         raise AssertionError("a section ran")

@@ -10,14 +10,12 @@ import numpy as np
 import pytest
 
 from hdhil.cli import main
-from hdhil.core.dataconf import from_dict, merge
 from hdhil.core.errors import UserError
-from hdhil.firmware.config import FirmwareConfig
 from hdhil.hostsim.bridge import BridgeConfig
 from hdhil.hostsim.calibration import CalibrationRig, calibrate, load_sequence
 from hdhil.hostsim.plant import PlantConfig
 from hdhil.rig.calibration import load_calibration
-from hdhil.rig.scenario import load_scenario
+from hdhil.rig.request import resolve
 
 
 @pytest.fixture(scope="module")
@@ -143,8 +141,7 @@ def test_cli_text_report_and_out_file_round_trip(tmp_path: Path, capsys) -> None
     gain = table["calibration"]["volt2Nm"]
     assert set(table) == {"calibration"} and 6.5 < gain < 6.75
     # the firmware takes it: merged over a scenario's [firmware] table
-    scn = load_scenario("misalignment")
-    cfg = from_dict(FirmwareConfig, merge(scn.firmware, table), "firmware")
+    cfg = resolve("misalignment", calibration=toml_out).firmware
     assert cfg.calibration.volt2Nm == gain
     assert cfg.reference.wave.name == "STEP"  # the rest of the table is kept
     json_out = tmp_path / "cal.json"
@@ -223,3 +220,20 @@ def test_calibrate_plot_draws_figs_6_7_and_lever_error_sets_the_consistency(tmp_
     default = np.median([consistency("0.005", s) for s in range(9)])
     assert 1.4 < table1 < 2.6
     assert default < 0.8
+
+
+def test_calibration_figure_from_python(default_results) -> None:
+    """The figure alone (no argparse): one panel per load range, one point series and
+    one fitted line per experiment, Fig. 6 for the low range and Fig. 7 for the full."""
+    from hdhil.analysis.paper_figures import make_calibration_figure
+
+    result = default_results[0]
+    fig = make_calibration_figure(result, "title")
+    ranges = sorted({e.range_Nm for e in result.experiments})
+    assert len(fig.axes) == len(ranges) == 2
+    assert fig.get_suptitle() == "title"
+    assert "Fig. 6: low-range" in fig.axes[0].get_title()
+    assert "Fig. 7: full-range" in fig.axes[1].get_title()
+    for ax, rng in zip(fig.axes, ranges, strict=True):
+        experiments = [e for e in result.experiments if e.range_Nm == rng]
+        assert len(ax.get_lines()) == 2 * len(experiments)

@@ -13,7 +13,7 @@ import pytest
 from runs import lockstep
 
 from hdhil import cli
-from hdhil.commands.identify import FrequencyResponse, half_power, log_decrement
+from hdhil.analysis.identification import FrequencyResponse, half_power, log_decrement
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.dbc import codec
 from hdhil.firmware.config import FirmwareConfig, ReferenceConfig, Wave
@@ -155,6 +155,31 @@ def test_identify_text_summary_and_other_inertias(hdhil, chirp_trace) -> None:
     assert c2 == pytest.approx(2 * c1, rel=1e-3)
 
 
+def test_identify_from_python_gives_what_the_command_prints(hdhil, chirp_trace) -> None:
+    """The library alone (no argparse): the same figures as ``hdhil identify --json``."""
+    from hdhil.analysis.identification import (
+        chirp_data_from_trace,
+        format_identification,
+        identify,
+        model_values,
+    )
+
+    scenario = load_scenario("chirp")
+    plant = scenario.plant
+    firmware = from_dict(FirmwareConfig, scenario.firmware, "firmware")
+    data = chirp_data_from_trace(chirp_trace, firmware, plant.torque_per_volt)
+    ident = identify(data, plant.drivetrain.J_motor, plant.drivetrain.J_load,
+                     model=model_values(plant))  # fmt: skip
+    code, out, _ = hdhil("identify", chirp_trace, "--json")
+    assert code == 0
+    cli_result = json.loads(out)
+    assert json.loads(json.dumps(ident.as_dict())) == {
+        k: v for k, v in cli_result.items() if k not in ("trace", "scenario", "plot")
+    }
+    code, text, _ = hdhil("identify", chirp_trace)
+    assert text.rstrip("\n") == format_identification(ident, f"{chirp_trace} (scenario chirp)")
+
+
 # --------------------------------------------------------------------------- errors
 
 
@@ -212,7 +237,12 @@ def test_identify_rejects_a_trace_without_a_resonance(hdhil, tmp_path) -> None:
 def test_identify_plot_has_phase_and_coherence_panels(chirp_trace) -> None:
     """The figure holds the Bode magnitude, the phase (crossing -90 deg near fn, as a
     second-order resonance does) and the coherence next to the impulse response."""
-    from hdhil.commands.identify import chirp_data_from_trace, identify, make_figure, model_values
+    from hdhil.analysis.identification import (
+        chirp_data_from_trace,
+        identify,
+        make_figure,
+        model_values,
+    )
     from hdhil.firmware.config import FirmwareConfig
     from hdhil.rig.scenario import load_scenario
 

@@ -716,6 +716,19 @@ def test_cli_parameters_change_the_design(hdhil):
     assert json.loads(out)["k4"] == pytest.approx(1 + 2.5 / 0.7)
 
 
+def test_design_report_from_python_is_what_the_command_prints(hdhil):
+    """The report alone (no argparse): the seed's design at 1 kHz, one sample of delay
+    with prediction, as ``hdhil design lqg`` prints it (text and JSON)."""
+    from hdhil.analysis.lqg_report import design_dict, format_design
+
+    design = design_lqg(JointParams(), LqgWeights(), Ts=1e-3)
+    code, out, _ = hdhil("design", "lqg")
+    assert code == 0 and out == format_design(design, delay=1, predict=True) + "\n"
+    code, out, _ = hdhil("design", "lqg", "--json", "--delay", "0")
+    assert code == 0
+    assert json.loads(out) == json.loads(json.dumps(design_dict(design, delay=0, predict=True)))
+
+
 @pytest.mark.parametrize(
     "argv",
     [

@@ -191,6 +191,19 @@ def test_the_trace_alone_scores_the_experiment(experiment, capsys) -> None:
         assert tracking[key] == pytest.approx(run_row[key], rel=1e-12), key
 
 
+def test_tracking_from_python_is_what_evaluate_reports(experiment, capsys) -> None:
+    """The library alone (no argparse) scores the trace as ``hdhil evaluate`` does."""
+    from hdhil.rig.trace_score import tracking_from_trace
+
+    _rows, out = experiment
+    trace = out.with_name(f"{out.stem}-jtf1{out.suffix}")
+    fw = from_dict(FirmwareConfig, load_scenario("lqg-experiment").firmware, "firmware")
+    tracking = tracking_from_trace(trace, fw, 1.0)
+    assert main(["evaluate", str(trace), "--scenario", "lqg-experiment", "--skip", "1",
+                 "--json"]) == 0  # fmt: skip
+    assert json.loads(json.dumps(tracking)) == json.loads(capsys.readouterr().out)["tracking"]
+
+
 def test_plot_draws_fig8(experiment, tmp_path, capsys) -> None:
     _rows, out = experiment
     trace = out.with_name(f"{out.stem}-jtf1{out.suffix}")
@@ -198,7 +211,7 @@ def test_plot_draws_fig8(experiment, tmp_path, capsys) -> None:
     assert main(["plot", str(trace), "--figure", "fig8", "--scenario", "lqg-experiment",
                  "--out", str(png)]) == 0  # fmt: skip
     assert png.stat().st_size > 20_000
-    from hdhil.commands.seedfigs import fig8_data
+    from hdhil.analysis.paper_figures import fig8_data
 
     data, damage = fig8_data(trace)
     assert damage == ""
@@ -217,6 +230,9 @@ def test_plot_fig8_without_control_telemetry_is_a_one_line_error(tmp_path, capsy
     assert main(["plot", str(trace), "--figure", "fig8", "--out", str(tmp_path / "x.png")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("hdhil: error:") and "CTRL_TPDO2" in err[0]
+    from hdhil.rig.trace_score import tracking_from_trace
+
+    assert tracking_from_trace(trace, FirmwareConfig(), 0.0) is None  # no torque control
 
 
 def test_lowpass_of_the_section_v_estimates() -> None:

@@ -1,6 +1,6 @@
-"""Tests of ``hdhil plot`` (tools/hdhil/plot.py): the [Taghirad97] Figs. 8-11 views of a trace,
-the flat-velocity window and the spectrum peak finder (Fig. 8: peaks at 2x and 4x the
-motor velocity)."""
+"""Tests of ``hdhil plot`` (hdhil.analysis.ripple_figures): the [Taghirad97] Figs. 8-11
+views of a trace, the flat-velocity window and the spectrum peak finder (Fig. 8: peaks at
+2x and 4x the motor velocity)."""
 
 from __future__ import annotations
 
@@ -13,9 +13,7 @@ import numpy as np
 import pytest
 from runs import lockstep
 
-from hdhil.can.traces.reader import read_trace
-from hdhil.cli import main
-from hdhil.commands.plot import (
+from hdhil.analysis.ripple_figures import (
     PlotData,
     flat_velocity_window,
     make_figure,
@@ -24,6 +22,8 @@ from hdhil.commands.plot import (
     spectrum_peaks,
     torque_spectrum,
 )
+from hdhil.can.traces.reader import read_trace
+from hdhil.cli import main
 from hdhil.core.dataconf import from_dict
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.rig.evaluate import recording_from_trace

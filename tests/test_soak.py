@@ -1,4 +1,4 @@
-"""Tests of ``hdhil soak`` (tools/hdhil/soak.py) on short runs.
+"""Tests of ``hdhil soak`` (hdhil.analysis.soak) on short runs.
 
 The per-block figures are checked against the run's own whole-run scorers (nothing lost
 between blocks), and each verdict is made to fail by a fault injected into the running
@@ -23,11 +23,12 @@ import numpy as np
 import pytest
 from runs import lockstep
 
-import hdhil.commands.soak as soak
+import hdhil.commands.soak as soak_command
+from hdhil.analysis.soak import Block, SoakLimits, SoakReport, run_soak, stationarity
 from hdhil.cli import main
-from hdhil.commands.soak import Block, SoakLimits, SoakReport, run_soak, stationarity
 from hdhil.core.dataconf import ConfigError
 from hdhil.firmware.controller import ControllerNode
+from hdhil.rig.request import resolve
 from hdhil.rig.scenario import load_scenario
 
 VERDICTS = [
@@ -60,8 +61,7 @@ def _verdict(report: dict[str, Any] | SoakReport, name: str) -> Any:
 
 def _short(after_block: Any, duration_s: float = 12.0, block_s: float = 3.0) -> SoakReport:
     return run_soak(
-        load_scenario("lqg-tracking"),
-        duration_s=duration_s,
+        resolve("lqg-tracking", duration_s=duration_s),
         block_s=block_s,
         limits=SoakLimits(settle_s=block_s),
         after_block=after_block,
@@ -179,7 +179,7 @@ def test_injected_nan_fails_the_non_finite_verdict_and_exits_1(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setattr(
-        soak, "run_soak", functools.partial(soak.run_soak, after_block=_poison_differentiator)
+        soak_command, "run_soak", functools.partial(run_soak, after_block=_poison_differentiator)
     )
     code, r = _cli_report(capsys, "--scenario", "lqg-tracking", "--duration", "9",
                           "--every", "3", "--settle", "3", "--trace", "")  # fmt: skip

@@ -3,17 +3,15 @@ code 1; only the user's own input (a DCF value the drive refuses) is an input er
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import time
 from pathlib import Path
 
-from hdhil.can.faults import with_fault_flags
+from hdhil.analysis.soak import run_soak
 from hdhil.cli import main
-from hdhil.commands.soak import run_soak
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
-from hdhil.rig.scenario import load_scenario
+from hdhil.rig.request import resolve
 
 
 def _dcf(tmp_path: Path, values: dict[str, str]) -> Path:
@@ -70,11 +68,8 @@ def test_a_dcf_value_the_drive_refuses_is_an_input_error(tmp_path, serve_drive, 
 
 
 def test_soak_that_never_starts_fails_with_the_reason():
-    scenario = load_scenario("free-motion")
-    scenario = dataclasses.replace(
-        scenario, faults=with_fault_flags(scenario.faults, ["control.loss_rate=0.99"])
-    )
-    report = run_soak(scenario, duration_s=1.0, block_s=0.5)
+    request = resolve("free-motion", faults=["control.loss_rate=0.99"], duration_s=1.0)
+    report = run_soak(request, block_s=0.5)
     assert not report.passed
     text = json.dumps(report.as_dict())
     assert "stopped in start-up" in text and "did not reach operation enabled" in text

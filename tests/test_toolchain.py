@@ -347,7 +347,7 @@ def test_progress_on_a_terminal_and_none_with_json_or_quiet(args):
 
 
 def test_soak_blocks_adapt_to_short_runs():
-    from hdhil.commands.soak import SoakLimits, default_block_s
+    from hdhil.analysis.soak import SoakLimits, default_block_s
 
     limits = SoakLimits(settle_s=40.0)
     assert default_block_s(120.0, limits) == 20.0  # 4 blocks from 40 s

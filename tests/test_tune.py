@@ -1,4 +1,4 @@
-"""Tests of ``hdhil tune`` (tools/hdhil/tune.py): maximum innovation-likelihood tuning of the
+"""Tests of ``hdhil tune`` (hdhil.analysis.tuning): maximum innovation-likelihood tuning of the
 recommended ripple filter, and of the innovation attributes it reads from the firmware's
 filters (firmware/ripple.py ``RippleKalman`` / ``HarmonicKalman``, [Taghirad97] Eqs. 8-10)."""
 
@@ -14,9 +14,7 @@ import numpy as np
 import pytest
 from runs import lockstep
 
-from hdhil.can.traces.reader import read_trace
-from hdhil.cli import main
-from hdhil.commands.tune import (
+from hdhil.analysis.tuning import (
     filter_inputs,
     mean_nll,
     paper_innovations,
@@ -25,6 +23,8 @@ from hdhil.commands.tune import (
     tune_signals,
     with_tuning,
 )
+from hdhil.can.traces.reader import read_trace
+from hdhil.cli import main
 from hdhil.core.dataconf import from_dict
 from hdhil.firmware.config import (
     LISTING_A1_RIPPLE,
@@ -253,6 +253,23 @@ def test_truth_is_not_used(traces: dict[str, Path], capsys: pytest.CaptureFixtur
     assert without["tuned"] == with_truth["tuned"]
     assert without["loglik_per_sample"] == with_truth["loglik_per_sample"]
     assert without["rms_vs_truth"] is None
+
+
+def test_tune_recording_from_python_gives_what_the_command_prints(
+    traces: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The library alone (no argparse) tunes a recording as ``hdhil tune --json`` does."""
+    from hdhil.analysis.tuning import tune_recording
+    from hdhil.rig.evaluate import recording_from_trace
+
+    fw = from_dict(FirmwareConfig, load_scenario("misalignment").firmware, "firmware")
+    rec, damage = recording_from_trace(traces["full"], fw.sample_period_s)
+    assert not damage
+    res = tune_recording(rec, fw, max_evals=20).to_json()
+    cli = _tune_json(capsys, str(traces["full"]), "--scenario", "misalignment", "--max-evals", "20")
+    for key in ("parameters", "default", "tuned", "paper", "loglik_per_sample", "innovations",
+                "window_samples", "evaluations", "converged", "rms_vs_truth"):  # fmt: skip
+        assert res[key] == cli[key], key
 
 
 def test_paper_mode_scenario_is_tuned_as_recommended(tmp_path: Path) -> None:

@@ -126,11 +126,11 @@ def run(args: argparse.Namespace) -> int:
 
 def _plot(path: str, result: object, scenario: str) -> None:
     """[Taghirad97] Figs. 6-7 into ``path``
-    (:func:`hdhil.commands.seedfigs.make_calibration_figure`)."""
+    (:func:`hdhil.analysis.paper_figures.make_calibration_figure`)."""
     from pathlib import Path
 
-    from hdhil.commands.plot import FORMATS
-    from hdhil.commands.seedfigs import make_calibration_figure
+    from hdhil.analysis.paper_figures import make_calibration_figure
+    from hdhil.analysis.ripple_figures import FORMATS
 
     out = Path(path)
     if out.suffix.lower() not in FORMATS:

@@ -1,4 +1,10 @@
-"""``hdhil evaluate``: score the firmware's and offline filters against ground truth."""
+"""``hdhil evaluate``: score a trace as its run was scored, headline first.
+
+The scoring is :func:`hdhil.rig.trace_score.score_trace` (the run's request from the
+trace's sidecar, the same evaluation and tracking score a live run uses); this module
+prints the headline and the table or JSON. Exit codes: 0 done, 1 done on a damaged
+trace, 2 input error (one line).
+"""
 
 from __future__ import annotations
 
@@ -8,9 +14,7 @@ import sys
 from pathlib import Path
 
 from hdhil.core.numbers import arg_seconds
-from hdhil.rig.evaluate import (
-    format_evaluation,
-)
+from hdhil.rig.evaluate import format_evaluation
 
 
 def register(sub: argparse._SubParsersAction) -> None:

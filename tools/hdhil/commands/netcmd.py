@@ -54,7 +54,6 @@ from hdhil.can.faults import (
     FaultyTransmitBus,
     check_node_transmit_faults,
     parse_fault_flags,
-    with_fault_flags,
 )
 from hdhil.can.traces.tap import BusTap, FrameCounter
 from hdhil.can.traces.writer import WriterError, WriterProcess, check_trace_path
@@ -62,25 +61,24 @@ from hdhil.canopen.nmt import COMMAND_NAMES as NMT_COMMAND_NAMES
 from hdhil.canopen.nmt import nmt_frame
 from hdhil.commands.options import (
     add_bus_options,
-    add_fault_arguments,
-    add_mapping_arguments,
+    add_scenario_arguments,
     bus_named,
-    drive_dcf_of,
     open_bus,
+    request_from_args,
+    resolve_bus_config,
 )
-from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.core.dataconf import ConfigError
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import arg_int, arg_seconds
 from hdhil.dbc import CHANNEL_NUMBER, eds_path
 from hdhil.dbc import node_ids as dbc_node_ids
-from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant
 from hdhil.rig.loop import NodeLoop, controller_expects_answer, serve
 from hdhil.rig.realtime import RealtimeLoop
 from hdhil.rig.runner import stop_on_signals
-from hdhil.rig.scenario import load_scenario
+from hdhil.rig.sidecar import run_metadata
 from hdhil.rig.verdict import (
     dcf_refused,
     drive_verdict,
@@ -121,15 +119,15 @@ def _truth_bus(args: argparse.Namespace) -> can.BusABC | None:
 def _fault_injector(
     args: argparse.Namespace, faults: FaultConfig | None, stream: str, acts_on: tuple[str, ...]
 ) -> FaultInjector:
-    """The process's faults: ``faults`` (the scenario's table) with the ``--fault`` flags
-    merged over it; flags for parts that do not act in this process are refused."""
+    """The process's faults: ``faults`` (the request's table, ``--fault`` flags merged);
+    flags for parts that do not act in this process are refused."""
     flagged = sorted(set(parse_fault_flags(args.fault)) - {"seed", *acts_on})
     if flagged:
         raise ConfigError(
             f"--fault {flagged[0]}.*: these faults do not act in hdhil {args.command} "
             f"(it injects {', '.join(acts_on)})"
         )
-    config = with_fault_flags(faults, args.fault) or FaultConfig()
+    config = faults or FaultConfig()
     for role in ("control", "truth"):
         if role in acts_on:
             check_node_transmit_faults(config, role)  # type: ignore[arg-type]
@@ -156,9 +154,8 @@ def _with_faults(
 
 
 def run_emulate(args: argparse.Namespace) -> int:
-    scenario = load_scenario(args.scenario)
-    fw = from_dict(FirmwareConfig, scenario.firmware, "firmware")
-    seed = scenario.seed if args.seed is None else args.seed
+    request = request_from_args(args)
+    scenario, fw, seed = request.scenario, request.firmware, request.seed
     acts_on = (
         ("sensors", "control", "truth") if bus_named(args, "truth") else ("sensors", "control")
     )
@@ -207,10 +204,10 @@ def run_emulate(args: argparse.Namespace) -> int:
 
 
 def run_firmware(args: argparse.Namespace) -> int:
-    scenario = load_scenario(args.scenario)
-    fw = from_dict(FirmwareConfig, scenario.firmware, "firmware")
+    request = request_from_args(args)
+    scenario, fw = request.scenario, request.firmware
     Ts = fw.sample_period_s
-    cycles = round((args.duration or scenario.duration_s) / Ts)
+    cycles = request.cycles
     injector = _fault_injector(args, scenario.faults, "controller", ("control",))
     bus = None
     try:
@@ -222,7 +219,7 @@ def run_firmware(args: argparse.Namespace) -> int:
                 fw,
                 node_id=CONTROLLER_NODE_ID,
                 boot_timeout_s=args.boot_timeout,
-                drive_dcf=drive_dcf_of(args)[0],
+                drive_dcf=request.mapping.dcf,
             )
         except ValueError as exc:
             raise UserError(str(exc)) from None
@@ -328,11 +325,45 @@ def _sync_cycles(
     return operational
 
 
+def _log_metadata(args: argparse.Namespace, control: dict[str, Any]) -> dict[str, Any]:
+    """The sidecar of a logged trace: what was recorded from where and, with
+    ``--scenario``, the run's request (so ``evaluate`` scores it with its settings)."""
+    meta: dict[str, Any] = {
+        "recorded_by": "hdhil log",
+        "interface": control.get("interface"),
+        "channel": control.get("channel"),
+        "bitrate": control.get("bitrate"),
+        "channels": dict(CHANNEL_NUMBER),
+        "time_offset_s": 0.0,
+    }
+    if args.scenario is not None:
+        request = request_from_args(args, run_duration=False)
+        meta.update(
+            scenario=request.name,
+            seed=request.seed,
+            sample_period_s=request.sample_period_s,
+            **run_metadata(request),
+        )
+    return meta
+
+
 def run_log(args: argparse.Namespace) -> int:
     try:
         check_trace_path(Path(args.trace))  # a bad name or format: before any bus opens
     except ValueError as exc:
         raise UserError(str(exc)) from None
+    if args.scenario is None and (
+        args.override
+        or args.fault
+        or args.calibration
+        or args.mapping
+        or args.drive_dcf
+        or args.seed is not None
+    ):
+        raise UserError("--override, --fault, --calibration, --mapping and --seed describe "
+                        "the run being recorded: give its --scenario too")  # fmt: skip
+    control_config = resolve_bus_config(args)
+    metadata = _log_metadata(args, control_config)
     control = _control_bus(args)
     buses = {CHANNEL_NUMBER["control"]: control}
     try:
@@ -343,7 +374,7 @@ def run_log(args: argparse.Namespace) -> int:
         with stop_on_signals() as stop:  # from here on, Ctrl-C ends the log cleanly
             try:
                 # written to a temporary, renamed into place when complete (also on Ctrl-C)
-                writer = WriterProcess(Path(args.trace))
+                writer = WriterProcess(Path(args.trace), metadata=metadata)
             except ValueError as exc:
                 raise UserError(str(exc)) from None
             tap = BusTap(buses, [writer, counter])
@@ -435,25 +466,19 @@ def run_nmt(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("emulate", help="run the drive emulator alone on a CAN interface")
     add_bus_arguments(p, truth=True)
-    p.add_argument("--scenario", default="free-motion", help="scenario (its plant section)")
-    p.add_argument("--seed", type=arg_int(0, 2**63 - 1), default=None)
-    p.add_argument(
-        "--duration",
-        type=arg_seconds(),
-        default=None,
-        help="wall seconds (default: until Ctrl-C / SIGTERM)",
+    add_scenario_arguments(
+        p,
+        what="its [plant] and [faults]: sensors.*, and control.*/truth.* on the drive's own frames",
+        duration_help="wall seconds to serve (default: until Ctrl-C / SIGTERM)",
     )
-    add_fault_arguments(p, " (sensors.*, and control.*/truth.* on the drive's own frames)")
     p.set_defaults(func=run_emulate)
 
     p = sub.add_parser("firmware", help="run the controller firmware alone on a CAN interface")
     add_bus_arguments(p)
-    p.add_argument("--scenario", default="free-motion", help="scenario (its firmware section)")
-    p.add_argument(
-        "--duration",
-        type=arg_seconds(),
-        default=None,
-        help="simulated seconds of operation (default: the scenario's)",
+    add_scenario_arguments(
+        p,
+        what="its [firmware], and [faults] control.* on the controller's own frames",
+        duration_help="simulated seconds of operation (default: the scenario's)",
     )
     p.add_argument(
         "--realtime",
@@ -466,18 +491,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=2.0,
         help="seconds to wait for the drive's boot-up",
     )
-    add_mapping_arguments(p)
-    add_fault_arguments(p, " (control.* on the controller's own frames)")
     p.set_defaults(func=run_firmware)
 
     p = sub.add_parser("log", help="record a CAN interface (and the truth bus) to a trace")
     add_bus_arguments(p, truth=True)
     p.add_argument("trace", help="trace file (.blf .asc .log .csv .trc)")
-    p.add_argument(
-        "--duration",
-        type=arg_seconds(),
+    add_scenario_arguments(
+        p,
         default=None,
-        help="wall seconds (default: until Ctrl-C / SIGTERM)",
+        what="of the run being recorded, written into the trace's sidecar so that "
+        "`hdhil evaluate` scores the trace with its settings",
+        duration_help="wall seconds to record (default: until Ctrl-C / SIGTERM)",
     )
     p.set_defaults(func=run_log)
 

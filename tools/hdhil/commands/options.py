@@ -10,7 +10,12 @@ from hdhil.core.errors import UserError
 
 
 def add_scenario_arguments(
-    p: argparse.ArgumentParser, *, default: str | None = "free-motion", what: str = ""
+    p: argparse.ArgumentParser,
+    *,
+    default: str | None = "free-motion",
+    what: str = "",
+    duration: float | None = None,
+    duration_help: str | None = None,
 ) -> None:
     """The options every command that runs a scenario takes, in one group:
     ``--scenario --duration --seed --override --fault --fault-log --calibration`` and
@@ -30,9 +35,11 @@ def add_scenario_arguments(
     g.add_argument(
         "--duration",
         type=arg_seconds(),
-        default=None,
+        default=duration,
         metavar="S",
-        help="simulated seconds (default: the scenario's)",
+        help=duration_help
+        or "simulated seconds (default: "
+        + ("the scenario's)" if duration is None else f"{duration:g})"),
     )
     g.add_argument(
         "--seed",
@@ -91,10 +98,13 @@ def add_scenario_arguments(
     )
 
 
-def request_from_args(args: argparse.Namespace, **settings: Any) -> Any:
+def request_from_args(
+    args: argparse.Namespace, *, run_duration: bool = True, **settings: Any
+) -> Any:
     """The :class:`hdhil.rig.request.RunRequest` the scenario options name (plus
     ``settings``: ``evaluate_from_s``, ``actuation``, ``bitrate`` ...); a mistake is a
-    one-line :class:`ConfigError` naming the file, key or flag."""
+    one-line :class:`ConfigError` naming the file, key or flag. ``run_duration=False``:
+    ``--duration`` is the command's own (wall seconds), the request keeps the scenario's."""
     from hdhil.rig.request import resolve
 
     return resolve(
@@ -104,7 +114,7 @@ def request_from_args(args: argparse.Namespace, **settings: Any) -> Any:
         calibration=getattr(args, "calibration", None),
         mapping=getattr(args, "mapping", None),
         drive_dcf=getattr(args, "drive_dcf", None),
-        duration_s=getattr(args, "duration", None),
+        duration_s=getattr(args, "duration", None) if run_duration else None,
         seed=getattr(args, "seed", None),
         **settings,
     )
@@ -244,70 +254,3 @@ def open_bus(
             f"cannot open the {what} ({resolved['interface']} {resolved.get('channel')}): {text}"
         ) from None
     return bus, resolved
-
-
-# ------------------------------------------------------------------ single options
-
-
-def add_fault_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
-    """``--fault KEY=VALUE`` (repeatable) and ``--fault-log FILE`` alone."""
-    p.add_argument(
-        "--fault",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="inject a fault: a key of the scenario's [faults] table, dotted, and a TOML "
-        "value, merged over the table (the flag wins; repeatable), e.g. "
-        "control.loss_rate=0.05, control.jitter_us=200, sensors.tacho_spike_rate=0.001, "
-        "seed=3, 'control.silence=[{node=2,start_s=1,duration_s=0.5}]'" + what,
-    )
-    p.add_argument(
-        "--fault-log",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="write every injected fault as JSON lines",
-    )
-
-
-def add_mapping_arguments(p: argparse.ArgumentParser) -> None:
-    """``--drive-dcf FILE`` or ``--mapping raw|cst`` alone."""
-    from hdhil.dbc import MAPPINGS
-
-    group = p.add_mutually_exclusive_group()
-    group.add_argument(
-        "--drive-dcf",
-        metavar="FILE",
-        default=None,
-        help="configure the drive at boot from this DCF (its ParameterValue entries, by "
-        "SDO); the controller's PDOs follow the drive's mapping",
-    )
-    group.add_argument(
-        "--mapping",
-        choices=list(MAPPINGS),
-        default=None,
-        help="the drive's PDO mapping by name: raw ([Taghirad97]'s ADC/DAC objects, the "
-        "default) or cst (CiA 402 cyclic synchronous torque: 0x6040 + 0x6071 in, 0x6077 + "
-        "0x6064 out; the DCF shipped as drive-cst.dcf)",
-    )
-
-
-def drive_dcf_of(args: argparse.Namespace) -> tuple[Path | None, str]:
-    """The DCF the mapping options name (None: no configuration) and its label."""
-    from hdhil.canopen.mapping import mapping_dcf
-    from hdhil.core.files import check_input
-
-    if getattr(args, "drive_dcf", None):
-        path = check_input(args.drive_dcf, "DCF")
-        return path, path.name
-    name = getattr(args, "mapping", None) or "raw"
-    return mapping_dcf(name), name
-
-
-def scenario_for_trace(trace: Path, given: str | None) -> tuple[Any, str]:
-    """The scenario a trace was recorded with (:func:`hdhil.rig.sidecar.request_for_trace`)
-    and where that came from; ``(None, note)`` without one."""
-    from hdhil.rig.sidecar import request_for_trace
-
-    request, note = request_for_trace(trace, given)
-    return (request.scenario if request is not None else None), note

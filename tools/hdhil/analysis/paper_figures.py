@@ -1,23 +1,14 @@
-"""Figures that redraw a seed's figure from this project's data (used by ``hdhil plot
---figure fig8`` and ``hdhil calibrate --plot``; not a subcommand of its own).
+"""Two more of the papers' figures, redrawn from this project's data (``hdhil plot
+--figure fig8`` and ``hdhil calibrate --plot``):
 
-- :func:`fig8_data` / :func:`make_fig8`: [Vertechy] () Fig. 8,
-  "Performance of the proposed LQG torque regulator (experimental results)", four
-  panels from top to bottom: (1) the raw sensor torque τs^m and the Kalman estimate
-  τ̂s; (2) the external-torque estimate τ̂l and the handle's measurement τl^m (here the
-  emulator's true external torque, ``TRUTH_JOINT.tau_ext``); (3) the tracking error e
-  and the difference τ̂l − τl^m ("the proposed controller is able to keep the torque
-  sensor tracking error e within ±0.5 Nm"; "the significant difference (roughly ±3 Nm)
-  between τ̂l and τl^m"); (4) the link position and velocity with the commanded motor
-  torque τm ("τm is rather smooth and remains within ±40 Nm").  Torques in the seed's
-  sign (``τs = -T``, :mod:`hdhil.firmware.isr`), so the desired torque is
-  ``+20 sin(0.4 π t)`` as printed.  Everything comes from the trace: the controller's
-  telemetry (``CTRL_TPDO1``, ``CTRL_TPDO2``: τ̂s, τ̂lgd, τsD), the drive's command
-  (``TRUTH_JOINT.tau_m_cmd``) and the truth channel.
-- :func:`make_calibration_figure`: [Taghirad97] () Figs. 6-7,
-  "Torque sensor calibration results for low-range loading" / "... full-range
-  loading": the applied torque against the bridge voltage of every experiment with its
-  least-squares line, one panel per range.
+- :func:`fig8_data` / :func:`make_fig8`: [Vertechy] Fig. 8, "Performance of the
+  proposed LQG torque regulator (experimental results)", from a trace of a torque-control
+  run;
+- :func:`make_calibration_figure`: [Taghirad97] Figs. 6-7, "Torque sensor calibration
+  results for low-range loading" / "... full-range loading", from a calibration result.
+
+Torques of Fig. 8 are in the seed's sign (``τs = -T``, :mod:`hdhil.firmware.isr`), so
+the desired torque is ``+20 sin(0.4 π t)`` as printed.
 """
 
 from __future__ import annotations
@@ -125,8 +116,22 @@ def fig8_data(trace: Path) -> tuple[Fig8Data, str]:
 
 
 def make_fig8(d: Fig8Data, title: str, skip_s: float = 0.0) -> Figure:
-    """[Vertechy] Fig. 8's four panels (module docstring); the figures in the legends
-    (max |e|, the τ̂l − τl^m range, the τm envelope) are over ``t >= skip_s``."""
+    """[Vertechy] Fig. 8's four panels; the figures in the legends (max |e|, the τ̂l −
+    τl^m range, the τm envelope) are over ``t >= skip_s``.  From top to bottom:
+
+    1. the raw sensor torque τs^m and the Kalman estimate τ̂s;
+    2. the external-torque estimate τ̂l and the handle's measurement τl^m (here the
+       emulator's true external torque, ``TRUTH_JOINT.tau_ext``);
+    3. the tracking error e and the difference τ̂l − τl^m ("the proposed controller is
+       able to keep the torque sensor tracking error e within ±0.5 Nm"; "the
+       significant difference (roughly ±3 Nm) between τ̂l and τl^m");
+    4. the link position and velocity with the commanded motor torque τm ("τm is
+       rather smooth and remains within ±40 Nm").
+
+    Everything comes from the trace: the controller's telemetry (``CTRL_TPDO1``,
+    ``CTRL_TPDO2``: τ̂s, τ̂lgd, τsD), the drive's command (``TRUTH_JOINT.tau_m_cmd``)
+    and the truth channel.
+    """
     fig = Figure(figsize=(11, 11))
     axes = fig.subplots(4, 1, sharex=True)
     t = d.t
