@@ -594,7 +594,7 @@ class ControllerNode(CanNode):
         master, start waiting ``boot_timeout_s`` for the drive's boot-up."""
         self._now = now
         self.services.boot(now)
-        self.services.expect_boot(self.drive_node_id, now, self.boot_timeout_s)
+        self.services.nmt.expect_boot(self.drive_node_id, now, self.boot_timeout_s)
         self._set_phase(Phase.WAIT_BOOT, "power on: waiting for the drive's boot-up")
 
     def tick(self, now: float) -> None:
@@ -605,9 +605,12 @@ class ControllerNode(CanNode):
         self._apply_pending()
         if self._phase is _WAIT_BOOT and self.services.state is not NmtState.INITIALISING:
             drive = self.drive_node_id
-            if self.services.boot_seen(drive) or self.services.remote_state(drive) is not None:
+            if (
+                self.services.nmt.boot_seen(drive)
+                or self.services.nmt.remote_states.get(drive) is not None
+            ):
                 self._drive_seen()
-            elif drive in self.services.boot_timed_out(now):
+            elif drive in self.services.nmt.boot_timed_out(now):
                 self.boot_error = (
                     f"drive (node {drive}) sent no boot-up within "
                     f"{_seconds(self.boot_timeout_s)} s: check power, node-ID and bit rate"
@@ -621,7 +624,7 @@ class ControllerNode(CanNode):
             if stuck is not None and stuck.revision != self._stuck_revision:
                 self._report_stuck(stuck)
         counters = self.services.counters
-        self.diagnostics.emcy_sent = counters.emcy_sent
+        self.diagnostics.emcy_sent = self.services.emcy.sent
         self.diagnostics.emcy_received = counters.emcy_received
 
     def send_sync(self) -> bool:
@@ -732,9 +735,9 @@ class ControllerNode(CanNode):
             (EmcyCode.TACHO_FAULT, 2, stuck.tacho_stuck),
         ):
             if flag:
-                self.services.emcy(code, manufacturer=bytes((channel,)))
+                self.services.emcy.raise_error(code, manufacturer=bytes((channel,)))
             else:
-                self.services.emcy_clear(code, bytes((channel,)))
+                self.services.emcy.clear(code, bytes((channel,)))
 
     def _report_plausibility(self) -> None:
         """The plausibility stage's counters into the diagnostics, and its error flags on
@@ -761,10 +764,10 @@ class ControllerNode(CanNode):
         ):
             if error and code not in active:
                 active.add(code)
-                self.services.emcy(code)
+                self.services.emcy.raise_error(code)
             elif not error and code in active:
                 active.discard(code)
-                self.services.emcy_clear(code, b"")  # not the stuck tacho's 0x7301
+                self.services.emcy.clear(code, b"")  # not the stuck tacho's 0x7301
 
     def _send_command(self, dac_counts: int, controlword: int, volts: float | None = None) -> None:
         if self._dbc_command:
@@ -929,10 +932,10 @@ class ControllerNode(CanNode):
     def _start_drive(self) -> None:
         """NMT start of the drive, controller OPERATIONAL, walk from "shutdown"."""
         drive = self.drive_node_id
-        boot = self.services.boot_times.get(drive)
+        boot = self.services.nmt.boot_times.get(drive)
         self.diagnostics.boot_time_s = self._now if boot is None else boot
         how = "boot-up" if boot is not None else "heartbeat (booted earlier)"
-        self.services.nmt_command(NmtCommand.START, drive)
+        self.services.nmt.command(NmtCommand.START, drive)
         self._enter_nmt(NmtState.OPERATIONAL)
         self.walk.restart()
         self._nmt_start_syncs = self.diagnostics.syncs_sent
@@ -951,7 +954,7 @@ class ControllerNode(CanNode):
         self._set_phase(Phase.OPERATIONAL, "drive reports OPERATION ENABLED")
 
     def _finish_stop(self, reason: str) -> None:
-        self.services.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL, self.drive_node_id)
+        self.services.nmt.command(NmtCommand.ENTER_PRE_OPERATIONAL, self.drive_node_id)
         self._set_phase(Phase.STOPPED, f"{reason}; drive NMT pre-operational")
         self._enter_nmt(NmtState.PRE_OPERATIONAL)
 
@@ -973,7 +976,7 @@ class ControllerNode(CanNode):
             self._quiet_cycles = 0
             self.diagnostics.statusword_timeouts += 1
             if self._phase is Phase.STARTING:
-                self.services.nmt_command(NmtCommand.START, self.drive_node_id)
+                self.services.nmt.command(NmtCommand.START, self.drive_node_id)
             self._read_statusword()
 
     def _read_statusword(self) -> None:
@@ -1028,14 +1031,14 @@ class ControllerNode(CanNode):
         if self._phase is Phase.SAFE:
             return
         if emcy is not None:
-            self.services.emcy(emcy, manufacturer=manufacturer)
+            self.services.emcy.raise_error(emcy, manufacturer=manufacturer)
         if self._phase in _COMMANDING and self.services.state is NmtState.OPERATIONAL:
-            self.services.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL, self.drive_node_id)
+            self.services.nmt.command(NmtCommand.ENTER_PRE_OPERATIONAL, self.drive_node_id)
         self.diagnostics.safe_reason = reason
         self._set_phase(Phase.SAFE, reason)
         if self.services.state is NmtState.OPERATIONAL:
             self._enter_nmt(NmtState.PRE_OPERATIONAL)
-        self.diagnostics.emcy_sent = self.services.counters.emcy_sent
+        self.diagnostics.emcy_sent = self.services.emcy.sent
 
     def _on_boot(self, node_id: int) -> None:
         if node_id != self.drive_node_id:
@@ -1050,7 +1053,7 @@ class ControllerNode(CanNode):
     def _on_heartbeat_lost(self, node_id: int) -> None:
         if node_id != self.drive_node_id:
             return
-        monitor = self.services.monitored[node_id]
+        monitor = self.services.heartbeat_consumer.monitored[node_id]
         d = self.diagnostics
         d.heartbeat_losses += 1
         d.heartbeat_lost_at_s = monitor.lost_at
@@ -1064,7 +1067,7 @@ class ControllerNode(CanNode):
         """NMT commands from another master that take the controller out of service."""
         if self._own_nmt or self._phase in _FINAL or new is NmtState.INITIALISING:
             return
-        monitor = self.services.monitored.get(self.drive_node_id)
+        monitor = self.services.heartbeat_consumer.monitored.get(self.drive_node_id)
         if monitor is not None and monitor.status == "lost" and monitor.lost_at == self._now:
             return  # 0x1029 error behaviour on heartbeat loss: _on_heartbeat_lost follows
         if new is NmtState.STOPPED or (old is NmtState.OPERATIONAL and self._phase in _COMMANDING):
