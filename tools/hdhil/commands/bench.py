@@ -78,7 +78,8 @@ from hdhil.firmware.stages import Differentiator, SensorPlausibility, adc_read, 
 from hdhil.hostsim.plant import Plant
 from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig.ostuning import cpu_steal_ns, steal_report
-from hdhil.rig.realtime import RealtimeConfig, format_steal
+from hdhil.rig.realtime import RealtimeConfig
+from hdhil.rig.realtime_stats import format_steal
 from hdhil.rig.runner import run_lockstep
 
 #: Scenarios of the lockstep section, with the order of their ripple model.

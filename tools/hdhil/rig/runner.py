@@ -67,7 +67,8 @@ from hdhil.rig.factories import (
     scenario_drive,
 )
 from hdhil.rig.loop import NodeLoop, controller_expects_answer
-from hdhil.rig.realtime import RealtimeConfig, RealtimeLoop, WallClock, format_realtime
+from hdhil.rig.realtime import RealtimeConfig, RealtimeLoop, WallClock
+from hdhil.rig.realtime_stats import format_realtime
 from hdhil.rig.score import TorqueScorer, TrackingScorer
 from hdhil.rig.verdict import dcf_refused, format_verdict, startup_verdict, stop_verdict
 
