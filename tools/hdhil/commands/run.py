@@ -27,6 +27,7 @@ from hdhil.commands.progress import Progress, add_quiet_argument, progress
 from hdhil.core.dataconf import from_dict, merge
 from hdhil.core.errors import ConfigError, UserError
 from hdhil.core.numbers import arg_float, arg_int, arg_seconds
+from hdhil.core.signals import stop_on_signals
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.odlimits import check_od_limits
 from hdhil.hostsim.scenario import list_scenarios, load_scenario
@@ -37,7 +38,6 @@ from hdhil.rig.runner import (
     format_tracking,
     read_toml,
     run_lockstep,
-    stop_on_signals,
 )
 from hdhil.rig.verdict import format_verdict
 

@@ -57,10 +57,11 @@ from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import FLOAT32_MAX, arg_float, arg_int, arg_seconds
+from hdhil.core.signals import stop_on_signals
 from hdhil.firmware.config import FirmwareConfig, Law
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.scenario import Scenario, list_scenarios, load_scenario
-from hdhil.rig.runner import RunResult, run_lockstep, stop_on_signals
+from hdhil.rig.runner import RunResult, run_lockstep
 from hdhil.rig.score import TorqueScore, TorqueScorer, TrackingScore, TrackingScorer
 from hdhil.rig.verdict import format_verdict
 

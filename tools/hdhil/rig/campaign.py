@@ -50,7 +50,6 @@ import math
 import multiprocessing
 import os
 import re
-import signal
 import socket
 import sys
 import time
@@ -62,6 +61,7 @@ from typing import Any
 
 from hdhil.core.dataconf import ConfigError, from_dict, merge
 from hdhil.core.files import load_toml
+from hdhil.core.signals import leave_interrupt_to_parent
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.hostsim.scenario import load_scenario, scenario_from_dict
 from hdhil.rig.variant import WALL_CLOCK_KEYS, RunSettings, run_settings, scenario_data
@@ -625,7 +625,7 @@ def _worker_init() -> None:
     results), and move the objects inherited from the parent out of the garbage
     collector's reach (a forked worker would otherwise traverse, and so copy, the
     parent's whole heap at every full collection)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    leave_interrupt_to_parent()
     gc.freeze()
 
 
