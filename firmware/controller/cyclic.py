@@ -57,14 +57,15 @@ class CycleProbe(Protocol):
 class CyclicIo:
     """SYNC producer, sensor-frame handler, command and telemetry sender of the node.
 
-    With a torque-control law active ([Vertechy], :class:`hdhil.firmware.config.
-    ControlConfig`) ``CTRL_TPDO1.T_filtered`` carries the LQG estimate ``τ̂s`` instead of
-    the ripple filter's torque, and a second telemetry frame ``CTRL_TPDO2`` (0x281)
-    follows with ``τ̂s'``, ``τ̂lgd``, ``τsD`` and the estimated error ``e``.  Without a
-    law ``CTRL_TPDO2`` is not sent at all: the PDO is not valid, as CANopen marks it with
-    bit 31 of its COB-ID (``dbc/controller.eds`` object 0x1801 defaults to 0x80000281,
-    and the node keeps that bit in step with the law), and the bus carries exactly the
-    [Taghirad97] schedule.  Worst-case control-bus load: 44 % without, 57.5 % with a law.
+    With a torque-control law active ([Vertechy],
+    :class:`hdhil.firmware.config.ControlConfig`) ``CTRL_TPDO1.T_filtered`` carries the
+    LQG estimate ``τ̂s`` instead of the ripple filter's torque, and a second telemetry
+    frame ``CTRL_TPDO2`` (0x281) follows with ``τ̂s'``, ``τ̂lgd``, ``τsD`` and the
+    estimated error ``e``.  Without a law ``CTRL_TPDO2`` is not sent at all: the PDO is
+    not valid, as CANopen marks it with bit 31 of its COB-ID (``dbc/controller.eds``
+    object 0x1801 defaults to 0x80000281, and the node keeps that bit in step with the
+    law), and the bus carries exactly the [Taghirad97] schedule.  Worst-case control-bus
+    load: 44 % without, 57.5 % with a law.
 
     In the walk phases a sensor frame is answered with DAC 0 and the walk's controlword.
     In "operational" the interrupt runs once per SYNC (a second sensor frame in a cycle is

@@ -209,9 +209,10 @@ class ControllerNode(CanNode):
 
     @property
     def probe(self) -> CycleProbe | None:
-        """The instrumentation hook of the cycle (:class:`~hdhil.firmware.controller.
-        cyclic.CycleProbe`): SYNC sent, sensor frame received, interrupt run, command
-        sent, each with its time stamp.  None (the default) costs one check per event."""
+        """The instrumentation hook of the cycle
+        (:class:`~hdhil.firmware.controller.cyclic.CycleProbe`): SYNC sent, sensor frame
+        received, interrupt run, command sent, each with its time stamp.  None (the
+        default) costs one check per event."""
         return self.io.probe
 
     @probe.setter

@@ -4,8 +4,8 @@ The communication values the node runs with (0x1006, 0x1019), the firmware param
 that SDO may change and their application at the cycle boundary, the mirrors of the
 controlword and of the drive's statusword, the validity of the control telemetry PDO,
 and the PDO mapping taken from the drive's DCF.  Kept apart from the frames so that the
-per-cycle code touches the object dictionary only through :meth:`ControllerObjects.
-apply_pending`'s one check.
+per-cycle code touches the object dictionary only through one check for new parameters
+(:meth:`ControllerObjects.apply_pending`).
 """
 
 from __future__ import annotations

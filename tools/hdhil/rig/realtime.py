@@ -219,11 +219,11 @@ class RealtimeLoop:
     # ------------------------------------------------------------ determinism
 
     def enter(self) -> None:
-        """Apply what improves determinism and is permitted (:class:`hdhil.rig.ostuning.
-        ProcessTuning`: collector off, affinity, timer slack, ``SCHED_FIFO``, optionally
-        ``mlockall``); what was applied and refused goes into the report.  The misses
-        left are stalls in which the loop does not run at all; the machine floor shows
-        them too."""
+        """Apply what improves determinism and is permitted
+        (:class:`hdhil.rig.ostuning.ProcessTuning`: collector off, affinity, timer slack,
+        ``SCHED_FIFO``, optionally ``mlockall``); what was applied and refused goes into
+        the report.  The misses left are stalls in which the loop does not run at all; the
+        machine floor shows them too."""
         tuning = self._tuning
         tuning.enter()
         self.cpu = tuning.cpu
