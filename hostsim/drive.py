@@ -610,7 +610,7 @@ class DriveNode(CanNode):
         self._last_sync_at = self._now
         if self._sync_lost:
             self._sync_lost = False
-            self.services.emcy_clear(EmcyCode.COMMUNICATION, _SYNC_TIMEOUT_INFO)
+            self.services.emcy.clear(EmcyCode.COMMUNICATION, _SYNC_TIMEOUT_INFO)
 
         if self._pending_knobs:
             self._apply_knobs()
@@ -672,7 +672,7 @@ class DriveNode(CanNode):
                     self._emcy(EmcyCode.SENSOR, bytes((channel,)))
             elif channel in active:
                 active.discard(channel)
-                self.services.emcy_clear(EmcyCode.SENSOR, bytes((channel,)))
+                self.services.emcy.clear(EmcyCode.SENSOR, bytes((channel,)))
         self._machine.warning = bool(active)
         at_limit = abs(self.plant.motor_torque_command_output) >= self._current_limit_Nm
         if at_limit != self._at_current_limit:
@@ -682,7 +682,7 @@ class DriveNode(CanNode):
                 self.diagnostics.overcurrents += 1
                 self._emcy(EmcyCode.CONTINUOUS_OVER_CURRENT)
             else:
-                self.services.emcy_clear(EmcyCode.CONTINUOUS_OVER_CURRENT)
+                self.services.emcy.clear(EmcyCode.CONTINUOUS_OVER_CURRENT)
 
     # ------------------------------------------------------------------ command
 
@@ -723,8 +723,8 @@ class DriveNode(CanNode):
     def _rpdo_received(self, layout: PdoLayout) -> None:
         if layout.event_s > 0:
             self._rpdo_deadlines[layout.number] = self._now + layout.event_s
-        if self.services.error_active(_RPDO_TIMEOUT):
-            self.services.emcy_clear(_RPDO_TIMEOUT)
+        if self.services.emcy.error_active(_RPDO_TIMEOUT):
+            self.services.emcy.clear(_RPDO_TIMEOUT)
 
     def _on_command(self, msg: can.Message) -> None:
         d = self.diagnostics
@@ -757,8 +757,8 @@ class DriveNode(CanNode):
             d.late_commands += 1
         self._command_in_cycle = True
         self._silent_cycles = 0
-        if self.services.error_active(_RPDO_TIMEOUT):
-            self.services.emcy_clear(_RPDO_TIMEOUT)
+        if self.services.emcy.error_active(_RPDO_TIMEOUT):
+            self.services.emcy.clear(_RPDO_TIMEOUT)
         self._latched_V = self._dac.to_volts(dac_counts)
         if self._next_sync:
             self._pending_cw = int(controlword)
@@ -877,7 +877,7 @@ class DriveNode(CanNode):
             self._rpdo_deadlines = {}
             self._last_sync_at = None
             self._sync_lost = False
-            self.services.emcy_clear(EmcyCode.COMMUNICATION)
+            self.services.emcy.clear(EmcyCode.COMMUNICATION)
 
     def _leave_operational(self) -> None:
         """PDOs stop: react as the abort connection option code 0x6007 says (CiA 402-2)."""
@@ -954,7 +954,7 @@ class DriveNode(CanNode):
     # ------------------------------------------------------------------ EMCY
 
     def _emcy(self, code: int, manufacturer: bytes = b"") -> bool:
-        sent = self.services.emcy(code, manufacturer=manufacturer)
+        sent = self.services.emcy.raise_error(code, manufacturer=manufacturer)
         d = self.diagnostics
         d.emcy_sent += 1
         d.emcy_log.append(EmcyRecord(self._now, code, manufacturer.ljust(5, b"\0"), sent))

@@ -267,8 +267,8 @@ def test_stopped_allows_only_nmt_and_heartbeat(bench):
     assert not (node.pdo_allowed or node.sdo_allowed or node.sync_allowed or node.emcy_allowed)
     bench.send(0x602, struct.pack("<BHB4x", 0x40, 0x1000, 0))  # SDO upload request
     pump(node)
-    assert not node.emcy(EmcyCode.GENERIC)  # recorded, not sent
-    assert node.error_register & ErrorRegister.GENERIC
+    assert not node.emcy.raise_error(EmcyCode.GENERIC)  # recorded, not sent
+    assert node.emcy.error_register & ErrorRegister.GENERIC
     node.tick(0.010)
     assert bench.frames() == [(0x702, bytes((NmtState.STOPPED,)))]  # heartbeat only
     assert node.counters.ignored_in_state == 1
@@ -278,35 +278,35 @@ def test_stopped_allows_only_nmt_and_heartbeat(bench):
 
 def test_nmt_master_commands_and_boot_wait(bench):
     master = booted(bench, node_id=1, od=eds_path("controller"))
-    master.expect_boot(2, now=0.0, timeout_s=0.5)
-    assert not master.boot_seen(2) and master.check_boot(0.4) is False
+    master.nmt.expect_boot(2, now=0.0, timeout_s=0.5)
+    assert not master.nmt.boot_seen(2) and master.nmt.check_boot(0.4) is False
     with pytest.raises(BootTimeoutError, match=r"node 2 \(COB-ID 0x702, data 00\) within 0.500 s"):
-        master.check_boot(0.6)
-    assert master.boot_timed_out(0.6) == (2,)
+        master.nmt.check_boot(0.6)
+    assert master.nmt.boot_timed_out(0.6) == (2,)
     drive = bench.services(2, eds_path("drive"))
     drive.boot(0.55)
     booted_seen = []
     master.on_boot(booted_seen.append)
     pump(master, now=0.55)
-    assert master.boot_seen(2) and master.check_boot(0.6) is True
+    assert master.nmt.boot_seen(2) and master.nmt.check_boot(0.6) is True
     assert booted_seen == [2]
-    assert master.remote_state(2) is NmtState.PRE_OPERATIONAL
+    assert master.nmt.remote_states.get(2) is NmtState.PRE_OPERATIONAL
     bench.frames()
 
-    master.nmt_command(NmtCommand.START, 2)
+    master.nmt.command(NmtCommand.START, 2)
     assert bench.frames() == [(0x000, b"\x01\x02")]
     pump(drive)
     assert drive.state is NmtState.OPERATIONAL
-    master.nmt_command(NmtCommand.RESET_NODE, 0)  # broadcast reset forgets the boot-ups
-    assert not master.boot_seen(2)
+    master.nmt.command(NmtCommand.RESET_NODE, 0)  # broadcast reset forgets the boot-ups
+    assert not master.nmt.boot_seen(2)
     pump(drive)
     pump(master, now=0.7)
-    assert master.boot_seen(2)
+    assert master.nmt.boot_seen(2)
     assert master.state is NmtState.PRE_OPERATIONAL  # the master's own broadcast
     with pytest.raises(ValueError):
-        master.nmt_command(0x55, 2)
+        master.nmt.command(0x55, 2)
     with pytest.raises(ValueError):
-        master.nmt_command(NmtCommand.START, 128)
+        master.nmt.command(NmtCommand.START, 128)
 
 
 def test_handle_ignores_non_service_frames_cheaply(bench):
@@ -356,7 +356,7 @@ def test_heartbeat_producer_period_and_content(bench):
 
 def test_heartbeat_producer_from_the_od_and_sdo_write_of_0x1017(bench):
     node = booted(bench)  # OD default 100 ms
-    assert node.heartbeat_period_s == pytest.approx(0.1)
+    assert node.heartbeat.period_s == pytest.approx(0.1)
     run_ticks(bench, node, 0.15)
     assert sdo_download(bench, node, 0x1017, 0, struct.pack("<H", 20)) is None
     sent = run_ticks(bench, node, 0.2)
@@ -402,23 +402,23 @@ def heartbeat_from(bench: Bench, node: CanopenServices, node_id: int, t: float, 
 
 def test_consumer_does_not_monitor_before_the_first_heartbeat(bench):
     drive, lost, _ = consumer_pair(bench)
-    assert drive.monitored[1].status == "waiting"
+    assert drive.heartbeat_consumer.monitored[1].status == "waiting"
     heartbeat_from(bench, drive, 1, 0.0, state=0x00)  # a boot-up does not start it
     run_ticks(bench, drive, 5.0)
-    assert lost == [] and drive.monitored[1].status == "waiting"
+    assert lost == [] and drive.heartbeat_consumer.monitored[1].status == "waiting"
 
 
 def test_consumer_detects_loss_once_between_timeout_and_one_tick_later(bench):
     drive, lost, resumed = consumer_pair(bench, timeout_ms=250)
     run_ticks(bench, drive, 0.1)
     heartbeat_from(bench, drive, 1, 0.1)
-    assert drive.monitored[1].status == "active"
+    assert drive.heartbeat_consumer.monitored[1].status == "active"
     detected_at = []
     drive.on_heartbeat_lost(lambda node: detected_at.append(drive.now))
     sent = run_ticks(bench, drive, 1.0)
     assert lost == [1]  # once, although the ticks go on
     assert 0.35 < detected_at[0] <= 0.35 + 0.001 + 1e-9
-    monitor = drive.monitored[1]
+    monitor = drive.heartbeat_consumer.monitored[1]
     assert monitor.status == "lost" and monitor.losses == 1 and monitor.lost_at == detected_at[0]
     # EMCY 0x8130, manufacturer byte 0 = the lost node, communication bit in 0x1001.
     emcy = [(cob, data) for _, cob, data in sent if cob == 0x082]
@@ -441,14 +441,14 @@ def test_heartbeats_in_time_never_trip_the_consumer(bench):
         run_ticks(bench, drive, k * 0.1)
         heartbeat_from(bench, drive, 1, k * 0.1)
     assert lost == []
-    assert drive.remote_state(1) is NmtState.OPERATIONAL
+    assert drive.nmt.remote_states.get(1) is NmtState.OPERATIONAL
 
 
 def test_boot_up_of_a_monitored_node_restarts_monitoring(bench):
     drive, lost, _ = consumer_pair(bench, timeout_ms=250)
     heartbeat_from(bench, drive, 1, 0.0)
     heartbeat_from(bench, drive, 1, 0.1, state=0x00)  # node 1 rebooted
-    assert drive.monitored[1].status == "waiting"
+    assert drive.heartbeat_consumer.monitored[1].status == "waiting"
     run_ticks(bench, drive, 2.0)
     assert lost == []
 
@@ -472,15 +472,15 @@ def test_error_behaviour_0x1029_on_heartbeat_loss(bench, behaviour, start, after
 
 def test_consumer_entries_written_by_sdo(bench):
     drive = booted(bench)
-    assert drive.monitored == {}
+    assert drive.heartbeat_consumer.monitored == {}
     assert sdo_download(bench, drive, 0x1016, 1, struct.pack("<I", 0x00010064)) is None
-    assert drive.monitored[1].timeout_s == pytest.approx(0.1)
+    assert drive.heartbeat_consumer.monitored[1].timeout_s == pytest.approx(0.1)
     # The same node twice with non-zero times: general parameter incompatibility.
     assert sdo_download(bench, drive, 0x1016, 2, struct.pack("<I", 0x000100C8)) == 0x06040043
     assert drive.read(0x1016, 2) == 0
     assert sdo_download(bench, drive, 0x1016, 2, struct.pack("<I", 0x01030064)) == 0x06090030
     assert sdo_download(bench, drive, 0x1016, 1, bytes(4)) is None
-    assert drive.monitored == {}
+    assert drive.heartbeat_consumer.monitored == {}
 
 
 def test_consumer_without_0x1016_in_the_od_uses_the_argument(bench):
@@ -503,13 +503,13 @@ NAMED_CODES = [code for code in EmcyCode if code != EmcyCode.NO_ERROR]
 @pytest.mark.parametrize("code", NAMED_CODES, ids=lambda c: f"{c.name}_{c.value:04X}")
 def test_emcy_frame_layout_for_each_named_code(bench, code):
     node = booted(bench)
-    assert node.emcy(code, manufacturer=b"\x11\x22")
+    assert node.emcy.raise_error(code, manufacturer=b"\x11\x22")
     register = default_error_register(code) | ErrorRegister.GENERIC
     data = struct.pack("<H", code) + bytes((register,)) + b"\x11\x22\x00\x00\x00"
     assert bench.frames() == [(0x082, data)]
-    assert node.read(0x1001) == register == node.error_register
+    assert node.read(0x1001) == register == node.emcy.error_register
     assert sdo_upload(bench, node, 0x1001, 0) == bytes((register,))
-    assert node.error_history == (code | 0x2211 << 16,)
+    assert node.emcy.history == (code | 0x2211 << 16,)
     assert emcy_text(code) != "unknown"
 
 
@@ -528,62 +528,62 @@ def test_error_register_classes():
 
 def test_emcy_once_per_error_clear_and_reset(bench):
     node = booted(bench)
-    assert node.emcy(EmcyCode.CONTINUOUS_OVER_CURRENT)
-    assert not node.emcy(EmcyCode.CONTINUOUS_OVER_CURRENT)  # still active: no flood
-    assert node.emcy(EmcyCode.SENSOR, register_bits=ErrorRegister.MANUFACTURER)
+    assert node.emcy.raise_error(EmcyCode.CONTINUOUS_OVER_CURRENT)
+    assert not node.emcy.raise_error(EmcyCode.CONTINUOUS_OVER_CURRENT)  # still active: no flood
+    assert node.emcy.raise_error(EmcyCode.SENSOR, register_bits=ErrorRegister.MANUFACTURER)
     frames = bench.frames()
     assert [struct.unpack_from("<HB", d) for _, d in frames] == [(0x2310, 0x03), (0x7300, 0x83)]
-    assert node.active_errors == (0x2310, 0x7300)
-    assert node.error_active(0x2310) and node.error_active(0x7300)
-    assert not node.error_active(0x8250)
-    assert node.emcy_clear(EmcyCode.CONTINUOUS_OVER_CURRENT)
-    assert not node.error_active(0x2310) and node.error_active(0x7300)
+    assert node.emcy.active_errors == (0x2310, 0x7300)
+    assert node.emcy.error_active(0x2310) and node.emcy.error_active(0x7300)
+    assert not node.emcy.error_active(0x8250)
+    assert node.emcy.clear(EmcyCode.CONTINUOUS_OVER_CURRENT)
+    assert not node.emcy.error_active(0x2310) and node.emcy.error_active(0x7300)
     assert bench.frames() == [(0x082, struct.pack("<HB5x", 0, 0x81))]  # remaining register
-    assert not node.emcy_clear(EmcyCode.CONTINUOUS_OVER_CURRENT)
-    assert node.emcy_reset()
+    assert not node.emcy.clear(EmcyCode.CONTINUOUS_OVER_CURRENT)
+    assert node.emcy.reset()
     assert bench.frames() == [(0x082, bytes(8))]
-    assert node.error_register == 0 and node.read(0x1001) == 0
+    assert node.emcy.error_register == 0 and node.read(0x1001) == 0
     with pytest.raises(ValueError):
-        node.emcy(0x1000, manufacturer=bytes(6))
+        node.emcy.raise_error(0x1000, manufacturer=bytes(6))
     with pytest.raises(ValueError):
-        node.emcy(0x0000)
+        node.emcy.raise_error(0x0000)
 
 
 def test_error_history_0x1003(bench):
     node = booted(bench)
     for code in (0x1000, 0x2310, 0x6100, 0x7300, 0x8250):
-        node.emcy(code)
+        node.emcy.raise_error(code)
     bench.frames()
-    assert node.error_history == (0x8250, 0x7300, 0x6100, 0x2310)  # newest first, 4 kept
+    assert node.emcy.history == (0x8250, 0x7300, 0x6100, 0x2310)  # newest first, 4 kept
     assert sdo_upload(bench, node, 0x1003, 0) == b"\x04"
     assert sdo_upload(bench, node, 0x1003, 1) == struct.pack("<I", 0x8250)
     assert sdo_upload(bench, node, 0x1003, 5) == ("abort", 0x06090011)
     assert sdo_download(bench, node, 0x1003, 0, b"\x02") == 0x06090030  # only 0 allowed
     assert sdo_download(bench, node, 0x1003, 1, bytes(4)) == 0x06010002
-    assert node.error_history == (0x8250, 0x7300, 0x6100, 0x2310)
+    assert node.emcy.history == (0x8250, 0x7300, 0x6100, 0x2310)
     assert sdo_download(bench, node, 0x1003, 0, b"\x00") is None
-    assert node.error_history == ()
+    assert node.emcy.history == ()
 
 
 def test_errors_survive_a_communication_reset_but_not_a_node_reset(bench):
     node = booted(bench)
-    node.emcy(EmcyCode.SENSOR)
-    register = node.error_register
+    node.emcy.raise_error(EmcyCode.SENSOR)
+    register = node.emcy.error_register
     node.reset("communication")
-    assert node.read(0x1001) == register and node.error_history == (0x7300,)
-    assert node.active_errors == (0x7300,)
+    assert node.read(0x1001) == register and node.emcy.history == (0x7300,)
+    assert node.emcy.active_errors == (0x7300,)
     node.reset("node")
-    assert node.read(0x1001) == 0 and node.error_history == () and node.active_errors == ()
+    assert node.read(0x1001) == 0 and node.emcy.history == () and node.emcy.active_errors == ()
 
 
 def test_emcy_cob_id_0x1014_invalid_bit_suppresses_the_frame(bench):
     od = services_od()
     od.add_object(_var("COB-ID EMCY", 0x1014, 0, dt.UNSIGNED32, "rw", 0x80000082))
     node = booted(bench, od=od)
-    assert not node.emcy(0x1000)
+    assert not node.emcy.raise_error(0x1000)
     assert bench.frames() == []
     node.write(0x1014, 0, 0x00000085)
-    assert node.emcy(0x2310)
+    assert node.emcy.raise_error(0x2310)
     assert [cob for cob, _ in bench.frames()] == [0x085]
 
 
@@ -985,7 +985,7 @@ def test_controller_and_drive_boot_start_and_monitor_each_other(bench):
     drive.on_heartbeat_lost(lambda n: lost.append(("drive saw", n)))
     drive.boot(0.0)
     controller.boot(0.0)
-    controller.expect_boot(2, 0.0, 1.0)
+    controller.nmt.expect_boot(2, 0.0, 1.0)
     controller.enter_state(NmtState.OPERATIONAL)
     started = False
     for k in range(1, 1001):
@@ -994,14 +994,18 @@ def test_controller_and_drive_boot_start_and_monitor_each_other(bench):
         for node in (controller, drive):
             node.tick(now)
             pump(node)
-        if not started and controller.check_boot(now):
-            controller.nmt_command(NmtCommand.START, 0)
+        if not started and controller.nmt.check_boot(now):
+            controller.nmt.command(NmtCommand.START, 0)
             started = True
     assert drive.state is NmtState.OPERATIONAL
-    assert controller.remote_state(2) is NmtState.OPERATIONAL
-    assert drive.remote_state(1) is NmtState.OPERATIONAL
+    assert controller.nmt.remote_states.get(2) is NmtState.OPERATIONAL
+    assert drive.nmt.remote_states.get(1) is NmtState.OPERATIONAL
     assert lost == []
-    assert drive.monitored[1].status == controller.monitored[2].status == "active"
+    assert (
+        drive.heartbeat_consumer.monitored[1].status
+        == controller.heartbeat_consumer.monitored[2].status
+        == "active"
+    )
     # The drive goes silent: the controller notices within 250 ms + one tick.
     silent_from = 1.0
     for k in range(1001, 1400):
@@ -1011,7 +1015,9 @@ def test_controller_and_drive_boot_start_and_monitor_each_other(bench):
         pump(controller)
         drive.bus.recv(0)
     assert lost == [("controller saw", 2)]
-    last_heartbeat = controller.monitored[2].last_heartbeat
+    last_heartbeat = controller.heartbeat_consumer.monitored[2].last_heartbeat
     # The drive's last heartbeat (sent at 1.0 s) is handled at the controller's next tick.
     assert last_heartbeat == pytest.approx(silent_from + 0.001)
-    assert 0.25 < controller.monitored[2].lost_at - last_heartbeat <= 0.251 + 1e-9
+    assert (
+        0.25 < controller.heartbeat_consumer.monitored[2].lost_at - last_heartbeat <= 0.251 + 1e-9
+    )

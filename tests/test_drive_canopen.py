@@ -520,7 +520,9 @@ def test_heartbeat_loss_faults_the_drive_one_cycle_after_the_timeout(rig):
     rig.enable(dac=100)
     run_with_controller_heartbeat(rig, 0.5)
     last_heartbeat = 0.4
-    assert rig.drive.services.monitored[1].last_heartbeat == pytest.approx(last_heartbeat)
+    assert rig.drive.services.heartbeat_consumer.monitored[1].last_heartbeat == pytest.approx(
+        last_heartbeat
+    )
     # The controller's heartbeat stops; its commands keep coming.
     lost_at = None
     emcy = []

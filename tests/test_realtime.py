@@ -26,19 +26,16 @@ from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
 from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
 from hdhil.firmware.stages import Differentiator, ReferenceGenerator, SensorPlausibility
 from hdhil.rig import ostuning as ostuning
-from hdhil.rig import realtime as realtime
+from hdhil.rig import realtime_stats
 from hdhil.rig.realtime import (
-    HISTOGRAM_EDGES_US,
     RT_SHARE_MARGIN,
     SPIN_FRACTION,
-    STAGES,
     RealtimeConfig,
     RealtimeLoop,
     SpinPlan,
     WallClock,
-    histogram,
-    percentiles,
 )
+from hdhil.rig.realtime_stats import HISTOGRAM_EDGES_US, STAGES, histogram, percentiles
 from hdhil.rig.scenario import load_scenario
 
 STAT_KEYS = ("jitter_us", "latency_us", "isr_us", "cycle_work_us", "sleep_overshoot_us")
@@ -189,7 +186,7 @@ def test_steal_report_over_an_interval():
     assert everywhere["cpu"] == "all"
     assert everywhere["share"] == pytest.approx(0.4 / (10.0 * (os.cpu_count() or 1)))
     assert ostuning.steal_report(None, 5, 0, 1.0) is None
-    text = realtime.format_steal(r)
+    text = realtime_stats.format_steal(r)
     assert "CPU 1" in text and "250 ms" in text and "2.50%" in text
 
 
@@ -409,10 +406,12 @@ def test_stage_timing_leaves_the_interrupt_unchanged_and_follows_swapped_stages(
             loop.end_cycle()
         rt = loop.result()
         assert rt["cycles"] == rt["interrupts"] == len(samples)
-        assert all(len(loop.stage_us[key]) == len(samples) for key, _ in STAGES)
+        assert all(len(loop.stats.stage_us[key]) == len(samples) for key, _ in STAGES)
         # the Kalman filter of the swapped-in chain was timed too
-        assert all(v > 0 for v in loop.stage_us["ripple_kalman"][20:])
-        for a, *stages in zip(loop.isr_us, *(loop.stage_us[k] for k, _ in STAGES), strict=True):
+        assert all(v > 0 for v in loop.stats.stage_us["ripple_kalman"][20:])
+        for a, *stages in zip(
+            loop.stats.isr_us, *(loop.stats.stage_us[k] for k, _ in STAGES), strict=True
+        ):
             assert math.fsum(stages) == pytest.approx(a, abs=1e-6)
         # timed while the run lasts through the handler's stage hook; its classes untouched
         assert controller.isr is handler and type(handler) is InterruptHandler

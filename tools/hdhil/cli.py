@@ -20,7 +20,7 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 from hdhil.core.errors import ConfigError, UserError
-from hdhil.core.files import install_signal_handlers, restore_signal_handlers
+from hdhil.core.signals import restore_handlers, terminate_as_interrupt
 
 #: Every subcommand, in the order ``hdhil --help`` lists them: its module in
 #: :mod:`hdhil.commands` and its one-line help.
@@ -139,7 +139,7 @@ def build_parser(
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command; the exit code (see the module docstring)."""
-    previous = install_signal_handlers()  # SIGTERM/SIGHUP: like Ctrl-C; temporaries removed
+    previous = terminate_as_interrupt()  # SIGTERM/SIGHUP: like Ctrl-C; temporaries removed
     try:
         parser = build_parser(argv)
         args = parser.parse_args(argv)
@@ -162,7 +162,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"hdhil: error:{what} {exc.strerror or exc}", file=sys.stderr)
         return 2
     finally:
-        restore_signal_handlers(previous)
+        restore_handlers(previous)
 
 
 if __name__ == "__main__":

@@ -45,7 +45,8 @@ from hdhil.firmware.ripple import HarmonicKalman, RippleKalman
 from hdhil.firmware.stages import Differentiator, SensorPlausibility, adc_read, calibrate
 from hdhil.hostsim.plant import Plant
 from hdhil.rig.ostuning import cpu_steal_ns, steal_report
-from hdhil.rig.realtime import RealtimeConfig, format_steal
+from hdhil.rig.realtime import RealtimeConfig
+from hdhil.rig.realtime_stats import format_steal
 from hdhil.rig.request import resolve
 from hdhil.rig.runner import run_lockstep
 from hdhil.rig.scenario import load_scenario

@@ -194,7 +194,8 @@ class EmcyProducer:
     EMCY frames (CiA 301 §7.2.7.3.1).
 
     ``cob_id`` None disables the producer (0x1014 bit 31); ``allowed()`` says whether the
-    NMT state lets EMCY out (PRE-OPERATIONAL and OPERATIONAL).
+    NMT state lets EMCY out (PRE-OPERATIONAL and OPERATIONAL).  ``sent`` counts the EMCY
+    frames that went out (never reset, not even by NMT resets).
     """
 
     def __init__(
@@ -214,12 +215,34 @@ class EmcyProducer:
 
     @property
     def error_register(self) -> int:
+        """Object 0x1001: OR of the active errors' bits, plus bit 0 if any is active."""
         bits = 0
         for value in self.active.values():
             bits |= value  # each entry includes the generic bit
         return bits
 
-    def raise_error(self, code: int, register_bits: int | None, manufacturer: bytes) -> bool:
+    @property
+    def active_errors(self) -> tuple[int, ...]:
+        """Codes of the errors raised with ``raise_error`` and not yet cleared."""
+        return tuple(sorted({code for code, _ in self.active}))
+
+    def error_active(self, code: int) -> bool:
+        """True while an error with this code is raised and not cleared (a per-frame check:
+        no allocation when none is active)."""
+        active = self.active
+        return bool(active) and any(c == code for c, _ in active)
+
+    def raise_error(
+        self, code: int, register_bits: int | None = None, manufacturer: bytes = b""
+    ) -> bool:
+        """Signal an error: EMCY frame (CiA 301 §7.2.7.3.1), 0x1001 and 0x1003 updated.
+
+        Layout: canopen's ``EMCY_STRUCT``.  ``register_bits`` defaults to the code's
+        class (:func:`default_error_register`).  An error is signalled once, on its rising
+        edge: repeating an active (code, manufacturer) returns False without a frame;
+        ``clear`` ends it.  True if a frame was sent (not outside PRE-OPERATIONAL and
+        OPERATIONAL, not with the producer disabled).
+        """
         if not 0x0001 <= code <= 0xFFFF:
             raise ValueError(f"EMCY error code must be 0x0001..0xFFFF, got 0x{code:X}")
         payload = manufacturer_data(manufacturer)
@@ -232,7 +255,11 @@ class EmcyProducer:
         self.push_history(code, payload)
         return self.send(code, payload)
 
-    def clear(self, code: int, manufacturer: bytes | None) -> bool:
+    def clear(self, code: int, manufacturer: bytes | None = None) -> bool:
+        """An error went away: EMCY 0x0000 with the remaining error register.
+
+        ``manufacturer`` None clears every instance of ``code``.  True if a frame was sent.
+        """
         if manufacturer is None:
             keys = [k for k in self.active if k[0] == code]
         else:
@@ -244,6 +271,7 @@ class EmcyProducer:
         return self.send(EmcyCode.NO_ERROR, bytes(5))
 
     def reset(self) -> bool:
+        """Clear every error: EMCY 0x0000 "error reset or no error", 0x1001 = 0."""
         self.active.clear()
         self.store_error_register()
         return self.send(EmcyCode.NO_ERROR, bytes(5))

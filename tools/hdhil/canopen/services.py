@@ -1,90 +1,21 @@
-"""CANopen services (CiA 301) of one node: the protocol modules composed on canopen's
-``LocalNode``.
+"""CANopen services (CiA 301) of one node: the protocol objects composed on canopen's
+``LocalNode``, and the NMT slave state machine that gates them.
 
 One protocol per module: :mod:`~hdhil.canopen.od` (EDS loading, lookups),
 :mod:`~hdhil.canopen.nmt` (states, commands, master), :mod:`~hdhil.canopen.heartbeat`
 (producer, consumer), :mod:`~hdhil.canopen.emcy` (codes, producer, history),
 :mod:`~hdhil.canopen.sdo` (checked server, non-blocking client, host helpers),
 :mod:`~hdhil.canopen.pdo` (mapping checks), :mod:`~hdhil.canopen.sync` (producer,
-consumer checks).  :class:`CanopenServices` wires them to one ``LocalNode`` and runs the
-NMT slave state machine, which decides what every other protocol may do.  The names of
-the protocol modules are re-exported here for the nodes that use several.
+consumer checks).  :class:`CanopenServices` makes one object per protocol and exposes it
+(``services.nmt``, ``.heartbeat``, ``.heartbeat_consumer``, ``.emcy``, ``.sdo``,
+``.sync``), as canopen's nodes do, so a node calls the protocol it means; what depends on
+the NMT state (which service may run, resets, SYNC) stays here.  The protocol modules'
+names are re-exported for the nodes that use several.
 
-Everything here is driven explicitly, so lockstep runs stay deterministic: no threads, no
-timers, no ``send_periodic``.  Time comes in as ``now`` (seconds: simulated time in
-lockstep, ``time.monotonic()`` in real time), received frames come in through
-``CanopenServices.handle(msg)`` and frames go out through ``bus.send``.  python-canopen's
-``Network`` is used without its ``Notifier``: ``handle`` feeds SDO requests to
-``network.notify`` and the ``LocalNode``'s SDO server answers synchronously through
-``network.send_message``.
-
-Per node, the application does, once per cycle::
-
-    services.tick(now)                   # heartbeat producer, heartbeat consumer timeouts
-    while (msg := bus.recv(0)) is not None:
-        if not services.handle(msg):     # NMT, SDO, heartbeat, EMCY: consumed here
-            node.on_message(msg)         # SYNC and PDOs: the node's own business
-
-``handle`` costs one dict lookup for frames that are not CANopen service frames.
-
-What python-canopen's ``LocalNode`` already does, and what is added here
---------------------------------------------------------------------------
-
-``LocalNode`` (canopen 2.4) provides the SDO server protocol (expedited and segmented
-transfers; block upload falls back to segmented), the OD data store, the access checks
-"attempt to read a write-only object" (0x06010001) and "attempt to write a read-only
-object" (0x06010002), "object does not exist" (0x06020000), "sub-index does not exist"
-(0x06090011, records only), a generic length check for numbers (0x06070010), and
-read/write callback hooks.  Its ``NmtSlave`` and ``EmcyProducer`` are thin: NMT reset
-leaves the node in INITIALISING without a boot-up message, its heartbeat runs on a
-``send_periodic`` thread, and there is no heartbeat consumer or TPDO-on-SYNC (canopen
-issues #286, #558).
-
-Added here: the NMT slave state machine with boot-up and resets (CiA 301 §7.3.2), an NMT
-master helper, a deterministic heartbeat producer and consumer (§7.2.8.3.2), EMCY producer
-with error register and error history and an EMCY consumer (§7.2.7), CiA 301 SDO abort
-codes for the length (0x06070012/13), the value range from the EDS (LowLimit/HighLimit ->
-0x06090031/32, NaN -> 0x06090030, including REAL32/REAL64 limits, which canopen's EDS
-reader drops), sub-indices of arrays that are not defined (0x06090011; canopen invents
-them), PDO mapping checks (0x06040041/42/43), object-specific checks of the communication
-profile, and per-object validators and change callbacks for the application.  A parameter
-is never changed by an aborted write.  The SYNC producer (counter per 0x1019) and a SYNC
-consumer monitor live here too.  canopen's threaded heartbeat (``NmtSlave.on_write`` for
-0x1017) and its NMT command handler are detached from the ``LocalNode``.
-
-Object dictionary entries the services use
-------------------------------------------
-
-Missing optional objects switch the feature to its constructor argument or off.
-
-====== === ========== ====== ================================ =========================
-index  sub type       access default                          used by
-====== === ========== ====== ================================ =========================
-0x1001 0   UNSIGNED8  ro     0                                EMCY producer (error reg.)
-0x1003 0   UNSIGNED8  rw     0 (write 0 = clear; else abort)  EMCY error history
-0x1003 1-8 UNSIGNED32 ro     0 (code | manuf. info << 16)     (ARRAY, newest at sub 1)
-0x1005 0   UNSIGNED32 rw     0x40000080 producer / 0x80 cons. SYNC COB-ID (bit 30 = gen.)
-0x1006 0   UNSIGNED32 rw     1000 (us)                        SYNC period (0x1019 gate)
-0x1014 0   UNSIGNED32 rw     $NODEID+0x80 (bit 31 = invalid)  EMCY COB-ID (optional)
-0x1016 0   UNSIGNED8  const  n entries                        heartbeat consumer (ARRAY)
-0x1016 1-n UNSIGNED32 rw     node << 16 | time_ms, 0 = unused controller 0x00020000|250,
-                                                              drive 0x00010000|250
-0x1017 0   UNSIGNED16 rw     100 (ms, 0 = off)                heartbeat producer
-0x1019 0   UNSIGNED8  rw     240 (0 or 2..240; Low 0 High 240) SYNC producer counter
-0x1029 0   UNSIGNED8  const  1                                error behaviour (optional)
-0x1029 1   UNSIGNED8  rw     1 (0 pre-op, 1 no change, 2 stop) reaction to heartbeat loss
-====== === ========== ====== ================================ =========================
-
-CiA 402 objects of the drive (``hdhil.canopen.cia402``): 0x603F error code UNSIGNED16 ro 0;
-0x6040 controlword UNSIGNED16 rww 0 (PDO); 0x6041 statusword UNSIGNED16 ro 0 (PDO); 0x605A
-quick stop option code INTEGER16 rw 2 (Low 0 High 8); 0x605E fault reaction option code
-INTEGER16 rw 0; 0x6060 modes of operation INTEGER8 rw 10 (validator: 0 or 10); 0x6061
-modes of operation display INTEGER8 ro 10; 0x6502 supported drive modes UNSIGNED32 ro
-0x00000200.  Application parameters that SDO may change (e.g. the firmware's filter Q and
-R as REAL32 with LowLimit/HighLimit) get a validator and an ``on_write`` callback.
-
-EMCY codes (CiA 301 table "emergency error codes"; 0x2310, 0x73xx, 0x8311 from CiA 402-2 /
-IEC 61800-7-201): see :class:`EmcyCode`.
+Everything is driven explicitly, so lockstep runs stay deterministic: no threads, no
+timers, no ``send_periodic``.  Time comes in as ``now`` (simulated time in lockstep,
+``time.monotonic()`` in real time), frames come in through ``CanopenServices.handle`` and
+go out through ``bus.send``; python-canopen's ``Network`` runs without its ``Notifier``.
 """
 
 from __future__ import annotations
@@ -195,7 +126,7 @@ class ServiceCounters:
     sdo_requests: int = 0
     heartbeats_sent: int = 0
     heartbeats_received: int = 0
-    emcy_sent: int = 0
+    #: EMCY frames received from other nodes (those sent: ``emcy.sent``).
     emcy_received: int = 0
     #: Frames of the right COB-ID but wrong length (NMT 2, SDO 8, heartbeat 1, EMCY 8).
     malformed_frames: int = 0
@@ -204,9 +135,6 @@ class ServiceCounters:
     #: SDO segments outside a transfer, answered with abort 0x05040001.
     sdo_protocol_errors: int = 0
 
-
-Validator = Callable[[Any], "int | None"]
-WriteCallback = Callable[[Any], None]
 
 Validator = Callable[[Any], "int | None"]
 WriteCallback = Callable[[Any], None]
@@ -230,10 +158,85 @@ class CanopenServices:
     OPERATIONAL; the node itself must stop its PDOs (``pdo_allowed``) and SYNC production
     (``sync_allowed``) when this says so.
 
-    The protocols are attributes: ``master`` (:class:`~hdhil.canopen.nmt.NmtMaster`),
-    ``heartbeat`` and ``consumer`` (:mod:`~hdhil.canopen.heartbeat`), ``emcy_producer``
-    (:class:`~hdhil.canopen.emcy.EmcyProducer`), ``sdo_gate``
-    (:class:`~hdhil.canopen.sdo.SdoServerGate`) and ``sync_producer``.
+    The protocol objects are attributes, used directly (as ``canopen``'s nodes expose
+    theirs): ``nmt``, the NMT master (:class:`~hdhil.canopen.nmt.NmtMaster`: commands,
+    boot-up waits, the remote nodes' boot times and states); ``heartbeat`` and
+    ``heartbeat_consumer`` (:mod:`~hdhil.canopen.heartbeat`: producer period, monitored
+    nodes); ``emcy``, the EMCY producer (:class:`~hdhil.canopen.emcy.EmcyProducer`:
+    ``raise_error``, ``clear``, ``reset``, error register, history, frames ``sent``);
+    ``sdo``, the SDO server gate (:class:`~hdhil.canopen.sdo.SdoServerGate`); ``sync``,
+    the SYNC producer once ``make_sync_producer`` made it (else None).  This class keeps
+    what needs the NMT slave state: ``send_sync``, the state gates, resets.
+
+    Per node, the application does, once per cycle::
+
+        services.tick(now)                   # heartbeat producer, heartbeat consumer timeouts
+        while (msg := bus.recv(0)) is not None:
+            if not services.handle(msg):     # NMT, SDO, heartbeat, EMCY: consumed here
+                node.on_message(msg)         # SYNC and PDOs: the node's own business
+
+    ``handle`` costs one dict lookup for frames that are not CANopen service frames;
+    ``handle`` feeds SDO requests to ``network.notify`` and the ``LocalNode``'s SDO server
+    answers synchronously through ``network.send_message``.
+
+    What python-canopen's ``LocalNode`` already does, and what is added here
+    --------------------------------------------------------------------------
+
+    ``LocalNode`` (canopen 2.4) provides the SDO server protocol (expedited and segmented
+    transfers; block upload falls back to segmented), the OD data store, the access checks
+    "attempt to read a write-only object" (0x06010001) and "attempt to write a read-only
+    object" (0x06010002), "object does not exist" (0x06020000), "sub-index does not exist"
+    (0x06090011, records only), a generic length check for numbers (0x06070010), and
+    read/write callback hooks.  Its ``NmtSlave`` and ``EmcyProducer`` are thin: NMT reset
+    leaves the node in INITIALISING without a boot-up message, its heartbeat runs on a
+    ``send_periodic`` thread, and there is no heartbeat consumer or TPDO-on-SYNC (canopen
+    issues #286, #558).
+
+    Added here: the NMT slave state machine with boot-up and resets (CiA 301 §7.3.2), an NMT
+    master helper, a deterministic heartbeat producer and consumer (§7.2.8.3.2), EMCY producer
+    with error register and error history and an EMCY consumer (§7.2.7), CiA 301 SDO abort
+    codes for the length (0x06070012/13), the value range from the EDS (LowLimit/HighLimit ->
+    0x06090031/32, NaN -> 0x06090030, including REAL32/REAL64 limits, which canopen's EDS
+    reader drops), sub-indices of arrays that are not defined (0x06090011; canopen invents
+    them), PDO mapping checks (0x06040041/42/43), object-specific checks of the communication
+    profile, and per-object validators and change callbacks for the application.  A parameter
+    is never changed by an aborted write.  The SYNC producer (counter per 0x1019) and a SYNC
+    consumer monitor live here too.  canopen's threaded heartbeat (``NmtSlave.on_write`` for
+    0x1017) and its NMT command handler are detached from the ``LocalNode``.
+
+    Object dictionary entries the services use
+    ------------------------------------------
+
+    Missing optional objects switch the feature to its constructor argument or off.
+
+    ====== === ========== ====== ================================ =========================
+    index  sub type       access default                          used by
+    ====== === ========== ====== ================================ =========================
+    0x1001 0   UNSIGNED8  ro     0                                EMCY producer (error reg.)
+    0x1003 0   UNSIGNED8  rw     0 (write 0 = clear; else abort)  EMCY error history
+    0x1003 1-8 UNSIGNED32 ro     0 (code | manuf. info << 16)     (ARRAY, newest at sub 1)
+    0x1005 0   UNSIGNED32 rw     0x40000080 producer / 0x80 cons. SYNC COB-ID (bit 30 = gen.)
+    0x1006 0   UNSIGNED32 rw     1000 (us)                        SYNC period (0x1019 gate)
+    0x1014 0   UNSIGNED32 rw     $NODEID+0x80 (bit 31 = invalid)  EMCY COB-ID (optional)
+    0x1016 0   UNSIGNED8  const  n entries                        heartbeat consumer (ARRAY)
+    0x1016 1-n UNSIGNED32 rw     node << 16 | time_ms, 0 = unused controller 0x00020000|250,
+                                                                  drive 0x00010000|250
+    0x1017 0   UNSIGNED16 rw     100 (ms, 0 = off)                heartbeat producer
+    0x1019 0   UNSIGNED8  rw     240 (0 or 2..240; Low 0 High 240) SYNC producer counter
+    0x1029 0   UNSIGNED8  const  1                                error behaviour (optional)
+    0x1029 1   UNSIGNED8  rw     1 (0 pre-op, 1 no change, 2 stop) reaction to heartbeat loss
+    ====== === ========== ====== ================================ =========================
+
+    CiA 402 objects of the drive (``hdhil.canopen.cia402``): 0x603F error code UNSIGNED16 ro 0;
+    0x6040 controlword UNSIGNED16 rww 0 (PDO); 0x6041 statusword UNSIGNED16 ro 0 (PDO); 0x605A
+    quick stop option code INTEGER16 rw 2 (Low 0 High 8); 0x605E fault reaction option code
+    INTEGER16 rw 0; 0x6060 modes of operation INTEGER8 rw 10 (validator: 0 or 10); 0x6061
+    modes of operation display INTEGER8 ro 10; 0x6502 supported drive modes UNSIGNED32 ro
+    0x00000200.  Application parameters that SDO may change (e.g. the firmware's filter Q and
+    R as REAL32 with LowLimit/HighLimit) get a validator and an ``on_write`` callback.
+
+    EMCY codes (CiA 301 table "emergency error codes"; 0x2310, 0x73xx, 0x8311 from CiA 402-2 /
+    IEC 61800-7-201): see :class:`EmcyCode`.
     """
 
     def __init__(
@@ -270,15 +273,13 @@ class CanopenServices:
         self.now = 0.0
         self.counters = ServiceCounters()
         self.emcy_log: deque[EmcyEvent] = deque(maxlen=emcy_log_size)
-        self.master = NmtMaster(bus)
+        self.nmt = NmtMaster(bus)
         self.heartbeat = HeartbeatProducer(bus, node_id)
-        self.consumer = HeartbeatConsumer(self.master)
-        self.emcy_producer = EmcyProducer(
-            bus, self.od, self.node.data_store, lambda: self.emcy_allowed
-        )
-        self.emcy_producer.cob_id = EMCY_BASE + node_id
-        self.sdo_gate = SdoServerGate(self.node, self.network)
-        self.sync_producer: SyncProducer | None = None
+        self.heartbeat_consumer = HeartbeatConsumer(self.nmt)
+        self.emcy = EmcyProducer(bus, self.od, self.node.data_store, lambda: self.emcy_allowed)
+        self.emcy.cob_id = EMCY_BASE + node_id
+        self.sdo = SdoServerGate(self.node, self.network)
+        self.sync: SyncProducer | None = None
 
         self._state_callbacks: list[Callable[[NmtState, NmtState], None]] = []
         self._reset_callbacks: list[Callable[[ResetKind], None]] = []
@@ -300,22 +301,6 @@ class CanopenServices:
         self._apply_power_on_values()
         self._load_comm_config()
         self._dispatch = self._build_dispatch()
-
-    # ------------------------------------------------------------ shared state
-
-    @property
-    def boot_times(self) -> dict[int, float]:
-        """node-ID -> time of its latest boot-up message."""
-        return self.master.boot_times
-
-    @property
-    def remote_states(self) -> dict[int, NmtState | int]:
-        return self.master.remote_states
-
-    @property
-    def monitored(self) -> dict[int, MonitoredNode]:
-        """The heartbeat consumer's monitored nodes (0x1016)."""
-        return self.consumer.monitored
 
     # ------------------------------------------------------------ registration
 
@@ -417,7 +402,7 @@ class CanopenServices:
         if now + TIME_EPSILON >= self.heartbeat.next_due:
             self.heartbeat.send(now, self.state)
             self.counters.heartbeats_sent += 1
-        for monitor in self.consumer.expired(now):
+        for monitor in self.heartbeat_consumer.expired(now):
             self._heartbeat_lost(monitor)
 
     # --------------------------------------------------------------- NMT slave
@@ -474,8 +459,8 @@ class CanopenServices:
         if new == old:
             return
         self.state = new
-        if old is NmtState.STOPPED and self.sync_producer is not None:
-            self.sync_producer.reset()  # CiA 301: counter restarts when leaving STOPPED
+        if old is NmtState.STOPPED and self.sync is not None:
+            self.sync.reset()  # CiA 301: counter restarts when leaving STOPPED
         for callback in self._state_callbacks:
             callback(old, new)
 
@@ -487,13 +472,13 @@ class CanopenServices:
         for index in [i for i in store if low <= i <= high and i not in keep]:
             del store[index]
         if kind == "node":
-            self.emcy_producer.active.clear()
+            self.emcy.active.clear()
         self._apply_power_on_values(low, high)
         for (index, sub), data in self.saved.items():
             if low <= index <= high:
                 store.setdefault(index, {})[sub] = data
         self._load_comm_config()
-        self.emcy_producer.store_error_register()
+        self.emcy.store_error_register()
         for callback in self._reset_callbacks:
             callback(kind)
         self._boot_up(now)
@@ -501,47 +486,11 @@ class CanopenServices:
     def _boot_up(self, now: float) -> None:
         self.bus.send(boot_up_frame(self.node_id))
         self.heartbeat.start(now)
-        if self.sync_producer is not None:
-            self.sync_producer.reset()
+        if self.sync is not None:
+            self.sync.reset()
         self._set_state(NmtState.PRE_OPERATIONAL)
 
-    # -------------------------------------------------------------- NMT master
-
-    def nmt_command(self, cs: int, node_id: int = 0) -> None:
-        """Send an NMT node-control command (node_id 0 = all nodes).
-
-        The master's own state is not changed by its broadcast; use ``enter_state``.
-        A reset command forgets earlier boot-ups of the addressed nodes, so
-        ``boot_seen`` waits for the new one.
-        """
-        self.master.command(cs, node_id)
-
-    def expect_boot(self, node_id: int, now: float, timeout_s: float) -> None:
-        """Start waiting (without blocking) for ``node_id``'s boot-up until now + timeout."""
-        self.master.expect_boot(node_id, now, timeout_s)
-
-    def boot_seen(self, node_id: int) -> bool:
-        """True once a boot-up message from ``node_id`` has been received."""
-        return self.master.boot_seen(node_id)
-
-    def boot_timed_out(self, now: float) -> tuple[int, ...]:
-        """Expected nodes whose boot-up deadline has passed without a boot-up."""
-        return self.master.boot_timed_out(now)
-
-    def check_boot(self, now: float) -> bool:
-        """True when every expected node has booted; raises ``BootTimeoutError`` past a
-        deadline; False while still waiting."""
-        return self.master.check_boot(now)
-
-    def remote_state(self, node_id: int) -> NmtState | int | None:
-        """Last NMT state another node reported by heartbeat (PRE-OPERATIONAL after boot-up)."""
-        return self.master.remote_states.get(node_id)
-
     # --------------------------------------------------------------- heartbeat
-
-    @property
-    def heartbeat_period_s(self) -> float:
-        return self.heartbeat.period_s
 
     def _on_heartbeat(self, msg: can.Message, now: float) -> None:
         if len(msg.data) != 1:
@@ -549,7 +498,7 @@ class CanopenServices:
             return
         node_id = msg.arbitration_id - HEARTBEAT_BASE
         self.counters.heartbeats_received += 1
-        event = self.consumer.on_frame(
+        event = self.heartbeat_consumer.on_frame(
             node_id, msg.data[0], now, self.state is not NmtState.INITIALISING
         )
         if event == "boot":
@@ -557,13 +506,13 @@ class CanopenServices:
                 callback(node_id)
         elif event == "resumed":
             if self.emcy_on_heartbeat_loss:
-                self.emcy_clear(EmcyCode.HEARTBEAT, bytes((node_id,)))
+                self.emcy.clear(EmcyCode.HEARTBEAT, bytes((node_id,)))
             for callback in self._resumed_callbacks:
                 callback(node_id)
 
     def _heartbeat_lost(self, monitor: MonitoredNode) -> None:
         if self.emcy_on_heartbeat_loss:
-            self.emcy(EmcyCode.HEARTBEAT, manufacturer=bytes((monitor.node_id,)))
+            self.emcy.raise_error(EmcyCode.HEARTBEAT, manufacturer=bytes((monitor.node_id,)))
         # 0x1029 sub 1 "communication error" behaviour (CiA 301 §7.5.2.32).
         if self._error_behaviour == 0 and self.state is NmtState.OPERATIONAL:
             self._set_state(NmtState.PRE_OPERATIONAL)
@@ -573,53 +522,6 @@ class CanopenServices:
             callback(monitor.node_id)
 
     # -------------------------------------------------------------------- EMCY
-
-    @property
-    def error_register(self) -> int:
-        """Object 0x1001: OR of the active errors' bits, plus bit 0 if any is active."""
-        return self.emcy_producer.error_register
-
-    @property
-    def active_errors(self) -> tuple[int, ...]:
-        """Codes of the errors raised with ``emcy`` and not yet cleared."""
-        return tuple(sorted({code for code, _ in self.emcy_producer.active}))
-
-    def error_active(self, code: int) -> bool:
-        """True while an error with this code is raised and not cleared (a per-frame check:
-        no allocation when none is active)."""
-        active = self.emcy_producer.active
-        return bool(active) and any(c == code for c, _ in active)
-
-    def emcy(self, code: int, register_bits: int | None = None, manufacturer: bytes = b"") -> bool:
-        """Signal an error: EMCY frame (CiA 301 §7.2.7.3.1), 0x1001 and 0x1003 updated.
-
-        Layout: canopen's ``EMCY_STRUCT``.  ``register_bits`` defaults to the code's
-        class (:func:`default_error_register`).  An error is signalled once, on its rising
-        edge: repeating an active (code, manufacturer) returns False without a frame;
-        ``emcy_clear`` ends it.  True if a frame was sent (not in STOPPED).
-        """
-        return self._counted(self.emcy_producer.raise_error(code, register_bits, manufacturer))
-
-    def emcy_clear(self, code: int, manufacturer: bytes | None = None) -> bool:
-        """An error went away: EMCY 0x0000 with the remaining error register.
-
-        ``manufacturer`` None clears every instance of ``code``.  True if a frame was sent.
-        """
-        return self._counted(self.emcy_producer.clear(code, manufacturer))
-
-    def emcy_reset(self) -> bool:
-        """Clear every error: EMCY 0x0000 "error reset or no error", 0x1001 = 0."""
-        return self._counted(self.emcy_producer.reset())
-
-    def _counted(self, sent: bool) -> bool:
-        if sent:
-            self.counters.emcy_sent += 1
-        return sent
-
-    @property
-    def error_history(self) -> tuple[int, ...]:
-        """0x1003 entries, newest first (error code | manufacturer info << 16)."""
-        return self.emcy_producer.history
 
     def _on_emcy(self, msg: can.Message, now: float) -> None:
         if self.state in (NmtState.INITIALISING, NmtState.STOPPED):
@@ -638,7 +540,7 @@ class CanopenServices:
     # --------------------------------------------------------------------- SDO
 
     def _on_sdo_request(self, msg: can.Message, now: float) -> None:
-        outcome = self.sdo_gate.handle(msg, now, self.sdo_allowed)
+        outcome = self.sdo.handle(msg, now, self.sdo_allowed)
         counters = self.counters
         if outcome == "ignored":
             counters.ignored_in_state += 1
@@ -721,7 +623,7 @@ class CanopenServices:
             if self.state is not NmtState.INITIALISING:
                 self.heartbeat.start(self.now)
         elif index == 0x1016:
-            self.consumer.configure(self._consumers_from_od())
+            self.heartbeat_consumer.configure(self._consumers_from_od())
         elif index == 0x1010:
             self._save_parameters()
             self.node.data_store[0x1010][subindex] = self.od[0x1010][subindex].encode_raw(1)
@@ -730,8 +632,8 @@ class CanopenServices:
             self.node.data_store[0x1011][subindex] = self.od[0x1011][subindex].encode_raw(1)
         elif index == 0x1003 and subindex == 0:
             self.node.data_store[0x1003] = {0: b"\x00"}
-        elif index in (0x1005, 0x1019) and self.sync_producer is not None:
-            self._configure_sync_producer(self.sync_producer)
+        elif index in (0x1005, 0x1019) and self.sync is not None:
+            self._configure_sync_producer(self.sync)
         elif index in (0x1014, 0x1029):
             self._load_comm_config()
 
@@ -801,19 +703,19 @@ class CanopenServices:
         else:
             self.heartbeat.period_s = self._hb_fallback_ms / 1e3
         if isinstance(self.od.get(0x1016), (ODArray, ODRecord)):
-            self.consumer.configure(self._consumers_from_od())
+            self.heartbeat_consumer.configure(self._consumers_from_od())
         else:
-            self.consumer.configure(self._consumer_fallback)
+            self.heartbeat_consumer.configure(self._consumer_fallback)
         if variable(self.od, 0x1014, 0) is not None:
             cob = self.read(0x1014)
-            self.emcy_producer.cob_id = None if cob & 0x80000000 else cob & 0x7FF
+            self.emcy.cob_id = None if cob & 0x80000000 else cob & 0x7FF
         else:
-            self.emcy_producer.cob_id = EMCY_BASE + self.node_id
+            self.emcy.cob_id = EMCY_BASE + self.node_id
         self._error_behaviour = (
             self.read(0x1029, 1) if variable(self.od, 0x1029, 1) is not None else None
         )
-        if self.sync_producer is not None:
-            self._configure_sync_producer(self.sync_producer)
+        if self.sync is not None:
+            self._configure_sync_producer(self.sync)
 
     def _build_dispatch(self) -> dict[int, Callable[[can.Message, float], None]]:
         dispatch: dict[int, Callable[[can.Message, float], None]] = {
@@ -841,16 +743,16 @@ class CanopenServices:
         kept in step with SDO writes to them and reset by NMT as CiA 301 requires."""
         producer = SyncProducer(self.bus)
         self._configure_sync_producer(producer)
-        self.sync_producer = producer
+        self.sync = producer
         return producer
 
     def send_sync(self) -> bool:
-        """Send one SYNC through ``sync_producer`` if the NMT state allows it."""
-        if self.sync_producer is None:
+        """Send one SYNC through ``sync`` if the NMT state allows it."""
+        if self.sync is None:
             raise RuntimeError("no SYNC producer: call make_sync_producer() first")
         if not self.sync_allowed:
             return False
-        self.sync_producer.send()
+        self.sync.send()
         return True
 
     def _configure_sync_producer(self, producer: SyncProducer) -> None:

@@ -13,12 +13,12 @@ import json
 import os
 import signal
 import sys
-import threading
 from pathlib import Path
 from typing import Any
 
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import arg_int
+from hdhil.core.signals import restore_handlers, terminate_as_interrupt
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -106,17 +106,6 @@ def _dask_executor(address: str) -> tuple[Any, Any, tuple[type[BaseException], .
     return client, (lambda: client.get_executor(pure=False)), (KilledWorker,)
 
 
-def _sigterm_as_interrupt() -> Any:
-    """SIGTERM ends a campaign as Ctrl-C does (finished variants kept, exit 130)."""
-    if threading.current_thread() is not threading.main_thread():
-        return None
-
-    def interrupt(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt
-
-    return signal.signal(signal.SIGTERM, interrupt)
-
-
 def run(args: argparse.Namespace) -> int:
     from hdhil.rig.campaign import expand, load_campaign, local_executor, run_campaign
     from hdhil.rig.campaign_report import write_outputs
@@ -145,13 +134,12 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise UserError(f"cannot create --out {out}: {exc}") from None
     progress = _Progress(len(variants), enabled=sys.stderr.isatty() and not args.json)
-    previous = _sigterm_as_interrupt()
+    previous = terminate_as_interrupt((signal.SIGTERM,))  # as Ctrl-C: finished variants kept
     try:
         result = run_campaign(campaign, variants, out, make_executor, progress, lost)
     finally:
         progress.close()
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        restore_handlers(previous)
         if client is not None:
             client.close()
     summary = write_outputs(campaign, variants, result, out)

@@ -70,6 +70,7 @@ from hdhil.commands.options import (
 from hdhil.core.dataconf import ConfigError
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import arg_int, arg_seconds
+from hdhil.core.signals import stop_on_signals
 from hdhil.dbc import CHANNEL_NUMBER, eds_path
 from hdhil.dbc import node_ids as dbc_node_ids
 from hdhil.firmware.controller import ControllerNode
@@ -77,7 +78,6 @@ from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant
 from hdhil.rig.loop import NodeLoop, controller_expects_answer, serve
 from hdhil.rig.realtime import RealtimeLoop
-from hdhil.rig.runner import stop_on_signals
 from hdhil.rig.sidecar import run_metadata
 from hdhil.rig.verdict import (
     dcf_refused,

@@ -21,13 +21,13 @@ from hdhil.commands.options import (
 from hdhil.commands.progress import Progress, add_quiet_argument, progress
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import arg_float, arg_seconds
+from hdhil.core.signals import stop_on_signals
 from hdhil.rig.realtime import RealtimeConfig
 from hdhil.rig.runner import (
     compare_laws,
     format_result,
     format_tracking,
     run_lockstep,
-    stop_on_signals,
 )
 from hdhil.rig.verdict import format_verdict
 

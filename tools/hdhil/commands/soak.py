@@ -26,7 +26,7 @@ from hdhil.commands.options import add_scenario_arguments, request_from_args
 from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import FLOAT32_MAX, arg_float, arg_seconds
-from hdhil.rig.runner import stop_on_signals
+from hdhil.core.signals import stop_on_signals
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -8,9 +8,9 @@ directory, which replaces the target (``os.replace``, atomic on POSIX) only when
 a reader never sees half a file, and an interrupted command leaves the old file as it was.
 Temporary files are removed on every exit path: normal return, exception, Ctrl-C
 (``KeyboardInterrupt``), SIGTERM/SIGHUP (turned into ``KeyboardInterrupt`` by
-:func:`install_signal_handlers`) and interpreter exit.  SIGKILL cannot be caught; the
-temporary file of a killed process (its name carries the pid) is removed by the next
-write to the same target.
+:func:`hdhil.core.signals.terminate_as_interrupt`) and interpreter exit.  SIGKILL cannot
+be caught; the temporary file of a killed process (its name carries the pid) is removed
+by the next write to the same target.
 
 Inputs (:func:`check_input`, :func:`read_config`, :func:`load_toml`): configuration and
 data files must be regular files (a FIFO, ``/dev/zero`` or a directory would block or
@@ -26,7 +26,6 @@ import json
 import os
 import re
 import shutil
-import signal
 import stat
 import sys
 import tempfile
@@ -57,12 +56,10 @@ __all__ = [
     "check_depth",
     "check_input",
     "check_output",
-    "install_signal_handlers",
     "load_json",
     "load_toml",
     "parse_toml",
     "read_config",
-    "restore_signal_handlers",
     "write_text",
 ]
 
@@ -200,29 +197,6 @@ def _remove_live() -> None:
 
 
 atexit.register(_remove_live)
-
-
-def _interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
-
-
-def install_signal_handlers() -> dict[int, Any]:
-    """SIGTERM and SIGHUP raise ``KeyboardInterrupt`` like Ctrl-C, so ``finally`` blocks
-    (temporary files, buses, the trace writer) run and the command exits 130.  Commands
-    that stop cleanly at a cycle boundary install their own handlers over these.
-    Returns the previous handlers (for :func:`restore_signal_handlers`)."""
-    previous: dict[int, Any] = {}
-    for sig in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
-        if sig is not None:
-            with contextlib.suppress(ValueError, OSError):  # not the main thread
-                previous[sig] = signal.signal(sig, _interrupt)
-    return previous
-
-
-def restore_signal_handlers(previous: dict[int, Any]) -> None:
-    for sig, handler in previous.items():
-        with contextlib.suppress(ValueError, OSError, TypeError):
-            signal.signal(sig, handler)
 
 
 def check_output(path: str | Path, what: str = "") -> Path | None:

@@ -26,7 +26,6 @@ import math
 import multiprocessing
 import os
 import re
-import signal
 import socket
 import sys
 import time
@@ -39,6 +38,7 @@ from typing import Any
 from hdhil.can.traces.sidecar import metadata_path
 from hdhil.core.dataconf import ConfigError, from_dict, merge
 from hdhil.core.files import load_toml
+from hdhil.core.signals import leave_interrupt_to_parent
 from hdhil.rig.scenario import load_scenario, scenario_data, scenario_from_dict
 from hdhil.rig.variant import WALL_CLOCK_KEYS, RunSettings, run_settings
 
@@ -630,7 +630,7 @@ def _worker_init() -> None:
     results), and move the objects inherited from the parent out of the garbage
     collector's reach (a forked worker would otherwise traverse, and so copy, the
     parent's whole heap at every full collection)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    leave_interrupt_to_parent()
     gc.freeze()
 
 

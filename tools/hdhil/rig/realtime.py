@@ -1,80 +1,20 @@
 """``hdhil run --realtime``: the lockstep run paced by the wall clock at the sample period.
 
-Pacing
-------
-Cycle k's SYNC is due at ``t0 + k·Ts`` on the monotonic clock (:func:`time.perf_counter_ns`).
-The runner sleeps until a *spin window* before the deadline, then busy-waits to it.  The
-schedule is absolute: a cycle that overruns is not skipped, the next SYNC goes out at
-once and the following ones catch up, as a hardware timer would keep its phase.
-
-The spin window absorbs late wake-ups of ``time.sleep``: a wake-up later than the window
-makes SYNC late.  It is sized from the period and the measured work of a cycle
-(:class:`SpinPlan`): :data:`SPIN_FRACTION` of the period (600 µs at 1 kHz), but never so
-wide that the loop's CPU share (spin + work per period) exceeds the kernel's real-time
-throttling limit (``/proc/sys/kernel/sched_rt_runtime_us`` / ``sched_rt_period_us``,
-95 % by default) minus :data:`RT_SHARE_MARGIN`.  Under ``SCHED_FIFO`` a loop above that
-limit is parked by the kernel for the rest of the throttling period (50 ms every second
-at 95 %).  The window is re-sized every second from the mean work of the last second.
-``--spin-us`` fixes it instead.
+Cycle k's SYNC is due at ``t0 + k·Ts`` on the monotonic clock (:func:`time.perf_counter_ns`):
+:class:`RealtimeLoop` sleeps until a spin window before the deadline, then busy-waits to
+it.  The schedule is absolute: a cycle that overruns is not skipped, the next SYNC goes
+out at once and the following ones catch up, as a hardware timer keeps its phase.  The
+loop also applies what makes the process more deterministic (:mod:`hdhil.rig.ostuning`),
+gives the controller its probe (:class:`hdhil.rig.realtime_stats.CycleStamps`), records
+the cycles of the operation phase (:class:`hdhil.rig.realtime_stats.CycleStats`) and can
+measure the machine's own floor after the run.
 
 Clock: the simulated bus's clock (:class:`WallClock`) reads wall time since the run
 started, so every frame is requested at the moment it was really sent and trace
 timestamps are real (the wire time of each frame is still modelled by ``simbus``).  The
 drive stays locked to SYNC: it integrates the plant one period per SYNC, whatever the
-wall time between two SYNCs was.
-
-Statistics
-----------
-Per operation cycle, kept in ``array('d')``.  Start-up and stop cycles are not counted,
-except the last start-up cycle when the first interrupt already ran in it: the controller
-turns operational on the drive's statusword, and in real time the cycle's sensor frame
-may arrive after it (frames are requested at wall time, so their order on the wire is
-that of the moments they were sent).  So the statistics cover exactly the cycles in
-which the interrupt ran.
-
-- **jitter**: when SYNC k was actually handed to the bus minus its deadline;
-- **latency**: from the controller receiving ``DRIVE_TPDO1`` (the frame handed to its
-  frame handler) to the command ``DRIVE_RPDO1`` being handed to the bus: decode,
-  interrupt, encode, send;
-- **interrupt compute**: the interrupt body (:class:`firmware.isr.InterruptHandler` call);
-- **stages** of the interrupt (:data:`firmware.isr.STAGES`), contiguous, so that they
-  add up to the interrupt's time in every cycle;
-- **cycle work**: from the deadline (or the wake-up, if later) to the end of the cycle's
-  frame handling: what the loop computes per period besides spinning;
-- **sleep overshoot**: how late ``time.sleep`` returned (the machine's share of the tail);
-- **misses**: cycles whose command was not handed to the bus before the next SYNC's
-  deadline (or never).
-
-Instrumentation, for the run only: the controller bus's ``send`` and the controller's
-frame handler ``on_message`` are wrapped (instance attributes, removed at the end), and
-the firmware's interrupt handler gets a stage hook (:data:`firmware.interrupt.StageHook`,
-``InterruptHandler.stage_hook``): the handler calls it at every stage boundary, the hook
-takes a ``perf_counter_ns`` time stamp.  The handler's code and classes stay as they are;
-a stage object the controller swaps in at run time (new parameters over SDO) is timed
-like the one before, since the handler, not the stage, calls the hook.  The time stamps'
-own cost is counted in the interrupt's compute time (README, figures).  An interrupt
-handler of the user's own without ``stage_hook`` is timed as a whole only.
-
-Machine floor
--------------
-:meth:`RealtimeLoop.measure_floor` (``--floor-s``) runs the bare loop after the run, in the
-same process state (same spin window, affinity, priority, no collector) and with the
-run's median cycle work as busy-waiting, but no hdhil code: the jitter and misses it
-shows are the machine's (scheduler, timer, hypervisor), and bound what the run can reach.
-
-Determinism
------------
-The process settings (collector off, affinity, timer slack, ``SCHED_FIFO``, optionally
-``mlockall``) are applied where permitted by :class:`hdhil.rig.ostuning.ProcessTuning`,
-reported as ``applied`` / ``refused``, and undone when the loop ends.  The misses left
-are stalls in which the loop does not run at all; the machine floor shows them too.
-What each setting changed on a measured machine is in the README's figures section.
-
-Other interfaces
-----------------
-``--interface virtual`` (and any real python-can interface) works too: pacing and
-statistics are the same, only the clock is the monotonic clock the non-simulated path
-already uses.
+wall time between two SYNCs was.  On ``--interface virtual`` (and any real python-can
+interface) pacing and statistics are the same, on the monotonic clock.
 """
 
 from __future__ import annotations
@@ -87,13 +27,22 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import can
-
 from hdhil.can.simbus import SimClock
 from hdhil.core.dataconf import ConfigError
-from hdhil.dbc import frame_id
-from hdhil.firmware.isr import STAGES
 from hdhil.rig.ostuning import ProcessTuning, cpu_steal_ns, rt_share_limit, steal_report
+from hdhil.rig.realtime_stats import CycleStamps, CycleStats, histogram, per_100k, percentiles
+
+__all__ = [
+    "RESIZE_EVERY_S",
+    "RT_SHARE_MARGIN",
+    "SPIN_FRACTION",
+    "RealtimeConfig",
+    "RealtimeLoop",
+    "SpinPlan",
+    "WallClock",
+    "measure_floor",
+    "sleep_then_spin",
+]
 
 #: Spin window by default, as a fraction of the sample period (600 µs at 1 kHz).
 SPIN_FRACTION = 0.6
@@ -105,11 +54,6 @@ RT_SHARE_MARGIN = 0.15
 
 #: The spin window is re-sized after every this many seconds of cycles.
 RESIZE_EVERY_S = 1.0
-
-
-#: Jitter histogram bin edges in µs (1-2-5 log spacing); below the first edge (early or
-#: under 1 µs late) is the first bin, from the last edge on the last.
-HISTOGRAM_EDGES_US = (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000, 10000)
 
 _now_ns = time.perf_counter_ns
 _sleep = time.sleep
@@ -151,7 +95,15 @@ class RealtimeConfig:
 class SpinPlan:
     """The spin window: :data:`SPIN_FRACTION` of the period, capped so that spin + mean
     cycle work stays below the RT throttling limit minus :data:`RT_SHARE_MARGIN`; or a
-    fixed window (``--spin-us``)."""
+    fixed window (``--spin-us``).
+
+    The window absorbs late wake-ups of ``time.sleep``: a wake-up later than the window
+    makes SYNC late.  Under ``SCHED_FIFO`` a loop above the kernel's real-time throttling
+    limit (``/proc/sys/kernel/sched_rt_runtime_us`` / ``sched_rt_period_us``, 95 % by
+    default) is parked for the rest of the throttling period (50 ms every second at
+    95 %), hence the cap.  The loop re-sizes the window every :data:`RESIZE_EVERY_S` from
+    the mean work of the last second.
+    """
 
     period_ns: int
     share_limit: float
@@ -188,61 +140,23 @@ class WallClock(SimClock):
         self.t0_ns = t0_ns
 
 
-# ------------------------------------------------------------------ statistics
-def percentiles(values: array) -> dict[str, float]:
-    """p50, p99, p99.9, max (nearest rank) and mean of ``values``; NaN when empty."""
-    n = len(values)
-    if not n:
-        return dict.fromkeys(("p50", "p99", "p99.9", "max", "mean"), math.nan)
-    s = sorted(values)
-
-    def rank(p: float) -> float:
-        return s[min(n - 1, max(0, math.ceil(p * n) - 1))]
-
-    return {"p50": rank(0.50), "p99": rank(0.99), "p99.9": rank(0.999), "max": s[-1],
-            "mean": math.fsum(s) / n}  # fmt: skip
-
-
-def histogram(values_us: array) -> list[dict[str, Any]]:
-    """Counts per log-spaced bin (:data:`HISTOGRAM_EDGES_US`); they sum to ``len(values)``."""
-    edges = HISTOGRAM_EDGES_US
-    counts = [0] * (len(edges) + 1)
-    for v in values_us:
-        i = 0
-        while i < len(edges) and v >= edges[i]:
-            i += 1
-        counts[i] += 1
-    bins = []
-    for i, n in enumerate(counts):
-        lo = None if i == 0 else edges[i - 1]
-        hi = None if i == len(edges) else edges[i]
-        label = f"< {hi} µs" if lo is None else f">= {lo} µs" if hi is None else f"{lo}-{hi} µs"
-        bins.append({"bin": label, "low_us": lo, "high_us": hi, "count": n})
-    return bins
-
-
-def _finite(values: array) -> array:
-    return array("d", (v for v in values if not math.isnan(v)))
-
-
-def per_100k(events: int, cycles: int) -> float:
-    return 1e5 * events / cycles if cycles else math.nan
-
-
 # ------------------------------------------------------------------ the loop
 class RealtimeLoop:
-    """Paces the cycles, instruments the controller, collects the statistics."""
+    """Paces the cycles, instruments the controller, collects the statistics.
 
-    def __init__(self, sample_period_s: float, config: RealtimeConfig | None = None, *,
-                 sync_id: int | None = None, sensor_id: int | None = None,
-                 command_id: int | None = None) -> None:  # fmt: skip
+    Statistics (:class:`hdhil.rig.realtime_stats.CycleStats`, ``stats``) cover the
+    operation cycles only.  Start-up and stop cycles are not counted, except the last
+    start-up cycle when the first interrupt already ran in it: the controller turns
+    operational on the drive's statusword, and in real time the cycle's sensor frame may
+    arrive after it (frames are requested at wall time, so their order on the wire is
+    that of the moments they were sent).  So the statistics cover exactly the cycles in
+    which the interrupt ran.
+    """
+
+    def __init__(self, sample_period_s: float, config: RealtimeConfig | None = None) -> None:
         self.config = config = config or RealtimeConfig()
         config.check(sample_period_s)
         self.period_ns = round(sample_period_s * 1e9)
-        # Default identifiers from control.dbc (SYNC, the drive's sensor TPDO, its RPDO).
-        self.sync_id = frame_id("control", "SYNC") if sync_id is None else sync_id
-        self.sensor_id = frame_id("control", "DRIVE_TPDO1") if sensor_id is None else sensor_id
-        self.command_id = frame_id("control", "DRIVE_RPDO1") if command_id is None else command_id
         share, source = rt_share_limit()
         self.plan = SpinPlan(
             self.period_ns,
@@ -254,17 +168,10 @@ class RealtimeLoop:
         self.spin_range_ns = [self._spin_ns, self._spin_ns]  # during recording
         self.t0_ns = 0
         self.recording = False
-        self.jitter_us = array("d")
-        self.latency_us = array("d")
-        self.isr_us = array("d")
-        self.work_us = array("d")
-        self.overshoot_us = array("d")  # NaN: no sleep that cycle
-        self.stage_us = {key: array("d") for key, _ in STAGES}
-        self.misses = 0
-        self.cycles = 0
-        self.late_starts = 0
-        self.late_wakeups = 0
-        self.busy_ns = 0
+        #: The probe the controller time-stamps its cycle's events with.
+        self.stamps = CycleStamps()
+        #: The recorded cycles' statistics.
+        self.stats = CycleStats(self.period_ns)
         self.floor: dict[str, Any] | None = None
         #: The CPU the loop is pinned to (None: not pinned), for its steal time.
         self.cpu: int | None = None
@@ -282,113 +189,41 @@ class RealtimeLoop:
         self._wake_ns = 0
         self._started_late = False
         self._overshoot_ns = -1
-        self._sync_ns = 0
-        self._sensor_ns = 0
-        self._command_ns = 0
         self._window_cycles = max(1, round(RESIZE_EVERY_S * 1e9 / self.period_ns))
         self._window_n = 0
         self._window_work_ns = 0
-        # the current cycle's interrupt, kept by _isr_done until end_cycle records it
-        self._stage_ns = [0] * len(STAGES)
-        self._stage_arrays = [self.stage_us[key] for key, _ in STAGES]
-        self._isr_ns = 0
-        self._isr_ran = False
-        self._staged = False  # the handler reports its stages (stage hook)
         self._end_ns = 0
         self._restore: list[Callable[[], None]] = []
 
     # ------------------------------------------------------------ instrumentation
 
     def instrument(self, controller: Any) -> None:
-        """Wrap the controller's bus send and its frame handler, and set the interrupt
-        handler's stage hook (for this run only; :meth:`exit` undoes all three)."""
-        bus: can.BusABC = controller.bus
-        send, on_message = bus.send, controller.on_message
-        own_send, own_on_message = vars(bus).get("send"), vars(controller).get("on_message")
-        sync_id, sensor_id, command_id = self.sync_id, self.sensor_id, self.command_id
-
-        def timed_send(msg: can.Message, timeout: float | None = None) -> None:
-            t = _now_ns()
-            ident = msg.arbitration_id
-            if ident == command_id:
-                self._command_ns = t
-            elif ident == sync_id:
-                self._sync_ns = t
-            send(msg, timeout)
-
-        def timed_on_message(msg: can.Message) -> None:
-            if msg.arbitration_id == sensor_id:
-                self._sensor_ns = _now_ns()  # received: handed to the controller
-            on_message(msg)
-
-        bus.send = timed_send  # type: ignore[method-assign]
-        controller.on_message = timed_on_message
+        """Give the controller the probe (``controller.probe``,
+        :class:`hdhil.firmware.controller.CycleProbe`) and the firmware's interrupt
+        handler its stage hook, for this run only (:meth:`exit` takes both back)."""
+        stamps = self.stamps
+        previous = getattr(controller, "probe", None)
+        controller.probe = stamps
         isr = controller.isr
-        timed_handler = self._staged = hasattr(isr, "stage_hook")
-        if timed_handler:
-            isr.stage_hook = self._stage_hook()
-        else:  # a handler of the user's own: timed as a whole
-            controller.isr = self._timed_whole(isr)
+        staged = stamps.staged = hasattr(isr, "stage_hook")
+        if staged:
+            isr.stage_hook = stamps.stage_hook()
 
         def uninstrument() -> None:
-            if own_send is not None:  # the bus's own instance attribute, as it was
-                bus.send = own_send  # type: ignore[method-assign]
-            else:
-                with contextlib.suppress(AttributeError):
-                    delattr(bus, "send")
-            if own_on_message is not None:
-                controller.on_message = own_on_message
-            else:
-                with contextlib.suppress(AttributeError):
-                    delattr(controller, "on_message")
-            if timed_handler:
+            controller.probe = previous
+            if staged:
                 isr.stage_hook = None
-            else:
-                controller.isr = isr
 
         self._restore.append(uninstrument)
-
-    def _stage_hook(self) -> Callable[[int], None]:
-        """The stage hook: a time stamp per stage boundary; at the last, the interrupt's
-        stage times (successive differences, so they add up to the whole) are kept for
-        :meth:`end_cycle`."""
-        stamps = [0] * (len(STAGES) + 1)
-        last = len(STAGES)
-        now = _now_ns
-        ns = self._stage_ns
-
-        def stamp(i: int) -> None:
-            t = stamps[i] = now()
-            if i == last:
-                for j in range(last):
-                    ns[j] = stamps[j + 1] - stamps[j]
-                self._isr_ns = t - stamps[0]
-                self._isr_ran = True
-
-        return stamp
-
-    def _timed_whole(self, isr: Any) -> Any:
-        """A handler without stage hook, timed around its call (no stage breakdown)."""
-        loop = self
-
-        class Timed:
-            def __getattr__(self, name: str) -> Any:
-                return getattr(isr, name)
-
-            def __call__(self, sample: Any) -> Any:
-                t0 = _now_ns()
-                out = isr(sample)
-                loop._isr_ns = _now_ns() - t0
-                loop._isr_ran = True
-                return out
-
-        return Timed()
 
     # ------------------------------------------------------------ determinism
 
     def enter(self) -> None:
-        """Apply what improves determinism and is permitted (:class:`hdhil.rig.ostuning.
-        ProcessTuning`); what was applied and refused goes into the report."""
+        """Apply what improves determinism and is permitted
+        (:class:`hdhil.rig.ostuning.ProcessTuning`: collector off, affinity, timer slack,
+        ``SCHED_FIFO``, optionally ``mlockall``); what was applied and refused goes into
+        the report.  The misses left are stalls in which the loop does not run at all; the
+        machine floor shows them too."""
         tuning = self._tuning
         tuning.enter()
         self.cpu = tuning.cpu
@@ -419,8 +254,7 @@ class RealtimeLoop:
         """Sleep until the spin window, then spin, until cycle ``k``'s deadline."""
         deadline = self.t0_ns + k * self.period_ns
         self._deadline = deadline
-        self._sync_ns = self._sensor_ns = self._command_ns = 0
-        self._isr_ran = False
+        self.stamps.clear()
         wake, self._overshoot_ns = sleep_then_spin(deadline, self._spin_ns)
         self._wake_ns = wake
         self._started_late = self._overshoot_ns < 0 and wake >= deadline
@@ -444,31 +278,8 @@ class RealtimeLoop:
 
     def _record(self) -> None:
         """Append the cycle that just ended to the statistics."""
-        t = self._end_ns
-        deadline = self._deadline
-        wake = self._wake_ns
-        work = t - (wake if wake > deadline else deadline)
-        self.cycles += 1
-        self.busy_ns += t - wake
-        self.work_us.append(work * 1e-3)
-        over = self._overshoot_ns
-        self.overshoot_us.append(over * 1e-3 if over >= 0 else math.nan)
-        if over > self._spin_ns:
-            self.late_wakeups += 1
-        if self._started_late:
-            self.late_starts += 1
-        sync = self._sync_ns
-        self.jitter_us.append((sync - deadline) * 1e-3 if sync else math.nan)
-        command = self._command_ns
-        if command and self._sensor_ns:
-            self.latency_us.append((command - self._sensor_ns) * 1e-3)
-        if not command or command >= deadline + self.period_ns:
-            self.misses += 1
-        if self._isr_ran:
-            if self._staged:
-                for a, ns in zip(self._stage_arrays, self._stage_ns, strict=True):
-                    a.append(ns * 1e-3)
-            self.isr_us.append(self._isr_ns * 1e-3)
+        self.stats.record(self._deadline, self._wake_ns, self._end_ns, self._overshoot_ns,
+                          self._spin_ns, self._started_late, self.stamps)  # fmt: skip
 
     def _resize_spin(self) -> None:
         mean_work = self._window_work_ns / self._window_n
@@ -482,12 +293,12 @@ class RealtimeLoop:
         """Statistics from the next cycle on (the run's operation phase), and from the
         cycle that just ended if the interrupt already ran in it: the controller turns
         operational on the drive's statusword, and in real time the cycle's sensor frame
-        may come after it (module docstring)."""
+        may come after it (class docstring)."""
         self.recording = True
         self.spin_range_ns = [self._spin_ns, self._spin_ns]
         self._steal0 = cpu_steal_ns(self.cpu)
         self._recording_t0_ns = _now_ns()
-        if self._isr_ran:
+        if self.stamps.isr_ran:
             self._record()
 
     def end_recording(self) -> None:
@@ -502,16 +313,17 @@ class RealtimeLoop:
     # ------------------------------------------------------------ machine floor
 
     def measure_floor(self, duration_s: float | None = None) -> dict[str, Any] | None:
-        """The bare loop: same spin window and process state, the run's median cycle
-        work as busy-waiting, no hdhil code (module docstring).  Call it after the run,
-        before :meth:`exit`."""
+        """The bare loop (:func:`measure_floor`) with the run's spin window and median
+        cycle work, in the same process state.  Call it after the run, before
+        :meth:`exit`."""
         duration = self.config.floor_s if duration_s is None else duration_s
         if not duration > 0:
             return None
+        work = self.stats.work_us
         self.floor = measure_floor(
             self.period_ns,
             self._spin_ns,
-            round(percentiles(self.work_us)["p50"] * 1e3) if self.work_us else 0,
+            round(percentiles(work)["p50"] * 1e3) if work else 0,
             duration,
             self.cpu,
         )
@@ -520,31 +332,10 @@ class RealtimeLoop:
     # ------------------------------------------------------------ report
 
     def result(self) -> dict[str, Any]:
-        jitter = _finite(self.jitter_us)
-        overshoot = _finite(self.overshoot_us)  # the cycles that slept
-        stages = {}
-        for key, label in STAGES:
-            stages[key] = {"label": label, **percentiles(self.stage_us[key])}
-        period_ns = self.period_ns
-        share = self.busy_ns / (self.cycles * period_ns) if self.cycles else math.nan
+        """The statistics, the pacing and the process settings, as the run reports them."""
         fixed = self.plan.fixed_ns is not None
         return {
-            "cycles": self.cycles,
-            "sample_period_s": period_ns * 1e-9,
-            "deadline_misses": self.misses,
-            "misses_per_100k": per_100k(self.misses, self.cycles),
-            "jitter_us": percentiles(jitter),
-            "latency_us": percentiles(self.latency_us),
-            "interrupts": len(self.isr_us),
-            "isr_us": percentiles(self.isr_us),
-            "stages_us": stages,
-            "cycle_work_us": percentiles(self.work_us),
-            "sleep_overshoot_us": percentiles(overshoot),
-            "sleeps": len(overshoot),
-            "jitter_histogram": histogram(jitter),
-            "syncs_missing": self.cycles - len(jitter),
-            "late_starts": self.late_starts,
-            "late_wakeups": self.late_wakeups,
+            **self.stats.summary(),
             "pacing": {
                 "spin_us": self._spin_ns * 1e-3,
                 "spin_us_range": [v * 1e-3 for v in self.spin_range_ns],
@@ -554,7 +345,7 @@ class RealtimeLoop:
                 "rt_share_limit": self.plan.share_limit,
                 "rt_share_limit_source": self.rt_limit_source,
                 "rt_share_budget": self.plan.share_limit - RT_SHARE_MARGIN,
-                "cpu_share": share,
+                "cpu_share": self.stats.cpu_share,
             },
             "applied": list(self.applied),
             "refused": list(self.refused),
@@ -582,8 +373,10 @@ def sleep_then_spin(deadline_ns: int, spin_ns: int) -> tuple[int, int]:
 
 def measure_floor(period_ns: int, spin_ns: int, work_ns: int, duration_s: float,
                   cpu: int | None = None) -> dict[str, Any]:  # fmt: skip
-    """Sleep-then-spin pacing with ``work_ns`` of busy-waiting per cycle and nothing else,
-    for ``duration_s`` (the caller sets up affinity, priority, collector).  Jitter is the
+    """The machine floor (``--floor-s``): sleep-then-spin pacing with ``work_ns`` of
+    busy-waiting per cycle and no hdhil code, for ``duration_s`` (the caller sets up
+    affinity, priority, collector).  The jitter and misses it shows are the machine's
+    (scheduler, timer, hypervisor), and bound what the run can reach.  Jitter is the
     lateness of the loop's start of work; a miss is work that ends after the next
     deadline.  ``steal``: the hypervisor's steal time on ``cpu`` (the loop's; None: all
     CPUs) meanwhile."""
@@ -621,76 +414,3 @@ def measure_floor(period_ns: int, spin_ns: int, work_ns: int, duration_s: float,
         "late_wakeups": late_wakeups,
         "steal": steal_report(steal0, cpu_steal_ns(cpu), cpu, n * period_ns * 1e-9),
     }
-
-
-# ------------------------------------------------------------------ text
-def _row(label: str, p: dict[str, float]) -> str:
-    return f"    {label:<30} {p['p50']:9.1f} {p['p99']:9.1f} {p['p99.9']:9.1f} {p['max']:9.1f}"
-
-
-def _histogram_lines(bins: list[dict[str, Any]]) -> list[str]:
-    top = max((b["count"] for b in bins), default=0) or 1
-    return [
-        f"      {b['bin']:>14} {b['count']:>8}  {'#' * max(1, round(40 * b['count'] / top))}"
-        for b in bins
-        if b["count"]
-    ]
-
-
-def format_steal(steal: dict[str, Any]) -> str:
-    """One phrase: the hypervisor's steal time (:func:`steal_report`)."""
-    where = "all CPUs" if steal["cpu"] == "all" else f"the loop's CPU {steal['cpu']}"
-    return (
-        f"hypervisor steal time on {where}: {steal['ms']:.0f} ms "
-        f"({steal['share']:.2%} of the time; stalls the machine cannot avoid)"
-    )
-
-
-def format_realtime(rt: dict[str, Any]) -> str:
-    """The statistics as text: percentile tables, the jitter histogram, the floor."""
-    pace = rt["pacing"]
-    lo, hi = pace["spin_us_range"]
-    spin = f"{pace['spin_us']:.0f} µs" if lo == hi else f"{lo:.0f}-{hi:.0f} µs"
-    lines = [
-        f"  real time          {rt['cycles']} cycles paced at "
-        f"{rt['sample_period_s'] * 1e3:g} ms; deadline misses {rt['deadline_misses']} "
-        f"({rt['misses_per_100k']:.1f} per 100 000)",
-        f"    pacing: spin window {spin} ({pace['spin_source']}); loop CPU share "
-        f"{pace['cpu_share']:.0%}, RT throttling limit {pace['rt_share_limit']:.0%}",
-    ]
-    if pace["cpu_share"] > pace["rt_share_limit"]:
-        lines.append("    WARNING: the loop's CPU share is above the RT throttling limit: "
-                     "the kernel parks it for the rest of each throttling period")  # fmt: skip
-    lines.append(
-        f"    sleep woke later than the spin window in {rt['late_wakeups']} cycles; "
-        f"{rt['late_starts']} cycles started late (the previous one overran)"
-    )
-    if rt.get("steal"):
-        lines.append(f"    {format_steal(rt['steal'])}")
-    lines.append(f"    applied: {'; '.join(rt['applied']) or 'nothing'}")
-    if rt["refused"]:
-        lines.append(f"    refused: {'; '.join(rt['refused'])}")
-    lines.append(f"    {'µs':<30} {'p50':>9} {'p99':>9} {'p99.9':>9} {'max':>9}")
-    for key, label in (("jitter_us", "SYNC jitter (late)"),
-                       ("latency_us", "sensor frame -> command"),
-                       ("cycle_work_us", "cycle work (frames, nodes)"),
-                       ("sleep_overshoot_us", "sleep overshoot"),
-                       ("isr_us", "interrupt compute")):  # fmt: skip
-        lines.append(_row(label, rt[key]))
-    for stage in rt["stages_us"].values():
-        lines.append(_row(f"  {stage['label']}", stage))
-    lines.append("    SYNC jitter histogram:")
-    lines += _histogram_lines(rt["jitter_histogram"])
-    floor = rt.get("floor")
-    if floor:
-        lines += [
-            f"  machine floor      bare sleep+spin loop, {floor['cycles']} cycles, same spin "
-            f"window and process state, {floor['work_us']:.0f} µs busy work per cycle, no "
-            f"hdhil code: misses {floor['deadline_misses']} "
-            f"({floor['misses_per_100k']:.1f} per 100 000), late wake-ups "
-            f"{floor['late_wakeups']}"
-            + (f"; {format_steal(floor['steal'])}" if floor.get("steal") else ""),
-            _row("start jitter (late)", floor["jitter_us"]),
-            _row("sleep overshoot", floor["sleep_overshoot_us"]),
-        ]
-    return "\n".join(lines)

@@ -21,11 +21,8 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-import signal
-import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -48,6 +45,7 @@ from hdhil.can.traces.writer import WriterProcess
 from hdhil.canopen.cia402 import State
 from hdhil.core.dataconf import ConfigError, merge
 from hdhil.core.files import load_toml
+from hdhil.core.signals import stop_on_signals as stop_on_signals  # for its callers
 from hdhil.dbc import CHANNEL_NUMBER, database
 from hdhil.firmware.config import FirmwareConfig, Law
 from hdhil.firmware.controller import ControllerNode
@@ -65,7 +63,8 @@ from hdhil.rig.factories import (
 )
 from hdhil.rig.headline import format_headline, headline
 from hdhil.rig.loop import NodeLoop, controller_expects_answer
-from hdhil.rig.realtime import RealtimeConfig, RealtimeLoop, WallClock, format_realtime
+from hdhil.rig.realtime import RealtimeConfig, RealtimeLoop, WallClock
+from hdhil.rig.realtime_stats import format_realtime
 from hdhil.rig.request import RunRequest
 from hdhil.rig.scenario import Scenario, scenario_data, scenario_from_dict
 from hdhil.rig.score import TorqueScorer, TrackingScorer
@@ -1048,32 +1047,3 @@ def compare_laws(request: RunRequest, **kwargs: Any) -> list[dict[str, Any]]:
         if r.interrupted:
             break
     return rows
-
-
-@contextmanager
-def stop_on_signals() -> Iterator[threading.Event]:
-    """Turn the first SIGINT/SIGTERM into a stop request (the run ends cleanly at the next
-    cycle boundary, trace closed); a second SIGINT interrupts at once."""
-    stop = threading.Event()
-    if threading.current_thread() is not threading.main_thread():
-        yield stop
-        return
-
-    def request_stop(signum: int, frame: object) -> None:
-        # The second Ctrl-C: whatever raised KeyboardInterrupt before (the console's own).
-        # Put in place before the event is set: Event.set takes a lock that is not
-        # reentrant, and a second Ctrl-C whose handler ran inside this one's set() and
-        # set the event again waited for that lock for ever (a run that never ended).
-        outer = previous.get(signal.SIGINT)
-        signal.signal(signal.SIGINT, outer if callable(outer) else signal.default_int_handler)
-        if not requested:  # a stopping signal whose handler runs inside this one's set()
-            requested.append(signum)
-            stop.set()
-
-    requested: list[int] = []
-    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield stop
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)

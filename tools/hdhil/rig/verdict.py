@@ -36,7 +36,7 @@ def last_emcy_received(services: Any) -> dict[str, Any] | None:
 
 def last_emcy_sent(services: Any, node_id: int) -> dict[str, Any] | None:
     """The newest entry of a node's error history (0x1003), or ``None``."""
-    history = services.error_history
+    history = services.emcy.history
     history = history() if callable(history) else history
     return _emcy(history[0] & 0xFFFF, node_id) if history else None
 

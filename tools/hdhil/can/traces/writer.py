@@ -23,11 +23,8 @@ import contextlib
 import multiprocessing
 import multiprocessing.util
 import os
-import signal
 import struct
-import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +46,11 @@ from hdhil.core.files import (
     discard_temporary,
     release_temporary,
     temporary_dir_for,
+)
+from hdhil.core.signals import (
+    leave_stopping_signals_to_parent,
+    signals_deferred,
+    stopping_signals_blocked,
 )
 
 
@@ -121,11 +123,6 @@ def _pin_header_dates(unix_s: float) -> None:
             module.datetime = _TraceStart  # type: ignore[attr-defined]
 
 
-def _stopping_signals() -> set[int]:
-    """Ctrl-C, SIGTERM and a hang-up: the signals the run, not its writer, answers."""
-    return {s for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)) if s}
-
-
 def _writer_main(
     tmp_dir: str,
     target: str,
@@ -153,9 +150,7 @@ def _writer_main(
     timestamp.
     """
     frames_w.close()  # the parent's end: with it open here, the input would never end
-    for sig in _stopping_signals():
-        signal.signal(sig, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, _stopping_signals())  # blocked by the parent
+    leave_stopping_signals_to_parent()  # the run answers them; blocked across the fork
     if offset:
         _pin_header_dates(offset)
     work = Path(tmp_dir)
@@ -196,44 +191,6 @@ def _writer_main(
     discard_temporary(work)
     with contextlib.suppress(OSError):
         status.send(("error", error) if error else ("done", written))
-
-
-@contextlib.contextmanager
-def _signals_deferred() -> Iterator[None]:
-    """Hold back the stopping signals' Python handlers for the block, then run them.
-
-    Handing a batch to the writer is a pipe write plus the count of frames sent; a
-    Ctrl-C raising ``KeyboardInterrupt`` between the two (or between two chunks of a
-    batch larger than the pipe) would leave the count short, so that ``stop`` sends the
-    same batch again (duplicated frames, "wrote N of M" error), or leave half a batch in
-    the pipe (the writer discards the trace).  A signal that arrives in the block is noted
-    and its handler, whichever is in place when the block ends, runs then.  Python runs
-    signal handlers in the main thread only: elsewhere there is nothing to hold back.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    caught: list[int] = []
-
-    def note(signum: int, frame: object) -> None:
-        if signum not in caught:
-            caught.append(signum)
-
-    previous: dict[int, Any] = {}
-    try:
-        for sig in _stopping_signals():
-            if signal.getsignal(sig) is not signal.SIG_IGN:
-                previous[sig] = signal.signal(sig, note)
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-        for sig in caught:
-            handler = signal.getsignal(sig)
-            if callable(handler):
-                handler(sig, None)
-            elif handler == signal.SIG_DFL:
-                signal.raise_signal(sig)
 
 
 _pack = _RECORD.pack
@@ -287,12 +244,8 @@ class WriterProcess(can.Listener):
         )  # fmt: skip
         # Signals stay blocked across the fork: a Ctrl-C reaching the whole process group
         # must not hit the child before it has set them to be ignored (it unblocks then).
-        blocked = _stopping_signals()
-        previous = signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
-        try:
+        with stopping_signals_blocked():
             self._proc.start()
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
         frames_r.close()  # only the child reads frames, only the child reports
         status_w.close()
         self._frames = frames_w
@@ -355,8 +308,9 @@ class WriterProcess(can.Listener):
     def _send(self) -> None:
         if not self._batch:
             return
-        # The batch goes whole or not at all, and is counted with it (_signals_deferred).
-        with _signals_deferred():
+        # The batch goes whole or not at all, and is counted with it: a Ctrl-C between
+        # the two would make stop() send it again, or leave half of it in the pipe.
+        with signals_deferred():
             try:
                 self._frames.send_bytes(self._batch)
             except OSError as exc:
