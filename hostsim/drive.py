@@ -202,7 +202,9 @@ from hdhil.canopen.services import (
 )
 from hdhil.dbc import codec, eds_path
 from hdhil.hostsim.plant import Plant, PlantConfig
-from hdhil.hostsim.plant_model import PlantModel
+from hdhil.hostsim.plant_model import PlantModel, Truth
+
+TWO_PI = 2.0 * math.pi
 
 #: Object indices the node serves (CiA 301 / CiA 402 / manufacturer area).
 OD_ABORT_CONNECTION = 0x6007
@@ -624,7 +626,8 @@ class DriveNode(CanNode):
         sample = self._sample = plant.sample()
         self._update_position(sample[3], (1 + missed) * self._Ts)
         if self.services.state is not _INITIALISING:
-            self._check_sensors(sample)
+            truth = plant.truth()
+            self._check_sensors(sample, truth)
         if self.services.state is _OPERATIONAL:
             if self._fast_sensor:  # TPDO1 as the DBC describes it: every SYNC
                 self._sensor_msg.data = self._sensor.encode(*sample)
@@ -635,7 +638,7 @@ class DriveNode(CanNode):
                     if tpdo.layout.synchronous:
                         tpdo.on_sync(self._now)
             if self.truth_bus is not None:
-                self._publish_truth()
+                self._publish_truth(truth)
         self._check_command_hold()
         if self._next_sync:
             self._active_V = self._latched_V
@@ -660,7 +663,7 @@ class DriveNode(CanNode):
             self._machine.fault(EmcyCode.RPDO_TIMEOUT)
             self._silent_cycles = 0
 
-    def _check_sensors(self, sample: tuple[int, int, int, int]) -> None:
+    def _check_sensors(self, sample: tuple[int, int, int, int], truth: Truth) -> None:
         """EMCY 0x7300 per saturated ADC channel, 0x2310 at the current limit (edges)."""
         saturated = self._adc.saturated
         active = self._saturated
@@ -674,7 +677,7 @@ class DriveNode(CanNode):
                 active.discard(channel)
                 self.services.emcy_clear(EmcyCode.SENSOR, bytes((channel,)))
         self._machine.warning = bool(active)
-        at_limit = abs(self.plant.motor_torque_command_output) >= self._current_limit_Nm
+        at_limit = abs(truth.tau_m_cmd_Nm) >= self._current_limit_Nm
         if at_limit != self._at_current_limit:
             self._at_current_limit = at_limit
             self._machine.internal_limit_active = at_limit
@@ -1064,7 +1067,7 @@ class DriveNode(CanNode):
     def _torque_actual(self) -> int:
         """0x6077: the motor torque the amplifier produces, per mille of rated torque."""
         rated = self._rated_Nm()
-        value = round(self.plant.motor_torque_output / rated * 1e3) if rated else 0
+        value = round(self.plant.truth().tau_m_Nm / rated * 1e3) if rated else 0
         return min(max(value, -32768), 32767)
 
     def _update_position(self, encoder: int, dt: float) -> None:
@@ -1209,18 +1212,17 @@ class DriveNode(CanNode):
 
     # ------------------------------------------------------------------ truth
 
-    def _publish_truth(self) -> None:
-        p = self.plant
+    def _publish_truth(self, t: Truth) -> None:
         torque, motion, joint = self._truth_codecs
         m_torque, m_motion, m_joint = self._truth_msgs
-        m_torque.data = torque.encode(p.T_true, p.T_ripple)
-        m_motion.data = motion.encode(p.theta_motor, p.theta_output, p.omega_motor, p.omega_output)
-        m_joint.data = joint.encode(
-            p.external_torque,
-            p.motor_disturbance,
-            p.motor_torque_output,
-            p.motor_torque_command_output,
+        m_torque.data = torque.encode(t.T_true_Nm, t.T_ripple_Nm)
+        m_motion.data = motion.encode(
+            t.theta_motor_rad % TWO_PI,
+            t.theta_output_rad % TWO_PI,
+            t.omega_motor_radps,
+            t.omega_output_radps,
         )
+        m_joint.data = joint.encode(t.tau_ext_Nm, t.tau_d_Nm, t.tau_m_Nm, t.tau_m_cmd_Nm)
         send = self.truth_bus.send
         send(m_torque)
         send(m_motion)

@@ -32,7 +32,7 @@ from hdhil.hostsim.plant.linear import (
     steady_state_volts,
 )
 from hdhil.hostsim.plant.model import ENCODER_MODULUS, Plant
-from hdhil.hostsim.plant.truth import RippleParts
+from hdhil.hostsim.plant.truth import RippleParts, Truth
 
 __all__ = [
     "ENCODER_MODULUS",
@@ -49,6 +49,7 @@ __all__ = [
     "RippleConfig",
     "RippleParts",
     "SensorConfig",
+    "Truth",
     "continuous_model",
     "discrete_model",
     "person_model",

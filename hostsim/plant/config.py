@@ -366,7 +366,7 @@ class LinkMotionConfig:
       torque it takes (the handle torque) is smooth too.
 
     The torque the environment applies to impose it is truth:
-    :attr:`Plant.environment_torque` (``tau_l``) and :attr:`Plant.external_torque`
+    ``Truth.tau_l_Nm`` and ``Truth.tau_ext_Nm``
     (``tau_l + tau_g = J_l ddtheta_l - T_transmitted``).  At t = 0 the motor starts
     where a rigid joint would be: no twist, and moving with the link's initial velocity
     (so a sine does not begin with a velocity jump across the damper).
@@ -481,7 +481,7 @@ class GravityConfig:
     180 makes ``theta_l = 0`` the hanging position (``tau_g = -mgl sin theta_l``,
     restoring).  Default 0 Nm: [Vertechy] §VI, "the joint axis is vertical so that tau_g
     = 0".  In free motion it is held over each sub-step (like the Coulomb friction);
-    with a prescribed link motion it changes only :attr:`Plant.environment_torque`.
+    with a prescribed link motion it changes only ``Truth.tau_l_Nm``.
     """
 
     mgl_Nm: float = 0.0
@@ -506,7 +506,7 @@ class SensorConfig:
 
     * Torque: the strain-gauge bridge through its amplifier (``PlantConfig.bridge``,
       [Taghirad97] §2), ``V = (T_true + T_ripple) / volt2Nm_true + torque_offset_V +
-      noise`` (see the module docstring); ``torque_offset_V`` is the bridge
+      noise`` (see :class:`~hdhil.hostsim.plant.truth.Truth`); ``torque_offset_V`` is the bridge
       amplifier's electrical zero offset.
     * Tachometer on the motor: ``V = omega_motor / volt2radps + noise``; 56.2565 rad/s
       per V is [Taghirad97] listing A.1 (``volt2radps``).
@@ -526,7 +526,7 @@ class SensorConfig:
     the one reading of W the whole project uses (the LQG design's too, see
     ``hdhil.firmware.lqg_design``, "One reading of W").
 
-    ``torque_measures``: what the ideal torque sensor reads, :attr:`Plant.T_true`.
+    ``torque_measures``: what the ideal torque sensor reads, ``Truth.T_true_Nm``.
     ``"transmitted"`` (default): the flexspline torque ``k (q_m - q_l) + c (dq_m -
     dq_l)``, spring and damper (the flexspline gauges of [Taghirad97]).  ``"spring"``: the
     spring torque ``k (q_m - q_l) = -tau_s`` only, the sensor torque of [Vertechy]

@@ -33,7 +33,7 @@ from hdhil.hostsim.plant.linear import (
     prescribed_model,
     zoh,
 )
-from hdhil.hostsim.plant.truth import RippleParts
+from hdhil.hostsim.plant.truth import RippleParts, Truth
 
 __all__ = ["ENCODER_MODULUS", "Plant"]
 
@@ -56,9 +56,9 @@ class Plant:
     link angle and velocity are set from the prescription at the end of each step.
 
     The torque sensor is evaluated once per :meth:`advance` (and by
-    :meth:`hold_locked`): :attr:`T_ripple` and the gauge hysteresis state are updated
-    from the state at the end of the step.  The wave generator's angle relative to the
-    gauges is :attr:`beta` (see there).
+    :meth:`hold_locked`): ``T_ripple`` and the gauge hysteresis state are updated
+    from the state at the end of the step.  :meth:`truth` reads the state as it stands
+    (:class:`~hdhil.hostsim.plant.truth.Truth`).
     """
 
     def __init__(self, cfg: PlantConfig, seed: int = 0, faults: SensorHook | None = None) -> None:
@@ -130,13 +130,6 @@ class Plant:
             raise ValueError(f"load torque must be finite, got {torque_Nm!r}")
         self._tau_load = float(torque_Nm)
         self._const_loads = (self._tau_load,) * self._substeps
-
-    @property
-    def load_torque(self) -> float:
-        """The external load torque now (Nm, output): the value held with
-        :meth:`set_load_torque` plus the :class:`LoadTorqueConfig` profile at :attr:`time`."""
-        profile = self._profile
-        return self._tau_load + (0.0 if profile is None else profile(self._t))
 
     def hold_locked(self, theta_motor: float, torque_Nm: float) -> None:
         """Static state of the calibration rig ([Taghirad97] §3): wave generator locked.
@@ -353,7 +346,7 @@ class Plant:
         Mesh ripple and misalignment (:class:`RippleConfig`) are torques the gauges
         see; the gauge nonlinearity and hysteresis act on their sum with ``T_true``;
         the bridge's wave-generator residual ([Taghirad97] §2 Eqs. 1-4) depends on
-        :attr:`beta` only.  All as torque-equivalents at the true gain.
+        ``beta`` only (:attr:`Truth.beta_rad`).  All as torque-equivalents at the true gain.
         """
         r = self.cfg.ripple
         th_m = self._n * (self._ql + self._d)
@@ -362,7 +355,7 @@ class Plant:
             4.0 * th_m + r.phase4_rad
         )
         mis = 0.5 * r.misalignment_pp_Nm * math.sin(q_l + r.misalignment_phase_rad)
-        T_true = self._T_true = self.T_true  # for the next sample(s) at this state
+        T_true = self._T_true = self._torque_true()  # for the next sample(s) at this state
         torsion = T_true + mesh + mis
         hyst = self._hysteresis.update(torsion)
         bridge = self.bridge
@@ -428,185 +421,61 @@ class Plant:
         """Motor torque at the current limit, output-referred (``cfg.max_motor_torque_Nm``)."""
         return self.cfg.max_motor_torque_Nm
 
-    # ------------------------------------------------------------------ truth
+    # ------------------------------------------------------------------ clock and truth
     @property
     def time(self) -> float:
         """Simulated time in s (sum of the ``dt`` of all :meth:`advance` calls)."""
         return self._t
 
-    @property
-    def T_true(self) -> float:
-        """The torque an ideal torque sensor reads (Nm, output): noise- and ripple-free.
-
-        :attr:`T_transmitted` (default) or, with ``SensorConfig.torque_measures =
-        "spring"``, :attr:`T_spring`.  Positive when the motor drives the load forward
-        (see the module docstring for [Vertechy]'s opposite sign).
-        """
+    def _torque_true(self) -> float:
+        """:attr:`Truth.T_true_Nm` at the present state."""
         dt_cfg = self.cfg.drivetrain
         if self._spring_only:
             return dt_cfg.k_flex * self._d
         return dt_cfg.k_flex * self._d + dt_cfg.c_flex * (self._wm - self._wl)
 
-    @property
-    def T_transmitted(self) -> float:
-        """Torque the joint transmits to the link, ``k (q_m - q_l) + c (dq_m - dq_l)``
-        (Nm, output): ``-(tau_s + c (dtheta_l - dtheta_m))`` in [Vertechy]'s terms."""
-        dt_cfg = self.cfg.drivetrain
-        return dt_cfg.k_flex * self._d + dt_cfg.c_flex * (self._wm - self._wl)
+    def truth(self) -> Truth:
+        """The plant's ground truth at :attr:`time` (:class:`Truth`, every field filled).
 
-    @property
-    def T_spring(self) -> float:
-        """Spring torque ``k (q_m - q_l)`` (Nm, output): ``-tau_s`` of [Vertechy] §II."""
-        return self.cfg.drivetrain.k_flex * self._d
-
-    @property
-    def T_ripple(self) -> float:
-        """Everything the torque sensor adds to ``T_true`` (Nm), noise and offset aside.
-
-        ``T_true + T_ripple`` is the sensor's noise- and offset-free reading at its true
-        gain (``BridgeConfig.volt2Nm``); :attr:`ripple_parts` splits it up.
+        The external load torque ``tau_l`` is the value held with
+        :meth:`set_load_torque` plus the :class:`LoadTorqueConfig` profile at
+        :attr:`time`; with a prescribed link motion, what it takes to impose the motion.
         """
-        return self._T_ripple
-
-    @property
-    def ripple_parts(self) -> RippleParts:
-        """:attr:`T_ripple` by origin: mesh, misalignment, bridge modulation, gauge
-        nonlinearity and hysteresis (Nm; they sum to ``T_ripple``)."""
-        return RippleParts(*self._parts)
-
-    @property
-    def torque_V_clean(self) -> float:
-        """The bridge amplifier's output without noise and offset (V)."""
-        return (self.T_true + self._T_ripple) / self._volt2Nm
-
-    @property
-    def beta(self) -> float:
-        """Angle of the wave generator relative to the gauges (rad, unwrapped).
-
-        ``beta = theta_motor + theta_output``.  The gauges sit on the flexspline, which
-        carries the output.  In a cup-type harmonic drive with the circular spline fixed
-        ([Taghirad97] §1) the flexspline turns AGAINST the wave generator, at 1/N of its
-        speed; the plant's convention (positive motor -> positive output, module
-        docstring) hides that reversal, so relative to the gauges the wave generator
-        turns by ``theta_motor + theta_output``, i.e. (N + 1) / N times the motor angle.
-        The bridge's residual modulation is at ``2 beta`` ([Taghirad97] §2, Eqs. 2-3):
-        1.01 x the 2x meshing frequency for N = 100, which the seed does not resolve
-        ("also twice the motor speed", §4).
-        """
-        return self._n * (self._ql + self._d) + self._ql
-
-    @property
-    def theta_motor_unwrapped(self) -> float:
-        """Motor (wave generator) angle in rad at the motor shaft, not wrapped."""
-        return self._n * (self._ql + self._d)
-
-    @property
-    def theta_motor(self) -> float:
-        """Motor (wave generator) angle in rad, wrapped to [0, 2 pi)."""
-        return self._n * (self._ql + self._d) % TWO_PI  # theta_motor_unwrapped, wrapped
-
-    @property
-    def omega_motor(self) -> float:
-        """Motor velocity in rad/s at the motor shaft (what the tachometer sees)."""
-        return self._n * self._wm
-
-    @property
-    def theta_output_unwrapped(self) -> float:
-        """Output (load) angle in rad, not wrapped."""
-        return self._ql
-
-    @property
-    def theta_output(self) -> float:
-        """Output (load) angle in rad, wrapped to [0, 2 pi)."""
-        return self._ql % TWO_PI
-
-    @property
-    def omega_output(self) -> float:
-        """Output (load) velocity in rad/s."""
-        return self._wl
-
-    @property
-    def current(self) -> float:
-        """Motor current in A (positive drives forward)."""
-        return self._i
-
-    @property
-    def motor_torque(self) -> float:
-        """Electromagnetic motor torque ``Kt i`` in Nm at the MOTOR shaft (x N at the output)."""
-        return self.cfg.amplifier.torque_constant_Nm_per_A * self._i
-
-    # ------------------------------------------------------------------ [Vertechy] truth
-    @property
-    def motor_torque_output(self) -> float:
-        """Motor torque reduced to the output, ``N Kt i`` (Nm): ``tau_m`` of [Vertechy]
-        Eq. 1 as it acts (after the current lag and the current limit)."""
-        return self._n * self.cfg.amplifier.torque_constant_Nm_per_A * self._i
-
-    @property
-    def motor_torque_command_output(self) -> float:
-        """The motor torque the amplifier is commanded, ``N Kt clip(g V)`` (Nm, output):
-        the DAC command of the last :meth:`advance` times :attr:`PlantConfig.torque_per_volt`,
-        limited at :attr:`PlantConfig.max_motor_torque_Nm`."""
-        return self._n * self.cfg.amplifier.torque_constant_Nm_per_A * self._i_cmd
-
-    @property
-    def motor_disturbance(self) -> float:
-        """``tau_d`` of [Vertechy] Eq. 1 (Nm, output): every torque on the motor inertia
-        except ``tau_m`` and the joint's, ``-b_m dq_m - C_m tanh(dq_m / eps)`` (the
-        motor friction, :class:`DriveTrainConfig`).  Same sign in the seed and here."""
         d = self.cfg.drivetrain
-        return -d.b_motor * self._wm - self._cm * math.tanh(self._wm * self._inv_eps)
-
-    @property
-    def gravity_torque(self) -> float:
-        """``tau_g`` of [Vertechy] Eq. 1 at the present link angle (Nm, :class:`GravityConfig`)."""
-        return self.cfg.gravity.torque(self._ql)
-
-    @property
-    def load_friction_torque(self) -> float:
-        """The output bearings' friction on the link, ``-b_l dq_l - C_l tanh(dq_l / eps)``
-        (Nm).  [Vertechy] has no such term: it belongs to its ``tau_l``."""
-        d = self.cfg.drivetrain
-        return -d.b_load * self._wl - self._cl * math.tanh(self._wl * self._inv_eps)
-
-    @property
-    def link_acceleration(self) -> float:
-        """Link angular acceleration ``ddtheta_l`` (rad/s²) at :attr:`time`.
-
-        Free link: ``(T_transmitted + tau_l + tau_g + friction) / J_l`` ([Vertechy] Eq. 1,
-        second line); prescribed link: the prescription's.
-        """
-        if self._link is not None:
-            return self._link.acceleration(self._t)
-        return (
-            self.T_transmitted + self.load_torque + self.gravity_torque + self.load_friction_torque
-        ) / self.cfg.drivetrain.J_load
-
-    @property
-    def external_torque(self) -> float:
-        """All torque on the link except the joint's (Nm): ``tau_l + tau_g`` of [Vertechy].
-
-        ``J_l ddtheta_l - T_transmitted``, i.e. in [Vertechy]'s terms (Eq. 1, second line)
-        ``tau_l + tau_g = J_l ddtheta_l + k (theta_l - theta_m) + c (dtheta_l -
-        dtheta_m)``.  The plant's and the seed's external torques have the same sign.
-        The output-bearing friction (:attr:`load_friction_torque`, not in the seed)
-        counts as part of ``tau_l``.  This is what the [Vertechy] Kalman filter
-        estimates as ``tau_lg`` (and, with ``tau_d``, ``tau_lgd = tau_lg - tau_d
-        J_l / J_m``).
-        """
-        if self._link is not None:
-            return self.cfg.drivetrain.J_load * self._link.acceleration(self._t) - (
-                self.T_transmitted
-            )
-        return self.load_torque + self.gravity_torque + self.load_friction_torque
-
-    @property
-    def environment_torque(self) -> float:
-        """``tau_l`` of [Vertechy] Eq. 1 (Nm): the torque the environment applies to the link.
-
-        Free link: :attr:`load_torque`.  Prescribed link: what it takes to impose the
-        motion, ``J_l ddtheta_l - T_transmitted - tau_g - friction``.
-        """
-        if self._link is not None:
-            return self.external_torque - self.gravity_torque - self.load_friction_torque
-        return self.load_torque
+        n, twist, wm, wl, q_l = self._n, self._d, self._wm, self._wl, self._ql
+        spring = d.k_flex * twist
+        transmitted = spring + d.c_flex * (wm - wl)
+        tau_d = -d.b_motor * wm - self._cm * math.tanh(wm * self._inv_eps)
+        friction = -d.b_load * wl - self._cl * math.tanh(wl * self._inv_eps)
+        tau_g = self.cfg.gravity.torque(q_l)
+        link = self._link
+        if link is None:
+            profile = self._profile
+            tau_l = self._tau_load + (0.0 if profile is None else profile(self._t))
+            tau_ext = tau_l + tau_g + friction
+            accel = (transmitted + tau_l + tau_g + friction) / d.J_load
+        else:
+            accel = link.acceleration(self._t)
+            tau_ext = d.J_load * accel - transmitted
+            tau_l = tau_ext - tau_g - friction
+        kt_out = n * self.cfg.amplifier.torque_constant_Nm_per_A
+        return Truth(
+            spring if self._spring_only else transmitted,
+            n * (q_l + twist),
+            q_l,
+            n * wm,
+            wl,
+            kt_out * self._i,
+            kt_out * self._i_cmd,
+            self._T_ripple,
+            tau_ext,
+            tau_d,
+            transmitted,
+            spring,
+            self._i,
+            tau_l,
+            tau_g,
+            friction,
+            accel,
+            RippleParts(*self._parts),
+        )
