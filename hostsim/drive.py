@@ -124,21 +124,22 @@ latest sample.  Writable application objects:
   values are the plant's configuration.  A write is applied at the next SYNC, before the
   plant step: the plant's frozen configuration is rebuilt with ``dataclasses.replace``
   and swapped in, so the step ending at that SYNC and its sample use the new values.
-- 0x2310 "Fault injection" (:mod:`hdhil.can.faults`), applied at the next SYNC like 0x2300:
-  1 ``tacho_spike_rate`` (REAL32, 0..1 per sample), 2 ``tacho_spike_V`` (0..20 V),
-  3 ``encoder_glitch_rate`` (0..1 per sample), 4 ``encoder_glitch_counts`` (UNSIGNED16);
-  channel masks (UNSIGNED8, bit 0 torque, 1 tacho, 2 current, 3 encoder) 5
-  ``stuck_mask`` (the channel holds its count from the next sample on), 6
-  ``saturated_max_mask`` and 7 ``saturated_min_mask`` (an ADC channel at its top or
-  bottom code; the encoder has none, and a channel in both masks is refused with abort
-  0x06090030); 8 ``silence_ms`` (UNSIGNED16): from the next SYNC the drive transmits
-  nothing for that long (PDOs, heartbeat, EMCY, SDO answers; a write during the silence
-  is applied but not answered; 0 ends it), so the controller's sensor hold and heartbeat
-  consumer react as to a drive that fell off the bus.  Power-on values: the plant's
-  configured sensor faults (``[faults.sensors]``), no mask, no silence.  The faults are
-  drawn from the run's fault seed and every one is recorded in its fault log (a
-  silenced frame as ``silence`` on ``control``).  Nothing is installed while nothing is
-  switched on: the plant keeps its fault-free path and the bus its own ``send``.
+- 0x2310 "Fault injection" (:mod:`hdhil.hostsim.sensor_faults`), applied at the next
+  SYNC like 0x2300: 1 ``tacho_spike_rate`` (REAL32, 0..1 per sample), 2
+  ``tacho_spike_V`` (0..20 V), 3 ``encoder_glitch_rate`` (0..1 per sample), 4
+  ``encoder_glitch_counts`` (UNSIGNED16); channel masks (UNSIGNED8, bit 0 torque, 1
+  tacho, 2 current, 3 encoder) 5 ``stuck_mask`` (the channel holds its count from the
+  next sample on), 6 ``saturated_max_mask`` and 7 ``saturated_min_mask`` (an ADC channel
+  at its top or bottom code; the encoder has none, and a channel in both masks is
+  refused with abort 0x06090030); 8 ``silence_ms`` (UNSIGNED16): from the next SYNC the
+  drive transmits nothing for that long (PDOs, heartbeat, EMCY, SDO answers; a write
+  during the silence is applied but not answered; 0 ends it), so the controller's sensor
+  hold and heartbeat consumer react as to a drive that fell off the bus.  Power-on
+  values: the plant's configured sensor faults (``[faults.sensors]``), no mask, no
+  silence.  The faults are drawn from the run's fault seed and every one is recorded in
+  its fault log (a silenced frame as ``silence`` on ``control``).  Nothing is installed
+  while nothing is switched on: the plant keeps its fault-free path and the bus its own
+  ``send``.
 - 0x6040 controlword: an SDO write is applied at once, like an immediate RPDO.
 - 0x6007 abort connection option code (0..3), 0x605A quick stop option code (0..8),
   0x605E fault reaction option code (0..4), 0x6060 modes of operation (0 or 10, else
@@ -156,15 +157,7 @@ from typing import Any, Literal
 
 import can
 
-from hdhil.can.faults import (
-    FaultConfig,
-    FaultInjector,
-    FaultLog,
-    SensorFaults,
-    SensorHook,
-    SensorWindow,
-    TransmitSilence,
-)
+from hdhil.can.faults import TransmitSilence
 from hdhil.can.node import CanNode, pdo_cob_id
 from hdhil.canopen.cia402 import (
     CONTROLWORD,
@@ -200,9 +193,17 @@ from hdhil.canopen.services import (
     ResetKind,
     SyncMonitor,
 )
+from hdhil.core.faultbase import FaultLog
 from hdhil.dbc import codec, eds_path
 from hdhil.hostsim.plant import Plant, PlantConfig
 from hdhil.hostsim.plant_model import PlantModel, Truth
+from hdhil.hostsim.sensor_faults import (
+    SensorFaultInjector,
+    SensorFaults,
+    SensorFaultSource,
+    SensorHook,
+    SensorWindow,
+)
 
 TWO_PI = 2.0 * math.pi
 
@@ -233,7 +234,7 @@ EMULATOR_KNOBS: dict[int, tuple[str, str]] = {
     6: ("load", "torque_Nm"),
 }
 
-#: 0x2310 sub-index -> the :class:`hdhil.can.faults.SensorFaults` field it sets.
+#: 0x2310 sub-index -> the :class:`hdhil.hostsim.sensor_faults.SensorFaults` field it sets.
 FAULT_FIELDS: dict[int, str] = {
     1: "tacho_spike_rate",
     2: "tacho_spike_V",
@@ -385,7 +386,7 @@ class DriveNode(CanNode):
         plant: PlantModel,
         config: DriveConfig | None = None,
         truth_bus: can.BusABC | None = None,
-        faults: FaultInjector | None = None,
+        faults: SensorFaultSource | None = None,
     ) -> None:
         """``faults`` is the run's fault injector, the one whose ``sensors()`` hook the
         plant has (if any): its seed and log serve the faults switched on through object
@@ -465,13 +466,19 @@ class DriveNode(CanNode):
         # the drive's own silence on the control bus.
         hook = plant.faults if isinstance(plant, Plant) else None
         if faults is None:
-            faults = FaultInjector(
-                FaultConfig(sensors=hook.cfg) if hook is not None else FaultConfig(),
+            faults = SensorFaultInjector(
+                hook.cfg if hook is not None else SensorFaults(),
+                0,
                 hook.log if hook is not None else FaultLog(keep=False),
             )
         self.faults = faults
         self._sensor_hook: SensorHook | None = hook
-        self._base_sensor_faults = hook.cfg if hook is not None else faults.config.sensors
+        # The configured sensor faults: the plant's hook's, else the source's (the hook
+        # it would install; the same object later, when 0x2310 switches a fault on).
+        if hook is None:
+            hook = faults.sensors(always=True)
+            assert hook is not None
+        self._base_sensor_faults = hook.cfg
         self._mask_windows: dict[tuple[int, str], SensorWindow] = {}
         self._silence = TransmitSilence(bus, faults.log, "control", lambda: self._now)
 

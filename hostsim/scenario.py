@@ -53,11 +53,11 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from hdhil.can.faults import FaultConfig
 from hdhil.core.dataconf import ConfigError, from_dict, merge
 from hdhil.core.errors import UserError
 from hdhil.core.files import load_toml
 from hdhil.hostsim.plant import PlantConfig
+from hdhil.rig.faults import FaultConfig
 
 __all__ = ["Scenario", "list_scenarios", "load_scenario", "scenario_from_dict"]
 

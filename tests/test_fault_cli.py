@@ -16,14 +16,7 @@ import time
 import can
 import pytest
 
-from hdhil.can.faults import (
-    FaultConfig,
-    FaultInjector,
-    FaultLog,
-    FaultyTransmitBus,
-    parse_fault_flags,
-    with_fault_flags,
-)
+from hdhil.can.faults import FaultLog, FaultyTransmitBus
 from hdhil.can.simbus import SimClock
 from hdhil.cli import main
 from hdhil.commands import run as run_module
@@ -34,6 +27,7 @@ from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
 from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.faults import FaultConfig, FaultInjector, parse_fault_flags, with_fault_flags
 
 TS = 1e-3
 SENSOR = codec("control", "DRIVE_TPDO1")

@@ -19,11 +19,12 @@ import can
 import pytest
 from test_multiprocess import GROUP_CONTROL, _hdhil, netns  # noqa: F401  (the namespace fixture)
 
-from hdhil.can.faults import FaultConfig, FaultInjector, FaultyTransmitBus, with_fault_flags
+from hdhil.can.faults import FaultyTransmitBus
 from hdhil.can.simbus import SimClock
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.dbc import database, node_ids
 from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.faults import FaultConfig, FaultInjector, with_fault_flags
 from hdhil.rig.runner import run_lockstep
 
 TS = 1e-3

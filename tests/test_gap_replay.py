@@ -23,7 +23,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hdhil.can.faults import with_fault_flags
 from hdhil.cli import main
 from hdhil.firmware.config import FirmwareConfig, recommended_config
 from hdhil.hostsim.scenario import load_scenario
@@ -34,6 +33,7 @@ from hdhil.rig.evaluate import (
     offline_chain,
     recording_from_trace,
 )
+from hdhil.rig.faults import with_fault_flags
 from hdhil.rig.runner import run_lockstep
 
 GOAL_NM = 0.003

@@ -8,12 +8,12 @@ import json
 import time
 from pathlib import Path
 
-from hdhil.can.faults import with_fault_flags
 from hdhil.cli import main
 from hdhil.commands.soak import run_soak
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
 from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.faults import with_fault_flags
 
 
 def _dcf(tmp_path: Path, values: dict[str, str]) -> Path:

@@ -13,10 +13,10 @@ import can
 import pytest
 from canopen.emcy import EMCY_STRUCT
 
-from hdhil.can.faults import with_fault_flags
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.stages import StuckChannels
 from hdhil.hostsim.scenario import load_scenario
+from hdhil.rig.faults import with_fault_flags
 from hdhil.rig.runner import run_lockstep
 
 CPR = FirmwareConfig().calibration.encoder_counts_per_rev

@@ -22,7 +22,6 @@ import math
 
 import numpy as np
 
-from hdhil.can.faults import SensorHook
 from hdhil.core.converter import Converter
 from hdhil.hostsim.bridge import GaugeHysteresis, StrainGaugeBridge
 from hdhil.hostsim.plant.config import TWO_PI, PlantConfig
@@ -34,6 +33,7 @@ from hdhil.hostsim.plant.linear import (
     zoh,
 )
 from hdhil.hostsim.plant.truth import RippleParts, Truth
+from hdhil.hostsim.sensor_faults import SensorHook
 
 __all__ = ["ENCODER_MODULUS", "Plant"]
 
@@ -64,7 +64,7 @@ class Plant:
     def __init__(self, cfg: PlantConfig, seed: int = 0, faults: SensorHook | None = None) -> None:
         self.cfg = cfg
         self.seed = seed
-        #: Sensor-fault hook (:meth:`hdhil.can.faults.FaultInjector.sensors`) applied to every
+        #: Sensor-fault hook (:meth:`hdhil.rig.faults.FaultInjector.sensors`) applied to every
         #: :meth:`sample`; None = healthy sensors.
         self.faults = faults
         dt_cfg = cfg.drivetrain
@@ -378,7 +378,7 @@ class Plant:
         a given seed gives the same noise sequence whatever the noise settings.
 
         With :attr:`faults` set, the counts then pass through the sensor faults (stuck,
-        saturated, encoder glitches, tacho spikes; :mod:`hdhil.can.faults`).
+        saturated, encoder glitches, tacho spikes; :mod:`hdhil.hostsim.sensor_faults`).
         """
         pos = self._noise_pos
         if pos + 3 > len(self._noise):

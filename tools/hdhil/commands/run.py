@@ -11,7 +11,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from hdhil.can.faults import with_fault_flags
 from hdhil.commands.options import (
     DEFAULT_BITRATE,
     add_bus_options,
@@ -30,6 +29,7 @@ from hdhil.core.numbers import arg_float, arg_int, arg_seconds
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.odlimits import check_od_limits
 from hdhil.hostsim.scenario import list_scenarios, load_scenario
+from hdhil.rig.faults import with_fault_flags
 from hdhil.rig.realtime import RealtimeConfig
 from hdhil.rig.runner import (
     compare_laws,

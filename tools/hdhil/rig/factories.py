@@ -30,12 +30,12 @@ from typing import Literal, Protocol
 
 import can
 
-from hdhil.can.faults import FaultInjector
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant
 from hdhil.hostsim.scenario import Scenario
+from hdhil.rig.faults import FaultInjector
 
 #: The buses a node can sit on: the CAN control bus, and the truth channel that exists
 #: only in simulation (ground truth for scoring; the firmware never reads it).
