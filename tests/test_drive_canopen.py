@@ -478,7 +478,7 @@ def test_statusword_and_live_objects_read_by_sdo(rig):
     assert state_from_statusword(rig.drive.statusword) is State.OPERATION_ENABLED
     assert sdo_upload(rig, 0x6040, 0) == struct.pack("<H", ENABLE)
     assert sdo_download(rig, 0x6041, 0, b"\x00\x00") == 0x06010002  # read-only
-    counts = rig.drive._sample  # the latest sample, as sent in DRIVE_TPDO1
+    counts = rig.drive.io.sample  # the latest sample, as sent in DRIVE_TPDO1
     assert sdo_upload(rig, 0x2100, 1) == struct.pack("<h", counts[0])
     assert sdo_upload(rig, 0x2101, 0) == struct.pack("<H", counts[3])
 

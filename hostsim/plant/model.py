@@ -131,6 +131,16 @@ class Plant:
         self._tau_load = float(torque_Nm)
         self._const_loads = (self._tau_load,) * self._substeps
 
+    def retune(self, cfg: PlantConfig) -> None:
+        """Swap in ``cfg``, which may differ from :attr:`cfg` in ripple and sensor noise
+        only (the drive's object 0x2300): the ripple is read at every sensor update, the
+        noise deviations are refreshed here.  The state, the clock and the noise stream go
+        on where they are."""
+        self.cfg = cfg
+        s = cfg.sensors
+        self._sig_torque_V = s.torque_noise_Nm / cfg.bridge.volt2Nm
+        self._sig_tacho_V = s.tacho_noise_radps / s.volt2radps
+
     def hold_locked(self, theta_motor: float, torque_Nm: float) -> None:
         """Static state of the calibration rig ([Taghirad97] §3): wave generator locked.
 
