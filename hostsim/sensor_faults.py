@@ -5,7 +5,7 @@
 drawing from the run's fault seed and recording each fault in the run's
 :class:`~hdhil.core.faultbase.FaultLog`. The drive's object 0x2310 switches them at run
 time (:meth:`SensorHook.reconfigure`). They are the plant's, not the bus's: this module
-imports nothing of CAN, and the bus faults stay in :mod:`hdhil.can.faults`.
+imports nothing of CAN; the bus faults are in :mod:`hdhil.can.faults`.
 :class:`SensorFaultInjector` builds a plant's hook once, so the plant and the drive
 share it.
 """

@@ -3,9 +3,8 @@
 A plant returns a :class:`Truth` from ``truth()``; the drive publishes its first ten
 fields on the truth channel (``truth.dbc``), which the firmware never reads, and the
 scorer compares the firmware's estimates with them. One immutable record, read in one
-call, instead of one property per quantity: the values belong to one instant, a plant
-of one's own fills in what it models and leaves the rest at the defaults, and a test
-sees the whole state at once.
+call: the values belong to one instant, a plant of one's own fills in what it models and
+leaves the rest at the defaults, and a test sees the whole state at once.
 """
 
 from __future__ import annotations
