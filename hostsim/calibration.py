@@ -1,43 +1,23 @@
-"""The torque-sensor calibration rig of [Taghirad97] §3, emulated.
+"""The torque-sensor calibration rig of [Taghirad97] §3, emulated: arm and weight on a
+locked wave generator, least-squares gains, their mean and consistency (Table 1).
 
-[Taghirad97] () §3: "we locked the harmonic
-drive wave generator, and applied a known torque on the flexspline ... using arm and
-weight method ... loading and unloading some weight on the arm, in both direction.
-This experiment is repeated at different flexspline positions ... Also low-range and
-full-range loading experiments are tested at each position ... These data are best
-fitted by a straight line using least-squares approximation.  The estimated torque
-sensor gain for each experiment is calculated from the slope of this line ... By
-consistency we mean ... the ratio of the standard deviation to the average value of
-estimated parameter for different experiments [11] ... the final gain is obtained from
-the average value".  Table 1: 6.60 Nm/V, 2 % over eight experiments.
+Why emulated: ``hdhil calibrate`` finds the sensor gain the firmware needs the way the
+paper's rig does, with every error of the real chain, so the gain error of an
+uncalibrated firmware and what calibration removes can be measured.
 
-What the emulated rig does (pure numerics, no CAN):
+1. The plant is held locked (:meth:`Plant.hold_locked`): wave generator fixed, the
+   flexspline carrying the arm's torque, read through the whole sensor chain (gauges,
+   bridge, amplifier, noise, 12-bit ADC) and averaged over ``samples`` readings.
+2. ``positions`` flexspline positions around the circumference, each set so that the
+   wave generator's angle relative to the gauges (``Truth.beta_rad``) steps evenly
+   through one period of the bridge's 2β modulation, from a random start.
+3. At each position one experiment per range of ``ranges_Nm`` (weights 0 → +max → 0 →
+   −max → 0 in ``steps`` increments), each fitted with a least-squares line; the gain
+   is the mean over the experiments, the consistency their std / mean.
 
-1. The drive's own :class:`hostsim.plant.Plant` is put in the locked state
-   (:meth:`Plant.hold_locked`): wave generator fixed, the flexspline carrying the arm's
-   torque.  Its sensor chain is the real one: gauges and bridge ([Taghirad97] §2, with their
-   positioning errors, nonlinearity and hysteresis), amplifier, noise, 12-bit ADC.  The
-   ADC counts are turned back into volts with the same converter the firmware uses
-   and averaged over ``samples`` readings per load step.
-2. Positions: ``positions`` flexspline positions spread around the circumference
-   (output near ``360° p / positions``), each fine-adjusted so that the wave
-   generator's angle relative to the gauges (``Plant.beta``) steps evenly through one
-   period of the bridge's 2β modulation, from a random start.  The modulation, the
-   locked meshing ripple and the misalignment are then a different static offset at
-   each position, as on the real rig.
-3. At each position, one experiment per range in ``ranges_Nm`` (default ±5 Nm
-   "low-range" and ±40 Nm "full-range", the rated torque of the seed's RHS drive,
-   §2): weights in ``steps`` equal increments 0 → +max → 0 → −max → 0.
-4. Each experiment: least-squares line ``torque = gain · V + offset`` through its
-   points (``numpy.polyfit``); final gain = mean over the experiments; consistency =
-   sample standard deviation / mean.
-
-Error sources besides the sensor's own: the lever arm.  Each time the arm is mounted
-(every experiment) its effective length differs from the nominal one by a random
-relative error of standard deviation ``lever_error`` (0.5 % by default: 2.5 mm on a
-0.5 m arm, the hanger's seat and the arm's bending), which the experimenter does not
-know.  It dominates the consistency measure; the gauges' hysteresis and nonlinearity
-(``BridgeConfig``) make the low-range and full-range slopes differ a little.
+The lever arm's effective length differs from the nominal one by a random relative error
+of standard deviation ``lever_error`` per mounting, unknown to the experimenter; it
+dominates the consistency, as on the real rig.
 """
 
 from __future__ import annotations
@@ -161,7 +141,7 @@ def load_sequence(max_Nm: float, steps: int) -> list[float]:
 def _locked_motor_angle(p: int, positions: int, beta0: float, gear_ratio: float) -> float:
     """Wave-generator angle of position p: output near 2 pi p / P, beta = beta0 + pi p / P.
 
-    With the lock unloaded, ``beta = theta_m (N + 1) / N`` (:attr:`Plant.beta`); the
+    With the lock unloaded, ``beta = theta_m (N + 1) / N`` (``Truth.beta_rad``); the
     output is turned from ``2 pi p / P`` by less than pi / (N + 1) to hit the target.
     """
     n = gear_ratio
@@ -210,13 +190,14 @@ def calibrate(
             slope, intercept = np.polyfit(volts, torques, 1)
             fit = slope * np.asarray(volts) + intercept
             plant.hold_locked(theta_m, 0.0)
+            truth = plant.truth()
             experiments.append(
                 Experiment(
                     index=idx + 1,
                     position=p + 1,
                     range_Nm=max_Nm,
-                    flexspline_deg=math.degrees(plant.theta_output),
-                    beta_deg=math.degrees(plant.beta % math.pi),
+                    flexspline_deg=math.degrees(truth.theta_output_rad % TWO_PI),
+                    beta_deg=math.degrees(truth.beta_rad % math.pi),
                     mass_per_step_kg=max_Nm / rig.steps / (G_N_PER_KG * rig.arm_length_m),
                     points=len(torques),
                     gain_Nm_per_V=float(slope),

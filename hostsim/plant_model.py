@@ -1,25 +1,18 @@
-"""The seam between the drive node and its physics: what :class:`hostsim.drive.DriveNode`
-needs from a plant.
+"""The seam between the drive node and its physics: what the drive needs from a plant.
 
-The drive node is the CANopen device (NMT, heartbeat, CiA 402 state machine, PDOs,
-EMCY); the plant is the physics behind it. The node holds no physics: on SYNC k it
-advances the plant by one period with the amplifier input of the past period, reads the
-sensors and sends them (docs/design.md, "Timing semantics"). Any object with the members
-below can stand behind the node: the emulator's own :class:`hostsim.plant.Plant`
-(harmonic drive, flexible joint, strain-gauge sensor with ripple) or a model of your
-own (README, "Plugging in a plant"; a rigid inertia in ``tests/test_plant_model.py``).
+The drive node (:class:`hdhil.hostsim.drive.DriveNode`) is the CANopen device and holds
+no physics: on SYNC k it advances the plant by one period with the amplifier input of
+the past period, reads the sensors, sends them, and publishes the plant's
+:class:`~hdhil.hostsim.plant.truth.Truth` on the truth channel (which the firmware never
+reads). Any object with the members of :class:`PlantModel` can stand behind it: the
+emulator's own :class:`hdhil.hostsim.plant.Plant` or a model of your own.
 
-Units: volts, seconds, newton-metres, radians and rad/s at the output (load) side except
-where a name says motor. Sensor readings are ADC counts of the drive's sensor frame
-(DRIVE_TPDO1, ``dbc/control.dbc``), converted with :attr:`PlantModel.adc`; the drive
-turns received DAC counts into the amplifier voltage with :attr:`PlantModel.dac`, the
-same :class:`hdhil.core.converter.Converter` the firmware uses, so both sides agree on
-counts and volts by construction.
-
-The emulator's extras (object 0x2300: ripple, noise and load torque at run time; 0x2310
-sub 1-7: sensor faults) act on :class:`hostsim.plant.Plant` only; with another model the
-drive refuses those SDO writes (abort 0x08000022). Ground truth (the ``truth`` members)
-goes to the truth channel, which the firmware never reads.
+Units: volts, seconds, newton-metres, radians and rad/s at the output except where a
+name says motor. Sensor readings are the ADC counts of DRIVE_TPDO1 (``dbc/control.dbc``)
+in the converter :attr:`PlantModel.adc`; the drive turns DAC counts into amplifier volts
+with :attr:`PlantModel.dac`, the converter the firmware uses too. The emulator's extras
+(object 0x2300, the sensor faults of 0x2310) act on its own plant only; another plant
+refuses those SDO writes (abort 0x08000022).
 """
 
 from __future__ import annotations
@@ -27,6 +20,9 @@ from __future__ import annotations
 from typing import Protocol, runtime_checkable
 
 from hdhil.core.converter import Converter
+from hdhil.hostsim.plant.truth import Truth
+
+__all__ = ["PlantModel", "SensorCounts", "Truth"]
 
 #: One sensor reading in DRIVE_TPDO1 order: torque bridge, tachometer and motor-current
 #: ADC counts, and the 16-bit encoder count.
@@ -35,7 +31,31 @@ SensorCounts = tuple[int, int, int, int]
 
 @runtime_checkable
 class PlantModel(Protocol):
-    """What the drive node needs from a plant (module docstring)."""
+    """What the drive node needs from a plant. A rigid inertia ``J`` driven with ``k`` Nm
+    per amplifier volt, with a linear torque sensor, a tachometer and an encoder read
+    with the firmware's gains (``tests/test_plant_model.py`` runs it)::
+
+        class RigidInertia:
+            adc = dac = Converter()  # the firmware's 12-bit, +/-10 V converters
+            max_motor_torque_Nm = 10.0
+            J, k = 0.005, 1.0  # kg m², Nm per volt
+            time = angle = omega = torque = 0.0
+
+            def advance(self, volts: float, dt: float) -> None:
+                self.torque = self.k * volts
+                self.angle += (self.omega + 0.5 * self.torque / self.J * dt) * dt
+                self.omega += self.torque / self.J * dt
+                self.time += dt
+
+            def sample(self) -> SensorCounts:
+                counts = self.adc.to_counts
+                enc = math.floor(self.angle / (2 * math.pi) * 8000) % 65536
+                return counts(self.torque / 6.6), counts(self.omega / 56.2565), 0, enc
+
+            def truth(self) -> Truth:
+                a, w, T = self.angle, self.omega, self.torque
+                return Truth(T, a, a, w, w, tau_m_Nm=T, tau_m_cmd_Nm=T)
+    """
 
     @property
     def adc(self) -> Converter:
@@ -50,7 +70,7 @@ class PlantModel(Protocol):
     @property
     def max_motor_torque_Nm(self) -> float:
         """Motor torque at the current limit (Nm, output): the drive signals EMCY 0x2310
-        (continuous over-current) while :attr:`motor_torque_command_output` is there."""
+        (continuous over-current) while :attr:`Truth.tau_m_cmd_Nm` is there."""
         ...
 
     @property
@@ -66,53 +86,6 @@ class PlantModel(Protocol):
         """The sensors at :attr:`time`, as ADC counts and the encoder count."""
         ...
 
-    # ------------------------------------------------------------ truth (scoring only)
-    @property
-    def T_true(self) -> float:
-        """Joint torque the sensor should read (Nm)."""
-        ...
-
-    @property
-    def T_ripple(self) -> float:
-        """Torque ripple in the sensor reading (Nm; 0 for a sensor without ripple)."""
-        ...
-
-    @property
-    def theta_motor(self) -> float:
-        """Motor angle (rad, wrapped as in TRUTH_MOTION)."""
-        ...
-
-    @property
-    def theta_output(self) -> float:
-        """Output angle (rad, wrapped as in TRUTH_MOTION)."""
-        ...
-
-    @property
-    def omega_motor(self) -> float:
-        """Motor velocity (rad/s)."""
-        ...
-
-    @property
-    def omega_output(self) -> float:
-        """Output velocity (rad/s)."""
-        ...
-
-    @property
-    def external_torque(self) -> float:
-        """Torque of the environment on the load (Nm)."""
-        ...
-
-    @property
-    def motor_disturbance(self) -> float:
-        """Disturbance torque on the motor side, output-referred (Nm; e.g. friction)."""
-        ...
-
-    @property
-    def motor_torque_output(self) -> float:
-        """Motor torque the amplifier produces now, output-referred (Nm)."""
-        ...
-
-    @property
-    def motor_torque_command_output(self) -> float:
-        """Motor torque commanded by the amplifier input, output-referred (Nm)."""
+    def truth(self) -> Truth:
+        """The ground truth at :attr:`time` (scoring only; the firmware never sees it)."""
         ...

@@ -325,7 +325,7 @@ def _closed_on_the_emulator(overrides: dict | None = None, duration_s: float = 5
         active = latched
         out = isr(AdcSample(*counts))
         latched = sc.plant.dac.to_volts(out.dac_counts)
-        errors.append(plant.T_true - out.tau_sD)
+        errors.append(plant.truth().T_true_Nm - out.tau_sD)
     return float(np.max(np.abs(errors[round(sc.evaluate_from_s / Ts) :])))
 
 

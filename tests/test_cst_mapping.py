@@ -111,8 +111,9 @@ def _lockstep(dcf, scenario: str = "free-motion", cycles: int = 1500, seed: int 
                 frames.append(m)
             if ctrl.phase == "operational":
                 out = ctrl.isr.output
-                row = (plant.T_true, plant.motor_torque_output, out.T_meas, out.T_filtered)
-                rows.append((*row, drive.amplifier_input_V, plant.omega_motor))
+                t = plant.truth()
+                row = (t.T_true_Nm, t.tau_m_Nm, out.T_meas, out.T_filtered)
+                rows.append((*row, drive.amplifier_input_V, t.omega_motor_radps))
     finally:
         for b in buses:
             b.shutdown()
@@ -241,7 +242,7 @@ def test_hdhil_firmware_closes_the_loop_over_cst_against_a_served_drive(serve_dr
     assert out["mapping"] == "cst" and out["operational_cycles"] == 300
     assert out["rated_torque_Nm"] == pytest.approx(drive.services.read(0x6076) * 1e-3)
     assert drive.services.read(0x1600, 2) == 0x60710010
-    assert drive.plant.theta_motor > 1.0  # moved by 0x6071 alone
+    assert drive.plant.truth().theta_motor_rad > 1.0  # moved by 0x6071 alone
     assert main(["firmware", *bus_args, "--mapping", "cst", "--drive-dcf", str(CST)]) == 2
     assert "not allowed with argument" in capsys.readouterr().err
 

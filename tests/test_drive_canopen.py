@@ -434,12 +434,12 @@ def test_torque_only_in_operation_enabled_moves_the_motor():
         r.start()
         for _ in range(50):
             r.cycle(SWITCH_ON, dac=1000)  # never enabled: shutdown was skipped
-        assert r.plant.omega_motor == 0.0
+        assert r.plant.truth().omega_motor_radps == 0.0
         assert r.drive.drive_state is State.SWITCH_ON_DISABLED
         r.enable(dac=1000)
         for _ in range(50):
             r.cycle(ENABLE, dac=1000)
-        assert r.plant.omega_motor > 1.0
+        assert r.plant.truth().omega_motor_radps > 1.0
     finally:
         r.close()
 
@@ -478,7 +478,7 @@ def test_statusword_and_live_objects_read_by_sdo(rig):
     assert state_from_statusword(rig.drive.statusword) is State.OPERATION_ENABLED
     assert sdo_upload(rig, 0x6040, 0) == struct.pack("<H", ENABLE)
     assert sdo_download(rig, 0x6041, 0, b"\x00\x00") == 0x06010002  # read-only
-    counts = rig.drive._sample  # the latest sample, as sent in DRIVE_TPDO1
+    counts = rig.drive.io.sample  # the latest sample, as sent in DRIVE_TPDO1
     assert sdo_upload(rig, 0x2100, 1) == struct.pack("<h", counts[0])
     assert sdo_upload(rig, 0x2101, 0) == struct.pack("<H", counts[3])
 
@@ -737,7 +737,7 @@ def test_good_sdo_writes_change_the_running_plant(rig):
     )
     assert plant.cfg.sensors.torque_noise_Nm == 0.5
     assert plant.cfg.sensors.tacho_noise_radps == 0.25
-    assert plant.load_torque == -2.0
+    assert plant.truth().tau_l_Nm == -2.0
     assert plant._sig_torque_V == pytest.approx(0.5 / plant.cfg.bridge.volt2Nm)
 
 
@@ -757,12 +757,14 @@ def test_good_sdo_writes_change_the_running_plant(rig):
 )
 def test_bad_sdo_writes_leave_the_plant_unchanged(rig, index, sub, data, code):
     rig.start()
-    before = (rig.plant.cfg, rig.plant.load_torque, rig.drive.state_machine.quick_stop_option)
+
+    def state() -> tuple:
+        return rig.plant.cfg, rig.plant.truth().tau_l_Nm, rig.drive.state_machine.quick_stop_option
+
+    before = state()
     assert sdo_download(rig, index, sub, data) == code
     rig.cycle()
-    assert (rig.plant.cfg, rig.plant.load_torque, rig.drive.state_machine.quick_stop_option) == (
-        before
-    )
+    assert state() == before
 
 
 def test_too_long_sdo_write_is_refused(rig):
@@ -855,7 +857,7 @@ def test_cst_torque_through_0x6071_moves_the_joint_as_the_raw_dac_object_does():
                     r.drive.poll()
                     frames += r.frames()
                     tpdo += [d for i, d in frames if i == 0x182]
-                velocities.append(r.plant.omega_motor)
+                velocities.append(r.plant.truth().omega_motor_radps)
             runs[how] = (velocities, tpdo, r.drive.state_machine.state)
         finally:
             r.close()

@@ -16,14 +16,7 @@ import time
 import can
 import pytest
 
-from hdhil.can.faults import (
-    FaultConfig,
-    FaultInjector,
-    FaultLog,
-    FaultyTransmitBus,
-    parse_fault_flags,
-    with_fault_flags,
-)
+from hdhil.can.faults import FaultLog, FaultyTransmitBus
 from hdhil.can.simbus import SimClock
 from hdhil.cli import main
 from hdhil.commands import run as run_module
@@ -33,6 +26,7 @@ from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
+from hdhil.rig.faults import FaultConfig, FaultInjector, parse_fault_flags, with_fault_flags
 from hdhil.rig.scenario import load_scenario
 
 TS = 1e-3

@@ -20,10 +20,11 @@ import pytest
 from runs import lockstep
 from test_multiprocess import GROUP_CONTROL, _hdhil, netns  # noqa: F401  (the namespace fixture)
 
-from hdhil.can.faults import FaultConfig, FaultInjector, FaultyTransmitBus, with_fault_flags
+from hdhil.can.faults import FaultyTransmitBus
 from hdhil.can.simbus import SimClock
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.dbc import database, node_ids
+from hdhil.rig.faults import FaultConfig, FaultInjector, with_fault_flags
 from hdhil.rig.scenario import load_scenario
 
 TS = 1e-3

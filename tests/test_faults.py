@@ -10,10 +10,11 @@ import can
 import pytest
 from runs import lockstep
 
-from hdhil.can.faults import FaultConfig, FaultInjector, FaultLog, node_ids
+from hdhil.can.faults import FaultLog, node_ids
 from hdhil.can.simbus import SimClock
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.hostsim.plant import Plant, PlantConfig
+from hdhil.rig.faults import FaultConfig, FaultInjector
 from hdhil.rig.scenario import scenario_from_dict
 
 _names = itertools.count()
@@ -258,6 +259,22 @@ def test_encoder_glitches_and_tacho_spikes():
             n=2000,
         )[0]
     )
+
+
+def test_the_sensor_faults_and_the_plant_import_nothing_of_can():
+    """The plant and its sensor faults are physics: importing them loads neither python-can
+    nor the project's CAN layers (also an import contract in pyproject.toml)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, hdhil.hostsim.sensor_faults, hdhil.hostsim.plant\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] == 'can'"
+        " or m.startswith(('hdhil.can', 'hdhil.canopen'))))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=120).stdout  # fmt: skip
+    assert out.strip() == "[]"
 
 
 # ----------------------------------------------------------------------------- config

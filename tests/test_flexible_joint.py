@@ -110,10 +110,12 @@ def test_spring_torque_step_response_is_seed_eq_2() -> None:
         expected = static * (
             1 - math.exp(-sigma * t) * (math.cos(wd * t) + sigma / wd * math.sin(wd * t))
         )
-        assert plant.T_true == pytest.approx(expected, rel=1e-7, abs=1e-9)
-        assert plant.T_true == plant.T_spring
-        assert plant.T_transmitted == pytest.approx(
-            plant.T_spring + d.c_flex * (plant.omega_motor / d.gear_ratio - plant.omega_output)
+        truth = plant.truth()
+        assert truth.T_true_Nm == pytest.approx(expected, rel=1e-7, abs=1e-9)
+        assert truth.T_true_Nm == truth.T_spring_Nm
+        assert truth.T_transmitted_Nm == pytest.approx(
+            truth.T_spring_Nm
+            + d.c_flex * (truth.omega_motor_radps / d.gear_ratio - truth.omega_output_radps)
         )
 
 
@@ -143,20 +145,25 @@ def test_prescribed_link_follows_the_trajectory_exactly_and_motor_matches_eq_1()
     plant = seed_plant(link=SEED_LINK, drivetrain=replace(SEED003, b_motor=0.4))
     d = plant.cfg.drivetrain
     A, w = math.radians(20.0), 2 * math.pi
-    assert plant.theta_output_unwrapped == 0.0
-    assert plant.omega_output == pytest.approx(A * w)
-    assert plant.omega_motor == pytest.approx(d.gear_ratio * A * w)  # rigid start
+    truth = plant.truth()
+    assert truth.theta_output_rad == 0.0
+    assert truth.omega_output_radps == pytest.approx(A * w)
+    assert truth.omega_motor_radps == pytest.approx(d.gear_ratio * A * w)  # rigid start
     volts = 0.4
     for k in range(1, 1501):
         plant.advance(volts, 1e-3)
         t = k * 1e-3
-        assert plant.theta_output_unwrapped == pytest.approx(A * math.sin(w * t), abs=1e-12)
-        assert plant.omega_output == pytest.approx(A * w * math.cos(w * t), abs=1e-12)
-        assert plant.link_acceleration == pytest.approx(-A * w * w * math.sin(w * t), abs=1e-9)
+        truth = plant.truth()
+        assert truth.theta_output_rad == pytest.approx(A * math.sin(w * t), abs=1e-12)
+        assert truth.omega_output_radps == pytest.approx(A * w * math.cos(w * t), abs=1e-12)
+        assert truth.link_acceleration_radps2 == pytest.approx(
+            -A * w * w * math.sin(w * t), abs=1e-9
+        )
         if k % 250 == 0:  # the motor side against an independent integration (exact ZOH)
             qm, wm = motor_side_reference(plant.cfg, volts, t)
-            assert plant.theta_motor_unwrapped / d.gear_ratio == pytest.approx(qm, abs=1e-10)
-            assert plant.omega_motor / d.gear_ratio == pytest.approx(wm, rel=1e-8, abs=1e-10)
+            truth = plant.truth()
+            assert truth.theta_motor_rad / d.gear_ratio == pytest.approx(qm, abs=1e-10)
+            assert truth.omega_motor_radps / d.gear_ratio == pytest.approx(wm, rel=1e-8, abs=1e-10)
 
 
 def test_external_torque_truth_is_link_inertia_times_acceleration_plus_joint_torque() -> None:
@@ -175,18 +182,17 @@ def test_external_torque_truth_is_link_inertia_times_acceleration_plus_joint_tor
         ql = math.radians(10.0) + math.radians(20.0) * math.sin(2 * math.pi * t)
         wl = math.radians(20.0) * 2 * math.pi * math.cos(2 * math.pi * t)
         al = -math.radians(20.0) * (2 * math.pi) ** 2 * math.sin(2 * math.pi * t)
-        qm = plant.theta_motor_unwrapped / d.gear_ratio
-        wm = plant.omega_motor / d.gear_ratio
+        truth = plant.truth()
+        qm = truth.theta_motor_rad / d.gear_ratio
+        wm = truth.omega_motor_radps / d.gear_ratio
         seed_joint = d.k_flex * (ql - qm) + d.c_flex * (wl - wm)  # seed's tau_s + damper
-        assert plant.external_torque == pytest.approx(d.J_load * al + seed_joint, abs=1e-7)
+        assert truth.tau_ext_Nm == pytest.approx(d.J_load * al + seed_joint, abs=1e-7)
         tau_g = 8.0 * math.sin(ql + math.radians(30.0))
-        assert plant.gravity_torque == pytest.approx(tau_g)
+        assert truth.tau_g_Nm == pytest.approx(tau_g)
         friction = -0.3 * wl - 0.5 * math.tanh(wl / 0.02)
-        assert plant.load_friction_torque == pytest.approx(friction)
-        assert plant.environment_torque == pytest.approx(
-            plant.external_torque - tau_g - friction, abs=1e-9
-        )
-        seen.append(plant.external_torque)
+        assert truth.load_friction_Nm == pytest.approx(friction)
+        assert truth.tau_l_Nm == pytest.approx(truth.tau_ext_Nm - tau_g - friction, abs=1e-9)
+        seen.append(truth.tau_ext_Nm)
     assert max(seen) - min(seen) > 10.0  # it really varies (J_l a_l alone is ±9.6 Nm)
 
 
@@ -200,15 +206,15 @@ def test_motor_equation_holds_with_friction_under_prescribed_motion() -> None:
     for _ in range(5):
         for _ in range(100):
             plant.advance(1.2, 1e-3)
-        w0 = plant.omega_motor / d.gear_ratio
+        w0 = plant.truth().omega_motor_radps / d.gear_ratio
         plant.advance(1.2, h)
         tau_m, tau_d, joint = (
-            plant.motor_torque_output,
-            plant.motor_disturbance,
-            plant.T_transmitted,
+            plant.truth().tau_m_Nm,
+            plant.truth().tau_d_Nm,
+            plant.truth().T_transmitted_Nm,
         )
         plant.advance(1.2, h)
-        acc = (plant.omega_motor / d.gear_ratio - w0) / (2 * h)
+        acc = (plant.truth().omega_motor_radps / d.gear_ratio - w0) / (2 * h)
         assert tau_m == pytest.approx(24.0)
         assert d.J_motor * acc == pytest.approx(tau_m + tau_d - joint, rel=1e-3, abs=1e-3)
 
@@ -219,16 +225,19 @@ def test_hold_clamps_the_link_and_the_motor_rings_against_it() -> None:
     ts, ys = [], []
     for _ in range(2000):
         plant.advance(1.0, 5e-4)
-        assert plant.theta_output_unwrapped == pytest.approx(math.pi / 4, abs=1e-15)
-        assert plant.omega_output == 0.0
+        truth = plant.truth()
+        assert truth.theta_output_rad == pytest.approx(math.pi / 4, abs=1e-15)
+        assert truth.omega_output_radps == 0.0
         ts.append(plant.time)
-        ys.append(plant.T_true - 20.0)  # static: the spring carries the 20 Nm motor torque
+        # static: the spring carries the 20 Nm motor torque
+        ys.append(plant.truth().T_true_Nm - 20.0)
     crossings = [ts[j] for j in range(len(ys) - 1) if ys[j] * ys[j + 1] < 0]
     damped_hz = (len(crossings) - 1) / 2 / (crossings[-1] - crossings[0])
     wn = math.sqrt(6300 / 2.5)
     zeta = 11.8 / (2 * math.sqrt(6300 * 2.5))
     assert damped_hz == pytest.approx(wn * math.sqrt(1 - zeta**2) / (2 * math.pi), rel=0.01)
-    assert plant.external_torque == pytest.approx(-plant.T_transmitted)  # the clamp holds it
+    truth = plant.truth()
+    assert truth.tau_ext_Nm == pytest.approx(-truth.T_transmitted_Nm)  # the clamp holds it
 
 
 def test_prescribed_motion_has_no_sub_step_error_without_coulomb_friction() -> None:
@@ -236,7 +245,7 @@ def test_prescribed_motion_has_no_sub_step_error_without_coulomb_friction() -> N
         plant = seed_plant(link=SEED_LINK, substeps=substeps)
         for k in range(700):
             plant.advance(2.0 * math.sin(0.01 * k), 1e-3)
-        return plant.theta_motor_unwrapped, plant.T_true
+        return plant.truth().theta_motor_rad, plant.truth().T_true_Nm
 
     a, b = final(1), final(16)
     assert a == pytest.approx(b, rel=1e-9, abs=1e-9)
@@ -251,9 +260,10 @@ def test_link_motion_is_composable_with_the_ripple_model() -> None:
     for _ in range(500):
         a.advance(0.3, 1e-3)
         b.advance(0.3, 1e-3)
-        assert a.T_true == b.T_true and a.theta_motor == b.theta_motor
-        assert a.T_ripple == 0.0
-        parts.append(b.T_ripple)
+        ta, tb = a.truth(), b.truth()
+        assert ta.T_true_Nm == tb.T_true_Nm and ta.theta_motor_rad == tb.theta_motor_rad
+        assert ta.T_ripple_Nm == 0.0
+        parts.append(tb.T_ripple_Nm)
     assert np.ptp(parts) > 1.0
 
 
@@ -278,10 +288,11 @@ def test_gravity_on_a_free_link_matches_an_independent_integration() -> None:
         plant.advance(0.5, 1e-3)
     _qm, ql, _wm, wl = sol.y[:, -1]
     assert abs(ql) > 0.5  # it swings far enough for sin() to matter
-    assert plant.theta_output_unwrapped == pytest.approx(ql, rel=1e-4)
-    assert plant.omega_output == pytest.approx(wl, rel=1e-3, abs=1e-4)
-    assert plant.gravity_torque == pytest.approx(-15.0 * math.sin(plant.theta_output_unwrapped))
-    assert plant.external_torque == pytest.approx(plant.gravity_torque)
+    truth = plant.truth()
+    assert truth.theta_output_rad == pytest.approx(ql, rel=1e-4)
+    assert truth.omega_output_radps == pytest.approx(wl, rel=1e-3, abs=1e-4)
+    assert truth.tau_g_Nm == pytest.approx(-15.0 * math.sin(truth.theta_output_rad))
+    assert truth.tau_ext_Nm == pytest.approx(truth.tau_g_Nm)
 
 
 def test_free_link_external_torque_is_load_gravity_and_bearing_friction() -> None:
@@ -295,13 +306,18 @@ def test_free_link_external_torque_is_load_gravity_and_bearing_friction() -> Non
     for _ in range(4):
         for _ in range(150):
             plant.advance(0.8, 1e-3)
-        expected = plant.load_torque + plant.gravity_torque + plant.load_friction_torque
-        assert plant.external_torque == pytest.approx(expected)
-        assert plant.environment_torque == plant.load_torque
-        w0, joint, tau_ext = plant.omega_output, plant.T_transmitted, plant.external_torque
-        acc = plant.link_acceleration
+        truth = plant.truth()
+        expected = truth.tau_l_Nm + truth.tau_g_Nm + truth.load_friction_Nm
+        assert truth.tau_ext_Nm == pytest.approx(expected)
+        assert truth.tau_l_Nm == pytest.approx(plant.cfg.load.value(plant.time))  # free link
+        w0, joint, tau_ext = (
+            truth.omega_output_radps,
+            truth.T_transmitted_Nm,
+            truth.tau_ext_Nm,
+        )
+        acc = truth.link_acceleration_radps2
         plant.advance(0.8, h)
-        assert acc == pytest.approx((plant.omega_output - w0) / h, rel=1e-3)
+        assert acc == pytest.approx((plant.truth().omega_output_radps - w0) / h, rel=1e-3)
         assert d.J_load * acc == pytest.approx(joint + tau_ext)
 
 
@@ -311,10 +327,11 @@ def test_seed_003_motor_friction_tops_out_at_13_7_nm_and_opposes_motion() -> Non
     tau_d = []
     for _ in range(1500):
         plant.advance(2.0, 1e-3)  # 40 Nm: breaks away and accelerates
-        w = plant.omega_motor / 100.0
-        assert plant.motor_disturbance == pytest.approx(-13.7 * math.tanh(w / 0.02))
-        tau_d.append(plant.motor_disturbance)
-    assert plant.omega_motor > 0
+        truth = plant.truth()
+        w = truth.omega_motor_radps / 100.0
+        assert truth.tau_d_Nm == pytest.approx(-13.7 * math.tanh(w / 0.02))
+        tau_d.append(truth.tau_d_Nm)
+    assert plant.truth().omega_motor_radps > 0
     assert min(tau_d) == pytest.approx(-13.7, abs=1e-6)
     assert all(-13.7 - 1e-12 <= x <= 0.0 for x in tau_d)
 
@@ -323,15 +340,18 @@ def test_motor_torque_saturates_at_the_amplifier_current_limit() -> None:
     plant = seed_plant()
     cfg = plant.cfg
     plant.advance(3.0, 1e-3)
-    assert plant.motor_torque_command_output == pytest.approx(3.0 * cfg.torque_per_volt)
-    assert plant.motor_torque_output == pytest.approx(60.0)
+    truth = plant.truth()
+    assert truth.tau_m_cmd_Nm == pytest.approx(3.0 * cfg.torque_per_volt)
+    assert truth.tau_m_Nm == pytest.approx(60.0)
     for volts, expected in ((9.0, 150.0), (-9.0, -150.0)):
         plant.advance(volts, 1e-3)
-        assert plant.motor_torque_command_output == pytest.approx(expected)
-        assert plant.motor_torque_output == pytest.approx(expected)
+        truth = plant.truth()
+        assert truth.tau_m_cmd_Nm == pytest.approx(expected)
+        assert truth.tau_m_Nm == pytest.approx(expected)
     lagged = seed_plant(amplifier=replace(AMP, current_lag_s=4e-4))
     lagged.advance(3.0, 1e-4)
-    assert 0 < lagged.motor_torque_output < lagged.motor_torque_command_output == 60.0
+    lagged_truth = lagged.truth()
+    assert 0 < lagged_truth.tau_m_Nm < lagged_truth.tau_m_cmd_Nm == 60.0
 
 
 def test_torque_sensor_noise_variance_is_the_seeds_w() -> None:

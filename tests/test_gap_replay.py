@@ -24,7 +24,6 @@ import numpy as np
 import pytest
 from runs import lockstep
 
-from hdhil.can.faults import with_fault_flags
 from hdhil.cli import main
 from hdhil.firmware.config import FirmwareConfig, recommended_config
 from hdhil.rig.evaluate import (
@@ -34,6 +33,7 @@ from hdhil.rig.evaluate import (
     offline_chain,
     recording_from_trace,
 )
+from hdhil.rig.faults import with_fault_flags
 from hdhil.rig.scenario import load_scenario
 
 GOAL_NM = 0.003

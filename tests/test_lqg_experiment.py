@@ -83,12 +83,13 @@ def test_person_link_is_integrated_exactly_and_its_torque_is_truth() -> None:
         v = 0.3 * math.sin(0.002 * k)
         coarse.advance(v, 1e-3)
         fine.advance(v, 1e-3)
-    assert coarse.T_spring == pytest.approx(fine.T_spring, rel=1e-9, abs=1e-9)
-    assert coarse.omega_motor == pytest.approx(fine.omega_motor, rel=1e-9, abs=1e-9)
+    c, f = coarse.truth(), fine.truth()
+    assert c.T_spring_Nm == pytest.approx(f.T_spring_Nm, rel=1e-9, abs=1e-9)
+    assert c.omega_motor_radps == pytest.approx(f.omega_motor_radps, rel=1e-9, abs=1e-9)
     link = cfg.link
-    assert fine.theta_output_unwrapped == pytest.approx(link.angle(3.0))
-    assert fine.external_torque == pytest.approx(
-        cfg.drivetrain.J_load * link.acceleration(3.0) - fine.T_transmitted
+    assert f.theta_output_rad == pytest.approx(link.angle(3.0))
+    assert f.tau_ext_Nm == pytest.approx(
+        cfg.drivetrain.J_load * link.acceleration(3.0) - f.T_transmitted_Nm
     )
 
 
@@ -101,7 +102,7 @@ def test_experiment_friction_is_the_seed_model_in_plant_and_firmware() -> None:
     plant = Plant(sc.plant)
     for w_motor in (-50.0, -2.0, -0.3, 0.0, 0.5, 2.0, 80.0):
         plant._wm = w_motor / sc.plant.drivetrain.gear_ratio
-        assert plant.motor_disturbance == pytest.approx(fw.control.friction.torque(w_motor))
+        assert plant.truth().tau_d_Nm == pytest.approx(fw.control.friction.torque(w_motor))
     assert fw.control.friction.torque(100.0) == pytest.approx(-13.7, rel=1e-9)
     assert fw.control.friction.torque(-100.0) > 13.69
 

@@ -136,10 +136,11 @@ def test_steady_state_velocity_matches_torque_balance(
     drive = d.gear_ratio * a.torque_constant_Nm_per_A * a.gain_A_per_V * volts
     coulomb = math.copysign(d.coulomb_motor + d.coulomb_load, drive)
     w_out = (drive - coulomb) / (d.b_motor + d.b_load)
-    assert plant.omega_output == pytest.approx(w_out, rel=1e-3)
-    assert plant.omega_motor == pytest.approx(d.gear_ratio * w_out, rel=1e-3)
+    truth = plant.truth()
+    assert truth.omega_output_radps == pytest.approx(w_out, rel=1e-3)
+    assert truth.omega_motor_radps == pytest.approx(d.gear_ratio * w_out, rel=1e-3)
     # in steady state the flexspline carries exactly the load friction
-    assert plant.T_true == pytest.approx(
+    assert truth.T_true_Nm == pytest.approx(
         d.b_load * w_out + math.copysign(d.coulomb_load, w_out), rel=1e-3
     )
 
@@ -156,7 +157,7 @@ def free_motion_velocity(times: list[float]) -> dict[float, float]:
     out: dict[float, float] = {}
     for k in range(max(wanted) + 1):
         if k in wanted:
-            out[wanted[k]] = plant.omega_motor
+            out[wanted[k]] = plant.truth().omega_motor_radps
         t = k * 1e-3
         plant.advance(step_V if t >= ref.step_time_s - 1e-12 else bias_V, 1e-3)
     return out
@@ -199,13 +200,14 @@ def test_flexspline_oscillates_at_the_analytic_natural_frequency() -> None:
     for _ in range(5000):
         plant.advance(0.0, h)
         ts.append(plant.time)
-        ys.append(plant.T_true - mean)
-        w_m = plant.omega_motor / d.gear_ratio
+        truth = plant.truth()
+        ys.append(truth.T_true_Nm - mean)
+        w_m = truth.omega_motor_radps / d.gear_ratio
         energy.append(
             0.5 * d.J_motor * w_m**2
-            + 0.5 * d.J_load * plant.omega_output**2
-            + 0.5 * plant.T_true**2 / d.k_flex
-            - tau * plant.theta_output_unwrapped
+            + 0.5 * d.J_load * truth.omega_output_radps**2
+            + 0.5 * truth.T_true_Nm**2 / d.k_flex
+            - tau * truth.theta_output_rad
         )
     crossings = [
         ts[j] - ys[j] * (ts[j + 1] - ts[j]) / (ys[j + 1] - ys[j])
@@ -238,7 +240,7 @@ def test_seed_003_joint_rings_near_17_hz() -> None:
     for _ in range(4000):
         plant.advance(0.0, 1e-4)
         ts.append(plant.time)
-        ys.append(plant.T_true + 10.0 * 2.5 / 3.2)
+        ys.append(plant.truth().T_true_Nm + 10.0 * 2.5 / 3.2)
     crossings = [ts[j] for j in range(len(ys) - 1) if ys[j] * ys[j + 1] < 0]
     damped_hz = (len(crossings) - 1) / 2 / (crossings[-1] - crossings[0])
     assert damped_hz == pytest.approx(17.0, abs=0.6)
@@ -290,11 +292,12 @@ def test_exact_discretisation_matches_solve_ivp(lag: float) -> None:
         plant.advance(float(v), 1e-3)
         qm, ql, wm, wl, i = y
         t_true = d.k_flex * (qm - ql) + d.c_flex * (wm - wl)
-        assert plant.omega_motor == pytest.approx(d.gear_ratio * wm, rel=1e-7, abs=1e-9)
-        assert plant.omega_output == pytest.approx(wl, rel=1e-7, abs=1e-9)
-        assert plant.theta_output_unwrapped == pytest.approx(ql, rel=1e-7, abs=1e-11)
-        assert plant.T_true == pytest.approx(t_true, rel=1e-6, abs=1e-8)
-        assert plant.current == pytest.approx(i, rel=1e-9, abs=1e-12)
+        truth = plant.truth()
+        assert truth.omega_motor_radps == pytest.approx(d.gear_ratio * wm, rel=1e-7, abs=1e-9)
+        assert truth.omega_output_radps == pytest.approx(wl, rel=1e-7, abs=1e-9)
+        assert truth.theta_output_rad == pytest.approx(ql, rel=1e-7, abs=1e-11)
+        assert truth.T_true_Nm == pytest.approx(t_true, rel=1e-6, abs=1e-8)
+        assert truth.current_A == pytest.approx(i, rel=1e-9, abs=1e-12)
 
 
 def test_substeps_converge() -> None:
@@ -305,7 +308,7 @@ def test_substeps_converge() -> None:
         out = []
         for k in range(1500):
             plant.advance(0.5 * math.sin(2 * math.pi * 2.0 * k * 1e-3), 1e-3)
-            out.append(plant.omega_output)
+            out.append(plant.truth().omega_output_radps)
         return np.array(out)
 
     ref = trajectory(64)
@@ -324,11 +327,12 @@ def test_transmitted_torque_is_load_inertia_times_acceleration_plus_friction() -
     h = 1e-5
     for _ in range(3):
         run(plant, 0.654296875, 0.1)
-        w0 = plant.omega_output
+        w0 = plant.truth().omega_output_radps
         plant.advance(0.654296875, h)
-        t_true, w1 = plant.T_true, plant.omega_output
+        truth = plant.truth()
+        t_true, w1 = truth.T_true_Nm, truth.omega_output_radps
         plant.advance(0.654296875, h)
-        alpha = (plant.omega_output - w0) / (2 * h)
+        alpha = (plant.truth().omega_output_radps - w0) / (2 * h)
         friction = d.b_load * w1 + d.coulomb_load * math.tanh(w1 / d.friction_smoothing)
         assert alpha > 0 and t_true > 0
         assert t_true == pytest.approx(d.J_load * alpha + friction, rel=2e-3)
@@ -337,12 +341,12 @@ def test_transmitted_torque_is_load_inertia_times_acceleration_plus_friction() -
 def test_current_saturates_at_the_amplifier_limit() -> None:
     plant = make()
     run(plant, 50.0, 0.01)
-    assert plant.current == pytest.approx(plant.cfg.amplifier.current_limit_A, rel=1e-6)
-    assert plant.motor_torque == pytest.approx(
+    assert plant.truth().current_A == pytest.approx(plant.cfg.amplifier.current_limit_A, rel=1e-6)
+    assert plant.truth().tau_m_Nm / plant.cfg.drivetrain.gear_ratio == pytest.approx(
         plant.cfg.amplifier.current_limit_A * plant.cfg.amplifier.torque_constant_Nm_per_A
     )
     run(plant, -50.0, 0.01)
-    assert plant.current == pytest.approx(-plant.cfg.amplifier.current_limit_A, rel=1e-6)
+    assert plant.truth().current_A == pytest.approx(-plant.cfg.amplifier.current_limit_A, rel=1e-6)
 
 
 def test_time_accumulates_without_drift() -> None:
@@ -361,10 +365,11 @@ def test_adc_counts_follow_the_calibrations_with_noise_off() -> None:
         plant.advance(0.0 if k < 50 else 0.654296875, 1e-3)
         torque, tacho, current, _ = plant.sample()
         # the sensor's TRUE gain (BridgeConfig.volt2Nm), not the seed's 6.6
-        expected = round(((plant.T_true + plant.T_ripple) / TRUE_GAIN + 0.25) / LSB)
+        truth = plant.truth()
+        expected = round(((truth.T_true_Nm + truth.T_ripple_Nm) / TRUE_GAIN + 0.25) / LSB)
         assert torque == expected
-        assert tacho == round(plant.omega_motor / 56.2565 / LSB)
-        assert current == round(plant.current / 1.0 / LSB)
+        assert tacho == round(truth.omega_motor_radps / 56.2565 / LSB)
+        assert current == round(truth.current_A / 1.0 / LSB)
         seen_torque.add(torque)
     assert len(seen_torque) > 20  # the ripple really moves the torque channel
 
@@ -396,7 +401,7 @@ def test_encoder_wraps_and_counts_per_revolution(volts: float) -> None:
         total += step if step < 32768 else step - 65536
         prev = enc
         raw.append(enc)
-    revs = plant.theta_motor_unwrapped / (2 * math.pi)
+    revs = plant.truth().theta_motor_rad / (2 * math.pi)
     assert abs(revs) > 10
     assert total == math.floor(revs * cpr)
     assert total / revs == pytest.approx(cpr, abs=1 / abs(revs))
@@ -410,7 +415,7 @@ def test_encoder_wraps_below_zero_on_reverse_motion() -> None:
     plant = make()
     plant.advance(-0.3, 1e-3)
     plant.advance(-0.3, 1e-3)
-    assert plant.theta_motor_unwrapped < 0
+    assert plant.truth().theta_motor_rad < 0
     assert plant.sample()[3] > 65000
 
 
@@ -438,7 +443,7 @@ def test_torque_ripple_peaks_at_2x_4x_motor_and_1x_output_velocity() -> None:
     for k in range(n):
         plant.advance(0.654296875, 1e-3)
         counts[k] = plant.sample()[0]
-        w_m[k] = plant.omega_motor
+        w_m[k] = plant.truth().omega_motor_radps
     assert np.ptp(w_m) < 1e-3 * np.mean(w_m)  # constant speed
     torque = counts * LSB * TRUE_GAIN
     spectrum = np.abs(np.fft.rfft((torque - torque.mean()) * np.hanning(n)))
@@ -471,23 +476,24 @@ def test_ripple_is_locked_to_motor_and_output_angles(perfect_bridge: bool) -> No
     r = plant.cfg.ripple
     for _ in range(7):
         run(plant, 0.5, 0.0371)
-        th, tho = plant.theta_motor, plant.theta_output
+        truth = plant.truth()  # angles wrapped as on the truth channel
+        th, tho = truth.theta_motor_rad % (2 * math.pi), truth.theta_output_rad % (2 * math.pi)
         assert 0.0 <= th < 2 * math.pi and 0.0 <= tho < 2 * math.pi
         mesh = r.amp2_Nm * math.sin(2 * th + r.phase2_rad) + r.amp4_Nm * math.sin(
             4 * th + r.phase4_rad
         )
         mis = 0.75 * math.sin(tho + r.misalignment_phase_rad)
-        parts = plant.ripple_parts
+        parts = truth.ripple
         assert parts.mesh == pytest.approx(mesh, abs=1e-9)
         assert parts.misalignment == pytest.approx(mis, abs=1e-9)
-        assert plant.T_ripple == pytest.approx(sum(parts), abs=1e-12)
+        assert truth.T_ripple_Nm == pytest.approx(sum(parts), abs=1e-12)
         gauges = parts.modulation + parts.nonlinearity + parts.hysteresis
         if perfect_bridge:
             assert abs(gauges) < 1e-12  # exact cancellation up to rounding (Eq. 3)
-            assert plant.T_ripple == pytest.approx(mesh + mis, abs=1e-9)
+            assert plant.truth().T_ripple_Nm == pytest.approx(mesh + mis, abs=1e-9)
         else:
             assert parts.modulation == pytest.approx(
-                plant.bridge.modulation_Nm(plant.beta), abs=1e-12
+                plant.bridge.modulation_Nm(plant.truth().beta_rad), abs=1e-12
             )
             assert 0.0 < abs(gauges) < 0.2
 
@@ -545,9 +551,11 @@ def test_bridge_modulation_is_locked_to_twice_the_relative_wave_generator_angle(
     betas, motor, extra = [], [], []
     for _ in range(3000):
         plant.advance(0.654296875, 1e-3)
-        betas.append(plant.beta)
-        motor.append(plant.theta_motor_unwrapped)
-        extra.append(plant.torque_V_clean * TRUE_GAIN - plant.T_true)
+        truth = plant.truth()
+        betas.append(truth.beta_rad)
+        motor.append(truth.theta_motor_rad)
+        clean_V = (truth.T_true_Nm + truth.T_ripple_Nm) / plant.bridge.volt2Nm
+        extra.append(clean_V * TRUE_GAIN - truth.T_true_Nm)
     betas_a, y = np.array(betas), np.array(extra)
     assert np.allclose(betas_a, np.array(motor) * 1.01 + 0.0, rtol=0, atol=1e-3 * betas_a.max())
 
@@ -569,15 +577,16 @@ def test_hold_locked_is_the_calibration_rigs_static_state() -> None:
     d = plant.cfg.drivetrain
     theta_m = 123.4
     plant.hold_locked(theta_m, 25.0)
-    assert plant.T_true == pytest.approx(25.0, rel=1e-12)
-    assert plant.theta_motor_unwrapped == pytest.approx(theta_m, rel=1e-12)
-    assert plant.theta_output_unwrapped == pytest.approx(theta_m / d.gear_ratio - 25.0 / d.k_flex)
-    assert plant.omega_motor == plant.omega_output == plant.current == 0.0
-    assert plant.beta == pytest.approx(theta_m + plant.theta_output_unwrapped)
+    truth = plant.truth()
+    assert truth.T_true_Nm == pytest.approx(25.0, rel=1e-12)
+    assert truth.theta_motor_rad == pytest.approx(theta_m, rel=1e-12)
+    assert truth.theta_output_rad == pytest.approx(theta_m / d.gear_ratio - 25.0 / d.k_flex)
+    assert truth.omega_motor_radps == truth.omega_output_radps == truth.current_A == 0.0
+    assert truth.beta_rad == pytest.approx(theta_m + truth.theta_output_rad)
     t = plant.time
     torque, tacho, current, _ = plant.sample()
     assert plant.time == t and tacho == 0 and current == 0
-    assert torque == round((25.0 + plant.T_ripple) / TRUE_GAIN / LSB)
+    assert torque == round((25.0 + plant.truth().T_ripple_Nm) / TRUE_GAIN / LSB)
     with pytest.raises(ValueError):
         plant.hold_locked(float("nan"), 1.0)
 
@@ -587,11 +596,12 @@ def test_gauge_hysteresis_makes_the_reading_lag_the_load() -> None:
     plant = make(bridge=BridgeConfig.perfect(hysteresis_Nm=0.05, hysteresis_span_Nm=0.5))
     plant.hold_locked(0.0, -10.0)
     plant.hold_locked(0.0, 5.0)  # rising
-    rising = plant.T_ripple
+    rising = plant.truth().T_ripple_Nm
     plant.hold_locked(0.0, 10.0)
     plant.hold_locked(0.0, 5.0)  # falling
-    falling = plant.T_ripple
-    mesh = plant.ripple_parts.mesh
+    truth = plant.truth()
+    falling = truth.T_ripple_Nm
+    mesh = truth.ripple.mesh
     assert rising - mesh == pytest.approx(-0.05, rel=1e-3)
     assert falling - mesh == pytest.approx(+0.05, rel=1e-3)
 
@@ -654,12 +664,12 @@ def test_plant_evaluates_the_load_profile_from_its_own_clock() -> None:
     manual = make(substeps=4)
     profile = auto.cfg.load
     for k in range(1500):
-        assert auto.load_torque == pytest.approx(profile.value(auto.time))
+        assert auto.truth().tau_l_Nm == pytest.approx(profile.value(auto.time))
         manual.set_load_torque(profile.value(k * 1e-3))  # 0.1 s half periods: on the grid
         auto.advance(0.654296875, 1e-3)
         manual.advance(0.654296875, 1e-3)
-        assert auto.T_true == manual.T_true
-    assert auto.omega_motor == manual.omega_motor > 0
+        assert auto.truth().T_true_Nm == manual.truth().T_true_Nm
+    assert auto.truth().omega_motor_radps == manual.truth().omega_motor_radps > 0
 
 
 def test_load_profile_switches_inside_a_period_at_the_sub_step() -> None:
@@ -672,14 +682,16 @@ def test_load_profile_switches_inside_a_period_at_the_sub_step() -> None:
         fine.advance(0.0, 2.5e-4)
         if k % 4 == 3:
             coarse.advance(0.0, 1e-3)
-            assert coarse.T_true == pytest.approx(fine.T_true, rel=1e-9, abs=1e-12)
-    assert abs(coarse.T_true) > 0.5
+            assert coarse.truth().T_true_Nm == pytest.approx(
+                fine.truth().T_true_Nm, rel=1e-9, abs=1e-12
+            )
+    assert abs(coarse.truth().T_true_Nm) > 0.5
 
 
 def test_set_load_torque_adds_to_the_profile() -> None:
     plant = make(load={"kind": "constant", "bias_Nm": 1.0})
     plant.set_load_torque(0.25)
-    assert plant.load_torque == 1.25
+    assert plant.truth().tau_l_Nm == 1.25
 
 
 @pytest.mark.parametrize(("volts", "load"), [(0.654296875, 0.0), (0.5, -0.5), (-0.8, 0.3)])
@@ -687,7 +699,7 @@ def test_steady_state_relation_matches_the_simulation(volts: float, load: float)
     plant = make(load={"kind": "constant", "bias_Nm": load})
     run(plant, volts, 3.0)
     w = steady_state_motor_velocity(plant.cfg, volts, load)
-    assert plant.omega_motor == pytest.approx(w, rel=2e-3)
+    assert plant.truth().omega_motor_radps == pytest.approx(w, rel=2e-3)
     assert steady_state_volts(plant.cfg, w, load) == pytest.approx(volts, rel=1e-9)
     assert steady_state_motor_velocity(plant.cfg, 0.1) == 0.0  # below breakaway
 
@@ -731,16 +743,18 @@ def test_harmonic_drive_scenarios_are_unchanged(name: str) -> None:
         plant.advance(0.654296875 * (k >= 50) + 0.2 * math.sin(0.01 * k), 1e-3)
         totals = [a + b for a, b in zip(totals, plant.sample(), strict=True)]
     t_true, t_ripple, omega, theta, sums = GOLDEN[name]
-    assert plant.T_true == pytest.approx(t_true, rel=1e-9, abs=1e-12)
-    assert plant.T_ripple == pytest.approx(t_ripple, rel=1e-9, abs=1e-12)
-    assert plant.omega_motor == pytest.approx(omega, rel=1e-9)
-    assert plant.theta_output_unwrapped == pytest.approx(theta, rel=1e-9)
+    truth = plant.truth()
+    assert truth.T_true_Nm == pytest.approx(t_true, rel=1e-9, abs=1e-12)
+    assert truth.T_ripple_Nm == pytest.approx(t_ripple, rel=1e-9, abs=1e-12)
+    assert truth.omega_motor_radps == pytest.approx(omega, rel=1e-9)
+    assert truth.theta_output_rad == pytest.approx(theta, rel=1e-9)
     assert tuple(totals) == sums
     # and the new truth of a free, gravity-free link without a load profile
     d = plant.cfg.drivetrain
-    assert plant.T_true == plant.T_transmitted
-    assert plant.external_torque == pytest.approx(plant.load_torque + plant.load_friction_torque)
-    assert plant.motor_disturbance == pytest.approx(
-        -d.b_motor * plant.omega_motor / d.gear_ratio
-        - d.coulomb_motor * math.tanh(plant.omega_motor / d.gear_ratio / d.friction_smoothing)
+    truth = plant.truth()
+    assert truth.T_true_Nm == truth.T_transmitted_Nm
+    assert truth.tau_ext_Nm == pytest.approx(truth.tau_l_Nm + truth.load_friction_Nm)
+    assert truth.tau_d_Nm == pytest.approx(
+        -d.b_motor * truth.omega_motor_radps / d.gear_ratio
+        - d.coulomb_motor * math.tanh(truth.omega_motor_radps / d.gear_ratio / d.friction_smoothing)
     )

@@ -24,7 +24,7 @@ from hdhil.core.converter import Converter
 from hdhil.dbc import CHANNEL_NUMBER, codec
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.hostsim.drive import DriveConfig, DriveNode
-from hdhil.hostsim.plant_model import PlantModel
+from hdhil.hostsim.plant_model import PlantModel, SensorCounts, Truth
 from hdhil.rig.factories import NodeSite
 from hdhil.rig.scenario import load_scenario
 
@@ -68,32 +68,17 @@ class RigidInertia:
         encoder = math.floor(self.angle / (2 * math.pi) * CPR) % 65536
         return counts(self.torque / VOLT2NM), counts(self.omega / VOLT2RADPS), 0, encoder
 
-    # truth: motor and output are one rigid body
-    T_ripple = 0.0
-    external_torque = 0.0
-    motor_disturbance = 0.0
-
-    @property
-    def T_true(self) -> float:
-        return self.torque
-
-    @property
-    def theta_motor(self) -> float:
-        return self.angle % (2 * math.pi)
-
-    theta_output = theta_motor
-
-    @property
-    def omega_motor(self) -> float:
-        return self.omega
-
-    omega_output = omega_motor
-
-    @property
-    def motor_torque_output(self) -> float:
-        return self.torque
-
-    motor_torque_command_output = motor_torque_output
+    def truth(self) -> Truth:
+        """Motor and output are one rigid body; no ripple, no external torque."""
+        return Truth(
+            T_true_Nm=self.torque,
+            theta_motor_rad=self.angle,
+            theta_output_rad=self.angle,
+            omega_motor_radps=self.omega,
+            omega_output_radps=self.omega,
+            tau_m_Nm=self.torque,
+            tau_m_cmd_Nm=self.torque,
+        )
 
 
 def rigid_drive(site: NodeSite) -> DriveNode:
@@ -148,6 +133,74 @@ def test_a_rigid_inertia_runs_in_the_lockstep_runner_as_its_physics_says():
     assert T_meas == pytest.approx(STEP_V, abs=VOLT2NM * 10 / 2048)  # one ADC step
     assert velocity == pytest.approx(w1, abs=VOLT2RADPS * 10 / 2048 + slope * 2e-3)
     assert r.velocity_final == pytest.approx(velocity, abs=0.01)
+
+
+def _protocol_example() -> type:
+    """The plant of :class:`PlantModel`'s docstring, built from the docstring as it stands."""
+    import textwrap
+
+    doc = PlantModel.__doc__ or ""
+    code = textwrap.dedent(doc[doc.index("class RigidInertia:") - 8 :])
+    namespace = {"math": math, "Converter": Converter, "SensorCounts": SensorCounts,
+                 "Truth": Truth}  # fmt: skip
+    exec(code, namespace)
+    return namespace["RigidInertia"]
+
+
+class _TruthFrames(can.Listener):
+    """The truth channel, decoded: (time, T_true, omega_motor, tau_m) per SYNC."""
+
+    def __init__(self) -> None:
+        self.rows: list[tuple[float, float, float, float]] = []
+        self._torque = codec("truth", "TRUTH_TORQUE")
+        self._motion = codec("truth", "TRUTH_MOTION")
+        self._joint = codec("truth", "TRUTH_JOINT")
+        self._row: dict[str, float] = {}
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.channel != CHANNEL_NUMBER["truth"]:
+            return
+        if msg.arbitration_id == self._torque.frame_id:
+            self._row = {"T": self._torque.decode(msg.data)[0]}
+        elif msg.arbitration_id == self._motion.frame_id:
+            self._row["w"] = self._motion.decode(msg.data)[2]
+        elif msg.arbitration_id == self._joint.frame_id:
+            tau_ext, tau_d, tau_m, _cmd = self._joint.decode(msg.data)
+            assert tau_ext == tau_d == 0.0  # the defaults of a plant without them
+            row = self._row
+            self.rows.append((msg.timestamp, row["T"], row["w"], tau_m))
+
+
+def test_the_protocols_own_example_is_a_short_plant_the_drive_runs():
+    """The user plant in :class:`PlantModel`'s docstring is about 15 lines, is a
+    ``PlantModel``, and behind a drive in the lockstep runner it follows its physics:
+    the truth channel carries its torque ``k V`` and its velocity ramp ``k V / J``."""
+    plant_cls = _protocol_example()
+    doc = PlantModel.__doc__ or ""
+    body = doc[doc.index("class RigidInertia:") :].splitlines()
+    assert len([line for line in body if line.strip()]) <= 18
+    plant = plant_cls()
+    assert isinstance(plant, PlantModel)
+    frames = _TruthFrames()
+    r = lockstep(
+        load_scenario("free-motion"),
+        duration_s=0.5,
+        seed=1,
+        evaluate=False,
+        extra_listeners=[frames],
+        drive_factories=[
+            lambda site: DriveNode(site.bus, plant, site.drive_config(), truth_bus=site.truth_bus)
+        ],
+    )
+    assert r.cycles == 500 and not r.interrupted
+    on = [row for row in frames.rows if row[1] > 0.0]
+    assert len(on) > 400
+    torque = plant.k * STEP_V
+    # each at the truth channel's resolution (truth.dbc: 1 uNm and 5 mNm)
+    assert all(abs(T - torque) <= 1e-6 and abs(tau_m - torque) <= 2.5e-3 for _, T, _, tau_m in on)
+    (t0, _, w0, _), (t1, _, w1, _) = on[1], on[-1]
+    assert (w1 - w0) / (t1 - t0) == pytest.approx(torque / plant.J, rel=2e-3)
+    assert plant.omega == pytest.approx(w1, rel=1e-3)
 
 
 def test_other_plants_refuse_the_emulators_own_knobs():

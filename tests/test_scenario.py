@@ -194,16 +194,17 @@ class Trace:
             volts = dac.to_volts(dac.to_counts(ref.value(k)))
             for j in range(per):
                 plant.advance(volts, dt)
-                self.T_true[k * per + j] = plant.T_true
+                self.T_true[k * per + j] = plant.truth().T_true_Nm
                 self.t_fine[k * per + j] = plant.time
             self.t[k] = plant.time
-            self.w_m[k] = plant.omega_motor
-            self.w_out[k] = plant.omega_output
-            self.th_out[k] = plant.theta_output_unwrapped
+            truth = plant.truth()
+            self.w_m[k] = truth.omega_motor_radps
+            self.w_out[k] = truth.omega_output_radps
+            self.th_out[k] = truth.theta_output_rad
             self.T_meas[k] = adc.to_volts(plant.sample()[0]) * gain
-            self.mis[k] = plant.ripple_parts.misalignment
-            self.i[k] = plant.current
-            self.load[k] = plant.load_torque
+            self.mis[k] = truth.ripple.misalignment
+            self.i[k] = truth.current_A
+            self.load[k] = truth.tau_l_Nm
         self.plant = plant
 
 

@@ -14,9 +14,9 @@ import pytest
 from canopen.emcy import EMCY_STRUCT
 from runs import lockstep
 
-from hdhil.can.faults import with_fault_flags
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.stages import StuckChannels
+from hdhil.rig.faults import with_fault_flags
 from hdhil.rig.scenario import load_scenario
 
 CPR = FirmwareConfig().calibration.encoder_counts_per_rev

@@ -28,9 +28,9 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import hdhil.can.faults
 import hdhil.firmware.config
 import hdhil.hostsim.plant
+import hdhil.rig.faults
 import hdhil.rig.scenario
 
 #: The tables of a scenario file: (TOML table, configuration dataclass).  The walker
@@ -39,7 +39,7 @@ ROOTS: list[tuple[str, type]] = [
     ("scenario", hdhil.rig.scenario.ScenarioHeader),
     ("plant", hdhil.hostsim.plant.PlantConfig),
     ("firmware", hdhil.firmware.config.FirmwareConfig),
-    ("faults", hdhil.can.faults.FaultConfig),
+    ("faults", hdhil.rig.faults.FaultConfig),
     ("bus", hdhil.rig.scenario.BusConfig),
     ("link", hdhil.rig.scenario.LinkConfig),
 ]

@@ -1,125 +1,51 @@
-"""Fault injection: a lossy, late, noisy CAN link and misbehaving sensors, reproducibly.
+"""Bus faults: a lossy, late, noisy CAN link, reproducibly, every fault recorded.
 
-A :class:`FaultConfig` (frozen dataclasses, the ``[faults]`` table of a scenario, built
-with :func:`hdhil.core.dataconf.from_dict`) describes what goes wrong; a :class:`FaultInjector`
-makes it happen from a seed and records every fault in a :class:`FaultLog`::
+:class:`BusFaults` (one channel's part of a scenario's ``[faults]`` table, see
+:mod:`hdhil.rig.faults`) says what goes wrong on the wire; a :class:`ChannelFaults` hook
+makes it happen from the run's fault seed inside the simulated bus
+(:meth:`hdhil.can.simbus._Channel.flush`), so every node sees the faults exactly as it
+would see a bad link. On any other interface a node puts its own transmissions through
+the same hook (:class:`FaultyTransmitBus`), and the drive silences itself through
+:class:`TransmitSilence` (its object 0x2310 sub 8). Each fault is one record in the
+run's :class:`~hdhil.core.faultbase.FaultLog`.
 
-    injector = FaultInjector(from_dict(FaultConfig, {"control": {"loss_rate": 0.05}}))
-    bus = can.Bus(interface="simbus", channel="control", clock=clock,
-                  faults=injector.channel("control"))
-    plant = Plant(cfg, seed, faults=injector.sensors())
-    ...
-    injector.summary()  # {"loss": 97, ...}
-
-Bus faults act inside :meth:`hdhil.can.simbus._Channel.flush`, so every node sees them
-exactly as it would see a bad link; sensor faults act at the end of
-:meth:`hostsim.plant.Plant.sample`.  ``channel()``/``sensors()`` return ``None`` when
-nothing is configured, and the bus and plant keep their fault-free fast path.
-
-Timing model of the bus faults.  The simulated bus stamps a frame with the end of its
-transmission; in lockstep a frame is receivable only once the simulated clock has reached
-its delivery time (:class:`hdhil.can.simbus.SimClock`): deliveries due before the end of
-the current cycle (the next SYNC) are handed out in that cycle, in delivery-time order,
-later ones in the cycle that contains their time.  Nodes answer a frame at the time they
-received it.
-
-- ``loss_rate`` / bursts: the frame goes on the wire (it takes its time) but no node
-  receives it.
-- ``silence`` / ``bus_off``: the node's frames never reach the wire (no wire time).
-  ``node = n`` is the node by who sends: every frame node n transmits (a master's SYNC,
-  RPDOs, NMT and SDO requests included), known from the simulated bus handle the frame
-  was sent through (``SimBus(node_id=...)``: every node of ``hdhil run`` has one, on the
-  control and the truth channel) or from the node process's own bus
-  (:class:`FaultyTransmitBus`).  A frame from a handle without a node-ID (a tool) is
-  node n's when its identifier is one of node n's own COB-IDs (EMCY/TPDO1/TPDO2/SDO
-  response/heartbeat: 0x080+n, 0x180+n, 0x280+n, 0x580+n, 0x700+n;
-  :func:`hdhil.dbc.node_function_codes`).  ``ids`` lists identifiers explicitly, whoever
-  sends them.
-- ``delay_us`` + uniform ``jitter_us``: added to the delivery time.  A frame that stays
-  before the next SYNC is received later in the same cycle (and answered later); one
-  pushed past it is received in the next cycle, after that SYNC, as on a real bus: the
-  controller then counts a cycle without its sensor frame and a second one in the next
-  cycle (the interrupt runs once per SYNC).  The wire is not held up by a delay, and the
-  cycles stay ``k * Ts``: timestamps are simulated time whatever the delay.
-- ``duplicate_rate``: the frame is sent twice (the copy takes wire time again).
-- ``reorder_rate``: the frame is held back and delivered right after the next frame of
-  the channel (the two swap timestamps, so receive times stay monotonic); when that next
-  frame is the next cycle's SYNC, the held frame arrives a cycle late.
-- ``corrupt_rate``: one random payload bit flipped (an error the CRC missed);
-  ``dlc_rate``: the payload truncated or extended by 1-8 bytes (random bytes);
-  ``error_frame_rate``: a python-can error frame follows the frame.
-
-On any other interface (``hdhil run --interface virtual`` or ``udp_multicast``, and
-``hdhil emulate``/``firmware`` on any bus) there is no simulated channel between the
-nodes: each node puts its own transmissions through the faults (:class:`FaultyTransmitBus`,
-with its own random draws), timed by the run's clock (the cycle time ``k * Ts`` in
-network lockstep) or the process's monotonic clock; error frames are refused there (a
-node cannot send one).  Truth faults act on the truth channel of ``hdhil run`` and
-``emulate``; the evaluation then scores only the samples whose truth arrived and reports
-how many had none.
-
-Every fault is one :class:`FaultRecord` in the log; nothing is injected unrecorded.
-
-Other ways in, besides the ``[faults]`` table:
-
-- ``--fault KEY=VALUE`` on the command line (:func:`parse_fault_flags`,
-  :func:`with_fault_flags`): the TOML keys of the table, dotted (``control.loss_rate=0.05``,
-  ``seed=3``, ``'control.silence=[{node=2,start_s=1,duration_s=0.5}]'``), each value a
-  TOML value, merged over the scenario's table (a flag wins) and validated by the same
-  dataclasses.
-- A node in a process of its own (``hdhil emulate``/``firmware`` on any python-can
-  interface) puts its *own* transmissions through a channel's faults
-  (:class:`FaultyTransmitBus`), timed from the node's start on the monotonic clock.
-- The drive's object 0x2310 "Fault injection" (:mod:`hostsim.drive`) switches sensor faults
-  at run time (:meth:`SensorHook.reconfigure`) and silences the drive for a while
-  (:class:`TransmitSilence`).
+The sensor faults are the plant's, in :mod:`hdhil.hostsim.sensor_faults`.
 """
 
 from __future__ import annotations
 
 import heapq
 import itertools
-import json
 import math
-import random
-import re
-import sys
 import time
-from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import IO, Any, Literal
+from typing import Any, Literal, Protocol
 
 import can
 
-from hdhil.core.dataconf import ConfigError, from_dict, merge, to_dict
-from hdhil.core.files import check_output
+from hdhil.core.dataconf import ConfigError
+from hdhil.core.faultbase import (
+    FaultLog,
+    FaultRecord,
+    check_nonneg,
+    check_rate,
+    fault_rng,
+)
 from hdhil.core.numbers import MAX_SECONDS
 from hdhil.dbc import node_function_codes
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - exercised on Python 3.10 only
-    import tomli as tomllib
 
 __all__ = [
     "BusFaults",
     "ChannelFaults",
-    "FaultConfig",
-    "FaultInjector",
+    "ChannelTables",
     "FaultLog",
     "FaultRecord",
     "FaultyTransmitBus",
     "NodeWindow",
-    "SensorFaults",
-    "SensorHook",
-    "SensorWindow",
     "TransmitSilence",
     "check_node_transmit_faults",
     "node_ids",
-    "parse_fault_flags",
-    "with_fault_flags",
 ]
 
 
@@ -132,26 +58,8 @@ def node_ids(node: int) -> frozenset[int]:
     return frozenset(base + node for base in node_function_codes("control"))
 
 
-def _rate(obj: object, name: str) -> None:
-    value = getattr(obj, name)
-    if not (isinstance(value, (int, float)) and 0.0 <= value <= 1.0):
-        raise ValueError(f"{type(obj).__name__}.{name} must be a probability in [0, 1], "
-                         f"got {value!r}")  # fmt: skip
-
-
 #: Largest ``delay_us`` / ``jitter_us`` accepted (1 s).
 MAX_DELAY_US = 1e6
-
-
-def _nonneg(obj: object, name: str, allow_inf: bool = False, hi: float | None = None) -> None:
-    value = getattr(obj, name)
-    ok = isinstance(value, (int, float)) and value >= 0
-    if ok and not allow_inf:
-        ok = math.isfinite(value)
-    if not ok:
-        raise ValueError(f"{type(obj).__name__}.{name} must be >= 0, got {value!r}")
-    if hi is not None and value > hi and not (allow_inf and value == math.inf):
-        raise ValueError(f"{type(obj).__name__}.{name} must be <= {hi:g}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -166,8 +74,8 @@ class NodeWindow:
     ids: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
-        _nonneg(self, "start_s", hi=MAX_SECONDS)
-        _nonneg(self, "duration_s", allow_inf=True, hi=MAX_SECONDS)
+        check_nonneg(self, "start_s", hi=MAX_SECONDS)
+        check_nonneg(self, "duration_s", allow_inf=True, hi=MAX_SECONDS)
         if not 0 <= self.node <= 127:
             raise ValueError(
                 f"NodeWindow.node must be a node-ID 1..127 (0 = none), got {self.node}"
@@ -188,7 +96,51 @@ class NodeWindow:
 
 @dataclass(frozen=True)
 class BusFaults:
-    """What goes wrong on one CAN channel (see the module docstring for the model)."""
+    """What goes wrong on one CAN channel, in simulated time.
+
+    The simulated bus stamps a frame with the end of its transmission; in lockstep a
+    frame is receivable only once the simulated clock has reached its delivery time
+    (:class:`hdhil.can.simbus.SimClock`): deliveries due before the end of the current
+    cycle (the next SYNC) are handed out in that cycle, in delivery-time order, later
+    ones in the cycle that contains their time.  Nodes answer a frame at the time they
+    received it.
+
+    - ``loss_rate`` / bursts: the frame goes on the wire (it takes its time) but no node
+      receives it.
+    - ``silence`` / ``bus_off``: the node's frames never reach the wire (no wire time).
+      ``node = n`` is the node by who sends: every frame node n transmits (a master's
+      SYNC, RPDOs, NMT and SDO requests included), known from the simulated bus handle
+      the frame was sent through (``SimBus(node_id=...)``: every node of ``hdhil run``
+      has one, on the control and the truth channel) or from the node process's own bus
+      (:class:`FaultyTransmitBus`).  A frame from a handle without a node-ID (a tool) is
+      node n's when its identifier is one of node n's own COB-IDs (EMCY/TPDO1/TPDO2/SDO
+      response/heartbeat: 0x080+n, 0x180+n, 0x280+n, 0x580+n, 0x700+n;
+      :func:`hdhil.dbc.node_function_codes`).  ``ids`` lists identifiers explicitly,
+      whoever sends them.
+    - ``delay_us`` + uniform ``jitter_us``: added to the delivery time.  A frame that
+      stays before the next SYNC is received later in the same cycle (and answered
+      later); one pushed past it is received in the next cycle, after that SYNC, as on a
+      real bus: the controller then counts a cycle without its sensor frame and a second
+      one in the next cycle (the interrupt runs once per SYNC).  The wire is not held up
+      by a delay, and the cycles stay ``k * Ts``: timestamps are simulated time whatever
+      the delay.
+    - ``duplicate_rate``: the frame is sent twice (the copy takes wire time again).
+    - ``reorder_rate``: the frame is held back and delivered right after the next frame
+      of the channel (the two swap timestamps, so receive times stay monotonic); when
+      that next frame is the next cycle's SYNC, the held frame arrives a cycle late.
+    - ``corrupt_rate``: one random payload bit flipped (an error the CRC missed);
+      ``dlc_rate``: the payload truncated or extended by 1-8 bytes (random bytes);
+      ``error_frame_rate``: a python-can error frame follows the frame.
+
+    On any other interface (``hdhil run --interface virtual`` or ``udp_multicast``, and
+    ``hdhil emulate``/``firmware`` on any bus) there is no simulated channel between the
+    nodes: each node puts its own transmissions through the faults
+    (:class:`FaultyTransmitBus`, with its own random draws), timed by the run's clock
+    (the cycle time ``k * Ts`` in network lockstep) or the process's monotonic clock;
+    error frames are refused there (a node cannot send one).  Truth faults act on the
+    truth channel of ``hdhil run`` and ``emulate``; the evaluation then scores only the
+    samples whose truth arrived and reports how many had none.
+    """
 
     loss_rate: float = 0.0
     burst_every_s: float = 0.0
@@ -206,13 +158,13 @@ class BusFaults:
     def __post_init__(self) -> None:
         for name in ("loss_rate", "duplicate_rate", "reorder_rate", "corrupt_rate",
                      "dlc_rate", "error_frame_rate"):  # fmt: skip
-            _rate(self, name)
-        _nonneg(self, "burst_every_s", hi=MAX_SECONDS)
+            check_rate(self, name)
+        check_nonneg(self, "burst_every_s", hi=MAX_SECONDS)
         # At most a second late: later than the nodes' supervision times (heartbeat,
         # sensor hold) is a lost frame, which loss_rate/silence describe.
         for name in ("delay_us", "jitter_us"):
-            _nonneg(self, name, hi=MAX_DELAY_US)
-        _nonneg(self, "burst_len_frames")
+            check_nonneg(self, name, hi=MAX_DELAY_US)
+        check_nonneg(self, "burst_len_frames")
         if (self.burst_every_s > 0) != (self.burst_len_frames > 0):
             raise ValueError("BusFaults.burst_len_frames and burst_every_s go together "
                              "(both > 0 or both 0)")  # fmt: skip
@@ -220,138 +172,6 @@ class BusFaults:
     @property
     def enabled(self) -> bool:
         return self != BusFaults()
-
-
-SensorChannel = Literal["torque", "tacho", "current", "encoder"]
-_SENSOR_INDEX = {"torque": 0, "tacho": 1, "current": 2, "encoder": 3}
-
-
-@dataclass(frozen=True)
-class SensorWindow:
-    """A sensor channel misbehaving from ``start_s`` for ``duration_s``.  ``level`` is
-    for saturation only: the top (``max``) or bottom (``min``) code."""
-
-    channel: SensorChannel
-    start_s: float
-    duration_s: float = field(default=math.inf, metadata={"allow_inf": True})
-    level: Literal["max", "min"] = "max"
-
-    def __post_init__(self) -> None:
-        if self.channel not in _SENSOR_INDEX:
-            raise ValueError(f"SensorWindow.channel must be one of {list(_SENSOR_INDEX)}, "
-                             f"got {self.channel!r}")  # fmt: skip
-        _nonneg(self, "start_s", hi=MAX_SECONDS)
-        _nonneg(self, "duration_s", allow_inf=True, hi=MAX_SECONDS)
-
-    def active(self, t: float) -> bool:
-        return self.start_s <= t < self.start_s + self.duration_s
-
-
-@dataclass(frozen=True)
-class SensorFaults:
-    """Faults of the drive's sensors, applied to :meth:`hostsim.plant.Plant.sample`.
-
-    ``stuck``: the channel holds the count it had when the fault began.  ``saturated``:
-    the analog channel reads the converter's code limit (the encoder has none: not
-    allowed).  ``encoder_glitch_rate`` (per sample): the count jumps by
-    ``±encoder_glitch_counts`` (persistently, a lost/gained count burst).
-    ``tacho_spike_rate`` (per sample): ``tacho_spike_V`` (random sign) added to one
-    tacho sample.
-    """
-
-    stuck: tuple[SensorWindow, ...] = ()
-    saturated: tuple[SensorWindow, ...] = ()
-    encoder_glitch_rate: float = 0.0
-    encoder_glitch_counts: int = 0
-    tacho_spike_rate: float = 0.0
-    tacho_spike_V: float = 0.0
-
-    def __post_init__(self) -> None:
-        _rate(self, "encoder_glitch_rate")
-        _rate(self, "tacho_spike_rate")
-        _nonneg(self, "encoder_glitch_counts")
-        _nonneg(self, "tacho_spike_V")
-        for w in self.saturated:
-            if w.channel == "encoder":
-                raise ValueError("SensorFaults.saturated: the encoder has no code limit")
-
-    @property
-    def enabled(self) -> bool:
-        return self != SensorFaults()
-
-
-@dataclass(frozen=True)
-class FaultConfig:
-    """All injected faults of a run (the ``[faults]`` table); ``seed`` makes them
-    reproducible: the same seed gives the same faults at the same frames."""
-
-    seed: int = 0
-    control: BusFaults = field(default_factory=BusFaults)
-    truth: BusFaults = field(default_factory=BusFaults)
-    sensors: SensorFaults = field(default_factory=SensorFaults)
-
-    def __post_init__(self) -> None:
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"FaultConfig.seed must be an integer >= 0, got {self.seed!r}")
-
-    @property
-    def enabled(self) -> bool:
-        return self.control.enabled or self.truth.enabled or self.sensors.enabled
-
-
-@dataclass(frozen=True)
-class FaultRecord:
-    """One injected fault: simulated time, channel (or ``plant``), kind, frame ID
-    (``None`` for sensor faults) and details."""
-
-    time: float
-    channel: str
-    kind: str
-    frame_id: int | None
-    details: dict[str, Any]
-
-    def as_dict(self) -> dict[str, Any]:
-        return {"time": self.time, "channel": self.channel, "kind": self.kind,
-                "frame_id": self.frame_id, "details": self.details}  # fmt: skip
-
-
-class FaultLog:
-    """Every injected fault, in memory (``records``) and optionally as JSON lines."""
-
-    def __init__(self, path: str | Path | None = None, keep: bool = True) -> None:
-        self.records: list[FaultRecord] = []
-        self.counts: Counter[str] = Counter()
-        self._keep = keep
-        self._fh: IO[str] | None = None
-        if path is not None:
-            target = check_output(path, "fault log")  # a regular file, never a device
-            try:
-                # Line-buffered: a record is in the file as soon as it is injected, so a
-                # killed run (SIGKILL) loses none of the faults its trace shows.
-                self._fh = open(target or "/dev/stdout", "w", encoding="utf-8", buffering=1)  # noqa: SIM115
-            except OSError as exc:
-                raise ConfigError(
-                    f"fault log {path}: cannot write ({exc.strerror or exc})"
-                ) from None
-
-    def record(self, time: float, channel: str, kind: str, frame_id: int | None,
-               **details: Any) -> None:  # fmt: skip
-        rec = FaultRecord(time, channel, kind, frame_id, details)
-        self.counts[kind] += 1
-        if self._keep:
-            self.records.append(rec)
-        if self._fh is not None:
-            self._fh.write(json.dumps(rec.as_dict(), sort_keys=True) + "\n")
-
-    def close(self) -> None:
-        if self._fh is not None:
-            self._fh.close()
-            self._fh = None
-
-
-def _rng(seed: int, where: str, kind: str) -> random.Random:
-    # One generator per channel and kind: enabling one fault does not move another's.
-    return random.Random(f"hdhil-faults:{seed}:{where}:{kind}")
 
 
 class ChannelFaults:
@@ -365,7 +185,7 @@ class ChannelFaults:
         self.name = name
         self.log = log
         where = f"{stream}:{name}" if stream else name
-        r = {k: _rng(seed, where, k) for k in ("loss", "delay", "duplicate", "reorder",
+        r = {k: fault_rng(seed, where, k) for k in ("loss", "delay", "duplicate", "reorder",
                                                 "corrupt", "dlc", "error_frame")}  # fmt: skip
         self._r = r
         self._next_burst = cfg.burst_every_s if cfg.burst_len_frames else math.inf
@@ -470,148 +290,6 @@ def _copy(msg: can.Message, data: bytes) -> can.Message:
                        check=False)  # fmt: skip
 
 
-class SensorHook:
-    """The sensor-fault hook of a plant (``Plant(..., faults=...)``)."""
-
-    def __init__(self, cfg: SensorFaults, seed: int, log: FaultLog) -> None:
-        self.cfg = cfg
-        self.log = log
-        self._r_enc = _rng(seed, "plant", "encoder_glitch")
-        self._r_tacho = _rng(seed, "plant", "tacho_spike")
-        self._held: dict[SensorWindow, int] = {}  # active stuck windows -> held count
-        self._enc_offset = 0
-
-    def reconfigure(self, cfg: SensorFaults) -> None:
-        """Switch to ``cfg`` from the next sample on (the drive's object 0x2310).
-
-        The random streams go on where they are, so a run that switches at the same
-        samples gets the same faults; the encoder's accumulated glitch offset stays (the
-        lost counts are lost); a stuck window that is still configured keeps its count.
-        """
-        self.cfg = cfg
-        for w in [w for w in self._held if w not in cfg.stuck]:
-            del self._held[w]
-
-    def apply(self, t: float, sample: tuple[int, int, int, int], code_min: int, code_max: int,
-              lsb_V: float) -> tuple[int, int, int, int]:  # fmt: skip
-        cfg, log = self.cfg, self.log
-        out = list(sample)
-        if cfg.encoder_glitch_rate and self._r_enc.random() < cfg.encoder_glitch_rate:
-            jump = cfg.encoder_glitch_counts * (1 if self._r_enc.random() < 0.5 else -1)
-            self._enc_offset += jump
-            log.record(t, "plant", "encoder_glitch", None, counts=jump)
-        if self._enc_offset:
-            out[3] = (out[3] + self._enc_offset) % 65536
-        if cfg.tacho_spike_rate and self._r_tacho.random() < cfg.tacho_spike_rate:
-            spike = cfg.tacho_spike_V * (1 if self._r_tacho.random() < 0.5 else -1)
-            out[1] = min(code_max, max(code_min, out[1] + round(spike / lsb_V)))
-            log.record(t, "plant", "tacho_spike", None, volts=spike)
-        for w in cfg.saturated:
-            if w.active(t):
-                i = _SENSOR_INDEX[w.channel]
-                out[i] = code_max if w.level == "max" else code_min
-                log.record(t, "plant", "saturated", None, sensor=w.channel, count=out[i])
-        for w in cfg.stuck:
-            i = _SENSOR_INDEX[w.channel]
-            if w.active(t):
-                held = self._held.setdefault(w, out[i])
-                out[i] = held
-                log.record(t, "plant", "stuck", None, sensor=w.channel, count=held)
-            else:
-                self._held.pop(w, None)
-        return out[0], out[1], out[2], out[3]
-
-
-class FaultInjector:
-    """Builds the hooks of a :class:`FaultConfig` and keeps their common log."""
-
-    def __init__(self, config: FaultConfig, log: FaultLog | None = None, stream: str = "") -> None:
-        """``stream`` names the node whose transmissions the channel hooks fault, when each
-        node runs in a process of its own (see :class:`ChannelFaults`)."""
-        self.config = config
-        self.log = log if log is not None else FaultLog()
-        self.stream = stream
-        self._channels: dict[str, ChannelFaults] = {}
-        self._sensors: SensorHook | None = None
-
-    def channel(self, role: Literal["control", "truth"]) -> ChannelFaults | None:
-        """The hook for the ``control`` or ``truth`` channel; None without faults there.
-        Every bus of the channel may pass it (it is the same object)."""
-        cfg: BusFaults = getattr(self.config, role)
-        if not cfg.enabled:
-            return None
-        hook = self._channels.get(role)
-        if hook is None:
-            hook = self._channels[role] = ChannelFaults(
-                cfg, role, self.config.seed, self.log, self.stream
-            )
-        return hook
-
-    def sensors(self, always: bool = False) -> SensorHook | None:
-        """The plant's sensor-fault hook; None without sensor faults unless ``always``
-        (a hook to switch faults on later, :meth:`SensorHook.reconfigure`)."""
-        if not (always or self.config.sensors.enabled):
-            return None
-        if self._sensors is None:
-            self._sensors = SensorHook(self.config.sensors, self.config.seed, self.log)
-        return self._sensors
-
-    def summary(self) -> dict[str, int]:
-        """Injected faults per kind."""
-        return dict(sorted(self.log.counts.items()))
-
-
-# ----------------------------------------------------------------------------- flags
-#: A dotted key of the ``[faults]`` table: TOML bare keys joined by dots.
-_FLAG_KEY = re.compile(r"[A-Za-z0-9_-]+(\.[A-Za-z0-9_-]+)*")
-
-
-def parse_fault_flags(flags: Sequence[str]) -> dict[str, Any]:
-    """``--fault KEY=VALUE`` flags as a nested ``[faults]`` table, later flags winning.
-
-    ``KEY`` is a dotted key of the table (``control.loss_rate``, ``seed``); ``VALUE`` is a
-    TOML value (``0.05``, ``[{node = 2, start_s = 1}]``, ``"max"``).  Syntax errors raise
-    :class:`hdhil.core.dataconf.ConfigError` naming the flag; the values are checked by
-    :func:`with_fault_flags`.
-    """
-    table: dict[str, Any] = {}
-    for flag in flags:
-        key, sep, text = flag.partition("=")
-        key = key.strip()
-        if not sep or not _FLAG_KEY.fullmatch(key):
-            raise ConfigError(
-                f"--fault {flag!r}: expected KEY=VALUE with a dotted key of the [faults] "
-                "table, e.g. control.loss_rate=0.05"
-            )
-        try:
-            parsed = tomllib.loads(f"value = {text}")
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(
-                f"--fault {key}: {text!r} is not a TOML value ({exc}); strings need quotes, "
-                'e.g. sensors.stuck=[{channel="tacho", start_s=1}]'
-            ) from None
-        if set(parsed) != {"value"}:
-            raise ConfigError(f"--fault {key}: {text!r} is more than one TOML value")
-        value: Any = parsed["value"]
-        for part in reversed(key.split(".")):
-            value = {part: value}
-        table = merge(table, value)
-    return table
-
-
-def with_fault_flags(config: FaultConfig | None, flags: Sequence[str]) -> FaultConfig | None:
-    """``config`` (a scenario's ``[faults]``, None if it has none) with ``--fault`` flags
-    merged over it, validated as the table is: unknown keys, wrong types and values out of
-    range raise :class:`hdhil.core.dataconf.ConfigError` naming the key."""
-    if not flags:
-        return config
-    table = merge(to_dict(config) if config is not None else {}, parse_fault_flags(flags))
-    try:
-        return from_dict(FaultConfig, table, "faults")
-    except ConfigError as exc:
-        raise ConfigError(f"--fault: {exc}") from None
-
-
 # ----------------------------------------------------------------------------- one node
 class FaultyTransmitBus:
     """A node's python-can bus whose *own* transmissions go through a channel's faults.
@@ -689,7 +367,17 @@ class FaultyTransmitBus:
             self.bus.send(heapq.heappop(self._due)[2])
 
 
-def check_node_transmit_faults(config: FaultConfig, role: Literal["control", "truth"]) -> None:
+class ChannelTables(Protocol):
+    """The faults of both channels: a run's :class:`hdhil.rig.faults.FaultConfig`."""
+
+    @property
+    def control(self) -> BusFaults: ...
+
+    @property
+    def truth(self) -> BusFaults: ...
+
+
+def check_node_transmit_faults(config: ChannelTables, role: Literal["control", "truth"]) -> None:
     """``ConfigError`` if channel ``role`` has faults a single node cannot put on its own
     transmissions (:class:`FaultyTransmitBus`)."""
     cfg: BusFaults = getattr(config, role)

@@ -36,6 +36,10 @@ class CanNode:
         """Route frames with this identifier to ``handler``."""
         self._handlers[(frame_id, extended)] = handler
 
+    def unhandle(self, frame_id: int, extended: bool = False) -> None:
+        """Stop routing frames with this identifier (they count as any other frame)."""
+        self._handlers.pop((frame_id, extended), None)
+
     def on_message(self, msg: can.Message) -> None:
         if msg.is_error_frame:
             self.error_frames += 1

@@ -20,7 +20,7 @@ Pacing of ``hdhil firmware`` (the SYNC producer):
 Every node runs in the one node loop (:mod:`hdhil.rig.loop`), as in ``hdhil run``.
 
 Faults (the scenario's ``[faults]`` table with ``--fault KEY=VALUE`` flags merged over it,
-:mod:`hdhil.can.faults`): each process injects the faults that arise in it.
+:mod:`hdhil.rig.faults`): each process injects the faults that arise in it.
 
 - ``emulate``: the sensor faults (``sensors.*``, at the plant, in plant time), and the
   bus faults of ``control.*`` (and ``truth.*`` with a truth bus) on the drive's own
@@ -47,14 +47,7 @@ from typing import Any, Literal
 
 import can
 
-from hdhil.can.faults import (
-    FaultConfig,
-    FaultInjector,
-    FaultLog,
-    FaultyTransmitBus,
-    check_node_transmit_faults,
-    parse_fault_flags,
-)
+from hdhil.can.faults import FaultLog, FaultyTransmitBus, check_node_transmit_faults
 from hdhil.can.traces.tap import BusTap, FrameCounter
 from hdhil.can.traces.writer import WriterError, WriterProcess, check_trace_path
 from hdhil.canopen.nmt import COMMAND_NAMES as NMT_COMMAND_NAMES
@@ -76,6 +69,7 @@ from hdhil.dbc import node_ids as dbc_node_ids
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant
+from hdhil.rig.faults import FaultConfig, FaultInjector, parse_fault_flags
 from hdhil.rig.loop import NodeLoop, controller_expects_answer, serve
 from hdhil.rig.realtime import RealtimeLoop
 from hdhil.rig.sidecar import run_metadata

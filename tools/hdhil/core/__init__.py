@@ -1,2 +1,3 @@
-"""The project's base: user errors, typed configuration from plain data, and the
-data-acquisition board's ADC/DAC conversion that firmware and emulator share."""
+"""The project's base: user errors, typed configuration from plain data, the
+data-acquisition board's ADC/DAC conversion that firmware and emulator share, and the
+log every fault injector records into."""

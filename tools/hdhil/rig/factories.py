@@ -30,11 +30,11 @@ from typing import Literal, Protocol
 
 import can
 
-from hdhil.can.faults import FaultInjector
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant
+from hdhil.rig.faults import FaultInjector
 from hdhil.rig.scenario import Scenario
 
 #: The buses a node can sit on: the CAN control bus, and the truth channel that exists

@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from hdhil.can.faults import with_fault_flags
 from hdhil.canopen.mapping import mapping_dcf
 from hdhil.core.dataconf import ConfigError, merge
 from hdhil.core.errors import UserError
@@ -30,6 +29,7 @@ from hdhil.core.files import load_toml
 from hdhil.core.numbers import MAX_SECONDS
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.rig.factories import DriveSlot, RigLayout
+from hdhil.rig.faults import with_fault_flags
 from hdhil.rig.scenario import (
     Scenario,
     scenario_data,

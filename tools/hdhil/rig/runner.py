@@ -34,7 +34,6 @@ from threadpoolctl import threadpool_limits
 from hdhil.can.busload import LOAD_LIMIT, ScheduleLoad, schedule_load
 from hdhil.can.faults import (
     ChannelFaults,
-    FaultInjector,
     FaultLog,
     FaultyTransmitBus,
     check_node_transmit_faults,
@@ -61,6 +60,7 @@ from hdhil.rig.factories import (
     scenario_controller,
     scenario_drive,
 )
+from hdhil.rig.faults import FaultInjector
 from hdhil.rig.headline import format_headline, headline
 from hdhil.rig.loop import NodeLoop, controller_expects_answer
 from hdhil.rig.realtime import RealtimeConfig, RealtimeLoop, WallClock

@@ -21,12 +21,12 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
-from hdhil.can.faults import FaultConfig
 from hdhil.core.dataconf import ConfigError, from_dict, merge, to_dict
 from hdhil.core.errors import UserError
 from hdhil.core.files import load_toml
 from hdhil.firmware.config import FirmwareConfig, Law
 from hdhil.hostsim.plant import PlantConfig
+from hdhil.rig.faults import FaultConfig
 
 __all__ = [
     "BusConfig",

@@ -1,0 +1,59 @@
+"""The drive's truth publisher: the plant's ground truth on the truth channel.
+
+Every SYNC in OPERATIONAL, right after the sensor TPDO, the drive sends ``TRUTH_TORQUE``
+(torque and ripple), ``TRUTH_MOTION`` (angles, wrapped to [0, 2 pi), and velocities) and
+``TRUTH_JOINT`` (``tau_ext = tau_l + tau_g`` and ``tau_d`` of [Vertechy] Eq. 1,
+``tau_m`` acting and commanded), all from the :class:`~hdhil.hostsim.plant.truth.Truth`
+the plant gives at t(k), like the sensors. Ground truth goes to a bus of its own
+(``truth.dbc``), never to the control bus: the firmware never reads it; the scorer does.
+"""
+
+from __future__ import annotations
+
+import math
+
+import can
+
+from hdhil.dbc import codec
+from hdhil.hostsim.plant.truth import Truth
+
+__all__ = ["TruthPublisher"]
+
+TWO_PI = 2.0 * math.pi
+
+
+class TruthPublisher:
+    """Encodes a :class:`Truth` into the three truth frames and sends them on ``bus``."""
+
+    def __init__(self, bus: can.BusABC | None) -> None:
+        #: The truth channel; None: nothing is published.
+        self.bus = bus
+        # Codecs are used by signal name: a DBC with reordered signals fails here, loudly.
+        self._codecs = (
+            codec("truth", "TRUTH_TORQUE").expect("T_true", "T_ripple"),
+            codec("truth", "TRUTH_MOTION").expect(
+                "theta_motor", "theta_output", "omega_motor", "omega_output"
+            ),
+            codec("truth", "TRUTH_JOINT").expect("tau_ext", "tau_d", "tau_m", "tau_m_cmd"),
+        )
+        self._msgs = tuple(
+            can.Message(arbitration_id=c.frame_id, is_extended_id=True, dlc=c.length, check=False)
+            for c in self._codecs
+        )
+
+    def publish(self, t: Truth) -> None:
+        """Send the three truth frames of ``t`` (the bus must be set)."""
+        torque, motion, joint = self._codecs
+        m_torque, m_motion, m_joint = self._msgs
+        m_torque.data = torque.encode(t.T_true_Nm, t.T_ripple_Nm)
+        m_motion.data = motion.encode(
+            t.theta_motor_rad % TWO_PI,
+            t.theta_output_rad % TWO_PI,
+            t.omega_motor_radps,
+            t.omega_output_radps,
+        )
+        m_joint.data = joint.encode(t.tau_ext_Nm, t.tau_d_Nm, t.tau_m_Nm, t.tau_m_cmd_Nm)
+        send = self.bus.send  # type: ignore[union-attr]
+        send(m_torque)
+        send(m_motion)
+        send(m_joint)

@@ -1,0 +1,59 @@
+"""The drive emulator's physics: servo amplifier, flexible harmonic-drive joint, sensors.
+
+One job per module: :mod:`.config` (the ``[plant]`` table as frozen dataclasses),
+:mod:`.linear` (state-space models, their exact discretisation, the steady state),
+:mod:`.model` (:class:`Plant`, the stepper and the sensor read-out) and :mod:`.truth`
+(the ground-truth record). Every public name is importable from here, as
+``hdhil.hostsim.plant.PlantConfig``.
+
+The plant is what stands behind :class:`hdhil.hostsim.drive.DriveNode`; any object
+with the members of :class:`hdhil.hostsim.plant_model.PlantModel` can take its place.
+"""
+
+from hdhil.hostsim.plant.config import (
+    PERSON_BAND_HZ,
+    PERSON_COMPONENTS,
+    AmplifierConfig,
+    BridgeConfig,
+    DriveTrainConfig,
+    GravityConfig,
+    LinkMotionConfig,
+    LoadTorqueConfig,
+    PlantConfig,
+    RippleConfig,
+    SensorConfig,
+)
+from hdhil.hostsim.plant.linear import (
+    continuous_model,
+    discrete_model,
+    person_model,
+    prescribed_model,
+    steady_state_motor_velocity,
+    steady_state_volts,
+)
+from hdhil.hostsim.plant.model import ENCODER_MODULUS, Plant
+from hdhil.hostsim.plant.truth import RippleParts, Truth
+
+__all__ = [
+    "ENCODER_MODULUS",
+    "PERSON_BAND_HZ",
+    "PERSON_COMPONENTS",
+    "AmplifierConfig",
+    "BridgeConfig",
+    "DriveTrainConfig",
+    "GravityConfig",
+    "LinkMotionConfig",
+    "LoadTorqueConfig",
+    "Plant",
+    "PlantConfig",
+    "RippleConfig",
+    "RippleParts",
+    "SensorConfig",
+    "Truth",
+    "continuous_model",
+    "discrete_model",
+    "person_model",
+    "prescribed_model",
+    "steady_state_motor_velocity",
+    "steady_state_volts",
+]
