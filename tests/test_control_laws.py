@@ -15,6 +15,7 @@ import can
 import cantools
 import numpy as np
 import pytest
+from conftest import BusHarness
 
 from hdhil.can.busload import schedule_load
 from hdhil.core.dataconf import ConfigError, from_dict
@@ -139,28 +140,15 @@ def test_bus_load_with_the_control_telemetry() -> None:
 
 def _run_node(cfg: FirmwareConfig, cycles: int = 5) -> list[can.Message]:
     """The controller node on a simulated bus, fed sensor frames; what it sent."""
-    ctrl_bus = can.Bus(interface="simbus", channel="t-ctrl-node")
-    drive = can.Bus(interface="simbus", channel="t-ctrl-node")
-    try:
-        node = ControllerNode(ctrl_bus, cfg)
+    with BusHarness("t-ctrl-node") as harness:  # the host plays the drive
+        node = ControllerNode(harness.bus(), cfg)
         sensor = codec("control", "DRIVE_TPDO1")
-        sent = []
         for k in range(cycles):
             node.send_sync()
-            drive.send(
-                can.Message(
-                    arbitration_id=sensor.frame_id,
-                    data=sensor.encode(100 + k, 20, 0, 7 * k),
-                    is_extended_id=False,
-                )
-            )
+            harness.send(sensor.frame_id, sensor.encode(100 + k, 20, 0, 7 * k))
             node.poll()
-            while (m := drive.recv(0)) is not None:
-                sent.append(m)
-        return sent
-    finally:
-        ctrl_bus.shutdown()
-        drive.shutdown()
+            harness.frames()
+        return harness.recorder.messages
 
 
 def test_node_sends_ctrl_tpdo2_only_with_a_law() -> None:

@@ -16,8 +16,8 @@ import can
 import canopen
 import numpy as np
 import pytest
+from conftest import BusHarness
 
-from hdhil.can.simbus import SimClock
 from hdhil.canopen.dcf import configuration_writes
 from hdhil.canopen.mapping import dcf_layouts, mapping_dcf
 from hdhil.canopen.od import variable
@@ -84,39 +84,25 @@ def test_the_shipped_dcf_is_drive_eds_with_parameter_values_that_exist_and_encod
 
 
 def _lockstep(dcf, scenario: str = "free-motion", cycles: int = 1500, seed: int = 1):
-    """Controller and emulated drive in lockstep on simbus, a third handle listening."""
+    """Controller and emulated drive in lockstep on the shared bus harness, its host
+    listening."""
     sc = load_scenario(scenario)
     fw = from_dict(FirmwareConfig, sc.firmware, "firmware")
-    clock = SimClock()
-    channel = f"t-cst-{next(_ids)}"
-    buses = [can.Bus(interface="simbus", channel=channel, clock=clock) for _ in range(3)]
-    ctrl = ControllerNode(buses[0], fw, drive_dcf=dcf)
-    plant = Plant(sc.plant, seed)
-    drive = DriveNode(buses[1], plant, DriveConfig())
-    ctrl.boot(0.0)
-    drive.boot(0.0)
-    rows = []
-    frames: list[can.Message] = []
-    try:
-        for k in range(cycles):
-            clock.now = k * fw.sample_period_s
-            ctrl.tick(clock.now)
-            drive.tick(clock.now)
-            if ctrl.phase in ("stopped", "safe"):
+    with BusHarness("t-cst", period_s=fw.sample_period_s) as harness:
+        ctrl = harness.add(ControllerNode(harness.bus(), fw, drive_dcf=dcf), sync=True)
+        plant = Plant(sc.plant, seed)
+        drive = harness.add(DriveNode(harness.bus(), plant, DriveConfig()))
+        ctrl.boot(0.0)
+        drive.boot(0.0)
+        rows = []
+        for _ in range(cycles):
+            if harness.cycle(stop=lambda: ctrl.phase in ("stopped", "safe")) is None:
                 break
-            ctrl.send_sync()
-            while ctrl.poll() + drive.poll():
-                pass
-            while (m := buses[2].recv(0)) is not None:
-                frames.append(m)
             if ctrl.phase == "operational":
                 out = ctrl.isr.output
                 row = (plant.T_true, plant.motor_torque_output, out.T_meas, out.T_filtered)
                 rows.append((*row, drive.amplifier_input_V, plant.omega_motor))
-    finally:
-        for b in buses:
-            b.shutdown()
-    return ctrl, drive, plant, np.array(rows), frames
+    return ctrl, drive, plant, np.array(rows), harness.recorder.messages
 
 
 @pytest.fixture(scope="module")

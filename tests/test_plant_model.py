@@ -17,10 +17,10 @@ import math
 
 import can
 import pytest
+from conftest import FrameRecorder
 
 from hdhil.cli import main
 from hdhil.core.converter import Converter
-from hdhil.dbc import CHANNEL_NUMBER, codec
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant_model import PlantModel
@@ -101,31 +101,12 @@ def rigid_drive(site: NodeSite) -> DriveNode:
     return DriveNode(site.bus, RigidInertia(), site.drive_config(), truth_bus=site.truth_bus)
 
 
-class _Frames(can.Listener):
-    """Truth velocity and the firmware's telemetry, with their (simulated) times."""
-
-    def __init__(self) -> None:
-        self.truth: list[tuple[float, float]] = []
-        self.telemetry: list[tuple[float, float]] = []  # (T_meas, velocity)
-        self._motion = codec("truth", "TRUTH_MOTION")
-        self._tpdo1 = codec("control", "CTRL_TPDO1")
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if msg.channel == CHANNEL_NUMBER["truth"] and msg.arbitration_id == self._motion.frame_id:
-            self.truth.append((msg.timestamp, self._motion.decode(msg.data)[2]))  # omega_motor
-        elif msg.channel == CHANNEL_NUMBER["control"] and msg.arbitration_id == (
-            self._tpdo1.frame_id
-        ):
-            T_meas, _filtered, velocity, _current = self._tpdo1.decode(msg.data)
-            self.telemetry.append((T_meas, velocity))
-
-
 def test_the_example_plant_is_a_plant_model():
     assert isinstance(RigidInertia(), PlantModel)
 
 
 def test_a_rigid_inertia_runs_in_the_lockstep_runner_as_its_physics_says():
-    frames = _Frames()
+    frames = FrameRecorder()
     r = run_lockstep(
         load_scenario("free-motion"),
         duration_s=0.5,
@@ -137,14 +118,14 @@ def test_a_rigid_inertia_runs_in_the_lockstep_runner_as_its_physics_says():
     assert r.cycles == 500 and not r.interrupted
     slope = 1.0 * STEP_V / 0.005  # k V / J, rad/s^2
     # The ramp: truth velocity against simulated time, after the step was applied.
-    truth = frames.truth
+    truth = [(t, v[2]) for t, v in frames.decoded("truth", "TRUTH_MOTION")]  # omega_motor
     ramp = [b for a, b in itertools.pairwise(truth) if b[1] > a[1] > 1.0]
     assert len(ramp) > 300
     (t0, w0), (t1, w1) = ramp[0], ramp[-1]
     assert (w1 - w0) / (t1 - t0) == pytest.approx(slope, rel=2e-3)
     assert w1 > 50  # it moved: about 58 rad/s after 0.45 s
     # The firmware reads it through its own sensors: torque k V, the velocity on the ramp.
-    T_meas, velocity = frames.telemetry[-1]
+    _, (T_meas, _filtered, velocity, _current) = frames.decoded("control", "CTRL_TPDO1")[-1]
     assert T_meas == pytest.approx(STEP_V, abs=VOLT2NM * 10 / 2048)  # one ADC step
     assert velocity == pytest.approx(w1, abs=VOLT2RADPS * 10 / 2048 + slope * 2e-3)
     assert r.velocity_final == pytest.approx(velocity, abs=0.01)

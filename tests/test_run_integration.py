@@ -8,6 +8,7 @@ from pathlib import Path
 
 import can
 import pytest
+from conftest import FrameRecorder
 
 from hdhil.cli import main
 from hdhil.dbc import CHANNEL_NUMBER, codec
@@ -128,21 +129,6 @@ def test_trace_times_start_at_the_wall_clock_or_the_given_start(free_motion, tmp
         assert reader.start_timestamp == pytest.approx(pinned, abs=1e-3)
 
 
-class _Recorder(can.Listener):
-    """Every frame a tap listener is handed, in order, and how many hand-overs."""
-
-    def __init__(self) -> None:
-        self.frames: list[tuple] = []
-        self.calls = 0
-
-    def on_message_received(self, msg: can.Message) -> None:
-        self.on_frames([msg])
-
-    def on_frames(self, frames: list[can.Message]) -> None:
-        self.calls += 1
-        self.frames += [(m.channel, m.arbitration_id, m.timestamp, bytes(m.data)) for m in frames]
-
-
 def test_tap_draining_every_cycle_or_in_batches_hands_listeners_the_same_frames(
     free_motion, monkeypatch
 ):
@@ -152,12 +138,12 @@ def test_tap_draining_every_cycle_or_in_batches_hands_listeners_the_same_frames(
     seen = {}
     for every in (1, batch):
         monkeypatch.setattr(run_module, "TAP_EVERY_CYCLES", every)
-        recorder = _Recorder()
+        recorder = FrameRecorder(batches=True)  # handed each drain's frames at once
         run_lockstep(free_motion, duration_s=0.2, seed=2, extra_listeners=[recorder])
         seen[every] = recorder
     one, batched = seen[1], seen[batch]
-    assert len(one.frames) > 1400
-    assert batched.frames == one.frames
+    assert len(one.messages) > 1400 and batched.calls < one.calls
+    assert batched.records() == one.records()
     assert batched.calls < one.calls / 4  # it did batch
 
 

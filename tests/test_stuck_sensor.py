@@ -9,9 +9,9 @@ import json
 import math
 from pathlib import Path
 
-import can
 import pytest
 from canopen.emcy import EMCY_STRUCT
+from conftest import FrameRecorder
 
 from hdhil.can.faults import with_fault_flags
 from hdhil.firmware.config import FirmwareConfig
@@ -131,15 +131,10 @@ def test_a_stuck_tacho_in_a_run_raises_emcy_0x7301_and_counts() -> None:
     scenario = load_scenario("speed-chirp")  # the motor speed keeps changing
     flags = ["sensors.stuck=[{channel='tacho',start_s=1.0}]"]
     stuck = dataclasses.replace(scenario, faults=with_fault_flags(scenario.faults, flags))
-    codes: list[tuple[int, int]] = []
-
-    class Emcy(can.Listener):
-        def on_message_received(self, msg: can.Message) -> None:
-            if msg.arbitration_id == 0x081 and not msg.is_extended_id:
-                code, _register, manufacturer = EMCY_STRUCT.unpack(bytes(msg.data))
-                codes.append((code, manufacturer[0]))
-
-    result = run_lockstep(stuck, 3.0, evaluate=False, extra_listeners=[Emcy()])
+    frames = FrameRecorder()
+    result = run_lockstep(stuck, 3.0, evaluate=False, extra_listeners=[frames])
+    emcys = [EMCY_STRUCT.unpack(bytes(m.data)) for m in frames.with_id(0x081, extended=False)]
+    codes = [(code, manufacturer[0]) for code, _register, manufacturer in emcys]
     assert result.faults and result.faults["stuck"] > 0
     assert result.controller["stuck_tacho_events"] == 1
     assert result.controller["stuck_sensor_events"] == 1

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import can
 import pytest
+from conftest import FrameRecorder
 
 from hdhil.can.simbus import SimClock
 from hdhil.can.trace import BATCH_FRAMES, BusTap, FrameCounter, WriterProcess, open_writer
@@ -113,14 +114,6 @@ def test_the_file_is_closed_and_complete_when_the_run_is_killed(tmp_path):
     assert [f[3] for f in frames] == expected
 
 
-class _Collect(can.Listener):
-    def __init__(self) -> None:
-        self.frames: list[can.Message] = []
-
-    def on_message_received(self, msg: can.Message) -> None:
-        self.frames.append(msg)
-
-
 def test_the_tap_merges_channels_in_time_order_for_every_kind_of_listener():
     """Frames of two channels reach a plain listener one by one and batch listeners
     (``on_frames``) in one call, the same frames in the same (timestamp) order, stamped
@@ -130,7 +123,7 @@ def test_the_tap_merges_channels_in_time_order_for_every_kind_of_listener():
     truth = can.Bus(interface="simbus", channel="t-tap-t", clock=clock, bitrate=0)
     tap_c = can.Bus(interface="simbus", channel="t-tap-c")
     tap_t = can.Bus(interface="simbus", channel="t-tap-t")
-    plain, counter = _Collect(), FrameCounter()
+    plain, counter = FrameRecorder(), FrameCounter()  # one by one, in batches
     tap = BusTap({0: tap_c, 1: tap_t}, [plain, counter])
     try:
         for k in range(3):
@@ -138,9 +131,9 @@ def test_the_tap_merges_channels_in_time_order_for_every_kind_of_listener():
             control.send(can.Message(arbitration_id=0x080, data=b"\x01", is_extended_id=False))
             truth.send(can.Message(arbitration_id=0x1F0001, data=bytes(8), is_extended_id=True))
         assert tap.poll() == 6 and tap.poll() == 0
-        got = [(m.channel, m.arbitration_id) for m in plain.frames]
+        got = [(m.channel, m.arbitration_id) for m in plain.messages]
         assert got == [(1, 0x1F0001), (0, 0x080)] * 3  # truth at t(k), SYNC a frame later
-        times = [m.timestamp for m in plain.frames]
+        times = [m.timestamp for m in plain.messages]
         assert times == sorted(times)
         assert counter.counts == {(0, 0x080): 3, (1, 0x1F0001): 3}
     finally:
