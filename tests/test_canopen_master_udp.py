@@ -11,7 +11,10 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
 from test_multiprocess import _hdhil, netns  # noqa: F401  (the namespace fixture)
+
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess, pytest.mark.netns, pytest.mark.realtime]
 
 GROUP = "239.74.163.4"
 

@@ -280,6 +280,7 @@ def test_nmt_master_commands_and_boot_wait(bench):
         master.nmt_command(NmtCommand.START, 128)
 
 
+@pytest.mark.slow
 def test_handle_ignores_non_service_frames_cheaply(bench):
     node = booted(bench, od=eds_path("drive"))
     for can_id, data, extra in [

@@ -373,6 +373,7 @@ def test_fault_at_start_up_is_reset_once_then_the_walk_goes_on(link):
     assert (d.fault_resets, d.statusword_sdo_reads, d.startup_cycles) == (1, 1, 4)
 
 
+@pytest.mark.slow
 def test_fault_during_operation_resets_and_walks_again_a_second_one_is_safe(link):
     lk = operational(link)
     lk.run(5)

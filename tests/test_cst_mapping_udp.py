@@ -13,10 +13,13 @@ import time
 
 import can
 import canopen
+import pytest
 from test_multiprocess import _hdhil, netns  # noqa: F401  (the namespace fixture)
 
 from hdhil.canopen.mapping import mapping_dcf
 from hdhil.dbc import codec
+
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess, pytest.mark.netns, pytest.mark.realtime]
 
 GROUP_CONTROL = "239.74.163.5"
 GROUP_TRUTH = "239.74.163.6"

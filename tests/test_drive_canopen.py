@@ -477,6 +477,7 @@ def run_with_controller_heartbeat(r: Rig, until_s: float, period_s: float = 0.1)
         r.cycle(ENABLE, 100, heartbeat=r.k % every == 0)
 
 
+@pytest.mark.slow
 def test_heartbeat_loss_faults_the_drive_one_cycle_after_the_timeout(rig):
     rig.start()
     rig.enable(dac=100)

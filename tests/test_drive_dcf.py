@@ -43,6 +43,7 @@ def _run(dcf, cycles: int = 400):
         return ctrl, drive
 
 
+@pytest.mark.slow
 def test_dcf_values_reach_the_drive_before_nmt_start(tmp_path):
     dcf = _dcf(tmp_path, {"1801sub5": "50", "605A": "5", "1A01sub0": "1"})
     writes = configuration_writes(dcf, 2)
@@ -74,6 +75,7 @@ def test_a_dcf_that_cannot_be_read_is_refused_at_start_up(tmp_path):
         configuration_writes(bad, 2)
 
 
+@pytest.mark.realtime
 def test_hdhil_firmware_configures_a_served_drive_from_its_dcf(tmp_path, serve_drive, capsys):
     import json
 

@@ -160,6 +160,7 @@ def test_bad_flags_exit_2_with_one_line_naming_the_key(capsys, command, flag, ex
     assert "Traceback" not in err and captured.out == ""
 
 
+@pytest.mark.slow
 def test_the_same_faults_by_flag_as_by_toml_table_give_the_same_fault_log(tmp_path, capsys):
     table = tmp_path / "faults.toml"
     table.write_text(
@@ -264,6 +265,7 @@ def test_fault_free_drive_has_no_sensor_hook(bench):
     assert bench.plant.faults is None  # switched off: the plant's fault-free path again
 
 
+@pytest.mark.slow
 def test_tacho_spikes_switched_on_by_sdo_are_injected_logged_and_reproducible():
     def run(write_at: int | None) -> tuple[list, dict, list]:
         b = Bench()
@@ -369,6 +371,7 @@ def test_power_on_values_come_from_the_scenario_sensor_faults():
         assert plant.faults is inj.sensors()
 
 
+@pytest.mark.slow
 def test_drive_silence_puts_the_controller_in_its_safe_state_within_the_hold():
     b = Bench(controller=True)
     try:
@@ -437,6 +440,7 @@ def served_drive(serve_drive):
     )
 
 
+@pytest.mark.realtime
 def test_hdhil_sdo_writes_the_fault_object(served_drive, capsys):
     node, bus = served_drive
     assert main(["sdo", "write", "2", "0x2310:1", "0.01", *bus]) == 0
@@ -515,6 +519,8 @@ def test_a_node_silence_window_and_its_stream_seed():
     assert {v for _, _, v in a} != {k for k in range(400) if not drops[k]}
 
 
+@pytest.mark.slow
+@pytest.mark.realtime
 def test_emulate_with_a_fault_flag_faults_its_own_frames_and_logs_them(tmp_path, capsys):
     channel = f"hdhil-emu-{time.monotonic_ns()}"
     listener = can.Bus(interface="virtual", channel=channel)

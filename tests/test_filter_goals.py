@@ -13,6 +13,8 @@ import pytest
 from hdhil.hostsim.scenario import load_scenario
 from hdhil.rig.runner import run_lockstep
 
+pytestmark = [pytest.mark.slow]
+
 
 def _evaluate(name: str, duration_s: float | None = None) -> dict[str, dict]:
     sc = load_scenario(name)

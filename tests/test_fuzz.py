@@ -375,6 +375,7 @@ def fuzz_run(seed: int, frames: int, per_cycle: int = FRAMES_PER_CYCLE) -> FuzzR
 # --------------------------------------------------------------------- the fuzz run
 
 
+@pytest.mark.slow
 def test_fuzz_both_nodes_while_running(fast_od):
     t0 = time.perf_counter()
     report = fuzz_run(seed=20240601, frames=FUZZ_FRAMES)
@@ -492,6 +493,7 @@ def _state(node):
     return copy.deepcopy(node.services.node.data_store), pending
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["controller", "drive"])
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(data=st.data())
@@ -565,6 +567,7 @@ def test_sdo_reads_answer_a_response_or_an_abort_and_change_nothing(kind, data):
 ALL_MESSAGES = [(bus, m.name) for bus in ("control", "truth") for m in database(bus).messages]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("bus", "name"), ALL_MESSAGES)
 @settings(max_examples=200, deadline=None)
 @given(data=st.data())

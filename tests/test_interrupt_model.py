@@ -89,6 +89,8 @@ def test_a_handler_of_ones_own_closes_the_loop_in_the_lockstep_runner():
     assert r.controller["sensor_frames"] >= 1000 and "filter_mode" not in r.controller
 
 
+@pytest.mark.slow
+@pytest.mark.realtime
 def test_a_handler_of_ones_own_is_timed_as_a_whole_in_real_time_mode():
     r = run_lockstep(
         load_scenario("free-motion"),

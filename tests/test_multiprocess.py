@@ -21,6 +21,8 @@ import pytest
 
 from hdhil.dbc import codec
 
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess, pytest.mark.netns, pytest.mark.realtime]
+
 GROUP_CONTROL = "239.74.163.2"
 GROUP_TRUTH = "239.74.163.3"
 

@@ -143,6 +143,7 @@ def test_other_plants_refuse_the_emulators_own_knobs():
         bus.shutdown()
 
 
+@pytest.mark.realtime
 def test_a_rigid_inertia_served_alone_follows_the_firmware_in_its_own_loop(serve_drive, capsys):
     """One node per process: the drive with the example plant served in the node loop of
     ``hdhil emulate``, the firmware command in this process over a virtual bus."""
@@ -165,6 +166,7 @@ def test_a_rigid_inertia_served_alone_follows_the_firmware_in_its_own_loop(serve
     assert drive.diagnostics.syncs > 300
 
 
+@pytest.mark.slow
 def test_the_emulators_plant_computes_its_step_map_when_the_drive_is_built():
     """The emulator's step map (and the scipy.linalg import it needs) is ready before the
     node loop starts: a cycle in a real-time or network run must not stall on it."""
@@ -180,6 +182,8 @@ def test_the_emulators_plant_computes_its_step_map_when_the_drive_is_built():
         bus.shutdown()
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_the_readme_example_runs_and_prints_what_the_readme_says():
     """The README's plug-in example (section "Your own plant or controller"), run as it
     stands in a fresh interpreter."""
@@ -197,6 +201,8 @@ def test_the_readme_example_runs_and_prints_what_the_readme_says():
     assert out.strip() == claimed
 
 
+@pytest.mark.slow
+@pytest.mark.realtime
 def test_firmware_realtime_paces_with_the_run_pacer_and_reports_its_statistics(serve_drive, capsys):
     """``hdhil firmware --realtime`` against a served drive: SYNC paced by the pacer of
     ``hdhil run --realtime``, its statistics in the summary line, covering the cycles in

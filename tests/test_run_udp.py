@@ -12,6 +12,8 @@ from test_multiprocess import _hdhil, netns  # noqa: F401  (the namespace fixtur
 
 from hdhil.cli import main
 
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess, pytest.mark.netns]
+
 GROUP = "239.74.163.6"
 
 

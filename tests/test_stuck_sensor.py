@@ -57,6 +57,7 @@ def test_the_encoder_wrap_counts_as_motion() -> None:
     assert check.torque_stuck
 
 
+@pytest.mark.slow
 def test_a_stuck_torque_sensor_in_a_run_raises_emcy_0x7300() -> None:
     scenario = load_scenario("free-motion")
     flags = ["sensors.stuck=[{channel='torque',start_s=1.0,duration_s=0.3}]"]
@@ -127,6 +128,7 @@ def test_lost_samples_count_as_time_for_the_encoder_velocity() -> None:
     assert not check.tacho_stuck
 
 
+@pytest.mark.slow
 def test_a_stuck_tacho_in_a_run_raises_emcy_0x7301_and_counts() -> None:
     scenario = load_scenario("speed-chirp")  # the motor speed keeps changing
     flags = ["sensors.stuck=[{channel='tacho',start_s=1.0}]"]

@@ -129,6 +129,7 @@ FORMATS = [".blf", ".asc", ".log", ".csv", ".trc", ".asc.gz", ".log.gz", ".csv.g
            ".trc.gz"]  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("suffix", FORMATS)
 def test_every_format_round_trips_through_python_can(tmp_path, suffix):
     """What ``run`` writes, python-can's LogReader reads back frame for frame, and
@@ -153,6 +154,7 @@ def test_mf4_round_trip(tmp_path, capsys):
     capsys.readouterr()
 
 
+@pytest.mark.slow
 def test_mf4_without_asammdf_is_a_clear_error(tmp_path, monkeypatch, capsys):
     import hdhil.can.trace as trace
 
@@ -193,6 +195,9 @@ def test_bad_start_time_is_one_line(capsys):
 # ------------------------------------------------------------------ can-utils
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.canutils
 @pytest.mark.skipif(
     shutil.which("log2asc") is None or shutil.which("asc2log") is None,
     reason="can-utils (log2asc, asc2log) is not installed",
@@ -284,6 +289,7 @@ def test_dump_csv_has_the_control_law_columns_when_one_runs(tmp_path, capsys):
     assert len(header) == 6 and rows  # --id keeps only that message's columns
 
 
+@pytest.mark.slow
 def test_filter_reads_the_per_cycle_csv_and_writes_units(tmp_path, capsys):
     trace = _run(tmp_path, "t.blf")
     cycles, filtered = tmp_path / "cycles.csv", tmp_path / "filtered.csv"
@@ -324,6 +330,8 @@ def _on_a_terminal(args: list[str]) -> tuple[int, str, str]:
     return code, out, b"".join(chunks).decode(errors="replace")
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @pytest.mark.parametrize(
     "args",
     [
@@ -358,6 +366,8 @@ def test_soak_blocks_adapt_to_short_runs():
 # ------------------------------------------------------------------ one DBC view
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_dbc_export_decodes_a_whole_trace_with_cantools(tmp_path, capsys):
     """``hdhil dbc export`` gives one database for both buses: cantools decodes every
     frame of a candump log (none unknown), with the value tables and units."""
@@ -396,6 +406,8 @@ def test_dbc_export_refuses_a_directory(tmp_path, capsys):
 # ------------------------------------------------------------------ the Python API
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_the_readme_python_api_example_runs_and_prints_what_the_readme_says(tmp_path):
     """The README's "Python API" example, run as it stands in a fresh interpreter (in an
     empty directory), prints exactly the lines the README shows."""
@@ -411,6 +423,7 @@ def test_the_readme_python_api_example_runs_and_prints_what_the_readme_says(tmp_
     assert (tmp_path / "api-run.blf").is_file() and (tmp_path / "api-run.blf.json").is_file()
 
 
+@pytest.mark.slow
 def test_api_arrays_match_the_trace(tmp_path):
     """The run's per-cycle arrays (samples in operation) are a stretch of the trace's
     per-cycle table (every sample, start-up included), value for value."""

@@ -83,6 +83,8 @@ def test_an_unwritable_trace_is_refused_before_the_run(tmp_path):
         WriterProcess(tmp_path / "x.txt")
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_the_file_is_closed_and_complete_when_the_run_is_killed(tmp_path):
     """SIGKILL of the run: the child still writes every batch handed over and closes the
     BLF file properly (a BLF written in-process would be left without its final header)."""

@@ -141,6 +141,7 @@ def synthetic(n: int, R: float, q_h: float, q_r: float, seed: int) -> tuple[np.n
     return y, np.full(n, 150.0), encoder
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("R", "q_h", "q_r"),
     [(1e-3, 1e-6, 1e-4), (4e-4, 1e-5, 1e-5), (1e-2, 1e-7, 1e-3)],
@@ -205,6 +206,7 @@ def _tune_json(capsys: pytest.CaptureFixture[str], *argv: str) -> dict:
     return json.loads(capsys.readouterr().out)
 
 
+@pytest.mark.slow
 def test_cli_tunes_emulated_misalignment_and_writes_a_mergeable_toml(
     traces: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -237,6 +239,7 @@ def test_cli_tunes_emulated_misalignment_and_writes_a_mergeable_toml(
     assert merged.plant == load_scenario("misalignment").plant  # only the filter changes
 
 
+@pytest.mark.slow
 def test_cli_text_report(traces: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
     assert (
         main(["tune", str(traces["full"]), "--scenario", "misalignment", "--max-evals", "5"]) == 0
@@ -247,6 +250,7 @@ def test_cli_text_report(traces: dict[str, Path], capsys: pytest.CaptureFixture[
         assert needle in text
 
 
+@pytest.mark.slow
 def test_truth_is_not_used(traces: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
     argv = ("--scenario", "misalignment", "--max-evals", "30")
     with_truth = _tune_json(capsys, str(traces["full"]), *argv)
@@ -269,6 +273,7 @@ def test_paper_mode_scenario_is_tuned_as_recommended(tmp_path: Path) -> None:
     assert res.paper == {"q_motor": 1e3, "r": 1.0}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
