@@ -1,9 +1,22 @@
-"""Shared fixtures and helpers: the bus harness, the frame recorder, the served drive."""
+"""Shared fixtures and helpers: the bus harness, the frame recorder, the served drive, and
+the prerequisites of the tiers that need more than Python (root and a network namespace,
+can-utils).
+
+A test whose prerequisite is missing skips with the prerequisite named (:func:`require`);
+in CI (``CI=true``) every skip is a failure instead, so a tier that cannot run fails the
+build rather than passing silently.  The one exception is a test that CI runs in another
+step (the MF4 round trip, in a venv of its own): :func:`skip_covered_elsewhere` lets it
+skip when the environment says so (``HDHIL_MF4_ELSEWHERE=1``, set by ``.ci/run``).
+The markers (``slow``, ``subprocess``, ``netns``, ``realtime``, ``canutils``) are
+registered in pyproject.toml; docs/testing.md lists the tiers.
+"""
 
 from __future__ import annotations
 
 import itertools
 import os
+import shutil
+import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -23,6 +36,90 @@ from hdhil.rig.loop import serve
 settings.register_profile("ci", derandomize=True, print_blob=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
+
+
+# ------------------------------------------------------------------ prerequisites
+
+#: The start of a skip reason that CI accepts: the test runs in another CI step.
+COVERED_ELSEWHERE = "covered by another CI step: "
+
+
+def in_ci() -> bool:
+    return os.environ.get("CI") == "true"
+
+
+def require(available: bool, prerequisite: str) -> None:
+    """Skip the calling test unless ``available``, naming the missing ``prerequisite``
+    (in CI the skip becomes a failure, see :func:`_fail_skip_in_ci`)."""
+    if not available:
+        pytest.skip(f"missing prerequisite: {prerequisite}")
+
+
+def require_tools(*names: str, package: str) -> None:
+    """The programs ``names`` on PATH (from the system ``package``)."""
+    missing = [name for name in names if shutil.which(name) is None]
+    require(not missing, f"{package} ({', '.join(missing)} not on PATH)")
+
+
+def skip_covered_elsewhere(available: bool, prerequisite: str, variable: str, step: str) -> None:
+    """Like :func:`require`, but the test may skip in CI too when ``variable`` is 1: the
+    CI ``step`` runs it where ``prerequisite`` is installed."""
+    if available:
+        return
+    if os.environ.get(variable) == "1":
+        pytest.skip(f"{COVERED_ELSEWHERE}{step}; {prerequisite} is not installed here "
+                    f"({variable}=1)")  # fmt: skip
+    require(False, prerequisite)
+
+
+def _fail_skip_in_ci(report: pytest.TestReport | pytest.CollectReport) -> None:
+    """In CI a skip is a failure, with its reason: a tier whose prerequisite is missing
+    (not root, no ``ip netns``, no can-utils ...) must not pass silently."""
+    if not (in_ci() and report.skipped) or hasattr(report, "wasxfail"):
+        return
+    reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+    reason = reason.removeprefix("Skipped: ")
+    if reason.startswith(COVERED_ELSEWHERE):
+        return
+    report.outcome = "failed"
+    report.longrepr = f"skipped in CI (CI=true), where every test must run: {reason}"
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> Iterator[None]:
+    outcome = yield
+    _fail_skip_in_ci(outcome.get_result())
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_make_collect_report(collector: pytest.Collector) -> Iterator[None]:
+    """A whole module skipped at import (``pytest.importorskip``) fails in CI too."""
+    outcome = yield
+    _fail_skip_in_ci(outcome.get_result())
+
+
+def _ip(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["ip", *args], capture_output=True, text=True, check=False)
+
+
+@pytest.fixture
+def netns() -> Iterator[str]:
+    """A private network namespace with loopback alone, multicast routed to ``lo``, so
+    no frame of a udp_multicast bus can leave the machine; its name.  Needs root and
+    iproute2 (``ip netns``)."""
+    require_tools("ip", package="iproute2")
+    require(os.geteuid() == 0, "root (creating a network namespace)")
+    name = f"hdhil-test-{os.getpid()}"
+    made = _ip("netns", "add", name)
+    require(made.returncode == 0, f"a network namespace ({made.stderr.strip()})")
+    try:
+        for cmd in (["link", "set", "lo", "up"], ["link", "set", "lo", "multicast", "on"],
+                    ["route", "add", "224.0.0.0/4", "dev", "lo"]):  # fmt: skip
+            r = _ip("netns", "exec", name, "ip", *cmd)
+            assert r.returncode == 0, r.stderr
+        yield name
+    finally:
+        _ip("netns", "del", name)
 
 
 # ------------------------------------------------------------------ frame recorder

@@ -12,7 +12,7 @@ import sys
 import textwrap
 
 import pytest
-from test_multiprocess import _hdhil, netns  # noqa: F401  (the namespace fixture)
+from test_multiprocess import _hdhil
 
 pytestmark = [pytest.mark.slow, pytest.mark.subprocess, pytest.mark.netns, pytest.mark.realtime]
 
@@ -92,7 +92,7 @@ MASTER = textwrap.dedent(
 )
 
 
-def test_canopen_master_configures_hdhil_emulate_over_udp_multicast(netns):  # noqa: F811
+def test_canopen_master_configures_hdhil_emulate_over_udp_multicast(netns):
     bus = ["--interface", "udp_multicast", "--channel", GROUP]
     emulator = _hdhil(netns, "emulate", *bus, "--scenario", "free-motion")
     try:

@@ -17,7 +17,7 @@ import sys
 
 import can
 import pytest
-from test_multiprocess import GROUP_CONTROL, _hdhil, netns  # noqa: F401  (the namespace fixture)
+from test_multiprocess import GROUP_CONTROL, _hdhil
 
 from hdhil.can.faults import FaultConfig, FaultInjector, FaultyTransmitBus, with_fault_flags
 from hdhil.can.simbus import SimClock
@@ -298,7 +298,7 @@ def test_run_cli_on_virtual_refuses_error_frames_with_one_line():
 @pytest.mark.subprocess
 @pytest.mark.netns
 @pytest.mark.realtime
-def test_run_over_udp_multicast_injects_faults_in_a_private_namespace(netns, tmp_path):  # noqa: F811
+def test_run_over_udp_multicast_injects_faults_in_a_private_namespace(netns, tmp_path):
     """hdhil run --interface udp_multicast (inside the test's network namespace, loopback
     only): each node's frames go through the control faults; error frames are refused."""
     trace = tmp_path / "udp.blf"

@@ -5,9 +5,9 @@ gzip), can-utils' log2asc/asc2log, and real dates in the traces."""
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import itertools
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -15,6 +15,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from conftest import require_tools, skip_covered_elsewhere
 
 from hdhil.cli import main
 from hdhil.commands.options import NO_INTERFACE, add_bus_options, open_bus
@@ -141,7 +142,12 @@ def test_every_format_round_trips_through_python_can(tmp_path, suffix):
 
 
 def test_mf4_round_trip(tmp_path, capsys):
-    pytest.importorskip("asammdf", reason="asammdf (the mf4 extra) is not installed")
+    skip_covered_elsewhere(
+        importlib.util.find_spec("asammdf") is not None,
+        "asammdf (the mf4 extra)",
+        "HDHIL_MF4_ELSEWHERE",
+        "the MF4 step of .ci/run, in a venv of its own",
+    )
     reference = _frames(_run(tmp_path, "ref.blf"))
     path = _run(tmp_path, "t.mf4")
     assert _frames(path) == reference
@@ -198,13 +204,10 @@ def test_bad_start_time_is_one_line(capsys):
 @pytest.mark.slow
 @pytest.mark.subprocess
 @pytest.mark.canutils
-@pytest.mark.skipif(
-    shutil.which("log2asc") is None or shutil.which("asc2log") is None,
-    reason="can-utils (log2asc, asc2log) is not installed",
-)
 def test_can_utils_log2asc_asc2log_round_trip(tmp_path):
     """candump log -> log2asc -> asc2log gives back every frame, in order, with the same
     times relative to the first frame and one ASC header."""
+    require_tools("log2asc", "asc2log", package="can-utils")
     log = _run(tmp_path, "t.log")
     asc, back = tmp_path / "t.asc", tmp_path / "back.log"
     subprocess.run(["log2asc", "-I", str(log), "-O", str(asc), "can0", "can1"], check=True,
