@@ -178,11 +178,6 @@ class FrameRecorder(can.Listener):
         ]
 
 
-@pytest.fixture
-def frame_recorder() -> FrameRecorder:
-    return FrameRecorder()
-
-
 # ------------------------------------------------------------------ bus harness
 
 
