@@ -31,6 +31,9 @@ def report() -> dict:
     return run_benchmarks(duration_s=0.1, repeat=1, quick=True)
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.realtime
 def test_machine_and_settings(report: dict) -> None:
     m = report["machine"]
     assert m["cpu"] and m["python"].count(".") == 2
@@ -40,6 +43,9 @@ def test_machine_and_settings(report: dict) -> None:
     assert _positive(report["wall_s"])
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.realtime
 def test_lockstep_rows(report: dict) -> None:
     rows = report["lockstep"]
     simbus = [(r["scenario"], r["logging"]) for r in rows if r["interface"] == "simbus"]
@@ -57,6 +63,9 @@ def test_lockstep_rows(report: dict) -> None:
             assert 0 <= r["steal_share"] <= 1
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.realtime
 def test_stage_rows(report: dict) -> None:
     stages = report["stages"]
     assert _positive(stages["timer_overhead_us"])
@@ -79,6 +88,9 @@ def test_stage_rows(report: dict) -> None:
         assert r["p99_us"] >= r["median_us"]
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.realtime
 def test_filter_and_memory(report: dict) -> None:
     assert [r["mode"] for r in report["filter"]] == ["recommended", "paper"]
     for r in report["filter"]:
@@ -98,6 +110,9 @@ def _ordered(p: dict) -> bool:
     return p["p50"] <= p["p99"] <= p["p99.9"] <= p["max"]
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.realtime
 def test_realtime_section(report: dict) -> None:
     rt = report["realtime"]
     st = report["settings"]
@@ -128,6 +143,9 @@ def test_realtime_section(report: dict) -> None:
     assert _ordered(floor["jitter_us"]) and 0 <= floor["deadline_misses"] <= floor["cycles"]
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.realtime
 def test_text_report_and_json_roundtrip(report: dict) -> None:
     text = format_bench(report)
     assert report["machine"]["cpu"] in text
@@ -143,6 +161,9 @@ def test_text_report_and_json_roundtrip(report: dict) -> None:
     assert json.loads(json.dumps(report)) == report
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.realtime
 def test_realtime_section_can_be_left_out(report: dict, monkeypatch) -> None:
     import hdhil.analysis.benchmarks as bench
 
@@ -173,6 +194,9 @@ def test_cli_rejects_bad_arguments(
     assert err.startswith("hdhil: error:") and fragment in err
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.realtime
 def test_campaign_section(report: dict) -> None:
     c = report["campaign"]
     assert c["variants"] == 4 and c["workers"] == (os.cpu_count() or 1)
@@ -192,6 +216,9 @@ def test_campaign_section(report: dict) -> None:
     assert "Campaign (4 variants of 0.5 s free-motion" in text and "speed-up" in text
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.realtime
 def test_startup_section(report: dict) -> None:
     """Whole-process start-up figures with their ratio to ``import can`` of the same
     rounds; the goals are judged, not asserted (no timing thresholds in tests)."""

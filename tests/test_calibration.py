@@ -194,6 +194,7 @@ def test_cli_user_errors_are_one_line(argv: list[str], message: str, capsys) -> 
     assert message in err and "Traceback" not in err and len(err.splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_calibrate_plot_draws_figs_6_7_and_lever_error_sets_the_consistency(tmp_path, capsys):
     """``hdhil calibrate --plot`` writes [Taghirad97] Figs. 6-7; ``--lever-error 0.02`` is the
     documented rig setting that gives Table 1's 2 % consistency (median over seeds), the

@@ -53,6 +53,8 @@ def smoke_local(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_smoke_gives_the_same_results_csv_on_1_and_2_workers_and_a_dask_cluster(
     smoke_local, tmp_path, cluster, capsys
 ):
@@ -103,6 +105,7 @@ def _has_pyarrow() -> bool:
     return True
 
 
+@pytest.mark.slow
 def test_a_variant_is_what_hdhil_run_json_prints_for_the_same_settings(
     smoke_local, tmp_path, capsys
 ):
@@ -148,6 +151,8 @@ seed = [1, 2]
 """
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_stopped_and_errored_variants_are_recorded_and_the_campaign_goes_on(tmp_path, capsys):
     # Every control frame lost: the drive never reaches operation, the run stops in
     # start-up (a verdict: it fails its criteria, with the reason).  The clean variants
@@ -193,6 +198,8 @@ seed = {{ range = [1, {n}] }}
 """
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_an_interrupted_campaign_keeps_its_results_and_a_rerun_completes_it(tmp_path, sig):
     path = _campaign(tmp_path, RESUME.format(n=8))  # 14 variants of 2 s
@@ -227,6 +234,8 @@ def test_an_interrupted_campaign_keeps_its_results_and_a_rerun_completes_it(tmp_
     assert resumed.count("true") == stored
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_a_lost_local_worker_gets_its_variants_run_again(tmp_path):
     path = _campaign(tmp_path, RESUME.format(n=4))  # 6 variants
     campaign = load_campaign(path)
@@ -245,6 +254,8 @@ def test_a_lost_local_worker_gets_its_variants_run_again(tmp_path):
     assert all(r.error is None and r.status == "pass" for r in run.records.values())
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_a_lost_dask_worker_gets_its_variant_run_again(tmp_path, cluster):
     path = _campaign(tmp_path, RESUME.format(n=4))
     campaign = load_campaign(path)
@@ -336,6 +347,8 @@ def _stderr_on_a_terminal(argv: list[str]) -> tuple[int, str]:
     return proc.wait(timeout=120), b"".join(chunks).decode(errors="replace")
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_progress_on_a_terminal_with_eta_and_running_counts_off_with_json(tmp_path):
     path = _campaign(tmp_path, RESUME.format(n=3))  # 4 variants
     out = tmp_path / "out"
@@ -349,6 +362,8 @@ def test_progress_on_a_terminal_with_eta_and_running_counts_off_with_json(tmp_pa
     assert code == 0 and "4/4" not in err and "pass 4" not in err
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_an_early_stop_is_recorded_with_the_runs_own_reason():
     from hdhil.rig.campaign import judge
 

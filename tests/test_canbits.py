@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -40,6 +41,7 @@ def _reference_bits(can_id: int, extended: bool, remote: bool, data: bytes) -> i
     return len(bits) + stuffed + 13
 
 
+@pytest.mark.slow
 @settings(max_examples=500, deadline=None)
 @given(
     extended=st.booleans(),

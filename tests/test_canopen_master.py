@@ -19,6 +19,8 @@ from hdhil.dbc import eds_path
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
 
+pytestmark = [pytest.mark.realtime]
+
 TPDO1, TPDO2 = 0x182, 0x282
 
 
@@ -74,6 +76,7 @@ def _ids(frames: list[can.Message], cob: int) -> list[can.Message]:
     return [f for f in frames if f.arbitration_id == cob]
 
 
+@pytest.mark.slow
 def test_remap_transmission_type_and_disable_are_honoured(master):
     node = master.node
     node.tpdo.read()
@@ -156,6 +159,7 @@ def _enable(master: Master) -> None:
     assert master.drive.drive_state is State.OPERATION_ENABLED
 
 
+@pytest.mark.slow
 def test_sync_loss_raises_emcy_0x8100_and_the_abort_connection_reaction(master):
     node = master.node
     period = 0.04  # 0x1006 = 40 ms, SYNC every 5 ms: a loaded machine never gaps 60 ms
@@ -196,6 +200,7 @@ def test_rpdo_event_timer_deadline_raises_emcy_0x8250(master):
     assert master.drive.diagnostics.rpdo_timeouts == 1
 
 
+@pytest.mark.slow
 def test_statusword_event_timer_repeats_the_statusword(master):
     node = master.node
     node.nmt.state = "OPERATIONAL"
@@ -206,6 +211,7 @@ def test_statusword_event_timer_repeats_the_statusword(master):
     assert len({bytes(w.data) for w in words}) == 1
 
 
+@pytest.mark.slow
 def test_reset_from_fault_works_with_basenode402(master):
     node = master.node
     node.tpdo.read()
@@ -228,6 +234,7 @@ def test_reset_from_fault_works_with_basenode402(master):
     assert state_from_statusword(master.drive.statusword) is not State.FAULT
 
 
+@pytest.mark.slow
 def test_identity_strings_and_store_restore(master):
     node = master.node
     # Visible strings longer than 4 bytes: segmented upload.
@@ -254,6 +261,7 @@ def test_identity_strings_and_store_restore(master):
     assert node.sdo[0x605A].raw == canopen.import_od(str(eds_path("drive")))[0x605A].default
 
 
+@pytest.mark.slow
 def test_a_cst_torque_loop_entirely_through_the_standard_objects(master):
     """canopen's master maps 0x6071 target torque (with the controlword) into RPDO1 and
     0x6077 torque actual with 0x6064 position actual into TPDO1, enables the drive in

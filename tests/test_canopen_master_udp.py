@@ -11,7 +11,10 @@ import subprocess
 import sys
 import textwrap
 
-from test_multiprocess import _hdhil, netns  # noqa: F401  (the namespace fixture)
+import pytest
+from test_multiprocess import _hdhil
+
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess, pytest.mark.netns, pytest.mark.realtime]
 
 GROUP = "239.74.163.4"
 
@@ -89,7 +92,7 @@ MASTER = textwrap.dedent(
 )
 
 
-def test_canopen_master_configures_hdhil_emulate_over_udp_multicast(netns):  # noqa: F811
+def test_canopen_master_configures_hdhil_emulate_over_udp_multicast(netns):
     bus = ["--interface", "udp_multicast", "--channel", GROUP]
     emulator = _hdhil(netns, "emulate", *bus, "--scenario", "free-motion")
     try:

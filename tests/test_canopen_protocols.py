@@ -4,13 +4,10 @@ controller's CiA 402 walk decisions."""
 
 from __future__ import annotations
 
-import itertools
-
 import can
 import canopen
 import pytest
 
-from hdhil.can.simbus import SimClock
 from hdhil.canopen.cia402 import CONTROLWORD, Command, DriveStateMachine, State
 from hdhil.canopen.emcy import EMCY_STRUCT, decode_emcy
 from hdhil.canopen.nmt import COMMAND_NAMES, NmtCommand, nmt_frame
@@ -19,20 +16,14 @@ from hdhil.canopen.services import CanopenServices
 from hdhil.dbc import eds_path
 from hdhil.firmware.walk import Cia402Walk
 
-_ids = itertools.count()
-
 
 @pytest.fixture
-def link():
-    clock = SimClock()
-    channel = f"t-protocols-{next(_ids)}"
-    server_bus = can.Bus(interface="simbus", channel=channel, clock=clock)
-    client_bus = can.Bus(interface="simbus", channel=channel, clock=clock)
-    server = CanopenServices(server_bus, 2, eds_path("drive"))
+def link(bus_harness):
+    """A drive's CANopen services on the shared bus harness; its host is the client."""
+    harness = bus_harness("t-protocols")
+    server = CanopenServices(harness.bus(), 2, eds_path("drive"))
     server.boot(0.0)
-    yield server, client_bus
-    server_bus.shutdown()
-    client_bus.shutdown()
+    return server, harness.host
 
 
 def _exchange(server: CanopenServices, client: SdoClient, client_bus: can.BusABC):

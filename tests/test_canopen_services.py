@@ -7,7 +7,6 @@ helpers with canopen's own ``SdoClient`` on a network that pumps the server on e
 
 from __future__ import annotations
 
-import itertools
 import math
 import struct
 
@@ -16,10 +15,10 @@ import canopen
 import pytest
 from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
 from canopen.objectdictionary import datatypes as dt
+from conftest import BusHarness
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hdhil.can.simbus import SimClock
 from hdhil.canopen.services import (
     ABORT_TEXT,
     BootTimeoutError,
@@ -40,49 +39,21 @@ from hdhil.canopen.services import (
 )
 from hdhil.dbc import eds_path
 
-_channel_ids = itertools.count()
-
 # ----------------------------------------------------------------------------- fixtures
 
 
-class Bench:
-    """A simbus channel with a clock and a peer bus that plays the other nodes."""
-
-    def __init__(self) -> None:
-        self.clock = SimClock()
-        self.channel = f"t-canopen-{next(_channel_ids)}"
-        self.buses: list[can.BusABC] = []
-        self.peer = self.bus()
-
-    def bus(self) -> can.BusABC:
-        bus = can.Bus(interface="simbus", channel=self.channel, clock=self.clock)
-        self.buses.append(bus)
-        return bus
+class Bench(BusHarness):
+    """The shared bus harness; its host plays the other nodes, CANopen service nodes of
+    the test on its channel."""
 
     def services(self, node_id: int, od, **kwargs) -> CanopenServices:
         return CanopenServices(self.bus(), node_id, od, **kwargs)
 
-    def send(self, can_id: int, data: bytes, **kwargs) -> None:
-        self.peer.send(
-            can.Message(arbitration_id=can_id, data=data, is_extended_id=False, **kwargs)
-        )
-
-    def frames(self) -> list[tuple[int, bytes]]:
-        out = []
-        while (msg := self.peer.recv(0)) is not None:
-            out.append((msg.arbitration_id, bytes(msg.data)))
-        return out
-
-    def close(self) -> None:
-        for bus in self.buses:
-            bus.shutdown()
-
 
 @pytest.fixture
 def bench():
-    b = Bench()
-    yield b
-    b.close()
+    with Bench("t-canopen") as b:
+        yield b
 
 
 def pump(services: CanopenServices, now: float | None = None) -> list[bool]:
@@ -309,6 +280,7 @@ def test_nmt_master_commands_and_boot_wait(bench):
         master.nmt.command(NmtCommand.START, 128)
 
 
+@pytest.mark.slow
 def test_handle_ignores_non_service_frames_cheaply(bench):
     node = booted(bench, od=eds_path("drive"))
     for can_id, data, extra in [

@@ -353,6 +353,7 @@ def test_invalid_options_are_refused():
         DriveStateMachine(quick_stop_time_s=-1)
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(
     st.lists(
@@ -398,6 +399,7 @@ def test_a_repeated_enable_in_quick_stop_follows_a_new_quick_stop_option():
     assert drive.state is State.OPERATION_ENABLED
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(
     st.lists(

@@ -52,6 +52,8 @@ def _modules_after(code: str) -> list[str]:
     return json.loads(out.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @pytest.mark.parametrize("argv", [["--help"], ["dump", "--help"]])
 def test_help_loads_no_heavy_library(argv):
     """Nothing heavy beyond what ``import can`` itself loads here (python-can imports
@@ -62,6 +64,8 @@ def test_help_loads_no_heavy_library(argv):
     assert set(_modules_after(code)) - baseline == set()
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_a_run_starts_without_scipy_signal_stats_or_matplotlib():
     """``hdhil run``'s modules import numpy, cantools and canopen, which the first cycle
     needs, but not scipy.signal/scipy.stats (the evaluation's baselines) nor matplotlib;

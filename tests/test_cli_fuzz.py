@@ -257,6 +257,7 @@ def _check_one(argv: list[str], files: dict[str, Path], capsys: pytest.CaptureFi
     assert not leftovers, (argv, leftovers)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", sorted(COMMANDS))
 def test_every_command_ends_cleanly_on_drawn_input(command, files, capsys) -> None:
     @settings(max_examples=EXAMPLES, deadline=None, database=None, derandomize=True,
@@ -279,6 +280,8 @@ SIGNAL_CASES = [
 ]
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 @pytest.mark.parametrize(("argv", "delay"), SIGNAL_CASES)
 def test_a_signal_during_start_up_is_a_clean_exit_130(argv, delay, sig, files, tmp_path):

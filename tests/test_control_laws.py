@@ -15,6 +15,7 @@ import can
 import cantools
 import numpy as np
 import pytest
+from conftest import BusHarness
 from runs import lockstep
 
 from hdhil.can.busload import schedule_load
@@ -140,28 +141,15 @@ def test_bus_load_with_the_control_telemetry() -> None:
 
 def _run_node(cfg: FirmwareConfig, cycles: int = 5) -> list[can.Message]:
     """The controller node on a simulated bus, fed sensor frames; what it sent."""
-    ctrl_bus = can.Bus(interface="simbus", channel="t-ctrl-node")
-    drive = can.Bus(interface="simbus", channel="t-ctrl-node")
-    try:
-        node = ControllerNode(ctrl_bus, cfg)
+    with BusHarness("t-ctrl-node") as harness:  # the host plays the drive
+        node = ControllerNode(harness.bus(), cfg)
         sensor = codec("control", "DRIVE_TPDO1")
-        sent = []
         for k in range(cycles):
             node.send_sync()
-            drive.send(
-                can.Message(
-                    arbitration_id=sensor.frame_id,
-                    data=sensor.encode(100 + k, 20, 0, 7 * k),
-                    is_extended_id=False,
-                )
-            )
+            harness.send(sensor.frame_id, sensor.encode(100 + k, 20, 0, 7 * k))
             node.poll()
-            while (m := drive.recv(0)) is not None:
-                sent.append(m)
-        return sent
-    finally:
-        ctrl_bus.shutdown()
-        drive.shutdown()
+            harness.frames()
+        return harness.recorder.messages
 
 
 def test_node_sends_ctrl_tpdo2_only_with_a_law() -> None:
@@ -189,6 +177,7 @@ def table() -> dict[str, dict]:
     return {row["law"]: row for row in tracking_table()}
 
 
+@pytest.mark.slow
 def test_seed_fig7_ranking_and_the_feedforward_reaches_0_3_nm(table) -> None:
     """[Vertechy] §VI: JTF1 < JTF3 < JTF2 in tracking error; JTF1 + feedforward <= 0.3 Nm."""
     e = {law: row["max_abs_e"] for law, row in table.items()}
@@ -204,6 +193,7 @@ def test_seed_fig7_ranking_and_the_feedforward_reaches_0_3_nm(table) -> None:
     assert all(35.0 < row["max_abs_tau_m"] < 60.0 for row in table.values())
 
 
+@pytest.mark.slow
 def test_feedforward_reaches_0_3_nm_on_the_emulators_sensor_and_amplifier() -> None:
     r = simulate_tracking(FF, 5.0, OUR_PLANT)
     assert r["max_abs_e"] <= 0.3
@@ -223,11 +213,13 @@ def test_each_part_of_the_feedforward_configuration_is_needed(change: dict) -> N
     assert simulate_tracking(dataclasses.replace(FF, **change))["max_abs_e"] > 0.3
 
 
+@pytest.mark.slow
 def test_the_seeds_feedforward_alone_makes_jtf1_worse(table) -> None:
     alone = simulate_tracking(SEED, law=Law.JTF1_FF)["max_abs_e"]
     assert alone > table["jtf1"]["max_abs_e"]
 
 
+@pytest.mark.slow
 def test_jtf1_error_is_the_observer_lag_of_the_link_jerk() -> None:
     """Why JTF1 misses 0.3 Nm: e ≈ 17 ms · dτlgd/dt with τlgd ∋ Jl θl'' (Wiener model of
     Eq. 7): the link-motion error scales with the cube of the link frequency; with the
@@ -247,6 +239,7 @@ def test_jtf1_error_is_the_observer_lag_of_the_link_jerk() -> None:
     assert held["max_abs_e"] == pytest.approx(0.18, abs=0.01)
 
 
+@pytest.mark.slow
 def test_12_bit_dac_quantisation_is_not_the_limit() -> None:
     coarse = simulate_tracking(FF)["max_abs_e"]
     fine = simulate_tracking(FirmwareConfig(control=FF, dac=_dac16()))["max_abs_e"]
@@ -259,6 +252,7 @@ def _dac16():
     return Converter(bits=16)
 
 
+@pytest.mark.slow
 def test_immediate_actuation_and_noise_variants() -> None:
     immediate = dataclasses.replace(FF, delay_samples=0, predict=False)
     assert simulate_tracking(immediate)["max_abs_e"] <= 0.3
@@ -329,6 +323,7 @@ def _closed_on_the_emulator(overrides: dict | None = None, duration_s: float = 5
     return float(np.max(np.abs(errors[round(sc.evaluate_from_s / Ts) :])))
 
 
+@pytest.mark.slow
 def test_pure_simulation_agrees_with_the_emulator() -> None:
     ff = {
         "firmware": {"control": {"law": "jtf1_ff", "feedforward": "exact", "weights": {"V": 1e7}}}

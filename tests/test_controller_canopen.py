@@ -11,15 +11,14 @@ drive's timing.  SDO requests to the controller are hand-made frames (CiA 301 §
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import math
 import struct
 from collections.abc import Callable
 
 import can
 import pytest
+from conftest import BusHarness
 
-from hdhil.can.simbus import SimClock
 from hdhil.canopen.cia402 import DriveStateMachine, State
 from hdhil.canopen.services import load_od
 from hdhil.dbc import codec, database, eds_path
@@ -38,7 +37,6 @@ SENSOR = codec("control", "DRIVE_TPDO1")
 COMMAND = codec("control", "DRIVE_RPDO1")
 STATUS = codec("control", "DRIVE_TPDO2")
 TELEMETRY = codec("control", "CTRL_TPDO1")
-_channels = itertools.count()
 
 
 def f32(x: float) -> float:
@@ -124,63 +122,21 @@ class FakeDrive:
         return n
 
 
-class Link:
-    """Controller + fake drive + a host that logs every frame and plays the SDO client."""
+class Link(BusHarness):
+    """Controller + fake drive on the shared bus harness (the controller sends SYNC); its
+    host logs every frame and plays the SDO client."""
 
     def __init__(self, config: FirmwareConfig | None = None, **kwargs) -> None:
-        self.clock = SimClock()
-        channel = f"t-ctrl-canopen-{next(_channels)}"
-        self.buses = [
-            can.Bus(interface="simbus", channel=channel, clock=self.clock) for _ in range(3)
-        ]
-        self.node = ControllerNode(self.buses[0], config or FirmwareConfig(), **kwargs)
-        self.drive = FakeDrive(self.buses[1])
-        self.host = self.buses[2]
-        self.k = 0
-        self.log: list[tuple[int, int, bytes]] = []  # (cycle, id, data)
-
-    def close(self) -> None:
-        for bus in self.buses:
-            bus.shutdown()
-
-    @property
-    def now(self) -> float:
-        return self.k * TS
+        super().__init__("t-ctrl-canopen")
+        node_bus, drive_bus = self.bus(), self.bus()
+        self.node = self.add(ControllerNode(node_bus, config or FirmwareConfig(), **kwargs),
+                             sync=True)  # fmt: skip
+        self.drive = self.add(FakeDrive(drive_bus))
 
     def boot(self, drive: bool = True) -> None:
         if drive:
             self.drive.boot(0.0)
         self.node.boot(0.0)
-
-    def pump(self) -> None:
-        while self.node.poll() + self.drive.poll():
-            pass
-        self._drain()
-
-    def _drain(self) -> list[tuple[int, bytes]]:
-        frames = []
-        while (msg := self.host.recv(0)) is not None:
-            frames.append((msg.arbitration_id, bytes(msg.data)))
-            self.log.append((self.k, msg.arbitration_id, bytes(msg.data)))
-        return frames
-
-    def cycle(self) -> list[tuple[int, bytes]]:
-        """One lockstep cycle; returns the frames of this cycle (id, data)."""
-        start = len(self.log)
-        now = self.now
-        self.clock.now = now
-        self.node.tick(now)
-        self.drive.tick(now)
-        self.node.send_sync()
-        self.pump()
-        self.k += 1
-        return [(i, d) for _, i, d in self.log[start:]]
-
-    def run(self, n: int) -> list[tuple[int, int, bytes]]:
-        start = len(self.log)
-        for _ in range(n):
-            self.cycle()
-        return self.log[start:]
 
     def run_until(self, phase: str, limit: int = 5000) -> None:
         for _ in range(limit):
@@ -192,9 +148,7 @@ class Link:
     # SDO client (expedited, by hand)
     def _request(self, data: bytes) -> bytes:
         self.host.send(can.Message(arbitration_id=0x601, data=data, is_extended_id=False))
-        while self.node.poll() + self.drive.poll():
-            pass
-        answers = [d for i, d in self._drain() if i == 0x581]
+        answers = [d for i, d in self.pump() if i == 0x581]
         assert len(answers) == 1, answers
         return answers[0]
 
@@ -364,7 +318,7 @@ def test_a_drive_that_booted_earlier_is_found_by_its_heartbeat(link):
     lk = link()
     lk.drive.boot(-0.05)  # booted before the controller: only its heartbeat is seen
     lk.drive.bus.recv(0)
-    lk.buses[0].recv(0)
+    lk.node.bus.recv(0)
     lk.host.recv(0)
     lk.node.boot(0.0)
     lk.run(60)
@@ -419,6 +373,7 @@ def test_fault_at_start_up_is_reset_once_then_the_walk_goes_on(link):
     assert (d.fault_resets, d.statusword_sdo_reads, d.startup_cycles) == (1, 1, 4)
 
 
+@pytest.mark.slow
 def test_fault_during_operation_resets_and_walks_again_a_second_one_is_safe(link):
     lk = operational(link)
     lk.run(5)

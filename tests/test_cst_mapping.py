@@ -16,8 +16,8 @@ import can
 import canopen
 import numpy as np
 import pytest
+from conftest import BusHarness
 
-from hdhil.can.simbus import SimClock
 from hdhil.canopen.dcf import configuration_writes
 from hdhil.canopen.mapping import dcf_layouts, mapping_dcf
 from hdhil.canopen.od import variable
@@ -84,40 +84,26 @@ def test_the_shipped_dcf_is_drive_eds_with_parameter_values_that_exist_and_encod
 
 
 def _lockstep(dcf, scenario: str = "free-motion", cycles: int = 1500, seed: int = 1):
-    """Controller and emulated drive in lockstep on simbus, a third handle listening."""
+    """Controller and emulated drive in lockstep on the shared bus harness, its host
+    listening."""
     sc = load_scenario(scenario)
     fw = from_dict(FirmwareConfig, sc.firmware, "firmware")
-    clock = SimClock()
-    channel = f"t-cst-{next(_ids)}"
-    buses = [can.Bus(interface="simbus", channel=channel, clock=clock) for _ in range(3)]
-    ctrl = ControllerNode(buses[0], fw, drive_dcf=dcf)
-    plant = Plant(sc.plant, seed)
-    drive = DriveNode(buses[1], plant, DriveConfig())
-    ctrl.boot(0.0)
-    drive.boot(0.0)
-    rows = []
-    frames: list[can.Message] = []
-    try:
-        for k in range(cycles):
-            clock.now = k * fw.sample_period_s
-            ctrl.tick(clock.now)
-            drive.tick(clock.now)
-            if ctrl.phase in ("stopped", "safe"):
+    with BusHarness("t-cst", period_s=fw.sample_period_s) as harness:
+        ctrl = harness.add(ControllerNode(harness.bus(), fw, drive_dcf=dcf), sync=True)
+        plant = Plant(sc.plant, seed)
+        drive = harness.add(DriveNode(harness.bus(), plant, DriveConfig()))
+        ctrl.boot(0.0)
+        drive.boot(0.0)
+        rows = []
+        for _ in range(cycles):
+            if harness.cycle(stop=lambda: ctrl.phase in ("stopped", "safe")) is None:
                 break
-            ctrl.send_sync()
-            while ctrl.poll() + drive.poll():
-                pass
-            while (m := buses[2].recv(0)) is not None:
-                frames.append(m)
             if ctrl.phase == "operational":
                 out = ctrl.isr.output
                 t = plant.truth()
                 row = (t.T_true_Nm, t.tau_m_Nm, out.T_meas, out.T_filtered)
                 rows.append((*row, drive.amplifier_input_V, t.omega_motor_radps))
-    finally:
-        for b in buses:
-            b.shutdown()
-    return ctrl, drive, plant, np.array(rows), frames
+    return ctrl, drive, plant, np.array(rows), harness.recorder.messages
 
 
 @pytest.fixture(scope="module")
@@ -130,6 +116,7 @@ def raw_run():
     return _lockstep(None)
 
 
+@pytest.mark.slow
 def test_the_controller_pdos_follow_the_drive_dcf(cst_run):
     ctrl, drive, *_ = cst_run
     assert ctrl.phase == "operational" and ctrl.sensor_mapping == "cst"
@@ -146,6 +133,7 @@ def test_the_controller_pdos_follow_the_drive_dcf(cst_run):
     assert ctrl.rated_torque_Nm == pytest.approx(drive.services.read(0x6076) * 1e-3)
 
 
+@pytest.mark.slow
 def test_frames_on_the_bus_have_the_dlc_and_layout_of_the_live_mapping(cst_run):
     """Decoded with canopen's PDO maps, read from the DCF (not with our codecs)."""
     ctrl, drive, _, _, frames = cst_run
@@ -176,6 +164,7 @@ def test_frames_on_the_bus_have_the_dlc_and_layout_of_the_live_mapping(cst_run):
     assert abs(tpdo["position_actual_value"].raw) > 8000  # more than a motor turn
 
 
+@pytest.mark.slow
 def test_the_filter_is_fed_from_torque_actual_scaled_by_the_rated_torque(cst_run):
     ctrl, _, _, rows, _ = cst_run
     _, motor_torque, T_meas, T_filtered, _, omega = rows.T
@@ -189,6 +178,7 @@ def test_the_filter_is_fed_from_torque_actual_scaled_by_the_rated_torque(cst_run
     assert omega[-1] > 50.0
 
 
+@pytest.mark.slow
 def test_the_cst_loop_moves_the_joint_as_the_raw_loop_does(cst_run, raw_run):
     """Same free-motion reference through 0x6071 and through the raw DAC object: the
     amplifier gets the same voltage within the per-mille step (10 mV at 6 Nm/V and
@@ -202,6 +192,7 @@ def test_the_cst_loop_moves_the_joint_as_the_raw_loop_does(cst_run, raw_run):
     assert cst[n - 1, 5] == pytest.approx(raw[n - 1, 5], rel=0.02)
 
 
+@pytest.mark.slow
 def test_the_filtered_estimate_is_within_the_documented_bound(cst_run):
     """README, "Running the firmware against a third-party CST drive": in free motion
     the CST estimate's error is the motor-side friction and inertia torque the gauges
@@ -231,6 +222,7 @@ def test_a_dcf_whose_sensor_pdo_the_firmware_cannot_use_is_refused(tmp_path):
 # ------------------------------------------------------------------ the commands
 
 
+@pytest.mark.realtime
 def test_hdhil_firmware_closes_the_loop_over_cst_against_a_served_drive(serve_drive, capsys):
     from hdhil.cli import main
 
@@ -247,6 +239,7 @@ def test_hdhil_firmware_closes_the_loop_over_cst_against_a_served_drive(serve_dr
     assert "not allowed with argument" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_hdhil_run_evaluate_and_dump_in_the_cst_mapping(tmp_path, capsys):
     from hdhil.cli import main
 
@@ -273,6 +266,7 @@ def test_hdhil_run_evaluate_and_dump_in_the_cst_mapping(tmp_path, capsys):
     assert "ADC_torque" not in out
 
 
+@pytest.mark.slow
 def test_the_torque_control_laws_are_refused_in_the_cst_mapping(capsys):
     """[Vertechy]'s laws regulate the sensor torque; 0x6077 is the motor torque."""
     from canopen.sdo import SdoAbortedError
@@ -294,6 +288,7 @@ def test_the_torque_control_laws_are_refused_in_the_cst_mapping(capsys):
         bus.shutdown()
 
 
+@pytest.mark.slow
 def test_other_trace_tools_read_a_cst_trace_or_say_why_not(tmp_path, capsys):
     """``hdhil.api.read_trace`` decodes the standard objects; filter and identify, which
     replay the raw ADC channels, refuse with the reason instead of finding no frames."""

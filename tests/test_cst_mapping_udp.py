@@ -13,16 +13,19 @@ import time
 
 import can
 import canopen
-from test_multiprocess import _hdhil, netns  # noqa: F401  (the namespace fixture)
+import pytest
+from test_multiprocess import _hdhil
 
 from hdhil.canopen.mapping import mapping_dcf
 from hdhil.dbc import codec
+
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess, pytest.mark.netns, pytest.mark.realtime]
 
 GROUP_CONTROL = "239.74.163.5"
 GROUP_TRUTH = "239.74.163.6"
 
 
-def test_firmware_in_the_cst_mapping_against_hdhil_emulate_over_udp(netns, tmp_path):  # noqa: F811
+def test_firmware_in_the_cst_mapping_against_hdhil_emulate_over_udp(netns, tmp_path):
     trace = tmp_path / "cst.blf"
     bus = ["--interface", "udp_multicast", "--channel", GROUP_CONTROL]
     truth = ["--truth-interface", "udp_multicast", "--truth-channel", GROUP_TRUTH]

@@ -22,6 +22,7 @@ def _physical_strategy(sig):
     return st.integers(lo, hi).map(lambda raw: raw * sig.scale + sig.offset)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("bus", "name"), ALL_MESSAGES)
 @settings(max_examples=200, deadline=None)
 @given(data=st.data())

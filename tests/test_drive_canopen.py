@@ -10,14 +10,12 @@ machine's own transitions are tested in ``test_cia402``; here the wiring is.
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import math
 import struct
 
-import can
 import pytest
+from conftest import BusHarness
 
-from hdhil.can.simbus import SimClock
 from hdhil.canopen.cia402 import (
     SW_INTERNAL_LIMIT,
     SW_WARNING,
@@ -28,8 +26,6 @@ from hdhil.canopen.services import NmtCommand, NmtState
 from hdhil.dbc import codec
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig, RippleConfig, SensorConfig
-
-_channels = itertools.count()
 
 SYNC, TPDO1, TPDO2, RPDO1 = 0x080, 0x182, 0x282, 0x202
 EMCY, HEARTBEAT, BOOT = 0x082, 0x702, 0x702
@@ -47,8 +43,8 @@ TRUTH_IDS = {0x1F0001, 0x1F0002, 0x1F0003}
 Ts = 1e-3
 
 
-class Rig:
-    """A drive on a simbus channel; the peer bus plays the controller and host tools."""
+class Rig(BusHarness):
+    """A drive on the shared bus harness; the host plays the controller and host tools."""
 
     def __init__(
         self,
@@ -56,42 +52,16 @@ class Rig:
         plant_cfg: PlantConfig | None = None,
         truth: bool = True,
     ) -> None:
-        self.clock = SimClock()
-        channel = f"t-drive-{next(_channels)}"
-        self.buses: list[can.BusABC] = []
-        drive_bus = self._bus(channel)
-        self.peer = self._bus(channel)
+        super().__init__("t-drive")
+        drive_bus = self.bus()
         self.truth_peer = None
         truth_bus = None
         if truth:
-            truth_bus = self._bus(channel + "-truth", bitrate=0)
-            self.truth_peer = self._bus(channel + "-truth", bitrate=0)
+            truth_bus = self.bus("-truth", bitrate=0)
+            self.truth_peer = self.bus("-truth", bitrate=0)
         self.plant = Plant(plant_cfg or PlantConfig(), seed=3)
-        self.drive = DriveNode(drive_bus, self.plant, config or DriveConfig(), truth_bus)
-        self.k = 0
-        self.sync_counter = 0
-        self.log: list[tuple[float, int, bytes]] = []  # every frame the peer saw
+        self.drive = self.add(DriveNode(drive_bus, self.plant, config or DriveConfig(), truth_bus))
         self._command = codec("control", "DRIVE_RPDO1")
-
-    def _bus(self, channel: str, bitrate: int = 1_000_000) -> can.BusABC:
-        bus = can.Bus(interface="simbus", channel=channel, clock=self.clock, bitrate=bitrate)
-        self.buses.append(bus)
-        return bus
-
-    @property
-    def now(self) -> float:
-        return self.k * Ts
-
-    def send(self, can_id: int, data: bytes) -> None:
-        self.peer.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
-
-    def frames(self) -> list[tuple[int, bytes]]:
-        """Frames the drive sent since the last call (control bus)."""
-        out = []
-        while (msg := self.peer.recv(0)) is not None:
-            out.append((msg.arbitration_id, bytes(msg.data)))
-            self.log.append((self.clock.now, msg.arbitration_id, bytes(msg.data)))
-        return out
 
     def truth_frames(self) -> list[int]:
         out = []
@@ -122,19 +92,15 @@ class Rig:
     ) -> list[tuple[int, bytes]]:
         """One lockstep cycle at t(k): tick, (controller heartbeat), SYNC, the drive's
         answer, the command (when ``controlword`` is given).  Returns the drive's frames."""
-        self.clock.now = self.now
-        self.drive.tick(self.now)
+        self.tick()
         if heartbeat:
             self.send(CTRL_HEARTBEAT, b"\x05")
         if sync:
-            self.sync_counter = self.sync_counter % 240 + 1
-            self.send(SYNC, bytes((self.sync_counter,)))
-        self.drive.poll()
-        out = self.frames()
+            self.send_sync()
+        out = self.pump()
         if controlword is not None:
             self.send(RPDO1, self._command.encode(dac, controlword, self.k & 0xFF))
-            self.drive.poll()
-            out += self.frames()
+            out += self.pump()
         self.k += 1
         return out
 
@@ -144,10 +110,6 @@ class Rig:
             self.cycle(cw, dac)
         self.cycle(ENABLE, dac)  # the last controlword is actuated at this SYNC
         assert self.drive.drive_state is State.OPERATION_ENABLED
-
-    def close(self) -> None:
-        for bus in self.buses:
-            bus.shutdown()
 
 
 @pytest.fixture
@@ -515,6 +477,7 @@ def run_with_controller_heartbeat(r: Rig, until_s: float, period_s: float = 0.1)
         r.cycle(ENABLE, 100, heartbeat=r.k % every == 0)
 
 
+@pytest.mark.slow
 def test_heartbeat_loss_faults_the_drive_one_cycle_after_the_timeout(rig):
     rig.start()
     rig.enable(dac=100)

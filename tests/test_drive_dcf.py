@@ -4,12 +4,9 @@ and a value the drive refuses stops the controller with the abort code and its t
 
 from __future__ import annotations
 
-import itertools
-
-import can
 import pytest
+from conftest import BusHarness
 
-from hdhil.can.simbus import SimClock
 from hdhil.canopen.dcf import configuration_writes
 from hdhil.dbc import eds_path
 from hdhil.firmware.config import FirmwareConfig
@@ -17,7 +14,6 @@ from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
 
-_ids = itertools.count()
 Ts = 1e-3
 
 
@@ -35,30 +31,19 @@ def _dcf(tmp_path, values: dict[str, str]):
 
 
 def _run(dcf, cycles: int = 400):
-    clock = SimClock()
-    channel = f"t-dcf-{next(_ids)}"
-    ctrl_bus = can.Bus(interface="simbus", channel=channel, clock=clock)
-    drive_bus = can.Bus(interface="simbus", channel=channel, clock=clock)
-    try:
-        ctrl = ControllerNode(ctrl_bus, FirmwareConfig(), drive_dcf=dcf)
-        drive = DriveNode(drive_bus, Plant(PlantConfig()), DriveConfig())
+    with BusHarness("t-dcf", period_s=Ts) as harness:
+        ctrl = harness.add(ControllerNode(harness.bus(), FirmwareConfig(), drive_dcf=dcf),
+                           sync=True)  # fmt: skip
+        drive = harness.add(DriveNode(harness.bus(), Plant(PlantConfig()), DriveConfig()))
         ctrl.boot(0.0)
         drive.boot(0.0)
-        for k in range(cycles):
-            clock.now = k * Ts
-            ctrl.tick(clock.now)
-            drive.tick(clock.now)
-            if ctrl.phase in ("stopped", "safe"):
+        for _ in range(cycles):
+            if harness.cycle(stop=lambda: ctrl.phase in ("stopped", "safe")) is None:
                 break
-            ctrl.send_sync()
-            while ctrl.poll() + drive.poll():
-                pass
         return ctrl, drive
-    finally:
-        ctrl_bus.shutdown()
-        drive_bus.shutdown()
 
 
+@pytest.mark.slow
 def test_dcf_values_reach_the_drive_before_nmt_start(tmp_path):
     dcf = _dcf(tmp_path, {"1801sub5": "50", "605A": "5", "1A01sub0": "1"})
     writes = configuration_writes(dcf, 2)
@@ -90,6 +75,7 @@ def test_a_dcf_that_cannot_be_read_is_refused_at_start_up(tmp_path):
         configuration_writes(bad, 2)
 
 
+@pytest.mark.realtime
 def test_hdhil_firmware_configures_a_served_drive_from_its_dcf(tmp_path, serve_drive, capsys):
     import json
 

@@ -564,6 +564,7 @@ def test_corrupted_blf_container(tmp_path, capsys):
     assert 0 < total < 12000 and int(warnings[0]["n"]) == total
 
 
+@pytest.mark.slow
 def test_blf_never_closed_by_its_writer(tmp_path, capsys):
     """A logger that died: containers were flushed but the header was never finalised."""
     path = tmp_path / "crashed.blf"
@@ -580,6 +581,7 @@ def test_blf_never_closed_by_its_writer(tmp_path, capsys):
     assert 0 < summary_counts(out)[0] < len(frames)
 
 
+@pytest.mark.slow
 def test_cut_gzip_stream(tmp_path, capsys):
     plain = write_trace(tmp_path / "t.log", make_frames(3000, extras=False))
     packed = gzip.compress(plain.read_bytes())
@@ -688,6 +690,7 @@ def test_decode_frame_api():
     assert "WRONG BUS" in default_decoder().describe(frame)
 
 
+@pytest.mark.slow
 def test_stats_report_actual_load_and_cycle_counter_gaps(tmp_path, capsys):
     """A run's trace with frames removed: the counters' gaps show exactly what is missing."""
     from hdhil.rig.scenario import load_scenario
@@ -720,6 +723,7 @@ def test_stats_report_actual_load_and_cycle_counter_gaps(tmp_path, capsys):
     assert 0 < control["actual_load_percent"] < control["load_percent"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("fault", "kind", "field"),
     [
@@ -750,6 +754,7 @@ def test_stats_tell_lost_duplicated_and_reordered_counts_apart(tmp_path, capsys,
         assert all(sync[k] == 0 for k in others)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("suffix", [".asc", ".trc"])
 def test_a_flipped_byte_in_a_frame_line_is_reported(tmp_path, capsys, suffix):
     """Every single-bit flip that loses a frame of an ASC/TRC file is reported: exit 1,

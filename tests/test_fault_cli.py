@@ -7,7 +7,6 @@ a controller, the SYNC producer and NMT master), one cycle at a time as ``hdhil 
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 import struct
@@ -15,9 +14,9 @@ import time
 
 import can
 import pytest
+from conftest import BusHarness
 
 from hdhil.can.faults import FaultLog, FaultyTransmitBus
-from hdhil.can.simbus import SimClock
 from hdhil.cli import main
 from hdhil.commands import run as run_module
 from hdhil.core.dataconf import ConfigError, from_dict
@@ -32,7 +31,6 @@ from hdhil.rig.scenario import load_scenario
 TS = 1e-3
 SENSOR = codec("control", "DRIVE_TPDO1")
 SDO_RX, SDO_TX = 0x602, 0x582
-_names = itertools.count()
 
 
 # ============================================================================ flags
@@ -156,6 +154,7 @@ def test_bad_flags_exit_2_with_one_line_naming_the_key(capsys, command, flag, ex
     assert "Traceback" not in err and captured.out == ""
 
 
+@pytest.mark.slow
 def test_the_same_faults_by_flag_as_by_toml_table_give_the_same_fault_log(tmp_path, capsys):
     table = tmp_path / "faults.toml"
     table.write_text(
@@ -191,81 +190,51 @@ def test_the_same_faults_by_flag_as_by_toml_table_give_the_same_fault_log(tmp_pa
 # ============================================================================ SDO 0x2310
 
 
-class Bench:
-    """The drive (and optionally the controller) in lockstep on simbus, with a host bus.
+class Bench(BusHarness):
+    """The drive (and optionally the controller, which then sends SYNC) in lockstep on
+    the shared bus harness, whose host plays the SDO client.
 
     Without a controller the host starts the drive (NMT) and produces SYNC; the drive then
     samples and sends its sensor frame every cycle, its torque off (SWITCH ON DISABLED).
     """
 
     def __init__(self, controller: bool = False, log: FaultLog | None = None) -> None:
-        self.clock = SimClock()
-        name = f"t-fault-cli-{next(_names)}"
-        self.buses = [can.Bus(interface="simbus", channel=name, clock=self.clock)
-                      for _ in range(3)]  # fmt: skip
-        ctrl_bus, drive_bus, self.host = self.buses
+        super().__init__("t-fault-cli")
+        ctrl_bus, drive_bus = self.bus(), self.bus()
         self.injector = FaultInjector(FaultConfig(seed=5), log)
         self.plant = Plant(PlantConfig(), seed=1, faults=self.injector.sensors())
-        self.drive = DriveNode(drive_bus, self.plant, DriveConfig(), faults=self.injector)
-        self.controller = ControllerNode(ctrl_bus, FirmwareConfig()) if controller else None
-        self.k = 0
-        self.sync_counter = 0
-        self.samples: list[tuple[int, int, int, int]] = []  # sensor frames the host saw
-        self.frames: list[tuple[int, bytes]] = []
+        self.drive = self.add(DriveNode(drive_bus, self.plant, DriveConfig(),
+                                        faults=self.injector))  # fmt: skip
+        self.controller = (
+            self.add(ControllerNode(ctrl_bus, FirmwareConfig()), sync=True) if controller else None
+        )
         self.drive.boot(0.0)
         if self.controller is not None:
             self.controller.boot(0.0)
         else:
-            self._send(0x000, bytes((0x01, 2)))  # NMT start node 2
-        self._pump()
+            self.send(0x000, bytes((0x01, 2)))  # NMT start node 2
+        self.pump()
 
-    def _send(self, can_id: int, data: bytes) -> None:
-        self.host.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
-
-    def _pump(self) -> list[tuple[int, bytes]]:
-        nodes = [self.drive] + ([self.controller] if self.controller else [])
-        while sum(node.poll() for node in nodes):
-            pass
-        out = []
-        while (msg := self.host.recv(0)) is not None:
-            frame = (msg.arbitration_id, bytes(msg.data))
-            out.append(frame)
-            if msg.arbitration_id == SENSOR.frame_id:
-                self.samples.append(SENSOR.decode(msg.data))
-        self.frames += out
-        return out
-
-    def cycle(self) -> list[tuple[int, bytes]]:
-        now = self.clock.now = self.k * TS
-        self.drive.tick(now)
-        if self.controller is not None:
-            self.controller.tick(now)
-            self.controller.send_sync()
-        else:
-            self.sync_counter = self.sync_counter % 240 + 1
-            self._send(0x080, bytes((self.sync_counter,)))
-        self.k += 1
-        return self._pump()
+    @property
+    def samples(self) -> list[tuple[int, int, int, int]]:
+        """The sensor frames the host saw, decoded."""
+        return [SENSOR.decode(m.data) for m in self.recorder.with_id(SENSOR.frame_id)]
 
     def sdo_write(self, sub: int, data: bytes, index: int = 0x2310) -> int | None:
         """Expedited download to the drive; the abort code or None."""
-        self._send(SDO_RX, struct.pack("<BHB", 0x23 | (4 - len(data)) << 2, index, sub)
+        self.send(SDO_RX, struct.pack("<BHB", 0x23 | (4 - len(data)) << 2, index, sub)
                    + data.ljust(4, b"\0"))  # fmt: skip
-        (response,) = [d for i, d in self._pump() if i == SDO_TX]
+        (response,) = [d for i, d in self.pump() if i == SDO_TX]
         if response[0] == 0x80:
             return struct.unpack_from("<I", response, 4)[0]
         assert response[0] == 0x60
         return None
 
     def sdo_read(self, sub: int, index: int = 0x2310) -> bytes:
-        self._send(SDO_RX, struct.pack("<BHB4x", 0x40, index, sub))
-        (response,) = [d for i, d in self._pump() if i == SDO_TX]
+        self.send(SDO_RX, struct.pack("<BHB4x", 0x40, index, sub))
+        (response,) = [d for i, d in self.pump() if i == SDO_TX]
         assert response[0] & 0xE0 == 0x40, response.hex()
         return response[4 : 8 - ((response[0] >> 2) & 3)]
-
-    def close(self) -> None:
-        for bus in self.buses:
-            bus.shutdown()
 
 
 @pytest.fixture
@@ -290,6 +259,7 @@ def test_fault_free_drive_has_no_sensor_hook(bench):
     assert bench.plant.faults is None  # switched off: the plant's fault-free path again
 
 
+@pytest.mark.slow
 def test_tacho_spikes_switched_on_by_sdo_are_injected_logged_and_reproducible():
     def run(write_at: int | None) -> tuple[list, dict, list]:
         b = Bench()
@@ -376,8 +346,8 @@ def test_nmt_reset_node_restores_the_power_on_faults(bench):
     bench.sdo_write(8, struct.pack("<H", 500))
     bench.cycle()
     assert bench.drive.silent and bench.plant.faults is not None
-    bench._send(0x000, bytes((0x81, 2)))  # NMT reset node
-    assert (0x702, b"\x00") in bench._pump()  # the boot-up is not silenced
+    bench.send(0x000, bytes((0x81, 2)))  # NMT reset node
+    assert (0x702, b"\x00") in bench.pump()  # the boot-up is not silenced
     assert not bench.drive.silent
     assert bench.sdo_read(3) == f32(0.0) and bench.sdo_read(8) == b"\x00\x00"
     bench.cycle()
@@ -387,20 +357,15 @@ def test_nmt_reset_node_restores_the_power_on_faults(bench):
 def test_power_on_values_come_from_the_scenario_sensor_faults():
     inj = FaultInjector(from_dict(FaultConfig, {"sensors": {"tacho_spike_rate": 0.125,
                                                             "tacho_spike_V": 2.0}}))  # fmt: skip
-    clock = SimClock()
-    name = f"t-fault-cli-{next(_names)}"
-    drive_bus, host = (can.Bus(interface="simbus", channel=name, clock=clock) for _ in range(2))
-    try:
+    with BusHarness("t-fault-cli") as harness:
         plant = Plant(PlantConfig(), 1, faults=inj.sensors())
-        drive = DriveNode(drive_bus, plant, DriveConfig(), faults=inj)
+        drive = DriveNode(harness.bus(), plant, DriveConfig(), faults=inj)
         assert drive.services.read(0x2310, 1) == 0.125
         assert drive.services.read(0x2310, 2) == 2.0
         assert plant.faults is inj.sensors()
-    finally:
-        drive_bus.shutdown()
-        host.shutdown()
 
 
+@pytest.mark.slow
 def test_drive_silence_puts_the_controller_in_its_safe_state_within_the_hold():
     b = Bench(controller=True)
     try:
@@ -469,6 +434,7 @@ def served_drive(serve_drive):
     )
 
 
+@pytest.mark.realtime
 def test_hdhil_sdo_writes_the_fault_object(served_drive, capsys):
     node, bus = served_drive
     assert main(["sdo", "write", "2", "0x2310:1", "0.01", *bus]) == 0
@@ -547,6 +513,8 @@ def test_a_node_silence_window_and_its_stream_seed():
     assert {v for _, _, v in a} != {k for k in range(400) if not drops[k]}
 
 
+@pytest.mark.slow
+@pytest.mark.realtime
 def test_emulate_with_a_fault_flag_faults_its_own_frames_and_logs_them(tmp_path, capsys):
     channel = f"hdhil-emu-{time.monotonic_ns()}"
     listener = can.Bus(interface="virtual", channel=channel)

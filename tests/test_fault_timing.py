@@ -18,7 +18,7 @@ import sys
 import can
 import pytest
 from runs import lockstep
-from test_multiprocess import GROUP_CONTROL, _hdhil, netns  # noqa: F401  (the namespace fixture)
+from test_multiprocess import GROUP_CONTROL, _hdhil
 
 from hdhil.can.faults import FaultyTransmitBus
 from hdhil.can.simbus import SimClock
@@ -118,6 +118,7 @@ def test_a_node_answers_a_delayed_frame_at_the_time_it_received_that_frame():
         rx.shutdown()
 
 
+@pytest.mark.slow
 def test_jitter_of_200us_changes_receive_times_but_stays_within_the_cycle(tmp_path):
     clean, clean_frames, _ = _run(tmp_path)
     jit, jit_frames, _ = _run(tmp_path, "control.jitter_us=200")
@@ -132,6 +133,7 @@ def test_jitter_of_200us_changes_receive_times_but_stays_within_the_cycle(tmp_pa
     assert jit.simulated_s == clean.simulated_s == 0.6
 
 
+@pytest.mark.slow
 def test_frames_delayed_past_the_next_sync_arrive_a_cycle_late_and_are_counted(tmp_path):
     _, clean_frames, _ = _run(tmp_path)
     late, frames, ctrl = _run(tmp_path, "control.jitter_us=800", duration=1.0)
@@ -165,6 +167,7 @@ def test_frames_delayed_past_the_next_sync_arrive_a_cycle_late_and_are_counted(t
     assert len(clean_k) == len(set(clean_k))
 
 
+@pytest.mark.slow
 def test_a_5ms_delay_keeps_the_run_in_simulated_time(tmp_path):
     r, frames, _ = _run(tmp_path, "control.delay_us=5000", duration=1.0)
     assert r.verdict is None and r.cycles == 1000
@@ -216,6 +219,7 @@ def test_silence_by_sender_and_by_identifier_on_a_node_process_bus():
 
 
 # --------------------------------------------------------------- truth faults
+@pytest.mark.slow
 def test_truth_silence_removes_truth_and_the_evaluation_says_so(tmp_path):
     start = 0.4
     skip = 0.3
@@ -257,6 +261,7 @@ def test_run_on_the_virtual_bus_injects_control_faults(tmp_path):
     assert repeats > 0  # the duplicated SYNCs are on the bus
 
 
+@pytest.mark.slow
 def test_run_on_the_virtual_bus_with_loss_goes_on_in_cycle_time():
     """5 % loss on the virtual bus: a dropped answer closes its cycle after a short wait
     and costs the nodes one cycle of their time (not half a second of their heartbeat
@@ -277,6 +282,8 @@ def test_run_on_the_virtual_bus_refuses_what_a_node_cannot_inject():
                      interface="virtual", evaluate=False)  # fmt: skip
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_run_cli_on_virtual_refuses_error_frames_with_one_line():
     p = subprocess.run(
         [sys.executable, "-m", "hdhil", "run", "--interface", "virtual", "--duration", "0.1",
@@ -288,7 +295,11 @@ def test_run_cli_on_virtual_refuses_error_frames_with_one_line():
     assert len(lines) == 1 and lines[0].startswith("hdhil: error: ") and "error_frame" in lines[0]
 
 
-def test_run_over_udp_multicast_injects_faults_in_a_private_namespace(netns, tmp_path):  # noqa: F811
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.netns
+@pytest.mark.realtime
+def test_run_over_udp_multicast_injects_faults_in_a_private_namespace(netns, tmp_path):
     """hdhil run --interface udp_multicast (inside the test's network namespace, loopback
     only): each node's frames go through the control faults; error frames are refused."""
     trace = tmp_path / "udp.blf"
@@ -342,6 +353,7 @@ def test_a_late_sample_after_a_missed_period_passes_the_encoder_check():
     assert check.rejected
 
 
+@pytest.mark.slow
 def test_reordered_sensor_frames_reach_the_controller_late_without_encoder_rejections(tmp_path):
     r, frames, ctrl = _run(tmp_path, "control.reorder_rate=0.01", "seed=0", duration=1.0)
     d = ctrl.diagnostics

@@ -333,6 +333,7 @@ def _lockstep(monkeypatch, faults: dict | None, seed: int = 0):
     return result, inj
 
 
+@pytest.mark.slow
 def test_free_motion_with_5_percent_loss_and_200us_jitter(monkeypatch):
     clean, none = _lockstep(monkeypatch, None)
     assert none.summary() == {}
@@ -348,6 +349,7 @@ def test_free_motion_with_5_percent_loss_and_200us_jitter(monkeypatch):
     assert [x.as_dict() for x in inj2.log.records] == [x.as_dict() for x in inj.log.records]
 
 
+@pytest.mark.slow
 def test_run_cli_injects_faults_from_an_override_and_logs_them(tmp_path, capsys):
     """hdhil run --override FILE with a [faults] table: faults act, are logged and counted."""
     import json

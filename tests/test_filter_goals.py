@@ -13,6 +13,8 @@ from runs import lockstep
 
 from hdhil.rig.scenario import load_scenario
 
+pytestmark = [pytest.mark.slow]
+
 
 def _evaluate(name: str, duration_s: float | None = None) -> dict[str, dict]:
     sc = load_scenario(name)

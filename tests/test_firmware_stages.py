@@ -436,6 +436,7 @@ def test_velocity_integrator_is_trapezoidal_and_skips_non_finite() -> None:
         VelocityIntegrator(0.0)
 
 
+@pytest.mark.slow
 def test_tustin_differentiator_coefficients_are_scipys_bit_for_bit():
     """The differentiator's Tustin design without scipy.signal gives the very floats
     ``scipy.signal.bilinear`` gives (the golden runs depend on them), over a spread of

@@ -41,7 +41,6 @@ frame to every other bus on the channel).
 from __future__ import annotations
 
 import copy
-import itertools
 import math
 import os
 import random
@@ -52,10 +51,10 @@ from dataclasses import dataclass, field
 
 import can
 import pytest
+from conftest import BusHarness
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hdhil.can.simbus import SimClock
 from hdhil.canopen import services as canopen_services
 from hdhil.canopen.cia402 import state_from_statusword
 from hdhil.canopen.services import ABORT_TEXT, NmtState
@@ -72,8 +71,6 @@ FUZZ_FRAMES = int(os.environ.get("FUZZ_FRAMES", "100000"))
 FRAMES_PER_CYCLE = 50
 #: Cycles a node pair stays in a final phase (fuzzed all the while) before it is replaced.
 FINAL_CYCLES = 5
-
-_channels = itertools.count()
 
 #: The identifiers the two nodes use (CiA 301 predefined connection set, control.dbc).
 NODE_IDS = sorted(
@@ -275,47 +272,30 @@ def fast_od(monkeypatch):
     monkeypatch.setattr(canopen_services, "load_od", _cached_load_od)
 
 
-class Pair:
-    """Controller and drive on one simbus channel, with a fuzzer bus and accounting."""
+class Pair(BusHarness):
+    """Controller and drive in lockstep on the shared bus harness (no timing), its host
+    the fuzzer's bus, with accounting."""
 
     def __init__(self, seed: int) -> None:
-        self.clock = SimClock()
-        name = f"fuzz-{os.getpid()}-{next(_channels)}"
-        self.buses = [
-            can.Bus(interface="simbus", channel=name, bitrate=0, clock=self.clock) for _ in range(3)
-        ]
-        ctrl_bus, drive_bus, self.fuzz_bus = self.buses
+        super().__init__("fuzz", bitrate=0, record=False)
+        self.fuzz_bus = self.host
+        ctrl_bus, drive_bus = self.bus(), self.bus()
         self.ctrl_sent, self.drive_sent = CountingBus(ctrl_bus), CountingBus(drive_bus)
         self.controller = ControllerNode(ctrl_bus, FirmwareConfig())
         self.drive = DriveNode(drive_bus, Plant(PlantConfig(), seed), DriveConfig())
+        self.add(self.drive)
+        self.add(self.controller, sync=True)
         self.accounts = {"controller": Accounting(), "drive": Accounting()}
         self.accounts["controller"].wrap(self.controller)
         self.accounts["drive"].wrap(self.drive)
-        self.k = 0
         self.fuzz_sent = 0
         self.drive.boot(0.0)
         self.controller.boot(0.0)
 
-    def quiet(self) -> None:
-        while self.drive.poll() + self.controller.poll():
-            pass
-
-    def cycle(self) -> None:
-        now = self.clock.now = self.k * TS
-        self.drive.tick(now)
-        self.controller.tick(now)
-        self.controller.send_sync()
-        self.quiet()
-        self.k += 1
-
     def inject(self, msg: can.Message) -> None:
         self.fuzz_bus.send(msg)
         self.fuzz_sent += 1
-        self.quiet()
-
-    def close(self) -> None:
-        for bus in self.buses:
-            bus.shutdown()
+        self.pump()
 
 
 def check_consistent(pair: Pair) -> None:
@@ -354,7 +334,7 @@ def fuzz_run(seed: int, frames: int, per_cycle: int = FRAMES_PER_CYCLE) -> FuzzR
     session = 0
 
     def finish(p: Pair) -> None:
-        p.quiet()
+        p.pump()
         for name, peer_sent in (("controller", p.drive_sent.sent), ("drive", p.ctrl_sent.sent)):
             acc = p.accounts[name]
             assert not acc.uncounted, (
@@ -394,6 +374,7 @@ def fuzz_run(seed: int, frames: int, per_cycle: int = FRAMES_PER_CYCLE) -> FuzzR
 # --------------------------------------------------------------------- the fuzz run
 
 
+@pytest.mark.slow
 def test_fuzz_both_nodes_while_running(fast_od):
     t0 = time.perf_counter()
     report = fuzz_run(seed=20240601, frames=FUZZ_FRAMES)
@@ -460,18 +441,15 @@ _sdo_rigs: dict[str, tuple[object, can.BusABC]] = {}
 def _sdo_rig(kind: str):
     """A booted (PRE-OPERATIONAL) node and a client bus; one per kind, reused."""
     if kind not in _sdo_rigs:
-        clock = SimClock()
-        name = f"fuzz-sdo-{os.getpid()}-{next(_channels)}"
-        node_bus, client = (
-            can.Bus(interface="simbus", channel=name, bitrate=0, clock=clock) for _ in range(2)
-        )
+        harness = BusHarness("fuzz-sdo", bitrate=0)
+        client = harness.host
+        node_bus = harness.bus()
         if kind == "controller":
             node = ControllerNode(node_bus, FirmwareConfig())
         else:
             node = DriveNode(node_bus, Plant(PlantConfig(), 1), DriveConfig())
         node.boot(0.0)
-        while client.recv(0) is not None:  # the boot-up
-            pass
+        harness.frames()  # the boot-up
         _sdo_rigs[kind] = (node, client)
     return _sdo_rigs[kind]
 
@@ -514,6 +492,7 @@ def _state(node):
     return copy.deepcopy(node.services.node.data_store), pending
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["controller", "drive"])
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(data=st.data())
@@ -587,6 +566,7 @@ def test_sdo_reads_answer_a_response_or_an_abort_and_change_nothing(kind, data):
 ALL_MESSAGES = [(bus, m.name) for bus in ("control", "truth") for m in database(bus).messages]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("bus", "name"), ALL_MESSAGES)
 @settings(max_examples=200, deadline=None)
 @given(data=st.data())

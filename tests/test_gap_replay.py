@@ -62,6 +62,7 @@ def test_missed_cycles_counts_periods_without_a_frame() -> None:
     assert missed_cycles(1.0, 0.9, 1e-3) == 0  # reordered: no negative gap
 
 
+@pytest.mark.slow
 def test_offline_candidates_reproduce_the_firmware_on_a_lossy_trace(lossy_trace) -> None:
     fw = FirmwareConfig()
     rec, damage = recording_from_trace(lossy_trace, fw.sample_period_s)
@@ -79,6 +80,7 @@ def test_offline_candidates_reproduce_the_firmware_on_a_lossy_trace(lossy_trace)
     assert _rms(blind[ok] - tele[ok]) > 30 * GOAL_NM
 
 
+@pytest.mark.slow
 def test_filter_command_reproduces_the_firmware_on_a_lossy_trace(lossy_trace, tmp_path) -> None:
     out = tmp_path / "filtered.csv"
     assert main(["filter", str(lossy_trace), "--out", str(out)]) == 0
@@ -130,6 +132,7 @@ def disordered_trace(request, tmp_path_factory: pytest.TempPathFactory) -> Path:
     return trace
 
 
+@pytest.mark.slow
 def test_offline_candidates_reproduce_the_firmware_under_reordering(disordered_trace) -> None:
     """1 % and 5 % reordered, 1 % duplicated frames, and all with 2 % loss: the replay
     sees the samples the firmware took, in its periods, within the telemetry's

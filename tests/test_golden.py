@@ -21,6 +21,8 @@ import pytest
 
 from hdhil.dbc import CHANNEL_NUMBER, database
 
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess]
+
 GOLDEN = Path(__file__).parent / "data" / "golden.json"
 RECORD = os.environ.get("HDHIL_RECORD_GOLDEN") == "1"
 

@@ -116,6 +116,7 @@ def test_half_power_and_log_decrement_on_the_exact_response() -> None:
 # --------------------------------------------------------------------------- end to end
 
 
+@pytest.mark.slow
 def test_identify_recovers_the_joint_from_a_chirp_run(hdhil, chirp_trace, tmp_path) -> None:
     """[Vertechy] Fig. 5 on the emulator: fn within 2 %, c within 10 %, log decrement
     within 15 % of the half-power bandwidth."""
@@ -143,6 +144,7 @@ def test_identify_recovers_the_joint_from_a_chirp_run(hdhil, chirp_trace, tmp_pa
     assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.slow
 def test_identify_text_summary_and_other_inertias(hdhil, chirp_trace) -> None:
     """The text summary; c = 2 zeta wn J, so twice the inertias give twice the c."""
     code, out, _ = hdhil("identify", chirp_trace, "--scenario", "chirp")
@@ -155,6 +157,7 @@ def test_identify_text_summary_and_other_inertias(hdhil, chirp_trace) -> None:
     assert c2 == pytest.approx(2 * c1, rel=1e-3)
 
 
+@pytest.mark.slow
 def test_identify_from_python_gives_what_the_command_prints(hdhil, chirp_trace) -> None:
     """The library alone (no argparse): the same figures as ``hdhil identify --json``."""
     from hdhil.analysis.identification import (
@@ -225,6 +228,7 @@ def test_identify_errors_are_one_line_exit_2(hdhil, tmp_path, make, match) -> No
     assert err.count("\n") == 1 and err.startswith("hdhil: error:") and match in err
 
 
+@pytest.mark.slow
 def test_identify_rejects_a_trace_without_a_resonance(hdhil, tmp_path) -> None:
     """A free-motion step run ([Taghirad97]) has no chirp: no resonance in an excited band."""
     trace = tmp_path / "fm.blf"
@@ -234,6 +238,7 @@ def test_identify_rejects_a_trace_without_a_resonance(hdhil, tmp_path) -> None:
     assert "resonance" in err or "half power" in err
 
 
+@pytest.mark.slow
 def test_identify_plot_has_phase_and_coherence_panels(chirp_trace) -> None:
     """The figure holds the Bode magnitude, the phase (crossing -90 deg near fn, as a
     second-order resonance does) and the coherence next to the impulse response."""

@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import can
 import pytest
+from conftest import FrameRecorder
 from runs import lockstep
 from test_plant_model import VOLT2NM, VOLT2RADPS, rigid_drive
 
 from hdhil.core.converter import Converter
-from hdhil.dbc import CHANNEL_NUMBER, codec
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller import ControllerNode
 from hdhil.firmware.interrupt import AdcSample, InterruptHandlerModel, IsrOutput
@@ -61,27 +61,12 @@ def velocity_p_controller(site: NodeSite, config: FirmwareConfig) -> ControllerN
     return ControllerNode(site.bus, config, node_id=site.node_id, isr=VelocityP())
 
 
-class _Velocity(can.Listener):
-    def __init__(self) -> None:
-        self.telemetry: list[float] = []
-        self.truth: list[float] = []
-        self._tpdo1, self._motion = codec("control", "CTRL_TPDO1"), codec("truth", "TRUTH_MOTION")
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if msg.channel == CHANNEL_NUMBER["control"] and msg.arbitration_id == self._tpdo1.frame_id:
-            self.telemetry.append(self._tpdo1.decode(msg.data)[2])
-        elif msg.channel == CHANNEL_NUMBER["truth"] and msg.arbitration_id == (
-            self._motion.frame_id
-        ):
-            self.truth.append(self._motion.decode(msg.data)[2])
-
-
 def test_the_example_handler_is_an_interrupt_handler_model():
     assert isinstance(VelocityP(), InterruptHandlerModel)
 
 
 def test_a_handler_of_ones_own_closes_the_loop_in_the_lockstep_runner():
-    seen = _Velocity()
+    seen = FrameRecorder()
     r = lockstep(
         load_scenario("free-motion"),
         duration_s=1.0,
@@ -91,17 +76,21 @@ def test_a_handler_of_ones_own_closes_the_loop_in_the_lockstep_runner():
         drive_factories=[rigid_drive],
     )
     assert r.cycles == 1000 and not r.interrupted
+    telemetry = [v[2] for _, v in seen.decoded("control", "CTRL_TPDO1")]  # velocity
+    truth = [v[2] for _, v in seen.decoded("truth", "TRUTH_MOTION")]  # omega_motor
     # 10 time constants: settled at the reference within the tachometer's resolution
     # (one ADC step is 10 V / 2048 * 56.3 rad/s per V = 0.27 rad/s; P control leaves no
     # error beyond the quantisation of the command and the reading)
-    assert seen.telemetry[-1] == pytest.approx(W_REF, abs=0.5)
-    assert seen.truth[-1] == pytest.approx(W_REF, abs=0.5)
+    assert telemetry[-1] == pytest.approx(W_REF, abs=0.5)
+    assert truth[-1] == pytest.approx(W_REF, abs=0.5)
     # after one time constant (0.1 s) it is near 1 - 1/e of the way
-    assert seen.telemetry[100] == pytest.approx(W_REF * (1 - 0.3679), rel=0.1)
+    assert telemetry[100] == pytest.approx(W_REF * (1 - 0.3679), rel=0.1)
     # the firmware-only parts are left out, the counters are there
     assert r.controller["sensor_frames"] >= 1000 and "filter_mode" not in r.controller
 
 
+@pytest.mark.slow
+@pytest.mark.realtime
 def test_a_handler_of_ones_own_is_timed_as_a_whole_in_real_time_mode():
     r = lockstep(
         load_scenario("free-motion"),

@@ -215,6 +215,7 @@ def _care_residual(p: JointParams, w: LqgWeights) -> float:
     return _relative_residual((A.T @ P, P @ A, P @ B @ B.T @ P, Q), (1, 1, -1, 1))
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None)
 @given(params_st, weights_st)
 def test_care_residual_and_closed_loop_stability(p, w):
@@ -360,6 +361,7 @@ def test_zoh_kalman_matches_continuous_observer_poles():
     assert np.max(np.abs(fast.poles_s)) > 2.5 * np.max(np.abs(d.observer.poles_s))
 
 
+@pytest.mark.slow
 def test_one_reading_of_W_design_noise_is_the_emulated_sensor_noise():
     """W = 0.12 Nm² is the variance of each 1 kHz sample (firmware.lqg, "One reading of
     W"): the discrete filter's Rd is exactly W at 1 ms, its gain is the one the seed's
@@ -548,6 +550,7 @@ def _prescribed_link_run(law: ControlLaw, amp_deg: float, T: float = 3.0) -> flo
     return float(np.max(np.abs(errs[int(1.0 / TS) :])))
 
 
+@pytest.mark.slow
 def test_seed_sine_tracking_with_the_link_held_still():
     """τsD = 20 sin(0.4πt) with the link clamped: JTF1 well under the seed's 0.3 Nm;
     JTF3 (k4 = 1, right for a clamped link) better still; JTF2 (k4 for a free link)
@@ -558,6 +561,7 @@ def test_seed_sine_tracking_with_the_link_held_still():
     assert e[ControlLaw.JTF1_FF] > 2 * e[ControlLaw.JTF1]
 
 
+@pytest.mark.slow
 def test_seed_fig7_ranking_with_the_link_moved():
     """Seed Fig. 7 scenario (θl = 20° sin 2πt): JTF1 beats JTF3 beats JTF2, as the seed
     reports, though JTF1's max |e| is about 1.2 Nm here, not the printed 0.3 Nm."""

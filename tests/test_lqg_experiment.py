@@ -73,6 +73,7 @@ def _experiment_plant(**drivetrain) -> PlantConfig:
     return dataclasses.replace(cfg, drivetrain=dataclasses.replace(cfg.drivetrain, **drivetrain))
 
 
+@pytest.mark.slow
 def test_person_link_is_integrated_exactly_and_its_torque_is_truth() -> None:
     """Without Coulomb friction the exosystem makes the step exact for any sub-step count;
     the handle torque is J_l theta_l'' - T_transmitted ([Vertechy] Eq. 1, second line)."""
@@ -164,6 +165,7 @@ def experiment(tmp_path_factory):
     return rows, out
 
 
+@pytest.mark.slow
 def test_experiment_with_friction_compensation_meets_the_seed(experiment) -> None:
     rows, _ = experiment
     eq5 = rows["JTF1 with friction comp. (Eq. 5)"]
@@ -181,6 +183,7 @@ def test_experiment_with_friction_compensation_meets_the_seed(experiment) -> Non
     assert rows["JTF3, filters (§V)"]["rms_error"] > 3.0 * rows["JTF3"]["rms_error"]
 
 
+@pytest.mark.slow
 def test_the_trace_alone_scores_the_experiment(experiment, capsys) -> None:
     rows, out = experiment
     trace = out.with_name(f"{out.stem}-jtf1{out.suffix}")
@@ -192,6 +195,7 @@ def test_the_trace_alone_scores_the_experiment(experiment, capsys) -> None:
         assert tracking[key] == pytest.approx(run_row[key], rel=1e-12), key
 
 
+@pytest.mark.slow
 def test_tracking_from_python_is_what_evaluate_reports(experiment, capsys) -> None:
     """The library alone (no argparse) scores the trace as ``hdhil evaluate`` does."""
     from hdhil.rig.trace_score import tracking_from_trace
@@ -205,6 +209,7 @@ def test_tracking_from_python_is_what_evaluate_reports(experiment, capsys) -> No
     assert json.loads(json.dumps(tracking)) == json.loads(capsys.readouterr().out)["tracking"]
 
 
+@pytest.mark.slow
 def test_plot_draws_fig8(experiment, tmp_path, capsys) -> None:
     _rows, out = experiment
     trace = out.with_name(f"{out.stem}-jtf1{out.suffix}")

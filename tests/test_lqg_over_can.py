@@ -8,6 +8,8 @@ import pytest
 
 from hdhil.cli import main
 
+pytestmark = [pytest.mark.slow]
+
 
 @pytest.fixture(scope="module")
 def laws(tmp_path_factory):

@@ -2,15 +2,12 @@
 
 The processes share only the bus, inside a private network namespace created for the
 test, with loopback alone (multicast routed to ``lo``), so no frame can leave the
-machine.  Skipped, with the reason, where a namespace cannot be created (not root, no
-iproute2).
+machine (the ``netns`` fixture of conftest: it needs root and iproute2).
 """
 
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -21,32 +18,10 @@ import pytest
 
 from hdhil.dbc import codec
 
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess, pytest.mark.netns, pytest.mark.realtime]
+
 GROUP_CONTROL = "239.74.163.2"
 GROUP_TRUTH = "239.74.163.3"
-
-
-def _ip(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(["ip", *args], capture_output=True, text=True, check=False)
-
-
-@pytest.fixture
-def netns():
-    if shutil.which("ip") is None:
-        pytest.skip("iproute2 ('ip') is not installed")
-    if os.geteuid() != 0:
-        pytest.skip("creating a network namespace needs root")
-    name = f"hdhil-test-{os.getpid()}"
-    made = _ip("netns", "add", name)
-    if made.returncode != 0:
-        pytest.skip(f"cannot create a network namespace: {made.stderr.strip()}")
-    try:
-        for cmd in (["link", "set", "lo", "up"], ["link", "set", "lo", "multicast", "on"],
-                    ["route", "add", "224.0.0.0/4", "dev", "lo"]):  # fmt: skip
-            r = _ip("netns", "exec", name, "ip", *cmd)
-            assert r.returncode == 0, r.stderr
-        yield name
-    finally:
-        _ip("netns", "del", name)
 
 
 def _hdhil(ns: str, *args: str) -> subprocess.Popen:

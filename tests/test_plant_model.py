@@ -17,6 +17,7 @@ import math
 
 import can
 import pytest
+from conftest import FrameRecorder
 from runs import lockstep
 
 from hdhil.cli import main
@@ -86,31 +87,12 @@ def rigid_drive(site: NodeSite) -> DriveNode:
     return DriveNode(site.bus, RigidInertia(), site.drive_config(), truth_bus=site.truth_bus)
 
 
-class _Frames(can.Listener):
-    """Truth velocity and the firmware's telemetry, with their (simulated) times."""
-
-    def __init__(self) -> None:
-        self.truth: list[tuple[float, float]] = []
-        self.telemetry: list[tuple[float, float]] = []  # (T_meas, velocity)
-        self._motion = codec("truth", "TRUTH_MOTION")
-        self._tpdo1 = codec("control", "CTRL_TPDO1")
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if msg.channel == CHANNEL_NUMBER["truth"] and msg.arbitration_id == self._motion.frame_id:
-            self.truth.append((msg.timestamp, self._motion.decode(msg.data)[2]))  # omega_motor
-        elif msg.channel == CHANNEL_NUMBER["control"] and msg.arbitration_id == (
-            self._tpdo1.frame_id
-        ):
-            T_meas, _filtered, velocity, _current = self._tpdo1.decode(msg.data)
-            self.telemetry.append((T_meas, velocity))
-
-
 def test_the_example_plant_is_a_plant_model():
     assert isinstance(RigidInertia(), PlantModel)
 
 
 def test_a_rigid_inertia_runs_in_the_lockstep_runner_as_its_physics_says():
-    frames = _Frames()
+    frames = FrameRecorder()
     r = lockstep(
         load_scenario("free-motion"),
         duration_s=0.5,
@@ -122,14 +104,14 @@ def test_a_rigid_inertia_runs_in_the_lockstep_runner_as_its_physics_says():
     assert r.cycles == 500 and not r.interrupted
     slope = 1.0 * STEP_V / 0.005  # k V / J, rad/s^2
     # The ramp: truth velocity against simulated time, after the step was applied.
-    truth = frames.truth
+    truth = [(t, v[2]) for t, v in frames.decoded("truth", "TRUTH_MOTION")]  # omega_motor
     ramp = [b for a, b in itertools.pairwise(truth) if b[1] > a[1] > 1.0]
     assert len(ramp) > 300
     (t0, w0), (t1, w1) = ramp[0], ramp[-1]
     assert (w1 - w0) / (t1 - t0) == pytest.approx(slope, rel=2e-3)
     assert w1 > 50  # it moved: about 58 rad/s after 0.45 s
     # The firmware reads it through its own sensors: torque k V, the velocity on the ramp.
-    T_meas, velocity = frames.telemetry[-1]
+    _, (T_meas, _filtered, velocity, _current) = frames.decoded("control", "CTRL_TPDO1")[-1]
     assert T_meas == pytest.approx(STEP_V, abs=VOLT2NM * 10 / 2048)  # one ADC step
     assert velocity == pytest.approx(w1, abs=VOLT2RADPS * 10 / 2048 + slope * 2e-3)
     assert r.velocity_final == pytest.approx(velocity, abs=0.01)
@@ -215,6 +197,7 @@ def test_other_plants_refuse_the_emulators_own_knobs():
         bus.shutdown()
 
 
+@pytest.mark.realtime
 def test_a_rigid_inertia_served_alone_follows_the_firmware_in_its_own_loop(serve_drive, capsys):
     """One node per process: the drive with the example plant served in the node loop of
     ``hdhil emulate``, the firmware command in this process over a virtual bus."""
@@ -237,6 +220,7 @@ def test_a_rigid_inertia_served_alone_follows_the_firmware_in_its_own_loop(serve
     assert drive.diagnostics.syncs > 300
 
 
+@pytest.mark.slow
 def test_the_emulators_plant_computes_its_step_map_when_the_drive_is_built():
     """The emulator's step map (and the scipy.linalg import it needs) is ready before the
     node loop starts: a cycle in a real-time or network run must not stall on it."""
@@ -252,6 +236,8 @@ def test_the_emulators_plant_computes_its_step_map_when_the_drive_is_built():
         bus.shutdown()
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_the_readme_example_runs_and_prints_what_the_readme_says():
     """The README's plug-in example (section "Your own plant or controller"), run as it
     stands in a fresh interpreter."""
@@ -269,6 +255,8 @@ def test_the_readme_example_runs_and_prints_what_the_readme_says():
     assert out.strip() == claimed
 
 
+@pytest.mark.slow
+@pytest.mark.realtime
 def test_firmware_realtime_paces_with_the_run_pacer_and_reports_its_statistics(serve_drive, capsys):
     """``hdhil firmware --realtime`` against a served drive: SYNC paced by the pacer of
     ``hdhil run --realtime``, its statistics in the summary line, covering the cycles in

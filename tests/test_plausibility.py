@@ -377,6 +377,7 @@ def _operational_faults(log: Path, r, kind: str) -> list[dict]:
     return [x for x in records if x["kind"] == kind and first - 1e-9 <= x["time"] < end - 1e-9]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("paper", [False, True], ids=["recommended", "paper"])
 def test_spikes_and_glitches_over_the_bus(tmp_path: Path, paper: bool) -> None:
     """Filtered-torque RMS error against truth (from the scenario's evaluate_from_s):
@@ -404,6 +405,7 @@ def test_spikes_and_glitches_over_the_bus(tmp_path: Path, paper: bool) -> None:
     assert off.controller["tacho_rejections"] == off.controller["encoder_rejections"] == 0
 
 
+@pytest.mark.slow
 def test_spikes_within_the_bound_are_not_counted(tmp_path: Path) -> None:
     """0.15 V spikes (8.4 rad/s; two in a row of opposite sign 16.9 rad/s) are within
     what the joint can do in a sample: passed on."""
@@ -415,6 +417,7 @@ def test_spikes_within_the_bound_are_not_counted(tmp_path: Path) -> None:
     assert r.controller["tacho_rejections"] == 0
 
 
+@pytest.mark.slow
 def test_a_saturated_tacho_is_bridged_announced_and_cleared(tmp_path: Path) -> None:
     """The tacho ADC at full scale for 50 ms at speed: no lock-out (the run ends in
     operation), every sensor error the controller raises by EMCY is cleared again by

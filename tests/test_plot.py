@@ -97,6 +97,7 @@ def _data(path: Path, scenario: str) -> PlotData:
     return plot_data(recording_from_trace(path)[0], fw)
 
 
+@pytest.mark.slow
 def test_free_motion_spectrum_peaks_at_2x_and_4x_velocity(traces: dict[str, Path]) -> None:
     """[Taghirad97] Fig. 8: peaks at twice and four times the (flat) motor velocity."""
     data = _data(traces["free"], "free-motion")
@@ -107,6 +108,7 @@ def test_free_motion_spectrum_peaks_at_2x_and_4x_velocity(traces: dict[str, Path
     np.testing.assert_allclose(peaks, [2 * v, 4 * v], rtol=0.01)
 
 
+@pytest.mark.slow
 def test_output_angle_from_encoder_matches_truth(traces: dict[str, Path]) -> None:
     with_truth = _data(traces["mis"], "misalignment")
     without = _data(traces["no_truth"], "misalignment")
@@ -119,6 +121,7 @@ def test_output_angle_from_encoder_matches_truth(traces: dict[str, Path]) -> Non
     np.testing.assert_array_equal(with_truth.T_filtered, without.T_filtered)  # telemetry
 
 
+@pytest.mark.slow
 def test_sensor_only_trace_gets_offline_filtered_torque(traces: dict[str, Path]) -> None:
     full = _data(traces["mis"], "misalignment")
     sensor_only = _data(traces["sensor_only"], "misalignment")
@@ -136,6 +139,7 @@ def _png_size(path: Path) -> tuple[int, int]:
     return struct.unpack(">II", head[16:24])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["free", "mis"])
 def test_cli_writes_a_png(
     name: str, traces: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
@@ -148,6 +152,7 @@ def test_cli_writes_a_png(
     assert 50_000 < out.stat().st_size < 5_000_000
 
 
+@pytest.mark.slow
 def test_cli_pdf_svg_and_window(
     traces: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -159,6 +164,7 @@ def test_cli_pdf_svg_and_window(
     assert "<svg" in text and "offline firmware chain" in text
 
 
+@pytest.mark.slow
 def test_figure_titles_name_the_window(traces: dict[str, Path]) -> None:
     fig = make_figure(_data(traces["free"], "free-motion"), "title", window=(0.8, 1.1))
     titles = [ax.get_title() for ax in fig.axes]
@@ -173,6 +179,7 @@ def test_figure_titles_name_the_window(traces: dict[str, Path]) -> None:
             assert legend.get_bbox_to_anchor()._bbox.y1 < 0  # type: ignore[attr-defined]
 
 
+@pytest.mark.slow
 def test_every_curve_is_inside_its_axes(traces: dict[str, Path]) -> None:
     """Each panel's y limits hold every curve drawn on it (no curve clipped)."""
     import numpy as np
@@ -189,6 +196,7 @@ def test_every_curve_is_inside_its_axes(traces: dict[str, Path]) -> None:
                 assert lo <= y.min() and y.max() <= hi, (ax.get_title(), line.get_label())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("argv", "message"),
     [

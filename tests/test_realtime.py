@@ -110,6 +110,8 @@ def _vm_locked_kb() -> int | None:
     return None
 
 
+@pytest.mark.slow
+@pytest.mark.realtime
 def test_realtime_cli_run_reports_statistics(tmp_path, capsys):
     assert gc.isenabled()
     affinity = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
@@ -142,6 +144,8 @@ def test_realtime_cli_run_reports_statistics(tmp_path, capsys):
     assert (tmp_path / "rt.blf").stat().st_size > 0
 
 
+@pytest.mark.slow
+@pytest.mark.realtime
 def test_realtime_text_output_has_tables_histogram_and_floor(capsys):
     assert main(["run", "--realtime", "--duration", "0.05", "--no-evaluate", "--trace", "",
                  "--floor-s", "0.02"]) == 0  # fmt: skip
@@ -190,6 +194,7 @@ def test_steal_report_over_an_interval():
     assert "CPU 1" in text and "250 ms" in text and "2.50%" in text
 
 
+@pytest.mark.realtime
 def test_fixed_spin_window_is_used():
     r = lockstep(load_scenario("free-motion"), duration_s=0.05, evaluate=False,
                      realtime=True, realtime_config=RealtimeConfig(spin_us=150))  # fmt: skip
@@ -239,6 +244,8 @@ def _refuse(exc_errno: int):
     return refuse
 
 
+@pytest.mark.slow
+@pytest.mark.realtime
 def test_refused_privileges_are_reported_and_the_run_goes_on(monkeypatch):
     """Without root: affinity, SCHED_FIFO, timer slack and mlockall each refused, the run
     still paces and measures, and the collector is back on afterwards."""
@@ -285,6 +292,8 @@ def test_threads_started_during_the_loop_do_not_inherit_sched_fifo():
     assert os.sched_getscheduler(0) == os.SCHED_OTHER
 
 
+@pytest.mark.slow
+@pytest.mark.realtime
 def test_switched_off_measures_are_neither_applied_nor_refused():
     cfg = RealtimeConfig(affinity=False, timer_slack=False, fifo=False, mlock=False)
     r = lockstep(load_scenario("free-motion"), duration_s=0.05, evaluate=False,
@@ -327,6 +336,7 @@ def test_rt_tasks_per_cpu_counts_other_user_space_rt_threads(tmp_path):
     assert ostuning.rt_tasks_per_cpu(str(tmp_path / "none")) == {}
 
 
+@pytest.mark.realtime
 @pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no affinity API")
 def test_affinity_avoids_a_cpu_with_another_rt_task(monkeypatch):
     allowed = sorted(os.sched_getaffinity(0))
@@ -430,6 +440,8 @@ def test_stage_timing_leaves_the_interrupt_unchanged_and_follows_swapped_stages(
         bus.shutdown()
 
 
+@pytest.mark.slow
+@pytest.mark.realtime
 def test_realtime_trace_timestamps_are_wall_time(tmp_path):
     """The simbus clock follows wall time: the trace spans at least the paced duration
     (pacing never runs early; checked loosely, no upper bound)."""
@@ -449,6 +461,8 @@ def test_lockstep_run_has_no_realtime_section():
     assert r.realtime is None
 
 
+@pytest.mark.slow
+@pytest.mark.realtime
 def test_realtime_on_the_virtual_interface():
     """Documented choice: --realtime works on any python-can interface, virtual included;
     the statistics cover every cycle in which the interrupt ran."""
@@ -458,6 +472,7 @@ def test_realtime_on_the_virtual_interface():
     _check_stats(r.realtime, 100)
 
 
+@pytest.mark.realtime
 def test_lqg_run_times_the_control_stage():
     r = lockstep(load_scenario("lqg-tracking"), duration_s=0.05, evaluate=False,
                      realtime=True)  # fmt: skip

@@ -200,6 +200,7 @@ def test_paper_filter_fails_the_same_signal(drive_signal) -> None:
     assert np.sqrt(np.mean(err**2)) > 1.0 * np.sqrt(np.mean(raw**2))
 
 
+@pytest.mark.slow
 def test_output_harmonic_removes_misalignment() -> None:
     # [Taghirad97] §5: a torque signature at the output angle; 1 Nm amplitude (2 Nm p-p, the
     # text's value after re-assembly), motor at 120 rad/s, so 0.19 Hz: it takes a few
@@ -230,6 +231,7 @@ def _ripple_freqs(speed: float) -> list[float]:
     return [m * speed / (2 * np.pi) for m in (2.0, 4.0)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("speed", [20.0, 156.0])
 def test_recommended_mode_passes_low_frequency_torque(speed: float) -> None:
     gains = torque_transfer(FirmwareConfig(), speed, FREQS_LOW)
@@ -242,6 +244,7 @@ def test_paper_mode_attenuates_low_frequency_torque(speed: float, limit: float) 
     assert np.all(gains < limit)  # measured: 0.05 at 20 rad/s, 0.53 at 156 rad/s
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("speed", [20.0, 156.0])
 @pytest.mark.parametrize("mode", ["paper", "recommended"])
 def test_both_modes_notch_the_ripple_frequencies(speed: float, mode: str) -> None:
@@ -313,6 +316,7 @@ def test_a_broken_covariance_is_reset_and_counted() -> None:
     assert np.all(np.isfinite(kf.P)) and np.all(np.isfinite(kf.x))
 
 
+@pytest.mark.slow
 def test_covariance_stays_symmetric_positive_definite_over_200000_steps() -> None:
     rng = np.random.default_rng(4)
     n = 200_000

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import can
 import pytest
+from conftest import FrameRecorder
 from runs import lockstep
 
 from hdhil.cli import main
@@ -30,6 +31,7 @@ def _decoded(path):
         ]
 
 
+@pytest.mark.slow
 def test_two_second_lockstep_run_over_the_bus(free_motion, tmp_path):
     trace = tmp_path / "run.blf"
     r = lockstep(free_motion, duration_s=2.0, seed=3, trace=trace)
@@ -81,6 +83,7 @@ def _relative(frames):
     return [(ch, i, ext, round(t - t0, 6), data) for ch, i, ext, t, data in frames]
 
 
+@pytest.mark.slow
 def test_same_seed_gives_an_identical_decoded_trace(free_motion, tmp_path):
     a, b, c = tmp_path / "a.blf", tmp_path / "b.blf", tmp_path / "c.blf"
     lockstep(free_motion, duration_s=0.5, seed=7, trace=a)
@@ -90,6 +93,7 @@ def test_same_seed_gives_an_identical_decoded_trace(free_motion, tmp_path):
     assert _relative(_decoded(a)) != _relative(_decoded(c))
 
 
+@pytest.mark.slow
 def test_trace_times_start_at_the_wall_clock_or_the_given_start(free_motion, tmp_path):
     """Simulated time 0 is the run's wall-clock start (or ``start_time``) in the file, and
     the sidecar JSON says so; pinned starts give identical absolute times."""
@@ -128,21 +132,6 @@ def test_trace_times_start_at_the_wall_clock_or_the_given_start(free_motion, tmp
         assert reader.start_timestamp == pytest.approx(pinned, abs=1e-3)
 
 
-class _Recorder(can.Listener):
-    """Every frame a tap listener is handed, in order, and how many hand-overs."""
-
-    def __init__(self) -> None:
-        self.frames: list[tuple] = []
-        self.calls = 0
-
-    def on_message_received(self, msg: can.Message) -> None:
-        self.on_frames([msg])
-
-    def on_frames(self, frames: list[can.Message]) -> None:
-        self.calls += 1
-        self.frames += [(m.channel, m.arbitration_id, m.timestamp, bytes(m.data)) for m in frames]
-
-
 def test_tap_draining_every_cycle_or_in_batches_hands_listeners_the_same_frames(
     free_motion, monkeypatch
 ):
@@ -152,12 +141,12 @@ def test_tap_draining_every_cycle_or_in_batches_hands_listeners_the_same_frames(
     seen = {}
     for every in (1, batch):
         monkeypatch.setattr(run_module, "TAP_EVERY_CYCLES", every)
-        recorder = _Recorder()
+        recorder = FrameRecorder(batches=True)  # handed each drain's frames at once
         lockstep(free_motion, duration_s=0.2, seed=2, extra_listeners=[recorder])
         seen[every] = recorder
     one, batched = seen[1], seen[batch]
-    assert len(one.frames) > 1400
-    assert batched.frames == one.frames
+    assert len(one.messages) > 1400 and batched.calls < one.calls
+    assert batched.records() == one.records()
     assert batched.calls < one.calls / 4  # it did batch
 
 
@@ -194,6 +183,7 @@ def _firmware_rms(evaluation):
     return firmware[0]["rms_error"]
 
 
+@pytest.mark.slow
 def test_cli_run_on_the_virtual_bus_is_evaluated_like_the_simulated_bus(tmp_path, capsys):
     """``hdhil run --interface virtual`` (python-can's bus, which stamps frames with the
     wall clock) has an evaluation with samples, in the same cycle time as ``simbus``: the
@@ -238,6 +228,7 @@ def test_cli_run_on_the_virtual_bus_is_evaluated_like_the_simulated_bus(tmp_path
     assert _firmware_rms(offline) == pytest.approx(_firmware_rms(ev_virt), rel=1e-6)
 
 
+@pytest.mark.slow
 def test_cli_run_json_and_trace(tmp_path, capsys):
     trace = tmp_path / "cli.csv"
     code = main(["run", "--duration", "0.2", "--seed", "2", "--trace", str(trace), "--json"])
@@ -250,6 +241,7 @@ def test_cli_run_json_and_trace(tmp_path, capsys):
     assert 0 < result["worst_case_load"] <= 0.60
 
 
+@pytest.mark.slow
 def test_cli_run_text_summary(tmp_path, capsys):
     code = main(["run", "--duration", "0.1", "--trace", str(tmp_path / "t.blf")])
     out = capsys.readouterr().out
@@ -273,6 +265,8 @@ def test_cli_run_user_errors_are_one_line(argv, message, capsys):
     assert message in err and "Traceback" not in err and len(err.splitlines()) == 1
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @pytest.mark.parametrize(
     ("suffix", "signame"), [(".blf", "SIGINT"), (".asc", "SIGINT"), (".log", "SIGTERM")]
 )
@@ -338,6 +332,8 @@ def test_run_uses_the_calibrated_gain(tmp_path, capsys):
     assert main([*args, "--calibration", str(tmp_path / "missing.toml")]) == 2
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @pytest.mark.parametrize("suffix", [".asc", ".log"])
 def test_sigkill_loses_at_most_the_last_second_of_a_line_based_trace(tmp_path, suffix):
     """After SIGKILL nothing can flush: what was written 1 s before the kill is all there."""
@@ -384,6 +380,7 @@ def test_sigkill_loses_at_most_the_last_second_of_a_line_based_trace(tmp_path, s
     assert after_n >= before_n and after_t >= before_t
 
 
+@pytest.mark.slow
 def test_logger_drops_no_frame_over_a_60_s_full_rate_run(free_motion, tmp_path):
     """Issue: the logger never drops a frame; count check over 60 s at the full 1 kHz rate."""
     trace = tmp_path / "minute.blf"

@@ -79,6 +79,8 @@ def test_the_api_checks_its_arguments() -> None:
         hdhil.run("free-motion", duration_s=-1.0)
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @pytest.mark.parametrize("scenario", ["free-motion", "lqg-tracking"])
 def test_run_evaluate_and_api_print_one_headline(scenario: str, tmp_path: Path) -> None:
     """`hdhil run`, `hdhil evaluate` of its trace, the API on the same trace and a
@@ -105,6 +107,8 @@ def test_run_evaluate_and_api_print_one_headline(scenario: str, tmp_path: Path) 
     assert result["headline"] == from_run
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_tracking_scenario_prints_no_ripple_table(tmp_path: Path) -> None:
     out = _hdhil("run", "--scenario", "lqg-tracking", "--duration", "1.2", "--trace", "")
     assert out.returncode == 0, out.stderr
@@ -113,6 +117,7 @@ def test_tracking_scenario_prints_no_ripple_table(tmp_path: Path) -> None:
     assert "kalman paper" not in out.stdout
 
 
+@pytest.mark.slow
 def test_sample_counts_agree() -> None:
     """The cycles run, the evaluation's samples and the headline's: one count."""
     result = hdhil.run("free-motion", duration_s=0.8, seed=1)

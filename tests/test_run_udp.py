@@ -8,9 +8,11 @@ from __future__ import annotations
 import json
 
 import pytest
-from test_multiprocess import _hdhil, netns  # noqa: F401  (the namespace fixture)
+from test_multiprocess import _hdhil
 
 from hdhil.cli import main
+
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess, pytest.mark.netns]
 
 GROUP = "239.74.163.6"
 
@@ -20,7 +22,7 @@ def _firmware_rms(evaluation):
     return firmware[0]["rms_error"]
 
 
-def test_run_on_udp_multicast_is_evaluated_like_the_simulated_bus(netns, capsys):  # noqa: F811
+def test_run_on_udp_multicast_is_evaluated_like_the_simulated_bus(netns, capsys):
     """udp_multicast stamps a received frame with the kernel's receive time (the sender's
     timestamp in the packet is replaced), so the tap stamps control frames with the cycle
     clock as on ``virtual``.  A frame that reaches the tap's socket only after its cycle

@@ -263,6 +263,7 @@ def test_speed_chirp_sweeps_20_to_200_rad_s_and_back() -> None:
         assert peak == pytest.approx(2 * speed, rel=0.05), t0
 
 
+@pytest.mark.slow
 def test_torque_steps_show_in_the_true_torque_with_flexspline_ringing() -> None:
     """Load steps make T_true step (~-d tau, most at once) and ring at the flexspline
     mode; the motor keeps running (no stall, current far from its limit)."""

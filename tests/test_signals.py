@@ -25,6 +25,8 @@ import pytest
 
 from hdhil.cli import main
 
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess]
+
 #: How long a command may take to end after the signal (s): a cycle boundary, the
 #: trace writer finishing its file, the interpreter's exit; generous for a loaded machine.
 STOP_BOUND_S = 8.0

@@ -83,6 +83,7 @@ def healthy(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, dict[str, An
     return code, _strict_json(out.getvalue()), trace
 
 
+@pytest.mark.slow
 def test_healthy_soak_blocks_partition_the_run(healthy: tuple[int, dict, Path]) -> None:
     _code, r, _trace = healthy
     blocks = r["blocks"]
@@ -109,6 +110,7 @@ def test_healthy_soak_blocks_partition_the_run(healthy: tuple[int, dict, Path]) 
     assert max(b["tracking_max"] for b in blocks) == pytest.approx(tracking["max_abs_error"])
 
 
+@pytest.mark.slow
 def test_healthy_soak_filter_health_resources_and_verdicts(
     healthy: tuple[int, dict, Path],
 ) -> None:
@@ -139,6 +141,7 @@ def test_healthy_soak_filter_health_resources_and_verdicts(
     assert tracking["last_half_mean"] == pytest.approx(rms[-1])
 
 
+@pytest.mark.slow
 def test_text_report_lists_every_block_and_verdict(capsys: pytest.CaptureFixture[str]) -> None:
     code = main(["soak", "--scenario", "misalignment", "--duration", "4", "--every", "2",
                  "--settle", "0", "--trace", ""])  # fmt: skip
@@ -155,6 +158,7 @@ def test_text_report_lists_every_block_and_verdict(capsys: pytest.CaptureFixture
     assert "result: " in text
 
 
+@pytest.mark.slow
 def test_default_scenario_runs_the_six_order_filter_under_lqg(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
@@ -175,6 +179,7 @@ def _poison_differentiator(controller: ControllerNode, block: Block) -> None:
         controller.isr.chain.differentiator.a_1 = math.nan
 
 
+@pytest.mark.slow
 def test_injected_nan_fails_the_non_finite_verdict_and_exits_1(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -196,6 +201,7 @@ def test_injected_nan_fails_the_non_finite_verdict_and_exits_1(
     assert _verdict(r, "run completed")["passed"]
 
 
+@pytest.mark.slow
 def test_broken_covariance_fails_the_spd_verdict() -> None:
     def break_P(controller: ControllerNode, block: Block) -> None:
         if block.index == 1:
@@ -210,6 +216,7 @@ def test_broken_covariance_fails_the_spd_verdict() -> None:
     assert not r.passed
 
 
+@pytest.mark.slow
 def test_sensor_gain_drift_fails_the_stationarity_verdicts() -> None:
     def drift(controller: ControllerNode, block: Block) -> None:
         if block.index == 3:  # the firmware's torque gain 10 % off from block 4 on
@@ -227,6 +234,7 @@ def test_sensor_gain_drift_fails_the_stationarity_verdicts() -> None:
     assert _verdict(r, "covariance SPD").passed
 
 
+@pytest.mark.slow
 def test_memory_growth_verdict_sees_a_leak() -> None:
     kept: list[mmap.mmap] = []
 

@@ -7,6 +7,8 @@ import json
 import time
 from pathlib import Path
 
+import pytest
+
 from hdhil.analysis.soak import run_soak
 from hdhil.cli import main
 from hdhil.hostsim.drive import DriveConfig, DriveNode
@@ -20,6 +22,7 @@ def _dcf(tmp_path: Path, values: dict[str, str]) -> Path:
     return make(tmp_path, values)
 
 
+@pytest.mark.slow
 def test_run_that_never_reaches_operation_is_a_verdict(tmp_path, capsys):
     trace = tmp_path / "lossy.blf"
     code = main(["run", "--duration", "1", "--fault", "control.loss_rate=0.99", "--json",
@@ -43,6 +46,7 @@ def test_run_text_output_names_the_start_up_verdict(capsys):
     assert "verdict            stopped in start-up" in out
 
 
+@pytest.mark.realtime
 def test_firmware_without_a_drive_is_a_verdict(capsys):
     channel = f"hdhil-nodrive-{time.monotonic_ns()}"
     code = main(["firmware", "--interface", "virtual", "--channel", channel,
@@ -56,6 +60,7 @@ def test_firmware_without_a_drive_is_a_verdict(capsys):
     assert captured.err.startswith("hdhil: firmware stopped in start-up")
 
 
+@pytest.mark.realtime
 def test_a_dcf_value_the_drive_refuses_is_an_input_error(tmp_path, serve_drive, capsys):
     dcf = _dcf(tmp_path, {"1800sub2": "245"})  # reserved transmission type
     _drive, bus_args = serve_drive(

@@ -9,9 +9,9 @@ import json
 import math
 from pathlib import Path
 
-import can
 import pytest
 from canopen.emcy import EMCY_STRUCT
+from conftest import FrameRecorder
 from runs import lockstep
 
 from hdhil.firmware.config import FirmwareConfig
@@ -57,6 +57,7 @@ def test_the_encoder_wrap_counts_as_motion() -> None:
     assert check.torque_stuck
 
 
+@pytest.mark.slow
 def test_a_stuck_torque_sensor_in_a_run_raises_emcy_0x7300() -> None:
     scenario = load_scenario("free-motion")
     flags = ["sensors.stuck=[{channel='torque',start_s=1.0,duration_s=0.3}]"]
@@ -127,19 +128,15 @@ def test_lost_samples_count_as_time_for_the_encoder_velocity() -> None:
     assert not check.tacho_stuck
 
 
+@pytest.mark.slow
 def test_a_stuck_tacho_in_a_run_raises_emcy_0x7301_and_counts() -> None:
     scenario = load_scenario("speed-chirp")  # the motor speed keeps changing
     flags = ["sensors.stuck=[{channel='tacho',start_s=1.0}]"]
     stuck = dataclasses.replace(scenario, faults=with_fault_flags(scenario.faults, flags))
-    codes: list[tuple[int, int]] = []
-
-    class Emcy(can.Listener):
-        def on_message_received(self, msg: can.Message) -> None:
-            if msg.arbitration_id == 0x081 and not msg.is_extended_id:
-                code, _register, manufacturer = EMCY_STRUCT.unpack(bytes(msg.data))
-                codes.append((code, manufacturer[0]))
-
-    result = lockstep(stuck, 3.0, evaluate=False, extra_listeners=[Emcy()])
+    frames = FrameRecorder()
+    result = lockstep(stuck, 3.0, evaluate=False, extra_listeners=[frames])
+    emcys = [EMCY_STRUCT.unpack(bytes(m.data)) for m in frames.with_id(0x081, extended=False)]
+    codes = [(code, manufacturer[0]) for code, _register, manufacturer in emcys]
     assert result.faults and result.faults["stuck"] > 0
     assert result.controller["stuck_tacho_events"] == 1
     assert result.controller["stuck_sensor_events"] == 1

@@ -10,6 +10,8 @@ import sys
 
 import pytest
 
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess]
+
 
 def _filtered_error(cwd, *flags: str) -> tuple[float, dict]:
     out = subprocess.run(

@@ -5,9 +5,9 @@ gzip), can-utils' log2asc/asc2log, and real dates in the traces."""
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import itertools
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -15,6 +15,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from conftest import require_tools, skip_covered_elsewhere
 
 from hdhil.cli import main
 from hdhil.commands.options import NO_INTERFACE, add_bus_options, open_bus
@@ -129,6 +130,7 @@ FORMATS = [".blf", ".asc", ".log", ".csv", ".trc", ".asc.gz", ".log.gz", ".csv.g
            ".trc.gz"]  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("suffix", FORMATS)
 def test_every_format_round_trips_through_python_can(tmp_path, suffix):
     """What ``run`` writes, python-can's LogReader reads back frame for frame, and
@@ -140,7 +142,12 @@ def test_every_format_round_trips_through_python_can(tmp_path, suffix):
 
 
 def test_mf4_round_trip(tmp_path, capsys):
-    pytest.importorskip("asammdf", reason="asammdf (the mf4 extra) is not installed")
+    skip_covered_elsewhere(
+        importlib.util.find_spec("asammdf") is not None,
+        "asammdf (the mf4 extra)",
+        "HDHIL_MF4_ELSEWHERE",
+        "the MF4 step of .ci/run, in a venv of its own",
+    )
     reference = _frames(_run(tmp_path, "ref.blf"))
     path = _run(tmp_path, "t.mf4")
     assert _frames(path) == reference
@@ -153,6 +160,7 @@ def test_mf4_round_trip(tmp_path, capsys):
     capsys.readouterr()
 
 
+@pytest.mark.slow
 def test_mf4_without_asammdf_is_a_clear_error(tmp_path, monkeypatch, capsys):
     import hdhil.can.traces.formats as formats
 
@@ -193,13 +201,13 @@ def test_bad_start_time_is_one_line(capsys):
 # ------------------------------------------------------------------ can-utils
 
 
-@pytest.mark.skipif(
-    shutil.which("log2asc") is None or shutil.which("asc2log") is None,
-    reason="can-utils (log2asc, asc2log) is not installed",
-)
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.canutils
 def test_can_utils_log2asc_asc2log_round_trip(tmp_path):
     """candump log -> log2asc -> asc2log gives back every frame, in order, with the same
     times relative to the first frame and one ASC header."""
+    require_tools("log2asc", "asc2log", package="can-utils")
     log = _run(tmp_path, "t.log")
     asc, back = tmp_path / "t.asc", tmp_path / "back.log"
     subprocess.run(["log2asc", "-I", str(log), "-O", str(asc), "can0", "can1"], check=True,
@@ -284,6 +292,7 @@ def test_dump_csv_has_the_control_law_columns_when_one_runs(tmp_path, capsys):
     assert len(header) == 6 and rows  # --id keeps only that message's columns
 
 
+@pytest.mark.slow
 def test_filter_reads_the_per_cycle_csv_and_writes_units(tmp_path, capsys):
     trace = _run(tmp_path, "t.blf")
     cycles, filtered = tmp_path / "cycles.csv", tmp_path / "filtered.csv"
@@ -324,6 +333,8 @@ def _on_a_terminal(args: list[str]) -> tuple[int, str, str]:
     return code, out, b"".join(chunks).decode(errors="replace")
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @pytest.mark.parametrize(
     "args",
     [
@@ -358,6 +369,8 @@ def test_soak_blocks_adapt_to_short_runs():
 # ------------------------------------------------------------------ one DBC view
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_dbc_export_decodes_a_whole_trace_with_cantools(tmp_path, capsys):
     """``hdhil dbc export`` gives one database for both buses: cantools decodes every
     frame of a candump log (none unknown), with the value tables and units."""
@@ -396,6 +409,8 @@ def test_dbc_export_refuses_a_directory(tmp_path, capsys):
 # ------------------------------------------------------------------ the Python API
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_the_readme_python_api_example_runs_and_prints_what_the_readme_says(tmp_path):
     """The README's "Python API" example, run as it stands in a fresh interpreter (in an
     empty directory), prints exactly the lines the README shows."""
@@ -411,6 +426,7 @@ def test_the_readme_python_api_example_runs_and_prints_what_the_readme_says(tmp_
     assert (tmp_path / "api-run.blf").is_file() and (tmp_path / "api-run.blf.json").is_file()
 
 
+@pytest.mark.slow
 def test_api_arrays_match_the_trace(tmp_path):
     """The run's per-cycle arrays (samples in operation) are a stretch of the trace's
     per-cycle table (every sample, start-up included), value for value."""

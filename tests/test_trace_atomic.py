@@ -61,6 +61,8 @@ def _read_all(path: Path) -> list[can.Message]:
         return list(reader)
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @pytest.mark.parametrize(
     ("suffix", "sig"),
     [(".blf", signal.SIGINT), (".asc", signal.SIGTERM), (".log.gz", signal.SIGINT)],
@@ -96,6 +98,8 @@ def test_an_interrupted_run_keeps_a_valid_trace_and_its_sidecar(tmp_path, suffix
     assert not _temporaries(tmp_path)
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_a_blf_trace_of_a_run_interrupted_twice_is_complete(tmp_path):
     """A second Ctrl-C interrupts at once: the writer still closes the BLF file properly
     (python-can's BLFReader reads it to the end) and renames it into place."""
@@ -122,6 +126,8 @@ def test_a_blf_trace_of_a_run_interrupted_twice_is_complete(tmp_path):
     assert not _temporaries(tmp_path)
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_a_killed_run_leaves_the_complete_trace_in_place(tmp_path):
     """SIGKILL of the run: the writer process reads every batch handed over, closes the
     file and renames it over the old trace; the temporary is gone."""
@@ -272,6 +278,8 @@ def test_a_trace_that_became_a_fifo_is_not_replaced(tmp_path):
     assert not _temporaries(tmp_path)
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_log_interrupted_keeps_a_valid_trace(tmp_path):
     """``hdhil log`` writes through the same writer: Ctrl-C gives a valid trace."""
     trace = tmp_path / "log.asc"
@@ -294,6 +302,8 @@ def test_log_interrupted_keeps_a_valid_trace(tmp_path):
     assert not _temporaries(tmp_path)
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_a_second_signal_while_the_first_sets_the_stop_request_does_not_hang():
     """Two stopping signals back to back: the second one's handler runs while the first
     one's is setting the stop request (holding the event's lock, which is not reentrant).

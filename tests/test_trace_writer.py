@@ -10,6 +10,7 @@ from pathlib import Path
 
 import can
 import pytest
+from conftest import FrameRecorder
 
 from hdhil.can.simbus import SimClock
 from hdhil.can.traces.tap import BusTap, FrameCounter
@@ -83,6 +84,8 @@ def test_an_unwritable_trace_is_refused_before_the_run(tmp_path):
         WriterProcess(tmp_path / "x.txt")
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_the_file_is_closed_and_complete_when_the_run_is_killed(tmp_path):
     """SIGKILL of the run: the child still writes every batch handed over and closes the
     BLF file properly (a BLF written in-process would be left without its final header)."""
@@ -114,14 +117,6 @@ def test_the_file_is_closed_and_complete_when_the_run_is_killed(tmp_path):
     assert [f[3] for f in frames] == expected
 
 
-class _Collect(can.Listener):
-    def __init__(self) -> None:
-        self.frames: list[can.Message] = []
-
-    def on_message_received(self, msg: can.Message) -> None:
-        self.frames.append(msg)
-
-
 def test_the_tap_merges_channels_in_time_order_for_every_kind_of_listener():
     """Frames of two channels reach a plain listener one by one and batch listeners
     (``on_frames``) in one call, the same frames in the same (timestamp) order, stamped
@@ -131,7 +126,7 @@ def test_the_tap_merges_channels_in_time_order_for_every_kind_of_listener():
     truth = can.Bus(interface="simbus", channel="t-tap-t", clock=clock, bitrate=0)
     tap_c = can.Bus(interface="simbus", channel="t-tap-c")
     tap_t = can.Bus(interface="simbus", channel="t-tap-t")
-    plain, counter = _Collect(), FrameCounter()
+    plain, counter = FrameRecorder(), FrameCounter()  # one by one, in batches
     tap = BusTap({0: tap_c, 1: tap_t}, [plain, counter])
     try:
         for k in range(3):
@@ -139,9 +134,9 @@ def test_the_tap_merges_channels_in_time_order_for_every_kind_of_listener():
             control.send(can.Message(arbitration_id=0x080, data=b"\x01", is_extended_id=False))
             truth.send(can.Message(arbitration_id=0x1F0001, data=bytes(8), is_extended_id=True))
         assert tap.poll() == 6 and tap.poll() == 0
-        got = [(m.channel, m.arbitration_id) for m in plain.frames]
+        got = [(m.channel, m.arbitration_id) for m in plain.messages]
         assert got == [(1, 0x1F0001), (0, 0x080)] * 3  # truth at t(k), SYNC a frame later
-        times = [m.timestamp for m in plain.frames]
+        times = [m.timestamp for m in plain.messages]
         assert times == sorted(times)
         assert counter.counts == {(0, 0x080): 3, (1, 0x1F0001): 3}
     finally:

@@ -142,6 +142,7 @@ def synthetic(n: int, R: float, q_h: float, q_r: float, seed: int) -> tuple[np.n
     return y, np.full(n, 150.0), encoder
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("R", "q_h", "q_r"),
     [(1e-3, 1e-6, 1e-4), (4e-4, 1e-5, 1e-5), (1e-2, 1e-7, 1e-3)],
@@ -204,6 +205,7 @@ def _tune_json(capsys: pytest.CaptureFixture[str], *argv: str) -> dict:
     return json.loads(capsys.readouterr().out)
 
 
+@pytest.mark.slow
 def test_cli_tunes_emulated_misalignment_and_writes_a_mergeable_toml(
     traces: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -236,6 +238,7 @@ def test_cli_tunes_emulated_misalignment_and_writes_a_mergeable_toml(
     assert merged.plant == load_scenario("misalignment").plant  # only the filter changes
 
 
+@pytest.mark.slow
 def test_cli_text_report(traces: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
     assert (
         main(["tune", str(traces["full"]), "--scenario", "misalignment", "--max-evals", "5"]) == 0
@@ -246,6 +249,7 @@ def test_cli_text_report(traces: dict[str, Path], capsys: pytest.CaptureFixture[
         assert needle in text
 
 
+@pytest.mark.slow
 def test_truth_is_not_used(traces: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
     argv = ("--scenario", "misalignment", "--max-evals", "30")
     with_truth = _tune_json(capsys, str(traces["full"]), *argv)
@@ -255,6 +259,7 @@ def test_truth_is_not_used(traces: dict[str, Path], capsys: pytest.CaptureFixtur
     assert without["rms_vs_truth"] is None
 
 
+@pytest.mark.slow
 def test_tune_recording_from_python_gives_what_the_command_prints(
     traces: dict[str, Path], capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -285,6 +290,7 @@ def test_paper_mode_scenario_is_tuned_as_recommended(tmp_path: Path) -> None:
     assert res.paper == {"q_motor": 1e3, "r": 1.0}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
