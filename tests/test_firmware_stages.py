@@ -1,4 +1,4 @@
-"""Tests of the pure firmware stages (firmware/stages.py) and their configuration
+"""Tests of the pure firmware stages (firmware/stages/) and their configuration
 (firmware/config.py), ported from [Taghirad97], listing A.1 ``c_int10``."""
 
 from __future__ import annotations
