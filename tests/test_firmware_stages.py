@@ -1,5 +1,5 @@
-"""Tests of the pure firmware stages (firmware/stages.py) and their configuration
-(firmware/config.py), ported from [Taghirad97], listing A.1 ``c_int10``."""
+"""Tests of the pure firmware stages (firmware/stages/) and their configuration
+(firmware/config/), ported from [Taghirad97], listing A.1 ``c_int10``."""
 
 from __future__ import annotations
 

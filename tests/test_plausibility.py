@@ -1,6 +1,6 @@
-"""The sensor plausibility stage (firmware/stages.py ``SensorPlausibility``), its place in
-the filter chain and the interrupt (firmware/isr.py), and its effect over the bus with
-injected tacho spikes and encoder glitches (``[faults.sensors]``)."""
+"""The sensor plausibility stage (firmware/stages/plausibility.py ``SensorPlausibility``),
+its place in the filter chain and the interrupt (firmware/isr.py), and its effect over the
+bus with injected tacho spikes and encoder glitches (``[faults.sensors]``)."""
 
 from __future__ import annotations
 
