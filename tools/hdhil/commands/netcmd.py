@@ -1,37 +1,16 @@
 """One node per process, on any python-can interface: ``emulate``, ``firmware``, ``log``,
 ``sdo`` and ``nmt``.
 
-``hdhil run`` puts everything in one process on the simulated bus.  These commands split
-the system the way a bench is split: the drive emulator in one process, the firmware in
-another, a logger in a third, all on a shared bus, e.g. SocketCAN ``vcan0``, a real
-adapter, or python-can's ``udp_multicast`` (what the tests use, inside a private network
-namespace).  Any node can be replaced by real hardware: ``hdhil firmware`` against a real
-drive, ``hdhil emulate`` against real firmware.
-
-Pacing of ``hdhil firmware`` (the SYNC producer):
-
-- default, *network lockstep*: SYNC k+1 goes out as soon as the controller has answered
-  the drive's sensor frame of cycle k (deterministic order, faster than real time), or
-  after the cycle timeout of the node loop (:data:`hdhil.rig.loop.CYCLE_TIMEOUT_S`);
-- ``--realtime``: SYNC at the sample period, paced by the same pacer as
-  ``hdhil run --realtime`` (:class:`hdhil.rig.realtime.RealtimeLoop`: sleep, then spin
-  to the deadline, with the same process settings where permitted).
-
-Every node runs in the one node loop (:mod:`hdhil.rig.loop`), as in ``hdhil run``.
-
-Faults (the scenario's ``[faults]`` table with ``--fault KEY=VALUE`` flags merged over it,
-:mod:`hdhil.rig.faults`): each process injects the faults that arise in it.
-
-- ``emulate``: the sensor faults (``sensors.*``, at the plant, in plant time), and the
-  bus faults of ``control.*`` (and ``truth.*`` with a truth bus) on the drive's own
-  transmissions (:class:`hdhil.can.faults.FaultyTransmitBus`, timed from the process's start);
-  object 0x2310 switches sensor faults and silences the drive at run time.
-- ``firmware``: the bus faults of ``control.*`` on the controller's own transmissions.
-
-With both nodes started with the same table, each drops, delays or corrupts its own
-frames, as the simulated bus of ``hdhil run`` does for all of them (error frames
-excepted: a node cannot send one).  ``--fault-log`` writes every injected fault; the
-counts are in the summary line.
+``hdhil run`` puts everything in one process on the simulated bus; these commands split
+the system the way a bench is split (drive emulator, firmware and logger in processes of
+their own on a shared bus: SocketCAN, a real adapter, or ``udp_multicast``), so any node
+can be replaced by real hardware. Every node runs in the one node loop
+(:mod:`hdhil.rig.loop`). ``firmware`` paces SYNC in network lockstep (SYNC k+1 once the
+drive's cycle k is answered, or after the loop's cycle timeout) or, with ``--realtime``,
+by the pacer of ``hdhil run --realtime``. Each process injects the faults that arise in
+it (``emulate``: sensor faults and its own transmissions; ``firmware``: its own
+transmissions), from the request's ``[faults]`` table. ``docs/hardware.md`` has the
+recipes.
 """
 
 from __future__ import annotations

@@ -1,32 +1,16 @@
 """Evaluation against ground truth: the firmware's filter side by side with alternatives.
 
 A :class:`Recording` is what was on the buses, one row per control cycle: the drive's raw
-sensor frame (ADC counts and encoder), the controller's telemetry, and the emulator's
-truth for the same sample instant.  It is built by :class:`RecordingListener`, a python-can
-listener, either live during ``hdhil run`` or from a trace file, so both are evaluated by
-the same code.
-
-:func:`evaluate` scores candidates on the same samples:
-
-- ``raw``: the calibrated measurement, no filtering;
-- ``firmware``: the filtered torque the controller reported in its telemetry;
-- the two Kalman filter modes, re-run offline through the firmware's own
-  :class:`firmware.isr.TorqueFilterChain` on the recorded counts (paper mode is listing A.1
-  / the 6th-order model of [Taghirad97] §5; recommended mode is the angle-locked filter);
-- baselines: the listing's 2nd-order Butterworth low-pass at several cut-offs (revision note
-  "01/11/95 hdt Butterworth filter for torque") and a notch bank tracking 2x/4x motor
-  velocity.
-
-Metrics, each against the emulator's true transmitted torque ``T_true``:
-
-- RMS error, also as a fraction of the raw RMS error;
-- amplitude of the error at each ripple harmonic (2x and 4x the motor angle, 1x the
-  output angle), found by demodulating with the true angle over the samples where the
-  motor turns. This gives the reduction in dB against raw; at 1x output it is also
-  reported as the residual misalignment peak-to-peak;
-- lag: the delay d minimising the mean of (x(k) − T_true(k − d))², refined between
-  samples by a parabola through the minimum. It is reported only when the true torque
-  varies enough for a delay to be defined (e.g. the ``torque-steps`` scenario).
+sensor frame, the controller's telemetry and the emulator's truth for the same instant,
+built by :class:`RecordingListener` live during a run or from a trace, so both are
+evaluated by the same code. :func:`evaluate` scores, over the firmware's samples from the
+evaluation start, the raw measurement, the firmware's filtered torque, both Kalman modes
+re-run offline through the firmware's own :class:`firmware.isr.TorqueFilterChain`, the
+listing's Butterworth low-pass at several cut-offs and a 2x/4x notch bank. Metrics
+against the true torque: RMS error (and its share of raw), the error's amplitude at each
+ripple harmonic (2x, 4x motor angle; 1x output angle: the residual misalignment) by
+demodulation with the true angle, and the lag that best aligns a candidate with the truth
+(where the true torque varies enough to define one).
 """
 
 from __future__ import annotations
