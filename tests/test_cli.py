@@ -79,3 +79,33 @@ def test_a_run_starts_without_scipy_signal_stats_or_matplotlib():
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          timeout=120, check=True).stdout  # fmt: skip
     assert out.strip() == "[]"
+
+
+def test_an_import_error_caused_by_ctrl_c_is_an_interruption(monkeypatch, capsys) -> None:
+    """A Ctrl-C inside a compiled extension's import surfaces as the ImportError the
+    extension raises, with the KeyboardInterrupt as its context: one line, exit 130."""
+    from hdhil import cli
+
+    def interrupted_import(_args):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise ImportError("initialization of an extension failed") from None
+
+    def failed_import(_args):
+        raise ImportError("no module named nothing")
+
+    class Parser:
+        func = None
+
+        def parse_args(self, argv):
+            return argparse.Namespace(func=self.func)
+
+    parser = Parser()
+    monkeypatch.setattr(cli, "build_parser", lambda argv: parser)
+    parser.func = interrupted_import
+    assert cli.main(["x"]) == 130
+    assert capsys.readouterr().err == "hdhil: interrupted\n"
+    parser.func = failed_import
+    with pytest.raises(ImportError, match="no module named nothing"):
+        cli.main(["x"])

@@ -137,6 +137,18 @@ def build_parser(
     return parser
 
 
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is in ``exc``'s chain of causes and contexts."""
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        if isinstance(current, KeyboardInterrupt):
+            return True
+        seen.add(id(current))
+        current = current.__cause__ or current.__context__
+    return False
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command; the exit code (see the module docstring)."""
     previous = terminate_as_interrupt()  # SIGTERM/SIGHUP: like Ctrl-C; temporaries removed
@@ -148,6 +160,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"hdhil: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        print("hdhil: interrupted", file=sys.stderr)
+        return 130
+    except ImportError as exc:
+        # A Ctrl-C inside a compiled extension's import (scipy's, loaded by a command on
+        # first use) reaches here as the ImportError the extension raised instead.
+        if not _caused_by_interrupt(exc):
+            raise
         print("hdhil: interrupted", file=sys.stderr)
         return 130
     except SystemExit as exc:  # --help (0); in-process callers get the code back
