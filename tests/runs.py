@@ -7,7 +7,8 @@ from __future__ import annotations
 from typing import Any
 
 from hdhil.rig.request import resolve
-from hdhil.rig.runner import RunResult, run_lockstep
+from hdhil.rig.result import RunResult
+from hdhil.rig.runner import run_lockstep
 
 
 def lockstep(

@@ -15,12 +15,9 @@ from pathlib import Path
 import pytest
 
 from hdhil.cli import main
-from hdhil.rig.campaign import (
-    expand,
-    load_campaign,
-    local_executor,
-    run_campaign,
-)
+from hdhil.rig.campaign import local_executor, run_campaign
+from hdhil.rig.campaign_file import load_campaign
+from hdhil.rig.campaign_variants import expand
 from hdhil.rig.variant import WALL_CLOCK_KEYS
 
 distributed = pytest.importorskip("distributed", reason="the cluster extra (hdhil[cluster])")
@@ -365,7 +362,7 @@ def test_progress_on_a_terminal_with_eta_and_running_counts_off_with_json(tmp_pa
 @pytest.mark.slow
 @pytest.mark.subprocess
 def test_an_early_stop_is_recorded_with_the_runs_own_reason():
-    from hdhil.rig.campaign import judge
+    from hdhil.rig.campaign_metrics import judge
 
     variant = expand(load_campaign("smoke"))[0]
     criteria = load_campaign("smoke").criteria

@@ -10,7 +10,7 @@ from runs import lockstep
 from hdhil.hostsim.drive import DriveNode
 from hdhil.rig import loop
 from hdhil.rig.factories import NodeSite, scenario_drive
-from hdhil.rig.runner import SilentPeerError
+from hdhil.rig.phases import SilentPeerError
 from hdhil.rig.scenario import load_scenario
 
 

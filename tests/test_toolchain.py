@@ -453,7 +453,7 @@ def test_api_arrays_match_the_trace(tmp_path):
 
 
 def test_compare_laws_traces_keep_the_whole_format_extension():
-    from hdhil.rig.runner import _suffixed
+    from hdhil.rig.laws import _suffixed
 
     assert _suffixed(Path("d/run.asc.gz"), "jtf1") == Path("d/run-jtf1.asc.gz")
     assert _suffixed(Path("run.blf"), "jtf2") == Path("run-jtf2.blf")

@@ -310,7 +310,7 @@ def test_a_second_signal_while_the_first_sets_the_stop_request_does_not_hang():
     Before, it set the event again and waited for that lock for ever."""
     script = textwrap.dedent("""
         import os, signal, threading
-        from hdhil.rig.runner import stop_on_signals
+        from hdhil.core.signals import stop_on_signals
 
         class SecondSignalInside(type(threading.Condition())):
             def __enter__(self):

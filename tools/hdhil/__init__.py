@@ -27,7 +27,7 @@ _EXPORTS = {
     "RunRequest": "hdhil.rig.request",
     "resolve": "hdhil.api",
     "run": "hdhil.api",
-    "RunResult": "hdhil.rig.runner",
+    "RunResult": "hdhil.rig.result",
     # traces and scores
     "read_trace": "hdhil.api",
     "evaluate_trace": "hdhil.api",

@@ -113,7 +113,7 @@ def run(
     **settings: Any,
 ) -> Any:
     """Run a scenario in lockstep on the simulated bus, as ``hdhil run`` does, and return
-    its :class:`hdhil.rig.runner.RunResult` (``result.as_dict()`` is ``run --json``).
+    its :class:`hdhil.rig.result.RunResult` (``result.as_dict()`` is ``run --json``).
 
     ``scenario`` is a :class:`~hdhil.rig.request.RunRequest`, or anything :func:`resolve`
     takes, with its keyword ``settings`` (``duration_s``, ``seed``, ``overrides`` ...).

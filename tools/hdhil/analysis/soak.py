@@ -30,7 +30,8 @@ from hdhil.core.dataconf import ConfigError
 from hdhil.firmware.config import Law
 from hdhil.firmware.controller import ControllerNode
 from hdhil.rig.request import RunRequest
-from hdhil.rig.runner import RunResult, run_lockstep
+from hdhil.rig.result import RunResult
+from hdhil.rig.runner import run_lockstep
 from hdhil.rig.score import TorqueScore, TorqueScorer, TrackingScore, TrackingScorer
 from hdhil.rig.verdict import format_verdict
 

@@ -22,7 +22,7 @@ from hdhil.core.signals import restore_handlers, terminate_as_interrupt
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from hdhil.rig.campaign import list_campaigns
+    from hdhil.rig.campaign_file import list_campaigns
 
     p = sub.add_parser(
         "campaign",
@@ -107,8 +107,10 @@ def _dask_executor(address: str) -> tuple[Any, Any, tuple[type[BaseException], .
 
 
 def run(args: argparse.Namespace) -> int:
-    from hdhil.rig.campaign import expand, load_campaign, local_executor, run_campaign
+    from hdhil.rig.campaign import local_executor, run_campaign
+    from hdhil.rig.campaign_file import load_campaign
     from hdhil.rig.campaign_report import write_outputs
+    from hdhil.rig.campaign_variants import expand
 
     campaign = load_campaign(args.campaign)
     variants = expand(campaign)

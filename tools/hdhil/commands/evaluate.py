@@ -44,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from hdhil.rig.headline import format_headline
-    from hdhil.rig.runner import format_tracking
+    from hdhil.rig.result import format_tracking
     from hdhil.rig.trace_score import score_trace
 
     ev, damage = score_trace(args.trace, args.scenario, args.skip)

@@ -22,13 +22,10 @@ from hdhil.commands.progress import Progress, add_quiet_argument, progress
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import arg_float, arg_seconds
 from hdhil.core.signals import stop_on_signals
+from hdhil.rig.laws import compare_laws
 from hdhil.rig.realtime import RealtimeConfig
-from hdhil.rig.runner import (
-    compare_laws,
-    format_result,
-    format_tracking,
-    run_lockstep,
-)
+from hdhil.rig.result import format_result, format_tracking
+from hdhil.rig.runner import run_lockstep
 from hdhil.rig.verdict import format_verdict
 
 

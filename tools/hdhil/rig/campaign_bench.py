@@ -27,8 +27,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from hdhil.rig.campaign import Axis, Campaign, Criterion, expand, local_executor, run_campaign
+from hdhil.rig.campaign import local_executor, run_campaign
+from hdhil.rig.campaign_file import Axis, Campaign
+from hdhil.rig.campaign_metrics import Criterion
 from hdhil.rig.campaign_report import write_outputs
+from hdhil.rig.campaign_variants import expand
 from hdhil.rig.variant import run_settings
 
 

@@ -19,15 +19,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from hdhil.rig.campaign import (
-    METRICS,
-    Campaign,
-    CampaignRun,
-    Record,
-    Variant,
-    _fmt,
-    _write_atomic,
-)
+from hdhil.rig.campaign import CampaignRun, Record, _write_atomic
+from hdhil.rig.campaign_file import Campaign
+from hdhil.rig.campaign_metrics import METRICS, format_value
+from hdhil.rig.campaign_variants import Variant
 
 #: Variants listed per criterion under "worst variants".
 WORST = 5
@@ -187,7 +182,7 @@ def plot_files(campaign: Campaign, table: list[dict[str, Any]], plots: Path) -> 
             for c in campaign.criteria:
                 if c.metric == metric and not isinstance(c.value, bool):
                     ax.axhline(c.value, color="0.3", linestyle="--", linewidth=0.8,
-                               label=f"criterion {c.op} {_fmt(c.value)}")  # fmt: skip
+                               label=f"criterion {c.op} {format_value(c.value)}")  # fmt: skip
             if not numeric:
                 ax.set_xticks(range(len(order)), [_axis_label(x) for x in order])
             unit = metric.rsplit("_", 1)[-1] if "_" in metric else ""
@@ -279,7 +274,7 @@ def report_md(campaign: Campaign, variants: Sequence[Variant], run: CampaignRun,
         lines += [f"`{c.text}`:", ""]
         for r in ranked:
             ok, why = c.check(by_id[r["variant"]].metrics)
-            shown = f"{c.metric} = {_fmt(r[c.metric])} (pass)" if ok else f"FAIL: {why}"
+            shown = f"{c.metric} = {format_value(r[c.metric])} (pass)" if ok else f"FAIL: {why}"
             early = [x for x in by_id[r["variant"]].reasons if x.startswith("stopped early")]
             lines.append(f"- {_describe(r, axis_cols)}: " + "; ".join([shown, *early]))
         lines.append("")

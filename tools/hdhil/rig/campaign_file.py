@@ -1,0 +1,226 @@
+"""The campaign file (TOML; ``docs/campaigns.md``), read and checked.
+
+A campaign names base scenarios, axes over any scenario key (crossed, or zipped in groups
+of equal length), criteria over the metrics of a run
+(:data:`hdhil.rig.campaign_metrics.METRICS`), plots and what to keep.
+:func:`load_campaign` takes the name of a campaign shipped beside the scenarios
+(:func:`list_campaigns`) or a path, and rejects a bad file with a one-line error naming
+it before anything runs. The grid becomes variants in :mod:`hdhil.rig.campaign_variants`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.core.files import load_toml
+from hdhil.rig.campaign_metrics import METRICS, Criterion
+
+__all__ = ["Axis", "Campaign", "list_campaigns", "load_campaign"]
+
+
+@dataclass(frozen=True)
+class Axis:
+    """A scenario key and the values it takes."""
+
+    key: str
+    values: tuple[Any, ...]
+
+
+@dataclass(frozen=True)
+class Campaign:
+    """A campaign file, checked: every name resolved, every criterion parsed."""
+
+    name: str
+    source: str
+    scenarios: tuple[str, ...]
+    description: str = ""
+    duration_s: float | None = None
+    keep_trace: bool = False
+    trace_format: str = "blf"
+    criteria: tuple[Criterion, ...] = ()
+    plots: tuple[str, ...] = ()
+    axes: tuple[Axis, ...] = ()
+    zips: tuple[tuple[Axis, ...], ...] = ()
+
+    @property
+    def axis_keys(self) -> list[str]:
+        return [a.key for a in self.axes] + [a.key for group in self.zips for a in group]
+
+    @property
+    def plot_metrics(self) -> list[str]:
+        names = [c.metric for c in self.criteria] + list(self.plots)
+        return [n for i, n in enumerate(names) if n not in names[:i] and METRICS[n].kind != "bool"]
+
+
+@dataclass(frozen=True)
+class _Header:
+    name: str
+    scenarios: list[str]
+    description: str = ""
+    duration_s: float | None = None
+    keep_trace: bool = False
+    trace_format: str = "blf"
+    criteria: list[str] = field(default_factory=list)
+    plots: list[str] = field(default_factory=list)
+
+
+_TRACE_FORMATS = ("blf", "asc", "log", "csv", "trc")
+
+
+def _campaign_dir() -> Path:
+    return Path(str(resources.files("hdhil.rig").joinpath("campaigns")))
+
+
+def list_campaigns() -> list[str]:
+    """Names (file stems) of the campaigns shipped beside the scenarios, sorted."""
+    return sorted(p.stem for p in _campaign_dir().glob("*.toml") if p.is_file())
+
+
+def _resolve(name_or_path: str) -> Path:
+    text = str(name_or_path)
+    if not (text.endswith(".toml") or "/" in text or "\\" in text):
+        path = _campaign_dir() / f"{text}.toml"
+        if path.is_file():
+            return path
+        known = ", ".join(list_campaigns()) or "none"
+        raise ConfigError(
+            f"unknown campaign {text!r} (known: {known}; or give a path to a .toml file)"
+        )
+    path = Path(text)
+    if not path.is_file():
+        raise ConfigError(f"campaign file not found: {text}")
+    return path
+
+
+def _axis_values(key: str, spec: Any, where: str) -> tuple[Any, ...]:
+    if isinstance(spec, dict):
+        if set(spec) != {"range"}:
+            raise ConfigError(f"{where}.{key}: expected a list of values or {{ range = [...] }}")
+        bounds = spec["range"]
+        if (
+            not isinstance(bounds, list)
+            or not 2 <= len(bounds) <= 3
+            or not all(isinstance(b, int) and not isinstance(b, bool) for b in bounds)
+        ):
+            raise ConfigError(
+                f"{where}.{key}: range takes 2 or 3 integers [start, stop(, step)], got {bounds!r}"
+            )
+        if len(bounds) == 3 and bounds[2] == 0:
+            raise ConfigError(f"{where}.{key}: range step must not be 0")
+        values: tuple[Any, ...] = tuple(range(*bounds))
+    elif isinstance(spec, list):
+        values = tuple(spec)
+    else:
+        raise ConfigError(f"{where}.{key}: expected a list of values, got {spec!r}")
+    if not values:
+        raise ConfigError(f"{where}.{key}: no values")
+    return values
+
+
+def _flatten_axes(table: Any, where: str, prefix: str = "") -> list[Axis]:
+    """``a.b = [...]`` (a nested table in TOML) as axis ``a.b``; a table with ``range``
+    is a value specification, not a deeper key."""
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where}: expected a table, got {table!r}")
+    axes = []
+    for key, spec in table.items():
+        dotted = f"{prefix}{key}"
+        if isinstance(spec, dict) and "range" not in spec:
+            axes += _flatten_axes(spec, where, f"{dotted}.")
+        else:
+            axes.append(Axis(dotted, _axis_values(dotted, spec, where)))
+    return axes
+
+
+def load_campaign(name_or_path: str | Path) -> Campaign:
+    """Read and check a campaign file (a shipped name or a path)."""
+    path = _resolve(str(name_or_path))
+    data = load_toml(path, "campaign file")  # regular file, size and depth capped
+    try:
+        return _campaign_from_dict(data, path)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def _campaign_from_dict(data: dict[str, Any], path: Path) -> Campaign:
+    unknown = sorted(set(data) - {"campaign", "axes", "zip"})
+    if unknown:
+        raise ConfigError(f"unknown table [{unknown[0]}] (known: campaign, axes, zip)")
+    if not isinstance(data.get("campaign"), dict):
+        raise ConfigError("missing [campaign] table (name, scenarios, criteria, ...)")
+    head = data["campaign"]
+    for key in ("name", "scenarios"):
+        if key not in head:
+            raise ConfigError(f"missing key campaign.{key}")
+    if isinstance(head.get("scenarios"), str):
+        head = {**head, "scenarios": [head["scenarios"]]}
+    header = from_dict(_Header, head, "campaign")
+    if not header.name.strip():
+        raise ConfigError("campaign.name must be a non-empty string")
+    if not header.scenarios:
+        raise ConfigError("campaign.scenarios: at least one scenario")
+    if header.duration_s is not None and not (
+        math.isfinite(header.duration_s) and header.duration_s > 0
+    ):
+        raise ConfigError(f"campaign.duration_s must be > 0 and finite, got {header.duration_s}")
+    if header.trace_format not in _TRACE_FORMATS:
+        raise ConfigError(
+            f"campaign.trace_format must be one of {', '.join(_TRACE_FORMATS)}, "
+            f"got {header.trace_format!r}"
+        )
+    scenarios = []
+    for name in header.scenarios:
+        looks_like_path = name.endswith(".toml") or "/" in name or "\\" in name
+        scenarios.append(str(path.parent / name) if looks_like_path else name)
+    criteria = tuple(Criterion.parse(c, "campaign.criteria") for c in header.criteria)
+    for name in header.plots:
+        if name not in METRICS:
+            raise ConfigError(
+                f"campaign.plots: unknown metric {name!r} (known: {', '.join(METRICS)})"
+            )
+    axes = tuple(_flatten_axes(data.get("axes", {}), "axes"))
+    zips_data = data.get("zip", [])
+    if not isinstance(zips_data, list):
+        raise ConfigError("zip: expected [[zip]] tables (each a group of axes of equal length)")
+    zips = []
+    for i, group in enumerate(zips_data):
+        members = tuple(_flatten_axes(group, f"zip[{i}]"))
+        if not members:
+            raise ConfigError(f"zip[{i}]: no axes")
+        lengths = {len(a.values) for a in members}
+        if len(lengths) != 1:
+            sizes = ", ".join(f"{a.key} {len(a.values)}" for a in members)
+            raise ConfigError(f"zip[{i}]: zipped axes need equal lengths ({sizes})")
+        zips.append(members)
+    keys = [a.key for a in axes] + [a.key for g in zips for a in g]
+    for key in keys:
+        if keys.count(key) > 1:
+            raise ConfigError(f"axis {key} is given twice")
+        if key in ("scenario", "variant") or key.split(".")[0] not in (
+            "seed",
+            "scenario",
+            "plant",
+            "firmware",
+            "faults",
+        ):
+            raise ConfigError(
+                f"axis {key}: not a scenario key (seed, scenario.*, plant.*, firmware.*, faults.*)"
+            )
+    return Campaign(
+        name=header.name,
+        source=str(path),
+        scenarios=tuple(scenarios),
+        description=header.description,
+        duration_s=header.duration_s,
+        keep_trace=header.keep_trace,
+        trace_format=header.trace_format,
+        criteria=criteria,
+        plots=tuple(header.plots),
+        axes=axes,
+        zips=tuple(zips),
+    )

@@ -1,0 +1,297 @@
+"""What a campaign judges a variant by: the metrics of a run and the criteria over them.
+
+:data:`METRICS` names every figure a criterion or a plot can use, each read from the
+variant's ``hdhil run --json`` result (:func:`metrics_of`). A :class:`Criterion` is
+``METRIC OP VALUE``, parsed and checked against the metric's kind when the campaign file
+is loaded; :func:`judge` gives a variant's metrics, its verdict per criterion and the
+reasons it failed (a run that stopped before its duration says why: :func:`stop_reason`).
+The campaign file (:mod:`hdhil.rig.campaign_file`), the execution
+(:mod:`hdhil.rig.campaign`) and the report (:mod:`hdhil.rig.campaign_report`) share them.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from hdhil.core.dataconf import ConfigError
+
+if TYPE_CHECKING:
+    from hdhil.rig.campaign_variants import Variant
+
+__all__ = ["METRICS", "Criterion", "Metric", "format_value", "judge", "metrics_of", "stop_reason"]
+
+# ----------------------------------------------------------------------------- metrics
+
+
+def _get(path: str) -> Callable[[dict[str, Any]], Any]:
+    keys = path.split(".")
+
+    def get(result: dict[str, Any]) -> Any:
+        value: Any = result
+        for key in keys:
+            if not isinstance(value, dict) or value.get(key) is None:
+                return None
+            value = value[key]
+        return value
+
+    return get
+
+
+def _candidate(prefix: str, field_name: str) -> Callable[[dict], Any]:
+    """A figure of the evaluation's row whose name starts with ``prefix``."""
+
+    def get(result: dict[str, Any]) -> Any:
+        for row in (result.get("evaluation") or {}).get("candidates") or ():
+            if str(row.get("name", "")).startswith(prefix):
+                return row.get(field_name)
+        return None
+
+    return get
+
+
+def _firmware_candidate(field_name: str, sub: str | None = None) -> Callable[[dict], Any]:
+    """A figure of the evaluation's firmware row (the filter the firmware ran)."""
+
+    def get(result: dict[str, Any]) -> Any:
+        evaluation = result.get("evaluation") or {}
+        for row in evaluation.get("candidates") or ():
+            if str(row.get("name", "")).startswith("firmware"):
+                value = row.get(field_name)
+                if sub is not None:
+                    value = (value or {}).get(sub)
+                return value
+        return None
+
+    return get
+
+
+def _total_faults(result: dict[str, Any]) -> int | None:
+    faults = result.get("faults")
+    return None if faults is None else int(sum(faults.values()))
+
+
+def _malformed(result: dict[str, Any]) -> int:
+    return int(result["controller"].get("malformed_frames", 0)) + int(
+        result["drive"].get("malformed_frames", 0)
+    )
+
+
+@dataclass(frozen=True)
+class Metric:
+    """A figure of a run: where it comes from in ``hdhil run --json`` and its kind."""
+
+    source: str
+    kind: str  # "float", "int" or "bool"
+    get: Callable[[dict[str, Any]], Any]
+
+
+#: Every metric a criterion or a plot can name, each read from the ``hdhil run --json``
+#: result of the variant (``source``).  ``stopped_early`` compares the samples handled
+#: with the samples the variant asked for.
+METRICS: dict[str, Metric] = {
+    "stopped_early": Metric("cycles < duration / sample period", "bool", lambda r: None),
+    "simulated_s": Metric("simulated_s", "float", _get("simulated_s")),
+    "cycles": Metric("cycles", "int", _get("cycles")),
+    "headline_Nm": Metric("headline.value_Nm", "float", _get("headline.value_Nm")),
+    "filtered_rms_err_Nm": Metric(
+        "evaluation.candidates[firmware].rms_error (from the evaluation start)",
+        "float",
+        _firmware_candidate("rms_error"),
+    ),
+    "filtered_to_raw": Metric(
+        "evaluation.candidates[firmware].rms_ratio", "float", _firmware_candidate("rms_ratio")
+    ),
+    "raw_rms_err_Nm": Metric(
+        "evaluation.candidates[raw].rms_error (from the evaluation start)",
+        "float",
+        _candidate("raw", "rms_error"),
+    ),
+    "filtered_rms_err_whole_run_Nm": Metric(
+        "torque.rms_error_filtered (whole run)", "float", _get("torque.rms_error_filtered")
+    ),
+    "filtered_max_err_whole_run_Nm": Metric(
+        "torque.max_error_filtered (whole run)", "float", _get("torque.max_error_filtered")
+    ),
+    "raw_rms_err_whole_run_Nm": Metric(
+        "torque.rms_error_raw (whole run)", "float", _get("torque.rms_error_raw")
+    ),
+    "true_rms_whole_run_Nm": Metric(
+        "torque.rms_true (whole run)", "float", _get("torque.rms_true")
+    ),
+    "eval_rms_err_Nm": Metric(
+        "evaluation.candidates[firmware].rms_error", "float", _firmware_candidate("rms_error")
+    ),
+    "eval_reduction_2x_dB": Metric(
+        "evaluation.candidates[firmware].reduction_dB['2x motor']",
+        "float",
+        _firmware_candidate("reduction_dB", "2x motor"),
+    ),
+    "eval_reduction_4x_dB": Metric(
+        "evaluation.candidates[firmware].reduction_dB['4x motor']",
+        "float",
+        _firmware_candidate("reduction_dB", "4x motor"),
+    ),
+    "max_abs_e_Nm": Metric("tracking.max_abs_error", "float", _get("tracking.max_abs_error")),
+    "rms_e_Nm": Metric("tracking.rms_error", "float", _get("tracking.rms_error")),
+    "velocity_final_radps": Metric("velocity_final", "float", _get("velocity_final")),
+    "velocity_peak_radps": Metric("velocity_peak", "float", _get("velocity_peak")),
+    "frames_total": Metric("frames_total", "int", _get("frames_total")),
+    "faults_injected": Metric("sum of faults", "int", _total_faults),
+    "malformed_frames": Metric(
+        "controller.malformed_frames + drive.malformed_frames", "int", _malformed
+    ),
+    "kalman_skipped": Metric("controller.kalman_skipped", "int", _get("controller.kalman_skipped")),
+    "tacho_rejections": Metric(
+        "controller.tacho_rejections", "int", _get("controller.tacho_rejections")
+    ),
+    "encoder_rejections": Metric(
+        "controller.encoder_rejections", "int", _get("controller.encoder_rejections")
+    ),
+    "plausibility_errors": Metric(
+        "controller.plausibility_errors", "int", _get("controller.plausibility_errors")
+    ),
+    "covariance_resets": Metric(
+        "controller.covariance_resets", "int", _get("controller.covariance_resets")
+    ),
+    "covariance_finite": Metric(
+        "controller.covariance_finite", "bool", _get("controller.covariance_finite")
+    ),
+}
+
+
+def metrics_of(result: dict[str, Any], planned_cycles: int) -> dict[str, Any]:
+    """Every metric of :data:`METRICS` for one run's result (None: not reported)."""
+    out = {name: m.get(result) for name, m in METRICS.items()}
+    out["stopped_early"] = int(result["cycles"]) < planned_cycles
+    return out
+
+
+def stop_reason(result: dict[str, Any], planned_cycles: int) -> str:
+    """Why a run ended before its duration, in words (the run's own reason when it
+    reports one)."""
+    ts = float(result.get("sample_period_s", 1e-3))
+    text = (
+        f"stopped early at {int(result['cycles']) * ts:g} s of {planned_cycles * ts:g} s "
+        f"({result['cycles']} of {planned_cycles} samples)"
+    )
+    verdict = result.get("verdict")  # the run's own account of an early stop
+    if isinstance(verdict, dict) and verdict.get("reason"):
+        by = f" by node {verdict['node']}" if verdict.get("node") is not None else ""
+        text += f"{by}: {verdict['reason']}"
+        for key, label in (("emcy_sent", "EMCY sent"), ("emcy_received", "EMCY received")):
+            emcy = verdict.get(key)
+            if isinstance(emcy, dict) and emcy.get("code"):
+                text += f"; {label} {emcy['code']} {emcy.get('text', '')}".rstrip()
+    return text
+
+
+# ----------------------------------------------------------------------------- criteria
+
+_CRITERION = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(<=|>=|==|!=|<|>)\s*(\S.*?)\s*$")
+_OPS: dict[str, Callable[[Any, Any], bool]] = {
+    "<": lambda a, b: a < b,
+    "<=": lambda a, b: a <= b,
+    ">": lambda a, b: a > b,
+    ">=": lambda a, b: a >= b,
+    "==": lambda a, b: a == b,
+    "!=": lambda a, b: a != b,
+}
+
+
+@dataclass(frozen=True)
+class Criterion:
+    """``METRIC OP VALUE``: a variant passes when its metric compares true."""
+
+    text: str
+    metric: str
+    op: str
+    value: float | bool
+
+    @classmethod
+    def parse(cls, text: Any, where: str = "criteria") -> Criterion:
+        if not isinstance(text, str):
+            raise ConfigError(f"{where}: expected a string 'METRIC OP VALUE', got {text!r}")
+        m = _CRITERION.match(text)
+        if m is None:
+            raise ConfigError(
+                f"{where}: {text!r} is not 'METRIC OP VALUE' (OP one of < <= > >= == !=)"
+            )
+        metric, op, raw = m.groups()
+        if metric not in METRICS:
+            raise ConfigError(
+                f"{where}: unknown metric {metric!r} in {text!r} (known: {', '.join(METRICS)})"
+            )
+        kind = METRICS[metric].kind
+        value: float | bool
+        if raw in ("true", "false"):
+            if kind != "bool" or op not in ("==", "!="):
+                raise ConfigError(f"{where}: {text!r}: {metric} is a number, not true/false")
+            value = raw == "true"
+        else:
+            try:
+                value = float(raw)
+            except ValueError:
+                raise ConfigError(f"{where}: {text!r}: {raw!r} is not a number") from None
+            if kind == "bool":
+                raise ConfigError(f"{where}: {text!r}: {metric} is true or false")
+            if not math.isfinite(value):
+                raise ConfigError(f"{where}: {text!r}: the threshold must be finite")
+        return cls(" ".join((metric, op, raw)), metric, op, value)
+
+    def check(self, metrics: dict[str, Any]) -> tuple[bool, str]:
+        """(passed, reason if not)."""
+        actual = metrics.get(self.metric)
+        if actual is None:
+            return False, f"{self.metric} not reported"
+        if isinstance(actual, float) and math.isnan(actual):
+            return False, f"{self.metric} is NaN"
+        if _OPS[self.op](actual, self.value):
+            return True, ""
+        return (
+            False,
+            f"{self.metric} = {format_value(actual)}, not {self.op} {format_value(self.value)}",
+        )
+
+    def badness(self, metrics: dict[str, Any]) -> float:
+        """How far the metric is on the failing side (larger is worse), for ranking."""
+        actual = metrics.get(self.metric)
+        if actual is None or (isinstance(actual, float) and math.isnan(actual)):
+            return math.inf
+        if isinstance(self.value, bool) or self.op in ("==", "!="):
+            return 0.0 if self.check(metrics)[0] else 1.0
+        return (
+            float(actual) - float(self.value)
+            if self.op in ("<", "<=")
+            else float(self.value) - float(actual)
+        )
+
+
+def format_value(value: Any) -> str:
+    """A metric's value, a threshold or an axis value as a campaign prints it."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
+
+
+def judge(variant: Variant, result: dict | None, error: str | None,
+          criteria: Iterable[Criterion]) -> tuple[dict, dict, list[str]]:  # fmt: skip
+    """Metrics, verdict per criterion and the reasons of a variant's outcome."""
+    if result is None:
+        return {}, {c.text: False for c in criteria}, [error or "no result"]
+    metrics = metrics_of(result, variant.planned_cycles)
+    verdicts: dict[str, bool] = {}
+    reasons: list[str] = []
+    if metrics["stopped_early"]:
+        reasons.append(stop_reason(result, variant.planned_cycles))
+    for c in criteria:
+        ok, why = c.check(metrics)
+        verdicts[c.text] = ok
+        if not ok:
+            reasons.append(why)
+    return metrics, verdicts, reasons

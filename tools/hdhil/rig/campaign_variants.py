@@ -1,0 +1,129 @@
+"""A campaign's grid as variants, each resolved and validated before anything runs.
+
+:func:`expand` crosses the campaign's axes (a zipped group counts as one axis) over every
+base scenario, the last axis varying fastest, and builds each point as ``hdhil run``
+builds its options into a scenario: a variant that would not run is an error of the
+campaign file, reported before the first run. A :class:`Variant` is recognised by
+:func:`digest_of` its full settings and the hdhil version; the execution
+(:mod:`hdhil.rig.campaign`) stores its record under that digest, so a re-run finds what
+already finished.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+from dataclasses import dataclass
+from importlib import metadata
+from typing import Any
+
+from hdhil.core.dataconf import ConfigError, merge
+from hdhil.rig.campaign_file import Campaign
+from hdhil.rig.campaign_metrics import format_value
+from hdhil.rig.scenario import load_scenario, scenario_data, scenario_from_dict
+from hdhil.rig.variant import RunSettings
+
+__all__ = ["Variant", "digest_of", "expand"]
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One point of the grid, resolved and validated."""
+
+    id: str
+    scenario: str
+    values: dict[str, Any]
+    settings: RunSettings
+    planned_cycles: int
+    digest: str
+
+    @property
+    def seed(self) -> int:
+        seed = self.settings.seed
+        return int(self.settings.scenario["scenario"]["seed"]) if seed is None else seed
+
+
+def _hdhil_version() -> str:
+    try:
+        return metadata.version("hdhil")
+    except metadata.PackageNotFoundError:  # pragma: no cover - running from a checkout
+        return "unknown"
+
+
+def _nested(key: str, value: Any) -> dict[str, Any]:
+    out: Any = value
+    for part in reversed(key.split(".")):
+        out = {part: out}
+    return out
+
+
+def digest_of(settings: RunSettings) -> str:
+    """A variant's identity: SHA-256 of its full settings and the hdhil version."""
+    blob = json.dumps(
+        {
+            "scenario": settings.scenario,
+            "duration_s": settings.duration_s,
+            "seed": settings.seed,
+            "trace": settings.trace_suffix,
+            "hdhil": _hdhil_version(),
+        },
+        sort_keys=True,
+        separators=(",", ":"),
+        allow_nan=True,
+    )
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def expand(campaign: Campaign) -> list[Variant]:
+    """Every variant of the campaign in order (scenarios, then the axes as written, the
+    last varying fastest), each built and validated as ``hdhil run`` would build it."""
+    groups: list[list[dict[str, Any]]] = [
+        [{axis.key: v} for v in axis.values] for axis in campaign.axes
+    ]
+    for group in campaign.zips:
+        groups.append([{a.key: a.values[i] for a in group} for i in range(len(group[0].values))])
+    points = [
+        {k: v for part in combo for k, v in part.items()} for combo in itertools.product(*groups)
+    ]
+    total = len(campaign.scenarios) * len(points)
+    width = max(4, len(str(total)))
+    variants: list[Variant] = []
+    seen: dict[str, str] = {}
+    suffix = f".{campaign.trace_format}" if campaign.keep_trace else None
+    for base in campaign.scenarios:
+        for point in points:
+            overrides: dict[str, Any] = {}
+            for key, value in point.items():
+                if key != "seed":
+                    overrides = merge(overrides, _nested(key, value))
+            vid = f"{len(variants) + 1:0{width}d}"
+            where = (
+                f"variant {vid} ({base}"
+                + "".join(f", {k}={format_value(v)}" for k, v in point.items())
+                + ")"
+            )
+            try:
+                scenario = load_scenario(base, overrides or None)
+                fw = scenario.firmware
+                seed = point.get("seed")
+                if seed is not None and (
+                    isinstance(seed, bool) or not isinstance(seed, int) or seed < 0
+                ):
+                    raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
+            except ConfigError as exc:
+                raise ConfigError(f"{where}: {exc}") from None
+            data = scenario_data(scenario)
+            if scenario_from_dict(data) != scenario:  # pragma: no cover - a to_dict gap
+                raise ConfigError(f"{where}: the scenario does not survive its plain-data form")
+            duration = scenario.duration_s if campaign.duration_s is None else campaign.duration_s
+            planned = round(duration / fw.sample_period_s)
+            if fw.num_samples:
+                planned = min(planned, fw.num_samples)
+            settings = RunSettings(data, campaign.duration_s, seed, suffix)
+            digest = digest_of(settings)
+            if digest in seen:
+                raise ConfigError(f"{where}: same settings as variant {seen[digest]}")
+            seen[digest] = vid
+            variants.append(Variant(vid, base, dict(point), settings, planned, digest))
+    return variants
