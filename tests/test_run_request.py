@@ -81,12 +81,18 @@ def test_the_api_checks_its_arguments() -> None:
 
 @pytest.mark.slow
 @pytest.mark.subprocess
-@pytest.mark.parametrize("scenario", ["free-motion", "lqg-tracking"])
-def test_run_evaluate_and_api_print_one_headline(scenario: str, tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("scenario", "duration"),
+    [("free-motion", "1.5"), ("misalignment", "4.5"), ("torque-steps", "1.5"),
+     ("lqg-experiment", "1.5"), ("lqg-tracking", "1.5")],
+)  # fmt: skip
+def test_run_evaluate_and_api_print_one_headline(
+    scenario: str, duration: str, tmp_path: Path
+) -> None:
     """`hdhil run`, `hdhil evaluate` of its trace, the API on the same trace and a
     campaign variant of the same settings give the same headline figure."""
     trace = tmp_path / "run.blf"
-    run = _hdhil("run", "--scenario", scenario, "--duration", "1.5", "--seed", "2",
+    run = _hdhil("run", "--scenario", scenario, "--duration", duration, "--seed", "2",
                  "--trace", str(trace), "--json")  # fmt: skip
     assert run.returncode == 0, run.stderr
     from_run = json.loads(run.stdout)["headline"]
@@ -102,7 +108,7 @@ def test_run_evaluate_and_api_print_one_headline(scenario: str, tmp_path: Path) 
 
     request = resolve(scenario)
     result, _trace, _sidecar = run_settings(
-        RunSettings(scenario_data(request.scenario), 1.5, 2, None)
+        RunSettings(scenario_data(request.scenario), float(duration), 2, None)
     )
     assert result["headline"] == from_run
 
