@@ -241,3 +241,18 @@ def test_startup_section(report: dict) -> None:
     assert rows["run_first_cycle"]["median"] < rows["run_whole"]["median"]
     text = format_bench(report)
     assert "Start-up" in text and "hdhil dump --help" in text
+
+
+def test_realtime_s_zero_leaves_the_real_time_section_out(monkeypatch) -> None:
+    """`--realtime-s 0` is accepted, as its help says, and passed on as 0 (no section)."""
+    from hdhil.commands import bench as command
+
+    seen: dict[str, object] = {}
+
+    def fake_run_benchmarks(*args, **kwargs):
+        seen.update(kwargs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(command, "run_benchmarks", fake_run_benchmarks)
+    code = main(["bench", "--quick", "--realtime-s", "0", "--quiet"])
+    assert code == 130 and seen.get("realtime_s") == 0.0

@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="runs per figure, median reported (default 3, --quick 1)",
     )  # fmt: skip
     p.add_argument(
-        "--realtime-s", type=arg_seconds(), default=None, metavar="S",
+        "--realtime-s", type=arg_seconds(lo_open=False), default=None, metavar="S",
         help="seconds of the real-time run (default 60, --quick 1.5; 0 leaves it out)",
     )  # fmt: skip
     p.add_argument(
