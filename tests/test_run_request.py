@@ -131,3 +131,19 @@ def test_sample_counts_agree() -> None:
     assert result.cycles == 800
     assert result.evaluation["samples"] == result.headline["samples"] == 800 - skipped
     assert len(hdhil.cycle_arrays(result)["time_s"]) >= result.cycles
+
+
+@pytest.mark.slow
+def test_a_sidecar_without_the_request_is_read_by_its_scenario_name(tmp_path: Path) -> None:
+    """Traces written before sidecars carried the request name their scenario, override
+    and calibration files: evaluate loads those again and scores from the scenario's
+    evaluation start."""
+    trace = tmp_path / "old.blf"
+    result = hdhil.run("free-motion", duration_s=0.6, seed=2, trace=trace)
+    sidecar = trace.with_name(trace.name + ".json")
+    meta = json.loads(sidecar.read_text())
+    del meta["request"]
+    sidecar.write_text(json.dumps(meta))
+    assert hdhil.evaluate_trace(trace)["headline"] == result.headline
+    sidecar.unlink()  # no sidecar at all: the firmware defaults, scored from 0 s
+    assert hdhil.evaluate_trace(trace)["headline"]["from_s"] == 0.0
