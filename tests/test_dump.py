@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from runs import lockstep
 
+from hdhil.can.traces import export
 from hdhil.can.traces.decode import (
     DecodedFrame,
     FrameKind,
@@ -23,9 +24,8 @@ from hdhil.can.traces.decode import (
     default_decoder,
 )
 from hdhil.can.traces.reader import _CSV_HEADER, MAX_DAMAGE, TraceError, read_trace
-from hdhil.can.traces.stats import compute_stats
+from hdhil.can.traces.stats import StatsAccumulator, compute_stats
 from hdhil.cli import main
-from hdhil.commands import dump as dump_command
 from hdhil.dbc import database
 
 CTRL = database("control")
@@ -294,7 +294,7 @@ def test_csv_output(tmp_path, capsys):
 def test_csv_is_not_left_half_written(tmp_path, capsys, monkeypatch):
     trace = write_trace(tmp_path / "t.blf", make_frames(20))
     out_csv = tmp_path / "out.csv"
-    original = dump_command._CsvOut.add
+    original = export.FrameCsv.add
     calls = {"n": 0}
 
     def failing_add(self, frame):
@@ -303,7 +303,7 @@ def test_csv_is_not_left_half_written(tmp_path, capsys, monkeypatch):
             raise KeyboardInterrupt
         original(self, frame)
 
-    monkeypatch.setattr(dump_command._CsvOut, "add", failing_add)
+    monkeypatch.setattr(export.FrameCsv, "add", failing_add)
     rc, _, err = run_cli(capsys, trace, "--csv", out_csv, "--per-frame")
     assert rc == 130 and "interrupted" in err
     assert not out_csv.exists()
@@ -785,3 +785,72 @@ def test_a_flipped_byte_in_a_frame_line_is_reported(tmp_path, capsys, suffix):
             assert "unreadable line" in err and ", the first at line " in err
             lost_and_reported += 1
     assert lost_and_reported >= 10
+
+
+# ------------------------------------------------------- the library, without argparse
+
+
+def _decoder(trace: Path):
+    from hdhil.canopen.mapping import trace_decoder
+
+    return trace_decoder(trace)
+
+
+def test_export_writes_the_table_dump_prints(tmp_path, capsys):
+    trace = write_trace(tmp_path / "t.asc", make_frames(20))
+    decoder = _decoder(trace)
+    id_filter, _ = export.parse_id_filter(["CTRL_TPDO1", "0x7EF"], decoder)
+    lines: list[str] = []
+    result = export.export(read_trace(trace), decoder, table=lines.append, limit=5,
+                           id_filter=id_filter)  # fmt: skip
+    assert lines[0] == export.TABLE_HEADER + "\n" and len(lines) == 1 + 5
+    assert (result.selected, result.printed, result.counts.total) == (22, 5, 82)
+    rc, out, err = run_cli(capsys, trace, "--limit", "5", "--id", "CTRL_TPDO1", "--id", "7EF")
+    assert rc == 0 and err == ""
+    note = f"{result.selected} selected by --id, {result.printed} shown"
+    assert out == "".join(lines) + result.counts.line(note) + "\n"
+
+
+@pytest.mark.parametrize("per_frame", [False, True], ids=["per-cycle", "per-frame"])
+def test_export_writes_the_csv_dump_writes(tmp_path, capsys, per_frame):
+    trace = write_trace(tmp_path / "t.blf", make_frames(20))
+    decoder = _decoder(trace)
+    id_filter, names = export.parse_id_filter(["181"], decoder)
+    kind = export.FrameCsv if per_frame else export.CycleCsv
+    ours = tmp_path / "library.csv"
+    csv_out = kind(str(ours), decoder, names)
+    result = export.export(read_trace(trace), decoder, id_filter=id_filter, csv_out=csv_out)
+    assert result.printed == 0 and csv_out.rows == 20
+    theirs = tmp_path / "command.csv"
+    rc, out, err = run_cli(capsys, trace, "--csv", theirs, "--id", "181",
+                           *(["--per-frame"] if per_frame else []))  # fmt: skip
+    assert rc == 0 and out == ""
+    assert f"hdhil: wrote {csv_out.rows} rows to" in err
+    assert ours.read_bytes() == theirs.read_bytes()
+
+
+def test_export_gives_the_statistics_dump_prints(tmp_path, capsys):
+    trace = write_trace(tmp_path / "s.blf", schedule(50) + make_frames(3))
+    decoder = _decoder(trace)
+    stats = StatsAccumulator(500_000, decoder)
+    result = export.export(read_trace(trace), decoder, stats=stats)
+    rc, out, err = run_cli(capsys, trace, "--json", "--bitrate", "500000")
+    assert rc == 0
+    printed = json.loads(out)
+    assert printed.pop("trace") == str(trace) and printed.pop("damage") == []
+    assert printed == json.loads(json.dumps(stats.result()))
+    assert err == result.counts.line() + "\n"
+
+
+def test_export_refusals_are_value_errors(tmp_path):
+    trace = write_trace(tmp_path / "t.csv", make_frames(2))
+    decoder = _decoder(trace)
+    with pytest.raises(ValueError, match=r"'nope': neither a message name \("):
+        export.parse_id_filter(["nope"], decoder)
+    with pytest.raises(ValueError, match=r"'20000000': identifier out of range"):
+        export.parse_id_filter(["20000000"], decoder)
+    with pytest.raises(ValueError, match="would overwrite the trace being read"):
+        export.check_csv_target(str(trace), trace)
+    with pytest.raises(ValueError, match="is a directory"):
+        export.check_csv_target(str(tmp_path), trace)
+    export.check_csv_target("-", trace)

@@ -4,13 +4,9 @@
 ``hdhil run`` puts everything in one process on the simulated bus; these commands split
 the system the way a bench is split (drive emulator, firmware and logger in processes of
 their own on a shared bus: SocketCAN, a real adapter, or ``udp_multicast``), so any node
-can be replaced by real hardware. Every node runs in the one node loop
-(:mod:`hdhil.rig.loop`). ``firmware`` paces SYNC in network lockstep (SYNC k+1 once the
-drive's cycle k is answered, or after the loop's cycle timeout) or, with ``--realtime``,
-by the pacer of ``hdhil run --realtime``. Each process injects the faults that arise in
-it (``emulate``: sensor faults and its own transmissions; ``firmware``: its own
-transmissions), from the request's ``[faults]`` table. ``docs/hardware.md`` has the
-recipes.
+can be replaced by real hardware. Here: the options, the buses they name, the signals
+that stop a node and what is printed; the nodes themselves run in
+:mod:`hdhil.rig.standalone`. ``docs/hardware.md`` has the recipes.
 """
 
 from __future__ import annotations
@@ -19,16 +15,12 @@ import argparse
 import json
 import struct
 import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import can
 
-from hdhil.can.faults import FaultLog, FaultyTransmitBus, check_node_transmit_faults
-from hdhil.can.traces.tap import BusTap, FrameCounter
-from hdhil.can.traces.writer import WriterError, WriterProcess, check_trace_path
+from hdhil.can.traces.writer import check_trace_path
 from hdhil.canopen.nmt import COMMAND_NAMES as NMT_COMMAND_NAMES
 from hdhil.canopen.nmt import nmt_frame
 from hdhil.commands.options import (
@@ -39,33 +31,20 @@ from hdhil.commands.options import (
     request_from_args,
     resolve_bus_config,
 )
-from hdhil.core.dataconf import ConfigError
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import arg_int, arg_seconds
 from hdhil.core.signals import stop_on_signals
-from hdhil.dbc import CHANNEL_NUMBER, eds_path
+from hdhil.dbc import eds_path
 from hdhil.dbc import node_ids as dbc_node_ids
-from hdhil.firmware.controller import ControllerNode
-from hdhil.hostsim.drive import DriveConfig, DriveNode
-from hdhil.hostsim.plant import Plant
-from hdhil.rig.faults import FaultConfig, FaultInjector, parse_fault_flags
-from hdhil.rig.loop import NodeLoop, controller_expects_answer, serve
-from hdhil.rig.realtime import RealtimeLoop
-from hdhil.rig.sidecar import run_metadata
-from hdhil.rig.verdict import (
-    dcf_refused,
-    drive_verdict,
-    format_verdict,
-    startup_verdict,
-    stop_verdict,
+from hdhil.rig.standalone import (
+    StandaloneController,
+    StandaloneDrive,
+    controller_faults,
+    drive_faults,
+    log_metadata,
+    record,
 )
-
-#: The logger's pause when no frame is waiting (s): short against a 1 ms cycle.
-IDLE_SLEEP_S = 0.0002
-#: The controller's node-ID (control.dbc's node CONTROLLER).
-CONTROLLER_NODE_ID = dbc_node_ids("control")["CONTROLLER"]
-#: SYNC cycles allowed for walking the drive back to "stopped" after the run.
-MAX_STOP_CYCLES = 2000
+from hdhil.rig.verdict import format_verdict
 
 
 def add_bus_arguments(p: argparse.ArgumentParser, truth: bool = False) -> None:
@@ -89,79 +68,18 @@ def _truth_bus(args: argparse.Namespace) -> can.BusABC | None:
     return bus
 
 
-def _fault_injector(
-    args: argparse.Namespace, faults: FaultConfig | None, stream: str, acts_on: tuple[str, ...]
-) -> FaultInjector:
-    """The process's faults: ``faults`` (the request's table, ``--fault`` flags merged);
-    flags for parts that do not act in this process are refused."""
-    flagged = sorted(set(parse_fault_flags(args.fault)) - {"seed", *acts_on})
-    if flagged:
-        raise ConfigError(
-            f"--fault {flagged[0]}.*: these faults do not act in hdhil {args.command} "
-            f"(it injects {', '.join(acts_on)})"
-        )
-    config = faults or FaultConfig()
-    for role in ("control", "truth"):
-        if role in acts_on:
-            check_node_transmit_faults(config, role)  # type: ignore[arg-type]
-    try:
-        log = FaultLog(args.fault_log, keep=False)
-    except OSError as exc:
-        raise ConfigError(f"cannot write the fault log {args.fault_log}: {exc}") from None
-    return FaultInjector(config, log, stream=stream)
-
-
-def _with_faults(
-    bus: can.BusABC | None,
-    injector: FaultInjector,
-    role: Literal["control", "truth"],
-    node_id: int,
-) -> Any:
-    """``bus``, or its :class:`~hdhil.can.faults.FaultyTransmitBus` when the own frames of
-    node ``node_id`` on channel ``role`` are to be faulted (a silence of that node stops
-    all of them)."""
-    hook = injector.channel(role)
-    if bus is None or hook is None:
-        return bus
-    return FaultyTransmitBus(bus, hook, node_id=node_id)
-
-
 def run_emulate(args: argparse.Namespace) -> int:
     request = request_from_args(args)
-    scenario, fw, seed = request.scenario, request.firmware, request.seed
-    acts_on = (
-        ("sensors", "control", "truth") if bus_named(args, "truth") else ("sensors", "control")
-    )
-    injector = _fault_injector(args, scenario.faults, "drive", acts_on)
+    injector = drive_faults(request, args.fault, args.fault_log, truth=bus_named(args, "truth"))
     bus = truth = None
     try:
         bus = _control_bus(args)
         truth = _truth_bus(args)
-        drive_config = DriveConfig(sample_period_s=fw.sample_period_s)
-        node_bus = _with_faults(bus, injector, "control", drive_config.node_id)
-        node_truth = _with_faults(truth, injector, "truth", drive_config.node_id)
-        drive = DriveNode(
-            node_bus,
-            Plant(scenario.plant, seed, faults=injector.sensors()),
-            drive_config,
-            truth_bus=node_truth,
-            faults=injector,
-        )
-        t_end = time.monotonic() + args.duration if args.duration else float("inf")
+        drive = StandaloneDrive(request, bus, truth, injector)
         with stop_on_signals() as stop:
-            drive.boot(time.monotonic())
-            serve(drive, stop.is_set, lambda: time.monotonic() >= t_end)
+            drive.serve(stop.is_set, args.duration)
         stopped_by_signal = stop.is_set()
-        for b in (node_bus, node_truth):
-            if isinstance(b, FaultyTransmitBus):
-                b.flush()
-        d = drive.diagnostics
-        verdict = drive_verdict(drive)
-        summary = {"node": "drive", "syncs": d.syncs, "commands": d.commands,
-                   "nmt_state": str(drive.nmt_state), "drive_state": str(drive.drive_state),
-                   "plant_time_s": drive.plant.time, "faults": injector.summary()}  # fmt: skip
-        if verdict is not None:
-            summary["verdict"] = verdict
+        summary = drive.summary()
         print(json.dumps(summary))
     finally:
         for b in (bus, truth):
@@ -170,154 +88,40 @@ def run_emulate(args: argparse.Namespace) -> int:
         injector.log.close()
     if stopped_by_signal:
         return 130
-    if verdict is not None:
-        print(f"hdhil: emulate {format_verdict(verdict)}", file=sys.stderr)
-        return 1
-    return 0
+    return _verdict_exit("emulate", summary)
 
 
 def run_firmware(args: argparse.Namespace) -> int:
     request = request_from_args(args)
-    scenario, fw = request.scenario, request.firmware
-    Ts = fw.sample_period_s
-    cycles = request.cycles
-    injector = _fault_injector(args, scenario.faults, "controller", ("control",))
+    injector = controller_faults(request, args.fault, args.fault_log)
     bus = None
     try:
         bus = _control_bus(args)
-        node_bus = _with_faults(bus, injector, "control", CONTROLLER_NODE_ID)
-        try:
-            ctrl = ControllerNode(
-                node_bus,
-                fw,
-                node_id=CONTROLLER_NODE_ID,
-                boot_timeout_s=args.boot_timeout,
-                drive_dcf=request.mapping.dcf,
-            )
-        except ValueError as exc:
-            raise UserError(str(exc)) from None
-        pacer: RealtimeLoop | None = None
+        ctrl = StandaloneController(request, bus, injector, args.boot_timeout)
         with stop_on_signals() as stop:
-            ctrl.boot(time.monotonic())
-            # Wait for the drive's boot-up (or the timeout) while producing heartbeats.
-            serve(ctrl, stop.is_set, lambda: ctrl.phase != "wait-boot" or bool(ctrl.boot_error))
-            if dcf_refused(ctrl):  # the user's DCF has to change: an input error
-                raise UserError(ctrl.boot_error)
-            if ctrl.boot_error and not stop.is_set():
-                # No boot-up (or no SDO answer) from the drive: a stop, told as a verdict.
-                return _boot_failed(ctrl, injector, cycles)
-            pacer = RealtimeLoop(Ts) if args.realtime else None
-            loop = NodeLoop(
-                [ctrl],
-                producer=ctrl,
-                answers=lambda: ctrl.diagnostics.commands_sent,
-                expects_answer=lambda: controller_expects_answer(ctrl),
-                period_s=Ts,
-                pacer=pacer,
-            )
-            if pacer is not None:
-                pacer.instrument(ctrl)
-                pacer.enter()
-                pacer.start()
-            try:
-                done = _sync_cycles(loop, ctrl, stop.is_set, cycles, pacer)
-                if pacer is not None:
-                    pacer.end_recording()
-                ctrl.request_stop()  # walk the drive back to "stopped"
-                for _ in range(MAX_STOP_CYCLES):
-                    if ctrl.phase in ("stopped", "safe"):
-                        break
-                    loop.cycle()
-            finally:
-                if pacer is not None:
-                    pacer.exit()
-        if isinstance(node_bus, FaultyTransmitBus):
-            node_bus.flush()
-        d = ctrl.diagnostics
-        verdict = None if stop.is_set() else stop_verdict(ctrl, cycles, done, Ts)
-        summary = {"node": "controller", "operational_cycles": done,
-                   "syncs_sent": d.syncs_sent, "sensor_frames": d.sensor_frames,
-                   "phase": str(ctrl.phase.value), "mapping": ctrl.sensor_mapping,
-                   "faults": injector.summary()}  # fmt: skip
-        if ctrl.rated_torque_Nm is not None:
-            summary["rated_torque_Nm"] = ctrl.rated_torque_Nm
-        if ctrl.phase == "safe":
-            summary["safe_reason"] = d.safe_reason
-        if pacer is not None:  # the real-time statistics, as in hdhil run --json
-            summary["realtime"] = pacer.result()
-        if verdict is not None:
-            summary["verdict"] = verdict
+            failed = ctrl.boot(stop.is_set)
+            if failed is not None:  # no boot-up (or no SDO answer): a stop, told as a verdict
+                print(json.dumps(failed))
+                return _verdict_exit("firmware", failed)
+            ctrl.run(stop.is_set, realtime=args.realtime)
+        summary = ctrl.summary(stopped=stop.is_set())
         print(json.dumps(summary))
         if stop.is_set():
             return 130
-        if verdict is not None:
-            print(f"hdhil: firmware {format_verdict(verdict)}", file=sys.stderr)
-            return 1
-        return 0
+        return _verdict_exit("firmware", summary)
     finally:
         if bus is not None:
             bus.shutdown()
         injector.log.close()
 
 
-def _boot_failed(ctrl: ControllerNode, injector: FaultInjector, cycles: int) -> int:
-    """``hdhil firmware``'s verdict when the drive never booted or answered: the JSON
-    summary with it, the one-line reason on stderr, exit code 1."""
-    d = ctrl.diagnostics
-    node = ctrl.drive_node_id if hasattr(ctrl, "drive_node_id") else None
-    verdict = startup_verdict(ctrl, str(ctrl.boot_error), node, 0, cycles,
-                              ctrl.config.sample_period_s)  # fmt: skip
-    summary = {"node": "controller", "operational_cycles": 0, "syncs_sent": d.syncs_sent,
-               "sensor_frames": d.sensor_frames, "phase": str(ctrl.phase.value),
-               "safe_reason": d.safe_reason, "faults": injector.summary(),
-               "verdict": verdict}  # fmt: skip
-    print(json.dumps(summary))
-    print(f"hdhil: firmware {format_verdict(verdict)}", file=sys.stderr)
+def _verdict_exit(command: str, summary: dict[str, Any]) -> int:
+    """The exit code of a node's summary: 1 with its verdict's line on stderr, else 0."""
+    verdict = summary.get("verdict")
+    if verdict is None:
+        return 0
+    print(f"hdhil: {command} {format_verdict(verdict)}", file=sys.stderr)
     return 1
-
-
-def _sync_cycles(
-    loop: NodeLoop,
-    ctrl: ControllerNode,
-    stop: Callable[[], bool],
-    cycles: int,
-    pacer: RealtimeLoop | None = None,
-) -> int:
-    """Run the loop's SYNC cycles until ``cycles`` of them found the controller
-    operational, it went safe, or a stop; return the operational cycles.  The pacer's
-    statistics start with operation, as in ``hdhil run --realtime``."""
-    operational = 0
-    while operational < cycles and not stop():
-        if ctrl.phase == "safe":
-            break
-        loop.cycle()
-        if ctrl.phase == "operational":
-            if pacer is not None and not pacer.recording:
-                pacer.begin_recording()
-            operational += 1
-    return operational
-
-
-def _log_metadata(args: argparse.Namespace, control: dict[str, Any]) -> dict[str, Any]:
-    """The sidecar of a logged trace: what was recorded from where and, with
-    ``--scenario``, the run's request (so ``evaluate`` scores it with its settings)."""
-    meta: dict[str, Any] = {
-        "recorded_by": "hdhil log",
-        "interface": control.get("interface"),
-        "channel": control.get("channel"),
-        "bitrate": control.get("bitrate"),
-        "channels": dict(CHANNEL_NUMBER),
-        "time_offset_s": 0.0,
-    }
-    if args.scenario is not None:
-        request = request_from_args(args, run_duration=False)
-        meta.update(
-            scenario=request.name,
-            seed=request.seed,
-            sample_period_s=request.sample_period_s,
-            **run_metadata(request),
-        )
-    return meta
 
 
 def run_log(args: argparse.Namespace) -> int:
@@ -336,38 +140,21 @@ def run_log(args: argparse.Namespace) -> int:
         raise UserError("--override, --fault, --calibration, --mapping and --seed describe "
                         "the run being recorded: give its --scenario too")  # fmt: skip
     control_config = resolve_bus_config(args)
-    metadata = _log_metadata(args, control_config)
+    request = None if args.scenario is None else request_from_args(args, run_duration=False)
+    metadata = log_metadata(control_config, request)
     control = _control_bus(args)
-    buses = {CHANNEL_NUMBER["control"]: control}
+    truth = None
     try:
         truth = _truth_bus(args)
-        if truth is not None:
-            buses[CHANNEL_NUMBER["truth"]] = truth
-        counter = FrameCounter()
         with stop_on_signals() as stop:  # from here on, Ctrl-C ends the log cleanly
-            try:
-                # written to a temporary, renamed into place when complete (also on Ctrl-C)
-                writer = WriterProcess(Path(args.trace), metadata=metadata)
-            except ValueError as exc:
-                raise UserError(str(exc)) from None
-            tap = BusTap(buses, [writer, counter])
-            t_end = time.monotonic() + args.duration if args.duration else float("inf")
-            try:
-                while not stop.is_set() and time.monotonic() < t_end:
-                    if not tap.poll():
-                        time.sleep(IDLE_SLEEP_S)
-                stopped_by_signal = stop.is_set()
-                tap.poll()
-            finally:
-                try:
-                    tap.stop()  # flushes and closes the trace, renames it into place
-                except WriterError as exc:
-                    raise UserError(str(exc)) from None
-        print(json.dumps({"trace": args.trace, "frames": counter.total}))
+            recording = record(Path(args.trace), control, truth, metadata, stop.is_set,
+                               args.duration)  # fmt: skip
+        print(json.dumps({"trace": args.trace, "frames": recording.frames}))
     finally:
-        for bus in buses.values():
-            bus.shutdown()
-    return 130 if stopped_by_signal else 0
+        for bus in (control, truth):
+            if bus is not None:
+                bus.shutdown()
+    return 130 if recording.stopped else 0
 
 
 def _parse_index(text: str) -> tuple[int, int]:

@@ -6,7 +6,8 @@
 - :mod:`~hdhil.can.traces.sidecar`: the run's metadata in ``TRACE.json``;
 - :mod:`~hdhil.can.traces.reader`: python-can's readers, with damage recorded;
 - :mod:`~hdhil.can.traces.decode`: frames classified and decoded with the DBCs;
-- :mod:`~hdhil.can.traces.stats`: per-identifier timing, bus load, counter gaps.
+- :mod:`~hdhil.can.traces.stats`: per-identifier timing, bus load, counter gaps;
+- :mod:`~hdhil.can.traces.export`: a decoded trace as a table or CSV (``hdhil dump``).
 
 Importing the package loads none of them: import the module you need.
 """

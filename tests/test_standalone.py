@@ -1,0 +1,165 @@
+"""The one-node-per-process library (:mod:`hdhil.rig.standalone`) called directly, without
+argparse: the drive and the controller on one virtual bus, a controller whose drive never
+boots, the logger's recording and sidecar, and the faults a process refuses; each checked
+against what ``hdhil emulate``/``firmware``/``log`` print or write."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import can
+import pytest
+
+from hdhil.can.traces.sidecar import read_metadata
+from hdhil.cli import main
+from hdhil.core.dataconf import ConfigError
+from hdhil.core.faultbase import FaultLog
+from hdhil.rig.faults import FaultConfig, FaultInjector
+from hdhil.rig.request import resolve
+from hdhil.rig.standalone import (
+    StandaloneController,
+    StandaloneDrive,
+    controller_faults,
+    drive_faults,
+    log_metadata,
+    record,
+)
+
+
+def _channel(name: str) -> str:
+    return f"hdhil-standalone-{name}-{time.monotonic_ns()}"
+
+
+def _no_faults() -> FaultInjector:
+    return FaultInjector(FaultConfig(), FaultLog(None, keep=False), stream="test")
+
+
+@pytest.mark.realtime
+def test_drive_and_controller_on_one_bus_run_the_request(capsys):
+    request = resolve("free-motion", duration_s=0.05)
+    channel = _channel("pair")
+    drive_bus = can.Bus(interface="virtual", channel=channel)
+    ctrl_bus = can.Bus(interface="virtual", channel=channel)
+    drive = StandaloneDrive(request, drive_bus, None, _no_faults())
+    stop_drive = threading.Event()
+    served = threading.Thread(target=drive.serve, args=(stop_drive.is_set,), daemon=True)
+    served.start()
+    try:
+        ctrl = StandaloneController(request, ctrl_bus, _no_faults(), boot_timeout_s=2.0)
+        assert ctrl.boot(lambda: False) is None
+        assert ctrl.run(lambda: False) == request.cycles
+        summary = ctrl.summary(stopped=False)
+    finally:
+        stop_drive.set()
+        served.join(5)
+        ctrl_bus.shutdown()
+    drive_summary = drive.summary()
+    drive_bus.shutdown()
+    assert summary["node"] == "controller" and "verdict" not in summary
+    assert summary["operational_cycles"] == request.cycles
+    assert summary["phase"] == "stopped" and summary["syncs_sent"] >= request.cycles
+    assert drive_summary["node"] == "drive" and drive_summary["syncs"] >= request.cycles
+
+    # `hdhil firmware` against a drive served the same way prints the same summary
+    channel = _channel("cmd")
+    cmd_drive_bus = can.Bus(interface="virtual", channel=channel)
+    cmd_drive = StandaloneDrive(request, cmd_drive_bus, None, _no_faults())
+    stop_drive.clear()
+    served = threading.Thread(target=cmd_drive.serve, args=(stop_drive.is_set,), daemon=True)
+    served.start()
+    try:
+        code = main(["firmware", "--interface", "virtual", "--channel", channel,
+                     "--duration", "0.05"])  # fmt: skip
+    finally:
+        stop_drive.set()
+        served.join(5)
+        cmd_drive_bus.shutdown()
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert code == 0
+    assert printed.keys() == summary.keys()
+    for key in ("node", "operational_cycles", "phase", "mapping", "faults"):
+        assert printed[key] == json.loads(json.dumps(summary[key])), key
+
+
+@pytest.mark.realtime
+def test_controller_without_a_drive_gives_the_start_up_verdict_the_command_prints(capsys):
+    request = resolve("free-motion", duration_s=0.3)
+    bus = can.Bus(interface="virtual", channel=_channel("nodrive"))
+    try:
+        ctrl = StandaloneController(request, bus, _no_faults(), boot_timeout_s=0.2)
+        failed = ctrl.boot(lambda: False)
+    finally:
+        bus.shutdown()
+    assert failed is not None
+    verdict = failed["verdict"]
+    assert verdict["phase"] == "start-up" and verdict["node"] == 2
+    assert "sent no boot-up within 0.2 s" in verdict["reason"]
+
+    code = main(["firmware", "--interface", "virtual", "--channel", _channel("nodrive-cmd"),
+                 "--boot-timeout", "0.2", "--duration", "0.3"])  # fmt: skip
+    captured = capsys.readouterr()
+    printed = json.loads(captured.out.strip().splitlines()[-1])
+    assert code == 1
+    assert printed.keys() == failed.keys()
+    assert printed["verdict"] == json.loads(json.dumps(verdict))
+    assert captured.err.startswith("hdhil: firmware stopped in start-up")
+
+
+@pytest.mark.realtime
+def test_record_writes_the_frames_and_the_sidecar(tmp_path):
+    channel = _channel("log")
+    control = can.Bus(interface="virtual", channel=channel)
+    sender = can.Bus(interface="virtual", channel=channel)
+    for i in range(10):
+        sender.send(can.Message(arbitration_id=0x181, data=bytes([i] * 8), is_extended_id=False))
+    request = resolve("free-motion")
+    metadata = log_metadata({"interface": "virtual", "channel": channel, "bitrate": 1000}, request)
+    trace = tmp_path / "log.blf"
+    try:
+        recording = record(trace, control, None, metadata, lambda: False, duration_s=0.3)
+    finally:
+        sender.shutdown()
+        control.shutdown()
+    assert recording.frames == 10 and not recording.stopped
+    assert trace.exists()
+    assert read_metadata(trace) == json.loads(json.dumps(metadata))
+    assert metadata["recorded_by"] == "hdhil log" and metadata["scenario"] == "free-motion"
+    assert metadata["seed"] == request.seed and metadata["channel"] == channel
+
+    stopped = record(tmp_path / "stop.blf", can.Bus(interface="virtual", channel=_channel("s")),
+                     None, log_metadata({}, None), lambda: True)  # fmt: skip
+    assert stopped == type(recording)(0, True)
+
+
+@pytest.mark.realtime
+def test_log_metadata_is_the_sidecar_hdhil_log_writes(tmp_path, capsys):
+    channel = _channel("logcmd")
+    trace = tmp_path / "cmd.blf"
+    bus = ["--interface", "virtual", "--channel", channel, "--bitrate", "500000"]
+    run = ["--scenario", "free-motion", "--seed", "7"]
+    code = main(["log", *bus, str(trace), "--duration", "0.1", *run])
+    assert code == 0
+    assert json.loads(capsys.readouterr().out) == {"trace": str(trace), "frames": 0}
+    expected = log_metadata(
+        {"interface": "virtual", "channel": channel, "bitrate": 500000},
+        resolve("free-motion", seed=7),
+    )
+    assert read_metadata(trace) == json.loads(json.dumps(expected))
+    assert log_metadata({}, None).keys() == {
+        "recorded_by", "interface", "channel", "bitrate", "channels", "time_offset_s"
+    }  # fmt: skip
+
+
+def test_a_process_refuses_faults_that_do_not_act_in_it(tmp_path):
+    request = resolve("free-motion")
+    with pytest.raises(ConfigError, match=r"--fault truth\.\*: these faults do not act in "
+                       r"hdhil firmware \(it injects control\)"):  # fmt: skip
+        controller_faults(request, ["truth.loss_rate=0.1"], None)
+    with pytest.raises(ConfigError, match=r"do not act in hdhil emulate \(it injects sensors, "
+                       r"control\)"):  # fmt: skip
+        drive_faults(request, ["truth.loss_rate=0.1"], None, truth=False)
+    injector = drive_faults(request, ["seed=3"], tmp_path / "faults.jsonl", truth=True)
+    injector.log.close()
+    assert (tmp_path / "faults.jsonl").exists()
