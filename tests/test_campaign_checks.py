@@ -195,9 +195,13 @@ def test_the_command_prints_the_warning_of_a_damaged_record(tmp_path, capsys, mo
         on_warning(f"{out}/runs/x.json: not JSON: run again")
         return campaign_module.CampaignRun({}, 0, 0, False, 0, 0.0)
 
+    import hdhil.rig.campaign_report as report_module
+
     monkeypatch.setattr(campaign_module, "run_campaign", warn_once)
+    monkeypatch.setattr(report_module, "write_outputs", lambda *args: {"passed": 0})
+    path = _campaign(tmp_path, HEAD + "duration_s = 0.01\n")
     out = tmp_path / "out"
-    main(["campaign", "smoke", "--workers", "1", "--out", str(out), "--json"])
+    main(["campaign", str(path), "--workers", "1", "--out", str(out), "--json"])
     err = capsys.readouterr().err
     assert f"hdhil: warning: {out}/runs/x.json: not JSON: run again\n" in err
 
