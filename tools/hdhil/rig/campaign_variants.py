@@ -96,6 +96,7 @@ def expand(campaign: Campaign) -> list[Variant]:
     width = max(4, len(str(total)))
     variants: list[Variant] = []
     seen: dict[str, str] = {}
+    cycles: dict[tuple[str, str], int] = {}
     suffix = f".{campaign.trace_format}" if campaign.keep_trace else None
     for base in campaign.scenarios:
         for point in points:
@@ -116,7 +117,12 @@ def expand(campaign: Campaign) -> list[Variant]:
                 if scenario_from_dict(data) != scenario:  # pragma: no cover - a to_dict gap
                     raise ConfigError("the scenario does not survive its plain-data form")
                 settings = RunSettings(data, campaign.duration_s, seed, suffix)
-                planned = request_of(settings).cycles  # what the worker will resolve
+                # What the worker will resolve; variants that differ only in the seed
+                # (checked in the file, as ``resolve`` checks it) share the scenario's.
+                key = (base, json.dumps(overrides, sort_keys=True, default=repr))
+                if key not in cycles:
+                    cycles[key] = request_of(RunSettings(data, campaign.duration_s)).cycles
+                planned = cycles[key]
             except ConfigError as exc:
                 raise ConfigError(f"{where}: {_printable(str(exc))}") from None
             digest = digest_of(settings)
