@@ -2,8 +2,9 @@
 a Dask cluster, with a verdict per variant and a report.
 
 Exit codes: 0 every variant passed every criterion, 1 some variant failed a criterion or
-raised, 2 usage or input error (nothing has run), 130 interrupted by Ctrl-C or SIGTERM
-(finished variants are kept; run the same command again to complete the campaign).
+raised, 2 usage or input error (nothing has run or been written: the file, every variant
+and ``--out`` are checked first), 130 interrupted by Ctrl-C or SIGTERM (finished variants
+are kept; run the same command again to complete the campaign).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import json
 import os
 import signal
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -86,6 +88,13 @@ class _Progress:
             )
             self.bar.update(1)
 
+    def warn(self, message: str) -> None:
+        line = f"hdhil: warning: {message}"
+        if self.bar is not None:
+            self.bar.write(line, file=sys.stderr)
+        else:
+            print(line, file=sys.stderr)
+
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
@@ -106,6 +115,42 @@ def _dask_executor(address: str) -> tuple[Any, Any, tuple[type[BaseException], .
     return client, (lambda: client.get_executor(pure=False)), (KilledWorker,)
 
 
+#: What a campaign writes in ``--out``: directories, and files it replaces.
+_OUT_DIRS = ("runs", "traces", "plots")
+_OUT_FILES = ("results.csv", "results.parquet", "timings.csv", "report.md")
+
+
+def _check_out(out: Path) -> None:
+    """Refuse an ``--out`` the campaign could not write its results in, before anything
+    runs; writes nothing."""
+    if out.exists() or out.is_symlink():
+        if not out.is_dir():
+            raise UserError(f"--out {out} exists and is not a directory")
+        for name in _OUT_DIRS:
+            entry = out / name
+            if (entry.exists() or entry.is_symlink()) and not entry.is_dir():
+                raise UserError(f"--out {out}: {name} exists and is not a directory")
+        for name in _OUT_FILES:
+            entry = out / name
+            if entry.is_symlink() or (entry.exists() and not entry.is_file()):
+                raise UserError(f"--out {out}: {name} exists and is not a regular file")
+        where = out
+    else:
+        where = out.parent
+        if not where.exists():
+            ancestor = next((p for p in where.parents if p.exists()), None)
+            if ancestor is not None and not ancestor.is_dir():
+                raise UserError(f"cannot write in --out {out}: {ancestor} is not a directory")
+            raise UserError(f"--out {out}: its parent directory {where} does not exist")
+        if not where.is_dir():
+            raise UserError(f"cannot write in --out {out}: {where} is not a directory")
+    try:  # permissions, a read-only file system: what os.access cannot tell for root
+        with tempfile.TemporaryFile(dir=where, prefix=".hdhil-probe-"):
+            pass
+    except OSError as exc:
+        raise UserError(f"cannot write in --out {out}: {exc.strerror or exc}") from None
+
+
 def run(args: argparse.Namespace) -> int:
     from hdhil.rig.campaign import local_executor, run_campaign
     from hdhil.rig.campaign_file import load_campaign
@@ -120,8 +165,7 @@ def run(args: argparse.Namespace) -> int:
     if workers < 1:
         raise UserError(f"--workers must be >= 1, got {workers}")
     out = args.out if args.out is not None else Path(f"campaign-{campaign.name}")
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out {out} exists and is not a directory")
+    _check_out(out)
     client = None
     lost: tuple[type[BaseException], ...] = ()
     if args.scheduler is not None:
@@ -138,7 +182,9 @@ def run(args: argparse.Namespace) -> int:
     progress = _Progress(len(variants), enabled=sys.stderr.isatty() and not args.json)
     previous = terminate_as_interrupt((signal.SIGTERM,))  # as Ctrl-C: finished variants kept
     try:
-        result = run_campaign(campaign, variants, out, make_executor, progress, lost)
+        result = run_campaign(
+            campaign, variants, out, make_executor, progress, lost, on_warning=progress.warn
+        )
     finally:
         progress.close()
         restore_handlers(previous)

@@ -9,7 +9,8 @@ raising ``KeyboardInterrupt`` like Ctrl-C while a command runs
 (:func:`terminate_as_interrupt`); long loops that end at a cycle boundary instead
 (:func:`stop_on_signals`); critical sections that must not be cut (:func:`signals_deferred`);
 child processes that leave the signals to their parent (:func:`stopping_signals_blocked`
-around the fork, :func:`leave_stopping_signals_to_parent`, :func:`leave_interrupt_to_parent`).
+around the fork, :func:`leave_stopping_signals_to_parent`, :func:`leave_interrupt_to_parent`,
+:func:`die_with_parent`).
 
 Python runs signal handlers in the main thread only, between bytecodes; elsewhere these
 helpers do nothing.  Imported by the console before anything else of hdhil: standard
@@ -29,6 +30,7 @@ from typing import Any
 __all__ = [
     "STOPPING_SIGNALS",
     "TERMINATING_SIGNALS",
+    "die_with_parent",
     "ignore_stopping_signals",
     "install_start_up_handler",
     "leave_interrupt_to_parent",
@@ -224,3 +226,27 @@ def leave_interrupt_to_parent() -> None:
     """In a pool worker: ignore Ctrl-C, which reaches the whole process group; the parent
     answers it (cancels the work and keeps the results)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+#: ``PR_SET_PDEATHSIG`` of <linux/prctl.h>.
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(parent_pid: int) -> bool:
+    """In a worker process: be killed (SIGKILL) when the parent dies, even by SIGKILL,
+    which no handler of the parent can answer. Linux only (``PR_SET_PDEATHSIG``); returns
+    whether it is in place. A parent already gone by now ends this process at once."""
+    import ctypes
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+            return False
+    except (OSError, AttributeError):
+        return False
+    if os.getppid() != parent_pid:  # the parent died before the request took effect
+        os._exit(1)
+    return True

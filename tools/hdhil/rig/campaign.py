@@ -22,6 +22,7 @@ import multiprocessing
 import os
 import socket
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +30,7 @@ from typing import Any
 
 from hdhil.can.traces.sidecar import metadata_path
 from hdhil.core.dataconf import ConfigError
-from hdhil.core.signals import leave_interrupt_to_parent
+from hdhil.core.signals import die_with_parent, leave_interrupt_to_parent
 from hdhil.rig.campaign_file import Campaign
 from hdhil.rig.campaign_metrics import judge
 from hdhil.rig.campaign_variants import Variant
@@ -45,12 +46,14 @@ __all__ = [
 ]
 
 
-def _worker_init() -> None:
+def _worker_init(parent_pid: int) -> None:
     """Start of a local pool worker: leave Ctrl-C to the campaign (it cancels and keeps
-    results), and move the objects inherited from the parent out of the garbage
-    collector's reach (a forked worker would otherwise traverse, and so copy, the
-    parent's whole heap at every full collection)."""
+    results), end when the campaign's process ends, even killed (Linux), and move the
+    objects inherited from the parent out of the garbage collector's reach (a forked
+    worker would otherwise traverse, and so copy, the parent's whole heap at every full
+    collection)."""
     leave_interrupt_to_parent()
+    die_with_parent(parent_pid)
     gc.freeze()
 
 
@@ -84,10 +87,12 @@ def execute_variant(settings: RunSettings) -> dict[str, Any]:
 
 def local_executor(workers: int) -> cf.Executor:
     """A process pool of ``workers`` processes (forked where the platform can: they
-    start with hdhil already imported)."""
+    start with hdhil already imported); on Linux they end with the calling process."""
     methods = multiprocessing.get_all_start_methods()
     ctx = multiprocessing.get_context("fork" if "fork" in methods else None)
-    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init)
+    return cf.ProcessPoolExecutor(
+        max_workers=workers, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
+    )
 
 
 #: Submissions of one variant whose worker was lost before it is recorded as an error.
@@ -136,14 +141,31 @@ def _write_atomic(path: Path, data: bytes) -> None:
     os.replace(tmp, path)
 
 
-def _load_stored(path: Path, variant: Variant) -> dict[str, Any] | None:
+def _load_stored(path: Path, variant: Variant) -> tuple[dict[str, Any] | None, str | None]:
+    """A stored record, or None and why it cannot be used (None when there is none)."""
     try:
-        stored = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None  # damaged or half-written elsewhere: run the variant again
-    if not isinstance(stored, dict) or stored.get("digest") != variant.digest:
-        return None
-    return stored
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return None, None
+    except (OSError, ValueError) as exc:
+        return None, f"unreadable ({type(exc).__name__}: {exc})"
+    try:
+        stored = json.loads(text)
+    except ValueError:
+        return None, "not JSON"
+    if not isinstance(stored, dict):
+        return None, "not a JSON object"
+    if stored.get("digest") != variant.digest:
+        return None, f"records another variant (digest {stored.get('digest')!r})"
+    wall = stored.get("wall_s")
+    if isinstance(wall, bool) or not isinstance(wall, (int, float)) or not wall >= 0:
+        return None, f"wall_s is {wall!r}, not a number of seconds"
+    for key in ("result", "error", "worker"):
+        value = stored.get(key)
+        wanted = dict if key == "result" else str
+        if value is not None and not isinstance(value, wanted):
+            return None, f"{key} is a {type(value).__name__}"
+    return stored, None
 
 
 def run_campaign(
@@ -153,6 +175,7 @@ def run_campaign(
     make_executor: Callable[[], cf.Executor],
     on_record: Callable[[Record], None] | None = None,
     lost_errors: tuple[type[BaseException], ...] = (),
+    on_warning: Callable[[str], None] | None = None,
 ) -> CampaignRun:
     """Run every variant without a stored record through executors from
     ``make_executor``; store each record as it arrives (``DIR/runs/<digest>.json``).
@@ -161,7 +184,11 @@ def run_campaign(
     broken local pool); such a variant is submitted again, up to :data:`MAX_ATTEMPTS`
     times, then recorded as an error for this invocation only (not stored, so a re-run
     retries it).  Ctrl-C cancels what has not started and returns with ``interrupted``.
+    A stored record that cannot be used (not JSON, a field missing or of the wrong type)
+    is reported, one line, to ``on_warning`` (default :func:`warnings.warn`) and its
+    variant run again.
     """
+    warn = on_warning if on_warning is not None else _warn
     t0 = time.perf_counter()
     runs_dir = out / "runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
@@ -169,7 +196,10 @@ def run_campaign(
     records: dict[str, Record] = {}
     todo: list[Variant] = []
     for v in variants:
-        stored = _load_stored(runs_dir / f"{v.digest}.json", v)
+        path = runs_dir / f"{v.digest}.json"
+        stored, damage = _load_stored(path, v)
+        if damage is not None:
+            warn(f"{path}: {damage}: variant {v.id} is run again")
         if (
             stored is None
             or stored.get("error") is not None  # may come from the worker's environment
@@ -178,8 +208,15 @@ def run_campaign(
             todo.append(v)
             continue
         rec = Record(v, stored.get("result"), stored.get("error"), float(stored["wall_s"]),
-                     str(stored.get("worker", "")), resumed=True)  # fmt: skip
-        rec.metrics, rec.verdicts, rec.reasons = judge(v, rec.result, rec.error, campaign.criteria)
+                     str(stored.get("worker") or ""), resumed=True)  # fmt: skip
+        try:
+            rec.metrics, rec.verdicts, rec.reasons = judge(
+                v, rec.result, rec.error, campaign.criteria
+            )
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            warn(f"{path}: damaged result ({type(exc).__name__}): variant {v.id} is run again")
+            todo.append(v)
+            continue
         records[v.id] = rec
         if on_record is not None:
             on_record(rec)
@@ -253,6 +290,10 @@ def run_campaign(
         remaining = retry
     return CampaignRun(records, len(records) - resumed, resumed, interrupted, lost,
                        time.perf_counter() - t0)  # fmt: skip
+
+
+def _warn(message: str) -> None:
+    warnings.warn(message, RuntimeWarning, stacklevel=3)
 
 
 def _failed(error: str) -> dict[str, Any]:

@@ -5,12 +5,13 @@ of equal length), criteria over the metrics of a run
 (:data:`hdhil.rig.campaign_metrics.METRICS`), plots and what to keep.
 :func:`load_campaign` takes the name of a campaign shipped beside the scenarios
 (:func:`list_campaigns`) or a path, and rejects a bad file with a one-line error naming
-it before anything runs. The grid becomes variants in :mod:`hdhil.rig.campaign_variants`.
+it before anything runs. The grid is counted from the axes' lengths before a value list is
+built: more than :data:`MAX_VARIANTS` variants is such an error. The grid becomes variants
+in :mod:`hdhil.rig.campaign_variants`.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -18,9 +19,17 @@ from typing import Any
 
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.files import load_toml
+from hdhil.core.numbers import MAX_SECONDS, check_number
 from hdhil.rig.campaign_metrics import METRICS, Criterion
 
-__all__ = ["Axis", "Campaign", "list_campaigns", "load_campaign"]
+__all__ = ["MAX_VARIANTS", "Axis", "Campaign", "list_campaigns", "load_campaign"]
+
+#: The most variants a campaign may have (base scenarios times the grid's points); a
+#: larger grid is refused before its values are built. Split a larger study into files.
+MAX_VARIANTS = 10_000
+
+#: Seeds a run takes (``hdhil run --seed``): integers in [0, 2**63).
+_SEED_LIMIT = 2**63
 
 
 @dataclass(frozen=True)
@@ -97,7 +106,9 @@ def _resolve(name_or_path: str) -> Path:
     return path
 
 
-def _axis_values(key: str, spec: Any, where: str) -> tuple[Any, ...]:
+def _axis_values(key: str, spec: Any, where: str) -> range | tuple[Any, ...]:
+    """The values of an axis; a range stays a range (not built) until the grid's size
+    is known."""
     if isinstance(spec, dict):
         if set(spec) != {"range"}:
             raise ConfigError(f"{where}.{key}: expected a list of values or {{ range = [...] }}")
@@ -112,17 +123,55 @@ def _axis_values(key: str, spec: Any, where: str) -> tuple[Any, ...]:
             )
         if len(bounds) == 3 and bounds[2] == 0:
             raise ConfigError(f"{where}.{key}: range step must not be 0")
-        values: tuple[Any, ...] = tuple(range(*bounds))
+        values: range | tuple[Any, ...] = range(*bounds)
     elif isinstance(spec, list):
         values = tuple(spec)
     else:
         raise ConfigError(f"{where}.{key}: expected a list of values, got {spec!r}")
-    if not values:
+    if _count(values) == 0:
         raise ConfigError(f"{where}.{key}: no values")
     return values
 
 
-def _flatten_axes(table: Any, where: str, prefix: str = "") -> list[Axis]:
+def _count(values: range | tuple[Any, ...]) -> int:
+    """How many values, without building a range (``len`` of a range fails beyond
+    ``sys.maxsize``)."""
+    if isinstance(values, range):
+        start, stop, step = values.start, values.stop, values.step
+        span = stop - start if step > 0 else start - stop
+        return max(0, -(-span // abs(step)))
+    return len(values)
+
+
+@dataclass(frozen=True)
+class _Lazy:
+    """An axis before the grid's size is checked: its values may be an unbuilt range."""
+
+    key: str
+    values: range | tuple[Any, ...]
+    where: str
+
+    def build(self) -> Axis:
+        values = tuple(self.values)
+        if self.key == "seed":
+            for seed in values:
+                if isinstance(seed, bool) or not isinstance(seed, int):
+                    bad = True
+                else:
+                    bad = not 0 <= seed < _SEED_LIMIT
+                if bad:
+                    raise ConfigError(
+                        f"{self.where}.seed: seed must be an integer in [0, 2**63), got {seed!r}"
+                    )
+        return Axis(self.key, values)
+
+
+def _one_line(text: str, where: str) -> None:
+    if not text.isprintable():
+        raise ConfigError(f"{where} must be one line of printable characters, got {text!r}")
+
+
+def _flatten_axes(table: Any, where: str, prefix: str = "") -> list[_Lazy]:
     """``a.b = [...]`` (a nested table in TOML) as axis ``a.b``; a table with ``range``
     is a value specification, not a deeper key."""
     if not isinstance(table, dict):
@@ -133,7 +182,7 @@ def _flatten_axes(table: Any, where: str, prefix: str = "") -> list[Axis]:
         if isinstance(spec, dict) and "range" not in spec:
             axes += _flatten_axes(spec, where, f"{dotted}.")
         else:
-            axes.append(Axis(dotted, _axis_values(dotted, spec, where)))
+            axes.append(_Lazy(dotted, _axis_values(dotted, spec, where), where))
     return axes
 
 
@@ -162,12 +211,14 @@ def _campaign_from_dict(data: dict[str, Any], path: Path) -> Campaign:
     header = from_dict(_Header, head, "campaign")
     if not header.name.strip():
         raise ConfigError("campaign.name must be a non-empty string")
+    _one_line(header.name, "campaign.name")
     if not header.scenarios:
         raise ConfigError("campaign.scenarios: at least one scenario")
-    if header.duration_s is not None and not (
-        math.isfinite(header.duration_s) and header.duration_s > 0
-    ):
-        raise ConfigError(f"campaign.duration_s must be > 0 and finite, got {header.duration_s}")
+    for name in header.scenarios:
+        _one_line(name, f"campaign.scenarios: {name!r}")
+    if header.duration_s is not None:  # as ``hdhil run --duration``: (0 s, one year]
+        check_number(header.duration_s, "campaign.duration_s", lo=0.0, lo_open=True,
+                     hi=MAX_SECONDS)  # fmt: skip
     if header.trace_format not in _TRACE_FORMATS:
         raise ConfigError(
             f"campaign.trace_format must be one of {', '.join(_TRACE_FORMATS)}, "
@@ -183,7 +234,7 @@ def _campaign_from_dict(data: dict[str, Any], path: Path) -> Campaign:
             raise ConfigError(
                 f"campaign.plots: unknown metric {name!r} (known: {', '.join(METRICS)})"
             )
-    axes = tuple(_flatten_axes(data.get("axes", {}), "axes"))
+    lazy_axes = _flatten_axes(data.get("axes", {}), "axes")
     zips_data = data.get("zip", [])
     if not isinstance(zips_data, list):
         raise ConfigError("zip: expected [[zip]] tables (each a group of axes of equal length)")
@@ -192,12 +243,12 @@ def _campaign_from_dict(data: dict[str, Any], path: Path) -> Campaign:
         members = tuple(_flatten_axes(group, f"zip[{i}]"))
         if not members:
             raise ConfigError(f"zip[{i}]: no axes")
-        lengths = {len(a.values) for a in members}
+        lengths = {_count(a.values) for a in members}
         if len(lengths) != 1:
-            sizes = ", ".join(f"{a.key} {len(a.values)}" for a in members)
+            sizes = ", ".join(f"{a.key} {_count(a.values)}" for a in members)
             raise ConfigError(f"zip[{i}]: zipped axes need equal lengths ({sizes})")
         zips.append(members)
-    keys = [a.key for a in axes] + [a.key for g in zips for a in g]
+    keys = [a.key for a in lazy_axes] + [a.key for g in zips for a in g]
     for key in keys:
         if keys.count(key) > 1:
             raise ConfigError(f"axis {key} is given twice")
@@ -211,6 +262,8 @@ def _campaign_from_dict(data: dict[str, Any], path: Path) -> Campaign:
             raise ConfigError(
                 f"axis {key}: not a scenario key (seed, scenario.*, plant.*, firmware.*, faults.*)"
             )
+    _check_size(scenarios, lazy_axes, zips)
+    axes = tuple(a.build() for a in lazy_axes)
     return Campaign(
         name=header.name,
         source=str(path),
@@ -222,5 +275,24 @@ def _campaign_from_dict(data: dict[str, Any], path: Path) -> Campaign:
         criteria=criteria,
         plots=tuple(header.plots),
         axes=axes,
-        zips=tuple(zips),
+        zips=tuple(tuple(a.build() for a in group) for group in zips),
     )
+
+
+def _check_size(scenarios: list[str], axes: list[_Lazy], zips: list[tuple[_Lazy, ...]]) -> None:
+    """Refuse a grid of more than :data:`MAX_VARIANTS` variants, counted from the axes'
+    lengths (nothing built)."""
+    n = len(scenarios)
+    factors = [f"{n} scenario{'s' if n != 1 else ''}"]
+    total = n
+    for a in axes:
+        total *= _count(a.values)
+        factors.append(f"{a.key} {_count(a.values)}")
+    for i, group in enumerate(zips):
+        total *= _count(group[0].values)
+        factors.append(f"zip[{i}] {_count(group[0].values)}")
+    if total > MAX_VARIANTS:
+        raise ConfigError(
+            f"the grid gives {total} variants ({' x '.join(factors)}): more than "
+            f"{MAX_VARIANTS}, the most a campaign may have; split it into several files"
+        )

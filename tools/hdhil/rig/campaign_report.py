@@ -106,6 +106,9 @@ def write_parquet(path: Path, campaign: Campaign, table: list[dict[str, Any]]) -
             isinstance(x, (int, float)) and not isinstance(x, bool) for x in present
         ):
             integral = all(isinstance(x, int) for x in present)
+            if integral and not all(-(2**63) <= x < 2**63 for x in present):
+                data[col] = [None if x is None else _cell(x) for x in values]  # beyond int64
+                continue
             data[col] = [None if x is None else (x if integral else float(x)) for x in values]
         else:
             data[col] = [None if x is None else _cell(x) for x in values]

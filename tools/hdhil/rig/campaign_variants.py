@@ -2,11 +2,12 @@
 
 :func:`expand` crosses the campaign's axes (a zipped group counts as one axis) over every
 base scenario, the last axis varying fastest, and builds each point as ``hdhil run``
-builds its options into a scenario: a variant that would not run is an error of the
-campaign file, reported before the first run. A :class:`Variant` is recognised by
-:func:`digest_of` its full settings and the hdhil version; the execution
-(:mod:`hdhil.rig.campaign`) stores its record under that digest, so a re-run finds what
-already finished.
+builds its options into a scenario, resolved as the worker will resolve it
+(:func:`hdhil.rig.variant.request_of`): a variant that would not run is an error of
+the campaign file, reported before the first run and before anything is written. A
+:class:`Variant` is recognised by :func:`digest_of` its full settings and the hdhil
+version; the execution (:mod:`hdhil.rig.campaign`) stores its record under that digest,
+so a re-run finds what already finished.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from hdhil.core.dataconf import ConfigError, merge
 from hdhil.rig.campaign_file import Campaign
 from hdhil.rig.campaign_metrics import format_value
 from hdhil.rig.scenario import load_scenario, scenario_data, scenario_from_dict
-from hdhil.rig.variant import RunSettings
+from hdhil.rig.variant import RunSettings, request_of
 
 __all__ = ["Variant", "digest_of", "expand"]
 
@@ -75,6 +76,11 @@ def digest_of(settings: RunSettings) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+def _printable(text: str) -> str:
+    """``text`` on one line: control characters escaped as in a Python literal."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def expand(campaign: Campaign) -> list[Variant]:
     """Every variant of the campaign in order (scenarios, then the axes as written, the
     last varying fastest), each built and validated as ``hdhil run`` would build it."""
@@ -90,6 +96,7 @@ def expand(campaign: Campaign) -> list[Variant]:
     width = max(4, len(str(total)))
     variants: list[Variant] = []
     seen: dict[str, str] = {}
+    cycles: dict[tuple[str, str], int] = {}
     suffix = f".{campaign.trace_format}" if campaign.keep_trace else None
     for base in campaign.scenarios:
         for point in points:
@@ -98,29 +105,26 @@ def expand(campaign: Campaign) -> list[Variant]:
                 if key != "seed":
                     overrides = merge(overrides, _nested(key, value))
             vid = f"{len(variants) + 1:0{width}d}"
-            where = (
+            where = _printable(
                 f"variant {vid} ({base}"
                 + "".join(f", {k}={format_value(v)}" for k, v in point.items())
                 + ")"
             )
+            seed = point.get("seed")
             try:
                 scenario = load_scenario(base, overrides or None)
-                fw = scenario.firmware
-                seed = point.get("seed")
-                if seed is not None and (
-                    isinstance(seed, bool) or not isinstance(seed, int) or seed < 0
-                ):
-                    raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
+                data = scenario_data(scenario)
+                if scenario_from_dict(data) != scenario:  # pragma: no cover - a to_dict gap
+                    raise ConfigError("the scenario does not survive its plain-data form")
+                settings = RunSettings(data, campaign.duration_s, seed, suffix)
+                # What the worker will resolve; variants that differ only in the seed
+                # (checked in the file, as ``resolve`` checks it) share the scenario's.
+                key = (base, json.dumps(overrides, sort_keys=True, default=repr))
+                if key not in cycles:
+                    cycles[key] = request_of(RunSettings(data, campaign.duration_s)).cycles
+                planned = cycles[key]
             except ConfigError as exc:
-                raise ConfigError(f"{where}: {exc}") from None
-            data = scenario_data(scenario)
-            if scenario_from_dict(data) != scenario:  # pragma: no cover - a to_dict gap
-                raise ConfigError(f"{where}: the scenario does not survive its plain-data form")
-            duration = scenario.duration_s if campaign.duration_s is None else campaign.duration_s
-            planned = round(duration / fw.sample_period_s)
-            if fw.num_samples:
-                planned = min(planned, fw.num_samples)
-            settings = RunSettings(data, campaign.duration_s, seed, suffix)
+                raise ConfigError(f"{where}: {_printable(str(exc))}") from None
             digest = digest_of(settings)
             if digest in seen:
                 raise ConfigError(f"{where}: same settings as variant {seen[digest]}")

@@ -16,11 +16,11 @@ from pathlib import Path
 from typing import Any
 
 from hdhil.can.traces.sidecar import metadata_path
-from hdhil.rig.request import resolve
+from hdhil.rig.request import RunRequest, resolve
 from hdhil.rig.runner import run_lockstep
 from hdhil.rig.scenario import scenario_data, scenario_from_dict
 
-__all__ = ["WALL_CLOCK_KEYS", "RunSettings", "run_settings", "scenario_data"]
+__all__ = ["WALL_CLOCK_KEYS", "RunSettings", "request_of", "run_settings", "scenario_data"]
 
 #: Keys of ``hdhil run --json`` that measure the host, not the run: left out of a
 #: variant's stored result so that the same variant gives the same record anywhere.
@@ -44,6 +44,14 @@ class RunSettings:
     trace_suffix: str | None = None
 
 
+def request_of(settings: RunSettings) -> RunRequest:
+    """The request ``hdhil run`` makes of the same options; raises
+    :class:`~hdhil.core.dataconf.ConfigError` for what it refuses (a duration under one
+    sample period or over a year, a seed outside [0, 2**63))."""
+    scenario = scenario_from_dict(settings.scenario, "variant")
+    return resolve(scenario, duration_s=settings.duration_s, seed=settings.seed)
+
+
 def run_settings(settings: RunSettings) -> tuple[dict[str, Any], bytes | None, bytes | None]:
     """Run one variant; return ``hdhil run --json``'s dictionary, the trace's bytes and
     its sidecar JSON's bytes (None without a trace).
@@ -52,8 +60,7 @@ def run_settings(settings: RunSettings) -> tuple[dict[str, Any], bytes | None, b
     (:func:`hdhil.rig.request.resolve`). Raises what the run raises (a configuration the
     runner refuses, a drive that never reaches operation): the caller records it.
     """
-    scenario = scenario_from_dict(settings.scenario, "variant")
-    request = resolve(scenario, duration_s=settings.duration_s, seed=settings.seed)
+    request = request_of(settings)
     with tempfile.TemporaryDirectory(prefix="hdhil-variant-") as tmp:
         trace = Path(tmp) / f"trace{settings.trace_suffix}" if settings.trace_suffix else None
         result = run_lockstep(request, trace=trace, evaluate=True)
