@@ -636,6 +636,56 @@ def test_sdo_segments_outside_a_transfer_are_aborted_not_crashing(bench):
     assert node.read(0x2303) == value
 
 
+UPLOAD_2303 = struct.pack("<BHB4x", 0x40, 0x2303, 0)  # 8 bytes: segmented
+UPLOAD_SEGMENT, UPLOAD_SEGMENT_T1 = b"\x60" + bytes(7), b"\x70" + bytes(7)
+DOWNLOAD_SEGMENT = b"\x00" + bytes(7)
+OPEN_DOWNLOAD = struct.pack("<BHBI", 0x21, 0x2303, 0, 8)
+
+
+@pytest.mark.parametrize(
+    ("before", "stray"),
+    [
+        # an upload segment when no segmented upload is open (CiA 301 §7.2.4.3.4)
+        ([UPLOAD_2303, UPLOAD_SEGMENT, UPLOAD_SEGMENT_T1], UPLOAD_SEGMENT),  # upload done
+        ([struct.pack("<BHB4x", 0x40, 0x1000, 0)], UPLOAD_SEGMENT),  # after an expedited one
+        ([OPEN_DOWNLOAD], UPLOAD_SEGMENT),  # during a segmented download
+        ([OPEN_DOWNLOAD, b"\x00" + bytes(7), b"\x1d" + bytes(7)], UPLOAD_SEGMENT_T1),
+        ([UPLOAD_2303, UPLOAD_SEGMENT_T1], UPLOAD_SEGMENT),  # after a toggle abort
+        # a download segment when no segmented download is open
+        ([UPLOAD_2303], DOWNLOAD_SEGMENT),  # during a segmented upload
+        ([struct.pack("<BHBI", 0x2B, 0x2301, 0, 5)], DOWNLOAD_SEGMENT),  # after expedited
+    ],
+    ids=[
+        "upload-finished",
+        "upload-expedited",
+        "download-open",
+        "download-finished",
+        "upload-aborted",
+        "download-segment-in-upload",
+        "download-expedited",
+    ],
+)
+def test_sdo_segment_of_no_open_transfer_is_aborted_with_0x05040001(bench, before, stray):
+    node = booted(bench)
+    for request in before:
+        bench.send(0x602, request)
+    pump(node)
+    bench.frames()
+    bench.send(0x602, stray)
+    pump(node)
+    ((cob, data),) = bench.frames()
+    assert cob == 0x582
+    assert (data[0], struct.unpack_from("<I", data, 4)[0]) == (0x80, 0x05040001)
+    assert node.counters.sdo_protocol_errors == 1
+    # The abort ended any transfer: the next segment of either kind is aborted too, and a
+    # new upload works from its start.
+    bench.send(0x602, UPLOAD_SEGMENT)
+    bench.send(0x602, DOWNLOAD_SEGMENT)
+    pump(node)
+    assert [struct.unpack_from("<I", d, 4)[0] for _, d in bench.frames()] == [0x05040001] * 2
+    assert sdo_upload(bench, node, 0x1000, 0) == struct.pack("<I", 0x00020192)
+
+
 @pytest.mark.parametrize(
     ("index", "sub", "data", "code"),
     [

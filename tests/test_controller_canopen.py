@@ -248,6 +248,29 @@ def test_communication_objects_per_the_services_table():
     assert (signal.name, signal.length, signal.is_signed) == ("statusword", 16, False)
 
 
+def test_sdo_segments_of_no_open_transfer_are_aborted(link):
+    """CiA 301 §7.2.4.3.4: an upload or download segment with no such transfer open is
+    answered with abort 0x05040001 (raw frames to the controller)."""
+    lk = link()
+    lk.boot()
+    lk.pump()
+    device_name = struct.pack("<BHB4x", 0x40, 0x1008, 0)
+    for before, stray in [
+        ([], b"\x60" + bytes(7)),
+        ([], b"\x00" + bytes(7)),
+        # "hdhil controller", 16 bytes: three segments, then none
+        (
+            [device_name, b"\x60" + bytes(7), b"\x70" + bytes(7), b"\x60" + bytes(7)],
+            b"\x70" + bytes(7),
+        ),
+        ([device_name], b"\x00" + bytes(7)),
+    ]:
+        for request in before:
+            lk._request(request)
+        answer = lk._request(stray)
+        assert (answer[0], struct.unpack_from("<I", answer, 4)[0]) == (0x80, 0x05040001)
+
+
 def test_the_scenario_configuration_is_what_an_sdo_read_returns(link):
     cfg = FirmwareConfig(
         sample_period_s=5e-4,

@@ -753,6 +753,33 @@ def test_sdo_needs_pre_operational_or_operational(rig):
     assert sdo_upload(rig, 0x1801, 3) == struct.pack("<H", 10)
 
 
+def test_sdo_segments_of_no_open_transfer_are_aborted(rig):
+    """CiA 301 §7.2.4.3.4: a segment when no segmented transfer of its kind is open is
+    answered with abort 0x05040001, not with a segment (raw frames to the drive)."""
+    rig.boot()
+
+    def request(data: bytes) -> bytes:
+        rig.send(SDO_RX, data)
+        rig.drive.poll()
+        ((_, response),) = rig.frames()
+        return response
+
+    aborted = (0x80, 0x05040001)
+    for stray in (b"\x60" + bytes(7), b"\x00" + bytes(7)):  # upload / download segment
+        answer = request(stray)
+        assert (answer[0], struct.unpack_from("<I", answer, 4)[0]) == aborted
+    # 0x1008 "hdhil drive" (11 bytes) is uploaded in two segments; a third is refused.
+    assert request(struct.pack("<BHB4x", 0x40, 0x1008, 0)) == struct.pack(
+        "<BHBI", 0x41, 0x1008, 0, 11
+    )
+    assert request(b"\x60" + bytes(7)) == b"\x00hdhil d"
+    assert request(b"\x70" + bytes(7)) == b"\x17rive" + bytes(3)
+    answer = request(b"\x60" + bytes(7))
+    assert (answer[0], struct.pack("<HB", 0x1008, 0)) == (0x80, answer[1:4])
+    assert struct.unpack_from("<I", answer, 4)[0] == 0x05040001
+    assert rig.drive.services.counters.sdo_protocol_errors == 3
+
+
 # ======================================================================= diagnostics
 
 

@@ -31,8 +31,9 @@ class CstObjects:
     torque (per mille); 0x6064 position actual (encoder increments, unwrapped to 32 bits)
     and 0x606C velocity actual (increments per second, from the encoder over the last SYNC
     period).  The rated torque's power-on value is the amplifier's full-scale command,
-    ``torque_per_volt`` x the DAC's full scale (0 without a ``torque_per_volt``: another
-    plant model commands no torque through 0x6071)."""
+    ``torque_per_volt`` x the DAC's full scale (60000 mNm for the default plant, the EDS
+    default; a plant model without a ``torque_per_volt`` keeps the EDS default and
+    commands no torque through 0x6071)."""
 
     def __init__(self, services: CanopenServices, plant: PlantModel) -> None:
         self.services = services

@@ -8,8 +8,10 @@ Command specifiers, the ``<BHB`` header and the abort codes come from
   segmented) with the CiA 301 aborts it lacks: specific length codes 0x06070012/13,
   sub-indices of arrays that are not defined (0x06090011; canopen invents them), and a
   post-store hook whose failure restores the old value.
+- :class:`TransferSdoServer` is canopen's ``SdoServer`` that knows which segmented
+  transfer is open (canopen answers an upload segment from whatever buffer is left).
 - :class:`SdoServerGate` sits in front of it: SDO only in PRE-OPERATIONAL/OPERATIONAL,
-  8-byte frames only, and abort 0x05040001 for a segment outside a transfer.
+  8-byte frames only, and abort 0x05040001 for a segment of no open transfer (§7.2.4.3).
 - :class:`SdoClient` is the client a node in a lockstep loop uses: it sends one request
   and returns at once; the response is fed in as a frame.  Expedited transfers only (all
   a controller needs for words and counters).
@@ -27,7 +29,7 @@ import can
 import canopen
 from canopen.objectdictionary import ObjectDictionary, ODArray, ODVariable
 from canopen.objectdictionary import datatypes as dt
-from canopen.sdo import SdoAbortedError, SdoCommunicationError
+from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoServer
 from canopen.sdo import constants as sc
 
 from hdhil.canopen.nmt import NMT_COB_ID
@@ -42,6 +44,7 @@ __all__ = [
     "SdoResult",
     "SdoServerGate",
     "SdoServerNode",
+    "TransferSdoServer",
     "abort_text",
     "check_value_range",
     "sdo_read",
@@ -135,11 +138,55 @@ def check_value_range(od: ODVariable, value: Any) -> int | None:
 # ------------------------------------------------------------------------ server
 
 
+class TransferSdoServer(SdoServer):
+    """canopen's SDO server that records the segmented transfer in progress.
+
+    ``transfer`` is the client command specifier the next request may carry as a segment:
+    ``REQUEST_SEGMENT_UPLOAD`` while a segmented upload has data left,
+    ``REQUEST_SEGMENT_DOWNLOAD`` while a segmented download is open, else None.  Every
+    request ends the transfer unless it continues it; an abort (sent or received) ends it.
+    """
+
+    transfer: int | None = None
+
+    def on_request(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self.transfer = None
+        super().on_request(can_id, data, timestamp)
+
+    def init_upload(self, request: bytearray) -> None:
+        self._buffer = None  # a segmented upload, and only one, leaves a buffer
+        super().init_upload(request)
+        if self._buffer:
+            self.transfer = sc.REQUEST_SEGMENT_UPLOAD
+
+    def segmented_upload(self, command: int) -> None:
+        super().segmented_upload(command)
+        if self._buffer:
+            self.transfer = sc.REQUEST_SEGMENT_UPLOAD
+
+    def init_download(self, request: bytearray) -> None:
+        super().init_download(request)
+        if not request[0] & sc.EXPEDITED:
+            self.transfer = sc.REQUEST_SEGMENT_DOWNLOAD
+
+    def segmented_download(self, command: int, request: bytearray) -> None:
+        super().segmented_download(command, request)
+        if not command & sc.NO_MORE_DATA:
+            self.transfer = sc.REQUEST_SEGMENT_DOWNLOAD
+
+    def abort(self, abort_code: int = sc.ABORT_GENERAL_ERROR) -> None:
+        self.transfer = None
+        super().abort(abort_code)
+
+
 class SdoServerNode(canopen.LocalNode):
     """``LocalNode`` with CiA 301 aborts and post-store callbacks; no threaded heartbeat."""
 
     def __init__(self, node_id: int, od: ObjectDictionary, specific_length_codes: bool) -> None:
         super().__init__(node_id, od)
+        self.sdo: TransferSdoServer = TransferSdoServer(
+            SDO_RX_BASE + self.id, SDO_TX_BASE + self.id, self
+        )
         # canopen's NmtSlave starts a send_periodic thread on writes of 0x1017 and on its own
         # boot; the heartbeat module produces the heartbeat deterministically instead.
         self._write_callbacks.remove(self.nmt.on_write)
@@ -198,15 +245,15 @@ class SdoServerGate:
     """The checks in front of canopen's SDO server (CiA 301 §7.2.4, §7.3.2.2).
 
     ``handle`` returns what happened: "served", "ignored" (NMT state), "malformed"
-    (not 8 bytes) or "protocol" (a segment outside a transfer, answered with abort
-    0x05040001).  canopen's server keeps the buffer of a finished download and would
-    store a stray segment into the old object; only segments of an open download pass.
+    (not 8 bytes) or "protocol" (answered with abort 0x05040001: a block transfer, or an
+    upload or download segment when no such transfer is open, which also ends the open
+    one).  canopen alone would answer a stray upload segment from a stale buffer and
+    store a stray download segment into the last object.
     """
 
     def __init__(self, node: SdoServerNode, network: canopen.Network) -> None:
         self.node = node
         self.network = network
-        self._downloading = False
 
     def handle(self, msg: can.Message, now: float, allowed: bool) -> str:
         if not allowed:
@@ -215,36 +262,31 @@ class SdoServerGate:
         if len(data) != 8:
             return "malformed"
         ccs = data[0] & 0xE0
+        server = self.node.sdo
         if ccs in (sc.REQUEST_BLOCK_UPLOAD, sc.REQUEST_BLOCK_DOWNLOAD):
             # Block transfers are not implemented: canopen's server would answer a block
             # upload with an expedited response the client cannot parse.  Abort
             # 0x05040001, which every client understands.
-            self._downloading = False
+            server.transfer = None
             self._abort(int.from_bytes(data[1:3], "little"), data[3], ABORT_UNKNOWN_COMMAND)
             return "protocol"
-        if ccs == sc.REQUEST_SEGMENT_DOWNLOAD:
-            if not self._downloading:
-                self.protocol_abort()
-                return "protocol"
-            if data[0] & sc.NO_MORE_DATA:
-                self._downloading = False
-        else:
-            # A non-expedited initiate download opens a segmented download; any other
-            # request (or an abort) closes it.
-            self._downloading = ccs == sc.REQUEST_DOWNLOAD and not data[0] & sc.EXPEDITED
+        segment = ccs in (sc.REQUEST_SEGMENT_UPLOAD, sc.REQUEST_SEGMENT_DOWNLOAD)
+        if segment and ccs != server.transfer:
+            self.protocol_abort()
+            return "protocol"
         try:
             self.network.notify(msg.arbitration_id, data, now)
         except Exception:
             # canopen's server raises out of on_request when it cannot even build its
-            # abort (e.g. an upload segment with no transfer): answer for it.
+            # abort: answer for it.
             self.protocol_abort()
             return "protocol"
         return "served"
 
     def protocol_abort(self) -> None:
-        """Abort 0x05040001 for a request that belongs to no transfer."""
-        self._downloading = False
+        """Abort 0x05040001 for a request that belongs to no transfer; ends any transfer."""
         server = self.node.sdo
+        server.transfer = None
         index = getattr(server, "_index", None) or 0
         sub = getattr(server, "_subindex", None) or 0
         self._abort(index, sub, ABORT_UNKNOWN_COMMAND)
