@@ -83,6 +83,26 @@ def _label(path: Path | str, what: str) -> str:
 
 
 # ------------------------------------------------------------------------------- input
+def shipped_or_path(text: str, folder: Path, kind: str, known: list[str]) -> Path:
+    """A shipped TOML file of ``folder`` for a bare name (``free-motion``), else ``text``
+    as a path (anything ending in ``.toml`` or holding a path separator). An unknown name
+    or a missing file is a :class:`ConfigError` naming ``kind`` and the shipped names."""
+    from hdhil.core.errors import ConfigError
+
+    if not (text.endswith(".toml") or "/" in text or "\\" in text):
+        path = folder / f"{text}.toml"
+        if path.is_file():
+            return path
+        raise ConfigError(
+            f"unknown {kind} {text!r} (known: {', '.join(known) or 'none'}; "
+            "or give a path to a .toml file)"
+        )
+    path = Path(text)
+    if not path.exists():
+        raise ConfigError(f"{kind} file not found: {text}")
+    return path  # the loader refuses what is not a regular file, naming it
+
+
 def check_input(path: str | Path, what: str = "", max_bytes: int = DATA_MAX_BYTES) -> Path:
     """``path`` as a :class:`Path` if it names a readable regular file of at most
     ``max_bytes`` bytes (symbolic links followed); else a one-line :class:`UserError`

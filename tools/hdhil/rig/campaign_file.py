@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from hdhil.core.dataconf import ConfigError, from_dict
-from hdhil.core.files import load_toml
+from hdhil.core.files import load_toml, shipped_or_path
 from hdhil.core.numbers import MAX_SECONDS, check_number
 from hdhil.rig.campaign_metrics import METRICS, Criterion
 
@@ -91,19 +91,7 @@ def list_campaigns() -> list[str]:
 
 
 def _resolve(name_or_path: str) -> Path:
-    text = str(name_or_path)
-    if not (text.endswith(".toml") or "/" in text or "\\" in text):
-        path = _campaign_dir() / f"{text}.toml"
-        if path.is_file():
-            return path
-        known = ", ".join(list_campaigns()) or "none"
-        raise ConfigError(
-            f"unknown campaign {text!r} (known: {known}; or give a path to a .toml file)"
-        )
-    path = Path(text)
-    if not path.is_file():
-        raise ConfigError(f"campaign file not found: {text}")
-    return path
+    return shipped_or_path(str(name_or_path), _campaign_dir(), "campaign", list_campaigns())
 
 
 def _axis_values(key: str, spec: Any, where: str) -> range | tuple[Any, ...]:

@@ -23,7 +23,7 @@ from typing import Any, Literal
 
 from hdhil.core.dataconf import ConfigError, from_dict, merge, to_dict
 from hdhil.core.errors import UserError
-from hdhil.core.files import load_toml
+from hdhil.core.files import load_toml, shipped_or_path
 from hdhil.firmware.config import FirmwareConfig, Law
 from hdhil.hostsim.plant import PlantConfig
 from hdhil.rig.faults import FaultConfig
@@ -214,20 +214,7 @@ def scenario_data(scenario: Scenario) -> dict[str, Any]:
 
 def scenario_path(name_or_path: str) -> Path:
     """A shipped scenario's file for a bare name; otherwise the path as given."""
-    text = str(name_or_path)
-    looks_like_path = text.endswith(".toml") or "/" in text or "\\" in text
-    if not looks_like_path:
-        path = _scenario_dir() / f"{text}.toml"
-        if path.is_file():
-            return path
-        known = ", ".join(list_scenarios()) or "none"
-        raise ConfigError(
-            f"unknown scenario {text!r} (known: {known}; or give a path to a .toml file)"
-        )
-    path = Path(text)
-    if not path.exists():
-        raise ConfigError(f"scenario file not found: {text}")
-    return path  # load_toml refuses what is not a regular file, naming it
+    return shipped_or_path(str(name_or_path), _scenario_dir(), "scenario", list_scenarios())
 
 
 def scenario_file_data(name_or_path: str | Path) -> tuple[Path, dict[str, Any]]:
