@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import gzip
 import json
 import math
@@ -16,6 +17,7 @@ import pytest
 from runs import lockstep
 
 from hdhil.can.traces import export
+from hdhil.can.traces.clock import TraceClock
 from hdhil.can.traces.decode import (
     DecodedFrame,
     FrameKind,
@@ -803,12 +805,13 @@ def test_export_writes_the_table_dump_prints(tmp_path, capsys):
     lines: list[str] = []
     result = export.export(read_trace(trace), decoder, table=lines.append, limit=5,
                            id_filter=id_filter)  # fmt: skip
-    assert lines[0] == export.TABLE_HEADER + "\n" and len(lines) == 1 + 5
+    clock = TraceClock(0.0)
+    assert lines[0] == export.table_header(decoder, clock) + "\n" and len(lines) == 1 + 5
     assert (result.selected, result.printed, result.counts.total) == (22, 5, 82)
     rc, out, err = run_cli(capsys, trace, "--limit", "5", "--id", "CTRL_TPDO1", "--id", "7EF")
     assert rc == 0 and err == ""
     note = f"{result.selected} selected by --id, {result.printed} shown"
-    assert out == "".join(lines) + result.counts.line(note) + "\n"
+    assert out == "".join(lines) + result.counts.line(note, clock) + "\n"
 
 
 @pytest.mark.parametrize("per_frame", [False, True], ids=["per-cycle", "per-frame"])
@@ -854,3 +857,132 @@ def test_export_refusals_are_value_errors(tmp_path):
     with pytest.raises(ValueError, match="is a directory"):
         export.check_csv_target(str(tmp_path), trace)
     export.check_csv_target("-", trace)
+
+
+# ------------------------------------------------- value tables, hex, columns, times
+
+T0 = 1714564800.25  # 2024-05-01T12:00:00.25Z
+
+
+def _control_frames() -> list[can.Message]:
+    """Frames whose signals have value tables, bit-field words and object indices."""
+    return [
+        _msg(T0 + 0.000, "HEARTBEAT_DRIVE", {"nmt_state": 5}, 0),
+        _msg(T0 + 0.001, "DRIVE_TPDO2", {"statusword": 0x0270}, 0),
+        _msg(T0 + 0.002, "DRIVE_TPDO2", {"statusword": 0x1234}, 0),
+        _msg(T0 + 0.003, "DRIVE_RPDO1", {"DAC_cmd": -3, "controlword": 0x000F, "cycle": 7}, 0),
+        _msg(T0 + 0.004, "SDO_RX_DRIVE",
+             {"sdo_cs": 0x40, "sdo_index": 0x6041, "sdo_sub": 2, "sdo_data": 0}, 0),
+        _msg(T0 + 0.005, "CTRL_TPDO1",
+             {"T_meas": 1.0, "T_filtered": 0.5, "velocity": 2.0, "current": 0.1}, 0),
+        _msg(T0 + 0.0061, "TRUTH_TORQUE", {"T_true": 1.0, "T_ripple": 0.0}, 1),
+    ]  # fmt: skip
+
+
+def _expected_text(msg: can.Message) -> dict[str, str]:
+    """What cantools decodes (``decode_choices=True``), as the table must print it."""
+    db = TRUTH if msg.is_extended_id else CTRL
+    message = db.get_message_by_frame_id(msg.arbitration_id)
+    named = db.decode_message(msg.arbitration_id, msg.data, decode_choices=True)
+    plain = db.decode_message(msg.arbitration_id, msg.data, decode_choices=False)
+    texts = {}
+    for sig in message.signals:
+        value = plain[sig.name]
+        hexed = sig.name.endswith("word") or "index" in sig.name
+        number = f"0x{value:04X}" if hexed else None
+        if sig.choices and value in sig.choices:
+            name = str(named[sig.name])
+            assert name == str(sig.choices[value])
+            shown = name if " " not in name else f'"{name}"'
+            texts[sig.name] = f"{shown}({number or value})"
+        elif number is not None:
+            texts[sig.name] = number
+    return texts
+
+
+def test_table_names_value_table_entries_as_cantools_decodes_them(tmp_path, capsys):
+    frames = _control_frames()
+    trace = write_trace(tmp_path / "v.blf", frames)
+    rc, out, _ = run_cli(capsys, trace)
+    assert rc == 0
+    lines = out.splitlines()[1:-1]
+    for msg, line in zip(frames, lines, strict=True):
+        for signal, text in _expected_text(msg).items():
+            assert f"{signal}={text}" in line, line
+    assert "nmt_state=operational(5)" in lines[0]
+    assert 'statusword="switch on disabled"(0x0270)' in lines[1]
+    assert re.search(r"statusword=0x1234(\s|$)", lines[2])  # no value-table entry: hex alone
+    assert 'controlword="enable operation"(0x000F)' in lines[3]
+    assert "sdo_index=0x6041  sdo_sub=2" in lines[4]
+    assert 'sdo_cs="upload request"(64)' in lines[4]
+
+
+def test_table_columns_are_aligned(tmp_path, capsys):
+    frames = [*_control_frames(), *make_frames(2)]
+    frames.append(can.Message(timestamp=T0 + 0.01, is_error_frame=True, channel=0))
+    trace = write_trace(tmp_path / "a.blf", frames)
+    rc, out, _ = run_cli(capsys, trace)
+    assert rc == 0
+    lines = out.splitlines()[:-1]
+    column = lines[0].index("signals")
+    for line in lines[1:]:
+        if "ERROR FRAME" in line and len(line) <= column:
+            continue  # an error frame without data has no signals column
+        assert line[column - 2 : column] == "  " and line[column] != " ", line
+    ids = {line[lines[0].index("id") :].split()[0] for line in lines[1:]}
+    assert {"702", "282", "602", "001F0001", "-"} <= ids
+
+
+def test_asc_and_blf_of_the_same_run_print_the_same_times(tmp_path, capsys):
+    frames = [*_control_frames()]
+    outs = {}
+    for suffix in (".blf", ".asc", ".log"):
+        trace = write_trace(tmp_path / f"r{suffix}", frames)
+        rc, outs[suffix], _ = run_cli(capsys, trace)
+        assert rc == 0
+    assert outs[".blf"] == outs[".asc"] == outs[".log"]
+    first = outs[".blf"].splitlines()[1]
+    assert first.startswith("    0.000000  control")
+    assert "0.000000 .. 0.006100 s" in outs[".blf"]
+
+
+def test_absolute_prints_iso_utc_times_in_every_format(tmp_path, capsys):
+    frames = _control_frames()
+    outs = {}
+    for suffix in (".blf", ".asc"):
+        trace = write_trace(tmp_path / f"w{suffix}", frames)
+        rc, outs[suffix], err = run_cli(capsys, trace, "--absolute")
+        assert rc == 0, err
+    assert outs[".blf"] == outs[".asc"]
+    lines = outs[".blf"].splitlines()
+    assert lines[1].startswith("2024-05-01T12:00:00.250000Z  control  702")
+    assert lines[-2].startswith("2024-05-01T12:00:00.256100Z  truth")
+    column = lines[0].index("signals")
+    assert all(line[column - 2 : column] == "  " for line in lines[1:-1])
+
+
+def test_absolute_asc_without_header_date_uses_the_sidecar_or_refuses(tmp_path, capsys):
+    trace = write_trace(tmp_path / "n.asc", _control_frames())
+    text = "".join(
+        line
+        for line in trace.read_text().splitlines(keepends=True)
+        if not line.lower().startswith(("date", "begin triggerblock"))
+    )
+    trace.write_text(text)
+    rc, out, err = run_cli(capsys, trace, "--absolute")
+    assert rc == 2 and out == "" and "--absolute" in err and "no start date" in err
+    (tmp_path / "n.asc.json").write_text(json.dumps({"time_offset_s": T0}))
+    rc, out, err = run_cli(capsys, trace, "--absolute")
+    assert rc == 0, err
+    assert out.splitlines()[1].startswith("2024-05-01T12:00:00.250000Z")
+
+
+def test_csv_stays_numeric_with_value_tables(tmp_path, capsys):
+    trace = write_trace(tmp_path / "c.blf", _control_frames())
+    out_csv = tmp_path / "c.csv"
+    rc, _, err = run_cli(capsys, trace, "--csv", out_csv, "--per-frame")
+    assert rc == 0, err
+    rows = list(csv.DictReader(out_csv.open()))
+    assert rows[0]["HEARTBEAT_DRIVE.nmt_state"] == "5"
+    assert rows[1]["DRIVE_TPDO2.statusword"] == "624"
+    assert rows[4]["SDO_RX_DRIVE.sdo_index"] == str(0x6041)

@@ -13,6 +13,7 @@ import os
 import sys
 from pathlib import Path
 
+from hdhil.can.traces.clock import trace_clock
 from hdhil.can.traces.decode import FrameDecoder
 from hdhil.can.traces.export import (
     CycleCsv,
@@ -44,10 +45,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "dump",
         help="show a CAN trace decoded with the DBCs (table, CSV or timing statistics)",
         description="Read a CAN trace (.blf, .asc, .log, .csv, .trc; optionally .gz) and show "
-        "its frames decoded with the control and truth DBCs.  Exit code 0: clean read; 1: the "
+        "its frames decoded with the control and truth DBCs, one line per frame in aligned "
+        "columns: time (seconds since the trace's first frame, whatever the format), bus, "
+        "ID, message, signals.  A value in the DBC's value table prints as its name and "
+        "number (nmt_state=operational(5)); status/control words, object indices and EMCY "
+        "codes in hex (statusword=0x0270, sdo_index=0x6041).  CSV and JSON keep plain "
+        "numbers.  Exit code 0: clean read; 1: the "
         "trace is damaged (everything readable is shown, then a warning); 2: not a trace.",
     )
     parser.add_argument("trace", metavar="TRACE", help="trace file")
+    parser.add_argument(
+        "--absolute",
+        action="store_true",
+        help="table: wall-clock times (ISO 8601 UTC, microseconds) instead of seconds since "
+        "the first frame (ASC: from its header date, else the sidecar's time_offset_s)",
+    )
     parser.add_argument(
         "--limit",
         type=arg_int(0),
@@ -67,7 +79,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="OUT",
         help="write decoded signals to OUT as tidy data: one row per control cycle "
         "(time_s, sample, then SIGNAL_UNIT columns such as T_meas_Nm, velocity_radps, only "
-        "the signals present); '-' for stdout",
+        "the signals present; every value a plain decimal number, value-table names are "
+        "not written); '-' for stdout",
     )
     parser.add_argument(
         "--per-frame",
@@ -122,6 +135,15 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--csv {exc}") from None
 
     trace = read_trace(args.trace)
+    from hdhil.can.traces.sidecar import read_metadata
+
+    try:
+        clock = trace_clock(trace.path, trace.format, trace.compressed,
+                            trace.first_time or 0.0, read_metadata(trace.path),
+                            args.absolute)  # fmt: skip
+    except ValueError as exc:
+        trace.close()
+        raise UserError(f"--absolute: {exc}") from None
     if args.per_frame and args.csv is None:
         raise UserError("--per-frame needs --csv OUT")
     csv_out: FrameCsv | None = None
@@ -138,13 +160,14 @@ def run(args: argparse.Namespace) -> int:
             id_filter=id_filter,
             csv_out=csv_out,
             stats=stats,
+            clock=clock,
         )
         notes = []
         if id_filter is not None:
             notes.append(f"{result.selected} selected by --id")
         if want_table and result.printed < result.selected:
             notes.append(f"{result.printed} shown")
-        _report(args, trace, result.counts.line(", ".join(notes)), csv_out, stats)
+        _report(args, trace, result.counts.line(", ".join(notes), clock), csv_out, stats)
     except BrokenPipeError:
         _silence_stdout()
     return 1 if trace.damaged else 0

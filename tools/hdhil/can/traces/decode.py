@@ -7,12 +7,17 @@ truth DBCs.  Decoding never needs channel numbers: control frames use 11-bit ide
 and truth frames 29-bit ones, so a frame is looked up by ``(is_extended_id,
 arbitration_id)`` across both DBCs (an identifier defined in two is refused).  Channel
 numbers, where the format stores them, only label the bus.  :meth:`FrameDecoder.describe`
-is ``hdhil dump``'s table line, each value printed exactly to its DBC resolution.
+is ``hdhil dump``'s table line in aligned columns, each value printed exactly to its DBC
+resolution; a value in the signal's value table as its name and number, as cantools
+decodes it with ``decode_choices=True`` (``nmt_state=operational(5)``); bit-field words,
+object indices and EMCY codes in hex (``statusword=0x0270``, ``sdo_index=0x6041``).
+Decoded values themselves stay numbers (CSV, statistics, analysis).
 """
 
 from __future__ import annotations
 
 import enum
+import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -27,6 +32,10 @@ from hdhil.dbc import CHANNEL_NUMBER, database
 
 #: Bus label per python-can channel number (inverse of :data:`hdhil.dbc.CHANNEL_NUMBER`).
 BUS_OF_CHANNEL: dict[int, str] = {number: name for name, number in CHANNEL_NUMBER.items()}
+
+#: Width of the table's time column (seconds with 6 decimals) and bus column.
+TIME_WIDTH = 12
+BUS_WIDTH = 7
 
 #: Bus label of a frame with neither channel information nor a known identifier.
 UNKNOWN_BUS = "?"
@@ -79,6 +88,10 @@ class DecodedFrame:
         )
 
 
+#: A value-table name printed without quotes.
+_BARE_NAME = re.compile(r"[\w.+-]+", re.A)
+
+
 def format_id(arbitration_id: int, extended: bool) -> str:
     return f"{arbitration_id:08X}" if extended else f"{arbitration_id:03X}"
 
@@ -100,14 +113,36 @@ class _SignalFormat:
     decimals: int | None  # None: IEEE float signal
     is_float32: bool
     unit_suffix: str  # " Nm", or "" without a unit
+    choices: dict[int, str] = field(default_factory=dict)  # raw value -> value-table name
+    hex_digits: int = 0  # > 0: printed in hex with this many digits
+    scale: float = 1.0
+    offset: float = 0.0
 
-    def text(self, value: float | int) -> str:
-        """Table text: resolution-exact for scaled integers, 6 significant digits for floats."""
+    def number(self, value: float | int) -> str:
+        """The number alone: hex words and indices, resolution-exact scaled integers, 6
+        significant digits for floats."""
+        if self.hex_digits:
+            return f"0x{round(value):0{self.hex_digits}X}"
+        return self._decimal(value)
+
+    def _decimal(self, value: float | int) -> str:
         if self.decimals is None:
             return f"{value:.6g}"
         if self.decimals == 0:
             return str(round(value))
         return f"{value:.{self.decimals}f}"
+
+    def text(self, value: float | int) -> str:
+        """Table text: the number, or ``name(number)`` for a value in the value table
+        (the name quoted when it has spaces)."""
+        number = self.number(value)
+        if self.choices:
+            name = self.choices.get(round((value - self.offset) / self.scale))
+            if name is not None:
+                if not _BARE_NAME.fullmatch(name):
+                    name = '"' + name.replace('"', "'") + '"'
+                return f"{name}({number})"
+        return number
 
     def csv(self, value: float | int) -> str:
         """CSV text: exact (shortest round-trip repr for IEEE floats)."""
@@ -117,7 +152,18 @@ class _SignalFormat:
 
                 return str(np.float32(value))
             return repr(float(value))
-        return self.text(value)
+        return self._decimal(value)
+
+
+def _hex_digits(name: str, length: int, signed: bool, decimals: int | None) -> int:
+    """Hex digits of a signal printed in hex: an unsigned integer bit-field word
+    (``*word``), object index (``*index*``) or EMCY error code; 0 for every other."""
+    if signed or decimals != 0:
+        return 0
+    lower = name.lower()
+    if lower.endswith("word") or "index" in lower or lower.endswith("error_code"):
+        return max(1, -(-length // 4))
+    return 0
 
 
 def _signal_formats(message: DbcMessage) -> tuple[_SignalFormat, ...]:
@@ -127,6 +173,7 @@ def _signal_formats(message: DbcMessage) -> tuple[_SignalFormat, ...]:
             decimals = None
         else:
             decimals = max(_decimals(float(sig.scale)), _decimals(float(sig.offset)))
+        unit_scale = float(sig.scale) == 1.0 and float(sig.offset) == 0.0
         formats.append(
             _SignalFormat(
                 name=sig.name,
@@ -135,6 +182,12 @@ def _signal_formats(message: DbcMessage) -> tuple[_SignalFormat, ...]:
                 decimals=decimals,
                 is_float32=sig.is_float and sig.length == 32,
                 unit_suffix=f" {sig.unit}" if sig.unit else "",
+                choices={int(k): str(v) for k, v in (sig.choices or {}).items()},
+                hex_digits=_hex_digits(sig.name, sig.length, sig.is_signed, decimals)
+                if unit_scale
+                else 0,
+                scale=float(sig.scale),
+                offset=float(sig.offset),
             )
         )
     return tuple(formats)
@@ -167,6 +220,15 @@ class FrameDecoder:
         self.by_name: dict[str, tuple[str, DbcMessage]] = {
             m.name: (bus, m) for bus, m in self.lookup.values()
         }
+        #: Width of the table's message column: every name (and ``ERROR FRAME``) fits.
+        self.name_width = max([len("ERROR FRAME"), *map(len, self.by_name)])
+
+    def header(self, time_width: int = TIME_WIDTH, time_label: str = "time/s") -> str:
+        """The first line of the table :meth:`describe` writes."""
+        return (
+            f"{time_label:>{time_width}}  {'bus':<{BUS_WIDTH}}  {'id':<8}  "
+            f"{'message':<{self.name_width}}  signals"
+        )
 
     def columns(self, messages: Iterable[str] | None = None) -> list[str]:
         """``Message.Signal`` column names in DBC order (optionally only ``messages``)."""
@@ -224,8 +286,9 @@ class FrameDecoder:
         frame = self.classify(msg)
         return frame if frame.kind is FrameKind.DECODED else None
 
-    def describe(self, frame: DecodedFrame) -> str:
-        """The table line of ``frame``: time, bus, ID, name, signals (or raw data and a flag)."""
+    def describe(self, frame: DecodedFrame, time_text: str | None = None) -> str:
+        """The table line of ``frame``: time (``time_text``, else the frame's own time),
+        bus, ID, name, signals (or raw data and a flag), in columns of fixed width."""
         name = frame.message or ""
         kind = frame.kind
         if kind is FrameKind.DECODED:
@@ -249,7 +312,12 @@ class FrameDecoder:
         if frame.on_wrong_bus:
             body += f"  (WRONG BUS: defined in {frame.message_bus}.dbc)"
         id_text = "-" if kind is FrameKind.ERROR else frame.id_text
-        return f"{frame.time:12.6f}  {frame.bus:<7}  {id_text:<8}  {name:<12}  {body}".rstrip()
+        if time_text is None:
+            time_text = f"{frame.time:{TIME_WIDTH}.6f}"
+        return (
+            f"{time_text}  {frame.bus:<{BUS_WIDTH}.{BUS_WIDTH}}  {id_text:<8}  "
+            f"{name:<{self.name_width}}  {body}"
+        ).rstrip()
 
 
 _DEFAULT_DECODER: FrameDecoder | None = None

@@ -1,7 +1,8 @@
 """A decoded trace written out: the frame table, CSV and the counts of ``hdhil dump``.
 
 :func:`export` reads a trace once, frame by frame, and hands every frame to what was
-asked for: the table (one line per frame, :data:`TABLE_HEADER` first), a CSV writer
+asked for: the table (one line per frame in aligned columns, its header first, times
+from a :class:`~hdhil.can.traces.clock.TraceClock`), a CSV writer
 (:class:`CycleCsv`, tidy data with one row per control cycle, or :class:`FrameCsv`, one
 row per decoded frame) and the timing statistics (:mod:`~hdhil.can.traces.stats`), while
 :class:`TraceCounts` counts every frame read. An :class:`IdFilter` selects the frames
@@ -19,14 +20,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hdhil.can.traces.clock import TraceClock
 from hdhil.can.traces.decode import DecodedFrame, FrameDecoder, FrameKind
 from hdhil.can.traces.reader import TraceReadResult
 from hdhil.can.traces.stats import StatsAccumulator
 from hdhil.core.errors import UserError
 from hdhil.core.files import AtomicOutput
 
-#: The first line of the frame table (:meth:`FrameDecoder.describe` gives the others).
-TABLE_HEADER = f"{'time/s':>12}  {'bus':<7}  {'id':<8}  {'message':<12}  signals"
+
+def table_header(decoder: FrameDecoder, clock: TraceClock) -> str:
+    """The first line of the frame table (:meth:`FrameDecoder.describe` gives the others)."""
+    return decoder.header(clock.width, clock.label)
 
 
 @dataclass
@@ -49,7 +53,8 @@ class TraceCounts:
     def total(self) -> int:
         return sum(self.counts.values())
 
-    def line(self, note: str = "") -> str:
+    def line(self, note: str = "", clock: TraceClock | None = None) -> str:
+        """The summary line; first and last time as ``clock`` prints them (else as read)."""
         c = {k.value: n for k, n in self.counts.items()}
         text = (
             f"{self.total} frames: {c['decoded']} decoded, {c['unknown']} unknown, "
@@ -58,9 +63,13 @@ class TraceCounts:
         if note:
             text += f"; {note}"
         if self.total:
-            text += (
-                f"; {self.first:.6f} .. {self.last:.6f} s (duration {self.last - self.first:.6f} s)"
-            )
+            if clock is None:
+                span = f"{self.first:.6f} .. {self.last:.6f} s"
+            elif clock.absolute:
+                span = f"{clock.text(self.first)} .. {clock.text(self.last)}"
+            else:
+                span = f"{clock.seconds(self.first):.6f} .. {clock.seconds(self.last):.6f} s"
+            text += f"; {span} (duration {self.last - self.first:.6f} s)"
         return text
 
 
@@ -278,18 +287,22 @@ def export(
     id_filter: IdFilter | None = None,
     csv_out: FrameCsv | None = None,
     stats: StatsAccumulator | None = None,
+    clock: TraceClock | None = None,
 ) -> Exported:
     """Read ``trace`` (closing it) and hand its frames out: the frame table to ``table``
-    (header first, at most ``limit`` frame lines), the selected frames (``id_filter``) to
+    (header first, at most ``limit`` frame lines, times by ``clock``: default relative to
+    the first frame), the selected frames (``id_filter``) to
     ``csv_out`` (a :class:`CycleCsv` gets every frame) and to ``stats``. The CSV is
     committed at the end and removed on any exception, Ctrl-C included."""
     per_cycle = csv_out if isinstance(csv_out, CycleCsv) else None
     decode = table is not None or csv_out is not None
     result = Exported(TraceCounts())
+    if clock is None:
+        clock = TraceClock(trace.first_time or 0.0)
     try:
         with trace:
             if table is not None:
-                table(TABLE_HEADER + "\n")
+                table(table_header(decoder, clock) + "\n")
             for msg in trace:
                 frame = decoder.classify(msg, decode)
                 result.counts.add(frame)
@@ -299,7 +312,7 @@ def export(
                     continue
                 result.selected += 1
                 if table is not None and result.printed < limit:
-                    table(decoder.describe(frame) + "\n")
+                    table(decoder.describe(frame, clock.text(frame.time)) + "\n")
                     result.printed += 1
                 if csv_out is not None and per_cycle is None:
                     csv_out.add(frame)
