@@ -85,7 +85,7 @@ def _refuse_simbus(args: argparse.Namespace, command: str, truth: bool = False) 
             option = option if bus_named(args, prefix) else "the configured interface"
             raise UserError(
                 f"{command}: {option} simbus is the simulated bus inside one process: use "
-                "`hdhil run`, or udp_multicast, socketcan or virtual between processes"
+                "`hdhil run`, or udp_multicast or socketcan between processes"
             )
 
 
