@@ -262,7 +262,7 @@ def test_hdhil_run_evaluate_and_dump_in_the_cst_mapping(tmp_path, capsys):
     assert main(["dump", str(trace), "--limit", "200"]) == 0
     out = capsys.readouterr().out
     assert re.search(r"DRIVE_TPDO1\s+torque_actual_value=-?\d+\s+position_actual_value=", out)
-    assert re.search(r"DRIVE_RPDO1\s+controlword=\d+\s+target_torque=", out)
+    assert re.search(r"DRIVE_RPDO1\s+controlword=0x[0-9A-F]{4}\s+target_torque=", out)
     assert "ADC_torque" not in out
 
 
