@@ -151,24 +151,13 @@ class SoakReport:
         d = dataclasses.asdict(self)
         d["passed"] = self.passed
         d["real_time_factor"] = self.real_time_factor
-        return _json_safe(d)
+        return d
 
     @property
     def real_time_factor(self) -> float:
         """Simulated seconds per wall second over the whole soak (start-up included)."""
         simulated = self.samples_done * self.sample_period_s
         return simulated / self.wall_s if self.wall_s > 0 else math.nan
-
-
-def _json_safe(value: Any) -> Any:
-    """NaN and infinities as null: the report stays strict JSON."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
 
 
 def resident_MB() -> float:

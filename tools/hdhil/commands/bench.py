@@ -10,12 +10,12 @@ four minutes on a 2-core machine.  Exit codes: 0 done, 2 input error (one line).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 
 from hdhil.analysis.benchmarks import format_bench, run_benchmarks
 from hdhil.commands.progress import add_quiet_argument, progress
+from hdhil.core import jsonout
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import arg_int, arg_seconds
 
@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         report = run_benchmarks(duration, repeat, quick=quick, realtime_s=realtime_s,
                                 startup_runs=startup_runs, on_section=on_section)  # fmt: skip
     if args.json:
-        json.dump(report, sys.stdout, indent=2)
+        jsonout.dump(report, sys.stdout, indent=2)
         print()
     else:
         print(format_bench(report))

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 
 from hdhil.commands.progress import add_quiet_argument, progress
+from hdhil.core import jsonout
 from hdhil.core.errors import UserError
 from hdhil.core.files import atomic_path, check_output
 from hdhil.core.numbers import arg_int
@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
             within_goal=abs(result.error) <= GOAL,
             out=args.out,
         )
-        print(json.dumps(out, indent=2))
+        print(jsonout.dumps(out, indent=2))
     else:
         print(format_result(result, scenario.name))
         if args.out:

@@ -10,7 +10,6 @@ are kept; run the same command again to complete the campaign).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import signal
 import sys
@@ -18,6 +17,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from hdhil.core import jsonout
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import arg_int
 from hdhil.core.signals import restore_handlers, terminate_as_interrupt
@@ -194,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
     code = 130 if result.interrupted else (0 if summary["passed"] == len(variants) else 1)
     summary["exit_code"] = code
     if args.json:
-        json.dump(summary, sys.stdout, indent=2)
+        jsonout.dump(summary, sys.stdout, indent=2)
         print()
     else:
         print(

@@ -9,10 +9,10 @@ codes: 0 done, 2 bad parameter or failed design (one line).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 from hdhil.analysis.lqg_report import design_dict, format_design
+from hdhil.core import jsonout
 from hdhil.core.errors import UserError
 from hdhil.firmware.lqg_design import (
     DesignError,
@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     design = _design(args)
     predict = not args.no_predict
     if args.json:
-        json.dump(design_dict(design, args.delay, predict), sys.stdout, indent=2)
+        jsonout.dump(design_dict(design, args.delay, predict), sys.stdout, indent=2)
         print()
     else:
         print(format_design(design, args.delay, predict))

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import math
 import os
 import sys
@@ -24,6 +23,7 @@ from hdhil.can.traces.export import (
 )
 from hdhil.can.traces.reader import TraceReadResult, read_trace
 from hdhil.can.traces.stats import StatsAccumulator, format_stats
+from hdhil.core import jsonout
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import arg_int
 
@@ -187,7 +187,7 @@ def _report(
         if args.json:
             result["trace"] = str(trace.path)
             result["damage"] = [d.as_dict() for d in trace.damage]
-            json.dump(result, sys.stdout, indent=2)
+            jsonout.dump(result, sys.stdout, indent=2)
             sys.stdout.write("\n")
         else:
             print(format_stats(result))

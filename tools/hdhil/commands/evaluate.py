@@ -9,10 +9,10 @@ trace, 2 input error (one line).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
+from hdhil.core import jsonout
 from hdhil.core.numbers import arg_seconds
 from hdhil.rig.evaluate import format_evaluation
 
@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
 
     ev, damage = score_trace(args.trace, args.scenario, args.skip)
     if args.json:
-        json.dump(ev, sys.stdout, indent=2)
+        jsonout.dump(ev, sys.stdout, indent=2)
         print()
     else:
         print(format_headline(ev["headline"]))

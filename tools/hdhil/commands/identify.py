@@ -11,7 +11,6 @@ error (one line).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -25,6 +24,7 @@ from hdhil.analysis.identification import (
     model_values,
 )
 from hdhil.commands.progress import add_quiet_argument, progress
+from hdhil.core import jsonout
 from hdhil.core.errors import UserError
 from hdhil.core.files import atomic_path, check_output
 from hdhil.core.numbers import FLOAT32_MAX, arg_float, arg_seconds
@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         out = ident.as_dict()
         out.update(trace=str(args.trace), scenario=scenario.name, plot=args.plot and str(args.plot))
-        json.dump(out, sys.stdout, indent=2)
+        jsonout.dump(out, sys.stdout, indent=2)
         print()
     else:
         print(format_identification(ident, f"{args.trace} (scenario {scenario.name})"))

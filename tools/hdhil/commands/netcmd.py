@@ -12,7 +12,6 @@ that stop a node and what is printed; the nodes themselves run in
 from __future__ import annotations
 
 import argparse
-import json
 import struct
 import sys
 from pathlib import Path
@@ -31,6 +30,7 @@ from hdhil.commands.options import (
     request_from_args,
     resolve_bus_config,
 )
+from hdhil.core import jsonout
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import arg_int, arg_seconds
 from hdhil.core.signals import stop_on_signals
@@ -101,7 +101,7 @@ def run_emulate(args: argparse.Namespace) -> int:
         with stop_on_signals() as stop:  # Ctrl-C or SIGTERM: how a server ends, not an error
             drive.serve(stop.is_set, args.duration)
         summary = drive.summary()
-        print(json.dumps(summary))
+        print(jsonout.dumps(summary))
     finally:
         for b in (bus, truth):
             if b is not None:
@@ -121,11 +121,11 @@ def run_firmware(args: argparse.Namespace) -> int:
         with stop_on_signals() as stop:
             failed = ctrl.boot(stop.is_set)
             if failed is not None:  # no boot-up (or no SDO answer): a stop, told as a verdict
-                print(json.dumps(failed))
+                print(jsonout.dumps(failed))
                 return _verdict_exit("firmware", failed)
             ctrl.run(stop.is_set, realtime=not args.lockstep)
         summary = ctrl.summary(stopped=stop.is_set())
-        print(json.dumps(summary))
+        print(jsonout.dumps(summary))
         if stop.is_set():
             return 130
         return _verdict_exit("firmware", summary)
@@ -170,7 +170,7 @@ def run_log(args: argparse.Namespace) -> int:
         with stop_on_signals() as stop:  # from here on, Ctrl-C ends the log cleanly
             recording = record(Path(args.trace), control, truth, metadata, stop.is_set,
                                args.duration)  # fmt: skip
-        print(json.dumps({"trace": args.trace, "frames": recording.frames}))
+        print(jsonout.dumps({"trace": args.trace, "frames": recording.frames}))
     finally:
         for bus in (control, truth):
             if bus is not None:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -19,6 +18,7 @@ from hdhil.commands.options import (
     resolve_bus_config,
 )
 from hdhil.commands.progress import Progress, add_quiet_argument, progress
+from hdhil.core import jsonout
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import arg_float, arg_seconds
 from hdhil.core.signals import stop_on_signals
@@ -204,7 +204,7 @@ def run(args: argparse.Namespace) -> int:
                     realtime_config=rt_config,
                 )
                 if args.json:
-                    json.dump({"scenario": request.name, "laws": rows}, sys.stdout, indent=2)
+                    jsonout.dump({"scenario": request.name, "laws": rows}, sys.stdout, indent=2)
                     print()
                 else:
                     print(f"hdhil run --compare-laws: scenario {request.name}")
@@ -239,7 +239,7 @@ def run(args: argparse.Namespace) -> int:
         summary = result.as_dict()
         if request.mapping.dcf is not None:
             summary["mapping"] = request.mapping.label
-        json.dump(summary, sys.stdout, indent=2)
+        jsonout.dump(summary, sys.stdout, indent=2)
         print()
     else:
         if request.mapping.dcf is not None:

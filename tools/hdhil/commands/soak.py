@@ -10,7 +10,6 @@ Exit codes: 0 when every verdict passes, 1 when one fails, 2 input error (one li
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ from hdhil.analysis.soak import (
 )
 from hdhil.commands.options import add_scenario_arguments, request_from_args
 from hdhil.commands.progress import add_quiet_argument, progress
+from hdhil.core import jsonout
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import FLOAT32_MAX, arg_float, arg_seconds
 from hdhil.core.signals import stop_on_signals
@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UserError(str(exc)) from None
     if args.json:
-        json.dump(report.as_dict(), sys.stdout, indent=2)
+        jsonout.dump(report.as_dict(), sys.stdout, indent=2)
         print()
     else:
         print(format_report(report))

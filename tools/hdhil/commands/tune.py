@@ -10,7 +10,6 @@ error (one line).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -23,6 +22,7 @@ from hdhil.analysis.tuning import (
     tune_recording,
 )
 from hdhil.commands.progress import add_quiet_argument, progress
+from hdhil.core import jsonout
 from hdhil.core.errors import UserError
 from hdhil.core.files import check_output, write_text
 from hdhil.core.numbers import arg_int, arg_seconds
@@ -121,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
         out["trace"] = str(args.trace)
         out["scenario"] = scenario.name if scenario else None
         out["out"] = str(args.out) if args.out is not None else None
-        json.dump(out, sys.stdout, indent=2)
+        jsonout.dump(out, sys.stdout, indent=2)
         print()
     else:
         print(format_result(res, label))

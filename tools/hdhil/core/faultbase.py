@@ -9,7 +9,6 @@ bad value is refused in the same words in both.
 
 from __future__ import annotations
 
-import json
 import math
 import random
 from collections import Counter
@@ -17,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
+from hdhil.core import jsonout
 from hdhil.core.errors import ConfigError
 from hdhil.core.files import check_output
 
@@ -65,7 +65,7 @@ class FaultLog:
         if self._keep:
             self.records.append(rec)
         if self._fh is not None:
-            self._fh.write(json.dumps(rec.as_dict(), sort_keys=True) + "\n")
+            self._fh.write(jsonout.dumps(rec.as_dict(), sort_keys=True) + "\n")
 
     def close(self) -> None:
         if self._fh is not None:

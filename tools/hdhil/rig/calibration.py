@@ -19,10 +19,10 @@ scenario's ``[firmware]`` table, so the firmware uses the calibrated gain.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
+from hdhil.core import jsonout
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
 from hdhil.core.files import load_json, load_toml, write_text
@@ -44,7 +44,7 @@ def write_calibration(path: str | Path, result: CalibrationResult, scenario: str
     path = Path(path)
     gain = result.gain_Nm_per_V
     if _is_json(path):
-        text = json.dumps({"firmware": {"calibration": {"volt2Nm": gain}}}, indent=2) + "\n"
+        text = jsonout.dumps({"firmware": {"calibration": {"volt2Nm": gain}}}, indent=2) + "\n"
     else:
         text = (
             "# hdhil calibrate: arm-and-weight calibration of the torque sensor ([Taghirad97] §3)\n"

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from hdhil.can.traces.sidecar import metadata_path
+from hdhil.core import jsonout
 from hdhil.core.dataconf import ConfigError
 from hdhil.core.signals import die_with_parent, leave_interrupt_to_parent
 from hdhil.rig.campaign_file import Campaign
@@ -150,7 +151,7 @@ def _load_stored(path: Path, variant: Variant) -> tuple[dict[str, Any] | None, s
     except (OSError, ValueError) as exc:
         return None, f"unreadable ({type(exc).__name__}: {exc})"
     try:
-        stored = json.loads(text)
+        stored = jsonout.restore(json.loads(text))
     except ValueError:
         return None, "not JSON"
     if not isinstance(stored, dict):
@@ -245,7 +246,7 @@ def run_campaign(
                 "wall_s": rec.wall_s,
                 "worker": rec.worker,
             }
-            _write_atomic(runs_dir / f"{v.digest}.json", json.dumps(stored, indent=1).encode())
+            _write_atomic(runs_dir / f"{v.digest}.json", jsonout.dumps(stored, indent=1).encode())
         records[v.id] = rec
         if on_record is not None:
             on_record(rec)

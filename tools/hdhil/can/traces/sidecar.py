@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from hdhil.core import jsonout
 from hdhil.core.errors import UserError
 from hdhil.core.files import write_text
 
@@ -29,12 +30,11 @@ def write_metadata(trace: Path, metadata: dict[str, Any]) -> Path:
 
     Through :func:`hdhil.core.files.write_text`: written to a temporary file and renamed,
     so a reader never sees half of it; an existing path that is not a regular file is
-    left alone (ValueError)."""
-    import json
-
+    left alone (ValueError).  Non-finite numbers are written as ``null``
+    (:mod:`hdhil.core.jsonout`)."""
     target = metadata_path(trace)
     try:
-        write_text(target, json.dumps(metadata, indent=1, sort_keys=True) + "\n", "sidecar")
+        write_text(target, jsonout.dumps(metadata, indent=1, sort_keys=True) + "\n", "sidecar")
     except UserError as exc:
         raise ValueError(f"cannot write {target}: {exc}") from None
     return target
