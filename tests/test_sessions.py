@@ -80,5 +80,5 @@ def test_a_drive_left_in_fault_is_reset_by_the_next_firmware(capsys, monkeypatch
     assert len(lines) == 1 and "was in FAULT" in lines[0], captured.err
     printed = json.loads(captured.out.strip().splitlines()[-1])
     assert printed["ended_clean"] and "verdict" not in printed
-    assert [s["end"] for s in summary["session_log"]][0] == "heartbeat lost"
+    assert summary["session_log"][0]["end"] == "heartbeat lost"
     assert summary["session_log"][-1]["end"] == "clean"

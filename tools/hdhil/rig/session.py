@@ -191,6 +191,7 @@ class SessionLog:
         out = []
         for i, s in enumerate(self.sessions):
             end = self.sessions[i + 1].syncs_at_start if i + 1 < len(self.sessions) else syncs
-            out.append({"started_s": round(s.started_s - self.origin, 3), "nmt_starts": s.nmt_starts,
+            started = round(s.started_s - self.origin, 3)
+            out.append({"started_s": started, "nmt_starts": s.nmt_starts,
                         "syncs": end - s.syncs_at_start, "end": s.end})  # fmt: skip
         return out
