@@ -90,7 +90,7 @@ def resolve(
     if mapping is not None and not isinstance(mapping, str):
         raise TypeError(f"mapping must be a str, got {type(mapping).__name__}")
     return resolve_request(
-        scenario if not isinstance(scenario, Path) else str(scenario),
+        scenario,
         overrides=items,
         faults=list(faults),
         calibration=_path_arg(calibration, "calibration"),

@@ -109,13 +109,13 @@ def request_from_args(
 
     return resolve(
         args.scenario,
-        overrides=list(getattr(args, "override", []) or []),
-        faults=list(getattr(args, "fault", []) or []),
-        calibration=getattr(args, "calibration", None),
-        mapping=getattr(args, "mapping", None),
-        drive_dcf=getattr(args, "drive_dcf", None),
-        duration_s=getattr(args, "duration", None) if run_duration else None,
-        seed=getattr(args, "seed", None),
+        overrides=args.override,
+        faults=args.fault,
+        calibration=args.calibration,
+        mapping=args.mapping,
+        drive_dcf=args.drive_dcf,
+        duration_s=args.duration if run_duration else None,
+        seed=args.seed,
         **settings,
     )
 

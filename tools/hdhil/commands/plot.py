@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     from hdhil.rig.sidecar import request_for_trace
 
     _check_out(args.out)
-    request, _source = request_for_trace(args.trace, args.scenario)
+    request = request_for_trace(args.trace, args.scenario)
     scenario = request.scenario if request is not None else None
     if args.figure == "fig8":
         return _run_fig8(args, scenario)

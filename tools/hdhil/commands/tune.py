@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
         check_out(args.out)
     from hdhil.rig.sidecar import request_for_trace
 
-    request, _source = request_for_trace(args.trace, args.scenario)
+    request = request_for_trace(args.trace, args.scenario)
     scenario = request.scenario if request is not None else None
     fw = scenario.firmware if scenario is not None else FirmwareConfig()
     rec, damage = recording_from_trace(args.trace, fw.sample_period_s)

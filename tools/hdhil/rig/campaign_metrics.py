@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from hdhil.core.dataconf import ConfigError
+from hdhil.rig.headline import candidate_row
 
 if TYPE_CHECKING:
     from hdhil.rig.campaign_variants import Variant
@@ -41,30 +42,13 @@ def _get(path: str) -> Callable[[dict[str, Any]], Any]:
     return get
 
 
-def _candidate(prefix: str, field_name: str) -> Callable[[dict], Any]:
+def _candidate(prefix: str, field_name: str, sub: str | None = None) -> Callable[[dict], Any]:
     """A figure of the evaluation's row whose name starts with ``prefix``."""
 
     def get(result: dict[str, Any]) -> Any:
-        for row in (result.get("evaluation") or {}).get("candidates") or ():
-            if str(row.get("name", "")).startswith(prefix):
-                return row.get(field_name)
-        return None
-
-    return get
-
-
-def _firmware_candidate(field_name: str, sub: str | None = None) -> Callable[[dict], Any]:
-    """A figure of the evaluation's firmware row (the filter the firmware ran)."""
-
-    def get(result: dict[str, Any]) -> Any:
-        evaluation = result.get("evaluation") or {}
-        for row in evaluation.get("candidates") or ():
-            if str(row.get("name", "")).startswith("firmware"):
-                value = row.get(field_name)
-                if sub is not None:
-                    value = (value or {}).get(sub)
-                return value
-        return None
+        row = candidate_row(result.get("evaluation"), prefix)
+        value = None if row is None else row.get(field_name)
+        return (value or {}).get(sub) if sub is not None else value
 
     return get
 
@@ -88,78 +72,65 @@ class Metric:
     kind: str  # "float", "int" or "bool"
     get: Callable[[dict[str, Any]], Any]
 
+    @classmethod
+    def at(cls, path: str, kind: str, note: str = "") -> Metric:
+        """The figure at the dotted ``path`` of the result (``note`` qualifies the source)."""
+        return cls(f"{path} {note}".rstrip(), kind, _get(path))
+
 
 #: Every metric a criterion or a plot can name, each read from the ``hdhil run --json``
 #: result of the variant (``source``).  ``stopped_early`` compares the samples handled
 #: with the samples the variant asked for.
 METRICS: dict[str, Metric] = {
     "stopped_early": Metric("cycles < duration / sample period", "bool", lambda r: None),
-    "simulated_s": Metric("simulated_s", "float", _get("simulated_s")),
-    "cycles": Metric("cycles", "int", _get("cycles")),
-    "headline_Nm": Metric("headline.value_Nm", "float", _get("headline.value_Nm")),
+    "simulated_s": Metric.at("simulated_s", "float"),
+    "cycles": Metric.at("cycles", "int"),
+    "headline_Nm": Metric.at("headline.value_Nm", "float"),
     "filtered_rms_err_Nm": Metric(
         "evaluation.candidates[firmware].rms_error (from the evaluation start)",
         "float",
-        _firmware_candidate("rms_error"),
+        _candidate("firmware", "rms_error"),
     ),
     "filtered_to_raw": Metric(
-        "evaluation.candidates[firmware].rms_ratio", "float", _firmware_candidate("rms_ratio")
+        "evaluation.candidates[firmware].rms_ratio", "float", _candidate("firmware", "rms_ratio")
     ),
     "raw_rms_err_Nm": Metric(
         "evaluation.candidates[raw].rms_error (from the evaluation start)",
         "float",
         _candidate("raw", "rms_error"),
     ),
-    "filtered_rms_err_whole_run_Nm": Metric(
-        "torque.rms_error_filtered (whole run)", "float", _get("torque.rms_error_filtered")
-    ),
-    "filtered_max_err_whole_run_Nm": Metric(
-        "torque.max_error_filtered (whole run)", "float", _get("torque.max_error_filtered")
-    ),
-    "raw_rms_err_whole_run_Nm": Metric(
-        "torque.rms_error_raw (whole run)", "float", _get("torque.rms_error_raw")
-    ),
-    "true_rms_whole_run_Nm": Metric(
-        "torque.rms_true (whole run)", "float", _get("torque.rms_true")
-    ),
+    "filtered_rms_err_whole_run_Nm": Metric.at("torque.rms_error_filtered", "float", "(whole run)"),
+    "filtered_max_err_whole_run_Nm": Metric.at("torque.max_error_filtered", "float", "(whole run)"),
+    "raw_rms_err_whole_run_Nm": Metric.at("torque.rms_error_raw", "float", "(whole run)"),
+    "true_rms_whole_run_Nm": Metric.at("torque.rms_true", "float", "(whole run)"),
     "eval_rms_err_Nm": Metric(
-        "evaluation.candidates[firmware].rms_error", "float", _firmware_candidate("rms_error")
+        "evaluation.candidates[firmware].rms_error", "float", _candidate("firmware", "rms_error")
     ),
     "eval_reduction_2x_dB": Metric(
         "evaluation.candidates[firmware].reduction_dB['2x motor']",
         "float",
-        _firmware_candidate("reduction_dB", "2x motor"),
+        _candidate("firmware", "reduction_dB", "2x motor"),
     ),
     "eval_reduction_4x_dB": Metric(
         "evaluation.candidates[firmware].reduction_dB['4x motor']",
         "float",
-        _firmware_candidate("reduction_dB", "4x motor"),
+        _candidate("firmware", "reduction_dB", "4x motor"),
     ),
-    "max_abs_e_Nm": Metric("tracking.max_abs_error", "float", _get("tracking.max_abs_error")),
-    "rms_e_Nm": Metric("tracking.rms_error", "float", _get("tracking.rms_error")),
-    "velocity_final_radps": Metric("velocity_final", "float", _get("velocity_final")),
-    "velocity_peak_radps": Metric("velocity_peak", "float", _get("velocity_peak")),
-    "frames_total": Metric("frames_total", "int", _get("frames_total")),
+    "max_abs_e_Nm": Metric.at("tracking.max_abs_error", "float"),
+    "rms_e_Nm": Metric.at("tracking.rms_error", "float"),
+    "velocity_final_radps": Metric.at("velocity_final", "float"),
+    "velocity_peak_radps": Metric.at("velocity_peak", "float"),
+    "frames_total": Metric.at("frames_total", "int"),
     "faults_injected": Metric("sum of faults", "int", _total_faults),
     "malformed_frames": Metric(
         "controller.malformed_frames + drive.malformed_frames", "int", _malformed
     ),
-    "kalman_skipped": Metric("controller.kalman_skipped", "int", _get("controller.kalman_skipped")),
-    "tacho_rejections": Metric(
-        "controller.tacho_rejections", "int", _get("controller.tacho_rejections")
-    ),
-    "encoder_rejections": Metric(
-        "controller.encoder_rejections", "int", _get("controller.encoder_rejections")
-    ),
-    "plausibility_errors": Metric(
-        "controller.plausibility_errors", "int", _get("controller.plausibility_errors")
-    ),
-    "covariance_resets": Metric(
-        "controller.covariance_resets", "int", _get("controller.covariance_resets")
-    ),
-    "covariance_finite": Metric(
-        "controller.covariance_finite", "bool", _get("controller.covariance_finite")
-    ),
+    "kalman_skipped": Metric.at("controller.kalman_skipped", "int"),
+    "tacho_rejections": Metric.at("controller.tacho_rejections", "int"),
+    "encoder_rejections": Metric.at("controller.encoder_rejections", "int"),
+    "plausibility_errors": Metric.at("controller.plausibility_errors", "int"),
+    "covariance_resets": Metric.at("controller.covariance_resets", "int"),
+    "covariance_finite": Metric.at("controller.covariance_finite", "bool"),
 }
 
 

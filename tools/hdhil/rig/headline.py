@@ -15,12 +15,14 @@ from __future__ import annotations
 import math
 from typing import Any
 
-__all__ = ["format_headline", "headline"]
+__all__ = ["candidate_row", "format_headline", "headline"]
 
 
-def _firmware_row(evaluation: dict[str, Any] | None) -> dict[str, Any] | None:
+def candidate_row(evaluation: dict[str, Any] | None, prefix: str) -> dict[str, Any] | None:
+    """The evaluation's row whose candidate name starts with ``prefix`` (``"firmware"``:
+    the filter the firmware ran; ``"raw"``: the unfiltered measurement), or None."""
     for row in (evaluation or {}).get("candidates") or ():
-        if str(row.get("name", "")).startswith("firmware"):
+        if str(row.get("name", "")).startswith(prefix):
             return row
     return None
 
@@ -42,7 +44,7 @@ def headline(
                 "from_s": from_s,
                 "samples": int(tracking["samples"]),
             }
-        row = _firmware_row(evaluation)
+        row = candidate_row(evaluation, "firmware")
         if kind == "ripple" and row is not None and evaluation and evaluation.get("samples"):
             ratio = row.get("rms_ratio")
             return {

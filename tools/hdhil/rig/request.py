@@ -155,9 +155,10 @@ class RunRequest:
                 mapping=Mapping(str(mapping.get("label", "raw")), Path(dcf) if dcf else None),
                 layout=RigLayout(
                     int(layout.get("controller_node_id", 1)),
-                    tuple(DriveSlot(int(d["node_id"])) for d in layout.get("drives", [{}]))
-                    if layout.get("drives")
-                    else (DriveSlot(),),
+                    tuple(
+                        DriveSlot(int(d["node_id"]))
+                        for d in layout.get("drives") or [{"node_id": 2}]
+                    ),
                 ),
                 sources=Sources(
                     str(sources.get("scenario", scenario.name)),

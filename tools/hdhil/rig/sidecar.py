@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 from hdhil.can.traces.sidecar import metadata_path, read_metadata
-from hdhil.core.dataconf import ConfigError, merge
 from hdhil.core.errors import UserError
 from hdhil.rig.request import RunRequest, resolve
 
@@ -49,40 +48,24 @@ def run_metadata(request: RunRequest) -> dict[str, Any]:
     }
 
 
-def request_for_trace(trace: Path, given: str | None = None) -> tuple[RunRequest | None, str]:
-    """The request a trace was recorded with, and where it came from.
-
-    ``given`` (``--scenario``) wins; else the sidecar's ``request``; else the scenario
-    its sidecar names, with the override and calibration files that still exist; else
-    ``None`` (the firmware defaults). Returns ``(request or None, note)``."""
+def request_for_trace(trace: Path, given: str | None = None) -> RunRequest | None:
+    """The request a trace was recorded with: ``given`` (``--scenario``) if any; else the
+    sidecar's ``request``; else, for older sidecars, the scenario they name with those of
+    the run's override and calibration files that can still be read; else ``None`` (the
+    firmware defaults)."""
     if given:
-        return resolve(given), "--scenario"
+        return resolve(given)
     meta = read_metadata(trace)
-    note = metadata_path(trace).name
     if not meta or not meta.get("scenario"):
-        return None, "no scenario recorded with the trace"
+        return None
     if isinstance(meta.get("request"), dict):
-        return RunRequest.from_data(meta["request"], note), note
+        return RunRequest.from_data(meta["request"], metadata_path(trace).name)
     source = str(meta.get("scenario_source") or meta["scenario"])
-    overrides: dict[str, Any] = {}
-    from hdhil.core.files import load_toml
-
-    for path in meta.get("overrides") or []:
+    overrides = [Path(p) for p in meta.get("overrides") or []]
+    calibration = meta.get("calibration")
+    for files, cal in ((overrides, calibration), (overrides, None), ([], None)):
         try:
-            overrides = merge(overrides, load_toml(Path(path), "override file"))
+            return resolve(source, overrides=files, calibration=cal)
         except (OSError, ValueError, UserError):
-            return resolve(str(meta["scenario"])), f"{note} (override {path} unreadable: left out)"
-    try:
-        request = resolve(source, overrides=[overrides] if overrides else ())
-    except (OSError, ValueError, UserError):
-        request = resolve(str(meta["scenario"]))
-    if meta.get("calibration"):
-        try:
-            request = resolve(
-                source,
-                overrides=[overrides] if overrides else (),
-                calibration=Path(meta["calibration"]),
-            )
-        except (OSError, ValueError, UserError, ConfigError):
-            return request, f"{note} (calibration file unreadable)"
-    return request, note
+            continue  # a file of the run that can no longer be read: left out
+    return resolve(str(meta["scenario"]))

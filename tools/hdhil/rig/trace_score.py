@@ -49,7 +49,7 @@ def score_trace(
     """The evaluation of ``trace`` (as ``hdhil evaluate --json`` prints it) and the
     damage note of its reader ("" for an intact trace). ``scenario`` replaces the run
     recorded in the sidecar; ``skip_s`` the run's evaluation start."""
-    request, _source = request_for_trace(trace, scenario)
+    request = request_for_trace(trace, scenario)
     fw = request.firmware if request is not None else FirmwareConfig()
     scored = request.scenario.scored if request is not None else ("ripple", "tracking")
     if skip_s is None:

@@ -18,9 +18,9 @@ from typing import Any
 from hdhil.can.traces.sidecar import metadata_path
 from hdhil.rig.request import RunRequest, resolve
 from hdhil.rig.runner import run_lockstep
-from hdhil.rig.scenario import scenario_data, scenario_from_dict
+from hdhil.rig.scenario import scenario_from_dict
 
-__all__ = ["WALL_CLOCK_KEYS", "RunSettings", "request_of", "run_settings", "scenario_data"]
+__all__ = ["WALL_CLOCK_KEYS", "RunSettings", "request_of", "run_settings"]
 
 #: Keys of ``hdhil run --json`` that measure the host, not the run: left out of a
 #: variant's stored result so that the same variant gives the same record anywhere.
