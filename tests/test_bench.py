@@ -173,6 +173,14 @@ def test_realtime_section_can_be_left_out(report: dict, monkeypatch) -> None:
     for name in ("bench_lockstep_all", "bench_stages", "bench_filter", "bench_realtime"):
         monkeypatch.setattr(bench, name, fail if name == "bench_realtime" else lambda s: [])
     monkeypatch.setattr(bench, "bench_memory", lambda s: {})
+    import hdhil.analysis.speed as speed
+
+    whole = {"median": {"peak_rss_MB": 1.0}, "duration_s": 1.0, "long_duration_s": 3.0,
+             "real_time_factor": 1.0, "evaluation_share": 0.1,
+             "rss_growth_MB_per_sim_minute": 0.0}  # fmt: skip
+    monkeypatch.setattr(
+        speed, "bench_speed", lambda *a: {"whole": whole, "reference": {"us_per_cycle": 1.0}}
+    )
     assert run_benchmarks(quick=True, realtime_s=0)["realtime"] is None
     assert "Real-time mode" not in format_bench({**report, "realtime": None})
 
@@ -241,6 +249,35 @@ def test_startup_section(report: dict) -> None:
     assert rows["run_first_cycle"]["median"] < rows["run_whole"]["median"]
     text = format_bench(report)
     assert "Start-up" in text and "hdhil dump --help" in text
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.realtime
+def test_speed_section(report: dict) -> None:
+    """The main job by stage, the reference, the cost model and the goals' verdicts,
+    which follow the figures (judged, not asserted)."""
+    sp, goals = report["speed"], report["goals"]
+    med = sp["whole"]["median"]
+    assert 0 < med["start_up_s"] < med["whole_s"] and med["loop_s"] > 0
+    assert med["evaluation_s"] > 0 and med["finishing_s"] >= 0
+    parts = med["start_up_s"] + med["loop_s"] + med["evaluation_s"] + med["finishing_s"]
+    assert parts == pytest.approx(med["whole_s"], rel=0.05)
+    assert sp["whole"]["real_time_factor"] == pytest.approx(
+        sp["whole"]["duration_s"] / med["whole_s"]
+    )
+    assert 50 < med["peak_rss_MB"] < 1000
+    assert sp["reference"]["frames_per_cycle"] == len(sp["reference"]["frames"]) >= 7
+    cm = sp["cost_model"]
+    assert cm["per_frame_us"] > 0 and math.isfinite(cm["per_joint_us"])
+    for g in goals:
+        if g["met"] is not None:
+            op, goal = g["goal"].split()[:2]
+            assert g["met"] == (
+                g["value"] >= float(goal) if op == ">=" else g["value"] <= float(goal)
+            )
+    text = format_bench(report)
+    assert "Speed goals" in text and "Whole command by stage" in text and "Cost model" in text
 
 
 def test_realtime_s_zero_leaves_the_real_time_section_out(monkeypatch) -> None:

@@ -59,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
     if startup_runs is not None and startup_runs < 1:
         raise UserError(f"--startup-runs must be >= 1, got {startup_runs}")
     sections = [
-        "lockstep", "stages", "filter", "memory", "real time", "campaign", "start-up", "done"
+        "lockstep", "stages", "filter", "memory", "real time", "campaign", "start-up", "speed",
+        "done",
     ]  # fmt: skip
     with progress(args, len(sections) - 1, "hdhil bench", "section") as bar:
 
