@@ -27,6 +27,7 @@ import can
 import numpy as np
 
 from hdhil.dbc import FrameCodec, codec
+from hdhil.firmware.baselines import ButterworthLowPass, TrackingNotchBank
 from hdhil.firmware.config import FirmwareConfig, paper_config, recommended_config
 from hdhil.firmware.interrupt import CstSample
 from hdhil.firmware.isr import TorqueFilterChain
@@ -397,9 +398,6 @@ def _cst_signals(rec: Recording, cfg: FirmwareConfig) -> tuple[np.ndarray, np.nd
 
 def candidate_signals(rec: Recording, cfg: FirmwareConfig) -> dict[str, np.ndarray]:
     """Every candidate's torque estimate over the recording, keyed by display name."""
-    # imported here: scipy.signal is slow to import and only the evaluation needs it
-    from hdhil.firmware.baselines import ButterworthLowPass, TrackingNotchBank
-
     T_meas, vel = calibrated_signals(rec, cfg)
     encoder = rec.column("encoder")
     Ts = cfg.sample_period_s
