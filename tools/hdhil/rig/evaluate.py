@@ -288,11 +288,17 @@ def harmonic_amplitude(
     error: np.ndarray, angle: np.ndarray, multiple: float, mask: np.ndarray
 ) -> float:
     """Amplitude of the component of ``error`` at ``multiple`` × ``angle`` (demodulation)."""
+    return _demodulated_amplitude(error, np.exp(-1j * multiple * angle), mask)
+
+
+def _demodulated_amplitude(error: np.ndarray, phasor: np.ndarray, mask: np.ndarray) -> float:
+    """:func:`harmonic_amplitude` with the phasor exp(−j·multiple·angle) given, so that
+    one phasor per harmonic serves every candidate: 2 |mean((e − ē) · phasor)| over
+    ``mask``."""
     if not mask.any():
         return math.nan
     e = error[mask] - error[mask].mean()
-    z = np.exp(-1j * multiple * angle[mask])
-    return float(2.0 * abs(np.mean(e * z)))
+    return float(2.0 * abs(np.mean(e * phasor[mask])))
 
 
 #: A raw error harmonic below this (Nm) has nothing to reduce: no dB figure (e.g. the CiA
@@ -446,6 +452,7 @@ def evaluate(rec: Recording, cfg: FirmwareConfig, skip_s: float = 0.0) -> dict[s
     theta_o = _unwrap_angle(rec.column("theta_output"))
     turning = window & (np.abs(rec.column("omega_motor")) > MIN_SPEED_RADPS)
     angles = {"motor": theta_m, "output": theta_o}
+    phasors = {label: np.exp(-1j * mult * angles[src]) for label, src, mult in HARMONICS}
 
     scores = []
     raw_rms = raw_harm = None
@@ -453,8 +460,8 @@ def evaluate(rec: Recording, cfg: FirmwareConfig, skip_s: float = 0.0) -> dict[s
         ok = window & np.isfinite(x)
         err = x - T_true
         rms = float(np.sqrt(np.mean(err[ok] ** 2))) if ok.any() else math.nan
-        harm = {label: harmonic_amplitude(err, angles[src], mult, turning & ok)
-                for label, src, mult in HARMONICS}  # fmt: skip
+        harm = {label: _demodulated_amplitude(err, phasors[label], turning & ok)
+                for label, _, _ in HARMONICS}  # fmt: skip
         if raw_rms is None:
             raw_rms, raw_harm = rms, harm
         reduction = {label: _reduction_dB(raw_harm[label], a) for label, a in harm.items()}
@@ -471,8 +478,8 @@ def evaluate(rec: Recording, cfg: FirmwareConfig, skip_s: float = 0.0) -> dict[s
         "skip_s": skip_s,
         "rms_true": float(np.sqrt(np.mean(T_true[window] ** 2))),
         "true_ripple": {
-            label: harmonic_amplitude(rec.column("T_ripple"), angles[src], mult, turning)
-            for label, src, mult in HARMONICS
+            label: _demodulated_amplitude(rec.column("T_ripple"), phasors[label], turning)
+            for label, _, _ in HARMONICS
         },
         "candidates": [dataclasses.asdict(s) for s in scores],
         **missing,
