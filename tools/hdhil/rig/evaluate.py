@@ -19,6 +19,7 @@ import contextlib
 import dataclasses
 import math
 from array import array
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -361,21 +362,29 @@ def offline_chain(
 
 def calibrated_signals(rec: Recording, cfg: FirmwareConfig) -> tuple[np.ndarray, np.ndarray]:
     """T_meas and motor velocity from the recorded counts, through the firmware's stages
-    (in the CST mapping its :class:`firmware.stages.CstSource`)."""
+    (in the CST mapping its :class:`firmware.stages.CstSource`).
+
+    In the raw mapping each channel is calibrated on its own (:func:`firmware.stages.
+    calibrate`: T_meas from the torque count, the velocity from the tacho count), so
+    each distinct count goes through ``adc_read`` and ``calibrate`` once and the
+    samples take their values from that table: the same numbers as sample by sample."""
     if rec.sensor_mapping == "cst":
         return _cst_signals(rec, cfg)
-    T_meas = np.empty(len(rec))
-    vel = np.empty(len(rec))
-    for k, (q, tq, cu) in enumerate(
-        zip(
-            rec.column("adc_torque").astype(np.int64).tolist(),
-            rec.column("adc_tacho").astype(np.int64).tolist(),
-            rec.column("adc_current").astype(np.int64).tolist(),
-            strict=True,
-        )
-    ):
-        T_meas[k], vel[k], _ = calibrate(*adc_read(q, tq, cu, cfg.adc), cfg.calibration)
+    adc, cal = cfg.adc, cfg.calibration
+    T_meas = _per_count(
+        rec.column("adc_torque"), lambda q: calibrate(*adc_read(q, 0, 0, adc), cal)[0]
+    )
+    vel = _per_count(
+        rec.column("adc_tacho"), lambda tq: calibrate(*adc_read(0, tq, 0, adc), cal)[1]
+    )
     return T_meas, vel
+
+
+def _per_count(counts: np.ndarray, convert: Callable[[int], float]) -> np.ndarray:
+    """``convert(count)`` for every sample, computed once per distinct count."""
+    distinct, where = np.unique(counts.astype(np.int64), return_inverse=True)
+    table = np.array([convert(c) for c in distinct.tolist()], dtype=np.float64)
+    return table[where.reshape(-1)]
 
 
 def _cst_signals(rec: Recording, cfg: FirmwareConfig) -> tuple[np.ndarray, np.ndarray]:
