@@ -33,23 +33,38 @@ from hdhil.firmware.config import RippleFilterConfig
 __all__ = ["HarmonicKalman", "RippleKalman"]
 
 
+def _p(i: int, j: int) -> str:
+    """Local-variable name of P[i][j] (= P[j][i]) in the generated kernels."""
+    return f"p{min(i, j)}_{max(i, j)}"
+
+
+def _symmetric(upper: tuple[float, ...], n: int) -> np.ndarray:
+    """The full n × n matrix from its upper triangle stored row by row."""
+    P = np.zeros((n, n))
+    P[np.triu_indices(n)] = upper
+    return P + np.triu(P, 1).T
+
+
 def _paper_kernel_source(blocks: int) -> str:
     """Python source of :class:`RippleKalman`'s step for ``blocks`` oscillator blocks.
 
     The listing's update (``Kalman``, Eqs. 8-10) term for term, in its order: Φ(k) from
     the velocity; PC = P Cᵀ, CPC = C PC, K = Φ PC / (R + CPC); P = Q + (Φ − K C) P Φᵀ via
     Pp = P Φᵀ; x = (Φ − K C) x + K y; output C x.  Unrolled for n = 2·blocks states over
-    local floats, P kept as the full n × n matrix (the listing's, not forced symmetric),
-    with the products by the entries Φ, C and K C have zero for good (Φ is block
-    diagonal, C = [1 0 1 0 ...]) left out: adding those exact zeros changes nothing.  So
-    the numbers are the listing's up to the order of the additions in each sum.
-    Straight-line code is what makes a 4th-order step a few microseconds in CPython
-    (with numpy, a call's overhead is larger than the arithmetic at this size).
+    local floats, with the products by the entries that Φ, C and K C have zero for good
+    left out (Φ is block diagonal, C = [1 0 1 0 ...]): adding those exact zeros changes
+    nothing.  P is symmetric (the update maps a symmetric P to a symmetric one, and
+    P(0) = p0·I), so only its upper triangle is computed and stored, and only the
+    entries of Pp that it needs.  The numbers are the listing's up to the order of the
+    additions in each sum.  Straight-line code is what makes a 4th-order step a few
+    microseconds in CPython (with numpy, a call's overhead is larger than the arithmetic
+    at this size).
     """
     m = blocks
     n = 2 * m
     idx = range(n)
-    P_names = ", ".join(f"p{a}_{b}" for a in idx for b in idx)
+    upper = [(a, b) for a in idx for b in range(a, n)]
+    P_names = ", ".join(_p(a, b) for a, b in upper)
     x_names = ", ".join(f"x{a}" for a in idx)
     k_names = ", ".join(f"k{a}" for a in idx)
     cs_names = ", ".join(f"c{i}, s{i}" for i in range(m))
@@ -57,31 +72,30 @@ def _paper_kernel_source(blocks: int) -> str:
     q_names = ", ".join(f"q{i}" for i in range(m))
     even = range(0, n, 2)
 
-    def M(a: int) -> list[tuple[int, str]]:
-        """Row a of Φ − K C as (column, factor) for its non-zero entries; a factor
-        starting with "-" is subtracted."""
+    def row(a: int) -> list[tuple[int, str]]:
+        """Row a of Φ − K C as (column, factor), its non-zero entries only; a factor
+        "-k" is subtracted: Φ's two entries in a's block (the even one less K_a) and
+        -K_a in the other blocks' even columns."""
         i = a // 2
-        own_odd = f"s{i}" if a % 2 == 0 else f"c{i}"
-        row: list[tuple[int, str]] = []
+        out: list[tuple[int, str]] = []
         for col in idx:
             if col == 2 * i:
-                row.append((col, f"m{a}"))
+                out.append((col, f"m{a}"))
             elif col == 2 * i + 1:
-                row.append((col, own_odd))
+                out.append((col, f"s{i}" if a % 2 == 0 else f"c{i}"))
             elif col % 2 == 0:
-                row.append((col, f"-k{a}"))
-        return row
+                out.append((col, f"-k{a}"))
+        return out
 
-    def dot(row: list[tuple[int, str]], operand: str) -> str:
-        """Σ factor · operand(col) as source, with '-' factors subtracted."""
-        out = ""
-        for col, factor in row:
+    def dot(entries: list[tuple[int, str]], operand: str) -> str:
+        terms = ""
+        for col, factor in entries:
             term = operand.format(col)
             if factor.startswith("-"):
-                out += f" - {factor[1:]} * {term}" if out else f"-{factor[1:]} * {term}"
+                terms += f" - {factor[1:]} * {term}" if terms else f"-{factor[1:]} * {term}"
             else:
-                out += f" + {factor} * {term}" if out else f"{factor} * {term}"
-        return out
+                terms += f" + {factor} * {term}" if terms else f"{factor} * {term}"
+        return terms
 
     lines = [
         "def step(self, y, velocity):",
@@ -98,7 +112,7 @@ def _paper_kernel_source(blocks: int) -> str:
         lines += [f"    om = w{i} * velocity", f"    c{i} = cos(om)", f"    s{i} = sin(om)"]
     lines.append("    # 1: K = Phi P C' / (R + C P C')  (Eq. 9)")
     for a in idx:
-        lines.append(f"    pc{a} = " + " + ".join(f"p{a}_{b}" for b in even))
+        lines.append(f"    pc{a} = " + " + ".join(_p(a, b) for b in even))
     lines += [
         "    S = R + (" + " + ".join(f"pc{b}" for b in even) + ")",
         "    e = y - (" + " + ".join(f"x{b}" for b in even) + ")  # y - C x, Eq. 8",
@@ -109,25 +123,27 @@ def _paper_kernel_source(blocks: int) -> str:
             f"    k{a} = (c{i} * pc{a} + s{i} * pc{b}) / S",
             f"    k{b} = (c{i} * pc{b} - s{i} * pc{a}) / S",
         ]
-    lines.append("    # 2: P = Q + (Phi - K C) P Phi'  (Eq. 10); Pp = P Phi'")
-    for a in idx:
-        for i in range(m):
+    lines.append("    # 2: P = Q + (Phi - K C) P Phi'  (Eq. 10), Pp = P Phi'")
+    needed = {(c, b) for a, b in upper for c, _ in row(a)}
+    for c in idx:
+        for b in idx:
+            if (c, b) not in needed:
+                continue
+            i = b // 2
             u, v = 2 * i, 2 * i + 1
-            lines += [
-                f"    pp{a}_{u} = p{a}_{u} * c{i} + p{a}_{v} * s{i}",
-                f"    pp{a}_{v} = p{a}_{v} * c{i} - p{a}_{u} * s{i}",
-            ]
-    lines.append("    # the diagonal-block entries of Phi - K C in the columns K C fills")
+            if b == u:
+                lines.append(f"    pp{c}_{b} = {_p(c, u)} * c{i} + {_p(c, v)} * s{i}")
+            else:
+                lines.append(f"    pp{c}_{b} = {_p(c, v)} * c{i} - {_p(c, u)} * s{i}")
+    lines.append("    # the entries of Phi - K C in the columns both fill")
     for i in range(m):
         lines += [f"    m{2 * i} = c{i} - k{2 * i}", f"    m{2 * i + 1} = -s{i} - k{2 * i + 1}"]
-    for a in idx:
-        row = M(a)
-        for b in idx:
-            q = f" + q{a // 2}" if a == b else ""
-            lines.append(f"    p{a}_{b} = {dot(row, f'pp{{}}_{b}')}{q}")
+    for a, b in upper:
+        q = f" + q{a // 2}" if a == b else ""
+        lines.append(f"    {_p(a, b)} = {dot(row(a), f'pp{{}}_{b}')}{q}")
     lines.append("    # 3: x = (Phi - K C) x + K y  (Eq. 8)")
     for a in idx:
-        lines.append(f"    x1_{a} = {dot(M(a), 'x{}')}")
+        lines.append(f"    x1_{a} = {dot(row(a), 'x{}')}")
     for a in idx:
         lines.append(f"    x{a} = k{a} * y + x1_{a}")
     lines += [
@@ -185,8 +201,8 @@ class RippleKalman:
     The step is generated straight-line code for the configured number of blocks
     (:func:`_paper_kernel_source`, :attr:`kernel_source`), like
     :class:`HarmonicKalman`'s: the firmware's interrupt and the offline replay of
-    :mod:`hdhil.rig.evaluate` run the same code.  x, P (full n × n, row-major) and K
-    are kept as tuples of floats; the properties return numpy copies.
+    :mod:`hdhil.rig.evaluate` run the same code.  x, P (its upper triangle, row by row)
+    and K are kept as tuples of floats; the properties return numpy copies.
     """
 
     def __init__(self, cfg: RippleFilterConfig, sample_period_s: float, gear_ratio: float) -> None:
@@ -227,7 +243,7 @@ class RippleKalman:
         n = self.n
         self._initialized = False
         self._x: tuple[float, ...] = (0.0,) * n
-        self._P: tuple[float, ...] = (0.0,) * (n * n)
+        self._P: tuple[float, ...] = (0.0,) * (n * (n + 1) // 2)
         self._K: tuple[float, ...] = (0.0,) * n
         self._cs: tuple[float, ...] = (1.0, 0.0) * self.blocks  # Φ = I until the first step
         self._prediction = 0.0
@@ -241,7 +257,7 @@ class RippleKalman:
         x[2i] = y (``x[0] = x[2] = Delta_T``), P = p0·I."""
         n, p0 = self.n, self._p0
         self._x = (float(y), 0.0) * self.blocks
-        self._P = tuple(p0 if a == b else 0.0 for a in range(n) for b in range(n))
+        self._P = tuple(p0 if a == b else 0.0 for a in range(n) for b in range(a, n))
         self._initialized = True
 
     def _skip(self) -> float:
@@ -280,8 +296,8 @@ class RippleKalman:
 
     @property
     def P(self) -> np.ndarray:
-        """A copy of the error covariance P(k+1)."""
-        return np.array(self._P, dtype=np.float64).reshape(self.n, self.n)
+        """A copy of the error covariance P(k+1), as a full symmetric matrix."""
+        return _symmetric(self._P, self.n)
 
     @property
     def K(self) -> np.ndarray:
@@ -323,11 +339,6 @@ class RippleKalman:
 
 
 # ====================================================================== recommended mode
-def _p(i: int, j: int) -> str:
-    """Local-variable name of P[i][j] (= P[j][i]) in the generated kernel."""
-    return f"p{min(i, j)}_{max(i, j)}"
-
-
 def _kernel_source(harmonics: int) -> str:
     """Python source of :class:`HarmonicKalman`'s step for ``harmonics`` harmonics.
 
@@ -613,10 +624,7 @@ class HarmonicKalman:
     @property
     def P(self) -> np.ndarray:
         """A copy of the error covariance P(k+1|k), as a full symmetric matrix."""
-        n = self.n
-        P = np.zeros((n, n))
-        P[np.triu_indices(n)] = self._P
-        return P + np.triu(P, 1).T
+        return _symmetric(self._P, self.n)
 
     @property
     def Q(self) -> np.ndarray:
