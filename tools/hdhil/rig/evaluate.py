@@ -347,17 +347,17 @@ def offline_chain(
     trace is replayed with the same skipped updates the firmware made."""
     chain = TorqueFilterChain(cfg)
     step = chain.step
-    out = np.empty_like(T_meas)
+    out: list[float] = []
+    append = out.append
     gaps = [0] * len(T_meas) if missed is None else missed.astype(np.int64).tolist()
-    for k, (T, v, e, gap) in enumerate(
-        zip(
-            T_meas.tolist(), velocity.tolist(), encoder.astype(np.int64).tolist(), gaps, strict=True
-        )
+    for T, v, e, gap in zip(
+        T_meas.tolist(), velocity.tolist(), encoder.astype(np.int64).tolist(), gaps, strict=True
     ):
-        for _ in range(gap):
-            chain.sample_missed()
-        out[k] = step(T, v, e)[3]
-    return out
+        if gap:
+            for _ in range(gap):
+                chain.sample_missed()
+        append(step(T, v, e)[3])
+    return np.array(out, dtype=np.float64)
 
 
 def calibrated_signals(rec: Recording, cfg: FirmwareConfig) -> tuple[np.ndarray, np.ndarray]:
