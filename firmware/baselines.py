@@ -15,6 +15,12 @@ designer would try first, which is why they are the baselines.
 
 Non-finite samples are not skipped: like any IIR filter a NaN input poisons the state
 until :meth:`reset` (the Kalman filters skip and count them instead).
+
+No scipy here: ``hdhil run`` scores every run against these baselines, and importing
+:mod:`scipy.signal` takes longer than the whole evaluation.  The Butterworth design is
+:func:`butterworth_lowpass`, the computation of ``scipy.signal.butter`` written out, and
+the recursions are loops over Python floats; the tests hold both to scipy's
+``butter``/``lfilter``.
 """
 
 from __future__ import annotations
@@ -23,9 +29,8 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import signal
 
-__all__ = ["ButterworthLowPass", "TrackingNotchBank"]
+__all__ = ["ButterworthLowPass", "TrackingNotchBank", "butterworth_lowpass"]
 
 
 def _check_period(sample_period_s: float) -> float:
@@ -34,17 +39,60 @@ def _check_period(sample_period_s: float) -> float:
     return float(sample_period_s)
 
 
+def butterworth_lowpass(
+    order: int, cutoff_Hz: float, sample_rate_Hz: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(b, a)`` of the digital Butterworth low-pass (``a[0] = 1``), the design of
+    ``scipy.signal.butter(order, cutoff_Hz, fs=sample_rate_Hz)`` step by step
+    (``iirfilter`` with ``buttap``, ``lp2lp_zpk``, ``bilinear_zpk``, ``zpk2tf``; S. Butterworth,
+    "On the theory of filter amplifiers", 1930, for the prototype):
+
+    1. analog prototype, cut-off 1 rad/s: poles ``-exp(jπm / 2N)``, m = -N+1, -N+3, ..., N-1,
+       no zeros, gain 1;
+    2. pre-warping, in scipy's frequency unit (half-cycles per sample, fs = 2):
+       ``wo = 4 tan(π Wn / 2)`` with ``Wn = cutoff / (sample_rate / 2)``, so that the
+       bilinear transform puts the -3 dB point exactly at the cut-off; poles ``wo p``,
+       gain ``wo^N``;
+    3. bilinear transform ``s = 4 (z - 1) / (z + 1)``: poles ``(4 + p) / (4 - p)``, the N
+       zeros at infinity to z = -1, gain ``k / Re Π(4 - p)``;
+    4. ``b = k Π(z + 1)`` (binomial coefficients times k), ``a = Re Π(z - p_z)`` (the poles
+       come in conjugate pairs, so the imaginary parts are round-off).
+    """
+    N = order
+    Wn = np.float64(cutoff_Hz) / (np.float64(sample_rate_Hz) / 2)
+    m = np.arange(-N + 1, N, 2, dtype=np.float64)
+    p = -np.exp(1j * np.pi * m / (2 * N))  # 1: the middle pole (odd N) is exactly -1
+    warped = 2 * 2.0 * np.tan(np.pi * Wn / 2.0)  # 2
+    p = warped * p
+    k = 1.0 * float(warped) ** N
+    p_z = (4.0 + p) / (4.0 - p)  # 3
+    k_z = k * np.real(1.0 / np.prod(4.0 - p))
+    b = k_z * _poly(-np.ones(N))  # 4
+    a = np.real(_poly(p_z)).copy()
+    return np.asarray(b, dtype=np.float64), np.asarray(a, dtype=np.float64)
+
+
+def _poly(roots: np.ndarray) -> np.ndarray:
+    """Coefficients of Π(z - r) over ``roots``, highest power first (``numpy.poly``'s
+    repeated convolution)."""
+    a = np.ones((1,), dtype=roots.dtype)
+    for r in roots:
+        a = np.convolve(a, np.stack((np.ones_like(r), -r)), mode="full")
+    return a
+
+
 class ButterworthLowPass:
     """Butterworth low-pass, ``order`` poles at ``cutoff_Hz`` (-3 dB), sampled at Ts.
 
     Provenance: [Taghirad97], listing A.1 revision note "01/11/95 hdt Butterworth filter
     for torque" (the filter itself is not printed).  Design:
-    ``scipy.signal.butter(order, cutoff_Hz, fs=1/Ts)`` (bilinear transform with
-    pre-warping, so the -3 dB point is exactly at ``cutoff_Hz``); unity gain at DC.
+    :func:`butterworth_lowpass`, i.e. ``scipy.signal.butter(order, cutoff_Hz, fs=1/Ts)``
+    (bilinear transform with pre-warping, so the -3 dB point is exactly at
+    ``cutoff_Hz``); unity gain at DC.
 
     Structure: direct form II transposed, the structure of ``scipy.signal.lfilter``,
-    whose delay-line state ``z`` (length ``order``) :meth:`step` updates with the same
-    operations in the same order::
+    whose delay-line state ``z`` (length ``order``, ``lfilter``'s ``zi``) :meth:`step`
+    and :meth:`filter` update with the same operations in the same order::
 
         y    = z[0] + b[0] x
         z[i] = z[i+1] + b[i+1] x - a[i+1] y      (i = 0 .. order-2)
@@ -68,7 +116,7 @@ class ButterworthLowPass:
         self.cutoff_Hz = float(cutoff_Hz)
         self.sample_period_s = Ts
         self.order = order
-        b, a = signal.butter(order, self.cutoff_Hz, btype="low", fs=1.0 / Ts)
+        b, a = butterworth_lowpass(order, self.cutoff_Hz, 1.0 / Ts)
         #: Numerator and denominator coefficients (``a[0] = 1``), as scipy designs them.
         self.b: np.ndarray = np.asarray(b, dtype=np.float64)
         self.a: np.ndarray = np.asarray(a, dtype=np.float64)
@@ -83,12 +131,21 @@ class ButterworthLowPass:
 
     def reset(self, value: float | None = None) -> None:
         """Back to rest (z = 0), or, with ``value``, to the steady state of a constant
-        input ``value`` (``scipy.signal.lfilter_zi``), which avoids the start-up
-        transient from 0 to a torque offset."""
+        input ``value`` (what ``scipy.signal.lfilter_zi`` gives, times ``value``), which
+        avoids the start-up transient from 0 to a torque offset.  In the steady state
+        x and y are constant, y = (Σb / Σa) x (the DC gain), and the recursion of
+        :meth:`step` solves backwards: z[i] = Σ_{j>i} (b[j] x - a[j] y)."""
         if value is None:
             self._z = [0.0] * self.order
-        else:
-            self._z = [float(v) for v in signal.lfilter_zi(self.b, self.a) * float(value)]
+            return
+        x = float(value)
+        y = sum(self._b) / sum(self._a) * x
+        z = [0.0] * self.order
+        acc = 0.0
+        for i in range(self.order - 1, -1, -1):
+            acc += x * self._b[i + 1] - y * self._a[i + 1]
+            z[i] = acc
+        self._z = z
 
     def step(self, x: float) -> float:
         """One sample in, one filtered sample out."""
@@ -101,14 +158,31 @@ class ButterworthLowPass:
         return y
 
     def filter(self, x: np.ndarray | Sequence[float]) -> np.ndarray:
-        """A whole array through ``scipy.signal.lfilter``, continuing from (and
-        updating) the state :meth:`step` uses."""
+        """A whole array through the recursion of :meth:`step` (the same operations,
+        so the same numbers), continuing from and updating its state; what
+        ``scipy.signal.lfilter(b, a, x, zi=state)`` computes, as a loop over Python
+        floats."""
         data = np.asarray(x, dtype=np.float64)
         if data.ndim != 1:
             raise ValueError(f"filter expects a 1-D array, got shape {data.shape}")
-        y, zf = signal.lfilter(self.b, self.a, data, zi=np.array(self._z))
-        self._z = [float(v) for v in zf]
-        return y
+        b, a = self._b, self._a
+        out: list[float] = []
+        append = out.append
+        if self.order == 2:  # the default, unrolled
+            b0, b1, b2 = b
+            _, a1, a2 = a
+            z0, z1 = self._z
+            for xin in data.tolist():
+                y = z0 + b0 * xin
+                z0 = z1 + xin * b1 - y * a1
+                z1 = xin * b2 - y * a2
+                append(y)
+            self._z = [z0, z1]
+        else:
+            step = self.step
+            for xin in data.tolist():
+                append(step(xin))
+        return np.array(out, dtype=np.float64)
 
 
 class TrackingNotchBank:

@@ -27,11 +27,148 @@ from collections.abc import Callable
 from functools import cache
 
 import numpy as np
-from numpy.lib.stride_tricks import as_strided
 
 from hdhil.firmware.config import RippleFilterConfig
 
 __all__ = ["HarmonicKalman", "RippleKalman"]
+
+
+def _p(i: int, j: int) -> str:
+    """Local-variable name of P[i][j] (= P[j][i]) in the generated kernels."""
+    return f"p{min(i, j)}_{max(i, j)}"
+
+
+def _symmetric(upper: tuple[float, ...], n: int) -> np.ndarray:
+    """The full n × n matrix from its upper triangle stored row by row."""
+    P = np.zeros((n, n))
+    P[np.triu_indices(n)] = upper
+    return P + np.triu(P, 1).T
+
+
+def _paper_kernel_source(blocks: int) -> str:
+    """Python source of :class:`RippleKalman`'s step for ``blocks`` oscillator blocks.
+
+    The listing's update (``Kalman``, Eqs. 8-10) term for term, in its order: Φ(k) from
+    the velocity; PC = P Cᵀ, CPC = C PC, K = Φ PC / (R + CPC); P = Q + (Φ − K C) P Φᵀ via
+    Pp = P Φᵀ; x = (Φ − K C) x + K y; output C x.  Unrolled for n = 2·blocks states over
+    local floats, with the products by the entries that Φ, C and K C have zero for good
+    left out (Φ is block diagonal, C = [1 0 1 0 ...]): adding those exact zeros changes
+    nothing.  P is symmetric (the update maps a symmetric P to a symmetric one, and
+    P(0) = p0·I), so only its upper triangle is computed and stored, and only the
+    entries of Pp that it needs.  The numbers are the listing's up to the order of the
+    additions in each sum.  Straight-line code is what makes a 4th-order step a few
+    microseconds in CPython (with numpy, a call's overhead is larger than the arithmetic
+    at this size).
+    """
+    m = blocks
+    n = 2 * m
+    idx = range(n)
+    upper = [(a, b) for a in idx for b in range(a, n)]
+    P_names = ", ".join(_p(a, b) for a, b in upper)
+    x_names = ", ".join(f"x{a}" for a in idx)
+    k_names = ", ".join(f"k{a}" for a in idx)
+    cs_names = ", ".join(f"c{i}, s{i}" for i in range(m))
+    w_names = ", ".join(f"w{i}" for i in range(m))
+    q_names = ", ".join(f"q{i}" for i in range(m))
+    even = range(0, n, 2)
+
+    def row(a: int) -> list[tuple[int, str]]:
+        """Row a of Φ − K C as (column, factor), its non-zero entries only; a factor
+        "-k" is subtracted: Φ's two entries in a's block (the even one less K_a) and
+        -K_a in the other blocks' even columns."""
+        i = a // 2
+        out: list[tuple[int, str]] = []
+        for col in idx:
+            if col == 2 * i:
+                out.append((col, f"m{a}"))
+            elif col == 2 * i + 1:
+                out.append((col, f"s{i}" if a % 2 == 0 else f"c{i}"))
+            elif col % 2 == 0:
+                out.append((col, f"-k{a}"))
+        return out
+
+    def dot(entries: list[tuple[int, str]], operand: str) -> str:
+        terms = ""
+        for col, factor in entries:
+            term = operand.format(col)
+            if factor.startswith("-"):
+                terms += f" - {factor[1:]} * {term}" if terms else f"-{factor[1:]} * {term}"
+            else:
+                terms += f" + {factor} * {term}" if terms else f"{factor} * {term}"
+        return terms
+
+    lines = [
+        "def step(self, y, velocity):",
+        "    if not (isfinite(y) and isfinite(velocity)):",
+        "        return self._skip()",
+        "    if not self._initialized:",
+        "        self._initialize(y)",
+        f"    {P_names}, = self._P",
+        f"    {x_names}, = self._x",
+        f"    R, {w_names}, {q_names}, = self._const",
+        "    # Phi(k), Eq. 6: rotation by om_i = w_i velocity in block i",
+    ]
+    for i in range(m):
+        lines += [f"    om = w{i} * velocity", f"    c{i} = cos(om)", f"    s{i} = sin(om)"]
+    lines.append("    # 1: K = Phi P C' / (R + C P C')  (Eq. 9)")
+    for a in idx:
+        lines.append(f"    pc{a} = " + " + ".join(_p(a, b) for b in even))
+    lines += [
+        "    S = R + (" + " + ".join(f"pc{b}" for b in even) + ")",
+        "    e = y - (" + " + ".join(f"x{b}" for b in even) + ")  # y - C x, Eq. 8",
+    ]
+    for i in range(m):
+        a, b = 2 * i, 2 * i + 1
+        lines += [
+            f"    k{a} = (c{i} * pc{a} + s{i} * pc{b}) / S",
+            f"    k{b} = (c{i} * pc{b} - s{i} * pc{a}) / S",
+        ]
+    lines.append("    # 2: P = Q + (Phi - K C) P Phi'  (Eq. 10), Pp = P Phi'")
+    needed = {(c, b) for a, b in upper for c, _ in row(a)}
+    for c in idx:
+        for b in idx:
+            if (c, b) not in needed:
+                continue
+            i = b // 2
+            u, v = 2 * i, 2 * i + 1
+            if b == u:
+                lines.append(f"    pp{c}_{b} = {_p(c, u)} * c{i} + {_p(c, v)} * s{i}")
+            else:
+                lines.append(f"    pp{c}_{b} = {_p(c, v)} * c{i} - {_p(c, u)} * s{i}")
+    lines.append("    # the entries of Phi - K C in the columns both fill")
+    for i in range(m):
+        lines += [f"    m{2 * i} = c{i} - k{2 * i}", f"    m{2 * i + 1} = -s{i} - k{2 * i + 1}"]
+    for a, b in upper:
+        q = f" + q{a // 2}" if a == b else ""
+        lines.append(f"    {_p(a, b)} = {dot(row(a), f'pp{{}}_{b}')}{q}")
+    lines.append("    # 3: x = (Phi - K C) x + K y  (Eq. 8)")
+    for a in idx:
+        lines.append(f"    x1_{a} = {dot(row(a), 'x{}')}")
+    for a in idx:
+        lines.append(f"    x{a} = k{a} * y + x1_{a}")
+    lines += [
+        f"    self._P = ({P_names},)",
+        f"    self._x = ({x_names},)",
+        f"    self._K = ({k_names},)",
+        f"    self._cs = ({cs_names},)",
+        "    self._innovation = e",
+        "    self._innovation_variance = S",
+        "    # output: C x = x[0] + x[2] + ...",
+        "    out = " + " + ".join(f"x{b}" for b in even),
+        "    self._prediction = out",
+        "    self.steps += 1",
+        "    return out",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+@cache
+def _paper_kernel(blocks: int) -> Callable[..., float]:
+    """The compiled step function of :class:`RippleKalman` for ``blocks`` blocks."""
+    namespace: dict[str, object] = {"cos": math.cos, "sin": math.sin, "isfinite": math.isfinite}
+    source = _paper_kernel_source(blocks)
+    exec(compile(source, f"<RippleKalman kernel, {blocks}>", "exec"), namespace)
+    return namespace["step"]  # type: ignore[return-value]
 
 
 class RippleKalman:
@@ -61,8 +198,11 @@ class RippleKalman:
     the update is skipped, :attr:`skipped` is incremented and the previous prediction
     is returned, so one corrupt sample cannot poison x and P for good.
 
-    All arrays are float64 and preallocated; a step allocates nothing but the
-    numpy call overhead.
+    The step is generated straight-line code for the configured number of blocks
+    (:func:`_paper_kernel_source`, :attr:`kernel_source`), like
+    :class:`HarmonicKalman`'s: the firmware's interrupt and the offline replay of
+    :mod:`hdhil.rig.evaluate` run the same code.  x, P (its upper triangle, row by row)
+    and K are kept as tuples of floats; the properties return numpy copies.
     """
 
     def __init__(self, cfg: RippleFilterConfig, sample_period_s: float, gear_ratio: float) -> None:
@@ -80,68 +220,51 @@ class RippleKalman:
         self.sample_period_s = float(sample_period_s)
         self.gear_ratio = float(gear_ratio)
         m = len(cfg.oscillators)
-        n = 2 * m
-        self.n = n
+        self.blocks = m
+        self.n = 2 * m
         self.r = float(cfg.r)
-
-        # ω_i T per rad/s of motor velocity, repeated for both states of a block so that
-        # cos can be written straight onto Φ's diagonal.
-        wT = np.array(
-            [
-                osc.multiple
-                * self.sample_period_s
-                / (self.gear_ratio if osc.source == "output" else 1.0)
-                for osc in cfg.oscillators
-            ],
-            dtype=np.float64,
+        self._p0 = float(cfg.p0)
+        # ω_i T per rad/s of motor velocity, one per block.
+        self._wT: tuple[float, ...] = tuple(
+            float(osc.multiple)
+            * self.sample_period_s
+            / (self.gear_ratio if osc.source == "output" else 1.0)
+            for osc in cfg.oscillators
         )
-        self._wT = np.repeat(wT, 2)
-        self._om = np.zeros(n)  # ω_i T for each state
-        self._om_blk = self._om[0::2]  # one ω_i T per block (view)
-
-        self._Q = np.diag(
-            np.repeat(np.array([osc.q for osc in cfg.oscillators], dtype=np.float64), 2)
-        )
-
-        self._C = np.zeros(n)
-        self._C[0::2] = 1.0
-        self._x = np.zeros(n)
-        self._P = np.zeros((n, n))
-        self._K = np.zeros(n)
-        self._K_col = self._K[:, np.newaxis]  # K as an n x 1 column (view), for K C
-
-        # Φ(k) and writable strided views onto its diagonal, its (2i, 2i+1) and
-        # (2i+1, 2i) entries; the rest of Φ stays zero for good.
-        self._phi = np.zeros((n, n))
-        item = self._phi.itemsize
-        self._phi_diag = as_strided(self._phi, shape=(n,), strides=((n + 1) * item,))
-        self._phi_sup = as_strided(self._phi[0:, 1:], shape=(m,), strides=(2 * (n + 1) * item,))
-        self._phi_sub = as_strided(self._phi[1:, 0:], shape=(m,), strides=(2 * (n + 1) * item,))
-
-        # Work arrays, named as in the listing.
-        self._PC = np.zeros(n)
-        self._pPC = np.zeros(n)
-        self._Pp = np.zeros((n, n))
-        self._KC = np.zeros((n, n))
-        self._p_KC = np.zeros((n, n))
-        self._gb = np.zeros((n, n))
-        self._x1 = np.zeros(n)
-
+        self._q: tuple[float, ...] = tuple(float(osc.q) for osc in cfg.oscillators)
+        self._const = (self.r, *self._wT, *self._q)
+        self._kernel = _paper_kernel(m)
         self.reset()
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
         """Back to the freshly constructed state (listing ``kal_count = 1``): the next
         valid call re-initialises x, P from its measurement; ``skipped`` is zeroed."""
+        n = self.n
         self._initialized = False
-        self._x.fill(0.0)
-        self._P.fill(0.0)
-        self._K.fill(0.0)
+        self._x: tuple[float, ...] = (0.0,) * n
+        self._P: tuple[float, ...] = (0.0,) * (n * (n + 1) // 2)
+        self._K: tuple[float, ...] = (0.0,) * n
+        self._cs: tuple[float, ...] = (1.0, 0.0) * self.blocks  # Φ = I until the first step
         self._prediction = 0.0
         self._innovation = math.nan
         self._innovation_variance = math.nan
         self.skipped = 0
         self.steps = 0
+
+    def _initialize(self, y: float) -> None:
+        """Matrix Initialization: "if (kal_count == 1) /* only true for first iteration */":
+        x[2i] = y (``x[0] = x[2] = Delta_T``), P = p0·I."""
+        n, p0 = self.n, self._p0
+        self._x = (float(y), 0.0) * self.blocks
+        self._P = tuple(p0 if a == b else 0.0 for a in range(n) for b in range(a, n))
+        self._initialized = True
+
+    def _skip(self) -> float:
+        """A non-finite input: no update, the previous prediction."""
+        self.skipped += 1
+        self._innovation = self._innovation_variance = math.nan
+        return self._prediction
 
     @property
     def initialized(self) -> bool:
@@ -169,32 +292,41 @@ class RippleKalman:
     @property
     def x(self) -> np.ndarray:
         """A copy of the state estimate x̂(k+1|k)."""
-        return self._x.copy()
+        return np.array(self._x, dtype=np.float64)
 
     @property
     def P(self) -> np.ndarray:
-        """A copy of the error covariance P(k+1)."""
-        return self._P.copy()
+        """A copy of the error covariance P(k+1), as a full symmetric matrix."""
+        return _symmetric(self._P, self.n)
 
     @property
     def K(self) -> np.ndarray:
         """A copy of the last Kalman gain K_e(k) (Eq. 9)."""
-        return self._K.copy()
+        return np.array(self._K, dtype=np.float64)
 
     @property
     def phi(self) -> np.ndarray:
         """A copy of the last transition matrix Φ(k) (Eq. 6)."""
-        return self._phi.copy()
+        phi = np.zeros((self.n, self.n))
+        for i in range(self.blocks):
+            c, s = self._cs[2 * i], self._cs[2 * i + 1]
+            phi[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = ((c, s), (-s, c))
+        return phi
 
     @property
     def Q(self) -> np.ndarray:
         """A copy of the process-noise covariance Q (Eq. 7)."""
-        return self._Q.copy()
+        return np.diag(np.repeat(np.array(self._q, dtype=np.float64), 2))
 
     @property
     def C(self) -> np.ndarray:
         """A copy of the output row C = [1 0 1 0 ...] (Eq. 5)."""
-        return self._C.copy()
+        return np.tile(np.array([1.0, 0.0]), self.blocks)
+
+    @property
+    def kernel_source(self) -> str:
+        """The generated source of this filter's step (for reading and debugging)."""
+        return _paper_kernel_source(self.blocks)
 
     # ------------------------------------------------------------------- step
     def step(self, delta_T: float, velocity: float) -> float:
@@ -203,63 +335,10 @@ class RippleKalman:
         Returns the ripple predicted for the next sample (listing
         ``T_ripple = Kalman(Delta_T, vel, sample_period)``).
         """
-        if not (math.isfinite(delta_T) and math.isfinite(velocity)):
-            self.skipped += 1
-            self._innovation = self._innovation_variance = math.nan
-            return self._prediction
-
-        x = self._x
-        P = self._P
-        K = self._K
-        C = self._C
-        phi = self._phi
-
-        # Matrix Initialization: "if (kal_count == 1) /* only true for first iteration */"
-        if not self._initialized:
-            x.fill(0.0)
-            x[0::2] = delta_T  # x[0] = x[2] = Delta_T
-            P.fill(0.0)
-            np.fill_diagonal(P, self.cfg.p0)  # P = I
-            self._initialized = True
-
-        # om_i = multiple_i * velocity * sample_period; System Model (Eq. 6)
-        np.multiply(self._wT, velocity, out=self._om)
-        np.cos(self._om, out=self._phi_diag)  # phi[2i][2i] = phi[2i+1][2i+1] = cos(om_i)
-        np.sin(self._om_blk, out=self._phi_sup)  # phi[2i][2i+1] = sin(om_i)
-        np.negative(self._phi_sup, out=self._phi_sub)  # phi[2i+1][2i] = -sin(om_i)
-
-        # ***** 1 ***** Gain update K = phi P C' / (R + C P C')   (Eq. 9)
-        PC = np.dot(P, C, out=self._PC)
-        CPC = float(C.dot(PC))
-        self._innovation = delta_T - float(C.dot(x))  # y(k) - C x(k), Eq. 8
-        self._innovation_variance = self.r + CPC
-        np.dot(phi, PC, out=self._pPC)
-        np.divide(self._pPC, self.r + CPC, out=K)
-
-        # ***** 2 ***** P update P = Q + (phi - K C) P phi'   (Eq. 10)
-        np.dot(P, phi.T, out=self._Pp)
-        np.multiply(self._K_col, C, out=self._KC)  # K C (outer product)
-        p_KC = np.subtract(phi, self._KC, out=self._p_KC)
-        np.dot(p_KC, self._Pp, out=self._gb)
-        np.add(self._Q, self._gb, out=P)
-
-        # ***** 3 ***** x update x = (phi - K C) x + K y   (Eq. 8)
-        np.dot(p_KC, x, out=self._x1)
-        np.multiply(K, delta_T, out=x)
-        np.add(x, self._x1, out=x)
-
-        # Output generation y = C x = x(1) + x(3) [+ x(5) ...]
-        self._prediction = float(C.dot(x))
-        self.steps += 1
-        return self._prediction
+        return self._kernel(self, delta_T, velocity)
 
 
 # ====================================================================== recommended mode
-def _p(i: int, j: int) -> str:
-    """Local-variable name of P[i][j] (= P[j][i]) in the generated kernel."""
-    return f"p{min(i, j)}_{max(i, j)}"
-
-
 def _kernel_source(harmonics: int) -> str:
     """Python source of :class:`HarmonicKalman`'s step for ``harmonics`` harmonics.
 
@@ -423,8 +502,8 @@ class HarmonicKalman:
     the first ripple is 0 and the first filtered torque equals the measurement.
 
     Speed: the step is generated straight-line code for the configured number of
-    harmonics (see :func:`_kernel_source`): 1.4 µs for 2 harmonics, 2.0 µs for 3 on
-    CPython 3.11 (the paper filter's numpy step: 8.0 µs for 4th order).
+    harmonics (see :func:`_kernel_source`), like the paper filter's; ``hdhil bench``'s
+    stage table has the time of both.
     """
 
     def __init__(self, cfg: RippleFilterConfig, gear_ratio: float) -> None:
@@ -545,10 +624,7 @@ class HarmonicKalman:
     @property
     def P(self) -> np.ndarray:
         """A copy of the error covariance P(k+1|k), as a full symmetric matrix."""
-        n = self.n
-        P = np.zeros((n, n))
-        P[np.triu_indices(n)] = self._P
-        return P + np.triu(P, 1).T
+        return _symmetric(self._P, self.n)
 
     @property
     def Q(self) -> np.ndarray:

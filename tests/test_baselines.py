@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from hdhil.firmware.baselines import ButterworthLowPass, TrackingNotchBank
+from hdhil.firmware.baselines import ButterworthLowPass, TrackingNotchBank, butterworth_lowpass
 
 Ts = 1e-3
 FS = 1.0 / Ts
@@ -27,6 +27,15 @@ def test_butterworth_coefficients_are_scipys(cutoff: float, order: int) -> None:
     _, h = signal.freqz(lp.b, lp.a, worN=[0.0, cutoff], fs=FS)
     assert abs(h[0]) == pytest.approx(1.0, abs=1e-12)
     assert abs(h[1]) == pytest.approx(1 / math.sqrt(2), rel=1e-9)
+
+
+@pytest.mark.parametrize("order", range(1, 9))
+def test_butterworth_design_is_scipys_for_every_order(order: int) -> None:
+    for cutoff in (0.5, 10.0, 100.0, 333.0, 499.0):
+        b, a = butterworth_lowpass(order, cutoff, FS)
+        b_ref, a_ref = signal.butter(order, cutoff, fs=FS)
+        np.testing.assert_allclose(b, b_ref, rtol=1e-12, atol=0)
+        np.testing.assert_allclose(a, a_ref, rtol=1e-12, atol=1e-300)
 
 
 @pytest.mark.parametrize("order", [1, 2, 3, 4])
@@ -50,6 +59,18 @@ def test_butterworth_reset_and_steady_start() -> None:
     assert lp.step(1.0) == first
     lp.reset(5.0)  # steady state of a constant 5 Nm: no start-up transient
     np.testing.assert_allclose(lp.filter(np.full(100, 5.0)), 5.0, rtol=1e-12)
+
+
+@pytest.mark.parametrize("order", [1, 2, 3])
+def test_butterworth_steady_start_is_lfilter_zis(order: int) -> None:
+    lp = ButterworthLowPass(20.0, Ts, order)
+    lp.reset(-3.0)
+    zi = signal.lfilter_zi(lp.b, lp.a) * -3.0
+    np.testing.assert_allclose(lp.state, zi, rtol=1e-9, atol=0)
+    x = np.random.default_rng(2).normal(-3.0, 0.5, 500)
+    np.testing.assert_allclose(
+        lp.filter(x), signal.lfilter(lp.b, lp.a, x, zi=zi)[0], rtol=0, atol=1e-11
+    )
 
 
 def test_butterworth_removes_ripple_above_cutoff_and_lags() -> None:

@@ -68,10 +68,11 @@ def test_help_loads_no_heavy_library(argv):
 @pytest.mark.subprocess
 def test_a_run_starts_without_scipy_signal_stats_or_matplotlib():
     """``hdhil run``'s modules import numpy, cantools and canopen, which the first cycle
-    needs, but not scipy.signal/scipy.stats (the evaluation's baselines) nor matplotlib;
-    scipy.linalg comes with the plant's first step."""
+    needs, but not scipy.signal/scipy.stats nor matplotlib, and neither do the
+    evaluation's baselines, which every run scores; scipy.linalg comes with the plant's
+    first step."""
     code = (
-        "import hdhil.commands.run, hdhil.rig.runner\n"
+        "import hdhil.commands.run, hdhil.rig.runner, hdhil.firmware.baselines\n"
         "print([m for m in ('scipy.signal', 'scipy.stats', 'scipy.linalg', 'matplotlib') "
         "if m in sys.modules])"
     )

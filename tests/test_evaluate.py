@@ -7,7 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from hdhil.rig.evaluate import estimate_lag, harmonic_amplitude
+from hdhil.firmware.config import FirmwareConfig
+from hdhil.firmware.stages import adc_read, calibrate
+from hdhil.rig.evaluate import Recording, calibrated_signals, estimate_lag, harmonic_amplitude
 
 
 def test_harmonic_amplitude_recovers_each_component():
@@ -29,6 +31,22 @@ def test_lag_recovers_a_known_delay(delay):
     truth = np.convolve(truth, np.ones(5) / 5, mode="same")  # a few ms of rise time
     delayed = np.interp(t - delay * 1e-3, t, truth)
     assert estimate_lag(delayed, truth, 1e-3) == pytest.approx(delay, abs=0.3)
+
+
+def test_calibrated_signals_are_the_firmware_stages_sample_by_sample():
+    """The per-count table gives what adc_read and calibrate give for each sample, the
+    saturation of out-of-range codes included."""
+    cfg = FirmwareConfig()
+    rng = np.random.default_rng(3)
+    rec = Recording(1e-3)
+    codes = rng.integers(-2100, 2100, size=(400, 3)).tolist()
+    for torque, tacho, current in codes:
+        rec.append_row((torque, tacho, current) + (math.nan,) * 12)
+    T_meas, vel = calibrated_signals(rec, cfg)
+    want = [calibrate(*adc_read(q, tq, cu, cfg.adc), cfg.calibration) for q, tq, cu in codes]
+    assert T_meas.tolist() == [w[0] for w in want]
+    assert vel.tolist() == [w[1] for w in want]
+    assert [len(a) for a in calibrated_signals(Recording(1e-3), cfg)] == [0, 0]
 
 
 def test_lag_is_undefined_without_torque_variation():

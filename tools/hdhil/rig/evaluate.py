@@ -19,6 +19,7 @@ import contextlib
 import dataclasses
 import math
 from array import array
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,7 @@ import can
 import numpy as np
 
 from hdhil.dbc import FrameCodec, codec
+from hdhil.firmware.baselines import ButterworthLowPass, TrackingNotchBank
 from hdhil.firmware.config import FirmwareConfig, paper_config, recommended_config
 from hdhil.firmware.interrupt import CstSample
 from hdhil.firmware.isr import TorqueFilterChain
@@ -287,11 +289,17 @@ def harmonic_amplitude(
     error: np.ndarray, angle: np.ndarray, multiple: float, mask: np.ndarray
 ) -> float:
     """Amplitude of the component of ``error`` at ``multiple`` × ``angle`` (demodulation)."""
+    return _demodulated_amplitude(error, np.exp(-1j * multiple * angle), mask)
+
+
+def _demodulated_amplitude(error: np.ndarray, phasor: np.ndarray, mask: np.ndarray) -> float:
+    """:func:`harmonic_amplitude` with the phasor exp(−j·multiple·angle) given, so that
+    one phasor per harmonic serves every candidate: 2 |mean((e − ē) · phasor)| over
+    ``mask``."""
     if not mask.any():
         return math.nan
     e = error[mask] - error[mask].mean()
-    z = np.exp(-1j * multiple * angle[mask])
-    return float(2.0 * abs(np.mean(e * z)))
+    return float(2.0 * abs(np.mean(e * phasor[mask])))
 
 
 #: A raw error harmonic below this (Nm) has nothing to reduce: no dB figure (e.g. the CiA
@@ -339,36 +347,44 @@ def offline_chain(
     trace is replayed with the same skipped updates the firmware made."""
     chain = TorqueFilterChain(cfg)
     step = chain.step
-    out = np.empty_like(T_meas)
+    out: list[float] = []
+    append = out.append
     gaps = [0] * len(T_meas) if missed is None else missed.astype(np.int64).tolist()
-    for k, (T, v, e, gap) in enumerate(
-        zip(
-            T_meas.tolist(), velocity.tolist(), encoder.astype(np.int64).tolist(), gaps, strict=True
-        )
+    for T, v, e, gap in zip(
+        T_meas.tolist(), velocity.tolist(), encoder.astype(np.int64).tolist(), gaps, strict=True
     ):
-        for _ in range(gap):
-            chain.sample_missed()
-        out[k] = step(T, v, e)[3]
-    return out
+        if gap:
+            for _ in range(gap):
+                chain.sample_missed()
+        append(step(T, v, e)[3])
+    return np.array(out, dtype=np.float64)
 
 
 def calibrated_signals(rec: Recording, cfg: FirmwareConfig) -> tuple[np.ndarray, np.ndarray]:
     """T_meas and motor velocity from the recorded counts, through the firmware's stages
-    (in the CST mapping its :class:`firmware.stages.CstSource`)."""
+    (in the CST mapping its :class:`firmware.stages.CstSource`).
+
+    In the raw mapping each channel is calibrated on its own (:func:`firmware.stages.
+    calibrate`: T_meas from the torque count, the velocity from the tacho count), so
+    each distinct count goes through ``adc_read`` and ``calibrate`` once and the
+    samples take their values from that table: the same numbers as sample by sample."""
     if rec.sensor_mapping == "cst":
         return _cst_signals(rec, cfg)
-    T_meas = np.empty(len(rec))
-    vel = np.empty(len(rec))
-    for k, (q, tq, cu) in enumerate(
-        zip(
-            rec.column("adc_torque").astype(np.int64).tolist(),
-            rec.column("adc_tacho").astype(np.int64).tolist(),
-            rec.column("adc_current").astype(np.int64).tolist(),
-            strict=True,
-        )
-    ):
-        T_meas[k], vel[k], _ = calibrate(*adc_read(q, tq, cu, cfg.adc), cfg.calibration)
+    adc, cal = cfg.adc, cfg.calibration
+    T_meas = _per_count(
+        rec.column("adc_torque"), lambda q: calibrate(*adc_read(q, 0, 0, adc), cal)[0]
+    )
+    vel = _per_count(
+        rec.column("adc_tacho"), lambda tq: calibrate(*adc_read(0, tq, 0, adc), cal)[1]
+    )
     return T_meas, vel
+
+
+def _per_count(counts: np.ndarray, convert: Callable[[int], float]) -> np.ndarray:
+    """``convert(count)`` for every sample, computed once per distinct count."""
+    distinct, where = np.unique(counts.astype(np.int64), return_inverse=True)
+    table = np.array([convert(c) for c in distinct.tolist()], dtype=np.float64)
+    return table[where.reshape(-1)]
 
 
 def _cst_signals(rec: Recording, cfg: FirmwareConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -397,9 +413,6 @@ def _cst_signals(rec: Recording, cfg: FirmwareConfig) -> tuple[np.ndarray, np.nd
 
 def candidate_signals(rec: Recording, cfg: FirmwareConfig) -> dict[str, np.ndarray]:
     """Every candidate's torque estimate over the recording, keyed by display name."""
-    # imported here: scipy.signal is slow to import and only the evaluation needs it
-    from hdhil.firmware.baselines import ButterworthLowPass, TrackingNotchBank
-
     T_meas, vel = calibrated_signals(rec, cfg)
     encoder = rec.column("encoder")
     Ts = cfg.sample_period_s
@@ -448,6 +461,7 @@ def evaluate(rec: Recording, cfg: FirmwareConfig, skip_s: float = 0.0) -> dict[s
     theta_o = _unwrap_angle(rec.column("theta_output"))
     turning = window & (np.abs(rec.column("omega_motor")) > MIN_SPEED_RADPS)
     angles = {"motor": theta_m, "output": theta_o}
+    phasors = {label: np.exp(-1j * mult * angles[src]) for label, src, mult in HARMONICS}
 
     scores = []
     raw_rms = raw_harm = None
@@ -455,8 +469,8 @@ def evaluate(rec: Recording, cfg: FirmwareConfig, skip_s: float = 0.0) -> dict[s
         ok = window & np.isfinite(x)
         err = x - T_true
         rms = float(np.sqrt(np.mean(err[ok] ** 2))) if ok.any() else math.nan
-        harm = {label: harmonic_amplitude(err, angles[src], mult, turning & ok)
-                for label, src, mult in HARMONICS}  # fmt: skip
+        harm = {label: _demodulated_amplitude(err, phasors[label], turning & ok)
+                for label, _, _ in HARMONICS}  # fmt: skip
         if raw_rms is None:
             raw_rms, raw_harm = rms, harm
         reduction = {label: _reduction_dB(raw_harm[label], a) for label, a in harm.items()}
@@ -473,8 +487,8 @@ def evaluate(rec: Recording, cfg: FirmwareConfig, skip_s: float = 0.0) -> dict[s
         "skip_s": skip_s,
         "rms_true": float(np.sqrt(np.mean(T_true[window] ** 2))),
         "true_ripple": {
-            label: harmonic_amplitude(rec.column("T_ripple"), angles[src], mult, turning)
-            for label, src, mult in HARMONICS
+            label: _demodulated_amplitude(rec.column("T_ripple"), phasors[label], turning)
+            for label, _, _ in HARMONICS
         },
         "candidates": [dataclasses.asdict(s) for s in scores],
         **missing,
