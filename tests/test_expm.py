@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -114,3 +115,16 @@ def test_release_parsing() -> None:
     assert expm_mod._release("1.18.0rc1") == (1, 18)
     assert expm_mod._release("2") is None
     assert (1, 18) not in expm_mod.WRAPPER_RELEASES
+
+
+def test_release_read_as_scipy_reads_it() -> None:
+    """The release in the package's version.py is scipy.__version__'s."""
+    import scipy
+
+    text = (Path(scipy.__file__).parent / "version.py").read_text(encoding="utf-8")
+    match = expm_mod._VERSION.search(text)
+    assert match is not None
+    assert match.group(1) == scipy.__version__
+    assert (expm_mod.scipy_kernel() is not None) == (
+        expm_mod._release(scipy.__version__) in expm_mod.WRAPPER_RELEASES
+    )

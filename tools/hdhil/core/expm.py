@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import importlib.machinery
 import importlib.util
+import re
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,9 @@ __all__ = ["WRAPPER_RELEASES", "expm", "scipy_kernel"]
 #: scipy releases (major, minor) whose ``scipy.linalg.expm`` is the wrapper repeated
 #: here (identical code from 1.15.0 to 1.17.x).
 WRAPPER_RELEASES = frozenset({(1, 15), (1, 16), (1, 17)})
+
+
+_VERSION = re.compile(r"""^version\s*(?::\s*str\s*)?=\s*["']([^"']+)["']""", re.MULTILINE)
 
 
 def _release(version: str) -> tuple[int, int] | None:
@@ -49,17 +53,19 @@ def _release(version: str) -> tuple[int, int] | None:
 def scipy_kernel() -> Any | None:
     """scipy's compiled expm kernel module, loaded without its package (which would
     import all of scipy.linalg), or None where this scipy's wrapper is not the one
-    repeated here or the kernel is not where that wrapper finds it."""
+    repeated here or the kernel is not where that wrapper finds it.  The release is read
+    from the package's own ``version.py`` (what ``scipy.__version__`` imports), next to
+    the kernel: no package metadata scan."""
     try:
-        from importlib.metadata import version
-
-        if _release(version("scipy")) not in WRAPPER_RELEASES:
-            return None
         spec = importlib.util.find_spec("scipy")  # finds the package, does not import it
         if spec is None or not spec.submodule_search_locations:
             return None
         name = "scipy.linalg._matfuncs_expm"
         for folder in spec.submodule_search_locations:
+            text = Path(folder, "version.py").read_text(encoding="utf-8")
+            match = _VERSION.search(text)
+            if match is None or _release(match.group(1)) not in WRAPPER_RELEASES:
+                return None
             for suffix in importlib.machinery.EXTENSION_SUFFIXES:
                 path = Path(folder, "linalg", "_matfuncs_expm" + suffix)
                 if path.is_file():
@@ -72,6 +78,7 @@ def scipy_kernel() -> Any | None:
                     module = importlib.util.module_from_spec(kspec)
                     loader.exec_module(module)
                     return module
+            return None
     except Exception:  # any surprise: scipy.linalg.expm does the work
         return None
     return None
