@@ -128,3 +128,21 @@ def test_release_read_as_scipy_reads_it() -> None:
     assert (expm_mod.scipy_kernel() is not None) == (
         expm_mod._release(scipy.__version__) in expm_mod.WRAPPER_RELEASES
     )
+
+
+def test_kernel_leaves_sys_modules_as_it_found_them() -> None:
+    """Loading the kernel alone adds no scipy.linalg submodule to sys.modules, and
+    keeps scipy.linalg's own where scipy.linalg is imported (as it is here)."""
+    import sys
+
+    name = "scipy.linalg._matfuncs_expm"
+    own = sys.modules[name]
+    expm_mod.scipy_kernel.cache_clear()
+    try:
+        kernel = expm_mod.scipy_kernel()
+        assert sys.modules[name] is own
+        if kernel is not None:
+            a = np.array([[0.0, 1.0], [-4.0, -0.1]])
+            assert same_bits(expm(a), scipy.linalg.expm(a))
+    finally:
+        expm_mod.scipy_kernel.cache_clear()

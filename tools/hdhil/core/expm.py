@@ -25,6 +25,7 @@ from __future__ import annotations
 import importlib.machinery
 import importlib.util
 import re
+import sys
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -73,10 +74,17 @@ def scipy_kernel() -> Any | None:
                     kspec = importlib.util.spec_from_file_location(name, path, loader=loader)
                     if kspec is None:
                         return None
-                    # Not entered in sys.modules: scipy.linalg, imported later, loads
-                    # its own (the same shared library, which the interpreter keeps).
+                    # Left out of sys.modules (where a single-phase extension enters
+                    # itself): no scipy.linalg submodule without scipy.linalg; that,
+                    # imported later, loads its own from the library the interpreter
+                    # keeps.
+                    previous = sys.modules.get(name)
                     module = importlib.util.module_from_spec(kspec)
                     loader.exec_module(module)
+                    if previous is not None:
+                        sys.modules[name] = previous
+                    elif sys.modules.get(name) is module:
+                        del sys.modules[name]
                     return module
             return None
     except Exception:  # any surprise: scipy.linalg.expm does the work
