@@ -27,26 +27,22 @@ _INT_RANGES = {
 _REAL32 = 0x08
 
 
-@functools.cache
 def _od() -> Any:
-    import canopen
-
+    """The controller's object dictionary, the parse its node copies (looked up only)."""
+    from hdhil.canopen.od import reference_od
     from hdhil.dbc import eds_path
 
-    return canopen.import_od(str(eds_path("controller")), 1)
+    return reference_od(eds_path("controller"), 1)
 
 
 @functools.cache
 def _eds_limits() -> dict[tuple[int, int], tuple[float | None, float | None]]:
     """``LowLimit``/``HighLimit`` per (index, sub) as written in the EDS (the canopen
     package keeps them for integer types only)."""
-    import configparser
-
+    from hdhil.canopen.od import eds_parser
     from hdhil.dbc import eds_path
 
-    eds = configparser.ConfigParser(strict=False, interpolation=None)
-    eds.optionxform = str  # type: ignore[assignment,method-assign]
-    eds.read(eds_path("controller"), encoding="utf-8")
+    eds = eds_parser(eds_path("controller"))  # the controller node's own read of the file
     limits: dict[tuple[int, int], tuple[float | None, float | None]] = {}
     for section in eds.sections():
         index, _, sub = section.partition("sub")

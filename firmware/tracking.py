@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from hdhil.core.dataconf import check_fields
+from hdhil.core.expm import expm
 from hdhil.firmware.config import ControlConfig, FirmwareConfig, Law
 from hdhil.firmware.isr import IsrOutput, TorqueControl
 from hdhil.firmware.lqg_design import JointParams
@@ -95,8 +96,6 @@ class TrackingPlant:
         else:
             a[1, 5] = 1.0 / p.Jm
         a[3, 4], a[4, 3] = w, -w
-        from scipy.linalg import expm  # imported here: slow to import, needed once per step size
-
         F = expm(a * Ts)
         Ad, bd = F[:5, :5], F[:5, 5]
         if self.current_lag_s == 0.0:

@@ -65,3 +65,19 @@ def test_no_stuffing_below_the_worst_case_and_known_frames():
     alternating = frame_bits(0x182, False, False, b"\x55" * 8)
     assert zeros > alternating
     assert zeros <= worst_case_frame_bits(8)
+
+
+@pytest.mark.parametrize("nbits", [7, 8])
+def test_stuff_tables_are_bit_by_bit_stuffing(nbits: int) -> None:
+    """The composed chunk tables against stuffing one bit at a time."""
+    from hdhil.can import bittiming as bt
+
+    table = bt._STUFF if nbits == 8 else bt._STUFF7
+    assert len(table) == 8 << nbits
+    for index in range(8):
+        for chunk in range(1 << nbits):
+            state, added = (index >> 2, (index & 3) + 1), 0
+            for i in range(nbits - 1, -1, -1):
+                state, s = bt._stuff_step(state, (chunk >> i) & 1)
+                added += s
+            assert table[index << nbits | chunk] == added << 3 | bt._state_index(state)

@@ -69,8 +69,8 @@ def test_help_loads_no_heavy_library(argv):
 def test_a_run_starts_without_scipy_signal_stats_or_matplotlib():
     """``hdhil run``'s modules import numpy, cantools and canopen, which the first cycle
     needs, but not scipy.signal/scipy.stats nor matplotlib, and neither do the
-    evaluation's baselines, which every run scores; scipy.linalg comes with the plant's
-    first step."""
+    evaluation's baselines, which every run scores; the plant's first step needs no
+    scipy module either (:mod:`hdhil.core.expm`)."""
     code = (
         "import hdhil.commands.run, hdhil.rig.runner, hdhil.firmware.baselines\n"
         "print([m for m in ('scipy.signal', 'scipy.stats', 'scipy.linalg', 'matplotlib') "
@@ -80,6 +80,35 @@ def test_a_run_starts_without_scipy_signal_stats_or_matplotlib():
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          timeout=120, check=True).stdout  # fmt: skip
     assert out.strip() == "[]"
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_a_free_motion_run_imports_no_scipy(tmp_path):
+    """A whole free-motion run without evaluation imports no scipy module: the plant's
+    exact discretisation calls scipy's compiled expm kernel without scipy.linalg, whose
+    import (it clones the numpy namespace: numpy.f2py, numpy.ma, ...) was the largest
+    part of the start-up.  Where this scipy's expm wrapper is not the one
+    :mod:`hdhil.core.expm` repeats, scipy.linalg does the work and nothing else."""
+    from hdhil.core.expm import scipy_kernel
+
+    code = (
+        "import sys\n"
+        "from hdhil.cli import main\n"
+        "code = main(['run', '--scenario', 'free-motion', '--duration', '0.002', '--seed', '5',"
+        " '--no-evaluate', '--trace', '', '--quiet'])\n"
+        "print(code, sorted({m.split('.')[0] + '.' + m.split('.')[1] for m in sys.modules"
+        " if m.startswith('scipy.')} | {m for m in ('scipy', 'numpy.f2py', 'numpy.ma')"
+        " if m in sys.modules}))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True, cwd=tmp_path).stdout  # fmt: skip
+    exit_code, loaded = out.strip().splitlines()[-1].split(" ", 1)
+    assert exit_code == "0"
+    if scipy_kernel() is None:
+        assert "scipy.linalg" in loaded
+    else:
+        assert loaded == "[]"
 
 
 def test_an_import_error_caused_by_ctrl_c_is_an_interruption(monkeypatch, capsys) -> None:

@@ -16,6 +16,7 @@ import math
 
 import numpy as np
 
+from hdhil.core.expm import expm
 from hdhil.hostsim.plant.config import PlantConfig
 
 __all__ = [
@@ -194,8 +195,6 @@ def zoh(
     aug = np.zeros((n + m, n + m))
     aug[:n, :n] = a
     aug[:n, n:] = b
-    from scipy.linalg import expm  # imported here: slow to import, needed once per step size
-
     e = expm(aug * h)
     ad, bd = e[:n, :n].copy(), e[:n, n:].copy()
     if ideal_amplifier:

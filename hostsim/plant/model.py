@@ -194,8 +194,8 @@ class Plant:
 
     def prepare(self, dt: float) -> None:
         """Compute the step map for steps of ``dt`` now (it is otherwise computed, and
-        scipy.linalg imported, at the first :meth:`advance` by ``dt``): a node calls it
-        before its loop starts, so no cycle stalls on it."""
+        scipy's expm kernel loaded, at the first :meth:`advance` by ``dt``): a node calls
+        it before its loop starts, so no cycle stalls on it."""
         if not dt > 0.0:
             raise ValueError(f"prepare needs dt > 0, got {dt!r}")
         self._maps.get(dt) or self._map(dt)

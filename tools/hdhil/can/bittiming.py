@@ -68,7 +68,19 @@ def _state_index(state: tuple[int, int]) -> int:
 def _stuff_table(nbits: int) -> tuple[int, ...]:
     """For every state and every ``nbits``-bit chunk (most significant bit first), the
     stuff bits it adds and the state after it, packed as ``added << 3 | state`` at index
-    ``state << nbits | chunk``: one list lookup per chunk on the hot path."""
+    ``state << nbits | chunk``: one list lookup per chunk on the hot path.
+
+    Chunks wider than 4 bits are their leading bits, then their last 4 (the tables of
+    both composed): built at import, so kept cheap."""
+    if nbits > 4:
+        head, tail = _stuff_table(nbits - 4), _stuff_table(4)
+        table = []
+        for index in range(8):
+            for chunk in range(1 << nbits):
+                a = head[index << (nbits - 4) | chunk >> 4]
+                b = tail[(a & 7) << 4 | chunk & 0xF]
+                table.append(((a >> 3) + (b >> 3)) << 3 | b & 7)
+        return tuple(table)
     table = []
     for index in range(8):
         for chunk in range(1 << nbits):
