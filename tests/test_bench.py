@@ -268,6 +268,7 @@ def test_speed_section(report: dict) -> None:
     )
     assert 50 < med["peak_rss_MB"] < 1000
     assert sp["reference"]["frames_per_cycle"] == len(sp["reference"]["frames"]) >= 7
+    assert [r["joints"] for r in sp["joint_scaling"]] == [1, 4, 7, 16]
     cm = sp["cost_model"]
     assert cm["per_frame_us"] > 0 and math.isfinite(cm["per_joint_us"])
     for g in goals:
@@ -278,6 +279,7 @@ def test_speed_section(report: dict) -> None:
             )
     text = format_bench(report)
     assert "Speed goals" in text and "Whole command by stage" in text and "Cost model" in text
+    assert "N joints per 1 ms cycle" in text
 
 
 def test_realtime_s_zero_leaves_the_real_time_section_out(monkeypatch) -> None:

@@ -705,7 +705,7 @@ def run_benchmarks(
     from hdhil.analysis.speed import bench_speed, speed_goals
 
     speed = bench_speed(s.whole_duration_s, s.whole_runs, s.duration_s, s.repeat,
-                        s.reference_cycles)  # fmt: skip
+                        s.reference_cycles, 50 if s.mode == "quick" else 300)  # fmt: skip
     loop_row = next((r for r in lockstep if r["scenario"] == "free-motion" and r["logging"]
                      and r["interface"] == "simbus"), None)  # fmt: skip
     first = next(r for r in startup["rows"] if r["figure"] == "run_first_cycle")

@@ -451,10 +451,15 @@ def speed_goals(whole: dict[str, Any], loop: dict[str, Any] | None, reference_us
 
 # -------------------------------------------------------------------- the report
 def bench_speed(whole_duration_s: float, whole_runs: int, model_duration_s: float,
-                repeat: int, reference_cycles: int) -> dict[str, Any]:  # fmt: skip
-    """The speed section: the whole command, the reference, the cost model."""
+                repeat: int, reference_cycles: int, scaling_steps: int = 200,
+                joints: Sequence[int] = (1, 4, 7, 16)) -> dict[str, Any]:  # fmt: skip
+    """The speed section: the whole command, the reference, the cost model, and N joints
+    stepped one by one against one array step (:mod:`hdhil.analysis.joint_scaling`)."""
+    from hdhil.analysis.joint_scaling import joint_scaling
+
     frames = cycle_frames()
     return {
+        "joint_scaling": joint_scaling(joints, steps=scaling_steps, repeats=max(3, repeat)),
         "whole": bench_whole_command(whole_duration_s, whole_runs),
         "reference": {
             **bench_virtual_reference(frames, reference_cycles, repeat),
@@ -535,4 +540,13 @@ def format_speed_section(speed: dict[str, Any], goals: list[dict[str, Any]]) -> 
          str(joints_within(cm))],
     ]  # fmt: skip
     lines += markdown_table(["term", "us"], rows, [False, True])
+    if speed.get("joint_scaling"):
+        from hdhil.analysis.joint_scaling import format_joint_scaling
+
+        lines += [
+            "",
+            "N joints per 1 ms cycle: N scalar plant steps / filter steps against one numpy "
+            "step over arrays of N (us per cycle, medians)",
+            *format_joint_scaling(speed["joint_scaling"]),
+        ]
     return lines
