@@ -166,7 +166,10 @@ def cycle_arrays(result: Any) -> dict[str, np.ndarray]:
     Needs a run with ``evaluate=True`` (it records every cycle)."""
     rec = getattr(result, "recording", None)
     if rec is None:
-        raise ValueError("the run kept no per-cycle recording: run it with evaluate=True")
+        raise ValueError(
+            "the run kept no per-cycle recording: run it with evaluate=True "
+            "(and keep_recording=True)"
+        )
     rec = rec.operation()  # the firmware's samples, as the run counts them
     out = {"time_s": np.arange(len(rec)) * rec.sample_period_s}
     for column, name in _RECORDING_NAMES.items():

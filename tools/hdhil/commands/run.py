@@ -229,6 +229,7 @@ def run(args: argparse.Namespace) -> int:
                 monitor_every=PROGRESS_EVERY_SAMPLES,
                 stop_requested=stop.is_set,
                 evaluate=args.evaluate,
+                keep_recording=False,  # the summary needs no per-cycle recording
                 realtime=args.realtime,
                 realtime_config=rt_config,
                 fault_log=args.fault_log,

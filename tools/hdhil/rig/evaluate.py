@@ -89,6 +89,12 @@ class Recording:
         for col, value in zip(self._cols.values(), values, strict=True):
             col.append(value)
 
+    def drop_first(self, rows: int) -> None:
+        """Forget the first ``rows`` rows (a live evaluation's rows already scored)."""
+        if rows > 0:
+            # New arrays rather than resizing in place: a view of the old ones may live on.
+            self._cols = {name: col[rows:] for name, col in self._cols.items()}
+
     def set_last(self, name: str, value: float) -> None:
         col = self._cols[name]
         if col:
@@ -124,6 +130,10 @@ class RecordingListener(can.Listener):
     (its interrupt runs only then), so a lost statusword frame does not delay the first
     sample the replay takes behind the firmware's.
 
+    With ``firmware`` the rows are scored as they come, in chunks (:class:`LiveEvaluation`,
+    :meth:`evaluation`), and without ``keep`` the rows scored are forgotten: memory stays
+    flat however long the run.
+
     ``drive_pdos`` (what a trace's sidecar records for a run in a mapping from a DCF,
     :func:`hdhil.canopen.mapping.layouts_to_json`): the drive's PDOs; with the CiA 402
     CST mapping the sensor frame is decoded from the drive's EDS (torque actual 0x6077,
@@ -131,8 +141,24 @@ class RecordingListener(can.Listener):
     controller's SDO read of it at boot, as the firmware did.
     """
 
-    def __init__(self, sample_period_s: float, drive_pdos: dict[str, Any] | None = None) -> None:
+    def __init__(
+        self,
+        sample_period_s: float,
+        drive_pdos: dict[str, Any] | None = None,
+        *,
+        firmware: FirmwareConfig | None = None,
+        skip_s: float = 0.0,
+        keep: bool = True,
+    ) -> None:
+        #: The rows recorded (all of them with ``keep``; without, those not yet scored).
         self.recording = Recording(sample_period_s)
+        #: With ``firmware``: the run scored as it goes (:class:`LiveEvaluation`).
+        self.live = (
+            LiveEvaluation(self.recording, firmware, skip_s, keep=keep)
+            if firmware is not None
+            else None
+        )
+        self._next_check = self.live.next_check if self.live is not None else -1
         self._sensor = codec("control", "DRIVE_TPDO1").expect(
             "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
         )
@@ -196,6 +222,9 @@ class RecordingListener(can.Listener):
             self._t = msg.timestamp
             with contextlib.suppress(ValueError):  # wrong length: malformed, not a sample
                 handler(msg.data)
+            if 0 <= self._next_check <= len(self.recording):
+                assert self.live is not None
+                self._next_check = self.live.advance()
 
     def _on_statusword(self, data: bytes) -> None:
         (statusword,) = self._status.decode(data)
@@ -227,8 +256,11 @@ class RecordingListener(can.Listener):
         if self._enabled is False:
             self._pending = row  # recorded if the firmware's telemetry answers it
             return
-        self.recording.append_row(row)
+        self._append(row)
         self._missed = 0
+
+    def _append(self, row: tuple[float, ...]) -> None:
+        self.recording.append_row(row)
 
     def _on_telemetry(self, data: bytes) -> None:
         if self._enabled is False:
@@ -237,7 +269,7 @@ class RecordingListener(can.Listener):
             if self._pending is None:
                 return
             self._enabled = True
-            self.recording.append_row(self._pending)
+            self._append(self._pending)
             self._missed = 0
         self._pending = None
         T_meas, T_filtered, velocity, _current = self._tele.decode(data)
@@ -281,10 +313,6 @@ class CandidateScore:
     lag_ms: float | None
 
 
-def _unwrap_angle(wrapped: np.ndarray) -> np.ndarray:
-    return np.unwrap(wrapped)
-
-
 def harmonic_amplitude(
     error: np.ndarray, angle: np.ndarray, multiple: float, mask: np.ndarray
 ) -> float:
@@ -315,22 +343,121 @@ def _reduction_dB(raw: float, amplitude: float) -> float:
     return 20 * math.log10(raw / amplitude) if amplitude > 0 else math.inf
 
 
-def estimate_lag(x: np.ndarray, truth: np.ndarray, sample_period_s: float) -> float | None:
-    """Delay (ms) of ``x`` behind ``truth``: argmin over d of mean (x(k) − truth(k−d))²."""
-    n = len(x)
-    if n < 4 * MAX_LAG_SAMPLES or np.var(truth) < 1e-2:
-        return None
-    lags = np.arange(0, MAX_LAG_SAMPLES + 1)
-    costs = np.array([np.mean((x[MAX_LAG_SAMPLES:] - truth[MAX_LAG_SAMPLES - d : n - d]) ** 2)
-                      for d in lags])  # fmt: skip
+def _lag_ms(costs: np.ndarray, sample_period_s: float) -> float:
+    """The delay (ms) at the minimum of ``costs`` (one per delay of 0 … MAX_LAG_SAMPLES
+    samples), refined by a parabola through the minimum and its neighbours."""
     i = int(np.argmin(costs))
     shift = 0.0
-    if 0 < i < len(lags) - 1:
+    if 0 < i < len(costs) - 1:
         c0, c1, c2 = costs[i - 1], costs[i], costs[i + 1]
         denom = c0 - 2 * c1 + c2
         if denom > 0:
             shift = 0.5 * (c0 - c2) / denom
-    return float((lags[i] + shift) * sample_period_s * 1e3)
+    return float((i + shift) * sample_period_s * 1e3)
+
+
+def estimate_lag(x: np.ndarray, truth: np.ndarray, sample_period_s: float) -> float | None:
+    """Delay (ms) of ``x`` behind ``truth``: argmin over d of mean (x(k) − truth(k−d))²."""
+    lag = _LagSums()
+    lag.add(np.asarray(x, dtype=np.float64), np.asarray(truth, dtype=np.float64))
+    return lag.result(sample_period_s)
+
+
+class _Sums:
+    """Running sums of float vectors, compensated (Neumaier): chunk by chunk they add up
+    to what one sum over everything gives, to the last bits."""
+
+    def __init__(self, size: int) -> None:
+        self._s = np.zeros(size)
+        self._c = np.zeros(size)
+
+    def add(self, x: np.ndarray) -> None:
+        s = self._s
+        t = s + x
+        self._c += np.where(np.abs(s) >= np.abs(x), (s - t) + x, (x - t) + s)
+        self._s = t
+
+    @property
+    def total(self) -> np.ndarray:
+        s = self._s
+        return np.where(np.isfinite(s), s + self._c, s)
+
+
+class _LagSums:
+    """:func:`estimate_lag` over a signal that comes in chunks: per delay d the sum of
+    (x(k) − truth(k−d))² over k ≥ MAX_LAG_SAMPLES, with the last MAX_LAG_SAMPLES truth
+    samples carried from chunk to chunk, and the sums for the truth's variance."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self._history = np.zeros(0)  # the last (up to) M truth samples
+        self._shift: float | None = None  # subtracted before the variance's sums
+        self._sums = _Sums(MAX_LAG_SAMPLES + 3)  # costs for d = 0 … M, Σ(t − c), Σ(t − c)²
+
+    def add(self, x: np.ndarray, truth: np.ndarray) -> None:
+        M = MAX_LAG_SAMPLES
+        size = len(x)
+        if size == 0:
+            return
+        if self._shift is None:
+            self._shift = float(truth.mean())
+        dt = truth - self._shift
+        contrib = np.zeros(M + 3)
+        contrib[M + 1] = dt.sum()
+        contrib[M + 2] = (dt * dt).sum()
+        ext = np.concatenate((self._history, truth))
+        first = max(M, self.n)  # the first k scored in this chunk
+        count = self.n + size - first
+        if count > 0:
+            at = first - self.n + len(self._history)  # ext index of truth(first)
+            window = np.lib.stride_tricks.sliding_window_view(ext[at - M : at + count], count)
+            # row i: x(k) − truth(k − (M − i)); each row summed on its own (pairwise)
+            sq = x[first - self.n :] - window
+            np.square(sq, out=sq)
+            contrib[: M + 1] = sq.sum(axis=1)[::-1]
+        self._sums.add(contrib)
+        self._history = ext[-M:].copy()
+        self.n += size
+
+    def result(self, sample_period_s: float) -> float | None:
+        M, n = MAX_LAG_SAMPLES, self.n
+        if n < 4 * M:
+            return None
+        total = self._sums.total
+        mean = total[M + 1] / n
+        if total[M + 2] / n - mean * mean < 1e-2:  # the truth's variance
+            return None
+        return _lag_ms(total[: M + 1] / (n - M), sample_period_s)
+
+
+class ChainReplay:
+    """The firmware's own filter chain (:class:`firmware.isr.TorqueFilterChain`) over
+    recorded samples, continuing from one call to the next (:func:`offline_chain`)."""
+
+    def __init__(self, cfg: FirmwareConfig) -> None:
+        self._chain = TorqueFilterChain(cfg)
+
+    def __call__(
+        self,
+        T_meas: np.ndarray,
+        velocity: np.ndarray,
+        encoder: np.ndarray,
+        missed: np.ndarray | None = None,
+    ) -> np.ndarray:
+        chain = self._chain
+        step = chain.step
+        out: list[float] = []
+        append = out.append
+        gaps = [0] * len(T_meas) if missed is None else missed.astype(np.int64).tolist()
+        for T, v, e, gap in zip(
+            T_meas.tolist(), velocity.tolist(), encoder.astype(np.int64).tolist(), gaps,
+            strict=True,
+        ):  # fmt: skip
+            if gap:
+                for _ in range(gap):
+                    chain.sample_missed()
+            append(step(T, v, e)[3])
+        return np.array(out, dtype=np.float64)
 
 
 def offline_chain(
@@ -345,154 +472,420 @@ def offline_chain(
     ``missed[k]``: sample periods without a sample before sample k (the recording's
     ``missed`` column); the chain is told of each, as the firmware's was, so a lossy
     trace is replayed with the same skipped updates the firmware made."""
-    chain = TorqueFilterChain(cfg)
-    step = chain.step
-    out: list[float] = []
-    append = out.append
-    gaps = [0] * len(T_meas) if missed is None else missed.astype(np.int64).tolist()
-    for T, v, e, gap in zip(
-        T_meas.tolist(), velocity.tolist(), encoder.astype(np.int64).tolist(), gaps, strict=True
-    ):
-        if gap:
-            for _ in range(gap):
-                chain.sample_missed()
-        append(step(T, v, e)[3])
-    return np.array(out, dtype=np.float64)
+    return ChainReplay(cfg)(T_meas, velocity, encoder, missed)
 
 
-def calibrated_signals(rec: Recording, cfg: FirmwareConfig) -> tuple[np.ndarray, np.ndarray]:
-    """T_meas and motor velocity from the recorded counts, through the firmware's stages
-    (in the CST mapping its :class:`firmware.stages.CstSource`).
+class _Calibration:
+    """T_meas and motor velocity from recorded counts, chunk by chunk, through the
+    firmware's stages (in the CST mapping its :class:`firmware.stages.CstSource`).
 
     In the raw mapping each channel is calibrated on its own (:func:`firmware.stages.
     calibrate`: T_meas from the torque count, the velocity from the tacho count), so
     each distinct count goes through ``adc_read`` and ``calibrate`` once and the
     samples take their values from that table: the same numbers as sample by sample."""
-    if rec.sensor_mapping == "cst":
-        return _cst_signals(rec, cfg)
-    adc, cal = cfg.adc, cfg.calibration
-    T_meas = _per_count(
-        rec.column("adc_torque"), lambda q: calibrate(*adc_read(q, 0, 0, adc), cal)[0]
-    )
-    vel = _per_count(
-        rec.column("adc_tacho"), lambda tq: calibrate(*adc_read(0, tq, 0, adc), cal)[1]
-    )
-    return T_meas, vel
+
+    def __init__(
+        self, cfg: FirmwareConfig, sensor_mapping: str, rated_torque_Nm: float | None
+    ) -> None:
+        self._cst: CstSource | None = None
+        if sensor_mapping == "cst":
+            if rated_torque_Nm is None:
+                raise ValueError(
+                    "the trace holds no answer to the controller's read of the drive's rated "
+                    "torque 0x6076: the CST torque actual values cannot be scaled"
+                )
+            self._cst = CstSource(
+                rated_torque_Nm, cfg.calibration.encoder_counts_per_rev, cfg.diff_tau_s,
+                cfg.sample_period_s,
+            )  # fmt: skip
+        adc, cal = cfg.adc, cfg.calibration
+        self._torque = _PerCount(lambda q: calibrate(*adc_read(q, 0, 0, adc), cal)[0])
+        self._velocity = _PerCount(lambda tq: calibrate(*adc_read(0, tq, 0, adc), cal)[1])
+
+    def __call__(self, cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        if self._cst is None:
+            return self._torque(cols["adc_torque"]), self._velocity(cols["adc_tacho"])
+        source = self._cst
+        n = len(cols["torque_actual"])
+        T_meas = np.empty(n)
+        vel = np.empty(n)
+        for k, (q, pos) in enumerate(
+            zip(
+                cols["torque_actual"].astype(np.int64).tolist(),
+                cols["position_actual"].astype(np.int64).tolist(),
+                strict=True,
+            )
+        ):
+            T_meas[k], vel[k] = source(CstSample(q, pos))[:2]
+        return T_meas, vel
 
 
-def _per_count(counts: np.ndarray, convert: Callable[[int], float]) -> np.ndarray:
+class _PerCount:
     """``convert(count)`` for every sample, computed once per distinct count."""
-    distinct, where = np.unique(counts.astype(np.int64), return_inverse=True)
-    table = np.array([convert(c) for c in distinct.tolist()], dtype=np.float64)
-    return table[where.reshape(-1)]
+
+    def __init__(self, convert: Callable[[int], float]) -> None:
+        self._convert = convert
+        self._table: dict[int, float] = {}
+
+    def __call__(self, counts: np.ndarray) -> np.ndarray:
+        distinct, where = np.unique(counts.astype(np.int64), return_inverse=True)
+        table, convert = self._table, self._convert
+        values = []
+        for c in distinct.tolist():
+            v = table.get(c)
+            if v is None:
+                v = table[c] = convert(c)
+            values.append(v)
+        return np.array(values, dtype=np.float64)[where.reshape(-1)]
 
 
-def _cst_signals(rec: Recording, cfg: FirmwareConfig) -> tuple[np.ndarray, np.ndarray]:
-    rated = rec.rated_torque_Nm
-    if rated is None:
-        raise ValueError(
-            "the trace holds no answer to the controller's read of the drive's rated "
-            "torque 0x6076: the CST torque actual values cannot be scaled"
-        )
-    source = CstSource(
-        rated, cfg.calibration.encoder_counts_per_rev, cfg.diff_tau_s, cfg.sample_period_s
-    )
-    n = len(rec)
-    T_meas = np.empty(n)
-    vel = np.empty(n)
-    for k, (q, pos) in enumerate(
-        zip(
-            rec.column("torque_actual").astype(np.int64).tolist(),
-            rec.column("position_actual").astype(np.int64).tolist(),
-            strict=True,
-        )
-    ):
-        T_meas[k], vel[k] = source(CstSample(q, pos))[:2]
-    return T_meas, vel
+def _columns(rec: Recording) -> dict[str, np.ndarray]:
+    return {name: rec.column(name) for name in COLUMNS}
+
+
+def calibrated_signals(rec: Recording, cfg: FirmwareConfig) -> tuple[np.ndarray, np.ndarray]:
+    """T_meas and motor velocity from the recorded counts, through the firmware's stages
+    (:class:`_Calibration`)."""
+    return _Calibration(cfg, rec.sensor_mapping, rec.rated_torque_Nm)(_columns(rec))
+
+
+class _Candidates:
+    """Every candidate's torque estimate, chunk by chunk: the filters keep their state
+    from one chunk to the next, so the chunks give what the whole recording gives."""
+
+    def __init__(
+        self, cfg: FirmwareConfig, sensor_mapping: str, rated_torque_Nm: float | None
+    ) -> None:
+        self._calibration = _Calibration(cfg, sensor_mapping, rated_torque_Nm)
+        Ts = cfg.sample_period_s
+        paper = paper_config(cfg)
+        recommended = recommended_config(cfg)
+        self._firmware = f"firmware ({cfg.ripple.mode})"
+        self._chains = {
+            f"kalman paper ({paper.ripple.order}th order)": ChainReplay(paper),
+            f"kalman recommended ({len(recommended.ripple.oscillators)} harmonics)": (
+                ChainReplay(recommended)
+            ),
+        }
+        self._lowpass = {
+            f"butterworth {fc:g} Hz": ButterworthLowPass(fc, Ts)
+            for fc in BUTTERWORTH_CUTOFFS_HZ
+            if fc < 0.5 / Ts
+        }
+        self._notch = TrackingNotchBank((2.0, 4.0), Ts)
+
+    def __call__(self, cols: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        T_meas, vel = self._calibration(cols)
+        encoder, missed = cols["encoder"], cols["missed"]
+        signals = {"raw": T_meas, self._firmware: cols["T_filtered_tele"]}
+        for name, replay in self._chains.items():
+            signals[name] = replay(T_meas, vel, encoder, missed)
+        for name, lowpass in self._lowpass.items():
+            signals[name] = lowpass.filter(T_meas)
+        signals["notch bank 2x/4x"] = self._notch.filter(T_meas, vel)
+        return signals
 
 
 def candidate_signals(rec: Recording, cfg: FirmwareConfig) -> dict[str, np.ndarray]:
     """Every candidate's torque estimate over the recording, keyed by display name."""
-    T_meas, vel = calibrated_signals(rec, cfg)
-    encoder = rec.column("encoder")
-    Ts = cfg.sample_period_s
-    mode = cfg.ripple.mode
-    signals = {"raw": T_meas, f"firmware ({mode})": rec.column("T_filtered_tele")}
-    paper = paper_config(cfg)
-    recommended = recommended_config(cfg)
-    missed = rec.column("missed")
-    signals[f"kalman paper ({paper.ripple.order}th order)"] = offline_chain(
-        paper, T_meas, vel, encoder, missed
-    )
-    signals[f"kalman recommended ({len(recommended.ripple.oscillators)} harmonics)"] = (
-        offline_chain(recommended, T_meas, vel, encoder, missed)
-    )
-    for fc in BUTTERWORTH_CUTOFFS_HZ:
-        if fc < 0.5 / Ts:
-            signals[f"butterworth {fc:g} Hz"] = ButterworthLowPass(fc, Ts).filter(T_meas)
-    signals["notch bank 2x/4x"] = TrackingNotchBank((2.0, 4.0), Ts).filter(T_meas, vel)
-    return signals
+    return _Candidates(cfg, rec.sensor_mapping, rec.rated_torque_Nm)(_columns(rec))
+
+
+class _Unwrap:
+    """``np.unwrap`` of an angle that comes in chunks: the same operations, with the last
+    angle and the correction summed so far carried from chunk to chunk."""
+
+    def __init__(self) -> None:
+        self._last: float | None = None
+        self._correction = 0.0
+
+    def __call__(self, p: np.ndarray) -> np.ndarray:
+        if len(p) == 0:
+            return p.copy()
+        first = p[:1] if self._last is None else np.array([self._last])
+        dd = np.diff(p, prepend=first)
+        ddmod = np.mod(dd + math.pi, 2 * math.pi) - math.pi
+        np.copyto(ddmod, math.pi, where=(ddmod == -math.pi) & (dd > 0))
+        correct = ddmod - dd
+        np.copyto(correct, 0, where=abs(dd) < math.pi)
+        correct[0] += self._correction  # the running sum continues where it stopped
+        summed = correct.cumsum()
+        self._last = float(p[-1])
+        self._correction = float(summed[-1])
+        return p + summed
+
+
+class _Demodulation:
+    """:func:`_demodulated_amplitude` of a signal that comes in chunks, at every
+    harmonic: 2 |S_ep/n − (S_e/n)(S_p/n)| from running sums of e (less its first chunk's
+    mean, against cancellation), of the phasor p and of e·p."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self._shift: float | None = None
+        self._sums = _Sums(1 + 4 * len(HARMONICS))  # Σe, then (Σp, Σep) re/im per harmonic
+
+    def add(self, e: np.ndarray, phasors: list[np.ndarray]) -> None:
+        if len(e) == 0:
+            return
+        if self._shift is None:
+            self._shift = float(e.mean())
+        d = e - self._shift
+        contrib = [d.sum()]
+        for p in phasors:
+            sp, sep = p.sum(), (d * p).sum()
+            contrib += [sp.real, sp.imag, sep.real, sep.imag]
+        self._sums.add(np.array(contrib))
+        self.n += len(e)
+
+    def amplitudes(self) -> dict[str, float]:
+        if self.n == 0:
+            return {label: math.nan for label, _, _ in HARMONICS}
+        t = self._sums.total / self.n
+        mean_e = t[0]
+        out = {}
+        for i, (label, _, _) in enumerate(HARMONICS):
+            p = complex(t[1 + 4 * i], t[2 + 4 * i])
+            ep = complex(t[3 + 4 * i], t[4 + 4 * i])
+            out[label] = float(2.0 * abs(ep - mean_e * p))
+        return out
+
+
+class _CandidateStats:
+    """One candidate's running scores: its squared error, the error's harmonics and
+    the sums for its lag."""
+
+    def __init__(self) -> None:
+        self.ok = 0
+        self.squares = _Sums(1)
+        self.harmonics = _Demodulation()
+        self.lag = _LagSums()
+
+
+class StreamingEvaluation:
+    """:func:`evaluate` over the firmware's samples fed in chunks (:meth:`feed`, rows in
+    order from the firmware's first sample), keeping only bounded state: the filters'
+    states, running sums and the last :data:`MAX_LAG_SAMPLES` truth samples per
+    candidate. One chunk of everything is :func:`evaluate` itself."""
+
+    def __init__(
+        self,
+        cfg: FirmwareConfig,
+        skip_s: float = 0.0,
+        sensor_mapping: str = "raw",
+        rated_torque_Nm: float | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.skip_s = skip_s
+        self._sensor = (sensor_mapping, rated_torque_Nm)
+        self._k0 = round(skip_s / cfg.sample_period_s)  # first sample of the window
+        self.n = 0
+        self._any_truth = False
+        self._samples = 0  # in the window, with truth
+        self._without_truth = 0  # in the window, without
+        self._true_squares = _Sums(1)
+        self._true_ripple = _Demodulation()
+        self._angles = {"motor": _Unwrap(), "output": _Unwrap()}
+        self._candidates: _Candidates | None = None
+        self._error: ValueError | None = None  # from the candidates, raised by result()
+        self._stats: dict[str, _CandidateStats] = {}
+
+    def feed(self, cols: dict[str, np.ndarray]) -> None:
+        """Score the next rows (``cols``: :data:`COLUMNS` arrays of equal length)."""
+        size = len(cols["T_true"])
+        if size == 0:
+            return
+        start = self.n
+        self.n += size
+        T_true = cols["T_true"]
+        valid = np.isfinite(T_true)
+        self._any_truth = self._any_truth or bool(valid.any())
+        angles = {src: unwrap(cols[f"theta_{src}"]) for src, unwrap in self._angles.items()}
+        signals = self._signals(cols)
+        j0 = min(size, max(0, self._k0 - start))  # the first row in the window
+        window = np.zeros(size, dtype=bool)
+        window[j0:] = valid[j0:]
+        in_window = int(window.sum())
+        self._samples += in_window
+        self._without_truth += size - j0 - in_window
+        if signals is None or j0 == size:
+            return
+        self._true_squares.add(np.array([(T_true[window] ** 2).sum()]))
+        turning = window & (np.abs(cols["omega_motor"]) > MIN_SPEED_RADPS)
+        at = np.flatnonzero(turning)
+        phasors = [np.exp(-1j * mult * angles[src][at]) for _, src, mult in HARMONICS]
+        self._true_ripple.add(cols["T_ripple"][at], phasors)
+        T_true_at = T_true[at]
+        for name, x in signals.items():
+            stats = self._stats.setdefault(name, _CandidateStats())
+            ok = window & np.isfinite(x)
+            err = x - T_true
+            err_ok = err[ok]
+            stats.ok += len(err_ok)
+            stats.squares.add(np.array([(err_ok**2).sum()]))
+            m = ok[at]
+            stats.harmonics.add(x[at][m] - T_true_at[m], [p[m] for p in phasors])
+            stats.lag.add(np.where(ok, x, 0.0)[j0:], np.where(ok, T_true, 0.0)[j0:])
+
+    def _signals(self, cols: dict[str, np.ndarray]) -> dict[str, np.ndarray] | None:
+        if self._error is not None:
+            return None
+        try:
+            if self._candidates is None:
+                self._candidates = _Candidates(self.cfg, *self._sensor)
+            return self._candidates(cols)
+        except ValueError as exc:  # e.g. a CST trace without the rated torque
+            self._error = exc
+            return None
+
+    def result(self) -> dict[str, Any]:
+        """The scores of every row fed: what :func:`evaluate` returns (JSON-ready)."""
+        n, skip_s = self.n, self.skip_s
+        if n == 0:
+            return {"samples": 0, "candidates": []}
+        if not self._any_truth:
+            # No ground truth at all (a trace without the truth channel, or truth silenced)
+            return {"samples": 0, "skip_s": skip_s, "candidates": [], "samples_without_truth": n}
+        if self._error is not None:
+            raise self._error
+        # Samples in the window without ground truth (truth frames lost or silenced): left
+        # out of every score, and reported.
+        without_truth = self._without_truth
+        missing = {"samples_without_truth": without_truth} if without_truth else {}
+        if self._samples == 0:
+            return {"samples": 0, "skip_s": skip_s, "candidates": [], **missing}
+        scores = []
+        raw_rms = raw_harm = None
+        for name, stats in self._stats.items():
+            rms = math.sqrt(stats.squares.total[0] / stats.ok) if stats.ok else math.nan
+            harm = stats.harmonics.amplitudes()
+            if raw_rms is None:
+                raw_rms, raw_harm = rms, harm
+            assert raw_harm is not None
+            reduction = {label: _reduction_dB(raw_harm[label], a) for label, a in harm.items()}
+            scores.append(CandidateScore(
+                name=name, rms_error=rms, rms_ratio=rms / raw_rms if raw_rms else math.nan,
+                harmonics=harm, reduction_dB=reduction,
+                misalignment_pp=2.0 * harm["1x output"],
+                lag_ms=stats.lag.result(self.cfg.sample_period_s),
+            ))  # fmt: skip
+        return {
+            "samples": self._samples,
+            "skip_s": skip_s,
+            "rms_true": math.sqrt(self._true_squares.total[0] / self._samples),
+            "true_ripple": self._true_ripple.amplitudes(),
+            "candidates": [dataclasses.asdict(s) for s in scores],
+            **missing,
+        }
+
+
+#: Rows a live evaluation scores at a time (:class:`LiveEvaluation`).
+CHUNK_ROWS = 4096
+#: The columns a :class:`StreamingEvaluation` reads.
+_SCORED = tuple(name for name in COLUMNS if name not in ("adc_current", "T_meas_tele",
+                                                         "velocity_tele"))  # fmt: skip
+
+
+class LiveEvaluation:
+    """A :class:`StreamingEvaluation` of a :class:`Recording` that is still growing.
+
+    Only the firmware's samples are scored (:meth:`Recording.operation`): the rows from
+    the first to the last its telemetry answered. Rows are handed on once a later
+    answered row confirms them; unanswered rows (the start, the stop) wait, and those
+    after the last answered row are never scored. Should the telemetry never answer,
+    every row is (as :meth:`Recording.operation` does), which the rows waiting at the
+    start are scored for on the side, in case. The last row may still get its telemetry:
+    it waits for the next. Without ``keep`` the recording forgets the rows handed on."""
+
+    def __init__(
+        self,
+        rec: Recording,
+        cfg: FirmwareConfig,
+        skip_s: float = 0.0,
+        *,
+        keep: bool = True,
+        chunk_rows: int = CHUNK_ROWS,
+    ) -> None:
+        self.rec = rec
+        self.cfg = cfg
+        self.skip_s = skip_s
+        self.keep = keep
+        self.chunk_rows = max(1, chunk_rows)
+        self._cursor = 0  # the first row of ``rec`` not handed on
+        #: Hand on views of the recording, not copies: only when it no longer grows.
+        self.views = False
+        self._started = False  # a row was answered
+        self._main: StreamingEvaluation | None = None
+        self._none_answered: StreamingEvaluation | None = None  # if none ever is
+        self.next_check = self.chunk_rows + 1
+
+    def _evaluation(self) -> StreamingEvaluation:
+        return StreamingEvaluation(
+            self.cfg, self.skip_s, self.rec.sensor_mapping, self.rec.rated_torque_Nm
+        )
+
+    def _hand_on(self, to: StreamingEvaluation, end: int) -> None:
+        a, b = self._cursor, end
+        if b > a:
+            # A copy: a live view would keep the recording's arrays from growing.
+            cols = {name: self.rec.column(name)[a:b] for name in _SCORED}
+            to.feed(cols if self.views else {name: c.copy() for name, c in cols.items()})
+            del cols
+        self._cursor = b
+
+    def advance(self, final: bool = False) -> int:
+        """Hand on the rows confirmed so far (all with ``final``); returns the length of
+        the recording at which to call again."""
+        rec = self.rec
+        end = len(rec) if final else len(rec) - 1
+        if end > self._cursor:
+            tele = rec.column("T_meas_tele")[self._cursor : end]
+            answered = np.flatnonzero(np.isfinite(tele))
+            del tele
+            if not self._started and answered.size:
+                self._started = True
+                self._none_answered = None  # the rows before are not the firmware's
+                self._cursor += int(answered[0])
+                answered -= answered[0]
+            if self._started:
+                if answered.size:
+                    if self._main is None:
+                        self._main = self._evaluation()
+                    self._hand_on(self._main, self._cursor + int(answered[-1]) + 1)
+                if final:
+                    self._cursor = end  # after the last answered row: the stop
+            elif final or end - self._cursor >= self.chunk_rows:
+                if self._none_answered is None:
+                    self._none_answered = self._evaluation()
+                self._hand_on(self._none_answered, end)
+        if not self.keep:
+            rec.drop_first(self._cursor)
+            self._cursor = 0
+        return len(rec) + self.chunk_rows
+
+    def finish(self) -> dict[str, Any]:
+        """The evaluation of every row recorded (:func:`evaluate`)."""
+        self.advance(final=True)
+        ev = self._main if self._started else self._none_answered
+        return (ev or self._evaluation()).result()
 
 
 def evaluate(rec: Recording, cfg: FirmwareConfig, skip_s: float = 0.0) -> dict[str, Any]:
     """Score every candidate against truth over the firmware's samples
     (:meth:`Recording.operation`) from ``skip_s``; returns a JSON-ready dict."""
-    rec = rec.operation()
-    n = len(rec)
-    T_true = rec.column("T_true")
-    valid = np.isfinite(T_true)
-    if n == 0:
-        return {"samples": 0, "candidates": []}
-    if not valid.any():
-        # No ground truth at all (a trace without the truth channel, or truth silenced)
-        return {"samples": 0, "skip_s": skip_s, "candidates": [], "samples_without_truth": n}
-    signals = candidate_signals(rec, cfg)
-    k0 = min(n, round(skip_s / cfg.sample_period_s))
-    window = np.zeros(n, dtype=bool)
-    window[k0:] = True
-    window &= valid
-    # Samples in the window without ground truth (truth frames lost or silenced): left
-    # out of every score, and reported.
-    without_truth = int(n - k0 - window[k0:].sum())
-    missing = {"samples_without_truth": without_truth} if without_truth else {}
-    if not window.any():
-        return {"samples": 0, "skip_s": skip_s, "candidates": [], **missing}
-    theta_m = _unwrap_angle(rec.column("theta_motor"))
-    theta_o = _unwrap_angle(rec.column("theta_output"))
-    turning = window & (np.abs(rec.column("omega_motor")) > MIN_SPEED_RADPS)
-    angles = {"motor": theta_m, "output": theta_o}
-    phasors = {label: np.exp(-1j * mult * angles[src]) for label, src, mult in HARMONICS}
+    live = LiveEvaluation(rec, cfg, skip_s, chunk_rows=len(rec) + 1)
+    live.views = True
+    return live.finish()
 
-    scores = []
-    raw_rms = raw_harm = None
-    for name, x in signals.items():
-        ok = window & np.isfinite(x)
-        err = x - T_true
-        rms = float(np.sqrt(np.mean(err[ok] ** 2))) if ok.any() else math.nan
-        harm = {label: _demodulated_amplitude(err, phasors[label], turning & ok)
-                for label, _, _ in HARMONICS}  # fmt: skip
-        if raw_rms is None:
-            raw_rms, raw_harm = rms, harm
-        reduction = {label: _reduction_dB(raw_harm[label], a) for label, a in harm.items()}
-        lag = estimate_lag(
-            np.where(ok, x, 0.0)[k0:], np.where(ok, T_true, 0.0)[k0:], cfg.sample_period_s
-        )
-        scores.append(CandidateScore(
-            name=name, rms_error=rms, rms_ratio=rms / raw_rms if raw_rms else math.nan,
-            harmonics=harm, reduction_dB=reduction,
-            misalignment_pp=2.0 * harm["1x output"], lag_ms=lag,
-        ))  # fmt: skip
-    return {
-        "samples": int(window.sum()),
-        "skip_s": skip_s,
-        "rms_true": float(np.sqrt(np.mean(T_true[window] ** 2))),
-        "true_ripple": {
-            label: _demodulated_amplitude(rec.column("T_ripple"), phasors[label], turning)
-            for label, _, _ in HARMONICS
-        },
-        "candidates": [dataclasses.asdict(s) for s in scores],
-        **missing,
-    }
+
+def evaluate_listener(
+    listener: RecordingListener, cfg: FirmwareConfig, skip_s: float = 0.0
+) -> dict[str, Any]:
+    """The evaluation of what ``listener`` recorded: its live evaluation's, finished, or
+    :func:`evaluate` of its recording."""
+    if listener.live is not None:
+        return listener.live.finish()
+    return evaluate(listener.recording, cfg, skip_s)
 
 
 def _fmt(v: float | None, spec: str) -> str:

@@ -34,7 +34,7 @@ from hdhil.can.traces.tap import BusTap
 from hdhil.core.dataconf import ConfigError
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller import ControllerNode
-from hdhil.rig.evaluate import evaluate as evaluate_recording
+from hdhil.rig.evaluate import evaluate_listener as evaluate_recording
 from hdhil.rig.factories import (
     ControllerFactory,
     DriveFactory,
@@ -165,6 +165,7 @@ def run_lockstep(
     realtime: bool = False,
     realtime_config: RealtimeConfig | None = None,
     evaluate: bool = True,
+    keep_recording: bool = True,
     stop_requested: Callable[[], bool] | None = None,
     monitor: Callable[[ControllerNode], None] | None = None,
     monitor_every: int = 1000,
@@ -183,8 +184,9 @@ def run_lockstep(
     spin window, machine-floor reference). ``trace`` writes a trace and its sidecar
     JSON, which carries the request (``start_time``: Unix time of simulated time 0).
 
-    ``evaluate`` records every cycle and scores the run once it ends
-    (:mod:`hdhil.rig.evaluate`); without it memory stays flat. ``stop_requested`` is
+    ``evaluate`` scores the run (:mod:`hdhil.rig.evaluate`; in lockstep as it goes) and
+    keeps every cycle in ``result.recording``; without ``keep_recording`` (or without
+    ``evaluate``) memory stays flat. ``stop_requested`` is
     polled at every cycle boundary (how Ctrl-C ends a run without losing a frame);
     ``monitor`` gets the controller every ``monitor_every`` samples; ``extra_listeners``
     see every frame of both buses. The nodes come from factories
@@ -223,7 +225,7 @@ def run_lockstep(
     try:
         nodes = build_nodes(plan, buses, controller_factory, factories, injector)
         listening = build_listeners(plan, trace, evaluate, evaluate_skip_s, extra_listeners,
-                                    start_time, metadata)  # fmt: skip
+                                    start_time, metadata, keep_recording)  # fmt: skip
         listeners = listening.all
         tap = BusTap(nodes.tap_buses, listeners)
         controller = nodes.controller
@@ -301,7 +303,7 @@ def _result(
     recorder, tracking = listening.recorder, listening.tracking
     scored = plan.scenario.scored
     evaluation = (
-        evaluate_recording(recorder.recording, plan.firmware, evaluate_skip_s)
+        evaluate_recording(recorder, plan.firmware, evaluate_skip_s)
         if recorder is not None and not counts.interrupted and "ripple" in scored
         else None
     )
@@ -354,7 +356,9 @@ def _result(
         controller=controller_diagnostics(nodes.controller),
         drive=drive,
         realtime=pacer.result() if pacer is not None else None,
-        recording=recorder.recording if recorder is not None else None,
+        recording=(
+            recorder.recording if recorder is not None and listening.keep_recording else None
+        ),
         verdict=(
             None
             if counts.interrupted

@@ -63,7 +63,7 @@ def run_settings(settings: RunSettings) -> tuple[dict[str, Any], bytes | None, b
     request = request_of(settings)
     with tempfile.TemporaryDirectory(prefix="hdhil-variant-") as tmp:
         trace = Path(tmp) / f"trace{settings.trace_suffix}" if settings.trace_suffix else None
-        result = run_lockstep(request, trace=trace, evaluate=True)
+        result = run_lockstep(request, trace=trace, evaluate=True, keep_recording=False)
         data = sidecar = None
         if trace is not None and trace.is_file():
             data = trace.read_bytes()

@@ -236,6 +236,8 @@ class RunListeners:
     tracking: TrackingScorer | None
     recorder: RecordingListener | None
     all: list[can.Listener]
+    #: The run's result keeps the recorder's recording (every cycle).
+    keep_recording: bool = True
 
 
 def build_listeners(
@@ -246,12 +248,17 @@ def build_listeners(
     extra: Sequence[can.Listener],
     start_time: float = 0.0,
     metadata: dict[str, Any] | None = None,
+    keep_recording: bool = True,
 ) -> RunListeners:
     """The tap's listeners, the trace writer first (it sees every frame as it came).
 
     In lockstep (on any interface) and on the simulated bus the trace's times are the
     run's clock plus ``start_time`` (:attr:`hdhil.rig.runner.RunPlan.clock_time`); the
-    trace's sidecar JSON gets the run's settings and ``metadata``."""
+    trace's sidecar JSON gets the run's settings and ``metadata``.
+
+    With ``evaluate`` the recorder scores a run in lockstep as it goes (its memory flat
+    without ``keep_recording``); in real time it records every cycle and the scoring
+    waits for the end, so that it takes no time from the loop's deadlines."""
     counter, scorer = FrameCounter(), TorqueScorer()
     listeners: list[can.Listener] = [counter, scorer]
     tracking = recorder = None
@@ -264,8 +271,16 @@ def build_listeners(
             plan.sample_period_s,
         )
         listeners.append(tracking)
-    if evaluate:
-        recorder = RecordingListener(plan.sample_period_s, (metadata or {}).get("drive_pdos"))
+    scored = evaluate and "ripple" in plan.scenario.scored
+    if evaluate and (scored or keep_recording):
+        live = scored and not plan.realtime
+        recorder = RecordingListener(
+            plan.sample_period_s,
+            (metadata or {}).get("drive_pdos"),
+            firmware=plan.firmware if live else None,
+            skip_s=evaluate_skip_s,
+            keep=keep_recording or not live,
+        )
         listeners.append(recorder)
     if trace is not None:
         offset = start_time if plan.clock_time else 0.0
@@ -283,4 +298,4 @@ def build_listeners(
         # the sidecar is written with the finished trace (both renamed into place)
         listeners.insert(0, WriterProcess(trace, time_offset=offset, metadata=sidecar))
     listeners += extra
-    return RunListeners(counter, scorer, tracking, recorder, listeners)
+    return RunListeners(counter, scorer, tracking, recorder, listeners, keep_recording)
