@@ -37,6 +37,10 @@ def test_stages_split_the_process_by_its_stamps() -> None:
     assert st["loop_s"] == pytest.approx(0.8)
     assert st["evaluation_s"] == 0.3
     assert st["finishing_s"] == pytest.approx(2.0 - 0.4 - 0.8 - 0.3)
+    # chunks scored during the loop count as evaluation
+    inner = speed._stages({**p, "stamps": {**p["stamps"], "loop_evaluation_s": 0.1}})
+    assert inner["loop_s"] == pytest.approx(0.7) and inner["evaluation_s"] == pytest.approx(0.4)
+    assert inner["finishing_s"] == pytest.approx(st["finishing_s"])
     with pytest.raises(Exception, match="no cycle"):
         speed._stages({**p, "stamps": {}})
 

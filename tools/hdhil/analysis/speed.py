@@ -64,8 +64,9 @@ GOALS = {
 GUARD_RATIO = 1.0
 
 #: Run in a fresh interpreter by :func:`bench_whole_command`: ``hdhil run`` (the CLI's
-#: own ``main``) with the node loop's ``cycle`` and the run's evaluation wrapped to take
-#: wall-clock stamps, printed on stderr at exit.  Nothing else is changed.
+#: own ``main``) with the node loop's ``cycle``, the run's final evaluation and the
+#: streaming evaluation's chunks wrapped to take wall-clock stamps, printed on stderr at
+#: exit.  Nothing else is changed.
 STAGES_CHILD = """
 import atexit, json, sys, time
 from hdhil.rig import loop, runner
@@ -77,14 +78,28 @@ def cycle(self):
     stamps.setdefault("first_cycle", now)
     stamps["last_cycle"] = now
 loop.NodeLoop.cycle = cycle
+from hdhil.rig import evaluate as ev
+final = []
 _evaluate = runner.evaluate_recording
 def evaluate(*args, **kwargs):
     t0 = time.perf_counter()
+    final.append(1)
     try:
         return _evaluate(*args, **kwargs)
     finally:
+        final.pop()
         stamps["evaluation_s"] = stamps.get("evaluation_s", 0.0) + time.perf_counter() - t0
 runner.evaluate_recording = evaluate
+_feed = ev.StreamingEvaluation.feed
+def feed(self, cols):
+    t0 = time.perf_counter()
+    try:
+        return _feed(self, cols)
+    finally:
+        if not final:  # scored in chunks during the loop
+            key = "loop_evaluation_s"
+            stamps[key] = stamps.get(key, 0.0) + time.perf_counter() - t0
+ev.StreamingEvaluation.feed = feed
 def report():
     try:  # the process's own high-water mark (ru_maxrss survives exec: the forking parent's)
         with open("/proc/self/status", encoding="ascii") as fh:
@@ -129,13 +144,16 @@ def _process(argv: Sequence[str]) -> dict[str, Any]:
 
 def _stages(p: dict[str, Any]) -> dict[str, float]:
     """Start-up (spawn to the end of the first cycle), loop, evaluation, finishing (trace
-    close, result, printing, exit) of one child process, in seconds."""
+    close, result, printing, exit) of one child process, in seconds.  The evaluation's
+    chunks scored during the loop count as evaluation, not loop."""
     st = p["stamps"]
     if "first_cycle" not in st:
         raise UserError("bench: hdhil run reported no cycle")
     start_up = st["first_cycle"] - p["spawned"]
-    loop = st["last_cycle"] - st["first_cycle"]
-    evaluation = st.get("evaluation_s", 0.0)
+    # the evaluation scores the run in chunks during the loop, and the rest at its end
+    in_loop = st.get("loop_evaluation_s", 0.0)
+    loop = st["last_cycle"] - st["first_cycle"] - in_loop
+    evaluation = st.get("evaluation_s", 0.0) + in_loop
     return {
         "start_up_s": start_up,
         "loop_s": loop,
