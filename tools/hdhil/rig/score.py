@@ -12,12 +12,15 @@ Running sums only: memory stays flat however long the run.
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import can
 
 from hdhil.dbc import codec
+
+_id_and_extended = operator.attrgetter("arbitration_id", "is_extended_id")
 
 
 @dataclass(frozen=True)
@@ -112,8 +115,8 @@ class TorqueScorer(can.Listener):
     def on_frames(self, frames: list[can.Message]) -> None:
         """:meth:`on_message_received` for the telemetry and truth frames among ``frames``."""
         keys = self._keys
-        for msg in frames:
-            if (msg.arbitration_id, msg.is_extended_id) in keys:
+        for msg, key in zip(frames, map(_id_and_extended, frames), strict=True):
+            if key in keys:
                 self.on_message_received(msg)
 
     def _close_block(self) -> None:

@@ -22,14 +22,18 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import multiprocessing.util
+import operator
 import os
 import struct
 import time
+from collections.abc import Callable
+from itertools import starmap
 from pathlib import Path
 from typing import Any
 
 import can
 
+from hdhil.can.simbus import _snapshot_fast, received_copy
 from hdhil.can.traces import formats
 from hdhil.can.traces.formats import (
     GZIP_SUFFIXES,
@@ -91,17 +95,100 @@ BATCH_MAX_AGE_S = 0.25
 #: How long ``stop`` waits for the writer process to finish the file.
 WRITER_EXIT_TIMEOUT_S = 120.0
 
-#: One frame on the pipe: timestamp, identifier, flags (bit 0 extended, 1 remote, 2 error
-#: frame, 3 received), DLC, channel number, payload length, payload (padded to 8 bytes).
-_RECORD = struct.Struct("<dIBBBB8s")
+#: One frame on the pipe: timestamp, identifier, extended, remote, error frame, received,
+#: DLC, channel number, payload (up to 8 bytes, with its length: a Pascal string).  The
+#: fields in :class:`can.Message`'s attribute names, so a batch is packed without a Python
+#: step per frame (:data:`_FIELDS`).
+_RECORD = struct.Struct("<dI????BB9p")
+#: The fields of a record, read from a frame in one call.
+_FIELDS = operator.attrgetter("timestamp", "arbitration_id", "is_extended_id", "is_remote_frame",
+                              "is_error_frame", "is_rx", "dlc", "channel", "data")  # fmt: skip
 
 
-def _message(f: tuple[float, int, int, int, int, int, bytes], offset: float) -> can.Message:
-    ts, can_id, flags, dlc, channel, length, data = f
-    return can.Message(timestamp=ts + offset, arbitration_id=can_id, is_extended_id=bool(flags & 1),
-                       is_remote_frame=bool(flags & 2), is_error_frame=bool(flags & 4),
-                       is_rx=bool(flags & 8), dlc=dlc, data=data[:length], channel=channel,
-                       check=False)  # fmt: skip
+_Record = tuple[float, int, bool, bool, bool, bool, int, int, bytes]
+
+
+def _message_checked(f: _Record, offset: float) -> can.Message:
+    ts, can_id, extended, remote, error, rx, dlc, channel, data = f
+    return can.Message(timestamp=ts + offset, arbitration_id=can_id, is_extended_id=extended,
+                       is_remote_frame=remote, is_error_frame=error, is_rx=rx, dlc=dlc,
+                       data=data, channel=channel, check=False)  # fmt: skip
+
+
+_new_message = object.__new__
+
+
+def _message_fast(f: _Record, offset: float) -> can.Message:
+    """:func:`_message_checked` field by field (the constructor's keyword handling costs
+    more than the writer's own work; the writers read the same values either way)."""
+    ts, can_id, extended, remote, error, rx, dlc, channel, data = f
+    msg = _new_message(can.Message)
+    msg.timestamp = ts + offset
+    msg.arbitration_id = can_id
+    msg.is_extended_id = extended
+    msg.is_remote_frame = remote
+    msg.is_error_frame = error
+    msg.is_rx = rx
+    msg.channel = channel
+    msg.dlc = dlc
+    msg.data = bytearray() if remote else bytearray(data)
+    msg.is_fd = False
+    msg.bitrate_switch = False
+    msg.error_state_indicator = False
+    return msg
+
+
+#: One record back into a :class:`can.Message` for the writer: field by field while
+#: python-can's Message has exactly the fields filled here, else by its constructor.
+_message = _message_fast if received_copy is _snapshot_fast else _message_checked
+
+
+def _batch_writer(writer: can.Listener, offset: float) -> Callable[[bytes], int]:
+    """A function writing one batch of records with ``writer``; it returns how many.
+
+    Every record becomes a :class:`can.Message` for ``writer.on_message_received``; for
+    python-can's own BLF writer, the classical frames go straight to its object buffer as
+    that method would put them there (same bytes, without a message object and its
+    field-by-field conversion per frame), as long as its module has the names used.
+    """
+    on_message = writer.on_message_received
+
+    def each_message(batch: bytes) -> int:
+        n = 0
+        for f in _RECORD.iter_unpack(batch):
+            on_message(_message(f, offset))
+            n += 1
+        return n
+
+    blf = getattr(can.io, "blf", None)
+    names = ("CAN_MSG_STRUCT", "CAN_MESSAGE", "CAN_MSG_EXT", "REMOTE_FLAG", "DIR")
+    if (
+        blf is None
+        or type(writer) is not getattr(blf, "BLFWriter", None)
+        or not all(hasattr(blf, name) for name in names)
+        or not callable(getattr(writer, "_add_object", None))
+    ):
+        return each_message
+    add = writer._add_object
+    pack = blf.CAN_MSG_STRUCT.pack
+    kind, extended_flag, remote_flag, tx_flag = (
+        blf.CAN_MESSAGE, blf.CAN_MSG_EXT, blf.REMOTE_FLAG, blf.DIR
+    )  # fmt: skip
+
+    def blf_objects(batch: bytes) -> int:
+        n = 0
+        for f in _RECORD.iter_unpack(batch):
+            ts, can_id, extended, remote, error, rx, dlc, channel, data = f
+            if error:  # an error frame is another BLF object: the writer's own method
+                on_message(_message(f, offset))
+            else:  # BLFWriter.on_message_received for a classical frame (channel + 1)
+                flags = (remote_flag if remote else 0) | (0 if rx else tx_flag)
+                add(kind, pack(channel + 1, flags, dlc, can_id | extended_flag if extended
+                               else can_id, b"" if remote else data), ts + offset)  # fmt: skip
+            n += 1
+        return n
+
+    return blf_objects
 
 
 def _pin_header_dates(unix_s: float) -> None:
@@ -163,6 +250,7 @@ def _writer_main(
         status.send(("error", f"cannot write trace {shown}: {text}"))
         return
     status.send(("ready", None))
+    write_batch = _batch_writer(writer, offset)
     written = 0
     error: str | None = None
     try:
@@ -171,9 +259,7 @@ def _writer_main(
                 batch = frames.recv_bytes()
             except EOFError:
                 break
-            for f in _RECORD.iter_unpack(batch):
-                writer.on_message_received(_message(f, offset))
-                written += 1
+            written += write_batch(batch)
     except OSError as exc:
         error = f"cannot write trace {shown}: {exc.strerror or exc}"
     finally:
@@ -276,11 +362,7 @@ class WriterProcess(can.Listener):
         as the run's tap stamps it."""
         if not self._batch:
             self._batch_started = time.monotonic()
-        data = msg.data
-        self._batch += _pack(msg.timestamp, msg.arbitration_id,
-                             msg.is_extended_id | msg.is_remote_frame << 1
-                             | msg.is_error_frame << 2 | msg.is_rx << 3,
-                             msg.dlc, msg.channel, len(data), data)  # fmt: skip
+        self._batch += _pack(*_FIELDS(msg))
         self._batched += 1
         if self._batched >= BATCH_FRAMES or (
             self._batched & 31 == 0 and time.monotonic() - self._batch_started > BATCH_MAX_AGE_S
@@ -291,13 +373,17 @@ class WriterProcess(can.Listener):
         """:meth:`on_message_received` for each frame, in one call."""
         if not self._batch:
             self._batch_started = time.monotonic()
-        batch = self._batch  # appended in place
-        for msg in frames:
-            data = msg.data
-            batch += _pack(msg.timestamp, msg.arbitration_id,
-                           msg.is_extended_id | msg.is_remote_frame << 1
-                           | msg.is_error_frame << 2 | msg.is_rx << 3,
-                           msg.dlc, msg.channel, len(data), data)  # fmt: skip
+        pending = iter(frames)
+        try:
+            packed = b"".join(starmap(_pack, map(_FIELDS, pending)))
+        except BaseException:
+            # A signal handler raised (Ctrl-C) while a frame was read, or a frame does not
+            # fit a record: the frames before that one are kept, as they were handed over.
+            kept = frames[: max(len(frames) - operator.length_hint(pending) - 1, 0)]
+            self._batch += b"".join(starmap(_pack, map(_FIELDS, kept)))
+            self._batched += len(kept)
+            raise
+        self._batch += packed
         self._batched += len(frames)
         if (
             self._batched >= BATCH_FRAMES
