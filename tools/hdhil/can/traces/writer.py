@@ -7,7 +7,8 @@ tools that expect them (can-utils, asammdf, Vector's) read them as any logger's.
 
 :class:`WriterProcess` runs that writer in a child process: the run hands it frames in
 batches through a pipe, so formatting and compressing the file happens on the other core,
-off the 1 kHz loop.  The pipe is bounded: a writer that falls behind makes the run wait,
+off the 1 kHz loop.  The pipe is bounded (:data:`PIPE_BYTES`, large enough to ride out a
+writer that gets no CPU for a while): a writer that falls behind makes the run wait,
 it never drops a frame.  Handing a batch on is safe against Ctrl-C (a batch goes whole or
 not at all, and is counted with it).  If the run dies (even by SIGKILL) the child reads
 what was sent up to then and closes the file properly.
@@ -35,6 +36,7 @@ import can
 
 from hdhil.can.simbus import _snapshot_fast, received_copy
 from hdhil.can.traces import formats
+from hdhil.can.traces.blfobjects import bulk_blf_writer
 from hdhil.can.traces.formats import (
     GZIP_SUFFIXES,
     MF4_MISSING,
@@ -56,6 +58,11 @@ from hdhil.core.signals import (
     signals_deferred,
     stopping_signals_blocked,
 )
+
+try:
+    import fcntl
+except ImportError:  # not on Windows
+    fcntl = None  # type: ignore[assignment]
 
 
 def check_trace_path(path: Path) -> None:
@@ -91,6 +98,13 @@ BATCH_FRAMES = 512
 #: A partly filled batch is handed on at the latest after this long (wall time), so a
 #: slowly running bus still reaches the file within a fraction of a second.
 BATCH_MAX_AGE_S = 0.25
+
+#: The capacity asked for the pipe to the writer process (bytes; Linux, where an
+#: unprivileged process may ask up to ``/proc/sys/fs/pipe-max-size``): about 40 000
+#: frames, some seconds of a lockstep run, so a writer that gets no CPU for a while (the
+#: machine's other core busy) does not stall the loop at once.  Elsewhere, or when
+#: refused, the system's default (64 KiB on Linux).
+PIPE_BYTES = 1 << 20
 
 #: How long ``stop`` waits for the writer process to finish the file.
 WRITER_EXIT_TIMEOUT_S = 120.0
@@ -147,48 +161,25 @@ def _batch_writer(writer: can.Listener, offset: float) -> Callable[[bytes], int]
     """A function writing one batch of records with ``writer``; it returns how many.
 
     Every record becomes a :class:`can.Message` for ``writer.on_message_received``; for
-    python-can's own BLF writer, the classical frames go straight to its object buffer as
-    that method would put them there (same bytes, without a message object and its
-    field-by-field conversion per frame), as long as its module has the names used.
+    python-can's own BLF writer, the classical frames go to its buffer in bulk
+    (:mod:`hdhil.can.traces.blfobjects`: the same bytes, without a message per frame).
     """
     on_message = writer.on_message_received
 
+    def one(record: _Record) -> None:
+        on_message(_message(record, offset))
+
     def each_message(batch: bytes) -> int:
         n = 0
-        for f in _RECORD.iter_unpack(batch):
-            on_message(_message(f, offset))
+        for record in _RECORD.iter_unpack(batch):
+            one(record)
             n += 1
         return n
 
-    blf = getattr(can.io, "blf", None)
-    names = ("CAN_MSG_STRUCT", "CAN_MESSAGE", "CAN_MSG_EXT", "REMOTE_FLAG", "DIR")
-    if (
-        blf is None
-        or type(writer) is not getattr(blf, "BLFWriter", None)
-        or not all(hasattr(blf, name) for name in names)
-        or not callable(getattr(writer, "_add_object", None))
-    ):
+    bulk = bulk_blf_writer(writer, offset, one)
+    if bulk is None:
         return each_message
-    add = writer._add_object
-    pack = blf.CAN_MSG_STRUCT.pack
-    kind, extended_flag, remote_flag, tx_flag = (
-        blf.CAN_MESSAGE, blf.CAN_MSG_EXT, blf.REMOTE_FLAG, blf.DIR
-    )  # fmt: skip
-
-    def blf_objects(batch: bytes) -> int:
-        n = 0
-        for f in _RECORD.iter_unpack(batch):
-            ts, can_id, extended, remote, error, rx, dlc, channel, data = f
-            if error:  # an error frame is another BLF object: the writer's own method
-                on_message(_message(f, offset))
-            else:  # BLFWriter.on_message_received for a classical frame (channel + 1)
-                flags = (remote_flag if remote else 0) | (0 if rx else tx_flag)
-                add(kind, pack(channel + 1, flags, dlc, can_id | extended_flag if extended
-                               else can_id, b"" if remote else data), ts + offset)  # fmt: skip
-            n += 1
-        return n
-
-    return blf_objects
+    return lambda batch: bulk(_RECORD.iter_unpack(batch))
 
 
 def _pin_header_dates(unix_s: float) -> None:
@@ -282,6 +273,22 @@ def _writer_main(
 _pack = _RECORD.pack
 
 
+def _widen_pipe(fd: int) -> None:
+    """Ask for a pipe of :data:`PIPE_BYTES` (at most the system's limit) where the system
+    lets a process size its pipes; keep the default otherwise."""
+    set_size = getattr(fcntl, "F_SETPIPE_SZ", None) if fcntl is not None else None
+    if set_size is None:
+        return
+    try:
+        fcntl.fcntl(fd, set_size, PIPE_BYTES)
+    except OSError:
+        try:
+            limit = int(Path("/proc/sys/fs/pipe-max-size").read_text())
+            fcntl.fcntl(fd, set_size, min(PIPE_BYTES, limit))
+        except (OSError, ValueError):
+            pass
+
+
 class WriterError(ValueError):
     """The trace writer process failed (disk full, killed): the trace is incomplete."""
 
@@ -321,6 +328,7 @@ class WriterProcess(can.Listener):
         except OSError as exc:
             raise ValueError(f"cannot write trace {path}: {exc.strerror or exc}") from None
         frames_r, frames_w = ctx.Pipe(duplex=False)
+        _widen_pipe(frames_w.fileno())
         status_r, status_w = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(
             target=_writer_main,
