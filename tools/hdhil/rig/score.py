@@ -12,15 +12,12 @@ Running sums only: memory stays flat however long the run.
 from __future__ import annotations
 
 import math
-import operator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import can
 
 from hdhil.dbc import codec
-
-_id_and_extended = operator.attrgetter("arbitration_id", "is_extended_id")
 
 
 @dataclass(frozen=True)
@@ -118,7 +115,8 @@ class TorqueScorer(can.Listener):
         truth_key = self._truth_key
         truth_length = self._truth.length
         truth_decode = self._truth.decode
-        for msg, key in zip(frames, map(_id_and_extended, frames), strict=True):
+        for msg in frames:
+            key = (msg.arbitration_id, msg.is_extended_id)
             if key in keys:
                 if key == truth_key and len(msg.data) == truth_length:  # the common case
                     self._T_true = truth_decode(msg.data)[0]

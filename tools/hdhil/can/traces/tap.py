@@ -17,8 +17,6 @@ import can
 
 from hdhil.can.simbus import SimBus, received_copy
 
-_channel_and_id = operator.attrgetter("channel", "arbitration_id")
-
 
 class FrameCounter(can.Listener):
     """Counts frames per (channel, identifier)."""
@@ -33,7 +31,8 @@ class FrameCounter(can.Listener):
     def on_frames(self, frames: list[can.Message]) -> None:
         counts = self.counts
         get = counts.get
-        for key in map(_channel_and_id, frames):
+        for msg in frames:
+            key = (msg.channel, msg.arbitration_id)
             counts[key] = get(key, 0) + 1
 
     @property

@@ -27,8 +27,7 @@ import operator
 import os
 import struct
 import time
-from collections.abc import Callable
-from itertools import starmap
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -110,13 +109,19 @@ PIPE_BYTES = 1 << 20
 WRITER_EXIT_TIMEOUT_S = 120.0
 
 #: One frame on the pipe: timestamp, identifier, extended, remote, error frame, received,
-#: DLC, channel number, payload (up to 8 bytes, with its length: a Pascal string).  The
-#: fields in :class:`can.Message`'s attribute names, so a batch is packed without a Python
-#: step per frame (:data:`_FIELDS`).
+#: DLC, channel number, payload (up to 8 bytes, with its length: a Pascal string).
 _RECORD = struct.Struct("<dI????BB9p")
-#: The fields of a record, read from a frame in one call.
+#: The fields of a record, read from a frame in one call (tools, tests).
 _FIELDS = operator.attrgetter("timestamp", "arbitration_id", "is_extended_id", "is_remote_frame",
                               "is_error_frame", "is_rx", "dlc", "channel", "data")  # fmt: skip
+
+
+def _records(frames: Iterable[can.Message]) -> list[bytes]:
+    """The pipe records of ``frames`` (a comprehension: the cheapest way to pack a batch)."""
+    pack = _RECORD.pack
+    return [pack(msg.timestamp, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+                 msg.is_error_frame, msg.is_rx, msg.dlc, msg.channel, msg.data)
+            for msg in frames]  # fmt: skip
 
 
 _Record = tuple[float, int, bool, bool, bool, bool, int, int, bytes]
@@ -383,12 +388,12 @@ class WriterProcess(can.Listener):
             self._batch_started = time.monotonic()
         pending = iter(frames)
         try:
-            packed = b"".join(starmap(_pack, map(_FIELDS, pending)))
+            packed = b"".join(_records(pending))
         except BaseException:
             # A signal handler raised (Ctrl-C) while a frame was read, or a frame does not
             # fit a record: the frames before that one are kept, as they were handed over.
             kept = frames[: max(len(frames) - operator.length_hint(pending) - 1, 0)]
-            self._batch += b"".join(starmap(_pack, map(_FIELDS, kept)))
+            self._batch += b"".join(_records(kept))
             self._batched += len(kept)
             raise
         self._batch += packed
