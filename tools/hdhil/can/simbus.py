@@ -303,8 +303,6 @@ received_copy = (
     else _snapshot_checked
 )
 
-_copy = received_copy
-
 _channels: dict[str, _Channel] = {}
 _channels_lock = threading.Lock()
 
@@ -386,7 +384,7 @@ class SimBus(can.BusABC):
         node has received a frame since (it cannot answer a frame before receiving it)."""
         ch = self._ch
         # A private snapshot: callers may reuse their Message object for the next frame.
-        frame = _copy(msg, ch.label)
+        frame = received_copy(msg, ch.label)
         with ch.lock:
             now = ch.clock.now
             requested = self._last_rx if self._last_rx > now else now
@@ -427,7 +425,7 @@ class SimBus(can.BusABC):
             requested = self._last_rx if self._last_rx > now else now
             receivers = ch.receivers[self]
             for msg in msgs:
-                frame = _copy(msg, label)
+                frame = received_copy(msg, label)
                 ch.seq += 1
                 end = requested if requested > ch.busy_until else ch.busy_until
                 ch.busy_until = frame.timestamp = end
