@@ -272,3 +272,38 @@ def test_the_received_copy_equals_a_constructed_message(can_id, extended, remote
 def test_the_fast_copy_is_used_only_while_it_covers_every_message_field():
     fields = set(can.Message.__slots__) - {"__weakref__"}
     assert (received_copy is _snapshot_fast) == (fields == _MESSAGE_FIELDS)
+
+
+@pytest.mark.parametrize("bitrate", [0, 1_000_000])
+def test_send_frames_delivers_what_sending_each_does(bitrate):
+    """``send_frames`` (the truth channel's one call per cycle) leaves every receiver, the
+    sender too with ``receive_own_messages``, with the frames, times and counts that one
+    ``send`` per frame gives, on an untimed and on a timed channel."""
+
+    def deliveries(batched: bool) -> list[tuple]:
+        clock = SimClock(0.25)
+        name = f"t-batch-{bitrate}-{batched}"
+        a = can.Bus(interface="simbus", channel=name, bitrate=bitrate, clock=clock,
+                    receive_own_messages=True)  # fmt: skip
+        b = can.Bus(interface="simbus", channel=name, bitrate=bitrate)
+        try:
+            a.send(_frame(0x300, 2))
+            assert b.recv(0) is not None
+            b.send(_frame(0x301, 1))  # b answers later than the clock: a receives it
+            frames = [_frame(0x1F0001 + i, 8 - i) for i in range(3)]
+            assert a.recv(0) is not None and a.recv(0) is not None  # own frame, b's answer
+            if batched:
+                a.send_frames(frames)
+            else:
+                for f in frames:
+                    a.send(f)
+            got: list[tuple] = []
+            for label, bus in (("a", a), ("b", b)):
+                while (m := bus.recv(0)) is not None:
+                    got.append((label, m.arbitration_id, bytes(m.data), m.timestamp))
+            return [*got, (a.frames_requested, a.frames_sent)]
+        finally:
+            a.shutdown()
+            b.shutdown()
+
+    assert deliveries(batched=True) == deliveries(batched=False)

@@ -142,3 +142,39 @@ def test_the_tap_merges_channels_in_time_order_for_every_kind_of_listener():
     finally:
         for bus in (control, truth, tap_c, tap_t):
             bus.shutdown()
+
+
+def test_bulk_blf_objects_are_the_bytes_python_can_writes(tmp_path):
+    """The writer process packs classical frames into python-can's BLF writer in bulk:
+    the file (object headers, container cuts, header dates) is the one the writer's own
+    per-message path makes, with error, remote, extended and transmitted frames mixed in
+    and batches that end mid-container."""
+    from hdhil.can.traces.writer import _FIELDS, _RECORD, _batch_writer, _message
+
+    frames = [
+        can.Message(
+            timestamp=i * 1e-4,
+            arbitration_id=(0x1F0000 + i) if i % 3 == 0 else 0x80 + i % 0x700,
+            is_extended_id=i % 3 == 0,
+            is_remote_frame=i % 11 == 5,
+            is_error_frame=i % 97 == 13,
+            is_rx=i % 7 != 0,
+            dlc=i % 9,
+            data=bytes((i * 7 + k) & 0xFF for k in range(i % 9)),
+            channel=i % 2,
+        )
+        for i in range(6000)  # ~290 kB of objects: more than two 128 kB containers
+    ]
+    records = [_RECORD.pack(*_FIELDS(m)) for m in frames]
+    offset = 1.7e9
+    reference = can.Logger(str(tmp_path / "reference.blf"))
+    for record in records:
+        reference.on_message_received(_message(_RECORD.unpack(record), offset))
+    reference.stop()
+    bulk = can.Logger(str(tmp_path / "bulk.blf"))
+    write = _batch_writer(bulk, offset)
+    assert write.__name__ == "<lambda>"  # the bulk path, not the per-message one
+    for start in range(0, len(records), 500):
+        assert write(b"".join(records[start : start + 500])) == len(records[start : start + 500])
+    bulk.stop()
+    assert (tmp_path / "bulk.blf").read_bytes() == (tmp_path / "reference.blf").read_bytes()

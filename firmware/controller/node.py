@@ -286,8 +286,9 @@ class ControllerNode(CanNode):
 
     def on_message(self, msg: can.Message) -> None:
         """CiA 301 service frames go to the services first; SYNC/PDOs to the handlers."""
-        if not self.services.handle(msg):
-            super().on_message(msg)
+        services = self.services
+        if msg.arbitration_id not in services.service_ids or not services.handle(msg):
+            CanNode.on_message(self, msg)
 
     # ------------------------------------------------------------ phases, faults
 

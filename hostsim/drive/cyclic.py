@@ -202,6 +202,8 @@ class CyclicIO:
         for index in (OD_SYNC_PERIOD, OD_SYNC_WINDOW):
             if variable(od, index, 0) is not None:
                 services.on_write(index, 0, self._pdo_changed)
+        self._statusword: int | None = None  # the one _statusword_data encodes
+        self._statusword_data = b""
         self._sync_monitor = self._new_sync_monitor()
         self._last_sync_at: float | None = None
         self._sync_lost = False
@@ -480,9 +482,18 @@ class CyclicIO:
         if _same_mapping(layout, self._default_layouts[("tpdo", 1)]):
             return lambda: self._sensor.encode(*self.sample)
         if _same_mapping(layout, self._default_layouts[("tpdo", 2)]):
-            return lambda: self._status.encode(self.node.machine.statusword)
+            return self._statusword_payload
         get = self.services.node.get_data
         return lambda: encode_from_od(layout, get)
+
+    def _statusword_payload(self) -> bytes:
+        """DRIVE_TPDO2's data: the statusword, encoded again only when it changed (the
+        event TPDO asks for it several times a cycle)."""
+        statusword = self.node.machine.statusword
+        if statusword != self._statusword:
+            self._statusword = statusword
+            self._statusword_data = self._status.encode(statusword)
+        return self._statusword_data
 
     def _tpdo_sent(self, layout: PdoLayout) -> None:
         d = self.node.diagnostics

@@ -209,10 +209,11 @@ class DriveNode(CanNode):
 
     def on_message(self, msg: can.Message) -> None:
         """CANopen service frames to the services, SYNC and PDOs to this node."""
-        if self.services.handle(msg):
+        services = self.services
+        if msg.arbitration_id in services.service_ids and services.handle(msg):
             self.io.flush_statusword()
             return
-        super().on_message(msg)
+        CanNode.on_message(self, msg)
 
     @property
     def nmt_state(self) -> NmtState:

@@ -26,7 +26,6 @@ class TruthPublisher:
     """Encodes a :class:`Truth` into the three truth frames and sends them on ``bus``."""
 
     def __init__(self, bus: can.BusABC | None) -> None:
-        #: The truth channel; None: nothing is published.
         self.bus = bus
         # Codecs are used by signal name: a DBC with reordered signals fails here, loudly.
         self._codecs = (
@@ -41,6 +40,22 @@ class TruthPublisher:
             for c in self._codecs
         )
 
+    @property
+    def bus(self) -> can.BusABC | None:
+        """The truth channel; None: nothing is published."""
+        return self._bus
+
+    @bus.setter
+    def bus(self, bus: can.BusABC | None) -> None:
+        self._bus = bus
+        # The simulated bus takes a cycle's frames in one call; any other one by one.
+        self._send_frames = getattr(bus, "send_frames", None) or self._send_each
+
+    def _send_each(self, msgs: tuple[can.Message, ...]) -> None:
+        send = self._bus.send  # type: ignore[union-attr]
+        for msg in msgs:
+            send(msg)
+
     def publish(self, t: Truth) -> None:
         """Send the three truth frames of ``t`` (the bus must be set)."""
         torque, motion, joint = self._codecs
@@ -53,7 +68,4 @@ class TruthPublisher:
             t.omega_output_radps,
         )
         m_joint.data = joint.encode(t.tau_ext_Nm, t.tau_d_Nm, t.tau_m_Nm, t.tau_m_cmd_Nm)
-        send = self.bus.send  # type: ignore[union-attr]
-        send(m_torque)
-        send(m_motion)
-        send(m_joint)
+        self._send_frames(self._msgs)

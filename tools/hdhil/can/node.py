@@ -28,6 +28,8 @@ class CanNode:
         self.error_frames = 0
         self._known = known_frames(bus_name)
         self._handlers: dict[tuple[int, bool], Handler] = {}
+        #: The handlers of 11-bit identifiers by identifier alone (the 1 kHz frames).
+        self._base_handlers: dict[int, Handler] = {}
         # A bus that can hand queued frames straight to a handler (simbus) is drained
         # without a recv() call per frame; any other python-can bus through recv(0).
         self._dispatch: Callable[[Handler], int] | None = getattr(bus, "dispatch", None)
@@ -35,15 +37,24 @@ class CanNode:
     def handle(self, frame_id: int, handler: Handler, extended: bool = False) -> None:
         """Route frames with this identifier to ``handler``."""
         self._handlers[(frame_id, extended)] = handler
+        if not extended:
+            self._base_handlers[frame_id] = handler
 
     def unhandle(self, frame_id: int, extended: bool = False) -> None:
         """Stop routing frames with this identifier (they count as any other frame)."""
         self._handlers.pop((frame_id, extended), None)
+        if not extended:
+            self._base_handlers.pop(frame_id, None)
 
     def on_message(self, msg: can.Message) -> None:
         if msg.is_error_frame:
             self.error_frames += 1
             return
+        if not msg.is_extended_id:
+            handler = self._base_handlers.get(msg.arbitration_id)
+            if handler is not None:
+                handler(msg)
+                return
         key = (msg.arbitration_id, msg.is_extended_id)
         handler = self._handlers.get(key)
         if handler is not None:

@@ -246,6 +246,11 @@ class Tpdo:
         self._msg = can.Message(
             arbitration_id=layout.cob_id, is_extended_id=False, dlc=layout.length, check=False
         )
+        # What ``flush`` tests on every call, from the (frozen) layout once.
+        self._event_driven = layout.valid and not layout.synchronous
+        self._event_s = layout.event_s
+        self._event_due_s = layout.event_s - TIME_EPSILON
+        self._inhibit_due_s = layout.inhibit_s - TIME_EPSILON
 
     def restart(self) -> None:
         """Entering OPERATIONAL: the next event sends at once; SYNC counting restarts."""
@@ -273,15 +278,14 @@ class Tpdo:
     def flush(self, now: float, force: bool = False) -> bool:
         """Event-driven types: send if the data changed (or ``force``) and the inhibit
         time allows, or if the event timer expired."""
-        layout = self.layout
-        if not layout.valid or layout.synchronous:
+        if not self._event_driven:
             return False
         data = self.payload()
-        changed = force or self._pending or data != self._last
-        timer = layout.event_s > 0 and now - self._last_at >= layout.event_s - TIME_EPSILON
-        if not (changed or timer):
+        if not (force or self._pending or data != self._last) and not (
+            self._event_s > 0 and now - self._last_at >= self._event_due_s
+        ):
             return False
-        if now - self._last_at < layout.inhibit_s - TIME_EPSILON:
+        if now - self._last_at < self._inhibit_due_s:
             self._pending = True
             return False
         return self._send(data, now)

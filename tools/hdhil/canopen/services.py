@@ -301,6 +301,9 @@ class CanopenServices:
         self._apply_power_on_values()
         self._load_comm_config()
         self._dispatch = self._build_dispatch()
+        #: The identifiers of the service frames :meth:`handle` consumes (fixed per node):
+        #: a node's frame handler tests this first and skips :meth:`handle` for the rest.
+        self.service_ids: frozenset[int] = frozenset(self._dispatch)
 
     # ------------------------------------------------------------ registration
 

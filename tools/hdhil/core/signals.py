@@ -19,6 +19,7 @@ library only.
 
 from __future__ import annotations
 
+import _signal
 import contextlib
 import os
 import signal
@@ -184,19 +185,22 @@ def signals_deferred() -> Iterator[None]:
             caught.append(signum)
 
     previous: dict[int, Any] = {}
+    # The C module's functions: ``signal.signal`` and ``getsignal`` convert every handler to
+    # and from the Handlers enum, which costs more than the rest of the block (the trace
+    # writer's hand-off runs this every few dozen cycles).
     try:
         for sig in STOPPING_SIGNALS:
-            if signal.getsignal(sig) is not signal.SIG_IGN:
-                previous[sig] = signal.signal(sig, note)
+            if _signal.getsignal(sig) != _signal.SIG_IGN:
+                previous[sig] = _signal.signal(sig, note)
         yield
     finally:
         for sig, handler in previous.items():
-            signal.signal(sig, handler)
+            _signal.signal(sig, handler)
         for sig in caught:
-            handler = signal.getsignal(sig)
+            handler = _signal.getsignal(sig)
             if callable(handler):
                 handler(sig, None)
-            elif handler == signal.SIG_DFL:
+            elif handler == _signal.SIG_DFL:
                 signal.raise_signal(sig)
 
 

@@ -112,9 +112,16 @@ class TorqueScorer(can.Listener):
     def on_frames(self, frames: list[can.Message]) -> None:
         """:meth:`on_message_received` for the telemetry and truth frames among ``frames``."""
         keys = self._keys
+        truth_key = self._truth_key
+        truth_length = self._truth.length
+        truth_decode = self._truth.decode
         for msg in frames:
-            if (msg.arbitration_id, msg.is_extended_id) in keys:
-                self.on_message_received(msg)
+            key = (msg.arbitration_id, msg.is_extended_id)
+            if key in keys:
+                if key == truth_key and len(msg.data) == truth_length:  # the common case
+                    self._T_true = truth_decode(msg.data)[0]
+                else:
+                    self.on_message_received(msg)
 
     def _close_block(self) -> None:
         if self._block_n:

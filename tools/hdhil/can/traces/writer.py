@@ -7,7 +7,8 @@ tools that expect them (can-utils, asammdf, Vector's) read them as any logger's.
 
 :class:`WriterProcess` runs that writer in a child process: the run hands it frames in
 batches through a pipe, so formatting and compressing the file happens on the other core,
-off the 1 kHz loop.  The pipe is bounded: a writer that falls behind makes the run wait,
+off the 1 kHz loop.  The pipe is bounded (:data:`PIPE_BYTES`, large enough to ride out a
+writer that gets no CPU for a while): a writer that falls behind makes the run wait,
 it never drops a frame.  Handing a batch on is safe against Ctrl-C (a batch goes whole or
 not at all, and is counted with it).  If the run dies (even by SIGKILL) the child reads
 what was sent up to then and closes the file properly.
@@ -22,15 +23,19 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import multiprocessing.util
+import operator
 import os
 import struct
 import time
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
 import can
 
+from hdhil.can.simbus import _snapshot_fast, received_copy
 from hdhil.can.traces import formats
+from hdhil.can.traces.blfobjects import bulk_blf_writer
 from hdhil.can.traces.formats import (
     GZIP_SUFFIXES,
     MF4_MISSING,
@@ -52,6 +57,11 @@ from hdhil.core.signals import (
     signals_deferred,
     stopping_signals_blocked,
 )
+
+try:
+    import fcntl
+except ImportError:  # not on Windows
+    fcntl = None  # type: ignore[assignment]
 
 
 def check_trace_path(path: Path) -> None:
@@ -88,20 +98,93 @@ BATCH_FRAMES = 512
 #: slowly running bus still reaches the file within a fraction of a second.
 BATCH_MAX_AGE_S = 0.25
 
+#: The capacity asked for the pipe to the writer process (bytes; Linux, where an
+#: unprivileged process may ask up to ``/proc/sys/fs/pipe-max-size``): about 40 000
+#: frames, some seconds of a lockstep run, so a writer that gets no CPU for a while (the
+#: machine's other core busy) does not stall the loop at once.  Elsewhere, or when
+#: refused, the system's default (64 KiB on Linux).
+PIPE_BYTES = 1 << 20
+
 #: How long ``stop`` waits for the writer process to finish the file.
 WRITER_EXIT_TIMEOUT_S = 120.0
 
-#: One frame on the pipe: timestamp, identifier, flags (bit 0 extended, 1 remote, 2 error
-#: frame, 3 received), DLC, channel number, payload length, payload (padded to 8 bytes).
-_RECORD = struct.Struct("<dIBBBB8s")
+#: One frame on the pipe: timestamp, identifier, extended, remote, error frame, received,
+#: DLC, channel number, payload (up to 8 bytes, with its length: a Pascal string).
+_RECORD = struct.Struct("<dI????BB9p")
+#: The fields of a record, read from a frame in one call (tools, tests).
+_FIELDS = operator.attrgetter("timestamp", "arbitration_id", "is_extended_id", "is_remote_frame",
+                              "is_error_frame", "is_rx", "dlc", "channel", "data")  # fmt: skip
 
 
-def _message(f: tuple[float, int, int, int, int, int, bytes], offset: float) -> can.Message:
-    ts, can_id, flags, dlc, channel, length, data = f
-    return can.Message(timestamp=ts + offset, arbitration_id=can_id, is_extended_id=bool(flags & 1),
-                       is_remote_frame=bool(flags & 2), is_error_frame=bool(flags & 4),
-                       is_rx=bool(flags & 8), dlc=dlc, data=data[:length], channel=channel,
-                       check=False)  # fmt: skip
+def _records(frames: Iterable[can.Message]) -> list[bytes]:
+    """The pipe records of ``frames`` (a comprehension: the cheapest way to pack a batch)."""
+    pack = _RECORD.pack
+    return [pack(msg.timestamp, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+                 msg.is_error_frame, msg.is_rx, msg.dlc, msg.channel, msg.data)
+            for msg in frames]  # fmt: skip
+
+
+_Record = tuple[float, int, bool, bool, bool, bool, int, int, bytes]
+
+
+def _message_checked(f: _Record, offset: float) -> can.Message:
+    ts, can_id, extended, remote, error, rx, dlc, channel, data = f
+    return can.Message(timestamp=ts + offset, arbitration_id=can_id, is_extended_id=extended,
+                       is_remote_frame=remote, is_error_frame=error, is_rx=rx, dlc=dlc,
+                       data=data, channel=channel, check=False)  # fmt: skip
+
+
+_new_message = object.__new__
+
+
+def _message_fast(f: _Record, offset: float) -> can.Message:
+    """:func:`_message_checked` field by field (the constructor's keyword handling costs
+    more than the writer's own work; the writers read the same values either way)."""
+    ts, can_id, extended, remote, error, rx, dlc, channel, data = f
+    msg = _new_message(can.Message)
+    msg.timestamp = ts + offset
+    msg.arbitration_id = can_id
+    msg.is_extended_id = extended
+    msg.is_remote_frame = remote
+    msg.is_error_frame = error
+    msg.is_rx = rx
+    msg.channel = channel
+    msg.dlc = dlc
+    msg.data = bytearray() if remote else bytearray(data)
+    msg.is_fd = False
+    msg.bitrate_switch = False
+    msg.error_state_indicator = False
+    return msg
+
+
+#: One record back into a :class:`can.Message` for the writer: field by field while
+#: python-can's Message has exactly the fields filled here, else by its constructor.
+_message = _message_fast if received_copy is _snapshot_fast else _message_checked
+
+
+def _batch_writer(writer: can.Listener, offset: float) -> Callable[[bytes], int]:
+    """A function writing one batch of records with ``writer``; it returns how many.
+
+    Every record becomes a :class:`can.Message` for ``writer.on_message_received``; for
+    python-can's own BLF writer, the classical frames go to its buffer in bulk
+    (:mod:`hdhil.can.traces.blfobjects`: the same bytes, without a message per frame).
+    """
+    on_message = writer.on_message_received
+
+    def one(record: _Record) -> None:
+        on_message(_message(record, offset))
+
+    def each_message(batch: bytes) -> int:
+        n = 0
+        for record in _RECORD.iter_unpack(batch):
+            one(record)
+            n += 1
+        return n
+
+    bulk = bulk_blf_writer(writer, offset, one)
+    if bulk is None:
+        return each_message
+    return lambda batch: bulk(_RECORD.iter_unpack(batch))
 
 
 def _pin_header_dates(unix_s: float) -> None:
@@ -163,6 +246,7 @@ def _writer_main(
         status.send(("error", f"cannot write trace {shown}: {text}"))
         return
     status.send(("ready", None))
+    write_batch = _batch_writer(writer, offset)
     written = 0
     error: str | None = None
     try:
@@ -171,9 +255,7 @@ def _writer_main(
                 batch = frames.recv_bytes()
             except EOFError:
                 break
-            for f in _RECORD.iter_unpack(batch):
-                writer.on_message_received(_message(f, offset))
-                written += 1
+            written += write_batch(batch)
     except OSError as exc:
         error = f"cannot write trace {shown}: {exc.strerror or exc}"
     finally:
@@ -194,6 +276,22 @@ def _writer_main(
 
 
 _pack = _RECORD.pack
+
+
+def _widen_pipe(fd: int) -> None:
+    """Ask for a pipe of :data:`PIPE_BYTES` (at most the system's limit) where the system
+    lets a process size its pipes; keep the default otherwise."""
+    set_size = getattr(fcntl, "F_SETPIPE_SZ", None) if fcntl is not None else None
+    if set_size is None:
+        return
+    try:
+        fcntl.fcntl(fd, set_size, PIPE_BYTES)
+    except OSError:
+        try:
+            limit = int(Path("/proc/sys/fs/pipe-max-size").read_text())
+            fcntl.fcntl(fd, set_size, min(PIPE_BYTES, limit))
+        except (OSError, ValueError):
+            pass
 
 
 class WriterError(ValueError):
@@ -235,6 +333,7 @@ class WriterProcess(can.Listener):
         except OSError as exc:
             raise ValueError(f"cannot write trace {path}: {exc.strerror or exc}") from None
         frames_r, frames_w = ctx.Pipe(duplex=False)
+        _widen_pipe(frames_w.fileno())
         status_r, status_w = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(
             target=_writer_main,
@@ -276,11 +375,7 @@ class WriterProcess(can.Listener):
         as the run's tap stamps it."""
         if not self._batch:
             self._batch_started = time.monotonic()
-        data = msg.data
-        self._batch += _pack(msg.timestamp, msg.arbitration_id,
-                             msg.is_extended_id | msg.is_remote_frame << 1
-                             | msg.is_error_frame << 2 | msg.is_rx << 3,
-                             msg.dlc, msg.channel, len(data), data)  # fmt: skip
+        self._batch += _pack(*_FIELDS(msg))
         self._batched += 1
         if self._batched >= BATCH_FRAMES or (
             self._batched & 31 == 0 and time.monotonic() - self._batch_started > BATCH_MAX_AGE_S
@@ -291,13 +386,17 @@ class WriterProcess(can.Listener):
         """:meth:`on_message_received` for each frame, in one call."""
         if not self._batch:
             self._batch_started = time.monotonic()
-        batch = self._batch  # appended in place
-        for msg in frames:
-            data = msg.data
-            batch += _pack(msg.timestamp, msg.arbitration_id,
-                           msg.is_extended_id | msg.is_remote_frame << 1
-                           | msg.is_error_frame << 2 | msg.is_rx << 3,
-                           msg.dlc, msg.channel, len(data), data)  # fmt: skip
+        pending = iter(frames)
+        try:
+            packed = b"".join(_records(pending))
+        except BaseException:
+            # A signal handler raised (Ctrl-C) while a frame was read, or a frame does not
+            # fit a record: the frames before that one are kept, as they were handed over.
+            kept = frames[: max(len(frames) - operator.length_hint(pending) - 1, 0)]
+            self._batch += b"".join(_records(kept))
+            self._batched += len(kept)
+            raise
+        self._batch += packed
         self._batched += len(frames)
         if (
             self._batched >= BATCH_FRAMES
