@@ -526,7 +526,8 @@ class CyclicIO:
         """RPDO event timers (0x14xx:5) and the SYNC timeout (1.5 x 0x1006, as CANopenNode
         does): EMCY 0x8250 / 0x8100 and the abort-connection reaction (0x6007)."""
         node = self.node
-        for number, deadline in list(self._rpdo_deadlines.items()):
+        deadlines = self._rpdo_deadlines
+        for number, deadline in list(deadlines.items()) if deadlines else ():
             if now > deadline + TIME_EPSILON:
                 del self._rpdo_deadlines[number]
                 node.diagnostics.rpdo_timeouts += 1
