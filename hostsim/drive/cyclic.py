@@ -138,6 +138,7 @@ class CyclicIO:
         self.plant = plant = node.plant
         cfg = node.config
         services = self.services = node.services
+        self._emcy = services.emcy
         self._Ts = cfg.sample_period_s
         self.next_sync = cfg.actuation == "next-sync"
         self._dac = plant.dac
@@ -414,8 +415,9 @@ class CyclicIO:
             d.late_commands += 1
         self._command_in_cycle = True
         self._silent_cycles = 0
-        if self.services.emcy.error_active(_RPDO_TIMEOUT):
-            self.services.emcy.clear(_RPDO_TIMEOUT)
+        emcy = self._emcy
+        if emcy.active and emcy.error_active(_RPDO_TIMEOUT):  # no call while none is active
+            emcy.clear(_RPDO_TIMEOUT)
         self._latched_V = self._dac.to_volts(dac_counts)
         if self.next_sync:
             # Latched only: nothing an event TPDO carries changed, and the last flush was
