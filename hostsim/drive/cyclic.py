@@ -31,6 +31,7 @@ from hdhil.dbc import codec
 from hdhil.hostsim.plant_model import SensorCounts, Truth
 
 if TYPE_CHECKING:
+    from hdhil.canopen.cia402 import DriveStateMachine
     from hdhil.hostsim.drive.node import DriveNode
 
 __all__ = [
@@ -137,10 +138,13 @@ class CyclicIO:
         self.plant = plant = node.plant
         cfg = node.config
         services = self.services = node.services
+        self._emcy = services.emcy
         self._Ts = cfg.sample_period_s
         self.next_sync = cfg.actuation == "next-sync"
         self._dac = plant.dac
-        self._adc = plant.adc
+        self._adc = adc = plant.adc
+        self._adc_min, self._adc_max = adc.code_min, adc.code_max
+        self._hold_limit = cfg.command_hold_cycles
         # at the limit from here on
         self._current_limit_Nm = plant.max_motor_torque_Nm * (1 - 1e-12)
 
@@ -261,8 +265,9 @@ class CyclicIO:
             self._check_sensors(sample, truth)
         if services.state is _OPERATIONAL:
             if self._fast_sensor:  # TPDO1 as the DBC describes it: every SYNC
-                self._sensor_msg.data = self._sensor.encode(*sample)
-                self.bus.send(self._sensor_msg)
+                msg = self._sensor_msg
+                msg.data = self._sensor.encode(*sample)
+                self.bus.send(msg)
                 d.sensor_frames += 1
             else:
                 for tpdo in self._tpdos:
@@ -271,27 +276,30 @@ class CyclicIO:
             publisher = self._truth
             if publisher.bus is not None:
                 publisher.publish(truth)
-        self._check_command_hold()
+        # Command hold: count SYNC cycles without a command while OPERATION ENABLED
+        # (inline: it runs every SYNC).
+        if self._command_in_cycle:
+            self._command_in_cycle = False
+            self._silent_cycles = 0
+        elif machine.state is not _OPERATION_ENABLED or not self._hold_limit:
+            self._silent_cycles = 0
+        else:
+            self._command_hold_missed(machine)
         if self.next_sync:
             self.active_V = self._latched_V
             if self._pending_cw is not None:
                 machine.apply_controlword(self._pending_cw)
                 self._pending_cw = None
         self.step_V = machine.torque_output(self.active_V)
-        self.flush_statusword()
+        if services.state is _OPERATIONAL:  # flush_statusword, inline
+            for tpdo in self._event_tpdos:
+                tpdo.flush(now)
 
-    def _check_command_hold(self) -> None:
-        """Count SYNC cycles without a command while OPERATION ENABLED; fault at the limit."""
-        had_command = self._command_in_cycle
-        self._command_in_cycle = False
-        node = self.node
-        limit = node.config.command_hold_cycles
-        machine = node.machine
-        if had_command or not limit or machine.state is not _OPERATION_ENABLED:
-            self._silent_cycles = 0
-            return
+    def _command_hold_missed(self, machine: DriveStateMachine) -> None:
+        """A SYNC cycle without a command while OPERATION ENABLED: fault at the limit."""
         self._silent_cycles += 1
-        if self._silent_cycles >= limit:
+        if self._silent_cycles >= self._hold_limit:
+            node = self.node
             node.diagnostics.command_timeouts += 1
             node.emcy(EmcyCode.RPDO_TIMEOUT, bytes((min(self._silent_cycles, 255),)))
             machine.fault(EmcyCode.RPDO_TIMEOUT)
@@ -299,8 +307,26 @@ class CyclicIO:
 
     def _check_sensors(self, sample: SensorCounts, truth: Truth) -> None:
         """EMCY 0x7300 per saturated ADC channel, 0x2310 at the current limit (edges)."""
+        machine = self.node.machine
+        active = self._saturated
+        lo, hi = self._adc_min, self._adc_max
+        # The usual cycle, no channel at a limit before or now, tested in one expression.
+        if active or not (lo < sample[0] < hi and lo < sample[1] < hi and lo < sample[2] < hi):
+            self._check_saturation(sample)
+        machine.warning = bool(active)
+        at_limit = abs(truth.tau_m_cmd_Nm) >= self._current_limit_Nm
+        if at_limit != self._at_current_limit:
+            node = self.node
+            self._at_current_limit = at_limit
+            machine.internal_limit_active = at_limit
+            if at_limit:
+                node.diagnostics.overcurrents += 1
+                node.emcy(EmcyCode.CONTINUOUS_OVER_CURRENT)
+            else:
+                self.services.emcy.clear(EmcyCode.CONTINUOUS_OVER_CURRENT)
+
+    def _check_saturation(self, sample: SensorCounts) -> None:
         node = self.node
-        machine = node.machine
         saturated = self._adc.saturated
         active = self._saturated
         for channel, counts in zip(ADC_CHANNELS, sample, strict=False):
@@ -312,16 +338,6 @@ class CyclicIO:
             elif channel in active:
                 active.discard(channel)
                 self.services.emcy.clear(EmcyCode.SENSOR, bytes((channel,)))
-        machine.warning = bool(active)
-        at_limit = abs(truth.tau_m_cmd_Nm) >= self._current_limit_Nm
-        if at_limit != self._at_current_limit:
-            self._at_current_limit = at_limit
-            machine.internal_limit_active = at_limit
-            if at_limit:
-                node.diagnostics.overcurrents += 1
-                node.emcy(EmcyCode.CONTINUOUS_OVER_CURRENT)
-            else:
-                self.services.emcy.clear(EmcyCode.CONTINUOUS_OVER_CURRENT)
 
     # ------------------------------------------------------------------ command
 
@@ -359,6 +375,7 @@ class CyclicIO:
         if controlword is None:
             controlword = self.node.machine.controlword
         self._command_values(dac_counts, controlword)
+        self.flush_statusword()  # the objects written above may be in an event TPDO
 
     def _rpdo_received(self, layout: PdoLayout) -> None:
         if layout.event_s > 0:
@@ -398,17 +415,20 @@ class CyclicIO:
             d.late_commands += 1
         self._command_in_cycle = True
         self._silent_cycles = 0
-        if self.services.emcy.error_active(_RPDO_TIMEOUT):
-            self.services.emcy.clear(_RPDO_TIMEOUT)
+        emcy = self._emcy
+        if emcy.active and emcy.error_active(_RPDO_TIMEOUT):  # no call while none is active
+            emcy.clear(_RPDO_TIMEOUT)
         self._latched_V = self._dac.to_volts(dac_counts)
         if self.next_sync:
+            # Latched only: nothing an event TPDO carries changed, and the last flush was
+            # at this same ``now`` (the node's tick or a frame's handling), so none is due.
             self._pending_cw = int(controlword)
         else:
             machine = node.machine
             self.active_V = self._latched_V
             machine.apply_controlword(int(controlword))
             self.step_V = machine.torque_output(self.active_V)
-        self.flush_statusword()
+            self.flush_statusword()
 
     def drop_command(self) -> None:
         """Forget the latched and the active command (a lost connection)."""
@@ -508,7 +528,8 @@ class CyclicIO:
         """RPDO event timers (0x14xx:5) and the SYNC timeout (1.5 x 0x1006, as CANopenNode
         does): EMCY 0x8250 / 0x8100 and the abort-connection reaction (0x6007)."""
         node = self.node
-        for number, deadline in list(self._rpdo_deadlines.items()):
+        deadlines = self._rpdo_deadlines
+        for number, deadline in list(deadlines.items()) if deadlines else ():
             if now > deadline + TIME_EPSILON:
                 del self._rpdo_deadlines[number]
                 node.diagnostics.rpdo_timeouts += 1

@@ -60,12 +60,9 @@ class TruthPublisher:
         """Send the three truth frames of ``t`` (the bus must be set)."""
         torque, motion, joint = self._codecs
         m_torque, m_motion, m_joint = self._msgs
-        m_torque.data = torque.encode(t.T_true_Nm, t.T_ripple_Nm)
-        m_motion.data = motion.encode(
-            t.theta_motor_rad % TWO_PI,
-            t.theta_output_rad % TWO_PI,
-            t.omega_motor_radps,
-            t.omega_output_radps,
-        )
-        m_joint.data = joint.encode(t.tau_ext_Nm, t.tau_d_Nm, t.tau_m_Nm, t.tau_m_cmd_Nm)
+        # The first ten fields by position (Truth's order), in one unpacking.
+        T_true, th_m, th_o, w_m, w_o, tau_m, tau_m_cmd, T_ripple, tau_ext, tau_d = t[:10]
+        m_torque.data = torque.encode(T_true, T_ripple)
+        m_motion.data = motion.encode(th_m % TWO_PI, th_o % TWO_PI, w_m, w_o)
+        m_joint.data = joint.encode(tau_ext, tau_d, tau_m, tau_m_cmd)
         self._send_frames(self._msgs)

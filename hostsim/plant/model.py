@@ -39,6 +39,7 @@ __all__ = ["ENCODER_MODULUS", "Plant"]
 
 ENCODER_MODULUS = 1 << 16  # 16-bit wrapping quadrature counter ([Taghirad97]: short pcsample)
 _NOISE_BLOCK = 4096  # standard normals drawn from the generator at a time
+_new_tuple = tuple.__new__  # a NamedTuple from a complete tuple of its fields
 
 
 class Plant:
@@ -222,7 +223,13 @@ class Plant:
         ) = self._maps.get(dt) or self._map(dt)  # fmt: skip
         # coefficient <row><column>: rows d (twist), m (w_m), l (w_l), q (q_l), i (current);
         # columns d, m, l, i (state), u (i_cmd), tm / tl (motor / load non-linear torque)
-        i_cmd = self._command_current(volts)
+        # _command_current and _tick inline: this is the 1 kHz path of every run.
+        i_cmd = self._gain * volts
+        if i_cmd > self._ilim:
+            i_cmd = self._ilim
+        elif i_cmd < -self._ilim:
+            i_cmd = -self._ilim
+        self._i_cmd = i_cmd
         # constant-over-the-step input terms
         du *= i_cmd
         mu *= i_cmd
@@ -253,7 +260,10 @@ class Plant:
                 ii * i + iu,
             )
         self._d, self._wm, self._wl, self._i, self._ql = d, wm, wl, i, q_out
-        self._tick(dt)
+        y = dt - self._t_carry
+        t = self._t + y
+        self._t_carry = (t - self._t) - y
+        self._t = t
         self._update_sensor()
 
     def _command_current(self, volts: float) -> float:
@@ -396,8 +406,9 @@ class Plant:
             pos = 0
         n_torque, n_tacho, n_current = self._noise[pos : pos + 3]
         self._noise_pos = pos + 3
-        s = self.cfg.sensors
-        to_counts = self.cfg.adc.to_counts
+        cfg = self.cfg
+        s = cfg.sensors
+        adc = cfg.adc
         # T_true as _update_sensor found it: the state has not moved since.
         torque_V = (
             (self._T_true + self._T_ripple) / self._volt2Nm
@@ -408,10 +419,20 @@ class Plant:
         current_V = self._i / s.current_monitor_A_per_V + self._sig_current_V * n_current
         theta_motor_unwrapped = self._n * (self._ql + self._d)
         enc = math.floor(theta_motor_unwrapped * self._cpr_per_rad) % ENCODER_MODULUS
-        counts = to_counts(torque_V), to_counts(tacho_V), to_counts(current_V), enc
+        # Converter.to_counts of the three channels, inline (same arithmetic: NaN -> 0,
+        # round to nearest, saturate), as this runs every SYNC.
+        lsb, lo, hi = adc.lsb_V, adc.code_min, adc.code_max
+        c_torque = round(torque_V / lsb) if torque_V == torque_V else 0
+        c_tacho = round(tacho_V / lsb) if tacho_V == tacho_V else 0
+        c_current = round(current_V / lsb) if current_V == current_V else 0
+        counts = (
+            hi if c_torque > hi else lo if c_torque < lo else c_torque,
+            hi if c_tacho > hi else lo if c_tacho < lo else c_tacho,
+            hi if c_current > hi else lo if c_current < lo else c_current,
+            enc,
+        )
         if self.faults is not None:
-            adc = self.cfg.adc
-            return self.faults.apply(self._t, counts, adc.code_min, adc.code_max, adc.lsb_V)
+            return self.faults.apply(self._t, counts, lo, hi, lsb)
         return counts
 
     # ------------------------------------------------------------------ converters
@@ -457,7 +478,8 @@ class Plant:
         transmitted = spring + d.c_flex * (wm - wl)
         tau_d = -d.b_motor * wm - self._cm * math.tanh(wm * self._inv_eps)
         friction = -d.b_load * wl - self._cl * math.tanh(wl * self._inv_eps)
-        tau_g = self.cfg.gravity.torque(q_l)
+        mgl = self._mgl  # GravityConfig.torque, inline (the same expression)
+        tau_g = mgl * math.sin(q_l + self._g_off) if mgl != 0.0 else 0.0
         link = self._link
         if link is None:
             profile = self._profile
@@ -469,23 +491,28 @@ class Plant:
             tau_ext = d.J_load * accel - transmitted
             tau_l = tau_ext - tau_g - friction
         kt_out = n * self.cfg.amplifier.torque_constant_Nm_per_A
-        return Truth(
-            spring if self._spring_only else transmitted,
-            n * (q_l + twist),
-            q_l,
-            n * wm,
-            wl,
-            kt_out * self._i,
-            kt_out * self._i_cmd,
-            self._T_ripple,
-            tau_ext,
-            tau_d,
-            transmitted,
-            spring,
-            self._i,
-            tau_l,
-            tau_g,
-            friction,
-            accel,
-            RippleParts(*self._parts),
+        # Built by tuple.__new__, all fields given in order: the NamedTuple's generated
+        # __new__ (keyword handling) costs more than the rest of this method.
+        return _new_tuple(
+            Truth,
+            (
+                spring if self._spring_only else transmitted,
+                n * (q_l + twist),
+                q_l,
+                n * wm,
+                wl,
+                kt_out * self._i,
+                kt_out * self._i_cmd,
+                self._T_ripple,
+                tau_ext,
+                tau_d,
+                transmitted,
+                spring,
+                self._i,
+                tau_l,
+                tau_g,
+                friction,
+                accel,
+                _new_tuple(RippleParts, self._parts),
+            ),
         )

@@ -158,14 +158,12 @@ class SyncMonitor:
         """
         data = msg.data
         counter = data[0] if len(data) == 1 else None
+        overflow = self.overflow
+        if counter is None or not overflow or not 1 <= counter <= overflow:
+            return self.on_sync_frame(msg, now)
         last = self.last_counter
-        if (
-            counter is not None
-            and last is not None
-            and self.overflow
-            and 1 <= counter <= self.overflow
-        ):
-            behind = (last - counter) % self.overflow
+        if last is not None:
+            behind = (last - counter) % overflow
             if behind == 0:
                 self.duplicates += 1
                 return None
@@ -174,11 +172,13 @@ class SyncMonitor:
                 return None
             # Counter 1 a few steps after the last one is the wrap with the SYNCs in
             # between lost (240 lost after 239, say), not a restart.
-            ahead = (counter - last) % self.overflow
+            ahead = (counter - last) % overflow
             if counter == 1 and ahead > self.STALE_WINDOW:
                 self.restarts += 1
                 self.last_counter = None
-        return self.on_sync_frame(msg, now)
+        # A one-byte frame with a counter in range: what on_sync_frame and on_sync would
+        # check has passed, so straight to the registration (every SYNC takes this path).
+        return self._register(counter, now)
 
     def on_command(self, now: float) -> bool:
         """Register a cyclic command; True if on time (before the deadline after its SYNC)."""
