@@ -170,18 +170,19 @@ class TorqueFilterChain:
         In paper mode ``self.T_ripple`` afterwards holds the prediction for the next
         sample (the listing's global).
         """
+        differentiator = self.differentiator
         if self._check:  # plausibility (not in the listing), right after calibration
             check = self.plausibility
             velocity, encoder = check.step(velocity, encoder)
             if check.reseeded:
-                self.differentiator.reseed(velocity)
+                differentiator.reseed(velocity)
             rejected = check.rejected
         else:
             rejected = False
         if stamp is not None:
             stamp(2)
         self.velocity = velocity
-        acc = self.differentiator.step(velocity)  # acc = Diff_filter( vel);
+        acc = differentiator.step(velocity)  # acc = Diff_filter( vel);
         if stamp is not None:
             stamp(3)
         T_mod = expected_torque(acc, self._J_load, self._gear_ratio)  # T_mod = J_load*acc/Gain;
@@ -421,7 +422,7 @@ class InterruptHandler:
         """``numsamples`` reached (listing ``main``: ``while (samplecount < numsamples)``);
         never with ``num_samples = 0`` (run until stopped).  The handler itself keeps
         working if called again; stopping is the caller's job, as in ``main``."""
-        n = self.cfg.num_samples
+        n = self._cfg.num_samples
         return n > 0 and self.samplecount >= n
 
     @property
@@ -494,7 +495,6 @@ class InterruptHandler:
         self.samplecount = 0
 
     def __call__(self, sample: AdcSample | CstSample) -> IsrOutput:
-        cfg = self.cfg
         k = self.samplecount
         stamp = self.stage_hook
         if stamp is not None:
@@ -503,8 +503,9 @@ class InterruptHandler:
         # vel = Tacho * volt2radps; T_meas = Torque * volt2Nm;
         # (the sensor source: AdcSource, or CstSource on 0x6077/0x6064 in the CST mapping)
         T_meas, vel, current, encoder, Torque, Tacho = self.source(sample)
-        if self.stuck is not None:  # a channel stuck while the motor turns (not in the listing)
-            self.stuck.step(T_meas, vel, encoder, Torque, Tacho)
+        stuck = self.stuck
+        if stuck is not None:  # a channel stuck while the motor turns (not in the listing)
+            stuck.step(T_meas, vel, encoder, Torque, Tacho)
         if stamp is not None:
             stamp(1)
         # plausibility (not in the listing): implausible vel / pcsample replaced;
@@ -520,7 +521,7 @@ class InterruptHandler:
             if stamp is not None:
                 stamp(6)
             # write_dac0( ref_fl );
-            out.dac_counts = dac_write(ref_fl, cfg.dac)
+            out.dac_counts = dac_write(ref_fl, self._cfg.dac)
             out.reference_V = ref_fl
         else:
             # [Vertechy]: LQG torque control on the measured torque -> write_dac0(tau_m / Nm per V)
