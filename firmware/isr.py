@@ -403,6 +403,10 @@ class InterruptHandler:
         #: ADC read and calibration; :meth:`use_cst_source` for the CiA 402 CST mapping).
         self.source: AdcSource | CstSource = AdcSource(cfg.adc, cfg.calibration)
         self._out = IsrOutput()
+        # The last reference written to the DAC, its converter and code (``__call__``).
+        self._ref_written = math.nan
+        self._dac_written = cfg.dac
+        self._counts_written = 0
         #: Stage timing (:data:`StageHook`): called at every stage boundary when set.
         self.stage_hook: StageHook | None = None
 
@@ -521,7 +525,16 @@ class InterruptHandler:
             if stamp is not None:
                 stamp(6)
             # write_dac0( ref_fl );
-            out.dac_counts = dac_write(ref_fl, self._cfg.dac)
+            # dac_write is a pure function of the reference and the converter: while the
+            # reference holds still (a step or constant wave, most samples) the last
+            # code is the answer.
+            dac = self._cfg.dac
+            if ref_fl == self._ref_written and dac is self._dac_written:
+                counts = self._counts_written
+            else:
+                counts = dac_write(ref_fl, dac)
+                self._ref_written, self._dac_written, self._counts_written = ref_fl, dac, counts
+            out.dac_counts = counts
             out.reference_V = ref_fl
         else:
             # [Vertechy]: LQG torque control on the measured torque -> write_dac0(tau_m / Nm per V)
