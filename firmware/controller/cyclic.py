@@ -175,19 +175,13 @@ class CyclicIo:
             return
         node = self.node
         phase = node.phase
-        # "operational", the 1 kHz case, is told by identity first: the set's membership
-        # test hashes the enum member in Python.
-        if phase is _OPERATIONAL:
-            if not self.services.pdo_allowed:
-                d.pdos_ignored += 1
-                return
-            if self.isr_ran:
-                # A second sensor frame in one cycle (duplicated on the bus): the
-                # interrupt runs once per SYNC, as the seed's timer interrupt does.
-                d.extra_sensor_frames += 1
-                return
-        elif phase not in COMMANDING or not self.services.pdo_allowed:
+        if phase not in COMMANDING or not self.services.pdo_allowed:
             d.pdos_ignored += 1
+            return
+        if phase is _OPERATIONAL and self.isr_ran:
+            # A second sensor frame in one cycle (duplicated on the bus): the interrupt
+            # runs once per SYNC, as the seed's timer interrupt does.
+            d.extra_sensor_frames += 1
             return
         self.sensor_seen = True
         d.sensor_frames += 1
