@@ -23,16 +23,19 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import NamedTuple, Protocol, runtime_checkable
 
 __all__ = ["AdcSample", "CstSample", "InterruptHandlerModel", "IsrOutput", "StageHook"]
 
 
-@dataclass(frozen=True, slots=True)
-class AdcSample:
+class AdcSample(NamedTuple):
     """Raw counts from the drive's sensor frame (listing ``DT1401Read`` channels
     CH6 torque bridge, CH4 tachometer, CH5 motor current monitor, and the quadrature
-    decoder's 16-bit wrapping pulse count ``pcsample``)."""
+    decoder's 16-bit wrapping pulse count ``pcsample``).
+
+    An immutable named tuple (not a dataclass): the controller makes one per sample, and
+    from a decoded sensor frame whose signals are in this order it is the decoded tuple
+    itself, retyped (``tuple.__new__(AdcSample, values)``)."""
 
     torque: int
     tacho: int
@@ -40,13 +43,12 @@ class AdcSample:
     encoder: int
 
 
-@dataclass(frozen=True, slots=True)
-class CstSample:
+class CstSample(NamedTuple):
     """The drive's sensor frame in the CiA 402 cyclic synchronous torque mapping:
     torque actual value 0x6077 (per mille of the drive's rated torque 0x6076) and
     position actual value 0x6064 (encoder increments, 32 bits).  The handler's sensor
     source (:class:`firmware.stages.CstSource`) turns them into torque, angle and
-    velocity."""
+    velocity.  An immutable named tuple, as :class:`AdcSample`."""
 
     torque_actual: int
     position: int

@@ -170,18 +170,19 @@ class TorqueFilterChain:
         In paper mode ``self.T_ripple`` afterwards holds the prediction for the next
         sample (the listing's global).
         """
+        differentiator = self.differentiator
         if self._check:  # plausibility (not in the listing), right after calibration
             check = self.plausibility
             velocity, encoder = check.step(velocity, encoder)
             if check.reseeded:
-                self.differentiator.reseed(velocity)
+                differentiator.reseed(velocity)
             rejected = check.rejected
         else:
             rejected = False
         if stamp is not None:
             stamp(2)
         self.velocity = velocity
-        acc = self.differentiator.step(velocity)  # acc = Diff_filter( vel);
+        acc = differentiator.step(velocity)  # acc = Diff_filter( vel);
         if stamp is not None:
             stamp(3)
         T_mod = expected_torque(acc, self._J_load, self._gear_ratio)  # T_mod = J_load*acc/Gain;
@@ -402,6 +403,10 @@ class InterruptHandler:
         #: ADC read and calibration; :meth:`use_cst_source` for the CiA 402 CST mapping).
         self.source: AdcSource | CstSource = AdcSource(cfg.adc, cfg.calibration)
         self._out = IsrOutput()
+        # The last reference written to the DAC, its converter and code (``__call__``).
+        self._ref_written = math.nan
+        self._dac_written = cfg.dac
+        self._counts_written = 0
         #: Stage timing (:data:`StageHook`): called at every stage boundary when set.
         self.stage_hook: StageHook | None = None
 
@@ -421,7 +426,7 @@ class InterruptHandler:
         """``numsamples`` reached (listing ``main``: ``while (samplecount < numsamples)``);
         never with ``num_samples = 0`` (run until stopped).  The handler itself keeps
         working if called again; stopping is the caller's job, as in ``main``."""
-        n = self.cfg.num_samples
+        n = self._cfg.num_samples
         return n > 0 and self.samplecount >= n
 
     @property
@@ -494,7 +499,6 @@ class InterruptHandler:
         self.samplecount = 0
 
     def __call__(self, sample: AdcSample | CstSample) -> IsrOutput:
-        cfg = self.cfg
         k = self.samplecount
         stamp = self.stage_hook
         if stamp is not None:
@@ -503,8 +507,9 @@ class InterruptHandler:
         # vel = Tacho * volt2radps; T_meas = Torque * volt2Nm;
         # (the sensor source: AdcSource, or CstSource on 0x6077/0x6064 in the CST mapping)
         T_meas, vel, current, encoder, Torque, Tacho = self.source(sample)
-        if self.stuck is not None:  # a channel stuck while the motor turns (not in the listing)
-            self.stuck.step(T_meas, vel, encoder, Torque, Tacho)
+        stuck = self.stuck
+        if stuck is not None:  # a channel stuck while the motor turns (not in the listing)
+            stuck.step(T_meas, vel, encoder, Torque, Tacho)
         if stamp is not None:
             stamp(1)
         # plausibility (not in the listing): implausible vel / pcsample replaced;
@@ -520,7 +525,16 @@ class InterruptHandler:
             if stamp is not None:
                 stamp(6)
             # write_dac0( ref_fl );
-            out.dac_counts = dac_write(ref_fl, cfg.dac)
+            # dac_write is a pure function of the reference and the converter: while the
+            # reference holds still (a step or constant wave, most samples) the last
+            # code is the answer.
+            dac = self._cfg.dac
+            if ref_fl == self._ref_written and dac is self._dac_written:
+                counts = self._counts_written
+            else:
+                counts = dac_write(ref_fl, dac)
+                self._ref_written, self._dac_written, self._counts_written = ref_fl, dac, counts
+            out.dac_counts = counts
             out.reference_V = ref_fl
         else:
             # [Vertechy]: LQG torque control on the measured torque -> write_dac0(tau_m / Nm per V)

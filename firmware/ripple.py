@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from functools import cache
+from types import MethodType
 
 import numpy as np
 
@@ -234,6 +235,10 @@ class RippleKalman:
         self._q: tuple[float, ...] = tuple(float(osc.q) for osc in cfg.oscillators)
         self._const = (self.r, *self._wT, *self._q)
         self._kernel = _paper_kernel(m)
+        # The kernel bound as this instance's ``step``: the per-sample call goes straight
+        # to the generated code, without the wrapper's extra frame (:meth:`step` below
+        # documents the call and does the same).
+        self.step = MethodType(self._kernel, self)  # type: ignore[method-assign]
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -537,6 +542,8 @@ class HarmonicKalman:
             *(float(o.q) for o in cfg.oscillators),  # type: ignore[arg-type]
         )
         self._kernel = _kernel(h)
+        # The kernel bound as this instance's ``step`` (as in :class:`RippleKalman`).
+        self.step = MethodType(self._kernel, self)  # type: ignore[method-assign]
         self.reset()
 
     # ------------------------------------------------------------------ state

@@ -25,7 +25,9 @@ from hdhil.firmware.config import (
     paper_config,
     recommended_config,
 )
+from hdhil.firmware.interrupt import AdcSample
 from hdhil.firmware.stages import (
+    AdcSource,
     Differentiator,
     EncoderUnwrap,
     ReferenceGenerator,
@@ -87,6 +89,17 @@ def test_differentiator_reset_and_state() -> None:
     d.step(3.0)
     d.reset()
     assert d.step(2.0) == first
+
+
+def test_differentiator_coefficients_can_be_set() -> None:
+    d = Differentiator()
+    d.nd = (2.0, -1.0)
+    d.dd = (1.0, -0.5)
+    assert (d.nd, d.dd) == ((2.0, -1.0), (1.0, -0.5))
+    assert d.step(1.0) == 2.0  # 2 * 1 - 1 * 0 + 0.5 * 0
+    assert d.step(1.0) == 2.0 - 1.0 + 0.5 * 2.0
+    with pytest.raises(ValueError, match="normalised"):
+        d.dd = (2.0, -0.5)
 
 
 def test_differentiator_skips_a_non_finite_velocity() -> None:
@@ -151,6 +164,30 @@ def test_calibrate_subtracts_torque_offset_before_scaling() -> None:
     assert T_meas == pytest.approx(6.6)
     assert vel == pytest.approx(-56.2565)
     assert current == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(
+    ("adc", "cal"),
+    [
+        (Converter(), Calibration()),
+        (Converter(bits=16, full_scale_V=5.0),
+         Calibration(volt2Nm=-3.3, volt2radps=12.5, volt2amp=2.5, torque_offset_V=0.37)),
+    ],
+)  # fmt: skip
+def test_adc_source_is_adc_read_then_calibrate_bit_for_bit(
+    adc: Converter, cal: Calibration
+) -> None:
+    source = AdcSource(adc, cal)
+    lo, hi = adc.code_min, adc.code_max
+    codes = [*range(lo - 3, lo + 40), *range(-700, 700, 7), *range(hi - 40, hi + 4), 10**6]
+    for i, code in enumerate(codes):
+        tacho, current = codes[-1 - i], codes[(7 * i) % len(codes)]
+        volts = adc_read(code, tacho, current, adc)
+        want = (*calibrate(*volts, cal), i, volts[0], volts[1])
+        got = source(AdcSample(code, tacho, current, i))
+        assert [x.hex() if isinstance(x, float) else x for x in got] == [
+            x.hex() if isinstance(x, float) else x for x in want
+        ]
 
 
 # --------------------------------------------------------------------- torque algebra

@@ -205,6 +205,17 @@ def test_dac_saturates_a_large_reference() -> None:
     assert isr.shutdown_dac_counts == 0  # main(): write_dac0(0.0)
 
 
+def test_dac_code_follows_the_reference_and_a_new_converter() -> None:
+    cfg = FirmwareConfig(
+        reference=ReferenceConfig(wave=Wave.STEP, bias_V=1.0, amplitude_V=0.5, step_time_s=0.003)
+    )
+    isr = InterruptHandler(cfg)
+    codes = [isr(s).dac_counts for s in _samples(5)]
+    assert codes == [205, 205, 205, 307, 307]  # round(V / LSB) before and after the step
+    isr.cfg = dataclasses.replace(cfg, dac=Converter(bits=16, full_scale_V=10.0))
+    assert isr(_samples(1)[0]).dac_counts == round(1.5 / (10.0 / 32768))  # same volts
+
+
 def test_handler_uses_configured_converters_and_calibration() -> None:
     cfg = FirmwareConfig(adc=Converter(bits=16, full_scale_V=5.0))
     isr = InterruptHandler(cfg)

@@ -153,3 +153,85 @@ def test_no_stuck_channel_on_clean_runs_of_the_shipped_scenarios() -> None:
     assert len(controllers) >= 8
     for c in controllers:
         assert c["stuck_sensor_events"] == 0 and c["stuck_tacho_events"] == 0
+
+
+class _LoopReference:
+    """The check written as one loop over the channels (the form the stage's docstring
+    describes), to hold the stage's unrolled step to it."""
+
+    def __init__(self, samples: int, motion_rad: float, Ts: float | None) -> None:
+        self.samples, self.Ts = samples, Ts
+        self.needed = motion_rad * CPR / (2.0 * math.pi)
+        self.last: list[float | None] = [None, None]
+        self.run, self.moved = [0, 0], [0.0, 0.0]
+        self.signed = self.periods = 0
+        self.since, self.raw_last = 1, None
+        self.flags, self.events, self.tacho_events, self.revision = [False, False], 0, 0, 0
+
+    def missed(self) -> None:
+        self.since += 1
+
+    def step(self, torque: float, velocity: float, encoder: int, tq_V: float, ta_V: float):
+        periods, self.since = self.since, 1
+        raw = encoder & 0xFFFF
+        signed = 0 if self.raw_last is None else ((raw - self.raw_last + 0x8000) & 0xFFFF) - 0x8000
+        self.raw_last = raw
+        channels = ((torque, tq_V), (velocity, ta_V)) if self.Ts else ((torque, tq_V),)
+        for i, (value, volts) in enumerate(channels):
+            if value != self.last[i] or abs(volts) >= 9.99:
+                self.last[i], self.run[i], self.moved[i] = value, 0, 0.0
+                if i == 1:
+                    self.signed = self.periods = 0
+                if self.flags[i]:
+                    self.flags[i] = False
+                    self.revision += 1
+                continue
+            self.run[i] += 1
+            self.moved[i] += abs(signed)
+            if i == 1:
+                self.signed += signed
+                self.periods += periods
+            if self.flags[i] or self.run[i] < self.samples or self.moved[i] < self.needed:
+                continue
+            if i == 1:
+                v_enc = self.signed * 2.0 * math.pi / CPR / (self.periods * self.Ts)
+                if abs(v_enc - value) <= 2.0 + 0.05 * abs(v_enc):
+                    continue
+            self.flags[i] = True
+            self.revision += 1
+            self.events += 1
+            self.tacho_events += i
+
+    def state(self) -> tuple:
+        return (*self.flags, self.events, self.tacho_events, self.revision)
+
+
+@pytest.mark.parametrize("Ts", [None, 1e-3])
+def test_the_step_matches_the_check_written_as_a_loop(Ts: float | None) -> None:
+    import random
+
+    rng = random.Random(7)
+    check = StuckChannels(samples=20, motion_rad=0.5, counts_per_rev=CPR, sample_period_s=Ts)
+    ref = _LoopReference(20, 0.5, Ts)
+    enc, torque, velocity = 0, 1.0, 50.0
+    trips = 0
+    for k in range(6000):
+        if rng.random() < 0.02:  # a lost frame
+            check.missed()
+            ref.missed()
+        phase = (k // 300) % 4  # held torque, held tacho, both held, both moving
+        if phase in (2, 3) or rng.random() < 0.05:
+            torque = round(rng.uniform(-3, 3), 2)
+        if phase in (1, 3) or rng.random() < 0.05:
+            velocity = rng.choice((50.0, 50.27, 80.0, 0.0))
+        enc += rng.choice((0, 3, 8, 9, -4, 30000))
+        tq_V = 9.995 if rng.random() < 0.01 else 1.0
+        check.step(torque, velocity, enc & 0xFFFF, tq_V, 0.5)
+        ref.step(torque, velocity, enc & 0xFFFF, tq_V, 0.5)
+        got = (check.torque_stuck, check.tacho_stuck, check.events, check.tacho_events,
+               check.revision)  # fmt: skip
+        assert got == ref.state(), k
+        trips = max(trips, check.events)
+    assert trips > 2  # the sequence did trip both channels
+    if Ts:
+        assert check.tacho_events > 0

@@ -34,6 +34,7 @@ __all__ = ["CycleProbe", "CyclicIo"]
 # Python 3.11, several times slower than a global.
 _OPERATIONAL = Phase.OPERATIONAL
 _now_ns = time.perf_counter_ns
+_tuple_new = tuple.__new__
 
 
 class CycleProbe(Protocol):
@@ -103,6 +104,14 @@ class CyclicIo:
         self.missing_sensor = 0
         self.settle_left = 0  # start-up pause cycles left (listing main())
         self.cycle = 0
+        # The raw mapping with the sensor objects in AdcSample's order and nothing else
+        # (control.dbc's DRIVE_TPDO1): the decoded tuple is retyped into the sample, no
+        # copy (AdcSample is a named tuple).
+        self._values_are_sample = (
+            self.raw
+            and tuple(self.sensor_picks) == (0, 1, 2, 3)
+            and len(self.sensor.signal_names) == len(AdcSample._fields)
+        )
 
     def operational(self) -> None:
         """The drive reports OPERATION ENABLED: the sensor hold starts afresh, and the
@@ -160,7 +169,8 @@ class CyclicIo:
             probe.on_sensor(_now_ns())
         sensor = self.sensor
         d = self.diagnostics
-        if msg.is_remote_frame or len(msg.data) != sensor.length:
+        data = msg.data
+        if msg.is_remote_frame or len(data) != sensor.length:
             d.malformed_frames += 1
             return
         node = self.node
@@ -187,10 +197,13 @@ class CyclicIo:
             own = cast(InterruptHandler, isr)
             self.send_command(own.startup_dac_counts, CONTROLWORD_ENABLE_OPERATION)
             return
-        values = sensor.decode(msg.data)
-        if self.raw:
+        values = sensor.decode(data)
+        sample: AdcSample | CstSample
+        if self._values_are_sample:
+            sample = _tuple_new(AdcSample, values)
+        elif self.raw:
             a, b, c, e = self.sensor_picks
-            sample: AdcSample | CstSample = AdcSample(values[a], values[b], values[c], values[e])
+            sample = AdcSample(values[a], values[b], values[c], values[e])
         else:
             a, b = self.sensor_picks
             sample = CstSample(values[a], values[b])
@@ -201,43 +214,46 @@ class CyclicIo:
             out = isr(sample)
             probe.on_interrupt(t0, _now_ns())
         self.send_command(out.dac_counts, CONTROLWORD_ENABLE_OPERATION, out.reference_V)
-        bus = self.bus
+        send = self.bus.send
+        telemetry_msg = self.telemetry_msg
         if node.control_pdo_valid:
-            self.telemetry_msg.data = self.telemetry.encode(
+            telemetry_msg.data = self.telemetry.encode(
                 out.T_meas, out.tau_s_hat, out.velocity, out.current
             )
-            bus.send(self.telemetry_msg)
+            send(telemetry_msg)
             self.control_msg.data = self.control_telemetry.encode(
                 out.dtau_s_hat, out.tau_lgd_hat, out.tau_sD, out.e_hat
             )
-            bus.send(self.control_msg)
+            send(self.control_msg)
             d.control_frames_sent += 1
         else:
-            self.telemetry_msg.data = self.telemetry.encode(
+            telemetry_msg.data = self.telemetry.encode(
                 out.T_meas, out.T_filtered, out.velocity, out.current
             )
-            bus.send(self.telemetry_msg)
+            send(telemetry_msg)
         if isr.done:
             node.request_stop(f"num_samples = {node.config.num_samples} reached")
 
     # ----------------------------------------------------------------- command
 
     def send_command(self, dac_counts: int, controlword: int, volts: float | None = None) -> None:
+        cycle = self.cycle
         if self.dbc_command:
-            data = self.command.encode(dac_counts, controlword, self.cycle & 0xFF)
+            data = self.command.encode(dac_counts, controlword, cycle & 0xFF)
         else:
             data = self._encode_mapped_command(dac_counts, controlword, volts)
-        self.command_msg.data = data
+        msg = self.command_msg
+        msg.data = data
         probe = self.probe
         if probe is None:
-            self.bus.send(self.command_msg)
+            self.bus.send(msg)
         else:
             t = _now_ns()
-            self.bus.send(self.command_msg)
+            self.bus.send(msg)
             probe.on_command_sent(t)
         self.diagnostics.commands_sent += 1
         self.walk.cw_sends += 1
-        self.cycle += 1
+        self.cycle = cycle + 1
 
     def _encode_mapped_command(
         self, dac_counts: int, controlword: int, volts: float | None

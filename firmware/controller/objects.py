@@ -138,6 +138,8 @@ class ControllerObjects:
     def apply_pending(self) -> None:
         """Swap the changed stages in at the cycle boundary (class docstring)."""
         params = self.parameters
+        if params.pending is None:  # nearly every cycle: nothing was written
+            return
         new = params.take_pending()
         if new is None:
             return

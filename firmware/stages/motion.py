@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import math
 
+_isfinite = math.isfinite
+
 __all__ = [
     "Differentiator",
     "EncoderUnwrap",
@@ -63,7 +65,7 @@ class Differentiator:
     gives no acceleration impulse.
     """
 
-    __slots__ = ("a_1", "dd", "limit", "nd", "v_1")
+    __slots__ = ("_dd1", "_nd0", "_nd1", "a_1", "limit", "v_1")
 
     def __init__(self, tau_s: float = 0.005, sample_period_s: float = 1e-3) -> None:
         if not (math.isfinite(tau_s) and tau_s > 0):
@@ -77,12 +79,34 @@ class Differentiator:
         self.a_1 = 0.0
         self.limit = math.inf
 
+    # The coefficients are kept as three floats (the step runs every interrupt and would
+    # otherwise index two tuples three times); ``nd`` and ``dd`` read and set them.
+    @property
+    def nd(self) -> tuple[float, float]:
+        """Numerator ``(nd[0], nd[1])``."""
+        return (self._nd0, self._nd1)
+
+    @nd.setter
+    def nd(self, nd: tuple[float, float]) -> None:
+        self._nd0, self._nd1 = nd
+
+    @property
+    def dd(self) -> tuple[float, float]:
+        """Denominator ``(1, dd[1])``."""
+        return (1.0, self._dd1)
+
+    @dd.setter
+    def dd(self, dd: tuple[float, float]) -> None:
+        if dd[0] != 1.0:
+            raise ValueError(f"the denominator must be normalised (dd[0] = 1), got {dd!r}")
+        self._dd1 = dd[1]
+
     def step(self, v: float) -> float:
         """One sample: ``a = nd[0]*v + nd[1]*v_1 - dd[1]*a_1`` clamped to ±``limit``;
         ``v_1 = v; a_1 = a``."""
-        if not math.isfinite(v):
+        if not _isfinite(v):
             return math.nan
-        a = self.nd[0] * v + self.nd[1] * self.v_1 - self.dd[1] * self.a_1
+        a = self._nd0 * v + self._nd1 * self.v_1 - self._dd1 * self.a_1
         limit = self.limit
         if a > limit:
             a = limit

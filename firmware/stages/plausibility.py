@@ -18,6 +18,8 @@ __all__ = [
     "SensorPlausibility",
 ]
 
+_isfinite = math.isfinite
+
 
 class SensorPlausibility:
     """Bounds on what one sample may change: tacho spikes and encoder glitches are
@@ -105,8 +107,6 @@ class SensorPlausibility:
 
     #: Periods a sample may lag the firmware's cycles (late frames) and still pass.
     MAX_BEHIND = 2
-    _MASK = 0xFFFF
-    _HALF = 0x8000
 
     def __init__(
         self,
@@ -167,8 +167,9 @@ class SensorPlausibility:
         gap = self._gap
         v = velocity
         v_ref = self._v_ref
-        if v_ref is None or not math.isfinite(v):
-            if math.isfinite(v):
+        finite = _isfinite(v)  # a replacement below is finite too
+        if v_ref is None or not finite:
+            if finite:
                 self._v_ref = v
         else:
             bound = self._noise + self._since * self._dv_max
@@ -184,15 +185,15 @@ class SensorPlausibility:
             self._gap = 0
         if encoder is None or not self.check_encoder:
             return v, encoder
-        raw = encoder & self._MASK
+        raw = encoder & 0xFFFF
         last = self._raw_last
         self._raw_last = raw
         v_prev = self._v_prev
-        if math.isfinite(v):
+        if finite:
             self._v_prev = v
             if last is not None and v_prev is not None:
-                d = (raw - last) & self._MASK
-                if d >= self._HALF:
+                d = (raw - last) & 0xFFFF  # the increment as a signed 16-bit number
+                if d >= 0x8000:
                     d -= 0x10000
                 predicted = (v_prev + v) * self._half_Ts_counts * (1 + gap)
                 tol = self._tolerance
@@ -223,7 +224,7 @@ class SensorPlausibility:
                         self._encoder_good()
                 else:
                     self._encoder_implausible(d, predicted)
-        return v, (raw + self._shift) & self._MASK
+        return v, (raw + self._shift) & 0xFFFF
 
     def _tacho_implausible(self, v: float, v_ref: float) -> float:
         """An implausible velocity: the held reference (the error is raised at the

@@ -49,12 +49,15 @@ class StuckChannels:
     __slots__ = (
         "_Ts",
         "_counts_needed",
-        "_last",
-        "_moved",
+        "_last_T",
+        "_last_v",
+        "_moved_T",
+        "_moved_v",
         "_periods",
         "_rad_per_count",
         "_raw_last",
-        "_run",
+        "_run_T",
+        "_run_v",
         "_samples",
         "_share",
         "_signed",
@@ -67,8 +70,6 @@ class StuckChannels:
         "torque_stuck",
     )  # fmt: skip
 
-    _MASK = 0xFFFF
-    _HALF = 0x8000
     #: A reading this close to the ADC's ends is saturation (volts, ±10 V converter).
     _FULL_SCALE_V = 9.99
 
@@ -90,9 +91,12 @@ class StuckChannels:
         self.reset()
 
     def reset(self) -> None:
-        self._last: list[float | None] = [None, None]
-        self._run = [0, 0]
-        self._moved = [0.0, 0.0]
+        # Per channel (_T torque, _v tacho): the held reading, the samples it has been
+        # held, and the encoder counts (unsigned) moved meanwhile.
+        self._last_T: float | None = None
+        self._last_v: float | None = None
+        self._run_T = self._run_v = 0
+        self._moved_T = self._moved_v = 0.0
         self._signed = 0  # encoder counts (signed) while the tacho reading was held
         self._periods = 0  # sample periods those counts span (lost samples included)
         self._since = 1  # periods since the last sample (1 + lost samples)
@@ -109,43 +113,61 @@ class StuckChannels:
     def step(self, torque: float, velocity: float, encoder: int | None,
              torque_V: float, tacho_V: float) -> None:  # fmt: skip
         """One sample: calibrated torque and velocity, the raw encoder count and the two
-        channels' voltages (for the saturation exclusion)."""
+        channels' voltages (for the saturation exclusion).
+
+        The two channels are written out one after the other (not a loop over them):
+        this runs in every interrupt, and a changed reading, the common case, is one
+        comparison and three stores."""
         periods, self._since = self._since, 1
         if encoder is None:
             return
-        raw = encoder & self._MASK
+        raw = encoder & 0xFFFF
         last_raw = self._raw_last
         self._raw_last = raw
         signed = 0
         if last_raw is not None:
-            signed = (raw - last_raw) & self._MASK
-            if signed >= self._HALF:
+            signed = (raw - last_raw) & 0xFFFF
+            if signed >= 0x8000:
                 signed -= 0x10000
-        d = abs(signed)
-        judged = ((torque, torque_V), (velocity, tacho_V)) if self._Ts else ((torque, torque_V),)
-        for i, (value, volts) in enumerate(judged):
-            if value != self._last[i] or abs(volts) >= self._FULL_SCALE_V:
-                self._last[i] = value
-                self._run[i] = 0
-                self._moved[i] = 0.0
-                if i == 1:
-                    self._signed = self._periods = 0
-                if self._flag(i):
-                    self._set(i, False)
-                continue
-            self._run[i] += 1
-            self._moved[i] += d
-            if i == 1:
-                self._signed += signed
-                self._periods += periods
-            if (self._flag(i) or self._run[i] < self._samples
-                    or self._moved[i] < self._counts_needed):  # fmt: skip
-                continue
-            if i == 1 and not self._tacho_disagrees(value):
-                continue
-            self._set(i, True)
-            self.events += 1
-            if i == 1:
+        d = -signed if signed < 0 else signed
+        full_scale = self._FULL_SCALE_V
+        # torque channel
+        if torque != self._last_T or abs(torque_V) >= full_scale:
+            self._last_T = torque
+            self._run_T = 0
+            self._moved_T = 0.0
+            if self.torque_stuck:
+                self.torque_stuck = False
+                self.revision += 1
+        else:
+            run = self._run_T = self._run_T + 1
+            moved = self._moved_T = self._moved_T + d
+            if not self.torque_stuck and run >= self._samples and moved >= self._counts_needed:
+                self.torque_stuck = True
+                self.revision += 1
+                self.events += 1
+        if not self._Ts:
+            return
+        # tacho channel
+        if velocity != self._last_v or abs(tacho_V) >= full_scale:
+            self._last_v = velocity
+            self._run_v = 0
+            self._moved_v = 0.0
+            self._signed = self._periods = 0
+            if self.tacho_stuck:
+                self.tacho_stuck = False
+                self.revision += 1
+        else:
+            run = self._run_v = self._run_v + 1
+            moved = self._moved_v = self._moved_v + d
+            self._signed += signed
+            self._periods += periods
+            if (not self.tacho_stuck and run >= self._samples
+                    and moved >= self._counts_needed
+                    and self._tacho_disagrees(velocity)):  # fmt: skip
+                self.tacho_stuck = True
+                self.revision += 1
+                self.events += 1
                 self.tacho_events += 1
 
     def _tacho_disagrees(self, velocity: float) -> bool:
@@ -156,13 +178,3 @@ class StuckChannels:
             return False
         v_enc = self._signed * self._rad_per_count / (self._periods * self._Ts)
         return abs(v_enc - velocity) > self._tolerance + self._share * abs(v_enc)
-
-    def _flag(self, i: int) -> bool:
-        return self.torque_stuck if i == 0 else self.tacho_stuck
-
-    def _set(self, i: int, on: bool) -> None:
-        if i == 0:
-            self.torque_stuck = on
-        else:
-            self.tacho_stuck = on
-        self.revision += 1
