@@ -135,10 +135,8 @@ class _Channel:
             self._flush_faulty(self.faults)
             return
         pending = self.pending
-        receivers = self.receivers
-        bitrate = self.bitrate
-        timed = self.timing != "none"
-        exact = self.timing == "exact"
+        timing = self.timing
+        exact = timing == "exact"
         while pending:
             free = self.busy_until
             if len(pending) == 1:  # the common case: nothing to arbitrate
@@ -152,18 +150,17 @@ class _Channel:
                 start = free
             else:
                 start, item = self._next()
-            _, _, _, sender, msg = item
+            msg = item[4]
             if exact and not msg.is_error_frame:  # the snapshot's data is bytes (hashable)
                 end = start + frame_bits(msg.arbitration_id, msg.is_extended_id,
-                                         msg.is_remote_frame, msg.data) / bitrate  # fmt: skip
-            elif timed:
-                end = start + self.bits(msg) / bitrate
+                                         msg.is_remote_frame, msg.data) / self.bitrate  # fmt: skip
+            elif timing != "none":
+                end = start + self.bits(msg) / self.bitrate
             else:
                 end = start
-            self.busy_until = end
+            self.busy_until = msg.timestamp = end  # the sender's snapshot is the received frame
             self.frames += 1
-            msg.timestamp = end  # the sender's private snapshot becomes the received frame
-            for bus in receivers[sender]:
+            for bus in self.receivers[item[3]]:
                 bus._queue.append(msg)
                 bus._last_rx = end
         if self.waiting:
@@ -536,6 +533,12 @@ class SimBus(can.BusABC):
                 self._waiting = False
                 ch.waiting -= 1
             return (queue.popleft() if queue else None), False
+
+    def idle(self) -> bool:
+        """Whether a poll would find nothing: no frame waits for this bus and none is
+        requested or in flight on the channel (cheap: no lock, nothing scheduled)."""
+        ch = self._ch
+        return not (self._queue or ch.pending or ch.inflight)
 
     def pending(self) -> int:
         """Frames waiting in this bus's receive queue (after scheduling requested frames)."""
