@@ -505,6 +505,24 @@ class SimBus(can.BusABC):
                 handler(msg)
                 n += 1
 
+    def drain_into(self, frames: list[can.Message]) -> int:
+        """Move every frame waiting for this bus (and passing its receive filters) to the
+        end of ``frames``, in order; returns how many.
+
+        What ``dispatch(frames.append)`` does, in one step: for a listen-only handle (the
+        run's tap), whose handler requests no frame between two."""
+        ch = self._ch
+        if self._filters is not None or ch.faults is not None:
+            return self.dispatch(frames.append)
+        queue = self._queue
+        with ch.lock:
+            if ch.pending:
+                ch.flush()
+            n = len(queue)
+            frames += queue
+            queue.clear()
+        return n
+
     def _use_fault_path(self) -> None:
         """Receive through the fault-aware ``recv``/``dispatch`` (the channel got a fault
         hook); the plain ones stay free of its checks."""
