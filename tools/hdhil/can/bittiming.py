@@ -12,7 +12,8 @@ Layout counted (base frame): SOF, 11-bit identifier, RTR, IDE, r0, 4-bit DLC, da
 SRR, IDE = 1 and the 18-bit identifier extension and carry r1, r0: 67 + 8n bits.
 
 Stuffing is counted with a table over bytes: for each byte and each state (value of the
-last bit, length of its run) the number of stuff bits and the new state.  It is tested
+last bit, length of its run) the number of stuff bits and the new state; the CRC of the
+data with a table per byte position (the CRC is linear in the bits).  Both are tested
 against a plain bit-by-bit implementation.
 """
 
