@@ -33,56 +33,18 @@ class CanNode:
         # A bus that can hand queued frames straight to a handler (simbus) is drained
         # without a recv() call per frame; any other python-can bus through recv(0).
         self._dispatch: Callable[[Handler], int] | None = getattr(bus, "dispatch", None)
-        # simbus can also route a frame to its handler by identifier itself: the handlers
-        # of the 11-bit identifiers on_message has nothing to do for first (_direct_table).
-        self._dispatch_routed: Callable[[dict[int, Handler], Handler], int] | None = getattr(
-            bus, "dispatch_routed", None
-        )
-        self._direct: dict[int, Handler] | None = None
 
     def handle(self, frame_id: int, handler: Handler, extended: bool = False) -> None:
         """Route frames with this identifier to ``handler``."""
         self._handlers[(frame_id, extended)] = handler
         if not extended:
             self._base_handlers[frame_id] = handler
-            self._route_directly(frame_id)
 
     def unhandle(self, frame_id: int, extended: bool = False) -> None:
         """Stop routing frames with this identifier (they count as any other frame)."""
         self._handlers.pop((frame_id, extended), None)
         if not extended:
             self._base_handlers.pop(frame_id, None)
-            self._route_directly(frame_id)
-
-    def intercepted_ids(self) -> frozenset[int] | None:
-        """The 11-bit identifiers whose frames this node's ``on_message`` handles before
-        (or instead of) the handler table; the other handled frames may go from the bus
-        straight to their handler.  None: every frame goes through ``on_message`` (the
-        default of a subclass that overrides it without overriding this)."""
-        return frozenset() if type(self).on_message is CanNode.on_message else None
-
-    def _route_directly(self, frame_id: int) -> None:
-        """Update the direct table in place: a poll under way (a handler registering
-        another) routes its next frames by the new one."""
-        direct = self._direct
-        if direct is None:
-            return  # built at the next poll
-        handler = self._base_handlers.get(frame_id)
-        intercepted = self.intercepted_ids()
-        if handler is None or intercepted is None or frame_id in intercepted:
-            direct.pop(frame_id, None)
-        else:
-            direct[frame_id] = handler
-
-    def _direct_table(self) -> dict[int, Handler] | None:
-        """The handlers frames go to straight from the bus; None (and polls through
-        ``on_message`` from now on) when the node does not say what it intercepts."""
-        intercepted = self.intercepted_ids()
-        if intercepted is None:
-            self._dispatch_routed = None
-            return None
-        self._direct = {i: h for i, h in self._base_handlers.items() if i not in intercepted}
-        return self._direct
 
     def on_message(self, msg: can.Message) -> None:
         if msg.is_error_frame:
@@ -104,10 +66,6 @@ class CanNode:
 
     def poll(self) -> int:
         """Handle every frame waiting on the bus without blocking; returns how many."""
-        if self._dispatch_routed is not None:
-            direct = self._direct if self._direct is not None else self._direct_table()
-            if direct is not None:
-                return self._dispatch_routed(direct, self.on_message)
         if self._dispatch is not None:
             return self._dispatch(self.on_message)
         n = 0

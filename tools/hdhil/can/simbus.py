@@ -486,45 +486,6 @@ class SimBus(can.BusABC):
                 handler(msg)
                 n += 1
 
-    def dispatch_routed(
-        self, table: dict[int, Callable[[can.Message], object]],
-        other: Callable[[can.Message], object],
-    ) -> int:  # fmt: skip
-        """:meth:`dispatch`, with each data or remote frame of an 11-bit identifier in
-        ``table`` handed straight to that identifier's handler, every other frame
-        (error frames included) to ``other``; returns how many.
-
-        A node's frames reach their handler one call from here, not through the node's
-        own ``on_message`` (:meth:`hdhil.can.node.CanNode.poll`)."""
-        get = table.get
-        if self._filters is not None or self._ch.faults is not None:
-
-            def route(msg: can.Message) -> None:
-                handler = None if msg.is_extended_id or msg.is_error_frame else get(
-                    msg.arbitration_id)  # fmt: skip
-                (other if handler is None else handler)(msg)
-
-            return self.dispatch(route)
-        ch = self._ch
-        queue = self._queue
-        n = 0
-        while True:
-            if ch.pending:
-                with ch.lock:
-                    ch.flush()
-            if not queue:
-                return n
-            msg = queue.popleft()
-            if msg.is_extended_id or msg.is_error_frame:
-                other(msg)
-            else:
-                handler = get(msg.arbitration_id)
-                if handler is None:
-                    other(msg)
-                else:
-                    handler(msg)
-            n += 1
-
     def _dispatch_faulty(self, handler: Callable[[can.Message], object]) -> int:
         """:meth:`dispatch` on a channel with a fault hook (see :meth:`_recv_faulty`)."""
         ch = self._ch
