@@ -158,3 +158,35 @@ def test_a_run_without_its_recording_scores_the_same() -> None:
     assert kept.recording is not None and flat.recording is None
     assert flat.evaluation is not None and flat.evaluation["samples"] > 0
     assert flat.evaluation == kept.evaluation
+
+
+def test_frames_handed_on_in_batches_record_what_one_by_one_records(tmp_path) -> None:
+    """The run's tap hands the recorder a poll's frames at once (``on_frames``): the same
+    rows as frame by frame (how a trace is read), malformed frames skipped alike."""
+    import can
+
+    from hdhil.can.traces.reader import read_trace
+    from hdhil.dbc import codec
+    from hdhil.rig.evaluate import RecordingListener
+
+    path = tmp_path / "run.blf"
+    lockstep("free-motion", duration_s=0.3, seed=3, trace=path)
+    with read_trace(path) as trace:
+        frames = list(trace)
+    sensor_id = codec("control", "DRIVE_TPDO1").frame_id
+    sensor = next(m for m in frames if m.arbitration_id == sensor_id and not m.is_extended_id)
+    short = can.Message(arbitration_id=sensor_id, is_extended_id=False, data=b"\x01",
+                        timestamp=sensor.timestamp)  # fmt: skip
+    frames.insert(len(frames) // 2, short)
+    fw = resolve("free-motion").scenario.firmware
+    one = RecordingListener(fw.sample_period_s, firmware=fw, keep=True)
+    batched = RecordingListener(fw.sample_period_s, firmware=fw, keep=True)
+    for msg in frames:
+        one.on_message_received(msg)
+    for i in range(0, len(frames), 16):
+        batched.on_frames(frames[i : i + 16])
+    assert len(one.recording) > 100
+    for name in COLUMNS:
+        np.testing.assert_array_equal(batched.recording.column(name), one.recording.column(name))
+    assert batched.live is not None and one.live is not None
+    _assert_same(batched.live.finish(), one.live.finish())

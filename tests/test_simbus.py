@@ -307,3 +307,28 @@ def test_send_frames_delivers_what_sending_each_does(bitrate):
             b.shutdown()
 
     assert deliveries(batched=True) == deliveries(batched=False)
+
+
+@pytest.mark.parametrize("filtered", [False, True])
+def test_drain_into_takes_what_dispatch_takes(filtered):
+    """A listen-only handle drained in one step gets the frames, times and order that
+    dispatching them one by one gives, requested frames put on the wire first."""
+    got: list[list[tuple[int, float]]] = []
+    for take_all in (False, True):
+        clock = SimClock(now=0.002)
+        a = can.Bus(interface="simbus", channel="t-drain", clock=clock)
+        tap = can.Bus(interface="simbus", channel="t-drain")
+        if filtered:
+            tap.set_filters([{"can_id": 0x100, "can_mask": 0x100}])
+        for can_id, n in ((0x182, 8), (0x80, 0), (0x101, 3), (0x182, 2)):
+            a.send(_frame(can_id, n))  # requested together: arbitration decides
+        frames: list[can.Message] = [_frame(0x7FF, 0)]
+        n = tap.drain_into(frames) if take_all else tap.dispatch(frames.append)
+        assert n == len(frames) - 1
+        assert tap.recv(0) is None
+        got.append([(m.arbitration_id, m.timestamp) for m in frames])
+        a.shutdown()
+        tap.shutdown()
+    assert got[0] == got[1]
+    assert sorted(i for i, _ in got[1][1:]) == ([0x101, 0x182, 0x182] if filtered
+                                                 else [0x80, 0x101, 0x182, 0x182])  # fmt: skip

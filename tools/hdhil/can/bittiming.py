@@ -12,7 +12,8 @@ Layout counted (base frame): SOF, 11-bit identifier, RTR, IDE, r0, 4-bit DLC, da
 SRR, IDE = 1 and the 18-bit identifier extension and carry r1, r0: 67 + 8n bits.
 
 Stuffing is counted with a table over bytes: for each byte and each state (value of the
-last bit, length of its run) the number of stuff bits and the new state.  It is tested
+last bit, length of its run) the number of stuff bits and the new state; the CRC of the
+data with a table per byte position (the CRC is linear in the bits).  Both are tested
 against a plain bit-by-bit implementation.
 """
 
@@ -97,12 +98,32 @@ _STUFF = _stuff_table(8)
 _STUFF7 = _stuff_table(7)
 
 
+def _zero_bytes(crc: int, count: int) -> int:
+    """The CRC register after ``count`` more zero bytes."""
+    for _ in range(count):
+        crc = ((crc << 8) & 0x7FFF) ^ _CRC_TABLE[(crc >> 7) & 0xFF]
+    return crc
+
+
+#: The CRC is linear: over header and n data bytes it is the header's CRC carried
+#: through n zero bytes, XOR for each data byte its CRC carried through the bytes after
+#: it.  ``_CRC_AT[n][i][b]``: the part of data byte ``i`` (of ``n``) with value ``b``.
+def _crc_at() -> tuple[tuple[tuple[int, ...], ...], ...]:
+    carried = [_CRC_TABLE]  # [k][b]: byte b followed by k zero bytes
+    for _ in range(7):
+        carried.append(tuple(_zero_bytes(crc, 1) for crc in carried[-1]))
+    return tuple(tuple(carried[n - 1 - i] for i in range(n)) for n in range(9))
+
+
+_CRC_AT = _crc_at()
+
+
 @lru_cache(maxsize=4096)
 def _header(
-    arbitration_id: int, extended: bool, remote: bool, dlc: int
+    arbitration_id: int, extended: bool, remote: bool, dlc: int, carried: int = 0
 ) -> tuple[int, int, int, int]:
-    """(bits, CRC after the header, stuffing state index after the header, stuff bits so
-    far)."""
+    """(bits, CRC after the header carried through ``carried`` zero bytes, stuffing state
+    index after the header, stuff bits so far)."""
     if extended:
         base, ext = arbitration_id >> 18, arbitration_id & 0x3FFFF
         # SOF, base id, SRR=1, IDE=1, ext id, RTR, r1=0, r0=0, DLC
@@ -118,20 +139,31 @@ def _header(
     for i in range(nbits - 2, -1, -1):
         state, s = _stuff_step(state, (header >> i) & 1)
         added += s
-    return nbits, crc15_bits(header, nbits), _state_index(state), added
+    return nbits, _zero_bytes(crc15_bits(header, nbits), carried), _state_index(state), added
 
 
 @lru_cache(maxsize=8192)
 def frame_bits(arbitration_id: int, extended: bool, remote: bool, data: bytes) -> int:
     """Exact bits on the wire of one classical data or remote frame, incl. 3-bit IFS."""
     payload = b"" if remote else data
-    nbits, crc, state, added = _header(arbitration_id, extended, remote, min(len(data), 8))
-    stuff, crc_table = _STUFF, _CRC_TABLE
-    for byte in payload:
-        step = stuff[state << 8 | byte]
-        added += step >> 3
-        state = step & 7
-        crc = ((crc << 8) & 0x7FFF) ^ crc_table[((crc >> 7) ^ byte) & 0xFF]
+    n = len(payload)
+    stuff = _STUFF
+    if n <= 8:  # the CRC of each byte by its position (_CRC_AT): a lookup per byte
+        nbits, crc, state, added = _header(arbitration_id, extended, remote, min(len(data), 8),
+                                           n)  # fmt: skip
+        for byte, crc_of in zip(payload, _CRC_AT[n]):  # noqa: B905 (same length)
+            step = stuff[state << 8 | byte]
+            added += step >> 3
+            state = step & 7
+            crc ^= crc_of[byte]
+    else:  # longer than a classical frame: the register byte by byte
+        nbits, crc, state, added = _header(arbitration_id, extended, remote, 8)
+        crc_table = _CRC_TABLE
+        for byte in payload:
+            step = stuff[state << 8 | byte]
+            added += step >> 3
+            state = step & 7
+            crc = ((crc << 8) & 0x7FFF) ^ crc_table[((crc >> 7) ^ byte) & 0xFF]
     step = stuff[state << 8 | crc >> 7]  # CRC bits 14..7
     added += step >> 3
     added += _STUFF7[(step & 7) << 7 | crc & 0x7F] >> 3  # CRC bits 6..0

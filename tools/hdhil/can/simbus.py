@@ -135,10 +135,8 @@ class _Channel:
             self._flush_faulty(self.faults)
             return
         pending = self.pending
-        receivers = self.receivers
-        bitrate = self.bitrate
-        timed = self.timing != "none"
-        exact = self.timing == "exact"
+        timing = self.timing
+        exact = timing == "exact"
         while pending:
             free = self.busy_until
             if len(pending) == 1:  # the common case: nothing to arbitrate
@@ -152,18 +150,17 @@ class _Channel:
                 start = free
             else:
                 start, item = self._next()
-            _, _, _, sender, msg = item
+            msg = item[4]
             if exact and not msg.is_error_frame:  # the snapshot's data is bytes (hashable)
                 end = start + frame_bits(msg.arbitration_id, msg.is_extended_id,
-                                         msg.is_remote_frame, msg.data) / bitrate  # fmt: skip
-            elif timed:
-                end = start + self.bits(msg) / bitrate
+                                         msg.is_remote_frame, msg.data) / self.bitrate  # fmt: skip
+            elif timing != "none":
+                end = start + self.bits(msg) / self.bitrate
             else:
                 end = start
-            self.busy_until = end
+            self.busy_until = msg.timestamp = end  # the sender's snapshot is the received frame
             self.frames += 1
-            msg.timestamp = end  # the sender's private snapshot becomes the received frame
-            for bus in receivers[sender]:
+            for bus in self.receivers[item[3]]:
                 bus._queue.append(msg)
                 bus._last_rx = end
         if self.waiting:
@@ -508,6 +505,24 @@ class SimBus(can.BusABC):
                 handler(msg)
                 n += 1
 
+    def drain_into(self, frames: list[can.Message]) -> int:
+        """Move every frame waiting for this bus (and passing its receive filters) to the
+        end of ``frames``, in order; returns how many.
+
+        What ``dispatch(frames.append)`` does, in one step: for a listen-only handle (the
+        run's tap), whose handler requests no frame between two."""
+        ch = self._ch
+        if self._filters is not None or ch.faults is not None:
+            return self.dispatch(frames.append)
+        queue = self._queue
+        with ch.lock:
+            if ch.pending:
+                ch.flush()
+            n = len(queue)
+            frames += queue
+            queue.clear()
+        return n
+
     def _use_fault_path(self) -> None:
         """Receive through the fault-aware ``recv``/``dispatch`` (the channel got a fault
         hook); the plain ones stay free of its checks."""
@@ -536,6 +551,12 @@ class SimBus(can.BusABC):
                 self._waiting = False
                 ch.waiting -= 1
             return (queue.popleft() if queue else None), False
+
+    def idle(self) -> bool:
+        """Whether a poll would find nothing: no frame waits for this bus and none is
+        requested or in flight on the channel (cheap: no lock, nothing scheduled)."""
+        ch = self._ch
+        return not (self._queue or ch.pending or ch.inflight)
 
     def pending(self) -> int:
         """Frames waiting in this bus's receive queue (after scheduling requested frames)."""

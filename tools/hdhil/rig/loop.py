@@ -22,6 +22,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import can
 
+from hdhil.can.node import CanNode
 from hdhil.can.simbus import SimBus, SimClock
 
 #: How long a cycle on a real or virtual bus waits for the producer's answer (s).
@@ -128,6 +129,9 @@ class NodeLoop:
         self.k = 0
         #: Cycles closed by the timeout before the producer answered.
         self.timeouts = 0
+        #: Per node, a test that its poll would find no frame (a plain ``CanNode`` on a
+        #: ``simbus``), or None: always poll it.
+        self._idle = tuple(_idle_test(node) for node in self.nodes)
 
     def now(self) -> float:
         """The time the nodes are handed now."""
@@ -167,10 +171,13 @@ class NodeLoop:
             self._serve_slice()
         elif bus is not None:  # simulated bus: pump until a round requests no frame
             producer.send_sync()
+            idle = self._idle
             while True:
                 before = bus.frames_requested
-                for node in nodes:
-                    node.poll()
+                for node, node_idle in zip(nodes, idle, strict=True):
+                    # A poll that would find nothing is skipped (most polls of a round).
+                    if node_idle is None or not node_idle():
+                        node.poll()
                 if bus.frames_requested == before:
                     break
         else:
@@ -245,6 +252,15 @@ class NodeLoop:
         while time.monotonic() < deadline:
             if not self._poll_all():
                 time.sleep(IDLE_SLEEP_S)
+
+
+def _idle_test(node: LoopNode) -> Callable[[], bool] | None:
+    """``node.bus.idle`` when polling ``node`` only drains that bus (the poll of
+    :class:`hdhil.can.node.CanNode` on a :class:`SimBus`), else None."""
+    bus = getattr(node, "bus", None)
+    if isinstance(bus, SimBus) and type(node).poll is CanNode.poll:
+        return bus.idle
+    return None
 
 
 class Pacer(Protocol):

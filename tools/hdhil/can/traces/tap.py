@@ -57,14 +57,15 @@ def _frames_callback(listener: can.Listener) -> Callable[[list[can.Message]], ob
     return one_by_one
 
 
-def _drain(channel: int, bus: can.BusABC) -> Callable[[Callable[[can.Message], object]], int]:
-    """A function handing every frame waiting on ``bus`` to its argument, stamped with
+def _drain(channel: int, bus: can.BusABC) -> Callable[[list[can.Message]], int]:
+    """A function appending every frame waiting on ``bus`` to its argument, stamped with
     ``channel``; it returns how many."""
     if isinstance(bus, SimBus) and bus.trace_channel == channel:
-        return bus.dispatch  # frames already carry the channel number
+        return bus.drain_into  # frames already carry the channel number
     recv = bus.recv
 
-    def drain(append: Callable[[can.Message], object]) -> int:
+    def drain(batch: list[can.Message]) -> int:
+        append = batch.append
         n = 0
         while (msg := recv(0)) is not None:
             append(msg if msg.channel == channel else _stamped(msg, channel))
@@ -107,10 +108,9 @@ class BusTap:
         cycle k).  Ties keep channel order (the sort is stable).
         """
         batch: list[can.Message] = []
-        append = batch.append
         channels = 0
         for drain in self._drains:
-            channels += drain(append) > 0
+            channels += drain(batch) > 0
         if not batch:
             return 0
         if channels > 1:
