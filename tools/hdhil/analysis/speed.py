@@ -60,8 +60,9 @@ GOALS = {
 
 #: CI's coarse speed guard (tests/test_speed.py): the lockstep loop's µs per cycle
 #: (free-motion, BLF trace on) over the reference's (:func:`bench_virtual_reference`)
-#: must stay below this.
-GUARD_RATIO = 1.0
+#: must stay below this.  The loop measures about 0.4 of the reference on a 2-core
+#: machine: a loop 45 % slower fails, the spread of a shared machine passes.
+GUARD_RATIO = 0.6
 
 #: Run in a fresh interpreter by :func:`bench_whole_command`: ``hdhil run`` (the CLI's
 #: own ``main``) with the node loop's ``cycle``, the run's final evaluation and the
