@@ -90,12 +90,12 @@ def test_cycle_frames_and_padding_are_what_the_bus_carries(tmp_path: Path) -> No
 @pytest.mark.slow
 @pytest.mark.subprocess
 def test_cost_model_terms_are_measured() -> None:
-    cm = speed.bench_cost_model(0.1, 1)
+    cm = speed.bench_cost_model(0.1, 1)  # runs of MIN_COST_MODEL_S
     assert [p["padding"] for p in cm["points"]] == list(speed.PADDING_STEPS)
     for key in ("fixed_us", "per_frame_us", "per_joint_us", "one_joint_cpu_us_per_cycle"):
         assert math.isfinite(cm[key]), key
     assert cm["per_frame_us"] > 0 and cm["per_joint_us"] > 0
-    assert cm["frames_per_cycle"] > 6
+    assert cm["frames_per_cycle"] > 6 and cm["duration_s"] == speed.MIN_COST_MODEL_S
 
 
 def _loop_us(request, trace: Path) -> float:

@@ -279,6 +279,8 @@ def bench_virtual_reference(
 PADDING_ID = 0x6F0
 #: Padding frames per cycle of the cost model's runs.
 PADDING_STEPS = (0, 8, 16, 32)
+#: Shortest run of the cost model (simulated s).
+MIN_COST_MODEL_S = 1.0
 #: Bit rate of the cost model's runs: room for 32 padding frames within the 1 ms cycle.
 COST_MODEL_BITRATE = 8_000_000
 
@@ -330,6 +332,8 @@ def bench_cost_model(
     turns; the fit is over the per-step medians."""
     from hdhil.rig.factories import scenario_drive
 
+    # runs of at least a second: shorter ones are mostly the start-up walk
+    duration_s = max(duration_s, MIN_COST_MODEL_S)
     request = resolve(scenario, duration_s=duration_s, bitrate=COST_MODEL_BITRATE)
     samples: dict[int, list[float]] = {k: [] for k in PADDING_STEPS}
     sync_only: list[float] = []
