@@ -245,6 +245,13 @@ class RecordingListener(can.Listener):
                 assert self.live is not None
                 self._next_check = self.live.advance()
 
+    def result(self) -> dict[str, Any]:
+        """The evaluation of what was recorded, for a listener with ``firmware`` (run in
+        the trace writer's process, :class:`LiveEvaluationFactory`)."""
+        if self.live is None:
+            raise ValueError("a RecordingListener without firmware scores nothing")
+        return self.live.finish()
+
     def _on_statusword(self, data: bytes) -> None:
         (statusword,) = self._status.decode(data)
         # CiA 402 statusword bits 0-3, 5, 6: 0b0100111 = OPERATION ENABLED.
@@ -303,6 +310,29 @@ class RecordingListener(can.Listener):
     def _on_truth_motion(self, data: bytes) -> None:
         theta_m, theta_o, omega_m, _omega_o = self._truth_motion.decode(data)
         self._truth[2], self._truth[3], self._truth[4] = theta_m, omega_m, theta_o
+
+
+@dataclass(frozen=True)
+class LiveEvaluationFactory:
+    """A :class:`RecordingListener` scoring as it goes and keeping no rows, made where it
+    is called: the trace writer's child process (``child_listener`` of
+    :class:`hdhil.can.traces.writer.WriterProcess`), which feeds it the frames it writes
+    and hands its ``result()`` (the evaluation) back. Picklable for the ``spawn`` start
+    method."""
+
+    sample_period_s: float
+    drive_pdos: dict[str, Any] | None
+    firmware: FirmwareConfig
+    skip_s: float
+
+    def __call__(self) -> RecordingListener:
+        return RecordingListener(
+            self.sample_period_s,
+            self.drive_pdos,
+            firmware=self.firmware,
+            skip_s=self.skip_s,
+            keep=False,
+        )
 
 
 def recording_from_trace(path: Path, sample_period_s: float = 1e-3) -> tuple[Recording, str]:

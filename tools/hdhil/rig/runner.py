@@ -222,6 +222,7 @@ def run_lockstep(
     listeners: list[can.Listener] = []
     wall = 0.0
     frames_sent: dict[str, int] = {}
+    completed = False
     try:
         nodes = build_nodes(plan, buses, controller_factory, factories, injector)
         listening = build_listeners(plan, trace, evaluate, evaluate_skip_s, extra_listeners,
@@ -266,25 +267,50 @@ def run_lockstep(
         wall = time.perf_counter() - wall0
         tap.poll()
         frames_sent = _frames_sent(nodes.controller_bus, nodes.truth_bus)
+        completed = True
     finally:
         # Close the trace (flush, valid file) and release the buses whatever happened.
         try:
             for listener in listeners:
                 listener.stop()
+        except BaseException:
+            completed = False
+            raise
         finally:
+            if not completed and listening is not None:
+                discard_evaluation(listening)
             buses.shutdown()
             if injector is not None:
                 injector.log.close()  # every injected fault is on disk
             blas.restore_original_limits()
-    if counts.keyboard and stop_requested is None:
-        # A caller that polls no stop request (bench, tune, a script) gets Ctrl-C as it
-        # came, once the trace is closed and the buses released: a loop around runs must
-        # end, not start the next run.
-        raise KeyboardInterrupt
-    result = _result(plan, nodes, listening, counts, wall, frames_sent, trace, injector, pacer,
-                     evaluate_skip_s)  # fmt: skip
+    try:
+        if counts.keyboard and stop_requested is None:
+            # A caller that polls no stop request (bench, tune, a script) gets Ctrl-C as it
+            # came, once the trace is closed and the buses released: a loop around runs
+            # must end, not start the next run.
+            raise KeyboardInterrupt
+        result = _result(plan, nodes, listening, counts, wall, frames_sent, trace, injector,
+                         pacer, evaluate_skip_s)  # fmt: skip
+    finally:
+        discard_evaluation(listening)  # not collected (interrupted, failed): none comes
     result.start_time = start_time if plan.clock_time else None
     return result
+
+
+def collect_evaluation(listening: RunListeners) -> dict[str, Any]:
+    """The evaluation the trace writer's process made of a finished run (its listeners
+    stopped): waits for the child to send it.  Raises
+    :class:`hdhil.can.traces.writer.ChildListenerError` if it failed or died."""
+    writer = listening.evaluating_writer
+    assert writer is not None
+    return writer.child_result()  # type: ignore[no-any-return]
+
+
+def discard_evaluation(listening: RunListeners) -> None:
+    """Let the trace writer's process end without sending its evaluation (a no-op when
+    it was collected or none was made)."""
+    if listening.evaluating_writer is not None:
+        listening.evaluating_writer.discard_child_result()
 
 
 def _result(
@@ -302,11 +328,12 @@ def _result(
     """The scored result of a finished run, every figure from the run itself."""
     recorder, tracking = listening.recorder, listening.tracking
     scored = plan.scenario.scored
-    evaluation = (
-        evaluate_recording(recorder, plan.firmware, evaluate_skip_s)
-        if recorder is not None and not counts.interrupted and "ripple" in scored
-        else None
-    )
+    wanted = not counts.interrupted and "ripple" in scored
+    evaluation = None
+    if wanted and recorder is not None:
+        evaluation = evaluate_recording(recorder, plan.firmware, evaluate_skip_s)
+    elif wanted and listening.evaluating_writer is not None:
+        evaluation = collect_evaluation(listening)
     tracked = (
         {"law": plan.firmware.control.law.name.lower(), **tracking.result().as_dict()}
         if tracking is not None

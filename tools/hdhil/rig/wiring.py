@@ -29,7 +29,7 @@ from hdhil.dbc import CHANNEL_NUMBER
 from hdhil.firmware.config import Law
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveNode
-from hdhil.rig.evaluate import RecordingListener
+from hdhil.rig.evaluate import LiveEvaluationFactory, RecordingListener
 from hdhil.rig.factories import ControllerFactory, DriveFactory, NodeSite
 from hdhil.rig.faults import FaultInjector
 from hdhil.rig.score import TorqueScorer, TrackingScorer
@@ -238,6 +238,9 @@ class RunListeners:
     all: list[can.Listener]
     #: The run's result keeps the recorder's recording (every cycle).
     keep_recording: bool = True
+    #: The trace writer whose process runs the evaluation in place of ``recorder``
+    #: (its result: :func:`hdhil.rig.runner.collect_evaluation`).
+    evaluating_writer: WriterProcess | None = None
 
 
 def build_listeners(
@@ -258,7 +261,10 @@ def build_listeners(
 
     With ``evaluate`` the recorder scores a run in lockstep as it goes (its memory flat
     without ``keep_recording``); in real time it records every cycle and the scoring
-    waits for the end, so that it takes no time from the loop's deadlines."""
+    waits for the end, so that it takes no time from the loop's deadlines.  A run in
+    lockstep that writes a trace and keeps no recording is scored in the trace writer's
+    process instead (:class:`LiveEvaluationFactory`), unless the writer cannot take it
+    (``spawn`` start method and a configuration that cannot be pickled)."""
     counter, scorer = FrameCounter(), TorqueScorer()
     listeners: list[can.Listener] = [counter, scorer]
     tracking = recorder = None
@@ -272,16 +278,9 @@ def build_listeners(
         )
         listeners.append(tracking)
     scored = evaluate and "ripple" in plan.scenario.scored
-    if evaluate and (scored or keep_recording):
-        live = scored and not plan.realtime
-        recorder = RecordingListener(
-            plan.sample_period_s,
-            (metadata or {}).get("drive_pdos"),
-            firmware=plan.firmware if live else None,
-            skip_s=evaluate_skip_s,
-            keep=keep_recording or not live,
-        )
-        listeners.append(recorder)
+    live = scored and not plan.realtime
+    drive_pdos = (metadata or {}).get("drive_pdos")
+    writer = None
     if trace is not None:
         offset = start_time if plan.clock_time else 0.0
         sidecar = {
@@ -295,7 +294,26 @@ def build_listeners(
             "channels": dict(CHANNEL_NUMBER), "control_law": control.law.name.lower(),
             **(metadata or {}),
         }  # fmt: skip
+        # A live evaluation that keeps no rows runs in the writer's process, on the frames
+        # it writes (the same frames, in the same order), off the loop's core.
+        offload = (
+            LiveEvaluationFactory(plan.sample_period_s, drive_pdos, plan.firmware, evaluate_skip_s)
+            if live and not keep_recording
+            else None
+        )
         # the sidecar is written with the finished trace (both renamed into place)
-        listeners.insert(0, WriterProcess(trace, time_offset=offset, metadata=sidecar))
+        writer = WriterProcess(trace, time_offset=offset, metadata=sidecar,
+                               child_listener=offload)  # fmt: skip
+        listeners.insert(0, writer)
+    evaluating = writer if writer is not None and writer.child_listening else None
+    if evaluate and (scored or keep_recording) and evaluating is None:
+        recorder = RecordingListener(
+            plan.sample_period_s,
+            drive_pdos,
+            firmware=plan.firmware if live else None,
+            skip_s=evaluate_skip_s,
+            keep=keep_recording or not live,
+        )
+        listeners.append(recorder)
     listeners += extra
-    return RunListeners(counter, scorer, tracking, recorder, listeners, keep_recording)
+    return RunListeners(counter, scorer, tracking, recorder, listeners, keep_recording, evaluating)

@@ -13,6 +13,13 @@ it never drops a frame.  Handing a batch on is safe against Ctrl-C (a batch goes
 not at all, and is counted with it).  If the run dies (even by SIGKILL) the child reads
 what was sent up to then and closes the file properly.
 
+A run may also hand the child a listener of its own (``child_listener``: a factory the
+child calls, e.g. the rig's live evaluation), so that what it does per frame runs on the
+writer's core too.  The child feeds it exactly the frames it writes, in order, as
+:class:`FrameRecord` (read-only, with :class:`can.Message`'s field names, the timestamps
+without the trace's offset), and sends its ``result()`` back when the input ends
+(:meth:`WriterProcess.child_result`; the protocol is described at :func:`_writer_main`).
+
 Traces are written atomically: to a temporary beside the target, renamed into place when
 complete, with the sidecar (:mod:`hdhil.can.traces.sidecar`) right after, as every output
 of hdhil (:mod:`hdhil.core.files`).
@@ -25,11 +32,13 @@ import multiprocessing
 import multiprocessing.util
 import operator
 import os
+import pickle
 import struct
 import time
+import traceback
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import can
 
@@ -127,6 +136,78 @@ def _records(frames: Iterable[can.Message]) -> list[bytes]:
 _Record = tuple[float, int, bool, bool, bool, bool, int, int, bytes]
 
 
+class FrameRecord(NamedTuple):
+    """One frame as a child listener gets it: the fields of a pipe record under
+    :class:`can.Message`'s names (a tuple: made in one call per frame, where a message
+    costs several)."""
+
+    timestamp: float
+    arbitration_id: int
+    is_extended_id: bool
+    is_remote_frame: bool
+    is_error_frame: bool
+    is_rx: bool
+    dlc: int
+    channel: int
+    data: bytes
+
+
+#: A factory, called once in the writer's child process, of a listener fed every frame
+#: written (``on_frames`` with a list of :class:`FrameRecord`, or ``on_message_received``
+#: per frame) whose ``result()`` goes back to the parent when the input ends.  Under the
+#: ``spawn`` start method it must be picklable.
+ChildListenerFactory = Callable[[], Any]
+
+
+def _failure(what: str, exc: BaseException) -> str:
+    """One line for an exception in the child, with the place it was raised."""
+    where = traceback.extract_tb(exc.__traceback__)[-1:] if exc.__traceback__ else []
+    at = f" (at {Path(where[0].filename).name}:{where[0].lineno})" if where else ""
+    return f"{what}: {type(exc).__name__}: {exc}{at}"
+
+
+class _ChildListening:
+    """The child's side of a child listener: built from its factory, fed each batch,
+    asked for its result.  An exception in it is kept for the parent (the trace is
+    written on regardless) and the listener is fed no more."""
+
+    def __init__(self, factory: ChildListenerFactory) -> None:
+        self.error: str | None = None
+        self.listener: Any = None
+        self._feed: Callable[[list[FrameRecord]], None] | None = None
+        try:
+            self.listener = factory()
+            self._feed = getattr(self.listener, "on_frames", None) or self._each
+        except Exception as exc:
+            self.error = _failure("the trace writer's child listener could not start", exc)
+
+    def _each(self, frames: list[FrameRecord]) -> None:
+        on_message = self.listener.on_message_received
+        for frame in frames:
+            on_message(frame)
+
+    def feed(self, batch: bytes) -> None:
+        if self._feed is None:
+            return
+        try:
+            self._feed(list(map(FrameRecord._make, _RECORD.iter_unpack(batch))))
+        except Exception as exc:
+            self.error = _failure("the trace writer's child listener failed", exc)
+            self._feed = None
+
+    def result(self) -> tuple[str, Any]:
+        """``("ok", the listener's result)`` or ``("error", text)``, picklable."""
+        if self.error is not None or self.listener is None:
+            return "error", self.error
+        try:
+            value = self.listener.result()
+            self.listener.stop()
+            pickle.dumps(value)  # what the pipe will do: fail here, with a clear error
+        except Exception as exc:
+            return "error", _failure("the trace writer's child listener failed at the end", exc)
+        return "ok", value
+
+
 def _message_checked(f: _Record, offset: float) -> can.Message:
     ts, can_id, extended, remote, error, rx, dlc, channel, data = f
     return can.Message(timestamp=ts + offset, arbitration_id=can_id, is_extended_id=extended,
@@ -215,6 +296,7 @@ def _writer_main(
     frames_w: Any,
     offset: float,
     metadata: dict[str, Any] | None,
+    child_listener: ChildListenerFactory | None = None,
 ) -> None:
     """The child: open the writer, write every batch until the pipe closes, close the file
     and rename it into place.
@@ -231,6 +313,12 @@ def _writer_main(
     (Ctrl-C and a hang-up reach the whole process group) are ignored: the run decides when
     to stop, and end of input is what ends the child.  ``offset`` is added to every
     timestamp.
+
+    With ``child_listener`` (a factory, called here once the writer is ready) the child
+    feeds the listener every batch it has written, as :class:`FrameRecord` (timestamps
+    without ``offset``), and after its final report sends ``("result", ("ok", value))``
+    with the listener's ``result()`` or ``("result", ("error", text))`` if the listener
+    failed (it is then fed no more; the trace is written on, as without it).
     """
     frames_w.close()  # the parent's end: with it open here, the input would never end
     leave_stopping_signals_to_parent()  # the run answers them; blocked across the fork
@@ -247,6 +335,7 @@ def _writer_main(
         return
     status.send(("ready", None))
     write_batch = _batch_writer(writer, offset)
+    listening = _ChildListening(child_listener) if child_listener is not None else None
     written = 0
     error: str | None = None
     try:
@@ -256,6 +345,8 @@ def _writer_main(
             except EOFError:
                 break
             written += write_batch(batch)
+            if listening is not None:
+                listening.feed(batch)
     except OSError as exc:
         error = f"cannot write trace {shown}: {exc.strerror or exc}"
     finally:
@@ -273,6 +364,9 @@ def _writer_main(
     discard_temporary(work)
     with contextlib.suppress(OSError):
         status.send(("error", error) if error else ("done", written))
+    if listening is not None:
+        with contextlib.suppress(OSError):  # the parent no longer waits for it
+            status.send(("result", listening.result()))
 
 
 _pack = _RECORD.pack
@@ -298,6 +392,19 @@ class WriterError(ValueError):
     """The trace writer process failed (disk full, killed): the trace is incomplete."""
 
 
+class ChildListenerError(ValueError):
+    """The listener run in the trace writer's process failed or gave no result (the
+    trace itself is not concerned: :class:`WriterError` says when it is)."""
+
+
+def _picklable(obj: Any) -> bool:
+    try:
+        pickle.dumps(obj)
+    except Exception:
+        return False
+    return True
+
+
 class WriterProcess(can.Listener):
     """python-can's writer for ``path`` (by extension), run in a child process.
 
@@ -313,10 +420,17 @@ class WriterProcess(can.Listener):
     A :class:`can.Listener`: ``on_message_received`` copies the frame's fields into the
     current batch; full batches go through a pipe.  ``stop`` sends the rest, waits for the
     child to close the file and checks that it wrote every frame it was given.
+
+    ``child_listener``: a factory of a listener run in the child on every frame written
+    (:func:`_writer_main`); its result comes back by :meth:`child_result` after ``stop``
+    (or is dropped by :meth:`discard_child_result`).  Under the ``spawn`` start method a
+    factory that cannot be pickled is not taken: :attr:`child_listening` says whether it
+    was, and the caller listens in its own process otherwise.
     """
 
     def __init__(self, path: Path, time_offset: float = 0.0,
-                 metadata: dict[str, Any] | None = None) -> None:  # fmt: skip
+                 metadata: dict[str, Any] | None = None,
+                 child_listener: ChildListenerFactory | None = None) -> None:  # fmt: skip
         check_trace_path(path)
         target = check_output(path, "trace")
         assert target is not None
@@ -328,6 +442,11 @@ class WriterProcess(can.Listener):
         self._batch_started = 0.0
         methods = multiprocessing.get_all_start_methods()
         ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+        if child_listener is not None and ctx.get_start_method() != "fork":
+            child_listener = child_listener if _picklable(child_listener) else None
+        #: The child runs the ``child_listener`` given (its result: :meth:`child_result`).
+        self.child_listening = child_listener is not None
+        self._awaiting_result = False
         try:
             self._tmp = temporary_dir_for(target)
         except OSError as exc:
@@ -338,7 +457,7 @@ class WriterProcess(can.Listener):
         self._proc = ctx.Process(
             target=_writer_main,
             args=(str(self._tmp), str(target), str(path), frames_r, status_w, frames_w,
-                  time_offset, metadata),
+                  time_offset, metadata, child_listener),
             daemon=False, name=f"hdhil trace writer {path.name}",
         )  # fmt: skip
         # Signals stay blocked across the fork: a Ctrl-C reaching the whole process group
@@ -432,8 +551,13 @@ class WriterProcess(can.Listener):
         finally:
             self._frames.close()
             kind, detail = self._report()
-            self._proc.join(WRITER_EXIT_TIMEOUT_S)
-            self._status.close()
+            if self.child_listening and kind in ("done", "error"):
+                self._awaiting_result = True  # the child's listener result follows
+                if kind != "done":
+                    self.discard_child_result()
+            else:
+                self._proc.join(WRITER_EXIT_TIMEOUT_S)
+                self._status.close()
             if kind != "done":  # the child failed or died: nothing of it may stay behind
                 discard_temporary(self._tmp)
         if kind == "error":
@@ -442,6 +566,40 @@ class WriterProcess(can.Listener):
             raise WriterError(
                 f"the trace writer wrote {detail} of {self.sent} frames to {self.path}"
             )
+
+    def child_result(self) -> Any:
+        """The result of the child listener, once :meth:`stop` has finished the trace:
+        waits for the child to send it (the child has no more frames to write by then).
+        Raises :class:`ChildListenerError` if the listener failed or the child died."""
+        if not self._awaiting_result:
+            raise ChildListenerError(
+                f"no child listener result from the trace writer for {self.path} "
+                "(none was run, the writer was not stopped, or it was already taken)"
+            )
+        self._awaiting_result = False
+        try:
+            kind, detail = self._report()
+        finally:
+            self._proc.join(WRITER_EXIT_TIMEOUT_S)
+            self._status.close()
+        if kind != "result":
+            raise ChildListenerError(f"no result from the trace writer's child listener: {detail}")
+        outcome, value = detail
+        if outcome != "ok":
+            raise ChildListenerError(value)
+        return value
+
+    def discard_child_result(self) -> None:
+        """End the child without its listener's result (the run was interrupted or
+        failed).  The trace is finished by then (:meth:`stop` has returned or raised), so
+        the child is stopped at once (it ignores the stopping signals: killed); a no-op
+        when no result is awaited."""
+        if not self._awaiting_result:
+            return
+        self._awaiting_result = False
+        self._proc.kill()
+        self._proc.join(WRITER_EXIT_TIMEOUT_S)
+        self._status.close()
 
 
 def file_in_progress(path: Path) -> Path:
