@@ -65,9 +65,10 @@ GOALS = {
 GUARD_RATIO = 0.6
 
 #: Run in a fresh interpreter by :func:`bench_whole_command`: ``hdhil run`` (the CLI's
-#: own ``main``) with the node loop's ``cycle``, the run's final evaluation and the
-#: streaming evaluation's chunks wrapped to take wall-clock stamps, printed on stderr at
-#: exit.  Nothing else is changed.
+#: own ``main``) with the node loop's ``cycle``, the run's final evaluation (in process,
+#: or the wait for the one beside the trace writer) and the streaming evaluation's
+#: in-process chunks wrapped to take wall-clock stamps, printed on stderr at exit.
+#: Nothing else is changed.
 STAGES_CHILD = """
 import atexit, json, sys, time
 from hdhil.rig import loop, runner
@@ -91,6 +92,14 @@ def evaluate(*args, **kwargs):
         final.pop()
         stamps["evaluation_s"] = stamps.get("evaluation_s", 0.0) + time.perf_counter() - t0
 runner.evaluate_recording = evaluate
+_collect = runner.collect_evaluation
+def collect(*args, **kwargs):  # the wait for the evaluation run beside the trace writer
+    t0 = time.perf_counter()
+    try:
+        return _collect(*args, **kwargs)
+    finally:
+        stamps["evaluation_s"] = stamps.get("evaluation_s", 0.0) + time.perf_counter() - t0
+runner.collect_evaluation = collect
 _feed = ev.StreamingEvaluation.feed
 def feed(self, cols):
     t0 = time.perf_counter()
