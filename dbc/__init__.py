@@ -56,13 +56,17 @@ def dcf_path(name: str) -> Path:
 
 @cache
 def database(bus: BusName) -> cantools.database.can.Database:
-    """The cantools database of ``bus`` (loaded once per process; cantools is imported
-    here, when a database is first needed, not when the package is)."""
+    """The cantools database of ``bus`` (loaded once per process, and parsed once per
+    machine: :mod:`hdhil.dbc.parsecache`; cantools is imported here, when a database is
+    first needed, not when the package is)."""
     import cantools
+
+    from hdhil.dbc.parsecache import cached
 
     if bus not in CHANNEL_NUMBER:
         raise ValueError(f"unknown bus {bus!r} (known: {', '.join(CHANNEL_NUMBER)})")
-    return cantools.database.load_file(str(dbc_path(bus)))
+    path = str(dbc_path(bus))
+    return cached(path, "dbc", lambda: cantools.database.load_file(path), ("cantools",))
 
 
 _INT_CODES = {

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import math
+from pathlib import Path
 from typing import Any
 
 from hdhil.core.errors import ConfigError
@@ -38,11 +39,19 @@ def _od() -> Any:
 @functools.cache
 def _eds_limits() -> dict[tuple[int, int], tuple[float | None, float | None]]:
     """``LowLimit``/``HighLimit`` per (index, sub) as written in the EDS (the canopen
-    package keeps them for integer types only)."""
-    from hdhil.canopen.od import eds_parser
+    package keeps them for integer types only); read once per machine
+    (:mod:`hdhil.dbc.parsecache`)."""
     from hdhil.dbc import eds_path
+    from hdhil.dbc.parsecache import cached
 
-    eds = eds_parser(eds_path("controller"))  # the controller node's own read of the file
+    path = eds_path("controller")
+    return cached(path, "odlimits", lambda: _read_limits(path))
+
+
+def _read_limits(path: Path) -> dict[tuple[int, int], tuple[float | None, float | None]]:
+    from hdhil.canopen.od import eds_parser
+
+    eds = eds_parser(path)  # the controller node's own read of the file
     limits: dict[tuple[int, int], tuple[float | None, float | None]] = {}
     for section in eds.sections():
         index, _, sub = section.partition("sub")

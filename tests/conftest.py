@@ -17,6 +17,7 @@ import itertools
 import os
 import shutil
 import subprocess
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -30,6 +31,16 @@ from hdhil.can.simbus import SimClock
 from hdhil.dbc import CHANNEL_NUMBER, codec
 from hdhil.hostsim.drive import DriveNode
 from hdhil.rig.loop import serve
+
+# The parse cache (hdhil.dbc.parsecache) of the whole session, and of every process it
+# starts, lives in a temporary directory: the suite never writes into the user's home.
+_PARSE_CACHE = tempfile.mkdtemp(prefix="hdhil-test-cache-")
+os.environ["HDHIL_CACHE_DIR"] = _PARSE_CACHE
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    shutil.rmtree(_PARSE_CACHE, ignore_errors=True)
+
 
 # In CI, property tests draw the same examples on every run, so a verdict can be
 # reproduced from the commit alone; local runs keep exploring new examples.

@@ -81,6 +81,7 @@ def test_a_rewritten_file_is_read_again(tmp_path: Path) -> None:
 
 
 def test_one_parse_per_file_and_node(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("HDHIL_CACHE_DIR", "")  # the per-process cache alone
     od_mod._pickled_od.cache_clear()
     od_mod._parsed_od.cache_clear()
     od_mod._parser.cache_clear()

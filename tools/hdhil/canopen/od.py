@@ -9,9 +9,11 @@ Each EDS/DCF file is parsed once per process and node-ID (keyed by its path, siz
 modification time, so a rewritten file is read again): a run reads the controller's EDS
 for its node and for the firmware's parameter limits (:func:`reference_od`,
 :func:`eds_parser`), the drive's for its node and for the controller's name lookups
-(:func:`eds_index`).  :func:`load_od` hands every node a deep copy of its own, since a
-node writes into its dictionary (unpickled from the parse's pickle: a fraction of the
-time ``copy.deepcopy`` takes, and canopen's dictionary classes are plain objects).
+(:func:`eds_index`); each parse is also kept on disk, so a shipped file is parsed once
+per machine (:mod:`hdhil.dbc.parsecache`).  :func:`load_od` hands every node a deep copy
+of its own, since a node writes into its dictionary (unpickled from the parse's pickle: a
+fraction of the time ``copy.deepcopy`` takes, and canopen's dictionary classes are plain
+objects).
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ from pathlib import Path
 import canopen
 from canopen.objectdictionary import ObjectDictionary, ODVariable
 from canopen.objectdictionary import datatypes as dt
+
+from hdhil.dbc.parsecache import cached, cached_pickle
 
 __all__ = [
     "eds_index",
@@ -86,11 +90,16 @@ def _parser(key: _FileKey) -> configparser.RawConfigParser:
 
 @lru_cache(maxsize=32)
 def _pickled_od(key: _FileKey, node_id: int | None) -> bytes:
-    return pickle.dumps(_parsed_od(key, node_id), protocol=pickle.HIGHEST_PROTOCOL)
+    return cached_pickle(key[0], f"od-{node_id}", lambda: _parse_od(key, node_id), ("canopen",))
 
 
 @lru_cache(maxsize=32)
 def _parsed_od(key: _FileKey, node_id: int | None) -> ObjectDictionary:
+    od: ObjectDictionary = pickle.loads(_pickled_od(key, node_id))
+    return od
+
+
+def _parse_od(key: _FileKey, node_id: int | None) -> ObjectDictionary:
     od = canopen.import_od(key[0], node_id)
     parser = _parser(key)
     for section in parser.sections():
@@ -151,9 +160,12 @@ def eds_index(path: str, name: str) -> int:
 
 @lru_cache(maxsize=32)
 def _object_names(key: _FileKey) -> dict[str, int]:
-    parser = _parser(key)
-    return {
-        parser.get(section, "ParameterName"): int(section, 16)
-        for section in parser.sections()
-        if _OBJECT.match(section)
-    }
+    def parse() -> dict[str, int]:
+        parser = _parser(key)
+        return {
+            parser.get(section, "ParameterName"): int(section, 16)
+            for section in parser.sections()
+            if _OBJECT.match(section)
+        }
+
+    return cached(key[0], "od-names", parse)
