@@ -66,7 +66,9 @@ def database(bus: BusName) -> cantools.database.can.Database:
     if bus not in CHANNEL_NUMBER:
         raise ValueError(f"unknown bus {bus!r} (known: {', '.join(CHANNEL_NUMBER)})")
     path = str(dbc_path(bus))
-    return cached(path, "dbc", lambda: cantools.database.load_file(path), ("cantools",))
+    return cached(
+        path, "dbc", lambda: cantools.database.load_file(path), ("cantools",), (__file__,)
+    )
 
 
 _INT_CODES = {

@@ -5,8 +5,9 @@ of a run's start-up after the imports.  :func:`cached` pickles a parse's result 
 cache directory (``$HDHIL_CACHE_DIR``, else ``$XDG_CACHE_HOME/hdhil``, else
 ``~/.cache/hdhil``; ``HDHIL_CACHE_DIR=`` empty disables it) under a name made of the
 parse's kind and the SHA-256 of the file's bytes together with the versions of hdhil,
-the parsing libraries and Python, so an entry written by another version, or of another
-content, is never read.  A caller changing what a parse returns changes its kind.
+the parsing libraries and Python, and the source of the module that parses (its caller
+names it), so an entry written by another version, another parser or of another content
+is never read.
 
 The cache is an optimisation only: a missing, unwritable or foreign directory, a corrupt
 or truncated entry (each carries the SHA-256 of its pickle), an unpickling error, all
@@ -72,10 +73,14 @@ def _versions(libraries: tuple[str, ...]) -> bytes:
     return "\n".join(parts).encode()
 
 
-def _entry_name(path: str | Path, kind: str, libraries: tuple[str, ...]) -> str:
+def _entry_name(
+    path: str | Path, kind: str, libraries: tuple[str, ...], code: tuple[str | Path, ...]
+) -> str:
     with open(path, "rb") as f:
         content = f.read()
     key = hashlib.sha256(_versions(libraries) + b"\0" + kind.encode() + b"\0")
+    for source in code:  # the parser's own source: a changed parser misses its old entries
+        key.update(Path(source).read_bytes() + b"\0")
     key.update(content)
     return f"{kind}-{key.hexdigest()}.pickle"
 
@@ -124,13 +129,15 @@ def _write(entry: Path, payload: bytes) -> None:
         raise
 
 
-def _entry(path: str | Path, kind: str, libraries: tuple[str, ...]) -> Path | None:
+def _entry(
+    path: str | Path, kind: str, libraries: tuple[str, ...], code: tuple[str | Path, ...]
+) -> Path | None:
     """Where the entry of ``path``'s parse of ``kind`` lives, or None (no usable cache)."""
     directory = cache_dir()
     if directory is None:
         return None
     try:
-        name = _entry_name(path, kind, libraries)
+        name = _entry_name(path, kind, libraries, code)
         try:
             if not _private_dir(directory):
                 return None
@@ -144,12 +151,17 @@ def _entry(path: str | Path, kind: str, libraries: tuple[str, ...]) -> Path | No
 
 
 def cached_pickle(
-    path: str | Path, kind: str, parse: Callable[[], object], libraries: tuple[str, ...] = ()
+    path: str | Path,
+    kind: str,
+    parse: Callable[[], object],
+    libraries: tuple[str, ...] = (),
+    code: tuple[str | Path, ...] = (),
 ) -> bytes:
     """The pickle of ``parse()``, the parse of the file at ``path``: read from the cache
-    when an entry for the file's content, ``kind`` and the versions of hdhil, Python and
-    ``libraries`` (module names) is there, else made and stored."""
-    entry = _entry(path, kind, libraries)
+    when an entry for the file's content, ``kind``, the versions of hdhil, Python and
+    ``libraries`` (module names) and the source files ``code`` (the parser's module) is
+    there, else made and stored."""
+    entry = _entry(path, kind, libraries, code)
     if entry is not None:
         try:
             payload = _read(entry)
@@ -165,11 +177,15 @@ def cached_pickle(
 
 
 def cached(
-    path: str | Path, kind: str, parse: Callable[[], T], libraries: tuple[str, ...] = ()
+    path: str | Path,
+    kind: str,
+    parse: Callable[[], T],
+    libraries: tuple[str, ...] = (),
+    code: tuple[str | Path, ...] = (),
 ) -> T:
     """``parse()``, the parse of the file at ``path``, from the cache when it has it (see
     :func:`cached_pickle`); a parse made here is stored for the next process."""
-    entry = _entry(path, kind, libraries)
+    entry = _entry(path, kind, libraries, code)
     if entry is not None:
         try:
             payload = _read(entry)

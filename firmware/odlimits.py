@@ -45,7 +45,7 @@ def _eds_limits() -> dict[tuple[int, int], tuple[float | None, float | None]]:
     from hdhil.dbc.parsecache import cached
 
     path = eds_path("controller")
-    return cached(path, "odlimits", lambda: _read_limits(path))
+    return cached(path, "odlimits", lambda: _read_limits(path), code=(__file__,))
 
 
 def _read_limits(path: Path) -> dict[tuple[int, int], tuple[float | None, float | None]]:

@@ -219,6 +219,18 @@ def test_changed_file_is_a_new_key(cache: Path, tmp_path: Path) -> None:
     assert dbc_summary(before) == dbc_summary(cantools.database.load_file(dbc_path("control")))
 
 
+def test_a_changed_parser_is_a_new_key(cache: Path, tmp_path: Path) -> None:
+    """The parser's own source is part of the key: an edited parser never reads the
+    entries of the old one (the versions stay the same in a development checkout)."""
+    data, parser = tmp_path / "data.txt", tmp_path / "parser.py"
+    data.write_text("payload")
+    parser.write_text("def parse(): return 1\n")
+    assert cached(data, "k", lambda: "old", code=(parser,)) == "old"
+    assert cached(data, "k", lambda: "unused", code=(parser,)) == "old"  # a hit
+    parser.write_text("def parse(): return 2\n")
+    assert cached(data, "k", lambda: "new", code=(parser,)) == "new"
+
+
 def test_another_python_is_a_new_key(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     parse = Counted(lambda: "parsed")
     cached(dbc_path("truth"), "py", parse)

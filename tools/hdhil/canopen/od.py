@@ -90,7 +90,9 @@ def _parser(key: _FileKey) -> configparser.RawConfigParser:
 
 @lru_cache(maxsize=32)
 def _pickled_od(key: _FileKey, node_id: int | None) -> bytes:
-    return cached_pickle(key[0], f"od-{node_id}", lambda: _parse_od(key, node_id), ("canopen",))
+    return cached_pickle(
+        key[0], f"od-{node_id}", lambda: _parse_od(key, node_id), ("canopen",), (__file__,)
+    )
 
 
 @lru_cache(maxsize=32)
@@ -168,4 +170,4 @@ def _object_names(key: _FileKey) -> dict[str, int]:
             if _OBJECT.match(section)
         }
 
-    return cached(key[0], "od-names", parse)
+    return cached(key[0], "od-names", parse, code=(__file__,))
