@@ -485,7 +485,8 @@ class WriterProcess(can.Listener):
             if self._status.poll(WRITER_EXIT_TIMEOUT_S):
                 return self._status.recv()  # type: ignore[no-any-return]
         except (EOFError, OSError):
-            pass
+            # The child closed its end: it has ended or is ending; reap it for its code.
+            self._proc.join(WRITER_EXIT_TIMEOUT_S)
         code = self._proc.exitcode
         return "error", f"the trace writer for {self.path} stopped (exit code {code})"
 
