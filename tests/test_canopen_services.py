@@ -247,6 +247,22 @@ def test_stopped_allows_only_nmt_and_heartbeat(bench):
     assert node.pdo_allowed and node.sdo_allowed
 
 
+def test_service_permissions_follow_every_nmt_state_change(bench):
+    node = booted(bench)
+    expected_pdo = {NmtState.OPERATIONAL}
+    expected_sdo = {NmtState.OPERATIONAL, NmtState.PRE_OPERATIONAL}
+    seen = []
+    for command in (0x01, 0x80, 0x02, 0x01, 0x82, 0x02, 0x80, 0x81, 0x01):
+        bench.send(0x000, bytes((command, 2)))
+        pump(node)
+        state = node.state
+        seen.append(state)
+        allowed = (node.pdo_allowed, node.sdo_allowed, node.sync_allowed, node.emcy_allowed)
+        sdo = state in expected_sdo
+        assert allowed == (state in expected_pdo, sdo, sdo, sdo), state
+    assert set(seen) == {NmtState.OPERATIONAL, NmtState.PRE_OPERATIONAL, NmtState.STOPPED}
+
+
 def test_nmt_master_commands_and_boot_wait(bench):
     master = booted(bench, node_id=1, od=eds_path("controller"))
     master.nmt.expect_boot(2, now=0.0, timeout_s=0.5)
