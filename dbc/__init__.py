@@ -193,7 +193,13 @@ class FrameCodec:
 
         The generated code only inlines the scale, offset and saturation limits read from
         the DBC above; it is equivalent to the generic loop it replaces (and tested
-        against cantools), about twice as fast on the 1 kHz path.
+        against cantools).  ``encode`` first tries one ``pack`` of the converted values
+        (``round`` of the scaled value for a scaled integer signal, the value itself for a
+        float or unscaled integer signal): for finite, in-range values this gives exactly
+        the saturating result, as ``round`` is monotonic and the limits are integers.  A
+        value the fast line cannot take (out of range, NaN, infinite, a float for an
+        unscaled integer signal) makes ``pack`` or ``round`` raise, and the general
+        code below it (NaN check, saturation, ``round``) decides, as it always has.
         """
         names = [f"v{i}" for i in range(len(self._scales))]
         enc = [f"def encode({', '.join(names)}):"]
@@ -203,12 +209,32 @@ class FrameCodec:
             "        raise ValueError(f'{name}: expected {length} data bytes, got {len(data)}')",
             f"    {', '.join(names)}{',' if len(names) == 1 else ''} = unpack(data)",
         ]
+        fast = []
         out = []
         for v, scale, offset, limits in zip(
             names, self._scales, self._offsets, self._int_raw, strict=True
         ):
             trivial = scale == 1.0 and offset == 0.0
+            scaled = v
             if not trivial:
+                # v - 0.0 == v for every float and int, so a zero offset is left out
+                scaled = (
+                    f"{v} * {1.0 / scale!r}"
+                    if offset == 0.0
+                    else (f"({v} - {offset!r}) * {1.0 / scale!r}")
+                )
+            fast.append(scaled if limits is None or trivial else f"round({scaled})")
+            out.append(v if trivial else f"{v} * {scale!r} + {offset!r}")
+        enc += [
+            "    try:",
+            f"        return pack({', '.join(fast)})",
+            "    except Exception:",
+            "        pass  # out of range, NaN, inf, or a non-integer: the general path",
+        ]
+        for v, scale, offset, limits in zip(
+            names, self._scales, self._offsets, self._int_raw, strict=True
+        ):
+            if not (scale == 1.0 and offset == 0.0):
                 enc.append(f"    {v} = ({v} - {offset!r}) * {1.0 / scale!r}")
             if limits is not None:
                 lo, hi = limits
@@ -216,7 +242,6 @@ class FrameCodec:
                 enc.append(
                     f"    {v} = {lo} if {v} <= {lo} else {hi} if {v} >= {hi} else round({v})"
                 )
-            out.append(v if trivial else f"{v} * {scale!r} + {offset!r}")
         enc.append(f"    return pack({', '.join(names)})")
         dec.append(f"    return ({', '.join(out)}{',' if len(out) == 1 else ''})")
         namespace = {

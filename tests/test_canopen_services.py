@@ -247,6 +247,22 @@ def test_stopped_allows_only_nmt_and_heartbeat(bench):
     assert node.pdo_allowed and node.sdo_allowed
 
 
+def test_service_permissions_follow_every_nmt_state_change(bench):
+    node = booted(bench)
+    expected_pdo = {NmtState.OPERATIONAL}
+    expected_sdo = {NmtState.OPERATIONAL, NmtState.PRE_OPERATIONAL}
+    seen = []
+    for command in (0x01, 0x80, 0x02, 0x01, 0x82, 0x02, 0x80, 0x81, 0x01):
+        bench.send(0x000, bytes((command, 2)))
+        pump(node)
+        state = node.state
+        seen.append(state)
+        allowed = (node.pdo_allowed, node.sdo_allowed, node.sync_allowed, node.emcy_allowed)
+        sdo = state in expected_sdo
+        assert allowed == (state in expected_pdo, sdo, sdo, sdo), state
+    assert set(seen) == {NmtState.OPERATIONAL, NmtState.PRE_OPERATIONAL, NmtState.STOPPED}
+
+
 def test_nmt_master_commands_and_boot_wait(bench):
     master = booted(bench, node_id=1, od=eds_path("controller"))
     master.nmt.expect_boot(2, now=0.0, timeout_s=0.5)
@@ -1043,3 +1059,41 @@ def test_controller_and_drive_boot_start_and_monitor_each_other(bench):
     assert (
         0.25 < controller.heartbeat_consumer.monitored[2].lost_at - last_heartbeat <= 0.251 + 1e-9
     )
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    events=st.lists(
+        st.tuples(st.sampled_from(["tick", "hb", "boot", "configure"]), st.sampled_from([3, 4])),
+        max_size=40,
+    ),
+    steps=st.lists(st.integers(1, 40), min_size=40, max_size=40),
+)
+def test_heartbeat_consumer_finds_the_same_losses_as_a_full_scan(events, steps):
+    """``expired`` skips its scan until ``next_expiry``: it must report exactly the losses a
+    scan at every call would, however heartbeats, boot-ups and reconfigurations interleave."""
+    from hdhil.canopen.heartbeat import HeartbeatConsumer
+    from hdhil.canopen.nmt import NmtMaster
+
+    with can.Bus(interface="virtual", channel="hb-scan") as bus:
+        consumer = HeartbeatConsumer(NmtMaster(bus))
+        _run_heartbeat_events(consumer, events, steps)
+
+
+def _run_heartbeat_events(consumer, events, steps):
+    consumer.configure({3: 20, 4: 35})
+    now = 0.0
+    for (kind, node_id), step in zip(events, steps, strict=False):
+        now += step * 1e-3
+        if kind == "hb":
+            consumer.on_frame(node_id, NmtState.OPERATIONAL, now, True)
+        elif kind == "boot":
+            consumer.on_frame(node_id, NmtState.INITIALISING, now, True)
+        elif kind == "configure":
+            consumer.configure({3: 20, 4: 35 if node_id == 3 else 50})
+        due = sorted(
+            m.node_id
+            for m in consumer.monitored.values()
+            if m.status == "active" and now > m.deadline + 1e-9
+        )
+        assert sorted(m.node_id for m in consumer.expired(now)) == due

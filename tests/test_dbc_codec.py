@@ -39,6 +39,70 @@ def test_encode_decode_agree_with_cantools(bus, name, data):
         assert math.isclose(v, decoded_theirs[n], rel_tol=1e-12, abs_tol=1e-12)
 
 
+def _edge_strategy(sig):
+    """Physical values around and beyond an integer signal's raw range: half-way ties,
+    the limits themselves, infinities, and (for unscaled signals) ints and floats."""
+    if sig.is_float:
+        return st.floats(-1e6, 1e6, allow_nan=False, width=32)
+    lo = -(1 << (sig.length - 1)) if sig.is_signed else 0
+    hi = (1 << (sig.length - 1)) - 1 if sig.is_signed else (1 << sig.length) - 1
+    raw = st.one_of(
+        st.integers(lo - 3, hi + 3).map(lambda k: k + 0.5),
+        st.integers(lo - 3, hi + 3).map(float),
+        st.floats(lo - 3.0, hi + 3.0),
+        st.sampled_from([lo - 0.5, lo - 0.25, hi + 0.25, hi + 0.5, math.inf, -math.inf]),
+    )
+    physical = raw.map(lambda r: r * sig.scale + sig.offset)
+    if sig.scale == 1 and sig.offset == 0:
+        return st.one_of(physical, st.integers(lo - 3, hi + 3), st.booleans())
+    return physical
+
+
+def _saturating_reference(c, message, values):
+    """Scale, refuse NaN, saturate at the raw range, round half to even, then pack."""
+    raws = []
+    for name, v in zip(c.signal_names, values, strict=True):
+        sig = message.get_signal_by_name(name)
+        if not (sig.scale == 1 and sig.offset == 0):
+            v = (v - float(sig.offset)) * (1.0 / float(sig.scale))
+        if not sig.is_float:
+            if math.isnan(v):
+                raise ValueError("NaN")
+            lo = -(1 << (sig.length - 1)) if sig.is_signed else 0
+            hi = (1 << (sig.length - 1)) - 1 if sig.is_signed else (1 << sig.length) - 1
+            v = lo if v <= lo else hi if v >= hi else round(v)
+        raws.append(v)
+    return c._struct.pack(*raws)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("bus", "name"), ALL_MESSAGES)
+@settings(max_examples=300, deadline=None)
+@given(data=st.data())
+def test_encode_saturates_and_rounds_like_the_reference_at_the_edges(bus, name, data):
+    """The one-``pack`` fast line of ``encode`` and its general path agree with the
+    saturating reference for ties, limits, out-of-range and infinite values."""
+    c = codec(bus, name)
+    message = database(bus).get_message_by_name(name)
+    values = [data.draw(_edge_strategy(message.get_signal_by_name(n))) for n in c.signal_names]
+    try:
+        expected = _saturating_reference(c, message, values)
+    except (ValueError, OverflowError):
+        with pytest.raises((ValueError, OverflowError)):
+            c.encode(*values)
+        return
+    assert c.encode(*values) == expected
+
+
+def test_ties_round_to_even_and_limits_saturate_in_one_frame():
+    c = codec("truth", "TRUTH_JOINT")  # four int16 signals, scale 0.005
+    raw = c._struct.unpack(c.encode(2.5 * 0.005, 3.5 * 0.005, 32767.5 * 0.005, -1e300))
+    assert raw == (2, 4, 32767, -32768)
+    unscaled = codec("control", "DRIVE_RPDO1")
+    assert unscaled.encode(-2.5, 65535.5, 1.5) == unscaled.encode(-2, 65535, 2)
+    assert unscaled.encode(True, 70000, -1) == unscaled.encode(1, 65535, 0)
+
+
 def test_integer_signals_saturate_instead_of_wrapping():
     c = codec("control", "CTRL_TPDO1")
     T_meas, T_filtered, velocity, current = c.decode(c.encode(1e9, -1e9, 400.0, -40.0))

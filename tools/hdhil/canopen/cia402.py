@@ -347,7 +347,11 @@ class DriveStateMachine:
 
     def step(self, dt: float) -> tuple[int, ...]:
         """Advance the quick-stop / fault-reaction ramp by ``dt`` seconds."""
-        if not self._ramping:
+        state = self.state  # _ramping, inline: every cycle of an enabled drive returns here
+        if not (
+            (state is _QUICK_STOP_ACTIVE or state is _FAULT_REACTION_ACTIVE)
+            and self._ramp_left_s > 0
+        ):
             return ()
         self._ramp_left_s = max(0.0, self._ramp_left_s - dt)
         if self._ramp_left_s > 0:

@@ -89,6 +89,16 @@ class HeartbeatConsumer:
         self.master = master
         self.monitored: dict[int, MonitoredNode] = {}
         self.received = 0
+        #: The earliest time (s, with the tolerance added) after which :meth:`expired` can
+        #: find an overdue node: the nearest active deadline, ``inf`` when none is active.
+        #: A per-cycle ``tick`` compares ``now`` with this one float and skips the scan.
+        self.next_expiry = math.inf
+
+    def _update_next_expiry(self) -> None:
+        self.next_expiry = min(
+            (m.deadline + TIME_EPSILON for m in self.monitored.values() if m.status == "active"),
+            default=math.inf,
+        )
 
     def configure(self, entries: Mapping[int, int]) -> None:
         """Set the monitored nodes from {node_id: timeout_ms}; unchanged entries keep state."""
@@ -99,6 +109,7 @@ class HeartbeatConsumer:
         for node_id, ms in wanted.items():
             if node_id not in self.monitored:
                 self.monitored[node_id] = MonitoredNode(node_id, ms / 1e3)
+        self._update_next_expiry()
 
     def on_frame(
         self, node_id: int, state_byte: int, now: float, monitoring: bool
@@ -116,6 +127,7 @@ class HeartbeatConsumer:
             if monitor is not None and monitor.status == "active":
                 monitor.status = "waiting"
                 monitor.deadline = math.inf
+                self._update_next_expiry()
             return "boot"
         try:
             master.remote_states[node_id] = NmtState(state)
@@ -126,15 +138,17 @@ class HeartbeatConsumer:
         monitor.last_heartbeat = now
         monitor.nmt_state = state
         monitor.deadline = now + monitor.timeout_s
-        if monitor.status == "lost":
-            monitor.status = "active"
+        event: HeartbeatEvent = "resumed" if monitor.status == "lost" else "heartbeat"
+        if event == "resumed":
             monitor.resumed_at = now
-            return "resumed"
         monitor.status = "active"
-        return "heartbeat"
+        self._update_next_expiry()
+        return event
 
     def expired(self, now: float) -> list[MonitoredNode]:
         """Mark and return the active nodes whose heartbeat is overdue at ``now``."""
+        if not now > self.next_expiry:
+            return []  # the per-cycle case: no active deadline has passed
         lost = []
         for m in self.monitored.values():
             if m.status == "active" and now > m.deadline + TIME_EPSILON:
@@ -143,4 +157,5 @@ class HeartbeatConsumer:
                 m.lost_at = now
                 m.deadline = math.inf
                 lost.append(m)
+        self._update_next_expiry()
         return lost

@@ -268,6 +268,7 @@ class CanopenServices:
         self.emcy_on_heartbeat_loss = emcy_on_heartbeat_loss
 
         self.state = NmtState.INITIALISING
+        self._set_permissions(self.state)
         #: The latest ``now`` given to ``boot``/``tick``; frames handled without an explicit
         #: ``now`` are timed with it.
         self.now = 0.0
@@ -405,24 +406,23 @@ class CanopenServices:
         if now + TIME_EPSILON >= self.heartbeat.next_due:
             self.heartbeat.send(now, self.state)
             self.counters.heartbeats_sent += 1
-        for monitor in self.heartbeat_consumer.expired(now):
-            self._heartbeat_lost(monitor)
+        consumer = self.heartbeat_consumer
+        if now > consumer.next_expiry:  # a float test per cycle; expired() scans the nodes
+            for monitor in consumer.expired(now):
+                self._heartbeat_lost(monitor)
 
     # --------------------------------------------------------------- NMT slave
 
-    @property
-    def pdo_allowed(self) -> bool:
-        """PDOs may be sent and received only in OPERATIONAL."""
-        return self.state is _OPERATIONAL
-
-    @property
-    def sdo_allowed(self) -> bool:
-        state = self.state
-        return state is _OPERATIONAL or state is _PRE_OPERATIONAL
-
-    #: SYNC and EMCY follow the same rule as SDO (PRE-OPERATIONAL and OPERATIONAL).
-    sync_allowed = sdo_allowed
-    emcy_allowed = sdo_allowed
+    def _set_permissions(self, state: NmtState) -> None:
+        """The services ``state`` allows (CiA 301 §7.3.2.2), kept as plain attributes
+        because the cyclic path reads them on every frame; :meth:`_set_state` (the one
+        place the NMT state changes) calls this."""
+        #: PDOs may be sent and received only in OPERATIONAL.
+        self.pdo_allowed: bool = state is _OPERATIONAL
+        #: SDO, SYNC and EMCY: PRE-OPERATIONAL and OPERATIONAL.
+        self.sdo_allowed: bool = state is _OPERATIONAL or state is _PRE_OPERATIONAL
+        self.sync_allowed: bool = self.sdo_allowed
+        self.emcy_allowed: bool = self.sdo_allowed
 
     def enter_state(self, state: NmtState) -> None:
         """Local state change by the application (e.g. the NMT master starting itself,
@@ -462,6 +462,7 @@ class CanopenServices:
         if new == old:
             return
         self.state = new
+        self._set_permissions(new)
         if old is NmtState.STOPPED and self.sync is not None:
             self.sync.reset()  # CiA 301: counter restarts when leaving STOPPED
         for callback in self._state_callbacks:

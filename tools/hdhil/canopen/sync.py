@@ -124,7 +124,10 @@ class SyncMonitor:
         if self.last_sync_time is not None:
             elapsed = None
             if self.period_s is not None:
-                elapsed = max(0, round((now - self.last_sync_time) / self.period_s) - 1)
+                periods = (now - self.last_sync_time) / self.period_s
+                # below 1.5 periods round() - 1 is at most 0 (1.5 itself rounds to 2):
+                # the on-time SYNC of every cycle skips the round
+                elapsed = 0 if periods < 1.5 else max(0, round(periods) - 1)
             if counter is not None and self.last_counter is not None:
                 missed = (counter - (self.last_counter % self.overflow + 1)) % self.overflow
                 if elapsed is not None and elapsed > missed:
