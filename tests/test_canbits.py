@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import random
+
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -65,6 +67,18 @@ def test_no_stuffing_below_the_worst_case_and_known_frames():
     alternating = frame_bits(0x182, False, False, b"\x55" * 8)
     assert zeros > alternating
     assert zeros <= worst_case_frame_bits(8)
+
+
+def test_eight_byte_frames_match_the_reference() -> None:
+    """The written-out path of 8-byte data frames, fast-tier: runs of zeros and ones
+    across byte borders (stuff bits carried from byte to byte) and random payloads."""
+    rng = random.Random(8)
+    for _ in range(300):
+        extended = rng.random() < 0.5
+        can_id = rng.getrandbits(29 if extended else 11)
+        data = bytes(rng.choice((0x00, 0xFF, 0x0F, 0xF0, rng.getrandbits(8))) for _ in range(8))
+        expected = _reference_bits(can_id, extended, False, data)
+        assert frame_bits.__wrapped__(can_id, extended, False, data) == expected
 
 
 @pytest.mark.parametrize("nbits", [7, 8])
