@@ -179,8 +179,10 @@ def test_realtime_section_can_be_left_out(report: dict, monkeypatch) -> None:
              "real_time_factor": 1.0, "evaluation_share": 0.1,
              "rss_growth_MB_per_sim_minute": 0.0}  # fmt: skip
     monkeypatch.setattr(
-        speed, "bench_speed", lambda *a: {"whole": whole, "reference": {"us_per_cycle": 1.0}}
-    )
+        speed, "bench_speed",
+        lambda *a: {"whole": whole, "reference": {"us_per_cycle": 1.0, "cpu_us_per_cycle": 1.0,
+                                                  "loop_cpu_us_per_cycle": 1.0}},
+    )  # fmt: skip
     assert run_benchmarks(quick=True, realtime_s=0)["realtime"] is None
     assert "Real-time mode" not in format_bench({**report, "realtime": None})
 

@@ -50,14 +50,19 @@ def test_stages_split_the_process_by_its_stamps() -> None:
 )
 def test_goal_verdicts_follow_the_figures(whole_s, eval_s, rtf_met, share_met) -> None:
     loop = {"median": 30.0, "us_per_cycle": 33.0}
-    rows = speed.speed_goals(_whole(whole_s=whole_s, evaluation_s=eval_s), loop, 66.0, 0.25)
+    ref = {"cpu_us_per_cycle": 100.0, "loop_cpu_us_per_cycle": 50.0}
+    rows = speed.speed_goals(_whole(whole_s=whole_s, evaluation_s=eval_s), loop, ref, 0.25)
     by = {r["figure"].split(" (")[0].split(":")[0]: r for r in rows}
     assert by["whole command"]["met"] is rtf_met
     assert by["evaluation share of the whole command"]["met"] is share_met
     assert by["first cycle after process start"]["met"] is True
     assert rows[-1]["value"] == pytest.approx(2.0) and rows[-1]["met"] is None
-    # without the lockstep table there is no loop goal and no reference ratio
-    assert len(speed.speed_goals(_whole(), None, 66.0, 0.25)) == len(rows) - 2
+    growth = next(r for r in rows if r["unit"] == "MB/sim min")
+    assert growth["met"] is True  # 10 s runs: judged
+    short = speed.speed_goals({**_whole(), "duration_s": 1.0}, loop, ref, 0.25)
+    assert next(r for r in short if r["unit"] == "MB/sim min")["met"] is None
+    # without the lockstep table there is no loop goal
+    assert len(speed.speed_goals(_whole(), None, ref, 0.25)) == len(rows) - 1
 
 
 def test_cost_model_prediction_and_capacity() -> None:
@@ -98,28 +103,24 @@ def test_cost_model_terms_are_measured() -> None:
     assert cm["frames_per_cycle"] > 6 and cm["duration_s"] == speed.MIN_COST_MODEL_S
 
 
-def _loop_us(request, trace: Path) -> float:
-    r = run_lockstep(request, trace=trace, evaluate=False)
-    return 1e6 * r.wall_s / (r.startup_cycles + r.cycles + r.stop_cycles)
-
-
 @pytest.mark.slow
 @pytest.mark.subprocess
 def test_speed_guard_loop_against_python_can_virtual(tmp_path: Path) -> None:
     """CI's coarse guard: the whole lockstep loop (free-motion, BLF trace on) must stay
-    faster than python-can's ``virtual`` bus merely carrying the same frames; each
-    measured three times in turns, medians compared.  ``hdhil bench`` reports the
-    figures; this catches a large regression, not a small one."""
+    well under python-can's ``virtual`` bus merely carrying the same frames, in CPU time
+    per cycle (other processes on a shared machine slow neither side); each measured
+    five times in turns, medians compared.  ``hdhil bench`` reports the figures; this
+    catches a large regression, not a small one."""
     request = resolve("free-motion", duration_s=1.0)
     frames = speed.cycle_frames(cycle=50)
-    _loop_us(request, tmp_path / "warm.blf")
+    speed.loop_cpu_us(request, tmp_path / "warm.blf")
     loop, ref = [], []
-    for i in range(3):
-        loop.append(_loop_us(request, tmp_path / f"g{i}.blf"))
-        ref.append(speed.bench_virtual_reference(frames, 1000, 1)["us_per_cycle"])
+    for i in range(5):
+        loop.append(speed.loop_cpu_us(request, tmp_path / f"g{i}.blf"))
+        ref.append(speed.bench_virtual_reference(frames, 1000, 1)["cpu_us_per_cycle"])
     ratio = statistics.median(loop) / statistics.median(ref)
     assert ratio < speed.GUARD_RATIO, (
-        f"the loop takes {statistics.median(loop):.0f} us/cycle, "
+        f"the loop takes {statistics.median(loop):.0f} us of CPU a cycle, "
         f"{ratio:.2f}x python-can virtual carrying its frames "
         f"({statistics.median(ref):.0f} us/cycle); guard {speed.GUARD_RATIO}x"
     )

@@ -709,8 +709,7 @@ def run_benchmarks(
     loop_row = next((r for r in lockstep if r["scenario"] == "free-motion" and r["logging"]
                      and r["interface"] == "simbus"), None)  # fmt: skip
     first = next(r for r in startup["rows"] if r["figure"] == "run_first_cycle")
-    goals = speed_goals(speed["whole"], loop_row, speed["reference"]["us_per_cycle"],
-                        first["median"])  # fmt: skip
+    goals = speed_goals(speed["whole"], loop_row, speed["reference"], first["median"])
     section("done")
     return {
         "started": started,

@@ -58,11 +58,14 @@ GOALS = {
     "rss_growth_MB_per_sim_minute": 2.0,
 }
 
-#: CI's coarse speed guard (tests/test_speed.py): the lockstep loop's µs per cycle
-#: (free-motion, BLF trace on) over the reference's (:func:`bench_virtual_reference`)
-#: must stay below this.  The loop measures about 0.4 of the reference on a 2-core
-#: machine: a loop 45 % slower fails, the spread of a shared machine passes.
-GUARD_RATIO = 0.6
+#: The shortest whole-command run whose memory growth is judged (simulated s).
+MIN_GROWTH_RUN_S = 10.0
+
+#: CI's coarse speed guard (tests/test_speed.py): the lockstep loop's CPU µs per cycle
+#: (free-motion, BLF trace on; :func:`loop_cpu_us`) over the reference's
+#: (:func:`bench_virtual_reference`) must stay below this.  CPU time, not wall time: a
+#: shared machine's other processes then slow neither side.
+GUARD_RATIO = 0.75
 
 #: Run in a fresh interpreter by :func:`bench_whole_command`: ``hdhil run`` (the CLI's
 #: own ``main``) with the node loop's ``cycle``, the run's final evaluation (in process,
@@ -254,9 +257,10 @@ def bench_virtual_reference(
     """python-can's ``virtual`` bus carrying ``frames`` every cycle for ``cycles`` cycles:
     on the control channel two node handles and a listen-only tap, on the truth channel a
     sender and the tap, as in a run; each frame is sent once and received by every other
-    handle with ``recv(0)``.  Returns µs per cycle (median of ``repeat``)."""
+    handle with ``recv(0)``.  Returns wall and CPU µs per cycle (medians of ``repeat``)."""
     channel_names = {0: "hdhil-ref-control", 1: "hdhil-ref-truth"}
-    per_cycle = []
+    per_cycle: list[float] = []
+    cpu_per_cycle: list[float] = []
     for _ in range(repeat):
         buses = {
             0: [can.Bus(interface="virtual", channel=channel_names[0]) for _ in range(3)],
@@ -266,7 +270,7 @@ def bench_virtual_reference(
             msgs = [(f.channel, can.Message(arbitration_id=f.arbitration_id, data=f.data,
                                             is_extended_id=f.is_extended_id))
                     for f in frames]  # fmt: skip
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             for _ in range(cycles):
                 for ch, msg in msgs:
                     handles = buses[ch]
@@ -275,12 +279,14 @@ def bench_virtual_reference(
                         while rx.recv(0) is not None:
                             pass
             per_cycle.append((time.perf_counter() - t0) / cycles * 1e6)
+            cpu_per_cycle.append((time.thread_time() - c0) / cycles * 1e6)
         finally:
             for handles in buses.values():
                 for b in handles:
                     b.shutdown()
     return {"frames_per_cycle": len(frames), "us_per_cycle": statistics.median(per_cycle),
-            "cycles": cycles, "runs": repeat}  # fmt: skip
+            "cpu_us_per_cycle": statistics.median(cpu_per_cycle), "cycles": cycles,
+            "runs": repeat}  # fmt: skip
 
 
 # ------------------------------------------------------------------ the cost model
@@ -315,14 +321,15 @@ def _padded(factory: Callable[..., Any], k: int) -> Callable[..., Any]:
     return make
 
 
-def _loop_cpu_us(request: Any, trace: Path, factory: Callable[..., Any] | None = None) -> float:
+def loop_cpu_us(request: Any, trace: Path, factory: Callable[..., Any] | None = None) -> float:
     """CPU µs per cycle of one lockstep run's loop alone (set-up and teardown left out):
-    the process's CPU time between the first and the last poll of the run's stop hook,
-    which the loop polls once per cycle."""
+    the CPU time of the loop's thread between the first and the last poll of the run's
+    stop hook, which the loop polls once per cycle (a thread's time: a math library's
+    idle worker threads spinning in the same process do not count)."""
     stamps: list[float] = []
 
     def at_cycle() -> bool:
-        stamps.append(time.process_time())
+        stamps.append(time.thread_time())
         return False
 
     run_lockstep(request, trace=trace, evaluate=False, stop_requested=at_cycle,
@@ -353,7 +360,7 @@ def bench_cost_model(
         for _ in range(repeat):
             for k in PADDING_STEPS:
                 factory = _padded(scenario_drive(request.scenario), k)
-                samples[k].append(_loop_cpu_us(request, trace, factory))
+                samples[k].append(loop_cpu_us(request, trace, factory))
             sync_only.append(_sync_only_us(duration_s, trace))
     ks = np.array(PADDING_STEPS, dtype=float)
     us = np.array([statistics.median(samples[k]) for k in PADDING_STEPS])
@@ -429,11 +436,11 @@ def _sync_only_us(duration_s: float, trace: Path) -> float:
         loop = NodeLoop([node], producer=node, listeners=[tap], listen_every=10,  # type: ignore[list-item]
                         sim_clock=clock, node_time=None, pump=sender)  # fmt: skip
         cycles = max(1, round(duration_s * 1e3))
-        t0 = time.process_time()
+        t0 = time.thread_time()
         for _ in range(cycles):
             loop.cycle()
         tap.poll()
-        return (time.process_time() - t0) / cycles * 1e6
+        return (time.thread_time() - t0) / cycles * 1e6
     finally:
         writer.stop()
         for b in (sender, tap_bus, truth_bus):
@@ -447,11 +454,12 @@ def predict_cycle_us(model: dict[str, Any], joints: int, frames: float) -> float
 
 
 # --------------------------------------------------------------------- the goals
-def speed_goals(whole: dict[str, Any], loop: dict[str, Any] | None, reference_us: float,
+def speed_goals(whole: dict[str, Any], loop: dict[str, Any] | None, reference: dict[str, Any],
                 first_cycle_s: float) -> list[dict[str, Any]]:  # fmt: skip
     """The goals' rows (figure, value, goal, verdict) from the whole command's figures,
     the lockstep table's free-motion row with BLF logging (``loop``; None: the section
-    did not run), the reference's µs per cycle and the start-up section's first cycle."""
+    did not run), the reference (:func:`bench_speed`'s, with the loop's CPU per cycle
+    beside it) and the start-up section's first cycle."""
     med = whole["median"]
     rows: list[tuple[str, float, str, float, str]] = [
         (f"whole command (hdhil run, {whole['duration_s']:g} s, BLF, evaluation): "
@@ -471,13 +479,16 @@ def speed_goals(whole: dict[str, Any], loop: dict[str, Any] | None, reference_us
     ]  # fmt: skip
     out: list[dict[str, Any]] = []
     for label, value, op, goal, unit in rows:
-        met = value >= goal if op == ">=" else value <= goal
-        out.append({"figure": label, "value": value, "goal": f"{op} {goal:g} {unit}",
-                    "unit": unit, "met": bool(met)})  # fmt: skip
-    if loop is not None:
-        out.append({"figure": "loop's speed against python-can virtual carrying its frames",
-                    "value": reference_us / loop["us_per_cycle"], "goal": "", "unit": "x",
-                    "met": None})  # fmt: skip
+        met: bool | None = value >= goal if op == ">=" else value <= goal
+        text = f"{op} {goal:g} {unit}"
+        if unit == "MB/sim min" and whole["duration_s"] < MIN_GROWTH_RUN_S:
+            # a few hundred kB of allocator noise over a short run reads as a slope
+            met, text = None, f"judged on runs of {MIN_GROWTH_RUN_S:g} s and more"
+        out.append({"figure": label, "value": value, "goal": text, "unit": unit,
+                    "met": None if met is None else bool(met)})  # fmt: skip
+    out.append({"figure": "loop's speed against python-can virtual carrying its frames (CPU)",
+                "value": reference["cpu_us_per_cycle"] / reference["loop_cpu_us_per_cycle"],
+                "goal": "", "unit": "x", "met": None})  # fmt: skip
     return out
 
 
@@ -490,14 +501,17 @@ def bench_speed(whole_duration_s: float, whole_runs: int, model_duration_s: floa
     from hdhil.analysis.joint_scaling import joint_scaling
 
     frames = cycle_frames()
+    cost_model = bench_cost_model(model_duration_s, repeat)
     return {
         "joint_scaling": joint_scaling(joints, steps=scaling_steps, repeats=max(3, repeat)),
         "whole": bench_whole_command(whole_duration_s, whole_runs),
         "reference": {
             **bench_virtual_reference(frames, reference_cycles, repeat),
             "frames": [[f.channel, f.arbitration_id, len(f.data)] for f in frames],
+            # the loop's CPU per cycle with no padding frame (the cost model's first point)
+            "loop_cpu_us_per_cycle": cost_model["points"][0]["cpu_us_per_cycle"],
         },
-        "cost_model": bench_cost_model(model_duration_s, repeat),
+        "cost_model": cost_model,
     }
 
 
@@ -553,8 +567,9 @@ def format_speed_section(speed: dict[str, Any], goals: list[dict[str, Any]]) -> 
     lines += [
         "",
         f"Reference: python-can `virtual` carrying one cycle's {ref['frames_per_cycle']} frames "
-        f"(same identifiers and sizes, every receiver, no nodes): {ref['us_per_cycle']:.0f} "
-        "us/cycle (the goals' last row sets the loop of the lockstep table against it)",
+        f"(same identifiers and sizes, every receiver, no nodes): {ref['cpu_us_per_cycle']:.0f} "
+        f"us of CPU per cycle ({ref['us_per_cycle']:.0f} us wall); the whole loop: "
+        f"{ref['loop_cpu_us_per_cycle']:.0f} us of CPU per cycle",
         "",
         f"Cost model (CPU us per cycle, {cm['scenario']}, BLF on, "
         f"{COST_MODEL_BITRATE / 1e6:g} Mbit/s; slope over {', '.join(map(str, PADDING_STEPS))} "
