@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from hdhil.analysis.tables import markdown_table as _table
 from hdhil.core.errors import UserError
@@ -700,7 +701,8 @@ def run_benchmarks(
     else:
         campaign = bench_campaign(variants=16, duration_s=2.0, repeat=s.repeat)
     section("start-up")
-    startup = bench_startup(s)
+    with threadpool_limits(limits=1):  # no idle BLAS worker spinning beside the children
+        startup = bench_startup(s)
     section("speed")
     from hdhil.analysis.speed import bench_speed, speed_goals
 

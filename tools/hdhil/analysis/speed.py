@@ -498,13 +498,20 @@ def bench_speed(whole_duration_s: float, whole_runs: int, model_duration_s: floa
                 joints: Sequence[int] = (1, 4, 7, 16)) -> dict[str, Any]:  # fmt: skip
     """The speed section: the whole command, the reference, the cost model, and N joints
     stepped one by one against one array step (:mod:`hdhil.analysis.joint_scaling`)."""
+    from threadpoolctl import threadpool_limits
+
     from hdhil.analysis.joint_scaling import joint_scaling
 
-    frames = cycle_frames()
-    cost_model = bench_cost_model(model_duration_s, repeat)
+    # One BLAS thread in this process: idle BLAS workers spin for a while after each call
+    # and would take the core the measured child's trace writer runs on.
+    with threadpool_limits(limits=1):
+        whole = bench_whole_command(whole_duration_s, whole_runs)
+        frames = cycle_frames()
+        cost_model = bench_cost_model(model_duration_s, repeat)
+        scaling = joint_scaling(joints, steps=scaling_steps, repeats=max(3, repeat))
     return {
-        "joint_scaling": joint_scaling(joints, steps=scaling_steps, repeats=max(3, repeat)),
-        "whole": bench_whole_command(whole_duration_s, whole_runs),
+        "joint_scaling": scaling,
+        "whole": whole,
         "reference": {
             **bench_virtual_reference(frames, reference_cycles, repeat),
             "frames": [[f.channel, f.arbitration_id, len(f.data)] for f in frames],
