@@ -516,7 +516,8 @@ def test_drive_heartbeat_loss_is_safe_within_one_tick_with_emcy(link):
     assert lk.node.diagnostics.heartbeat_losses == 1
     assert lk.node.diagnostics.emcy_sent == 1
     assert "heartbeat of drive (node 2) lost" in lk.node.diagnostics.safe_reason
-    assert frames[-1] == (0x000, b"\x80\x02")  # NMT: drive to PRE-OPERATIONAL, no RPDO
+    # NMT: drive to PRE-OPERATIONAL, no RPDO; requested with the EMCY, it wins arbitration
+    assert frames[-2:] == [(0x000, b"\x80\x02"), (0x081, emcy[0])]
     after = lk.run(20)
     assert not {0x080, 0x202, 0x181} & set(ids(after))
     assert (0x701, b"\x7f") in [(i, d) for _, i, d in lk.run(100)]  # PRE-OPERATIONAL

@@ -79,6 +79,27 @@ def test_simultaneous_requests_arbitrate_by_identifier():
             bus.shutdown()
 
 
+def test_requests_on_an_idle_wire_arbitrate_by_identifier_too():
+    """Frames requested at the same instant after the wire has been idle start together
+    and arbitrate: a heartbeat sent just before the SYNC of the same instant loses to it
+    (send order decided it, which delayed the SYNC by one frame every heartbeat)."""
+    clock = SimClock()
+    a = can.Bus(interface="simbus", channel="t-idle", clock=clock, timing="worst-case")
+    c = can.Bus(interface="simbus", channel="t-idle")
+    try:
+        a.send(_frame(0x181, 8))
+        assert c.recv(0).arbitration_id == 0x181  # the wire is idle from 135 µs on
+        clock.now = 1e-3
+        a.send(_frame(0x701, 1))  # requested first, but a higher identifier
+        a.send(_frame(0x080, 0))
+        order = [c.recv(0) for _ in range(2)]
+        assert [m.arbitration_id for m in order] == [0x080, 0x701]
+        assert order[0].timestamp == pytest.approx(1e-3 + 55e-6)  # starts at the request
+    finally:
+        for bus in (a, c):
+            bus.shutdown()
+
+
 def test_a_node_cannot_answer_before_it_received_the_frame():
     clock = SimClock()
     a = can.Bus(interface="simbus", channel="t-causal", clock=clock, timing="worst-case")

@@ -129,7 +129,8 @@ class _Channel:
 
         When the wire becomes free, every frame requested by then competes and the lowest
         identifier wins arbitration (an extended frame loses to a base frame with the same
-        11 leading bits); if none is waiting, the earliest request goes next.
+        11 leading bits); if none is waiting, the frames of the earliest request time
+        start together and arbitrate the same way.
         """
         if self.faults is not None:
             self._flush_faulty(self.faults)
@@ -169,7 +170,8 @@ class _Channel:
     def _next(self) -> tuple[float, _Pending]:
         """Take the frame that goes on the wire next, and when it starts: when the wire
         frees up, the lowest identifier among the frames requested by then wins
-        arbitration; if none is waiting, the earliest request goes next."""
+        arbitration; if none is waiting, the frames of the earliest request time start
+        together when it comes, and the lowest identifier among them wins."""
         pending = self.pending
         free = self.busy_until
         ready = [p for p in pending if p[2] <= free]
@@ -177,8 +179,8 @@ class _Channel:
             item = min(ready)  # (arbitration key, sequence): unique, never compares further
             start = free
         else:
-            item = min(pending, key=_request_key)
-            start = item[2]
+            start = min(pending, key=_request_key)[2]
+            item = min(p for p in pending if p[2] == start)
         pending.remove(item)
         return start, item
 
