@@ -452,6 +452,8 @@ def bench_memory(s: BenchSettings, scenario: str = "misalignment") -> dict[str, 
             evaluate=False,
             stop_requested=sample_rss,
         )
+        if r.interrupted:  # the hook never asks to stop: Ctrl-C ended the run; end the bench
+            raise KeyboardInterrupt
         gc.collect()
         after = _rss_bytes()
         trace_bytes = (Path(tmp) / "mem.blf").stat().st_size

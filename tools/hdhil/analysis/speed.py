@@ -135,7 +135,12 @@ def _process(argv: Sequence[str]) -> dict[str, Any]:
         spawned = time.time()
         t0 = time.perf_counter()
         proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=err)
-        _, status, usage = os.wait4(proc.pid, 0)
+        try:
+            _, status, usage = os.wait4(proc.pid, 0)
+        except BaseException:  # Ctrl-C while waiting: the child ends with the bench
+            proc.kill()
+            proc.wait()
+            raise
         wall = time.perf_counter() - t0
         proc.returncode = os.waitstatus_to_exitcode(status)
         err.seek(0)
@@ -332,8 +337,10 @@ def loop_cpu_us(request: Any, trace: Path, factory: Callable[..., Any] | None = 
         stamps.append(time.thread_time())
         return False
 
-    run_lockstep(request, trace=trace, evaluate=False, stop_requested=at_cycle,
-                 drive_factories=None if factory is None else [factory])  # fmt: skip
+    r = run_lockstep(request, trace=trace, evaluate=False, stop_requested=at_cycle,
+                     drive_factories=None if factory is None else [factory])  # fmt: skip
+    if r.interrupted:  # the hook never asks to stop: Ctrl-C ended the run; end the bench
+        raise KeyboardInterrupt
     if len(stamps) < 2:
         raise UserError("bench: the cost model's run has no cycles")
     return (stamps[-1] - stamps[0]) / (len(stamps) - 1) * 1e6
