@@ -150,6 +150,23 @@ def _entry(
     return directory / name
 
 
+def _lookup(entry: Path | None) -> bytes | None:
+    """The pickle stored in ``entry``, or None (no cache, or no usable entry)."""
+    if entry is None:
+        return None
+    try:
+        return _read(entry)
+    except Exception:
+        return None
+
+
+def _store(entry: Path | None, payload: bytes) -> None:
+    """Keep ``payload`` as ``entry`` for the next process; a failure only loses the entry."""
+    if entry is not None:
+        with contextlib.suppress(Exception):
+            _write(entry, payload)
+
+
 def cached_pickle(
     path: str | Path,
     kind: str,
@@ -162,17 +179,10 @@ def cached_pickle(
     ``libraries`` (module names) and the source files ``code`` (the parser's module) is
     there, else made and stored."""
     entry = _entry(path, kind, libraries, code)
-    if entry is not None:
-        try:
-            payload = _read(entry)
-        except Exception:
-            payload = None
-        if payload is not None:
-            return payload
-    payload = pickle.dumps(parse(), protocol=pickle.HIGHEST_PROTOCOL)
-    if entry is not None:
-        with contextlib.suppress(Exception):
-            _write(entry, payload)
+    payload = _lookup(entry)
+    if payload is None:
+        payload = pickle.dumps(parse(), protocol=pickle.HIGHEST_PROTOCOL)
+        _store(entry, payload)
     return payload
 
 
@@ -184,18 +194,16 @@ def cached(
     code: tuple[str | Path, ...] = (),
 ) -> T:
     """``parse()``, the parse of the file at ``path``, from the cache when it has it (see
-    :func:`cached_pickle`); a parse made here is stored for the next process."""
+    :func:`cached_pickle`); a parse made here is stored for the next process, and an
+    entry that does not unpickle is replaced."""
     entry = _entry(path, kind, libraries, code)
-    if entry is not None:
+    payload = _lookup(entry)
+    if payload is not None:
         try:
-            payload = _read(entry)
-            if payload is not None:
-                value: T = pickle.loads(payload)
-                return value
+            value: T = pickle.loads(payload)
+            return value
         except Exception:
             pass
     value = parse()
-    if entry is not None:
-        with contextlib.suppress(Exception):
-            _write(entry, pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
+    _store(entry, pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
     return value

@@ -163,13 +163,23 @@ def _paper_kernel_source(blocks: int) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _compiled_step(source: str, name: str) -> Callable[..., float]:
+    """The ``step`` function a generated kernel's ``source`` defines, compiled under
+    ``name`` (shown in tracebacks and profiles), with the math it calls in scope."""
+    namespace: dict[str, object] = {
+        "cos": math.cos,
+        "sin": math.sin,
+        "isfinite": math.isfinite,
+        "INF": math.inf,
+    }
+    exec(compile(source, name, "exec"), namespace)
+    return namespace["step"]  # type: ignore[return-value]
+
+
 @cache
 def _paper_kernel(blocks: int) -> Callable[..., float]:
     """The compiled step function of :class:`RippleKalman` for ``blocks`` blocks."""
-    namespace: dict[str, object] = {"cos": math.cos, "sin": math.sin, "isfinite": math.isfinite}
-    source = _paper_kernel_source(blocks)
-    exec(compile(source, f"<RippleKalman kernel, {blocks}>", "exec"), namespace)
-    return namespace["step"]  # type: ignore[return-value]
+    return _compiled_step(_paper_kernel_source(blocks), f"<RippleKalman kernel, {blocks}>")
 
 
 class RippleKalman:
@@ -433,15 +443,7 @@ def _kernel_source(harmonics: int) -> str:
 @cache
 def _kernel(harmonics: int) -> Callable[..., float]:
     """The compiled step function for ``harmonics`` harmonics (built once per count)."""
-    namespace: dict[str, object] = {
-        "cos": math.cos,
-        "sin": math.sin,
-        "isfinite": math.isfinite,
-        "INF": math.inf,
-    }
-    source = _kernel_source(harmonics)
-    exec(compile(source, f"<HarmonicKalman kernel, {harmonics}>", "exec"), namespace)
-    return namespace["step"]  # type: ignore[return-value]
+    return _compiled_step(_kernel_source(harmonics), f"<HarmonicKalman kernel, {harmonics}>")
 
 
 class HarmonicKalman:

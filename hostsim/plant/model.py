@@ -223,13 +223,7 @@ class Plant:
         ) = self._maps.get(dt) or self._map(dt)  # fmt: skip
         # coefficient <row><column>: rows d (twist), m (w_m), l (w_l), q (q_l), i (current);
         # columns d, m, l, i (state), u (i_cmd), tm / tl (motor / load non-linear torque)
-        # _command_current and _tick inline: this is the 1 kHz path of every run.
-        i_cmd = self._gain * volts
-        if i_cmd > self._ilim:
-            i_cmd = self._ilim
-        elif i_cmd < -self._ilim:
-            i_cmd = -self._ilim
-        self._i_cmd = i_cmd
+        i_cmd = self._command_current(volts)
         # constant-over-the-step input terms
         du *= i_cmd
         mu *= i_cmd
@@ -260,10 +254,7 @@ class Plant:
                 ii * i + iu,
             )
         self._d, self._wm, self._wl, self._i, self._ql = d, wm, wl, i, q_out
-        y = dt - self._t_carry
-        t = self._t + y
-        self._t_carry = (t - self._t) - y
-        self._t = t
+        self._tick(dt)
         self._update_sensor()
 
     def _command_current(self, volts: float) -> float:

@@ -516,22 +516,6 @@ def bench_realtime(s: BenchSettings, scenario: str = "free-motion") -> dict[str,
 
 # ------------------------------------------------------------------------- report
 # ------------------------------------------------------------------------ start-up
-#: Run in a fresh interpreter by :func:`bench_startup`: ``hdhil run`` (the CLI's own
-#: ``main``) with the node loop's ``cycle`` wrapped to print the wall-clock time at the
-#: end of the first cycle on stderr.  Nothing else is changed.
-FIRST_CYCLE_CHILD = """
-import sys, time
-from hdhil.rig import loop
-_cycle = loop.NodeLoop.cycle
-def cycle(self):
-    _cycle(self)
-    if self.k == 1:
-        print(f"hdhil-first-cycle {time.time()!r}", file=sys.stderr, flush=True)
-loop.NodeLoop.cycle = cycle
-from hdhil.cli import main
-sys.exit(main(sys.argv[1:]))
-"""
-
 #: The start-up goals: help within this factor of python-can's ``can.logger --help``,
 #: the first cycle of ``hdhil run`` within this many seconds of the process start.
 HELP_GOAL_FACTOR = 2.0
@@ -557,6 +541,8 @@ def bench_startup(s: BenchSettings) -> dict[str, Any]:
     (the help goal's reference), and ``hdhil run`` of one sample with its default BLF
     trace: the time from the process's spawn to the end of its first cycle, and to its
     exit."""
+    from hdhil.analysis.speed import STAGES_CHILD, timed_process
+
     py = sys.executable
     figures: dict[str, list[float]] = {
         "import_can": [], "can_logger_help": [], "hdhil_help": [], "dump_help": [],
@@ -570,14 +556,12 @@ def bench_startup(s: BenchSettings) -> dict[str, Any]:
             figures["can_logger_help"].append(_process_s([py, "-m", "can.logger", "--help"])[0])
             figures["hdhil_help"].append(_process_s([py, "-m", "hdhil", "--help"])[0])
             figures["dump_help"].append(_process_s([py, "-m", "hdhil", "dump", "--help"])[0])
-            spawned = time.time()
-            whole, err = _process_s([py, "-c", FIRST_CYCLE_CHILD, *run_args])
-            stamps = [float(w.split()[1]) for w in err.splitlines()
-                      if w.startswith("hdhil-first-cycle ")]  # fmt: skip
-            if not stamps:
+            # hdhil run with its first cycle stamped (the speed section's child)
+            run = timed_process([py, "-c", STAGES_CHILD, *run_args])
+            if "first_cycle" not in run["stamps"]:
                 raise UserError("bench start-up: hdhil run reported no first cycle")
-            figures["run_first_cycle"].append(stamps[0] - spawned)
-            figures["run_whole"].append(whole)
+            figures["run_first_cycle"].append(run["stamps"]["first_cycle"] - run["spawned"])
+            figures["run_whole"].append(run["wall_s"])
     ref = statistics.median(figures["import_can"])
     logger = statistics.median(figures["can_logger_help"])
     labels = {

@@ -126,7 +126,7 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
-def _process(argv: Sequence[str]) -> dict[str, Any]:
+def timed_process(argv: Sequence[str]) -> dict[str, Any]:
     """One child process: wall time from spawn to exit, its CPU time (``os.wait4``), its
     peak RSS (the high-water mark it reports, :data:`STAGES_CHILD`) and its stamps."""
     import subprocess
@@ -197,9 +197,9 @@ def bench_whole_command(duration_s: float, runs: int) -> dict[str, Any]:
                     "--trace", trace]  # fmt: skip
 
         for _ in range(runs):
-            per_run.append(_stages(_process(argv(duration_s))))
+            per_run.append(_stages(timed_process(argv(duration_s))))
         for _ in range(max(1, runs // 2)):
-            long_rss.append(_process(argv(3 * duration_s))["peak_rss_MB"])
+            long_rss.append(timed_process(argv(3 * duration_s))["peak_rss_MB"])
     med = {k: statistics.median(r[k] for r in per_run) for k in per_run[0]}
     short_rss = med["peak_rss_MB"]
     growth = (statistics.median(long_rss) - short_rss) / (2 * duration_s / 60.0)

@@ -167,6 +167,19 @@ class _Channel:
         if self.waiting:
             self.notify_waiting()
 
+    def deliver_now(
+        self, frame: can.Message, requested: float, receivers: tuple[SimBus, ...]
+    ) -> None:
+        """Deliver ``frame`` at once (a channel with no wire to share: ``timing`` "none"
+        and no fault hook), after whatever it delivered before, in the order sent
+        (caller holds the lock)."""
+        end = requested if requested > self.busy_until else self.busy_until
+        self.busy_until = frame.timestamp = end
+        self.frames += 1
+        for bus in receivers:
+            bus._queue.append(frame)
+            bus._last_rx = end
+
     def _next(self) -> tuple[float, _Pending]:
         """Take the frame that goes on the wire next, and when it starts: when the wire
         frees up, the lowest identifier among the frames requested by then wins
@@ -389,13 +402,7 @@ class SimBus(can.BusABC):
             requested = self._last_rx if self._last_rx > now else now
             seq = ch.seq = ch.seq + 1
             if ch.timing == "none" and ch.faults is None:
-                # No wire to share: delivered at once, in the order sent.
-                end = requested if requested > ch.busy_until else ch.busy_until
-                ch.busy_until = frame.timestamp = end
-                ch.frames += 1
-                for bus in ch.receivers[self]:
-                    bus._queue.append(frame)
-                    bus._last_rx = end
+                ch.deliver_now(frame, requested, ch.receivers[self])
                 if ch.waiting:
                     ch.notify_waiting()
                 return
@@ -423,15 +430,10 @@ class SimBus(can.BusABC):
             now = ch.clock.now
             requested = self._last_rx if self._last_rx > now else now
             receivers = ch.receivers[self]
+            deliver = ch.deliver_now
             for msg in msgs:
-                frame = received_copy(msg, label)
                 ch.seq += 1
-                end = requested if requested > ch.busy_until else ch.busy_until
-                ch.busy_until = frame.timestamp = end
-                ch.frames += 1
-                for bus in receivers:
-                    bus._queue.append(frame)
-                    bus._last_rx = end
+                deliver(received_copy(msg, label), requested, receivers)
             if ch.waiting:
                 ch.notify_waiting()
 
