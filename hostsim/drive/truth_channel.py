@@ -39,6 +39,7 @@ class TruthPublisher:
             can.Message(arbitration_id=c.frame_id, is_extended_id=True, dlc=c.length, check=False)
             for c in self._codecs
         )
+        self._ids = tuple(c.frame_id for c in self._codecs)
 
     @property
     def bus(self) -> can.BusABC | None:
@@ -48,7 +49,10 @@ class TruthPublisher:
     @bus.setter
     def bus(self, bus: can.BusABC | None) -> None:
         self._bus = bus
-        # The simulated bus takes a cycle's frames in one call; any other one by one.
+        # A channel of frame groups (hdhil.can.groups, the in-process truth channel of a
+        # lockstep run) takes the three payloads as one group; the simulated bus a
+        # cycle's frames in one call; any other bus one by one.
+        self._send_group = getattr(bus, "send_group", None)
         self._send_frames = getattr(bus, "send_frames", None) or self._send_each
 
     def _send_each(self, msgs: tuple[can.Message, ...]) -> None:
@@ -59,10 +63,14 @@ class TruthPublisher:
     def publish(self, t: Truth) -> None:
         """Send the three truth frames of ``t`` (the bus must be set)."""
         torque, motion, joint = self._codecs
-        m_torque, m_motion, m_joint = self._msgs
         # The first ten fields by position (Truth's order), in one unpacking.
         T_true, th_m, th_o, w_m, w_o, tau_m, tau_m_cmd, T_ripple, tau_ext, tau_d = t[:10]
-        m_torque.data = torque.encode(T_true, T_ripple)
-        m_motion.data = motion.encode(th_m % TWO_PI, th_o % TWO_PI, w_m, w_o)
-        m_joint.data = joint.encode(tau_ext, tau_d, tau_m, tau_m_cmd)
+        d_torque = torque.encode(T_true, T_ripple)
+        d_motion = motion.encode(th_m % TWO_PI, th_o % TWO_PI, w_m, w_o)
+        d_joint = joint.encode(tau_ext, tau_d, tau_m, tau_m_cmd)
+        if self._send_group is not None:
+            self._send_group(self._ids, True, (d_torque, d_motion, d_joint))
+            return
+        m_torque, m_motion, m_joint = self._msgs
+        m_torque.data, m_motion.data, m_joint.data = d_torque, d_motion, d_joint
         self._send_frames(self._msgs)

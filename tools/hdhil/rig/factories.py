@@ -30,6 +30,7 @@ from typing import Literal, Protocol
 
 import can
 
+from hdhil.can.groups import GroupChannel
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
@@ -88,7 +89,7 @@ class NodeSite:
     sample_period_s: float
     seed: int
     actuation: Literal["next-sync", "immediate"] = "next-sync"
-    truth_bus: can.BusABC | None = None
+    truth_bus: can.BusABC | GroupChannel | None = None
     faults: FaultInjector | None = None
     #: The node-IDs of the drives (what the controller addresses).
     drive_node_ids: tuple[int, ...] = ()

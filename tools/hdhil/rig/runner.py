@@ -29,6 +29,7 @@ from threadpoolctl import threadpool_limits
 
 from hdhil.can.busload import ScheduleLoad, schedule_load
 from hdhil.can.faults import FaultLog
+from hdhil.can.groups import GroupChannel
 from hdhil.can.simbus import SimBus, SimClock
 from hdhil.can.traces.tap import BusTap
 from hdhil.core.dataconf import ConfigError
@@ -65,8 +66,8 @@ TAP_EVERY_CYCLES = 16
 FAULTY_CYCLE_TIMEOUT_S = 0.02
 
 
-def _frames_sent(control: can.BusABC, truth: can.BusABC) -> dict[str, int]:
-    """Frames each channel carried, as counted by the bus itself (simbus only)."""
+def _frames_sent(control: can.BusABC, truth: can.BusABC | GroupChannel) -> dict[str, int]:
+    """Frames each channel carried, as counted by the bus itself (simbus and frame groups only)."""
     return {
         name: bus.frames_sent
         for name, bus in (("control", control), ("truth", truth))

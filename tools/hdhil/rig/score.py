@@ -17,6 +17,7 @@ from pathlib import Path
 
 import can
 
+from hdhil.can.groups import FrameGroup
 from hdhil.dbc import codec
 
 
@@ -66,6 +67,8 @@ class TorqueScorer(can.Listener):
         self._truth = truth
         self._keys = frozenset((self._tele_key, self._truth_key))
         self._T_true: float | None = None
+        self._group_ids: tuple[int, ...] | None = None  # the last group's ids, and where
+        self._group_at: int | None = None  # its truth frame is
         self.n = 0
         self._sum_true2 = 0.0
         self._sum_raw2 = 0.0
@@ -109,19 +112,39 @@ class TorqueScorer(can.Listener):
             self._block_sum += e_filt * e_filt
             self._block_n += 1
 
-    def on_frames(self, frames: list[can.Message]) -> None:
-        """:meth:`on_message_received` for the telemetry and truth frames among ``frames``."""
+    #: :meth:`on_frames` takes :class:`FrameGroup` items (:class:`hdhil.can.traces.tap.
+    #: BusTap`).
+    takes_frame_groups = True
+
+    def on_frames(self, frames: list[can.Message | FrameGroup]) -> None:
+        """:meth:`on_message_received` for the telemetry and truth frames among ``frames``
+        (and the truth frames of a frame group)."""
         keys = self._keys
         truth_key = self._truth_key
         truth_length = self._truth.length
         truth_decode = self._truth.decode
         for msg in frames:
+            if msg.__class__ is FrameGroup:
+                data = self._group_truth(msg)
+                if data is not None and len(data) == truth_length:
+                    self._T_true = truth_decode(data)[0]
+                continue
             key = (msg.arbitration_id, msg.is_extended_id)
             if key in keys:
                 if key == truth_key and len(msg.data) == truth_length:  # the common case
                     self._T_true = truth_decode(msg.data)[0]
                 else:
                     self.on_message_received(msg)
+
+    def _group_truth(self, group: FrameGroup) -> bytes | None:
+        """The payload of the truth frame in ``group``, or None."""
+        ids = group.ids
+        if ids is not self._group_ids:  # the drive sends the same tuple every cycle
+            key_id = self._truth_key[0]
+            self._group_at = ids.index(key_id) if key_id in ids else None
+            self._group_ids = ids
+        at = self._group_at
+        return group.payloads[at] if at is not None and group.extended else None
 
     def _close_block(self) -> None:
         if self._block_n:

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import can
 
 from hdhil.can.faults import ChannelFaults, FaultyTransmitBus, check_node_transmit_faults
+from hdhil.can.groups import GroupChannel
 from hdhil.can.simbus import SimClock
 from hdhil.can.traces.tap import FrameCounter
 from hdhil.can.traces.writer import WriterProcess
@@ -108,6 +109,8 @@ class RigBuses:
         self.opened: list[can.BusABC] = []
         #: Some node puts its own frames through the control faults (not the simbus).
         self.faulty_transmit = False
+        #: The truth channel as frame groups (:meth:`truth`), once opened.
+        self._groups: GroupChannel | None = None
 
     def control(self, node_id: int | None = None) -> can.BusABC:
         """A new handle on the control bus for node ``node_id`` (None: the tap)."""
@@ -148,8 +151,19 @@ class RigBuses:
             return FaultyTransmitBus(bus, own, clock=lambda: clock.now, node_id=node_id)
         return bus
 
-    def truth(self, node_id: int | None = None) -> can.BusABC:
-        """A new handle on the truth channel for drive ``node_id`` (None: the tap)."""
+    def truth(self, node_id: int | None = None) -> can.BusABC | GroupChannel:
+        """A new handle on the truth channel for drive ``node_id`` (None: the tap).
+
+        Without truth faults the channel is the run's one :class:`GroupChannel`: each
+        drive's three truth frames of a cycle go to the tap as one group (nothing else
+        listens, nothing shares a wire with them). Faults act on single frames: with
+        them, the channel is a simulated bus."""
+        if self._truth_faults is None:
+            if self._groups is None:
+                self._groups = GroupChannel(self.clock, CHANNEL_NUMBER["truth"],
+                                            f"hdhil-{self.run_id}-truth")  # fmt: skip
+                self.opened.append(self._groups)  # type: ignore[arg-type]
+            return self._groups
         bus = can.Bus(
             interface="simbus",
             channel=f"hdhil-{self.run_id}-truth",
@@ -174,8 +188,8 @@ class RigNodes:
     controller: ControllerNode
     drives: list[DriveNode]
     controller_bus: can.BusABC
-    truth_bus: can.BusABC  # one drive's handle on the truth channel (frame counts)
-    tap_buses: dict[int, can.BusABC]
+    truth_bus: can.BusABC | GroupChannel  # one drive's handle on the truth channel (frame counts)
+    tap_buses: dict[int, can.BusABC | GroupChannel]
 
 
 def build_nodes(

@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import operator
 from collections.abc import Callable, Iterable
+from typing import Any
 
 import can
 
+from hdhil.can.groups import FrameGroup, GroupChannel, expand_groups
 from hdhil.can.simbus import SimBus, received_copy
 
 
@@ -28,10 +30,19 @@ class FrameCounter(can.Listener):
         key = (msg.channel, msg.arbitration_id)
         self.counts[key] = self.counts.get(key, 0) + 1
 
-    def on_frames(self, frames: list[can.Message]) -> None:
+    #: :meth:`on_frames` takes :class:`FrameGroup` items (:class:`BusTap`).
+    takes_frame_groups = True
+
+    def on_frames(self, frames: list[can.Message | FrameGroup]) -> None:
         counts = self.counts
         get = counts.get
         for msg in frames:
+            if msg.__class__ is FrameGroup:
+                channel = msg.channel
+                for arbitration_id in msg.ids:
+                    key = (channel, arbitration_id)
+                    counts[key] = get(key, 0) + 1
+                continue
             key = (msg.channel, msg.arbitration_id)
             counts[key] = get(key, 0) + 1
 
@@ -57,9 +68,13 @@ def _frames_callback(listener: can.Listener) -> Callable[[list[can.Message]], ob
     return one_by_one
 
 
-def _drain(channel: int, bus: can.BusABC) -> Callable[[list[can.Message]], int]:
+def _drain(channel: int, bus: can.BusABC | GroupChannel) -> Callable[[list[Any]], int]:
     """A function appending every frame waiting on ``bus`` to its argument, stamped with
-    ``channel``; it returns how many."""
+    ``channel``; it returns how many (a frame group counts once)."""
+    if isinstance(bus, GroupChannel):
+        if bus.channel != channel:
+            raise ValueError(f"frame groups of channel {bus.channel} tapped as channel {channel}")
+        return bus.drain_into
     if isinstance(bus, SimBus) and bus.trace_channel == channel:
         return bus.drain_into  # frames already carry the channel number
     recv = bus.recv
@@ -93,15 +108,26 @@ class BusTap:
     A listener with an ``on_frames(frames)`` method gets each poll's frames in one call
     (:class:`WriterProcess`, :class:`FrameCounter`, the scorers); any other
     :class:`can.Listener` gets them one by one through ``on_message_received``.
+
+    A bus may be a :class:`GroupChannel` (the in-process truth channel): a listener that
+    says it ``takes_frame_groups`` gets its :class:`FrameGroup` items as they are; every
+    other listener gets their frames as messages, in the same place of the batch.
     """
 
-    def __init__(self, buses: dict[int, can.BusABC], listeners: Iterable[can.Listener]) -> None:
+    def __init__(self, buses: dict[int, can.BusABC | GroupChannel],
+                 listeners: Iterable[can.Listener]) -> None:  # fmt: skip
         self.listeners = list(listeners)
         self._deliver = [_frames_callback(listener) for listener in self.listeners]
+        #: Per listener: whether it takes frame groups as they are.
+        self._takes_groups = [
+            bool(getattr(listener, "takes_frame_groups", False)) for listener in self.listeners
+        ]
         self._drains = [_drain(channel, bus) for channel, bus in buses.items()]
+        self._groups = any(isinstance(bus, GroupChannel) for bus in buses.values())
 
     def poll(self) -> int:
-        """Hand on every waiting frame, all channels merged in timestamp order.
+        """Hand on every waiting frame, all channels merged in timestamp order; returns
+        how many (a frame group counts once).
 
         Frames of one bus arrive in order; across buses the timestamp decides (the truth
         frame of cycle k, stamped at the sample instant t(k), precedes the telemetry of
@@ -115,8 +141,18 @@ class BusTap:
             return 0
         if channels > 1:
             batch.sort(key=_timestamp)
-        for deliver in self._deliver:
-            deliver(batch)
+        if not self._groups:
+            for deliver in self._deliver:
+                deliver(batch)
+            return len(batch)
+        expanded = None
+        for deliver, takes_groups in zip(self._deliver, self._takes_groups, strict=True):
+            if takes_groups:
+                deliver(batch)
+            else:
+                if expanded is None:
+                    expanded = expand_groups(batch)
+                deliver(expanded)
         return len(batch)
 
     def stop(self) -> None:

@@ -42,6 +42,7 @@ from typing import Any, NamedTuple
 
 import can
 
+from hdhil.can.groups import FrameGroup
 from hdhil.can.simbus import _snapshot_fast, received_copy
 from hdhil.can.traces import formats
 from hdhil.can.traces.blfobjects import bulk_blf_writer
@@ -125,12 +126,34 @@ _FIELDS = operator.attrgetter("timestamp", "arbitration_id", "is_extended_id", "
                               "is_error_frame", "is_rx", "dlc", "channel", "data")  # fmt: skip
 
 
-def _records(frames: Iterable[can.Message]) -> list[bytes]:
-    """The pipe records of ``frames`` (a comprehension: the cheapest way to pack a batch)."""
+def _records(frames: Iterable[can.Message | FrameGroup]) -> list[bytes]:
+    """The pipe records of ``frames`` (a comprehension: the cheapest way to pack a batch);
+    a :class:`FrameGroup` gives the records of its frames, joined."""
     pack = _RECORD.pack
     return [pack(msg.timestamp, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
                  msg.is_error_frame, msg.is_rx, msg.dlc, msg.channel, msg.data)
+            if msg.__class__ is not FrameGroup else _group_records(msg)
             for msg in frames]  # fmt: skip
+
+
+#: Three records in one pack (the truth channel's groups): the same bytes as three
+#: packs of :data:`_RECORD`, which has no padding.
+_RECORDS3 = struct.Struct("<" + _RECORD.format[1:] * 3)
+
+
+def _group_records(group: FrameGroup) -> bytes:
+    """The pipe records of a group's frames (received data frames), joined."""
+    ts, channel, ids, extended, payloads = group
+    if len(ids) == 3:
+        (a, b, c), (da, db, dc) = ids, payloads
+        return _RECORDS3.pack(
+            ts, a, extended, False, False, True, len(da), channel, da,
+            ts, b, extended, False, False, True, len(db), channel, db,
+            ts, c, extended, False, False, True, len(dc), channel, dc,
+        )  # fmt: skip
+    pack = _RECORD.pack
+    return b"".join([pack(ts, i, extended, False, False, True, len(d), channel, d)
+                     for i, d in zip(ids, payloads, strict=True)])  # fmt: skip
 
 
 _Record = tuple[float, int, bool, bool, bool, bool, int, int, bytes]
@@ -502,8 +525,12 @@ class WriterProcess(can.Listener):
         ):
             self._send()
 
-    def on_frames(self, frames: list[can.Message]) -> None:
-        """:meth:`on_message_received` for each frame, in one call."""
+    #: :meth:`on_frames` takes :class:`FrameGroup` items (:class:`BusTap`).
+    takes_frame_groups = True
+
+    def on_frames(self, frames: list[can.Message | FrameGroup]) -> None:
+        """:meth:`on_message_received` for each frame (or each frame of a group), in one
+        call."""
         if not self._batch:
             self._batch_started = time.monotonic()
         pending = iter(frames)
@@ -514,10 +541,10 @@ class WriterProcess(can.Listener):
             # fit a record: the frames before that one are kept, as they were handed over.
             kept = frames[: max(len(frames) - operator.length_hint(pending) - 1, 0)]
             self._batch += b"".join(_records(kept))
-            self._batched += len(kept)
+            self._batched = len(self._batch) // _RECORD.size
             raise
         self._batch += packed
-        self._batched += len(frames)
+        self._batched += len(packed) // _RECORD.size  # frames (a group holds several)
         if (
             self._batched >= BATCH_FRAMES
             or time.monotonic() - self._batch_started > BATCH_MAX_AGE_S
