@@ -11,10 +11,13 @@ controller that runs a design once per sample is :class:`firmware.lqg.LqgControl
 Torques handed to or returned by this module are in [Vertechy]'s sign convention
 (``tau_s = k (theta_l - theta_m)``), reduced to the output shaft; ``firmware.isr`` maps
 the product convention onto it.  The weights enter as Q = diag(q1, q2), R = 1: the
-reading that reproduces the printed gains.  One reading of W: W is the variance of each
-1 kHz torque sample (0.12 Nm²), V is read in the same convention, and L depends on V/W
-only.  The model, the readings that do not reproduce the paper, and why its tracking
-figure does not reproduce are in docs/papers.md.
+reading that reproduces the printed gains.  One reading of W: W = 0.12 Nm is the
+standard deviation of each 1 kHz torque sample, as its unit says (the emulated sensor's
+noise); Eq. 8 takes the number W where the measurement-noise covariance goes, and so does
+the design, with V in the same convention: L depends on V/W only and is the printed one.
+The filter is thus designed for 0.12 Nm² where the sensor has 0.0144 Nm².  The model,
+the readings that do not reproduce the paper, and why its tracking figure does not
+reproduce are in docs/papers.md.
 """
 
 from __future__ import annotations
@@ -67,8 +70,8 @@ __all__ = [
     "zoh",
 ]
 
-#: The sample period at which [Vertechy]'s torque-sensor variance W is read (s): W is
-#: the variance of each 1 kHz sample (module docstring, "One reading of W").
+#: The sample period at which [Vertechy]'s torque-sensor W is read (s): W is per 1 kHz
+#: sample (module docstring, "One reading of W").
 W_SAMPLE_PERIOD_S = 1e-3
 
 
@@ -145,9 +148,10 @@ class LqgWeights:
         q1: weight on ``(tau_s - tau_s^D)²`` ([Vertechy]: 500).  Enters Q *linearly*, see
             docs/papers.md (Eq. 6 prints ``q1²`` but the printed gains need ``q1``).
         q2: weight on ``tau_s'²`` ([Vertechy]: 0.1), linearly as q1.
-        W: variance of each 1 kHz torque sample ([Vertechy] §I: "torque sensor variance
-            W = 0.12") [Nm²]; the emulated sensor's noise is ``sqrt(W)`` per sample
-            (module docstring, "One reading of W").
+        W: the measurement-noise weight of Eq. 8 ([Vertechy] §I: "torque sensor variance
+            W = 0.12 Nm"), entered where Eq. 8 puts it; the emulated sensor's noise has
+            the standard deviation W per sample (module docstring, "One reading of W").
+            ``W = 0.0144`` (0.12²) designs the filter matched to that sensor.
         V: the Wiener process ``tau_lgd' = v`` in the same convention ([Vertechy] §VI:
             V = 1e4); only V/W sets the Kalman gain.
     """
@@ -429,7 +433,7 @@ def discretize_observer(
     """The 1 kHz observer (docs/papers.md, "Discretisation for the 1 kHz loop").
 
     ``zoh-kalman``: DARE on the ZOH meta-system with Van Loan ``Qd`` from the intensity
-    ``V · 1 ms`` and ``Rd = W · 1 ms / Ts`` (W the per-sample variance at 1 kHz; module
+    ``V · 1 ms`` and ``Rd = W · 1 ms / Ts`` (W per 1 kHz sample, as Eq. 8 takes it; module
     docstring, "One reading of W").  ``zoh-observer``: ZOH of ``(A' - L C, [B', L])``
     with ``L`` given or from :func:`design_kalman`.
     """

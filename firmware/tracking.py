@@ -45,15 +45,15 @@ class TrackingPlant:
     output; ``τd = τg = 0``.  The motor starts where a rigid joint would (no twist,
     moving with the link), like :class:`hostsim.plant.LinkMotionConfig`.  The sensor
     reads the spring torque ``τs = k (θl − θm)`` (reported in the product sign ``T =
-    -τs``), plus white noise of variance ``noise_W`` Nm² per sample ([Vertechy] §I: W =
-    0.12; 0 in the paper's simulation), rounded to ``adc_lsb_Nm`` (0: not quantised).
+    -τs``), plus white noise of standard deviation ``noise_Nm`` per sample ([Vertechy]
+    §I: W = 0.12 Nm; 0 in the paper's simulation), rounded to ``adc_lsb_Nm`` (0: not quantised).
     The motor torque follows the command through a first-order lag ``current_lag_s``
     (0: at once).
 
     Attributes:
         joint: the true joint (default: [Vertechy] §I-II, as the design assumes).
         link_amplitude_deg, link_frequency_Hz: the link trajectory ([Vertechy]: 20°, 1 Hz).
-        noise_W: torque-measurement noise variance per sample (Nm²).
+        noise_Nm: torque-measurement noise standard deviation per sample (Nm).
         adc_lsb_Nm: torque-measurement quantisation step (Nm).
         current_lag_s: amplifier current-loop time constant (s).
         seed: noise generator seed.
@@ -62,7 +62,7 @@ class TrackingPlant:
     joint: JointParams = dataclasses.field(default_factory=JointParams)
     link_amplitude_deg: float = 20.0
     link_frequency_Hz: float = 1.0
-    noise_W: float = 0.0
+    noise_Nm: float = 0.0
     adc_lsb_Nm: float = 0.0
     current_lag_s: float = 0.0
     seed: int = 0
@@ -73,7 +73,7 @@ class TrackingPlant:
             {
                 "link_amplitude_deg": "finite",
                 "link_frequency_Hz": ">0",
-                "noise_W": ">=0",
+                "noise_Nm": ">=0",
                 "adc_lsb_Nm": ">=0",
                 "current_lag_s": ">=0",
             },
@@ -161,7 +161,7 @@ def simulate_tracking(
     k_s = plant.joint.k
     A_l = math.radians(plant.link_amplitude_deg)
     rng = np.random.default_rng(plant.seed)
-    sigma = math.sqrt(plant.noise_W)
+    sigma = plant.noise_Nm
     noise = rng.standard_normal(n) * sigma if sigma > 0 else np.zeros(n)
     lsb = plant.adc_lsb_Nm
     delayed = c.delay_samples == 1

@@ -81,8 +81,10 @@ def _run(grouped: bool, cycles: int = 40, poll_every: int = 3) -> tuple[list, ..
             clock.now = k * 1e-3
             clock.horizon = (k + 1) * 1e-3
             publisher.publish(_truth(k))
-            control.send(can.Message(arbitration_id=TELEMETRY.frame_id, is_extended_id=False,
-                                     data=TELEMETRY.encode(0.1 * k, 0.2 * k, 1.0, 0.5)))  # fmt: skip
+            data = TELEMETRY.encode(0.1 * k, 0.2 * k, 1.0, 0.5)
+            control.send(
+                can.Message(arbitration_id=TELEMETRY.frame_id, is_extended_id=False, data=data)
+            )
             if k % poll_every == 0:
                 tap.poll()
         tap.poll()

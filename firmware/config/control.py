@@ -171,8 +171,8 @@ Estimates = Literal["observer", "filters"]
 
 #: Cut-off (Hz) of the first-order low-pass giving τ̂s for the ``filters`` estimates.
 #: [Vertechy] gives none.  It must pass the 17 Hz joint mode the PD law damps with little
-#: phase lag (18.8° at 17 Hz) while cutting the sensor noise (W = 0.12 Nm² per sample,
-#: 0.35 Nm rms) to ~0.14 Nm rms (the noise bandwidth of a 50 Hz first-order low-pass is
+#: phase lag (18.8° at 17 Hz) while cutting the sensor noise (W = 0.12 Nm rms per
+#: sample) to ~0.05 Nm rms (the noise bandwidth of a 50 Hz first-order low-pass is
 #: 78.5 Hz of the 500 Hz Nyquist band).  20-100 Hz change the noise-free §VI figure by
 #: less than 0.15 Nm.
 JTF_LOWPASS_HZ = 50.0
@@ -306,7 +306,7 @@ class ControlConfig:
 #:   Wiener-process model lags a moving link by ~17 ms x τlgd' at V = 1e4.
 #:
 #: The price is precision ([Vertechy] §V: larger V/W is "more accurate but less precise"):
-#: with the paper's sensor noise (W = 0.12 Nm² per sample) the noise part of e is
+#: with the paper's sensor noise (W = 0.12 Nm per sample) the noise part of e is
 #: about twice the paper design's and the command noise reaches a 150 Nm torque limit.
 #: A tuning for the noise-free §VI scenario (the paper's simulation), not for a noisy
 #: joint.  ``torque_per_volt`` and ``torque_limit_Nm`` are the defaults; set them to

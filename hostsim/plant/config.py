@@ -519,11 +519,10 @@ class SensorConfig:
     Noise standard deviations are in physical units (Nm, rad/s at the motor, A),
     white and Gaussian, one independent draw per sample; representative values, not
     from the papers, except for [Vertechy]'s torque sensor: "torque sensor variance W =
-    0.12 Nm (measured with the motor driver turned on)" (§I; the unit is Nm², a
-    variance, as its use in the Kalman filter of Eq. 8 shows) is
-    ``torque_noise_Nm = sqrt(0.12) = 0.3464`` Nm per sample.  The seed measured it on
-    the sampled signal, so it is a per-sample variance here, at the 1 kHz sample rate:
-    the one reading of W the whole project uses (the LQG design's too, see
+    0.12 Nm (measured with the motor driver turned on)" (§I) is read by its unit, Nm: a
+    standard deviation, ``torque_noise_Nm = 0.12`` Nm per sample.  The seed measured it
+    on the sampled signal, so it is per sample here, at the 1 kHz sample rate: the one
+    reading of W the whole project uses (the LQG design's too, see
     ``hdhil.firmware.lqg_design``, "One reading of W").
 
     ``torque_measures``: what the ideal torque sensor reads, ``Truth.T_true_Nm``.

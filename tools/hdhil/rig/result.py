@@ -196,21 +196,30 @@ def format_result(r: RunResult) -> str:
 
 
 def format_tracking(rows: list[dict[str, Any]]) -> str:
-    """The tracking table: e = T_true − T_desired, the observer's exogenous-torque
-    estimate against its truth (τlgd, or τlg with Eq. 5) and against the true external
-    torque τl + τg (the handle torque of [Vertechy]'s experiment), and the envelope of the
+    """The tracking table: per law, the error e against the desired torque on the true,
+    the measured and the estimated torque; the observer's exogenous-torque estimate
+    against its truth (τlgd, or τlg with Eq. 5) and against the true external torque
+    τl + τg (the handle torque of [Vertechy]'s experiment); and the envelope of the
     commanded motor torque (:class:`hdhil.rig.score.TrackingScore`)."""
+    nan = math.nan
+    w = max([22, *(len(str(r["law"])) for r in rows)])
     lines = [
-        "  torque tracking vs truth (e = T_true − T_desired; τ̂: the observer's τlgd, "
-        "τlg with Eq. 5)",
-        f"    {'law':<30} {'max |e|/Nm':>10} {'RMS e/Nm':>9} {'RMS τ̂ err/Nm':>13} "
-        f"{'max |τ̂−τl|/Nm':>14} {'max |τm|/Nm':>11} {'|e|≤0.5':>8} {'samples':>8}",
+        "  torque tracking (e = torque − T_desired on the true, measured and estimated "
+        "torque; τ̂: the observer's τlgd, τlg with Eq. 5)",
+        f"    {'law':<{w}} {'e on':<9} {'max |e|/Nm':>10} {'RMS e/Nm':>9} {'|e|≤0.5':>8} "
+        f"{'max |τ̂−τl|/Nm':>14} {'RMS τ̂ err/Nm':>13} {'max |τm|/Nm':>11} {'samples':>8}",
     ]
     for r in rows:
         lines.append(
-            f"    {r['law']:<30} {r['max_abs_error']:10.3f} {r['rms_error']:9.3f} "
-            f"{r['rms_disturbance_error']:13.3f} {r.get('max_external_error', math.nan):14.3f} "
-            f"{r.get('max_abs_tau_m', math.nan):11.1f} "
-            f"{100 * r.get('share_within_goal', math.nan):7.1f}% {r['samples']:8d}"
+            f"    {r['law']:<{w}} {'true':<9} {r['max_abs_error']:10.3f} {r['rms_error']:9.3f} "
+            f"{100 * r.get('share_within_goal', nan):7.1f}% "
+            f"{r.get('max_external_error', nan):14.3f} {r['rms_disturbance_error']:13.3f} "
+            f"{r.get('max_abs_tau_m', nan):11.1f} {r['samples']:8d}"
         )
+        for which in ("measured", "estimated"):
+            lines.append(
+                f"    {'':<{w}} {which:<9} {r.get(f'max_abs_error_{which}', nan):10.3f} "
+                f"{r.get(f'rms_error_{which}', nan):9.3f} "
+                f"{100 * r.get(f'share_within_goal_{which}', nan):7.1f}%"
+            )
     return "\n".join(lines)

@@ -199,6 +199,15 @@ class TrackingScore:
     rms_external_error: float = math.nan
     max_abs_tau_m: float = math.nan
     share_within_goal: float = math.nan
+    #: e on the measured torque, ``T_meas − T_desired`` (``CTRL_TPDO1.T_meas``: what an
+    #: experiment can plot, noise included), and on the observer's estimate ``e_hat =
+    #: τ̂s − τsD`` (``CTRL_TPDO2.e_hat``): maximum, RMS and share within the goal.
+    max_abs_error_measured: float = math.nan
+    rms_error_measured: float = math.nan
+    share_within_goal_measured: float = math.nan
+    max_abs_error_estimated: float = math.nan
+    rms_error_estimated: float = math.nan
+    share_within_goal_estimated: float = math.nan
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -214,6 +223,8 @@ class TrackingScorer(can.Listener):
     so ``jl_over_jm`` is the joint's inertia ratio; with ``friction_compensated`` (Eq. 5)
     the observer estimates tau_lg = tau_l + tau_g instead.  Only telemetry at or after
     ``skip_s`` counts, from the first telemetry frame (the first sample in operation).
+    The measured torque of the same sample comes from ``CTRL_TPDO1`` (sent before
+    ``CTRL_TPDO2``), the estimate's error from ``CTRL_TPDO2.e_hat``.
     Everything it needs is on the two buses, so a trace alone scores a run
     (``hdhil evaluate TRACE``).
     """
@@ -234,7 +245,11 @@ class TrackingScorer(can.Listener):
         )
         self._truth = codec("truth", "TRUTH_TORQUE").expect("T_true", "T_ripple")
         self._joint = codec("truth", "TRUTH_JOINT").expect("tau_ext", "tau_d", "tau_m", "tau_m_cmd")
+        self._meas = codec("control", "CTRL_TPDO1").expect(
+            "T_meas", "T_filtered", "velocity", "current"
+        )
         self._keys = {
+            (self._meas.frame_id, False): self._on_measured,
             (self._tele.frame_id, False): self._on_tele,
             (self._truth.frame_id, True): self._on_truth,
             (self._joint.frame_id, True): self._on_joint,
@@ -252,6 +267,9 @@ class TrackingScorer(can.Listener):
         self._max_x = 0.0
         self._max_m = 0.0
         self._within = 0
+        self._T_meas: float | None = None
+        self._measured = _ErrorStats()
+        self._estimated = _ErrorStats()
 
     def on_message_received(self, msg: can.Message) -> None:
         handler = self._keys.get((msg.arbitration_id, msg.is_extended_id))
@@ -267,6 +285,9 @@ class TrackingScorer(can.Listener):
         self._tau_m = tau_m_cmd
         self._tau_lgd = tau_ext if self.friction_compensated else tau_ext - tau_d * self.jl_over_jm
 
+    def _on_measured(self, msg: can.Message) -> None:
+        self._T_meas = self._meas.decode(msg.data)[0]
+
     def _on_tele(self, msg: can.Message) -> None:
         # The controller sends this telemetry from its first interrupt in operation: that
         # frame is sample 0, so ``skip_s`` is counted as the evaluation counts it.
@@ -280,8 +301,12 @@ class TrackingScorer(can.Listener):
             or msg.timestamp - self._t0 < self.skip_s - 0.5 * self.sample_period_s
         ):
             return
-        _dtau, tau_lgd_hat, tau_sD, _e_hat = self._tele.decode(msg.data)
+        _dtau, tau_lgd_hat, tau_sD, e_hat = self._tele.decode(msg.data)
         e = self._T_true - tau_sD
+        if self._T_meas is not None:  # each measured sample scores once
+            self._measured.add(self._T_meas - tau_sD)
+            self._T_meas = None
+        self._estimated.add(e_hat)
         d = tau_lgd_hat - self._tau_lgd
         x = tau_lgd_hat - self._tau_ext
         self.n += 1
@@ -307,7 +332,33 @@ class TrackingScorer(can.Listener):
             math.sqrt(self._sum_x2 / n),
             self._max_m,
             self._within / n,
+            *self._measured.result(),
+            *self._estimated.result(),
         )
+
+
+class _ErrorStats:
+    """Maximum, RMS and share within :data:`TRACKING_GOAL_NM` of a stream of errors."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.sum2 = 0.0
+        self.max = 0.0
+        self.within = 0
+
+    def add(self, e: float) -> None:
+        self.n += 1
+        self.sum2 += e * e
+        a = abs(e)
+        if a > self.max:
+            self.max = a
+        if a <= TRACKING_GOAL_NM:
+            self.within += 1
+
+    def result(self) -> tuple[float, float, float]:
+        if not self.n:
+            return math.nan, math.nan, math.nan
+        return self.max, math.sqrt(self.sum2 / self.n), self.within / self.n
 
 
 def trace_time_offset(trace: Path) -> float | None:
