@@ -39,11 +39,14 @@ from hdhil.rig.realtime_stats import HISTOGRAM_EDGES_US, STAGES, histogram, perc
 from hdhil.rig.scenario import load_scenario
 
 STAT_KEYS = ("jitter_us", "latency_us", "isr_us", "cycle_work_us", "sleep_overshoot_us")
-PCT_KEYS = {"p50", "p99", "p99.9", "max", "mean"}
+PCT_KEYS = {"min", "p50", "p99", "p99.9", "max", "mean"}
 
 
 def _ordered(p: dict) -> bool:
-    return p["p50"] <= p["p99"] <= p["p99.9"] <= p["max"]
+    return (
+        p["min"] <= p["p50"] <= p["p99"] <= p["p99.9"] <= p["max"]
+        and p["min"] <= p["mean"] <= p["max"]
+    )
 
 
 def _check_stats(rt, cycles):
@@ -67,7 +70,7 @@ def _check_stats(rt, cycles):
     # The interrupt runs inside the sensor-to-command span and inside the cycle's work,
     # so per cycle both are longer, and so is every order statistic.
     for key in ("latency_us", "cycle_work_us"):
-        for q in ("p50", "p99", "p99.9", "max"):
+        for q in ("min", "p50", "p99", "p99.9", "max"):
             assert rt[key][q] >= rt["isr_us"][q], (key, q, rt[key], rt["isr_us"])
     assert sum(b["count"] for b in rt["jitter_histogram"]) == rt["cycles"]
     assert len(rt["jitter_histogram"]) == len(HISTOGRAM_EDGES_US) + 1

@@ -48,7 +48,7 @@ from hdhil.firmware.stages import Differentiator, SensorPlausibility, adc_read, 
 from hdhil.hostsim.plant import Plant
 from hdhil.rig.ostuning import cpu_steal_ns, steal_report
 from hdhil.rig.realtime import RealtimeConfig
-from hdhil.rig.realtime_stats import format_steal
+from hdhil.rig.realtime_stats import PERCENTILE_KEYS, format_steal
 from hdhil.rig.request import resolve
 from hdhil.rig.runner import run_lockstep
 from hdhil.rig.scenario import load_scenario
@@ -419,6 +419,20 @@ def bench_filter(s: BenchSettings) -> list[dict[str, Any]]:
 
 
 # ------------------------------------------------------------------------- memory
+#: The shortest run (simulated s) whose memory growth rate (per simulated minute, per
+#: hour) the memory section reports.  Over a shorter run, one-off growth (allocator
+#: arenas, caches) and page-sized steps are most of what changes, and a rate extrapolated
+#: from them is noise magnified: such a run reports its growth in MB only, and the rates
+#: as not measured (:func:`growth_not_measured`).
+MEMORY_GROWTH_MIN_S = 60.0
+
+
+def growth_not_measured(min_s: float) -> str:
+    """What a report prints instead of a memory growth rate from a run shorter than
+    ``min_s`` simulated seconds."""
+    return f"not measured (run shorter than {min_s:g} s)"
+
+
 def bench_memory(s: BenchSettings, scenario: str = "misalignment") -> dict[str, Any]:
     """RSS before, during and after one long lockstep run with BLF logging (after a
     short warm-up run of the same kind).
@@ -427,6 +441,9 @@ def bench_memory(s: BenchSettings, scenario: str = "misalignment") -> dict[str, 
     (polled once per cycle, outside the cycle's work).  Besides the growth over the
     whole run, the slope over its second half (least squares) is reported: the first
     seconds include one-off growth (allocator arenas, caches) that does not repeat.
+    The rates (per simulated minute, extrapolated to an hour) come only from a run of
+    :data:`MEMORY_GROWTH_MIN_S` or more; from a shorter one they are None, with
+    ``rss_growth_rate_note`` saying why.
     """
     every = 1000  # cycles between RSS samples (1 s at 1 kHz)
     calls = 0
@@ -461,10 +478,15 @@ def bench_memory(s: BenchSettings, scenario: str = "misalignment") -> dict[str, 
     minutes = r.simulated_s / 60.0
     Ts = r.sample_period_s
     half = [(k * Ts / 60.0, b / 2**20) for k, b in samples if k >= len(samples) * every / 2]
-    if len(half) >= 3:
-        slope = float(np.polyfit([m for m, _ in half], [b for _, b in half], 1)[0])
+    per_minute: float | None = None
+    slope: float | None = None
+    note = None
+    if r.simulated_s >= MEMORY_GROWTH_MIN_S:
+        per_minute = growth / minutes
+        slope = (float(np.polyfit([m for m, _ in half], [b for _, b in half], 1)[0])
+                 if len(half) >= 3 else per_minute)  # fmt: skip
     else:
-        slope = growth / minutes if minutes > 0 else math.nan
+        note = growth_not_measured(MEMORY_GROWTH_MIN_S)
     return {
         "scenario": scenario,
         "logging": "blf",
@@ -476,9 +498,10 @@ def bench_memory(s: BenchSettings, scenario: str = "misalignment") -> dict[str, 
         "rss_before_MB": before / 2**20,
         "rss_after_MB": after / 2**20,
         "rss_growth_MB": growth,
-        "rss_growth_MB_per_sim_minute": growth / minutes if minutes > 0 else math.nan,
+        "rss_growth_MB_per_sim_minute": per_minute,
         "rss_slope_second_half_MB_per_sim_minute": slope,
-        "rss_growth_MB_per_sim_hour_extrapolated": 60.0 * slope,
+        "rss_growth_MB_per_sim_hour_extrapolated": None if slope is None else 60.0 * slope,
+        "rss_growth_rate_note": note,
         "rss_samples": len(samples),
     }
 
@@ -632,7 +655,8 @@ def run_benchmarks(
     - **filter**: offline throughput of ``hdhil filter``'s signal-CSV code path
       (:func:`hdhil.rig.offline.filter_signal_csv`) on a generated CSV;
     - **memory**: peak RSS of the process (``ru_maxrss``) and the resident-memory growth
-      over one long lockstep run with logging, per simulated minute;
+      over one long lockstep run with logging, per simulated minute (from runs of
+      :data:`MEMORY_GROWTH_MIN_S` or more; ``quick`` reports it as not measured);
     - **real time**: one free-motion real-time run of ``realtime_s`` seconds, no logging
       (:mod:`hdhil.rig.realtime`): SYNC jitter p50/p99/p99.9/max, deadline misses (and
       per 100 000 cycles), sensor-to-command latency, compute per interrupt stage, each
@@ -782,28 +806,7 @@ def format_bench(report: dict[str, Any]) -> str:
         for r in report["filter"]
     ]
     lines += _table(["mode", "samples/s", "min-max", "runs"], rows, [False, True, True, True])
-    mem = report["memory"]
-    lines += ["", "Memory"]
-    rows = [
-        ["peak RSS (ru_maxrss, whole benchmark)", f"{mem['peak_rss_MB']:.1f} MB"],
-        [
-            f"RSS growth over a {mem['simulated_s']:g} s {mem['scenario']} run, BLF logging "
-            f"({mem['frames']} frames, {mem['trace_MB']:.1f} MB trace, "
-            f"{mem['real_time_factor']:.1f}x)",
-            f"{mem['rss_growth_MB']:+.2f} MB ({mem['rss_before_MB']:.1f} -> "
-            f"{mem['rss_after_MB']:.1f} MB)",
-        ],
-        ["  per simulated minute, whole run", f"{mem['rss_growth_MB_per_sim_minute']:+.2f} MB"],
-        [
-            "  per simulated minute, second half (least squares)",
-            f"{mem['rss_slope_second_half_MB_per_sim_minute']:+.2f} MB",
-        ],
-        [
-            "  second-half slope extrapolated to 1 h (goal < 20 MB)",
-            f"{mem['rss_growth_MB_per_sim_hour_extrapolated']:+.1f} MB",
-        ],
-    ]
-    lines += _table(["figure", "value"], rows, [False, True])
+    lines += ["", *format_memory_section(report["memory"])]
     if report.get("realtime"):
         lines += ["", *format_realtime_section(report["realtime"])]
     if report.get("campaign"):
@@ -819,8 +822,38 @@ def format_bench(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def format_memory_section(mem: dict[str, Any]) -> list[str]:
+    """The memory section of the text report: growth rates only from a run of
+    :data:`MEMORY_GROWTH_MIN_S` or more, "not measured" otherwise."""
+    rows = [
+        ["peak RSS (ru_maxrss, whole benchmark)", f"{mem['peak_rss_MB']:.1f} MB"],
+        [
+            f"RSS growth over a {mem['simulated_s']:g} s {mem['scenario']} run, BLF logging "
+            f"({mem['frames']} frames, {mem['trace_MB']:.1f} MB trace, "
+            f"{mem['real_time_factor']:.1f}x)",
+            f"{mem['rss_growth_MB']:+.2f} MB ({mem['rss_before_MB']:.1f} -> "
+            f"{mem['rss_after_MB']:.1f} MB)",
+        ],
+        ["  per simulated minute, whole run",
+         _rate(mem, "rss_growth_MB_per_sim_minute", ".2f")],
+        ["  per simulated minute, second half (least squares)",
+         _rate(mem, "rss_slope_second_half_MB_per_sim_minute", ".2f")],
+        ["  second-half slope extrapolated to 1 h (goal < 20 MB)",
+         _rate(mem, "rss_growth_MB_per_sim_hour_extrapolated", ".1f")],
+    ]  # fmt: skip
+    return ["Memory", *_table(["figure", "value"], rows, [False, True])]
+
+
+def _rate(mem: dict[str, Any], key: str, spec: str) -> str:
+    """A memory growth rate of the memory section, or why it was not measured."""
+    value = mem.get(key)
+    if value is None:
+        return mem.get("rss_growth_rate_note") or growth_not_measured(MEMORY_GROWTH_MIN_S)
+    return f"{value:+{spec}} MB"
+
+
 def _pct_cells(p: dict[str, float]) -> list[str]:
-    return [f"{p[q]:.1f}" for q in ("p50", "p99", "p99.9", "max")]
+    return [f"{p[q]:.1f}" for q in PERCENTILE_KEYS]
 
 
 def format_realtime_section(rt: dict[str, Any]) -> list[str]:
@@ -852,7 +885,7 @@ def format_realtime_section(rt: dict[str, Any]) -> list[str]:
              *_pct_cells(floor["jitter_us"])],
             ["machine floor: sleep overshoot", *_pct_cells(floor["sleep_overshoot_us"])],
         ]  # fmt: skip
-    lines += _table(["µs", "p50", "p99", "p99.9", "max"], rows, [False] + [True] * 4)
+    lines += _table(["µs", *PERCENTILE_KEYS], rows, [False] + [True] * len(PERCENTILE_KEYS))
     g = rt["goals"]
 
     def verdict(key: str) -> str:

@@ -58,8 +58,14 @@ GOALS = {
     "rss_growth_MB_per_sim_minute": 2.0,
 }
 
-#: The shortest whole-command run whose memory growth is judged (simulated s).
+#: The shortest whole-command run whose memory growth is measured and judged (simulated
+#: s): from shorter runs, a few hundred kB of allocator noise would read as a slope.
 MIN_GROWTH_RUN_S = 10.0
+
+
+def _growth_not_measured() -> str:
+    return f"not measured (run shorter than {MIN_GROWTH_RUN_S:g} s)"
+
 
 #: CI's coarse speed guard (tests/test_speed.py): the lockstep loop's CPU µs per cycle
 #: (free-motion, BLF trace on; :func:`loop_cpu_us`) over the reference's
@@ -202,7 +208,11 @@ def bench_whole_command(duration_s: float, runs: int) -> dict[str, Any]:
             long_rss.append(timed_process(argv(3 * duration_s))["peak_rss_MB"])
     med = {k: statistics.median(r[k] for r in per_run) for k in per_run[0]}
     short_rss = med["peak_rss_MB"]
-    growth = (statistics.median(long_rss) - short_rss) / (2 * duration_s / 60.0)
+    growth = (
+        (statistics.median(long_rss) - short_rss) / (2 * duration_s / 60.0)
+        if duration_s >= MIN_GROWTH_RUN_S
+        else None  # not measured (MIN_GROWTH_RUN_S)
+    )
     return {
         "command": ["hdhil", *WHOLE_COMMAND, "--duration", f"{duration_s:g}", "--trace", "a.blf"],
         "duration_s": duration_s,
@@ -468,7 +478,7 @@ def speed_goals(whole: dict[str, Any], loop: dict[str, Any] | None, reference: d
     did not run), the reference (:func:`bench_speed`'s, with the loop's CPU per cycle
     beside it) and the start-up section's first cycle."""
     med = whole["median"]
-    rows: list[tuple[str, float, str, float, str]] = [
+    rows: list[tuple[str, float | None, str, float, str]] = [
         (f"whole command (hdhil run, {whole['duration_s']:g} s, BLF, evaluation): "
          "real-time factor", whole["real_time_factor"], ">=", GOALS["whole_rtf"], "x"),
     ]  # fmt: skip
@@ -486,11 +496,12 @@ def speed_goals(whole: dict[str, Any], loop: dict[str, Any] | None, reference: d
     ]  # fmt: skip
     out: list[dict[str, Any]] = []
     for label, value, op, goal, unit in rows:
-        met: bool | None = value >= goal if op == ">=" else value <= goal
         text = f"{op} {goal:g} {unit}"
-        if unit == "MB/sim min" and whole["duration_s"] < MIN_GROWTH_RUN_S:
-            # a few hundred kB of allocator noise over a short run reads as a slope
-            met, text = None, f"judged on runs of {MIN_GROWTH_RUN_S:g} s and more"
+        met: bool | None
+        if value is None or (unit == "MB/sim min" and whole["duration_s"] < MIN_GROWTH_RUN_S):
+            value, met = None, None  # not measured (MIN_GROWTH_RUN_S)
+        else:
+            met = value >= goal if op == ">=" else value <= goal
         out.append({"figure": label, "value": value, "goal": text, "unit": unit,
                     "met": None if met is None else bool(met)})  # fmt: skip
     out.append({"figure": "loop's speed against python-can virtual carrying its frames (CPU)",
@@ -551,7 +562,12 @@ def format_speed_section(speed: dict[str, Any], goals: list[dict[str, Any]]) -> 
     lines = ["Speed goals (verdicts against the goals; references measured in this run)"]
     rows = []
     for g in goals:
-        value = f"{g['value']:.2f} {g['unit']}" if g["unit"] != "x" else f"{g['value']:.1f}x"
+        if g["value"] is None:
+            value = _growth_not_measured()
+        elif g["unit"] == "x":
+            value = f"{g['value']:.1f}x"
+        else:
+            value = f"{g['value']:.2f} {g['unit']}"
         verdict = "" if g["met"] is None else ("met" if g["met"] else "NOT met")
         rows.append([g["figure"], value, g["goal"], verdict])
     lines += markdown_table(["figure", "value", "goal", "verdict"], rows,
@@ -573,10 +589,15 @@ def format_speed_section(speed: dict[str, Any], goals: list[dict[str, Any]]) -> 
         )
     ]
     lines += markdown_table(["stage", "s", "share"], rows, [False, True, True])
+    growth = w["rss_growth_MB_per_sim_minute"]
     lines.append(
         f"CPU {med['cpu_s']:.2f} s; peak RSS {med['peak_rss_MB']:.1f} MB, "
-        f"{w['long_peak_rss_MB']:.1f} MB for a {w['long_duration_s']:g} s run "
-        f"({w['rss_growth_MB_per_sim_minute']:+.1f} MB per simulated minute)"
+        f"{w['long_peak_rss_MB']:.1f} MB for a {w['long_duration_s']:g} s run"
+        + (
+            f" ({growth:+.1f} MB per simulated minute)"
+            if growth is not None
+            else f"; growth per simulated minute {_growth_not_measured()}"
+        )
     )
     lines += [
         "",

@@ -57,8 +57,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     p.add_argument(
         "--tolerance", type=arg_float(0.0, FLOAT32_MAX, lo_open=True), default=SoakLimits.tolerance,
-        help="stationarity: allowed relative change of the last-half mean against the "
-        "first-half mean (default: %(default)g)",
+        help="stationarity: the per-block RMS's fitted change over the tested blocks, with "
+        "its 95%% interval, must lie within +-this fraction of their mean (default: %(default)g)",
     )  # fmt: skip
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     add_quiet_argument(p)

@@ -13,13 +13,14 @@ from __future__ import annotations
 import math
 import time
 from array import array
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from hdhil.firmware.isr import STAGES
 
 __all__ = [
     "HISTOGRAM_EDGES_US",
+    "PERCENTILE_KEYS",
     "STAGES",
     "CycleStamps",
     "CycleStats",
@@ -54,12 +55,19 @@ class CycleStamps:
     ``on_interrupt``.
     """
 
-    __slots__ = ("command_ns", "isr_ns", "isr_ran", "sensor_ns", "stage_ns", "staged", "sync_ns")
+    __slots__ = ("answer_ns", "command_ns", "isr_ns", "isr_ran", "sensor_ns", "stage_ns",
+                 "staged", "sync_ns", "unanswered_ns")  # fmt: skip
 
     def __init__(self) -> None:
         self.sync_ns = 0
-        self.sensor_ns = 0
+        #: The last command of the cycle (any command: the deadline-miss test).
         self.command_ns = 0
+        #: The cycle's latency pair: a command and the sensor frame it answers (the frame
+        #: whose handler sent it); 0: no such pair in this cycle.
+        self.sensor_ns = 0
+        self.answer_ns = 0
+        #: The last sensor frame not answered yet (0: none).
+        self.unanswered_ns = 0
         #: The cycle's interrupt: its compute time and stage times, kept until recorded.
         self.isr_ns = 0
         self.isr_ran = False
@@ -69,17 +77,27 @@ class CycleStamps:
 
     def clear(self) -> None:
         """A new cycle: no event yet."""
-        self.sync_ns = self.sensor_ns = self.command_ns = 0
+        self.sync_ns = self.sensor_ns = self.answer_ns = self.command_ns = 0
+        self.unanswered_ns = 0
         self.isr_ran = False
 
     def on_sync_sent(self, t_ns: int) -> None:
         self.sync_ns = t_ns
 
     def on_sensor(self, t_ns: int) -> None:
-        self.sensor_ns = t_ns
+        # Not the latency's start yet: only a frame that a command answers starts one.  A
+        # frame after the cycle's command (this cycle's frame when the previous cycle's
+        # came late and was answered, a duplicate, a malformed frame) answers nothing.
+        self.unanswered_ns = t_ns
 
     def on_command_sent(self, t_ns: int) -> None:
+        # The controller sends a command from the handler of the frame it answers, so the
+        # last unanswered frame is that frame; a command without one pairs with nothing.
         self.command_ns = t_ns
+        sensor = self.unanswered_ns
+        if sensor:
+            self.sensor_ns, self.answer_ns = sensor, t_ns
+            self.unanswered_ns = 0
 
     def on_interrupt(self, start_ns: int, end_ns: int) -> None:
         if not self.staged:
@@ -108,11 +126,15 @@ class CycleStamps:
 # ------------------------------------------------------------------ statistics
 class CycleStats:
     """Per recorded cycle (the pacer records the cycles in which the interrupt ran):
+    every figure's min, p50, p99, p99.9, max and mean come from the same samples
+    (:func:`percentiles`):
 
     - **jitter**: when SYNC k was actually handed to the bus minus its deadline;
     - **latency**: from the controller receiving ``DRIVE_TPDO1`` (the frame handed to its
-      frame handler) to the command ``DRIVE_RPDO1`` being handed to the bus: decode,
-      interrupt, encode, send;
+      frame handler) to the command ``DRIVE_RPDO1`` that answers it being handed to the
+      bus: decode, interrupt, encode, send.  Each latency pairs a command with the frame
+      it answers (:meth:`CycleStamps.on_command_sent`), never with a later frame of the
+      same cycle, so it is never negative;
     - **interrupt compute**: the interrupt body (:class:`firmware.isr.InterruptHandler`);
     - **stages** of the interrupt (:data:`firmware.isr.STAGES`), contiguous, so that they
       add up to the interrupt's time in every cycle;
@@ -156,8 +178,8 @@ class CycleStats:
         sync = stamps.sync_ns
         self.jitter_us.append((sync - deadline) * 1e-3 if sync else math.nan)
         command = stamps.command_ns
-        if command and stamps.sensor_ns:
-            self.latency_us.append((command - stamps.sensor_ns) * 1e-3)
+        if stamps.answer_ns:
+            self.latency_us.append((stamps.answer_ns - stamps.sensor_ns) * 1e-3)
         if not command or command >= deadline + self.period_ns:
             self.misses += 1
         if stamps.isr_ran:
@@ -199,18 +221,27 @@ class CycleStats:
         return self.busy_ns / (self.cycles * self.period_ns) if self.cycles else math.nan
 
 
-def percentiles(values: array) -> dict[str, float]:
-    """p50, p99, p99.9, max (nearest rank) and mean of ``values``; NaN when empty."""
-    n = len(values)
+#: The keys of :func:`percentiles`, in the report's column order.
+PERCENTILE_KEYS = ("min", "p50", "p99", "p99.9", "max", "mean")
+
+
+def percentiles(values: Iterable[float]) -> dict[str, float]:
+    """min, p50, p99, p99.9, max (nearest rank) and mean of the values that are not NaN,
+    all from the same samples: min <= p50 <= p99 <= p99.9 <= max and min <= mean <= max
+    (the mean is held within the extremes against the division's rounding).  NaN when
+    there is no value."""
+    s = sorted(v for v in values if not math.isnan(v))
+    n = len(s)
     if not n:
-        return dict.fromkeys(("p50", "p99", "p99.9", "max", "mean"), math.nan)
-    s = sorted(values)
+        return dict.fromkeys(PERCENTILE_KEYS, math.nan)
 
     def rank(p: float) -> float:
         return s[min(n - 1, max(0, math.ceil(p * n) - 1))]
 
-    return {"p50": rank(0.50), "p99": rank(0.99), "p99.9": rank(0.999), "max": s[-1],
-            "mean": math.fsum(s) / n}  # fmt: skip
+    lo, hi = s[0], s[-1]
+    mean = math.fsum(s) / n
+    return {"min": lo, "p50": rank(0.50), "p99": rank(0.99), "p99.9": rank(0.999), "max": hi,
+            "mean": min(hi, max(lo, mean))}  # fmt: skip
 
 
 def histogram(values_us: array) -> list[dict[str, Any]]:
@@ -241,7 +272,7 @@ def per_100k(events: int, cycles: int) -> float:
 
 # ------------------------------------------------------------------ text
 def _row(label: str, p: dict[str, float]) -> str:
-    return f"    {label:<30} {p['p50']:9.1f} {p['p99']:9.1f} {p['p99.9']:9.1f} {p['max']:9.1f}"
+    return f"    {label:<30}" + "".join(f" {p[key]:9.1f}" for key in PERCENTILE_KEYS)
 
 
 def _histogram_lines(bins: list[dict[str, Any]]) -> list[str]:
@@ -286,7 +317,7 @@ def format_realtime(rt: dict[str, Any]) -> str:
     lines.append(f"    applied: {'; '.join(rt['applied']) or 'nothing'}")
     if rt["refused"]:
         lines.append(f"    refused: {'; '.join(rt['refused'])}")
-    lines.append(f"    {'µs':<30} {'p50':>9} {'p99':>9} {'p99.9':>9} {'max':>9}")
+    lines.append(f"    {'µs':<30}" + "".join(f" {key:>9}" for key in PERCENTILE_KEYS))
     for key, label in (("jitter_us", "SYNC jitter (late)"),
                        ("latency_us", "sensor frame -> command"),
                        ("cycle_work_us", "cycle work (frames, nodes)"),
