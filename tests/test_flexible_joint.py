@@ -86,7 +86,7 @@ def test_chirp_scenario_is_the_seed_joint() -> None:
     assert plant.torque_per_volt == pytest.approx(20.0)
     assert plant.max_motor_torque_Nm == pytest.approx(150.0)
     assert plant.sensors.torque_measures == "spring"
-    assert plant.sensors.torque_noise_Nm**2 == pytest.approx(0.12)
+    assert plant.sensors.torque_noise_Nm == pytest.approx(0.12)  # W, a standard deviation
     assert plant.bridge.volt2Nm * 10.0 == pytest.approx(120.0)  # ±120 Nm on the ±10 V ADC
     assert not plant.link.active and plant.gravity.mgl_Nm == 0.0
 
@@ -354,8 +354,9 @@ def test_motor_torque_saturates_at_the_amplifier_current_limit() -> None:
     assert 0 < lagged_truth.tau_m_Nm < lagged_truth.tau_m_cmd_Nm == 60.0
 
 
-def test_torque_sensor_noise_variance_is_the_seeds_w() -> None:
-    """[Vertechy] §I: variance W = 0.12 Nm², through the sensor, ADC and firmware calibration."""
+def test_torque_sensor_noise_is_the_seeds_w() -> None:
+    """[Vertechy] §I: W = 0.12 Nm, a standard deviation (variance 0.0144 Nm²), through the
+    sensor, ADC and firmware calibration."""
     scenario = load_scenario("chirp")
     fw = from_dict(FirmwareConfig, scenario.firmware, "firmware")
     plant = Plant(scenario.plant, seed=11)
@@ -366,7 +367,7 @@ def test_torque_sensor_noise_variance_is_the_seeds_w() -> None:
         readings.append(calibrate(adc_read(counts, 0, 0, fw.adc)[0], 0.0, 0.0, fw.calibration)[0])
     variance = float(np.var(readings))
     quantisation = (10.0 / 2048 * 12.0) ** 2 / 12  # 12-bit LSB of 0.059 Nm
-    assert variance == pytest.approx(0.12 + quantisation, rel=0.04)
+    assert variance == pytest.approx(0.12**2 + quantisation, rel=0.04)
 
 
 # --------------------------------------------------------------------------- configuration
