@@ -145,8 +145,9 @@ _RESULT = {"cycles": 10, "controller": {}, "drive": {}}
             "damaged result (OverflowError)",
         ),
         (lambda rec: json.dumps(rec) + " " * CONFIG_MAX_BYTES, "bytes"),
+        (lambda rec: json.dumps({**rec, "wall_s": 1.0}).replace("1.0", "1e999"), "wall_s"),
     ],
-    ids=["nested-past-the-stack", "truncated", "cycles-beyond-int", "too-large"],
+    ids=["nested-past-the-stack", "truncated", "cycles-beyond-int", "too-large", "wall_s-inf"],
 )
 def test_a_damaged_record_is_run_again_with_one_warning(tmp_path, damage, why):
     campaign, variants, out = _stored(tmp_path)

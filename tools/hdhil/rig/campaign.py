@@ -18,6 +18,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import gc
 import json
+import math
 import multiprocessing
 import os
 import socket
@@ -161,7 +162,7 @@ def _load_stored(path: Path, variant: Variant) -> tuple[dict[str, Any] | None, s
     if stored.get("digest") != variant.digest:
         return None, f"records another variant (digest {stored.get('digest')!r})"
     wall = stored.get("wall_s")
-    if isinstance(wall, bool) or not isinstance(wall, (int, float)) or not wall >= 0:
+    if isinstance(wall, bool) or not isinstance(wall, (int, float)) or not 0 <= wall < math.inf:
         return None, f"wall_s is {wall!r}, not a number of seconds"
     for key in ("result", "error", "worker"):
         value = stored.get(key)
