@@ -7,10 +7,14 @@ and a large grid is built without reading or keeping one scenario per variant.""
 from __future__ import annotations
 
 import concurrent.futures as cf
+import gc
 import json
 import os
+import queue
 import subprocess
+import threading
 import typing
+import weakref
 from pathlib import Path
 
 import pytest
@@ -202,6 +206,47 @@ def test_the_command_refuses_a_store_that_cannot_take_a_rerun_in_one_line(tmp_pa
     err = _one_line_error(capsys, argv)
     assert "is not a regular file" in err
     assert sorted(p.name for p in out.iterdir()) == ["runs"]
+
+
+def test_a_finished_variant_s_trace_is_not_kept_while_the_campaign_runs(tmp_path):
+    body = HEAD + 'keep_trace = true\ntrace_format = "asc"\n[axes]\nseed = { range = [0, 12] }\n'
+    campaign = load_campaign(_campaign(tmp_path, body))
+    variants = expand(campaign)
+    alive: weakref.WeakSet[cf.Future] = weakref.WeakSet()
+    queued: queue.Queue[cf.Future] = queue.Queue()
+    recorded = threading.Semaphore(0)
+    most = 0
+
+    class OneAtATime(cf.Executor):
+        """Finishes one variant, with a trace, once the one before it was recorded."""
+
+        def submit(self, fn, /, *args, **kwargs):
+            fut: cf.Future = cf.Future()
+            alive.add(fut)
+            queued.put(fut)
+            return fut
+
+    def finish_in_turn() -> None:
+        for _ in variants:
+            fut = queued.get(timeout=10)
+            fut.set_result({"result": None, "error": "RuntimeError: canned", "trace": b"t",
+                            "sidecar": None, "wall_s": 0.0, "worker": "here:1"})  # fmt: skip
+            del fut
+            if not recorded.acquire(timeout=10):
+                return
+
+    def on_record(record) -> None:
+        nonlocal most
+        gc.collect()
+        most = max(most, sum(1 for f in alive if f.done()))
+        recorded.release()
+
+    worker = threading.Thread(target=finish_in_turn, daemon=True)
+    worker.start()
+    run = run_campaign(campaign, variants, tmp_path / "out", OneAtATime, on_record)
+    worker.join(timeout=10)
+    assert run.ran == 12
+    assert most == 1  # only the one being recorded
 
 
 # ------------------------------------------------------------------------- large grids

@@ -282,7 +282,7 @@ def run_campaign(
         try:
             futures = {executor.submit(execute_variant, v.settings): v for v in remaining}
             for fut in cf.as_completed(futures):
-                v = futures[fut]
+                v = futures.pop(fut)  # a finished future holds its trace: let it go
                 try:
                     outcome = fut.result()
                 except lost_types as exc:
