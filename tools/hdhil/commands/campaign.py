@@ -122,7 +122,16 @@ _OUT_FILES = ("results.csv", "results.parquet", "timings.csv", "report.md")
 
 def _check_out(out: Path) -> None:
     """Refuse an ``--out`` the campaign could not write its results in, before anything
-    runs; writes nothing."""
+    runs, in one line; writes nothing."""
+    from hdhil.rig.campaign_file import printable
+
+    try:
+        _check_out_dir(out)
+    except UserError as exc:
+        raise UserError(printable(str(exc))) from None
+
+
+def _check_out_dir(out: Path) -> None:
     if out.exists() or out.is_symlink():
         if not out.is_dir():
             raise UserError(f"--out {out} exists and is not a directory")

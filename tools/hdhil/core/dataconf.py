@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import math
 import types
 import typing
@@ -95,6 +96,14 @@ def _convert(tp: Any, value: Any, where: str, allow_inf: bool = False) -> Any:
     return value
 
 
+@functools.cache
+def _shape(cls: type) -> tuple[dict[str, Any], dict[str, dataclasses.Field[Any]]]:
+    """A dataclass's resolved field types and its ``__init__`` fields (resolving the
+    annotations is most of the cost of a :func:`from_dict`; a class's never change)."""
+    hints = typing.get_type_hints(cls)
+    return hints, {f.name: f for f in dataclasses.fields(cls) if f.init}
+
+
 def from_dict(cls: type[T], data: dict[str, Any], where: str = "") -> T:
     """Build dataclass ``cls`` from ``data``; missing keys keep their defaults.
 
@@ -103,8 +112,7 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "") -> T:
     """
     if isinstance(data, cls):  # already built (a typed scenario's table)
         return data
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    hints, fields = _shape(cls)
     unknown = sorted(set(data) - set(fields))
     if unknown:
         prefix = f"{where}." if where else ""

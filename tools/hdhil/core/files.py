@@ -130,7 +130,14 @@ def read_config(path: str | Path, what: str = "", max_bytes: int = CONFIG_MAX_BY
     label = _label(p, what)
     try:
         with p.open("rb") as fh:
-            raw = fh.read(max_bytes + 1)  # the file may have grown since the check
+            # What is there, never more than the cap (the file may have grown since the
+            # check); ``read(cap)`` would allocate the whole cap for every small file.
+            raw = fh.read(min(os.fstat(fh.fileno()).st_size, max_bytes) + 1)
+            while len(raw) <= max_bytes:
+                more = fh.read(min(1 << 16, max_bytes + 1 - len(raw)))
+                if not more:
+                    break
+                raw += more
     except OSError as exc:
         raise UserError(f"{label}: cannot read ({exc.strerror or exc})") from None
     if len(raw) > max_bytes:

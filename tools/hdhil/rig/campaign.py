@@ -18,6 +18,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import gc
 import json
+import math
 import multiprocessing
 import os
 import socket
@@ -31,8 +32,10 @@ from typing import Any
 from hdhil.can.traces.sidecar import metadata_path
 from hdhil.core import jsonout
 from hdhil.core.dataconf import ConfigError
+from hdhil.core.errors import UserError
+from hdhil.core.files import read_config
 from hdhil.core.signals import die_with_parent, leave_interrupt_to_parent
-from hdhil.rig.campaign_file import Campaign
+from hdhil.rig.campaign_file import Campaign, printable
 from hdhil.rig.campaign_metrics import judge
 from hdhil.rig.campaign_variants import Variant
 from hdhil.rig.variant import WALL_CLOCK_KEYS, RunSettings, run_settings
@@ -144,22 +147,22 @@ def _write_atomic(path: Path, data: bytes) -> None:
 
 def _load_stored(path: Path, variant: Variant) -> tuple[dict[str, Any] | None, str | None]:
     """A stored record, or None and why it cannot be used (None when there is none)."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
+    if not os.path.lexists(path):
         return None, None
-    except (OSError, ValueError) as exc:
-        return None, f"unreadable ({type(exc).__name__}: {exc})"
+    try:  # a regular file of UTF-8 text, size capped: a record is a few kB
+        text = read_config(path)
+    except UserError as exc:
+        return None, str(exc).removeprefix(f"{path}: ")
     try:
         stored = jsonout.restore(json.loads(text))
-    except ValueError:
+    except (ValueError, RecursionError):  # truncated, not JSON, nested beyond the stack
         return None, "not JSON"
     if not isinstance(stored, dict):
         return None, "not a JSON object"
     if stored.get("digest") != variant.digest:
         return None, f"records another variant (digest {stored.get('digest')!r})"
     wall = stored.get("wall_s")
-    if isinstance(wall, bool) or not isinstance(wall, (int, float)) or not wall >= 0:
+    if isinstance(wall, bool) or not isinstance(wall, (int, float)) or not 0 <= wall < math.inf:
         return None, f"wall_s is {wall!r}, not a number of seconds"
     for key in ("result", "error", "worker"):
         value = stored.get(key)
@@ -196,11 +199,12 @@ def run_campaign(
     trace_dir = out / "traces"
     records: dict[str, Record] = {}
     todo: list[Variant] = []
+    damaged: list[str] = []  # warned about once the store is known to take the re-runs
     for v in variants:
         path = runs_dir / f"{v.digest}.json"
         stored, damage = _load_stored(path, v)
         if damage is not None:
-            warn(f"{path}: {damage}: variant {v.id} is run again")
+            damaged.append(f"{path}: {damage}: variant {v.id} is run again")
         if (
             stored is None
             or stored.get("error") is not None  # may come from the worker's environment
@@ -214,14 +218,29 @@ def run_campaign(
             rec.metrics, rec.verdicts, rec.reasons = judge(
                 v, rec.result, rec.error, campaign.criteria
             )
-        except (KeyError, TypeError, ValueError, AttributeError) as exc:
-            warn(f"{path}: damaged result ({type(exc).__name__}): variant {v.id} is run again")
+        except (KeyError, TypeError, ValueError, AttributeError, ArithmeticError) as exc:
+            damaged.append(
+                f"{path}: damaged result ({type(exc).__name__}): variant {v.id} is run again"
+            )
             todo.append(v)
             continue
         records[v.id] = rec
-        if on_record is not None:
-            on_record(rec)
     resumed = len(records)
+    for v in todo:  # where a run's files go must take them: checked before any runs
+        targets = [runs_dir / f"{v.digest}.json"]
+        if campaign.keep_trace:
+            targets += [_trace_path(trace_dir, v), metadata_path(_trace_path(trace_dir, v))]
+        for target in targets:
+            if target.is_symlink() or (target.exists() and not target.is_file()):
+                raise ConfigError(printable(
+                    f"{target} exists and is not a regular file: variant {v.id} cannot be "
+                    "stored there; remove it"
+                ))  # fmt: skip
+    for message in damaged:
+        warn(printable(message))
+    if on_record is not None:
+        for rec in records.values():
+            on_record(rec)
 
     def finish(v: Variant, outcome: dict[str, Any], store: bool) -> None:
         if outcome.get("trace") is not None:
@@ -263,7 +282,7 @@ def run_campaign(
         try:
             futures = {executor.submit(execute_variant, v.settings): v for v in remaining}
             for fut in cf.as_completed(futures):
-                v = futures[fut]
+                v = futures.pop(fut)  # a finished future holds its trace: let it go
                 try:
                     outcome = fut.result()
                 except lost_types as exc:

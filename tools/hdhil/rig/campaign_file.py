@@ -18,11 +18,12 @@ from pathlib import Path
 from typing import Any
 
 from hdhil.core.dataconf import ConfigError, from_dict
+from hdhil.core.errors import UserError
 from hdhil.core.files import load_toml, shipped_or_path
 from hdhil.core.numbers import MAX_SECONDS, check_number
 from hdhil.rig.campaign_metrics import METRICS, Criterion
 
-__all__ = ["MAX_VARIANTS", "Axis", "Campaign", "list_campaigns", "load_campaign"]
+__all__ = ["MAX_VARIANTS", "Axis", "Campaign", "list_campaigns", "load_campaign", "printable"]
 
 #: The most variants a campaign may have (base scenarios times the grid's points); a
 #: larger grid is refused before its values are built. Split a larger study into files.
@@ -154,6 +155,11 @@ class _Lazy:
         return Axis(self.key, values)
 
 
+def printable(text: str) -> str:
+    """``text`` on one line: control characters escaped as in a Python literal."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def _one_line(text: str, where: str) -> None:
     if not text.isprintable():
         raise ConfigError(f"{where} must be one line of printable characters, got {text!r}")
@@ -167,6 +173,8 @@ def _flatten_axes(table: Any, where: str, prefix: str = "") -> list[_Lazy]:
     axes = []
     for key, spec in table.items():
         dotted = f"{prefix}{key}"
+        if not dotted.isprintable():
+            raise ConfigError(f"{where}: axis {dotted!r}: a key must be one printable line")
         if isinstance(spec, dict) and "range" not in spec:
             axes += _flatten_axes(spec, where, f"{dotted}.")
         else:
@@ -175,13 +183,17 @@ def _flatten_axes(table: Any, where: str, prefix: str = "") -> list[_Lazy]:
 
 
 def load_campaign(name_or_path: str | Path) -> Campaign:
-    """Read and check a campaign file (a shipped name or a path)."""
-    path = _resolve(str(name_or_path))
-    data = load_toml(path, "campaign file")  # regular file, size and depth capped
+    """Read and check a campaign file (a shipped name or a path); a mistake is one line
+    (a name or key holding a line break is shown escaped)."""
+    try:
+        path = _resolve(str(name_or_path))
+        data = load_toml(path, "campaign file")  # regular file, size and depth capped
+    except (ConfigError, UserError) as exc:
+        raise type(exc)(printable(str(exc))) from None
     try:
         return _campaign_from_dict(data, path)
     except ConfigError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
+        raise ConfigError(printable(f"{path}: {exc}")) from None
 
 
 def _campaign_from_dict(data: dict[str, Any], path: Path) -> Campaign:

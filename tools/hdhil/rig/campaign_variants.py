@@ -12,6 +12,7 @@ so a re-run finds what already finished.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import itertools
 import json
@@ -20,9 +21,9 @@ from importlib import metadata
 from typing import Any
 
 from hdhil.core.dataconf import ConfigError, merge
-from hdhil.rig.campaign_file import Campaign
+from hdhil.rig.campaign_file import Campaign, printable
 from hdhil.rig.campaign_metrics import format_value
-from hdhil.rig.scenario import load_scenario, scenario_data, scenario_from_dict
+from hdhil.rig.scenario import scenario_data, scenario_file_data, scenario_from_dict
 from hdhil.rig.variant import RunSettings, request_of
 
 __all__ = ["Variant", "digest_of", "expand"]
@@ -45,6 +46,7 @@ class Variant:
         return int(self.settings.scenario["scenario"]["seed"]) if seed is None else seed
 
 
+@functools.cache
 def _hdhil_version() -> str:
     try:
         return metadata.version("hdhil")
@@ -76,11 +78,6 @@ def digest_of(settings: RunSettings) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
-def _printable(text: str) -> str:
-    """``text`` on one line: control characters escaped as in a Python literal."""
-    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
-
-
 def expand(campaign: Campaign) -> list[Variant]:
     """Every variant of the campaign in order (scenarios, then the axes as written, the
     last varying fastest), each built and validated as ``hdhil run`` would build it."""
@@ -96,7 +93,10 @@ def expand(campaign: Campaign) -> list[Variant]:
     width = max(4, len(str(total)))
     variants: list[Variant] = []
     seen: dict[str, str] = {}
-    cycles: dict[tuple[str, str], int] = {}
+    # A scenario is read, validated and resolved once per base file and once per set of
+    # overrides: variants that differ only in the seed share its plain data (one dict).
+    files: dict[str, tuple[str, dict[str, Any]]] = {}
+    resolved: dict[tuple[str, str], tuple[dict[str, Any], int]] = {}
     suffix = f".{campaign.trace_format}" if campaign.keep_trace else None
     for base in campaign.scenarios:
         for point in points:
@@ -105,26 +105,31 @@ def expand(campaign: Campaign) -> list[Variant]:
                 if key != "seed":
                     overrides = merge(overrides, _nested(key, value))
             vid = f"{len(variants) + 1:0{width}d}"
-            where = _printable(
+            where = printable(
                 f"variant {vid} ({base}"
                 + "".join(f", {k}={format_value(v)}" for k, v in point.items())
                 + ")"
             )
             seed = point.get("seed")
             try:
-                scenario = load_scenario(base, overrides or None)
-                data = scenario_data(scenario)
-                if scenario_from_dict(data) != scenario:  # pragma: no cover - a to_dict gap
-                    raise ConfigError("the scenario does not survive its plain-data form")
-                settings = RunSettings(data, campaign.duration_s, seed, suffix)
-                # What the worker will resolve; variants that differ only in the seed
-                # (checked in the file, as ``resolve`` checks it) share the scenario's.
                 key = (base, json.dumps(overrides, sort_keys=True, default=repr))
-                if key not in cycles:
-                    cycles[key] = request_of(RunSettings(data, campaign.duration_s)).cycles
-                planned = cycles[key]
+                if key not in resolved:
+                    if base not in files:
+                        path, raw = scenario_file_data(base)
+                        files[base] = (str(path), raw)
+                    source, raw = files[base]
+                    scenario = scenario_from_dict(merge(raw, overrides), source)
+                    data = scenario_data(scenario)
+                    if scenario_from_dict(data) != scenario:  # pragma: no cover - to_dict gap
+                        raise ConfigError("the scenario does not survive its plain-data form")
+                    # What the worker will resolve; the seed (checked in the file, as
+                    # ``resolve`` checks it) does not change the cycles planned.
+                    planned = request_of(RunSettings(data, campaign.duration_s)).cycles
+                    resolved[key] = (data, planned)
+                data, planned = resolved[key]
+                settings = RunSettings(data, campaign.duration_s, seed, suffix)
             except ConfigError as exc:
-                raise ConfigError(f"{where}: {_printable(str(exc))}") from None
+                raise ConfigError(f"{where}: {printable(str(exc))}") from None
             digest = digest_of(settings)
             if digest in seen:
                 raise ConfigError(f"{where}: same settings as variant {seen[digest]}")
