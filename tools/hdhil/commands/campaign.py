@@ -15,12 +15,17 @@ import signal
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hdhil.core import jsonout
 from hdhil.core.errors import UserError
 from hdhil.core.numbers import arg_int
 from hdhil.core.signals import restore_handlers, terminate_as_interrupt
+
+if TYPE_CHECKING:
+    from hdhil.rig.campaign import CampaignRun
+    from hdhil.rig.campaign_file import Campaign
+    from hdhil.rig.campaign_variants import Variant
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -163,7 +168,6 @@ def _check_out_dir(out: Path) -> None:
 def run(args: argparse.Namespace) -> int:
     from hdhil.rig.campaign import local_executor, run_campaign
     from hdhil.rig.campaign_file import load_campaign
-    from hdhil.rig.campaign_report import write_outputs
     from hdhil.rig.campaign_variants import expand
 
     campaign = load_campaign(args.campaign)
@@ -191,14 +195,33 @@ def run(args: argparse.Namespace) -> int:
     progress = _Progress(len(variants), enabled=sys.stderr.isatty() and not args.json)
     previous = terminate_as_interrupt((signal.SIGTERM,))  # as Ctrl-C: finished variants kept
     try:
-        result = run_campaign(
-            campaign, variants, out, make_executor, progress, lost, on_warning=progress.warn
+        try:
+            result = run_campaign(
+                campaign, variants, out, make_executor, progress, lost, on_warning=progress.warn
+            )
+        finally:
+            progress.close()
+            restore_handlers(previous)
+            if client is not None:
+                client.close()
+        code = _report(args, campaign, variants, result, out)
+    except KeyboardInterrupt:  # outside the runs (the results being written): the same
+        code = 130
+    if code == 130:
+        kept = sum(1 for v in variants if (out / "runs" / f"{v.digest}.json").is_file())
+        print(
+            f"hdhil: interrupted; {kept} of {len(variants)} variants finished and are kept "
+            f"in {out / 'runs'}; run the same command again to complete the campaign",
+            file=sys.stderr,
         )
-    finally:
-        progress.close()
-        restore_handlers(previous)
-        if client is not None:
-            client.close()
+    return code
+
+
+def _report(args: argparse.Namespace, campaign: Campaign, variants: list[Variant],
+            result: CampaignRun, out: Path) -> int:  # fmt: skip
+    """Write the outputs, print the summary; the exit code."""
+    from hdhil.rig.campaign_report import write_outputs
+
     summary = write_outputs(campaign, variants, result, out)
     code = 130 if result.interrupted else (0 if summary["passed"] == len(variants) else 1)
     summary["exit_code"] = code
@@ -219,10 +242,4 @@ def run(args: argparse.Namespace) -> int:
         print(f"  report   {out / 'report.md'}")
         for note in summary["notes"]:
             print(f"  note: {note}")
-    if result.interrupted:
-        print(
-            "hdhil: interrupted; finished variants are kept, run the same command again "
-            "to complete the campaign",
-            file=sys.stderr,
-        )
     return code

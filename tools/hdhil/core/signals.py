@@ -10,7 +10,7 @@ raising ``KeyboardInterrupt`` like Ctrl-C while a command runs
 (:func:`stop_on_signals`); critical sections that must not be cut (:func:`signals_deferred`);
 child processes that leave the signals to their parent (:func:`stopping_signals_blocked`
 around the fork, :func:`leave_stopping_signals_to_parent`, :func:`leave_interrupt_to_parent`,
-:func:`die_with_parent`).
+:func:`die_with_parent`, :func:`watch_parent`).
 
 Python runs signal handlers in the main thread only, between bytecodes; elsewhere these
 helpers do nothing.  Imported by the console before anything else of hdhil: standard
@@ -24,6 +24,7 @@ import contextlib
 import os
 import signal
 import threading
+import time
 from collections.abc import Iterable, Iterator
 from types import FrameType
 from typing import Any
@@ -42,6 +43,7 @@ __all__ = [
     "stop_on_signals",
     "stopping_signals_blocked",
     "terminate_as_interrupt",
+    "watch_parent",
 ]
 
 #: Ctrl-C, SIGTERM and a hang-up: the signals that stop a command.
@@ -237,20 +239,51 @@ _PR_SET_PDEATHSIG = 1
 
 
 def die_with_parent(parent_pid: int) -> bool:
-    """In a worker process: be killed (SIGKILL) when the parent dies, even by SIGKILL,
-    which no handler of the parent can answer. Linux only (``PR_SET_PDEATHSIG``); returns
-    whether it is in place. A parent already gone by now ends this process at once."""
+    """In a worker process: end when the parent dies, even by SIGKILL, which no handler
+    of the parent can answer. Linux: the kernel sends this process SIGKILL
+    (``PR_SET_PDEATHSIG``); a parent already gone by the time the request took effect
+    ends this process at once. Elsewhere (POSIX): :func:`watch_parent`. Returns whether
+    the kernel's request is in place."""
     import ctypes
     import sys
 
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        if libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
-            return False
-    except (OSError, AttributeError):
-        return False
-    if os.getppid() != parent_pid:  # the parent died before the request took effect
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            if libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0:
+                if os.getppid() != parent_pid:  # died before the request took effect
+                    os._exit(1)
+                return True
+        except (OSError, AttributeError):
+            pass
+    if os.name == "posix":
+        watch_parent(parent_pid)
+    return False
+
+
+#: How often :func:`watch_parent` looks for its parent, and how long it lets the process
+#: end on its own after SIGTERM before it ends it (seconds).
+PARENT_WATCH_INTERVAL_S = 0.2
+PARENT_WATCH_GRACE_S = 1.0
+
+
+def watch_parent(
+    parent_pid: int,
+    interval_s: float = PARENT_WATCH_INTERVAL_S,
+    grace_s: float = PARENT_WATCH_GRACE_S,
+) -> threading.Thread:
+    """A daemon thread that ends this process once its parent is gone (POSIX: an orphan
+    is adopted, so its parent id changes): SIGTERM to itself, so that its handlers clean
+    up, then ``os._exit`` if it is still running ``grace_s`` later."""
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(interval_s)
+        with contextlib.suppress(OSError):
+            os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(grace_s)
         os._exit(1)
-    return True
+
+    thread = threading.Thread(target=watch, name="hdhil-parent-watch", daemon=True)
+    thread.start()
+    return thread

@@ -11,16 +11,26 @@ Execution goes through a :class:`concurrent.futures.Executor`: a local process p
 a Dask cluster (``distributed.Client.get_executor()``), so both share this code. A
 variant that raises is recorded with its error and never stops the campaign; a variant
 whose worker was lost is submitted again.
+
+Signals: Ctrl-C (``KeyboardInterrupt`` in the calling thread; the command turns SIGTERM
+and SIGHUP into it) ends the campaign wherever it is: what has not started is cancelled
+and the local pool's workers are ended at once (:data:`WORKER_GRACE_S`). A local worker
+answers SIGTERM and SIGHUP itself, whoever sends them: its variant unwinds (trace writer
+closed, temporary files removed) and the process exits without returning anything, so a
+variant cut short is never recorded, neither as a result nor as an error, and is run
+again. Ctrl-C reaches the whole process group; the workers leave it to the campaign.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import gc
 import json
 import math
 import multiprocessing
 import os
+import signal
 import socket
 import time
 import warnings
@@ -34,7 +44,7 @@ from hdhil.core import jsonout
 from hdhil.core.dataconf import ConfigError
 from hdhil.core.errors import UserError
 from hdhil.core.files import read_config
-from hdhil.core.signals import die_with_parent, leave_interrupt_to_parent
+from hdhil.core.signals import TERMINATING_SIGNALS, die_with_parent, leave_interrupt_to_parent
 from hdhil.rig.campaign_file import Campaign, printable
 from hdhil.rig.campaign_metrics import judge
 from hdhil.rig.campaign_variants import Variant
@@ -42,6 +52,7 @@ from hdhil.rig.variant import WALL_CLOCK_KEYS, RunSettings, run_settings
 
 __all__ = [
     "MAX_ATTEMPTS",
+    "WORKER_GRACE_S",
     "CampaignRun",
     "Record",
     "execute_variant",
@@ -50,20 +61,64 @@ __all__ = [
 ]
 
 
+#: Seconds a local worker has to end after SIGTERM when the campaign is interrupted
+#: before it is killed (SIGKILL): a stopped (SIGSTOP) or hung worker ends after this.
+WORKER_GRACE_S = 1.0
+
+#: A local pool worker's state: whether it runs a variant now, and the stopping signal
+#: it received (None: none).
+_busy = False
+_stopping: int | None = None
+
+
+def _worker_stop(signum: int, frame: object) -> None:
+    """SIGTERM or SIGHUP in a local pool worker: a running variant unwinds
+    (``KeyboardInterrupt``, then :func:`execute_variant` exits the process); an idle
+    worker exits at once. Either way nothing goes back to the campaign, whose pool then
+    counts the worker as lost and runs its variant again."""
+    global _stopping
+    _stopping = signum
+    if _busy:
+        raise KeyboardInterrupt
+    os._exit(128 + signum)
+
+
 def _worker_init(parent_pid: int) -> None:
     """Start of a local pool worker: leave Ctrl-C to the campaign (it cancels and keeps
-    results), end when the campaign's process ends, even killed (Linux), and move the
+    results), end on SIGTERM and SIGHUP without returning a result (the handlers
+    inherited from the campaign's process would send ``KeyboardInterrupt`` back as the
+    variant's outcome), end when the campaign's process ends, even killed, and move the
     objects inherited from the parent out of the garbage collector's reach (a forked
     worker would otherwise traverse, and so copy, the parent's whole heap at every full
     collection)."""
     leave_interrupt_to_parent()
+    for sig in TERMINATING_SIGNALS:
+        signal.signal(sig, _worker_stop)
     die_with_parent(parent_pid)
     gc.freeze()
 
 
 def execute_variant(settings: RunSettings) -> dict[str, Any]:
     """Run one variant where the executor put it; never raises for the run's own errors
-    (they come back as ``error``)."""
+    (they come back as ``error``). In a local pool worker told to stop (SIGTERM, SIGHUP)
+    the process exits instead of returning."""
+    global _busy
+    outcome: dict[str, Any] | None = None
+    try:
+        _busy = True
+        outcome = _execute(settings)
+    except KeyboardInterrupt:
+        if _stopping is None:
+            raise
+    finally:
+        _busy = False
+    if _stopping is not None:
+        os._exit(128 + _stopping)
+    assert outcome is not None
+    return outcome
+
+
+def _execute(settings: RunSettings) -> dict[str, Any]:
     t0 = time.perf_counter()
     result: dict[str, Any] | None = None
     trace: bytes | None = None
@@ -89,17 +144,82 @@ def execute_variant(settings: RunSettings) -> dict[str, Any]:
     }
 
 
+#: Exit codes of a worker that someone stopped (SIGTERM, SIGHUP, Ctrl-C): its own
+#: handler's (128 + the signal) or the signal's default action's (minus the signal).
+_STOPPED_EXITS = frozenset(
+    code for sig in (signal.SIGINT, *TERMINATING_SIGNALS) for code in (128 + sig, -sig)
+)
+
+
+class _LocalPool(cf.ProcessPoolExecutor):
+    """A process pool whose workers can be ended at once (:meth:`stop_workers`)."""
+
+    _stopped: tuple[list[Any], Any] | None = None
+
+    def lost_to_a_signal(self) -> bool:
+        """Whether the workers that have ended (the pool is broken) were all stopped by
+        a signal meant to stop them (SIGTERM, SIGHUP, SIGINT), none crashed or killed
+        (SIGKILL, also the out-of-memory killer's)."""
+        procs = (getattr(self, "_processes", None) or {}).values()
+        ended = [p.exitcode for p in procs if p.exitcode is not None]
+        return bool(ended) and all(code in _STOPPED_EXITS for code in ended)
+
+    def stop_workers(self, grace_s: float = WORKER_GRACE_S) -> None:
+        """Cancel what has not started and end every worker now: SIGTERM and SIGCONT (a
+        stopped worker acts on it once continued); a worker still there ``grace_s``
+        later is killed. Returns once the pool is shut down; called again (another
+        Ctrl-C meanwhile), it goes on with the same workers."""
+        if self._stopped is None:
+            # What shutdown() lets go of: the workers and the thread that manages them.
+            procs = list((getattr(self, "_processes", None) or {}).values())
+            self._stopped = (procs, getattr(self, "_executor_manager_thread", None))
+            self.shutdown(wait=False, cancel_futures=True)  # before a worker ends the pool
+        procs, manager = self._stopped
+        for p in procs:
+            with contextlib.suppress(OSError, ValueError, AttributeError):  # ended
+                if p.exitcode is None:
+                    p.terminate()
+                    if hasattr(signal, "SIGCONT"):
+                        os.kill(p.pid, signal.SIGCONT)
+        left = _wait_ended(procs, grace_s)
+        for p in left:
+            with contextlib.suppress(OSError, ValueError, AttributeError):
+                p.kill()
+        _wait_ended(left, WORKER_GRACE_S)
+        if manager is not None:
+            manager.join(WORKER_GRACE_S)  # it ends once it has seen every worker end
+
+
+def _wait_ended(procs: list[Any], timeout_s: float) -> list[Any]:
+    """Wait up to ``timeout_s`` for the processes to end; those still running."""
+    from multiprocessing.connection import wait
+
+    deadline = time.monotonic() + timeout_s
+    left = [p for p in procs if p.exitcode is None]
+    while left:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            break
+        wait([p.sentinel for p in left], remaining)
+        left = [p for p in left if p.exitcode is None]
+    return left
+
+
 def local_executor(workers: int) -> cf.Executor:
     """A process pool of ``workers`` processes (forked where the platform can: they
-    start with hdhil already imported); on Linux they end with the calling process."""
+    start with hdhil already imported); they end with the calling process, and at once
+    when a campaign is interrupted."""
     methods = multiprocessing.get_all_start_methods()
     ctx = multiprocessing.get_context("fork" if "fork" in methods else None)
-    return cf.ProcessPoolExecutor(
+    return _LocalPool(
         max_workers=workers, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
     )
 
 
 #: Submissions of one variant whose worker was lost before it is recorded as an error.
+#: Only losses that may be the variant's doing count: a crash, SIGKILL (the kernel's
+#: out-of-memory killer sends it), a lost Dask worker; not a worker stopped by SIGTERM,
+#: SIGHUP or SIGINT.
 MAX_ATTEMPTS = 3
 
 
@@ -186,8 +306,10 @@ def run_campaign(
 
     ``lost_errors``: exception types a future raises when its worker is gone (besides a
     broken local pool); such a variant is submitted again, up to :data:`MAX_ATTEMPTS`
-    times, then recorded as an error for this invocation only (not stored, so a re-run
-    retries it).  Ctrl-C cancels what has not started and returns with ``interrupted``.
+    times (workers stopped by a signal do not count), then recorded as an error for this
+    invocation only (not stored, so a re-run retries it).  Ctrl-C (``KeyboardInterrupt``)
+    anywhere cancels what has not started, ends the local workers and returns with
+    ``interrupted``.
     A stored record that cannot be used (not JSON, a field missing or of the wrong type)
     is reported, one line, to ``on_warning`` (default :func:`warnings.warn`) and its
     variant run again.
@@ -277,9 +399,12 @@ def run_campaign(
     remaining = todo
     while remaining and not interrupted:
         retry: list[Variant] = []
-        executor = make_executor()
+        executor: cf.Executor | None = None
         futures: dict[cf.Future, Variant] = {}
+        ended = False
+        stopped: bool | None = None
         try:
+            executor = make_executor()
             futures = {executor.submit(execute_variant, v.settings): v for v in remaining}
             for fut in cf.as_completed(futures):
                 v = futures.pop(fut)  # a finished future holds its trace: let it go
@@ -287,8 +412,11 @@ def run_campaign(
                     outcome = fut.result()
                 except lost_types as exc:
                     lost += 1
-                    attempts[v.id] = attempts.get(v.id, 0) + 1
-                    if attempts[v.id] < MAX_ATTEMPTS:
+                    if stopped is None:  # once per pool, when it breaks
+                        stopped = _lost_to_a_signal(executor)
+                    if not stopped:  # a crash, SIGKILL: maybe the variant's doing
+                        attempts[v.id] = attempts.get(v.id, 0) + 1
+                    if attempts.get(v.id, 0) < MAX_ATTEMPTS:
                         retry.append(v)
                         continue
                     why = f"worker lost {attempts[v.id]} times ({type(exc).__name__}: {exc})"
@@ -300,16 +428,42 @@ def run_campaign(
                     retry.append(v)  # a worker stopped mid-run: its partial result is no result
                     continue
                 finish(v, outcome, store=True)
-        except KeyboardInterrupt:
+            executor.shutdown(wait=True)
+            ended = True
+        except KeyboardInterrupt:  # anywhere, the pool's shut-down included
             interrupted = True
-            for fut in futures:
-                fut.cancel()
         finally:
-            # Dask's executor takes no cancel_futures; what is left was cancelled above.
-            executor.shutdown(wait=not interrupted)
+            if executor is not None and not ended:  # interrupted, or an error
+                _abandon(executor, futures)
         remaining = retry
     return CampaignRun(records, len(records) - resumed, resumed, interrupted, lost,
                        time.perf_counter() - t0)  # fmt: skip
+
+
+def _lost_to_a_signal(executor: cf.Executor) -> bool:
+    """Whether a broken executor's workers were stopped by a signal meant to stop them
+    (a local pool's; a lost Dask worker counts against its variants)."""
+    check = getattr(executor, "lost_to_a_signal", None)
+    return bool(check is not None and check())
+
+
+def _abandon(executor: cf.Executor, futures: dict[cf.Future, Variant]) -> None:
+    """Leave an executor whose work is no longer wanted (an interrupt, an error): cancel
+    what has not started; a local pool's workers are ended (:data:`WORKER_GRACE_S`), a
+    Dask cluster's are its own. Another Ctrl-C meanwhile kills the workers at once."""
+    grace = WORKER_GRACE_S
+    while True:
+        try:
+            stop = getattr(executor, "stop_workers", None)
+            if stop is not None:
+                stop(grace)
+            else:  # Dask's executor takes no cancel_futures
+                for fut in futures:
+                    fut.cancel()
+                executor.shutdown(wait=False)
+            return
+        except KeyboardInterrupt:
+            grace = 0.0
 
 
 def _warn(message: str) -> None:

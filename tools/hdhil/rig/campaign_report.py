@@ -244,8 +244,9 @@ def report_md(campaign: Campaign, variants: Sequence[Variant], run: CampaignRun,
     lines += [
         f"- scenarios: {', '.join(Path(x).stem for x in campaign.scenarios)}",
         f"- crossed axes: {axes}" + (f"; zipped: {zips}" if zips else ""),
-        f"- variants: {s['variants']}; recorded {s['recorded']} "
-        f"(run now {s['ran']}, from earlier runs {s['resumed']}), not run {s['not_run']}"
+        # Not how many ran now and earlier (timings.csv): a campaign completed after an
+        # interrupt gives the uninterrupted campaign's report.
+        f"- variants: {s['variants']}; recorded {s['recorded']}, not run {s['not_run']}"
         + (" (interrupted)" if s["interrupted"] else ""),
         f"- **passed {s['passed']}, failed {s['failed']}, errors {s['errors']}**",
         "",
@@ -339,7 +340,11 @@ def write_outputs(campaign: Campaign, variants: Sequence[Variant], run: Campaign
     why = write_parquet(out / "results.parquet", campaign, table)
     if why:
         notes.append(why)
-    plots = plot_files(campaign, table, out / "plots")
+    if run.interrupted:  # drawing takes longer than the rest: the campaign is ending
+        plots: list[Path] = []
+        notes.append("interrupted: the plots are drawn once the campaign is complete")
+    else:
+        plots = plot_files(campaign, table, out / "plots")
     _write_atomic(
         out / "report.md", report_md(campaign, variants, run, table, plots, notes).encode()
     )
