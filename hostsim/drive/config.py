@@ -110,10 +110,9 @@ class DriveDiagnostics:
     adc_saturations: int = 0
     overcurrents: int = 0
     nmt_resets: int = 0
-    #: Why the plant could not be advanced (its state went non-finite), and the node time
-    #: of the SYNC it happened at (s); None while it advances.
+    #: Why the plant could not be advanced (what went non-finite, at which plant time);
+    #: None while it advances.
     plant_failure: str | None = None
-    plant_failure_s: float | None = None
     #: EMCY error events raised by this drive (not counting the 0x0000 "cleared" frames).
     emcy_sent: int = 0
     emcy_log: deque[EmcyRecord] = field(default_factory=lambda: deque(maxlen=256))

@@ -307,7 +307,6 @@ class CyclicIO:
         d = self._diagnostics
         if d.plant_failure is None:
             d.plant_failure = str(exc) or type(exc).__name__
-            d.plant_failure_s = node.now
             node.emcy(EmcyCode.INTERNAL_SOFTWARE)
         node.machine.fault(EmcyCode.INTERNAL_SOFTWARE, persists=True)
 
