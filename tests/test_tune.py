@@ -316,3 +316,34 @@ def test_cli_errors_are_one_line_exit_2(
     err = capsys.readouterr().err
     assert err.startswith("hdhil: error: ") and message in err
     assert err.count("\n") == 1
+
+
+def test_a_filter_of_too_many_harmonics_is_refused_before_any_work() -> None:
+    """Every likelihood evaluation runs the filter over the window at a cost growing with
+    the square of the harmonics: 32 of them made the default budget take most of an
+    hour.  Past MAX_TUNED_HARMONICS the tuner refuses in one line, before evaluating."""
+    import dataclasses
+
+    from hdhil.analysis.tuning import MAX_TUNED_HARMONICS
+    from hdhil.core.errors import UserError
+    from hdhil.firmware.config import Oscillator, RippleFilterConfig
+
+    y, v, enc = synthetic(600, 1e-3, 1e-6, 1e-4, seed=2)
+
+    def tuned(harmonics: int) -> None:
+        ripple = RippleFilterConfig(
+            oscillators=tuple(Oscillator("motor", float(m)) for m in range(1, harmonics + 1))
+        )
+        cfg = dataclasses.replace(FirmwareConfig(), ripple=ripple)
+
+        def evaluated(n: int) -> None:
+            raise AssertionError("a likelihood evaluation ran")
+
+        tune_signals(y, v, enc, cfg, max_evals=1, max_window=300, on_evaluation=evaluated)
+
+    with pytest.raises(
+        UserError, match=f"33 harmonics; hdhil tune takes at most {MAX_TUNED_HARMONICS}"
+    ):
+        tuned(33)
+    with pytest.raises(AssertionError, match="a likelihood evaluation ran"):
+        tuned(MAX_TUNED_HARMONICS)  # at the cap it tunes

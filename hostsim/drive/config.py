@@ -110,6 +110,9 @@ class DriveDiagnostics:
     adc_saturations: int = 0
     overcurrents: int = 0
     nmt_resets: int = 0
+    #: Why the plant could not be advanced (what went non-finite, at which plant time);
+    #: None while it advances.
+    plant_failure: str | None = None
     #: EMCY error events raised by this drive (not counting the 0x0000 "cleared" frames).
     emcy_sent: int = 0
     emcy_log: deque[EmcyRecord] = field(default_factory=lambda: deque(maxlen=256))

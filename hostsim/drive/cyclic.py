@@ -254,7 +254,10 @@ class CyclicIO:
         machine = node.machine
         if self._plant_started:
             dt = (1 + missed) * self._Ts
-            plant.advance(self.step_V, dt)
+            try:
+                plant.advance(self.step_V, dt)
+            except ArithmeticError as exc:  # NonFiniteStateError, or a plug-in's overflow
+                self._plant_failed(exc)
             machine.step(dt)
         else:
             self._plant_started = True
@@ -294,6 +297,18 @@ class CyclicIO:
         if services.state is _OPERATIONAL:  # flush_statusword, inline
             for tpdo in self._event_tpdos:
                 tpdo.flush(now)
+
+    def _plant_failed(self, exc: ArithmeticError) -> None:
+        """The plant could not be advanced (its state went non-finite): the emulated
+        drive's own software failed, so it faults (EMCY 0x6100, a fault that persists:
+        no fault reset brings the plant back) and keeps the plant at its last finite
+        state.  The first failure is kept in :attr:`DriveDiagnostics.plant_failure`."""
+        node = self.node
+        d = self._diagnostics
+        if d.plant_failure is None:
+            d.plant_failure = str(exc) or type(exc).__name__
+            node.emcy(EmcyCode.INTERNAL_SOFTWARE)
+        node.machine.fault(EmcyCode.INTERNAL_SOFTWARE, persists=True)
 
     def _command_hold_missed(self, machine: DriveStateMachine) -> None:
         """A SYNC cycle without a command while OPERATION ENABLED: fault at the limit."""

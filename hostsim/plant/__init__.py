@@ -2,8 +2,9 @@
 
 One job per module: :mod:`.config` (the ``[plant]`` table as frozen dataclasses),
 :mod:`.linear` (state-space models, their exact discretisation, the steady state),
-:mod:`.model` (:class:`Plant`, the stepper and the sensor read-out) and :mod:`.truth`
-(the ground-truth record). Every public name is importable from here, as
+:mod:`.model` (:class:`Plant`, the stepper and the sensor read-out), :mod:`.stability`
+(which configurations the stepper integrates at a given step) and :mod:`.truth` (the
+ground-truth record). Every public name is importable from here, as
 ``hdhil.hostsim.plant.PlantConfig``.
 
 The plant is what stands behind :class:`hdhil.hostsim.drive.DriveNode`; any object
@@ -32,6 +33,7 @@ from hdhil.hostsim.plant.linear import (
     steady_state_volts,
 )
 from hdhil.hostsim.plant.model import ENCODER_MODULUS, Plant
+from hdhil.hostsim.plant.stability import NonFiniteStateError, check_step, step_problems
 from hdhil.hostsim.plant.truth import RippleParts, Truth
 
 __all__ = [
@@ -44,16 +46,19 @@ __all__ = [
     "GravityConfig",
     "LinkMotionConfig",
     "LoadTorqueConfig",
+    "NonFiniteStateError",
     "Plant",
     "PlantConfig",
     "RippleConfig",
     "RippleParts",
     "SensorConfig",
     "Truth",
+    "check_step",
     "continuous_model",
     "discrete_model",
     "person_model",
     "prescribed_model",
     "steady_state_motor_velocity",
     "steady_state_volts",
+    "step_problems",
 ]

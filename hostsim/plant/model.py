@@ -32,6 +32,7 @@ from hdhil.hostsim.plant.linear import (
     prescribed_model,
     zoh,
 )
+from hdhil.hostsim.plant.stability import NonFiniteStateError, check_step
 from hdhil.hostsim.plant.truth import RippleParts, Truth
 from hdhil.hostsim.sensor_faults import SensorHook
 
@@ -40,6 +41,13 @@ __all__ = ["ENCODER_MODULUS", "Plant"]
 ENCODER_MODULUS = 1 << 16  # 16-bit wrapping quadrature counter ([Taghirad97]: short pcsample)
 _NOISE_BLOCK = 4096  # standard normals drawn from the generator at a time
 _new_tuple = tuple.__new__  # a NamedTuple from a complete tuple of its fields
+_INF = math.inf
+
+
+def _encoder_count(counts: float) -> int:
+    """The 16-bit count of an unwrapped position in counts; 0 for one that is not a
+    finite number (an angle past the float range has no count to read)."""
+    return math.floor(counts) % ENCODER_MODULUS if math.isfinite(counts) else 0
 
 
 class Plant:
@@ -72,6 +80,9 @@ class Plant:
         self._n = dt_cfg.gear_ratio
         self._substeps = cfg.substeps
         self._maps: dict[float, tuple[float, ...]] = {}
+        # A state whose size times this overflows cannot be read by the sensors (the
+        # 4x motor-angle ripple, the spring and damper torques): a failed step.
+        self._state_scale = 8.0 * max(self._n, dt_cfg.k_flex, dt_cfg.c_flex, 1.0)
         # amplifier
         self._gain = cfg.amplifier.gain_A_per_V
         self._ilim = cfg.amplifier.current_limit_A
@@ -157,6 +168,11 @@ class Plant:
             raise ValueError(
                 f"hold_locked needs finite numbers, got {theta_motor!r}, {torque_Nm!r}"
             )
+        if not (abs(theta_motor) + abs(torque_Nm)) * self._state_scale < _INF:
+            raise ValueError(
+                f"hold_locked: {theta_motor!r} rad, {torque_Nm!r} Nm are beyond what the "
+                "sensors can read"
+            )
         if self._link is not None:
             raise ValueError("hold_locked: the link already follows a prescribed motion")
         self._d = torque_Nm / self.cfg.drivetrain.k_flex
@@ -196,9 +212,12 @@ class Plant:
     def prepare(self, dt: float) -> None:
         """Compute the step map for steps of ``dt`` now (it is otherwise computed, and
         scipy's expm kernel loaded, at the first :meth:`advance` by ``dt``): a node calls
-        it before its loop starts, so no cycle stalls on it."""
+        it before its loop starts, so no cycle stalls on it.  Raises ``ValueError`` if
+        the configuration cannot be integrated at this step
+        (:func:`~hdhil.hostsim.plant.stability.check_step`)."""
         if not dt > 0.0:
             raise ValueError(f"prepare needs dt > 0, got {dt!r}")
+        check_step(self.cfg, dt)  # the configuration can be integrated at this step
         self._maps.get(dt) or self._map(dt)
 
     def advance(self, volts: float, dt: float) -> None:
@@ -253,9 +272,23 @@ class Plant:
                 q_out + qd * d + qm * wm + ql * wl + qi * i + qu + qtm * tm + qtl * tl,
                 ii * i + iu,
             )
+        # NaN, an infinity or a state too large for the sensors to read (NaN < inf is
+        # False): the step failed (:mod:`.stability`)
+        if not (abs(d) + abs(wm) + abs(wl) + abs(i) + abs(q_out)) * self._state_scale < _INF:
+            self._non_finite(dt, d=d, wm=wm, wl=wl, i=i, ql=q_out)
         self._d, self._wm, self._wl, self._i, self._ql = d, wm, wl, i, q_out
         self._tick(dt)
         self._update_sensor()
+
+    def _non_finite(self, dt: float, **state: float) -> None:
+        """Raise :class:`NonFiniteStateError` for a step of ``dt`` that left ``state``
+        (the new values, by attribute name) non-finite; the plant keeps its last finite
+        state and its clock."""
+        names = {"d": "twist", "wm": "motor velocity", "wl": "load velocity",
+                 "i": "current", "ql": "load angle"}  # fmt: skip
+        scale = self._state_scale
+        bad = tuple(names[k] for k, v in state.items() if not abs(v) * scale < _INF)
+        raise NonFiniteStateError(self._t + dt, bad or tuple(names[k] for k in state))
 
     def _command_current(self, volts: float) -> float:
         """The amplifier's current command for ``volts``, clipped at its current limit."""
@@ -307,7 +340,10 @@ class Plant:
         for _ in range(self._substeps):
             u[1] = -cm * tanh(z[1] * inv_eps)
             z = ad @ z + bd @ u
-        self._d, self._wm, self._i = float(z[0]), float(z[1]), float(z[2])
+        d, wm, i = float(z[0]), float(z[1]), float(z[2])
+        if not (abs(d) + abs(wm) + abs(i)) * self._state_scale < _INF:
+            self._non_finite(dt, d=d, wm=wm, i=i)
+        self._d, self._wm, self._i = d, wm, i
         self._tick(dt)
         self._ql = link.angle(self._t)
         self._wl = link.velocity(self._t)
@@ -345,6 +381,8 @@ class Plant:
                 ss * sn + sc * co,
                 cs * sn + cc * co,
             )
+        if not (abs(d) + abs(wm) + abs(i)) * self._state_scale < _INF:
+            self._non_finite(dt, d=d, wm=wm, i=i)
         self._d, self._wm, self._i = d, wm, i
         self._tick(dt)
         self._ql = link.angle(self._t)
@@ -409,13 +447,21 @@ class Plant:
         tacho_V = self._n * self._wm / s.volt2radps + self._sig_tacho_V * n_tacho
         current_V = self._i / s.current_monitor_A_per_V + self._sig_current_V * n_current
         theta_motor_unwrapped = self._n * (self._ql + self._d)
-        enc = math.floor(theta_motor_unwrapped * self._cpr_per_rad) % ENCODER_MODULUS
         # Converter.to_counts of the three channels, inline (same arithmetic: NaN -> 0,
         # round to nearest, saturate), as this runs every SYNC.
         lsb, lo, hi = adc.lsb_V, adc.code_min, adc.code_max
-        c_torque = round(torque_V / lsb) if torque_V == torque_V else 0
-        c_tacho = round(tacho_V / lsb) if tacho_V == tacho_V else 0
-        c_current = round(current_V / lsb) if current_V == current_V else 0
+        try:
+            enc = math.floor(theta_motor_unwrapped * self._cpr_per_rad) % ENCODER_MODULUS
+            c_torque = round(torque_V / lsb) if torque_V == torque_V else 0
+            c_tacho = round(tacho_V / lsb) if tacho_V == tacho_V else 0
+            c_current = round(current_V / lsb) if current_V == current_V else 0
+        except (OverflowError, ValueError):  # a reading beyond any float: saturate
+            enc = _encoder_count(theta_motor_unwrapped * self._cpr_per_rad)
+            c_torque, c_tacho, c_current = (
+                adc.to_counts(torque_V),
+                adc.to_counts(tacho_V),
+                adc.to_counts(current_V),
+            )
         counts = (
             hi if c_torque > hi else lo if c_torque < lo else c_torque,
             hi if c_tacho > hi else lo if c_tacho < lo else c_tacho,

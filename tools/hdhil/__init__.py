@@ -22,7 +22,7 @@ from typing import Any
 _EXPORTS = {
     # run model
     "Scenario": "hdhil.rig.scenario",
-    "load_scenario": "hdhil.rig.scenario",
+    "load_scenario": "hdhil.api",
     "list_scenarios": "hdhil.rig.scenario",
     "RunRequest": "hdhil.rig.request",
     "resolve": "hdhil.api",

@@ -12,21 +12,66 @@ directly (``docs/api.md``; the same names are importable from :mod:`hdhil`)::
     table = hdhil.read_trace("run.blf")           # a trace as per-cycle arrays
     scores = hdhil.evaluate_trace("run.blf")      # the evaluation, as `evaluate --json`
 
-Arguments are checked as the command line checks its options: a wrong type is a
-``TypeError`` naming the argument, a value out of range or a bad scenario a
-``ValueError`` (:class:`hdhil.core.errors.ConfigError`) naming the key or the argument.
+Arguments are checked as the command line checks its options, with the same bounds
+(a duration in (0, :data:`~hdhil.core.numbers.MAX_SECONDS`] s, a seed in [0, 2**63), a
+start time from 1970 to the year 9999): a wrong type is a ``TypeError`` naming the
+argument, a value out of range, a bad scenario or a bad file a ``ValueError``
+(:class:`hdhil.core.errors.ConfigError`) naming the key, the file or the argument.
+Names and paths are ``str`` or :class:`os.PathLike` (``bytes`` are refused with a
+``TypeError``: a name is text, and a ``bytes`` path would be looked up as its repr).
 """
 
 from __future__ import annotations
 
+import functools
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
+from hdhil.core.errors import ConfigError, UserError
+from hdhil.core.numbers import MAX_SECONDS, MAX_UNIX_TIME, check_number
+
 __all__ = ["cycle_arrays", "evaluate_trace", "load_scenario", "read_trace", "resolve", "run"]
+
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def _value_errors(func: _F) -> _F:
+    """``func`` with the command line's input errors (:class:`UserError`: a missing,
+    damaged or refused file) raised as ``ValueError`` (:class:`ConfigError`), the one
+    exception type of a bad value."""
+
+    @functools.wraps(func)
+    def checked(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return func(*args, **kwargs)
+        except UserError as exc:
+            raise ConfigError(str(exc)) from exc
+
+    return checked  # type: ignore[return-value]
+
+
+def _number(
+    value: Any,
+    name: str,
+    *,
+    lo: float | None = None,
+    hi: float | None = None,
+    lo_open: bool = False,
+    integer: bool = False,
+) -> Any:
+    """``value`` checked as the command line checks a number option: ``TypeError`` if it
+    is not an ``int`` (``integer``) or a real number (``bool`` is neither), a
+    :class:`ConfigError` naming ``name`` if it is not finite or not in range."""
+    kinds: tuple[type, ...] = (int,) if integer else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kinds):
+        what = "an int" if integer else "a number"
+        raise TypeError(f"{name} must be {what}, got {type(value).__name__}")
+    return check_number(value, name, lo=lo, hi=hi, lo_open=lo_open, integer=integer)
 
 
 def _path_arg(value: Any, name: str, optional: bool = True) -> Path | None:
@@ -40,8 +85,10 @@ def _path_arg(value: Any, name: str, optional: bool = True) -> Path | None:
     return Path(text)
 
 
+@_value_errors
 def load_scenario(scenario: str | os.PathLike[str], overrides: dict[str, Any] | None = None) -> Any:
-    """A scenario (a shipped name or a TOML file), typed (:class:`hdhil.rig.scenario.Scenario`)."""
+    """A scenario (a shipped name or a TOML file), typed (:class:`hdhil.rig.scenario.Scenario`),
+    with ``overrides`` (a nested dict in the file's layout) merged in."""
     from hdhil.rig.scenario import load_scenario as load
 
     path = _path_arg(scenario, "scenario", optional=False)
@@ -50,6 +97,7 @@ def load_scenario(scenario: str | os.PathLike[str], overrides: dict[str, Any] | 
     return load(str(path), overrides)
 
 
+@_value_errors
 def resolve(
     scenario: Any = "free-motion",
     *,
@@ -72,11 +120,12 @@ def resolve(
 
     if not isinstance(scenario, Scenario):
         scenario = _path_arg(scenario, "scenario", optional=False)
-    for name, value in (("duration_s", duration_s), ("evaluate_from_s", evaluate_from_s)):
-        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
-            raise TypeError(f"{name} must be a number, got {type(value).__name__}")
-    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
-        raise TypeError(f"seed must be an int, got {type(seed).__name__}")
+    if duration_s is not None:
+        _number(duration_s, "duration_s", lo=0.0, lo_open=True, hi=MAX_SECONDS)
+    if evaluate_from_s is not None:
+        _number(evaluate_from_s, "evaluate_from_s", lo=0.0, hi=MAX_SECONDS)
+    if seed is not None:
+        _number(seed, "seed", lo=0, hi=2**63 - 1, integer=True)
     if overrides is None:
         items: list[Any] = []
     elif isinstance(overrides, dict):
@@ -85,7 +134,11 @@ def resolve(
         items = [o if isinstance(o, dict) else _path_arg(o, "overrides") for o in overrides]
     else:
         raise TypeError(f"overrides must be a dict or a list, got {type(overrides).__name__}")
-    if isinstance(faults, (str, bytes)) or not all(isinstance(f, str) for f in faults):
+    if isinstance(faults, (str, bytes)) or not isinstance(faults, (list, tuple)):
+        raise TypeError(
+            f"faults must be a list of 'KEY=VALUE' strings, got {type(faults).__name__}"
+        )
+    if not all(isinstance(f, str) for f in faults):
         raise TypeError("faults must be a list of 'KEY=VALUE' strings")
     if mapping is not None and not isinstance(mapping, str):
         raise TypeError(f"mapping must be a str, got {type(mapping).__name__}")
@@ -102,6 +155,14 @@ def resolve(
     )
 
 
+#: The keyword settings :func:`run` hands to :func:`resolve`.
+_RESOLVE_SETTINGS = frozenset(
+    {"duration_s", "seed", "overrides", "faults", "calibration", "mapping", "drive_dcf",
+     "evaluate_from_s"}
+)  # fmt: skip
+
+
+@_value_errors
 def run(
     scenario: Any = "free-motion",
     *,
@@ -118,23 +179,43 @@ def run(
     ``scenario`` is a :class:`~hdhil.rig.request.RunRequest`, or anything :func:`resolve`
     takes, with its keyword ``settings`` (``duration_s``, ``seed``, ``overrides`` ...).
     ``trace`` writes a trace (format from the extension) and its sidecar JSON;
-    ``start_time`` (Unix seconds) pins the trace's dates. ``controller_factory`` and
-    ``drive_factories`` plug in your own nodes (:mod:`hdhil.rig.factories`)."""
+    ``start_time`` (Unix seconds, 0 to the year 9999) pins the trace's dates.
+    ``controller_factory`` and ``drive_factories`` (callables) plug in your own nodes
+    (:mod:`hdhil.rig.factories`).  A run whose plant goes non-finite ends with a
+    ``result.verdict`` saying what and when, as ``hdhil run`` (exit code 1) does; a
+    long run is interrupted with Ctrl-C (``KeyboardInterrupt``, once the trace is closed)."""
     from hdhil.rig.request import RunRequest
     from hdhil.rig.runner import run_lockstep
 
-    request = scenario if isinstance(scenario, RunRequest) else resolve(scenario, **settings)
+    unknown = sorted(set(settings) - _RESOLVE_SETTINGS)
+    if unknown:
+        raise TypeError(
+            f"run() got an unexpected keyword argument {unknown[0]!r} (settings: "
+            f"{', '.join(sorted(_RESOLVE_SETTINGS))})"
+        )
     if isinstance(scenario, RunRequest) and settings:
         raise TypeError(f"run() of a RunRequest takes no {', '.join(sorted(settings))}")
     if not isinstance(evaluate, bool):
         raise TypeError(f"evaluate must be a bool, got {type(evaluate).__name__}")
-    if start_time is not None and (
-        isinstance(start_time, bool) or not isinstance(start_time, (int, float))
-    ):
-        raise TypeError(f"start_time must be a number, got {type(start_time).__name__}")
+    if start_time is not None:
+        _number(start_time, "start_time", lo=0.0, hi=MAX_UNIX_TIME)
+    if controller_factory is not None and not callable(controller_factory):
+        raise TypeError(
+            f"controller_factory must be callable, got {type(controller_factory).__name__}"
+        )
+    if drive_factories is not None:
+        if not isinstance(drive_factories, (list, tuple)):
+            raise TypeError(
+                f"drive_factories must be a list of callables, got {type(drive_factories).__name__}"
+            )
+        for i, make in enumerate(drive_factories):
+            if not callable(make):
+                raise TypeError(f"drive_factories[{i}] must be callable, got {type(make).__name__}")
+    trace_path = _path_arg(trace, "trace")
+    request = scenario if isinstance(scenario, RunRequest) else resolve(scenario, **settings)
     return run_lockstep(
         request,
-        trace=_path_arg(trace, "trace"),
+        trace=trace_path,
         evaluate=evaluate,
         start_time=start_time,
         controller_factory=controller_factory,
@@ -164,7 +245,11 @@ def cycle_arrays(result: Any) -> dict[str, np.ndarray]:
     sample instants k·Ts), the drive's ADC counts and encoder, the controller's telemetry
     and the emulator's ground truth, as float arrays (NaN where a frame was missing).
     Needs a run with ``evaluate=True`` (it records every cycle)."""
-    rec = getattr(result, "recording", None)
+    from hdhil.rig.result import RunResult
+
+    if not isinstance(result, RunResult):
+        raise TypeError(f"result must be a RunResult (from run()), got {type(result).__name__}")
+    rec = result.recording
     if rec is None:
         raise ValueError(
             "the run kept no per-cycle recording: run it with evaluate=True "
@@ -177,6 +262,7 @@ def cycle_arrays(result: Any) -> dict[str, np.ndarray]:
     return out
 
 
+@_value_errors
 def read_trace(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     """A trace (any format ``hdhil run``/``log`` write, a real drive's included) as
     per-cycle arrays: ``time_s`` (since the trace's first frame), ``sample`` and one
@@ -184,11 +270,16 @@ def read_trace(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     from hdhil.can.cycles import read_cycles
     from hdhil.canopen.mapping import trace_decoder
 
-    return read_cycles(path, trace_decoder(Path(path)))
+    trace = _path_arg(path, "path", optional=False)
+    assert trace is not None
+    return read_cycles(trace, trace_decoder(trace))
 
 
+@_value_errors
 def evaluate_trace(
-    path: str | os.PathLike[str], scenario: str | None = None, skip_s: float | None = None
+    path: str | os.PathLike[str],
+    scenario: str | os.PathLike[str] | None = None,
+    skip_s: float | None = None,
 ) -> dict[str, Any]:
     """Score the firmware's filter and the alternatives against the ground truth in a
     trace, as ``hdhil evaluate --json`` does: with the run recorded in the trace's sidecar
@@ -197,9 +288,10 @@ def evaluate_trace(
 
     trace = _path_arg(path, "path", optional=False)
     assert trace is not None
-    if skip_s is not None and (isinstance(skip_s, bool) or not isinstance(skip_s, (int, float))):
-        raise TypeError(f"skip_s must be a number, got {type(skip_s).__name__}")
-    scores, damage = score_trace(trace, scenario, skip_s)
+    named = _path_arg(scenario, "scenario")
+    if skip_s is not None:
+        _number(skip_s, "skip_s", lo=0.0, hi=MAX_SECONDS)
+    scores, damage = score_trace(trace, None if named is None else str(named), skip_s)
     if damage:
         raise ValueError(damage)
     return scores

@@ -42,6 +42,7 @@ from hdhil.firmware.ripple import HarmonicKalman
 __all__ = [
     "DEFAULT_MAX_EVALS",
     "LOG10_BOUNDS",
+    "MAX_TUNED_HARMONICS",
     "MAX_WINDOW_SAMPLES",
     "MIN_WINDOW_SAMPLES",
     "SKIP_S",
@@ -69,6 +70,14 @@ MAX_WINDOW_SAMPLES = 30_000
 MIN_WINDOW_SAMPLES = 200
 #: Default budget of likelihood evaluations.
 DEFAULT_MAX_EVALS = 150
+#: Most harmonics (oscillators) of a filter the tuner takes.  Every likelihood
+#: evaluation runs the recommended filter over the whole window (up to
+#: :data:`MAX_WINDOW_SAMPLES` samples), and a step of that filter updates its
+#: (2 h + 1)² covariance in generated straight-line code, so the tuner's work grows with
+#: the square of the harmonics h (and the step's code with it): the default budget runs
+#: 4.5 million filter steps, of 17 states at 8 harmonics; 32 harmonics make each step
+#: about 15 times the work of 8, and the 255 the object dictionary can count about 900.
+MAX_TUNED_HARMONICS = 8
 #: Search range of each parameter, as log10 of its value (Nm² per step, Nm² for r).
 LOG10_BOUNDS: dict[str, tuple[float, float]] = {
     "q_motor": (-12.0, -1.0),
@@ -361,8 +370,17 @@ def tune_signals(
     - **Optimiser**: :func:`scipy.optimize.minimize`, Nelder-Mead on the log10
       parameters, started at the recommended tuning with a simplex one decade wide, at
       most ``max_evals`` likelihood evaluations; never reports worse than the start.
+    - **Bound**: a filter of more than :data:`MAX_TUNED_HARMONICS` harmonics is refused
+      (:class:`UserError`) before any work.
     """
     t_start = time.perf_counter()
+    harmonics = len(cfg.ripple.oscillators)
+    if harmonics > MAX_TUNED_HARMONICS:
+        raise UserError(
+            f"the filter has {harmonics} harmonics; hdhil tune takes at most "
+            f"{MAX_TUNED_HARMONICS} (every likelihood evaluation runs the filter over the "
+            f"window, at a cost growing with the square of the harmonics)"
+        )
     Ts = cfg.sample_period_s
     k0, k1 = _window(len(T_meas), Ts, skip_s, max_window)
     start_cfg = recommended_config(cfg)

@@ -20,7 +20,7 @@ from hdhil.commands.options import (
 from hdhil.commands.progress import Progress, add_quiet_argument, progress
 from hdhil.core import jsonout
 from hdhil.core.errors import UserError
-from hdhil.core.numbers import arg_float, arg_seconds
+from hdhil.core.numbers import MAX_UNIX_TIME, arg_float, arg_seconds
 from hdhil.core.signals import stop_on_signals
 from hdhil.rig.laws import compare_laws
 from hdhil.rig.realtime import RealtimeConfig
@@ -172,7 +172,7 @@ def parse_start_time(text: str | None) -> float | None:
         if when.tzinfo is None:
             when = when.replace(tzinfo=datetime.timezone.utc)
         value = when.timestamp()
-    if not math.isfinite(value) or not 0 <= value < 253402300800:  # up to year 9999
+    if not math.isfinite(value) or not 0 <= value <= MAX_UNIX_TIME:  # up to year 9999
         raise UserError(f"--start-time {text!r}: out of range")
     return value
 

@@ -42,10 +42,16 @@ class Converter:
         object.__setattr__(self, "lsb_V", self.full_scale_V / (1 << (self.bits - 1)))
 
     def to_counts(self, volts: float) -> int:
-        """Quantize (round to nearest) and saturate a voltage to a code."""
+        """Quantize (round to nearest) and saturate a voltage to a code.
+
+        NaN reads as 0; an infinite voltage (or one whose code overflows a float)
+        saturates like any other out-of-range one."""
         if volts != volts:  # NaN never reaches the hardware as a number
             return 0
-        code = round(volts / self.lsb_V)
+        try:
+            code = round(volts / self.lsb_V)
+        except OverflowError:  # volts / lsb is infinite: beyond either end of the range
+            return self.code_max if volts > 0 else self.code_min
         if code > self.code_max:
             return self.code_max
         if code < self.code_min:

@@ -24,10 +24,14 @@ FLOAT32_MAX = 3.4028234663852886e38
 MAX_SECONDS = 365 * 24 * 3600.0
 #: Widest integer accepted in a configuration (CiA 301 INTEGER64/UNSIGNED64 range).
 INT_LIMIT = 2**64
+#: Latest date accepted as a run's start (Unix seconds): 9999-12-31, the last year a
+#: trace's date fields and ISO 8601 hold.
+MAX_UNIX_TIME = 253402300799.999
 
 __all__ = [
     "FLOAT32_MAX",
     "MAX_SECONDS",
+    "MAX_UNIX_TIME",
     "arg_float",
     "arg_int",
     "arg_seconds",

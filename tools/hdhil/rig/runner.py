@@ -53,7 +53,7 @@ from hdhil.rig.request import RunRequest
 from hdhil.rig.result import RunResult, controller_diagnostics, drive_diagnostics, frame_names
 from hdhil.rig.scenario import Scenario
 from hdhil.rig.sidecar import run_metadata
-from hdhil.rig.verdict import startup_verdict, stop_verdict
+from hdhil.rig.verdict import startup_verdict, stop_verdict, with_plant_failure
 from hdhil.rig.wiring import RigBuses, RigNodes, RunListeners, build_listeners, build_nodes
 
 #: In lockstep on the simulated bus the tap drains its queues every this many cycles
@@ -387,7 +387,7 @@ def _result(
         recording=(
             recorder.recording if recorder is not None and listening.keep_recording else None
         ),
-        verdict=(
+        verdict=with_plant_failure(
             None
             if counts.interrupted
             else startup_verdict(
@@ -399,6 +399,10 @@ def _result(
                 Ts,
             )
             if counts.startup_failure is not None
-            else stop_verdict(nodes.controller, plan.cycles, done, Ts)
+            else stop_verdict(nodes.controller, plan.cycles, done, Ts),
+            drives,
+            plan.cycles,
+            done,
+            Ts,
         ),
     )

@@ -16,6 +16,7 @@ stem; any other ``.toml`` file by path. :func:`scenario_data` is the inverse of
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -25,7 +26,7 @@ from hdhil.core.dataconf import ConfigError, from_dict, merge, to_dict
 from hdhil.core.errors import UserError
 from hdhil.core.files import load_toml, shipped_or_path
 from hdhil.firmware.config import FirmwareConfig, Law
-from hdhil.hostsim.plant import PlantConfig
+from hdhil.hostsim.plant import PlantConfig, check_step
 from hdhil.rig.faults import FaultConfig
 
 __all__ = [
@@ -103,6 +104,11 @@ class Scenario:
             )
         if not isinstance(self.firmware, FirmwareConfig):
             raise ValueError(f"firmware must be a FirmwareConfig, got {self.firmware!r}")
+        # the drive advances its plant once per sample period: refused here, naming the
+        # key and its limit, what the stepper could not integrate stably at that step
+        if not isinstance(self.plant, PlantConfig):
+            raise ValueError(f"plant must be a PlantConfig, got {self.plant!r}")
+        check_step(self.plant, self.firmware.sample_period_s)
 
     @property
     def scored(self) -> tuple[Score, ...]:
@@ -233,7 +239,13 @@ def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = N
     ``{"scenario": {"seed": 7}, "plant": {"drivetrain": {"b_motor": 2.0}}}``),
     deep-merged over the file before validation.
     """
-    path, data = scenario_file_data(name_or_path)
+    text = os.fspath(name_or_path) if isinstance(name_or_path, os.PathLike) else name_or_path
+    if not isinstance(text, str):  # bytes too: a name is text, never looked up as b'...'
+        raise TypeError(
+            f"scenario must be a name or a path (str or os.PathLike), "
+            f"got {type(name_or_path).__name__}"
+        )
+    path, data = scenario_file_data(text)
     if overrides:
         if not isinstance(overrides, dict):
             raise ConfigError(f"overrides must be a nested dict, got {overrides!r}")

@@ -5,12 +5,15 @@ stopped by a fault reaction of the controller (module docstring of
 :mod:`hdhil.firmware.controller`: phase "safe" or "stopped").  :func:`stop_verdict` says
 which node reacted, why (the reason of the phase change), at which cycle and time, and
 which EMCY was involved: the last the controller sent (its 0x1003 error history) and the
-last it received (from the drive).  ``hdhil run``, ``firmware``, ``emulate`` and ``soak``
+last it received (from the drive).  A drive whose plant went non-finite
+(:class:`hdhil.hostsim.plant.NonFiniteStateError`) faults, and its reason (what went
+non-finite, when) is the verdict.  ``hdhil run``, ``firmware``, ``emulate`` and ``soak``
 print it in their text and JSON output and exit with code 1.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 from hdhil.canopen.services import emcy_text
@@ -41,6 +44,12 @@ def last_emcy_sent(services: Any, node_id: int) -> dict[str, Any] | None:
     return _emcy(history[0] & 0xFFFF, node_id) if history else None
 
 
+def plant_failure(drive: Any) -> str | None:
+    """Why ``drive``'s plant could not be advanced (its state went non-finite, with the
+    time), or ``None``: :attr:`hdhil.hostsim.drive.DriveDiagnostics.plant_failure`."""
+    return getattr(getattr(drive, "diagnostics", None), "plant_failure", None)
+
+
 def stop_verdict(
     controller: Any, cycles_planned: int, cycles_done: int, sample_period_s: float
 ) -> dict[str, Any] | None:
@@ -65,6 +74,41 @@ def stop_verdict(
         "emcy_sent": last_emcy_sent(controller.services, getattr(controller, "node_id", 1)),
         "emcy_received": last_emcy_received(controller.services),
     }
+
+
+def with_plant_failure(
+    verdict: dict[str, Any] | None,
+    drives: Sequence[Any],
+    cycles_planned: int,
+    cycles_done: int,
+    sample_period_s: float,
+) -> dict[str, Any] | None:
+    """``verdict`` (None: the run completed) with the first drive whose plant could not
+    be advanced (:func:`plant_failure`) as its reason: node, phase ``plant``, what went
+    non-finite and when (also under ``plant_failure``).  A run whose plant failed has a
+    verdict even if it reached its planned end; ``verdict`` unchanged without one."""
+    failed = [(d, why) for d in drives if (why := plant_failure(d))]
+    if not failed:
+        return verdict
+    drive, why = failed[0]
+    out = (
+        dict(verdict)
+        if verdict is not None
+        else {
+            "stopped_early": cycles_done < cycles_planned,
+            "cycle": cycles_done,
+            "cycles_planned": cycles_planned,
+            "time_s": cycles_done * sample_period_s,
+            "emcy_sent": None,
+            "emcy_received": None,
+        }
+    )
+    node = getattr(getattr(drive, "config", None), "node_id", None)
+    out["node"] = node if node is not None else getattr(drive, "node_id", 2)
+    out["phase"] = "plant"
+    out["reason"] = why
+    out["plant_failure"] = why
+    return out
 
 
 def dcf_refused(controller: Any) -> bool:
@@ -138,11 +182,12 @@ def drive_verdict(drive: Any) -> dict[str, Any] | None:
         return None
     log = drive.diagnostics.emcy_log
     last = log[-1] if log else None
+    why = plant_failure(drive)
     return {
         "stopped_early": True,
         "node": getattr(drive, "node_id", 2),
         "phase": name.lower(),
-        "reason": f"drive in CiA 402 {name.replace('_', ' ')}",
+        "reason": f"drive in CiA 402 {name.replace('_', ' ')}" + (f": {why}" if why else ""),
         "time_s": drive.plant.time,
         "emcy_sent": _emcy(last.code, getattr(drive, "node_id", 2), last.time) if last else None,
         "emcy_received": last_emcy_received(drive.services),
