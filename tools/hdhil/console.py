@@ -22,6 +22,7 @@ reach: a Ctrl-C there ends the process the way it ends any Python program.
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
 from typing import NoReturn
 
@@ -48,9 +49,38 @@ def run() -> NoReturn:
         print("hdhil: interrupted", file=sys.stderr)
         code = 130
     ignore_stopping_signals()  # stretch 3
-    with contextlib.suppress(OSError, ValueError):
+    sys.exit(_flush_stdout(code))
+
+
+def _flush_stdout(code: int) -> int:
+    """The exit code once standard output is flushed: what the command printed that
+    could not be written (a full disk behind ``> FILE``) is an error, exit code 2 with
+    one line (130 stays 130); a reader that stopped reading (``| head``) is not.  Either
+    way standard output then goes to the null device, so the interpreter's own flush
+    at exit finds nothing left to fail on."""
+    try:
         sys.stdout.flush()
-    sys.exit(code)
+    except BrokenPipeError:
+        _stdout_to_null()
+    except OSError as exc:
+        _stdout_to_null()
+        if code in (2, 130):  # its one line is out already
+            return code
+        with contextlib.suppress(OSError, ValueError):
+            print(f"hdhil: error: cannot write standard output ({exc.strerror or exc})",
+                  file=sys.stderr)  # fmt: skip
+        return 2
+    except ValueError:  # closed by the command
+        pass
+    return code
+
+
+def _stdout_to_null() -> None:
+    with contextlib.suppress(Exception):
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, sys.stdout.fileno())
+        os.close(null)
+        sys.stdout.flush()
 
 
 if __name__ == "__main__":  # pragma: no cover - python -m hdhil.console

@@ -25,7 +25,7 @@ import can
 import numpy as np
 from scipy import stats
 
-from hdhil.can.traces.writer import file_in_progress
+from hdhil.can.traces.writer import WriterError, file_in_progress
 from hdhil.core.dataconf import ConfigError
 from hdhil.firmware.config import Law
 from hdhil.firmware.controller import ControllerNode
@@ -574,6 +574,8 @@ def run_soak(
             monitor=recorder,
             monitor_every=block_samples,
         )
+    except WriterError:
+        raise  # the trace could not be written: an error, not a verdict on the run
     except ValueError as exc:
         if scorer.scored_samples == 0 and not recorder.blocks:
             raise  # nothing ran: a configuration error, reported as such

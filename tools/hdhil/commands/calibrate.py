@@ -8,7 +8,13 @@ import math
 from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core import jsonout
 from hdhil.core.errors import UserError
-from hdhil.core.files import atomic_path, check_output
+from hdhil.core.files import (
+    AtomicOutput,
+    atomic_path,
+    check_output,
+    commit_outputs,
+    discard_outputs,
+)
 from hdhil.core.numbers import arg_int
 from hdhil.hostsim.calibration import CalibrationRig, calibrate
 from hdhil.rig.calibration import (
@@ -94,16 +100,28 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(msg) from None
     if args.out:
         check_output(args.out, "--out")  # before the work, not after
+    from hdhil.commands.options import check_outputs, scenario_inputs
+
+    check_outputs([(args.out, "--out"), (args.plot, "--plot")], scenario_inputs(args))
     total = rig.positions * len(rig.ranges_Nm)
     with progress(args, total, "hdhil calibrate", "experiment") as bar:
         result = calibrate(scenario.plant, rig, seed, on_experiment=lambda n, _t: bar.update_to(n))
         bar.update_to(total)
     if not math.isfinite(result.gain_Nm_per_V):
         raise UserError("the calibration gave no finite gain (is the torque channel saturated?)")
-    if args.plot:
-        _plot(args.plot, result, scenario.name)
-    if args.out:
-        write_calibration(args.out, result, scenario.name)
+    # --plot and --out land together or not at all (a full disk: neither replaced)
+    outputs: list[AtomicOutput] = []
+    try:
+        if args.plot:
+            outputs.append(AtomicOutput(args.plot, "--plot", open_file=False, deferred=True))
+            _plot(args.plot, result, scenario.name, outputs[-1])
+        if args.out:
+            outputs.append(AtomicOutput(args.out, "--out", deferred=True))
+            write_calibration(args.out, result, scenario.name, deferred=outputs[-1])
+        commit_outputs(outputs)
+    except BaseException:
+        discard_outputs(outputs)
+        raise
     if args.json:
         out = result.as_dict()
         out.update(
@@ -124,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _plot(path: str, result: object, scenario: str) -> None:
+def _plot(path: str, result: object, scenario: str, deferred: AtomicOutput) -> None:
     """[Taghirad97] Figs. 6-7 into ``path``
     (:func:`hdhil.analysis.paper_figures.make_calibration_figure`)."""
     from pathlib import Path
@@ -143,7 +161,8 @@ def _plot(path: str, result: object, scenario: str) -> None:
     )
     fig = make_calibration_figure(result, title)
     try:
-        with atomic_path(out, "--plot") as tmp:
+        with atomic_path(out, "--plot", deferred=deferred) as tmp:
             fig.savefig(tmp, dpi=100)
     except (OSError, ValueError) as exc:
-        raise UserError(f"--plot {path}: cannot write ({exc})") from None
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        raise UserError(f"--plot {path}: cannot write ({reason})") from None

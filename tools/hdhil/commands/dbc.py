@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from hdhil.core.errors import UserError
-from hdhil.core.files import atomic_path
+from hdhil.core.files import atomic_path, check_not_inputs, check_output
 
 
 def merged_database() -> Any:
@@ -70,10 +70,12 @@ def export(out: Path) -> int:
     """Write the merged DBC to ``out`` (a temporary file renamed over it, so a failure
     leaves no half-written file; only a regular file is ever replaced).  Returns the
     number of messages written."""
+    from hdhil.dbc import dbc_path
+
     if out.exists() and not out.is_file():
         raise UserError(f"{out}: exists and is not a regular file")
-    if not out.parent.is_dir():
-        raise UserError(f"{out}: directory {out.parent} does not exist")
+    check_output(out)  # a regular file or a new one, in an existing directory
+    check_not_inputs([(out, "")], [(dbc_path(bus), "database") for bus in ("control", "truth")])
     text = merged_dbc_text()
     with atomic_path(out) as tmp:
         try:

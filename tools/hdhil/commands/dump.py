@@ -121,6 +121,10 @@ def run(args: argparse.Namespace) -> int:
     want_table = args.csv is None and not want_stats
     if args.csv == "-" and want_stats:
         raise UserError("--csv - (stdout) cannot be combined with --stats/--json")
+    if args.csv is not None:
+        from hdhil.commands.options import check_outputs, trace_inputs
+
+        check_outputs([(args.csv, "--csv")], trace_inputs(args.trace))
     decoder = trace_decoder(Path(args.trace))
     id_filter = names = None
     if args.id:

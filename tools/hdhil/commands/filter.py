@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from hdhil.core.errors import UserError
 from hdhil.firmware.config import paper_config
 from hdhil.rig.offline import (
     OUTPUT_COLUMNS,
@@ -51,7 +52,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Filter ``args.input`` into ``args.out``; 0 done, 1 damaged trace (2 via UserError)."""
+    from hdhil.commands.options import check_outputs, trace_inputs
+
     path = Path(args.input)
+    inputs = trace_inputs(path)
+    inputs[:1] = [(path, "input")]
+    check_outputs([(args.out, "--out")], [*inputs, (args.config, "--config file")])
     fmt, compressed = _check_input(path)
     cfg = load_firmware_config(args.config)
     if args.paper:
@@ -67,6 +73,11 @@ def run(args: argparse.Namespace) -> int:
         else:
             summary = filter_signal_csv(path, compressed, cfg, target.writer)
         target.commit()
+    except OSError as exc:
+        target.abort()
+        if isinstance(exc, BrokenPipeError) or exc.filename is not None:
+            raise  # a reader that stopped; an input that could not be read (named)
+        raise UserError(f"--out {target.label}: cannot write ({exc.strerror or exc})") from None
     except BaseException:
         target.abort()
         raise

@@ -91,6 +91,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--plot {args.plot}: use a .png, .pdf or .svg file name")
     if args.plot is not None:
         check_output(args.plot, "--plot")
+        from hdhil.commands.options import check_outputs, scenario_inputs, trace_inputs
+
+        check_outputs([(args.plot, "--plot")], [*trace_inputs(args.trace), *scenario_inputs(args)])
     from hdhil.commands.options import require_raw_sensor_frames
 
     require_raw_sensor_frames(args.trace, "identify")
@@ -107,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
                 with atomic_path(args.plot, "--plot") as tmp:
                     make_figure(ident).savefig(tmp, dpi=100)
             except OSError as exc:
-                raise UserError(f"cannot write {args.plot}: {exc.strerror or exc}") from None
+                reason = exc.strerror or exc
+                raise UserError(f"--plot {args.plot}: cannot write ({reason})") from None
             bar.advance()
     if args.json:
         out = ident.as_dict()

@@ -26,9 +26,12 @@ from hdhil.commands.options import (
     add_bus_options,
     add_scenario_arguments,
     bus_named,
+    check_outputs,
     open_bus,
     request_from_args,
     resolve_bus_config,
+    run_outputs,
+    scenario_inputs,
 )
 from hdhil.core import jsonout
 from hdhil.core.errors import UserError
@@ -70,6 +73,7 @@ def _truth_bus(args: argparse.Namespace) -> can.BusABC | None:
 
 def run_emulate(args: argparse.Namespace) -> int:
     request = request_from_args(args)
+    check_outputs(run_outputs([], args.fault_log), scenario_inputs(args))
     injector = drive_faults(request, args.fault, args.fault_log, truth=bus_named(args, "truth"))
     bus = truth = None
     try:
@@ -93,6 +97,7 @@ def run_emulate(args: argparse.Namespace) -> int:
 
 def run_firmware(args: argparse.Namespace) -> int:
     request = request_from_args(args)
+    check_outputs(run_outputs([], args.fault_log), scenario_inputs(args))
     injector = controller_faults(request, args.fault, args.fault_log)
     bus = None
     try:
@@ -129,6 +134,7 @@ def run_log(args: argparse.Namespace) -> int:
         check_trace_path(Path(args.trace))  # a bad name or format: before any bus opens
     except ValueError as exc:
         raise UserError(str(exc)) from None
+    check_outputs(run_outputs([args.trace]), scenario_inputs(args))
     if args.scenario is None and (
         args.override
         or args.fault

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 from pathlib import Path
 from typing import Any
 
@@ -254,3 +255,52 @@ def open_bus(
             f"cannot open the {what} ({resolved['interface']} {resolved.get('channel')}): {text}"
         ) from None
     return bus, resolved
+
+
+#: ``(path, what)`` pairs for :func:`hdhil.core.files.check_not_inputs`.
+Files = list[tuple[Any, str]]
+
+
+def scenario_inputs(args: argparse.Namespace) -> Files:
+    """The files the scenario options read (``--scenario`` as a file or a shipped name,
+    ``--override``, ``--calibration``, ``--drive-dcf``, ``--config``), for
+    :func:`check_outputs`; options a command lacks are skipped."""
+    files: Files = []
+    scenario = getattr(args, "scenario", None)
+    if isinstance(scenario, str) and scenario:
+        from hdhil.rig.scenario import scenario_path
+
+        with contextlib.suppress(ValueError):  # an unknown name: the loading says so
+            files.append((scenario_path(scenario), "scenario file"))
+    files += [(p, "override file") for p in getattr(args, "override", None) or []]
+    files.append((getattr(args, "calibration", None), "calibration file"))
+    files.append((getattr(args, "drive_dcf", None), "DCF"))
+    files.append((getattr(args, "config", None), "configuration file"))
+    return files
+
+
+def trace_inputs(trace: Any) -> Files:
+    """A trace the command reads and its sidecar (which it reads too)."""
+    from hdhil.can.traces.sidecar import metadata_path
+
+    if trace is None or str(trace) in ("", "-"):
+        return []
+    return [(trace, "trace"), (metadata_path(Path(trace)), "trace's sidecar")]
+
+
+def run_outputs(traces: list[Any], fault_log: Any = None) -> Files:
+    """What a run writes: each trace and its sidecar, the fault log."""
+    from hdhil.can.traces.sidecar import metadata_path
+
+    files: Files = []
+    for trace in traces:
+        files += [(trace, "trace"), (metadata_path(Path(trace)), "sidecar")]
+    return [*files, (fault_log, "fault log")]
+
+
+def check_outputs(outputs: Files, inputs: Files) -> None:
+    """Refuse in one line, before any work, an output that is one of the inputs or
+    another output (:func:`hdhil.core.files.check_not_inputs`)."""
+    from hdhil.core.files import check_not_inputs
+
+    check_not_inputs(outputs, inputs)

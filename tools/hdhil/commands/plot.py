@@ -74,10 +74,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """``hdhil plot``: 0 written, 1 written from a damaged trace (2 via UserError)."""
     from hdhil.can.traces.sidecar import read_metadata
+    from hdhil.commands.options import check_outputs, scenario_inputs, trace_inputs
     from hdhil.rig.evaluate import recording_from_trace
     from hdhil.rig.sidecar import request_for_trace
 
     _check_out(args.out)
+    check_outputs([(args.out, "--out")], [*trace_inputs(args.trace), *scenario_inputs(args)])
     request = request_for_trace(args.trace, args.scenario)
     scenario = request.scenario if request is not None else None
     if args.figure == "fig8":
@@ -109,7 +111,8 @@ def _save(fig: Figure, out: Path, damage: object) -> int:
         with atomic_path(out, "--out") as tmp:
             fig.savefig(tmp, dpi=100)
     except (OSError, ValueError) as exc:
-        raise UserError(f"--out {out}: cannot write ({exc})") from None
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        raise UserError(f"--out {out}: cannot write ({reason})") from None
     print(f"hdhil plot: wrote {out}")
     if damage:
         print(f"hdhil: warning: {damage}", file=sys.stderr)

@@ -13,9 +13,12 @@ from hdhil.commands.options import (
     add_bus_options,
     add_scenario_arguments,
     bus_named,
+    check_outputs,
     open_bus,
     request_from_args,
     resolve_bus_config,
+    run_outputs,
+    scenario_inputs,
 )
 from hdhil.commands.progress import Progress, add_quiet_argument, progress
 from hdhil.core import jsonout
@@ -185,6 +188,13 @@ def run(args: argparse.Namespace) -> int:
         args, evaluate_from_s=args.skip, actuation=args.actuation, bitrate=bitrate
     )
     trace = Path(args.trace) if args.trace else None
+    traces = [trace] if trace is not None else []
+    if trace is not None and args.compare_laws:
+        from hdhil.rig.laws import compared_traces
+
+        traces = compared_traces(request, trace)
+    # never over an input, nor two outputs into one file: refused before the run
+    check_outputs(run_outputs(traces, args.fault_log), scenario_inputs(args))
     start_time = parse_start_time(args.start_time)
     if not args.realtime and (args.spin_us is not None or args.floor_s or args.mlock):
         raise UserError("--spin-us, --floor-s and --mlock need --realtime")

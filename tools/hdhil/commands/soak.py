@@ -21,7 +21,13 @@ from hdhil.analysis.soak import (
     format_report,
     run_soak,
 )
-from hdhil.commands.options import add_scenario_arguments, request_from_args
+from hdhil.commands.options import (
+    add_scenario_arguments,
+    check_outputs,
+    request_from_args,
+    run_outputs,
+    scenario_inputs,
+)
 from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core import jsonout
 from hdhil.core.errors import UserError
@@ -72,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
         tolerance=args.tolerance,
     )
     trace = Path(args.trace) if args.trace else None
+    check_outputs(run_outputs([trace] if trace else [], args.fault_log), scenario_inputs(args))
     every = args.every if args.every is not None else default_block_s(request.duration_s, limits)
     bar = progress(args, request.duration_s, f"hdhil soak {request.name}", "s")
     progress_kwargs: dict[str, Any] = {}

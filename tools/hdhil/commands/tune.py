@@ -96,6 +96,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--skip must be a finite number >= 0, got {args.skip}")
     if args.out is not None:
         check_out(args.out)
+        from hdhil.commands.options import check_outputs, scenario_inputs, trace_inputs
+
+        check_outputs([(args.out, "--out")], [*trace_inputs(args.trace), *scenario_inputs(args)])
     from hdhil.rig.sidecar import request_for_trace
 
     request = request_for_trace(args.trace, args.scenario)

@@ -9,6 +9,7 @@ bad value is refused in the same words in both.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import random
 from collections import Counter
@@ -17,8 +18,13 @@ from pathlib import Path
 from typing import IO, Any
 
 from hdhil.core import jsonout
-from hdhil.core.errors import ConfigError
-from hdhil.core.files import check_output
+from hdhil.core.errors import ConfigError, UserError
+from hdhil.core.files import (
+    check_output,
+    commit_temporary,
+    discard_temporary,
+    temporary_for,
+)
 
 __all__ = ["FaultLog", "FaultRecord", "check_nonneg", "check_rate", "fault_rng"]
 
@@ -40,23 +46,43 @@ class FaultRecord:
 
 
 class FaultLog:
-    """Every injected fault, in memory (``records``) and optionally as JSON lines."""
+    """Every injected fault, in memory (``records``) and optionally as JSON lines.
+
+    The file is written atomically, like every output (:mod:`hdhil.core.files`): to a
+    temporary beside ``path``, one flushed line per fault as it is injected (a run
+    killed by SIGKILL loses none of the faults its trace shows: the trace writer renames
+    the log into place with the trace, :meth:`hand_over`), renamed over ``path`` when
+    the run's outputs are committed (:meth:`close`, or the trace writer).  A log that
+    cannot be written (disk full) raises a one-line :class:`UserError` and is discarded
+    (:meth:`discard`): the old file stays as it was, no temporary is left.  ``-`` writes
+    to standard output as it goes."""
 
     def __init__(self, path: str | Path | None = None, keep: bool = True) -> None:
         self.records: list[FaultRecord] = []
         self.counts: Counter[str] = Counter()
         self._keep = keep
         self._fh: IO[str] | None = None
-        if path is not None:
-            target = check_output(path, "fault log")  # a regular file, never a device
-            try:
-                # Line-buffered: a record is in the file as soon as it is injected, so a
-                # killed run (SIGKILL) loses none of the faults its trace shows.
-                self._fh = open(target or "/dev/stdout", "w", encoding="utf-8", buffering=1)  # noqa: SIM115
-            except OSError as exc:
-                raise ConfigError(
-                    f"fault log {path}: cannot write ({exc.strerror or exc})"
-                ) from None
+        self._target: Path | None = None
+        self._tmp: Path | None = None
+        #: :meth:`hand_over` gave the file to a trace writer, which renames it.
+        self.handed_over = False
+        #: Why the log could not be written (``None``: it could): :meth:`close` discards it.
+        self.error: str | None = None
+        self.label = f"fault log {path}"
+        if path is None:
+            return
+        target = check_output(path, "fault log")  # a regular file, never a device
+        try:
+            if target is None:
+                self._fh = open("/dev/stdout", "w", encoding="utf-8", buffering=1)  # noqa: SIM115
+                return
+            self._target = target
+            self._tmp = temporary_for(target)
+            # Line-buffered: a record is in the file as soon as it is injected.
+            self._fh = open(self._tmp, "w", encoding="utf-8", buffering=1)  # noqa: SIM115
+        except OSError as exc:
+            self.discard()
+            raise ConfigError(f"{self.label}: cannot write ({exc.strerror or exc})") from None
 
     def record(self, time: float, channel: str, kind: str, frame_id: int | None,
                **details: Any) -> None:  # fmt: skip
@@ -65,12 +91,67 @@ class FaultLog:
         if self._keep:
             self.records.append(rec)
         if self._fh is not None:
-            self._fh.write(jsonout.dumps(rec.as_dict(), sort_keys=True) + "\n")
+            try:
+                self._fh.write(jsonout.dumps(rec.as_dict(), sort_keys=True) + "\n")
+            except OSError as exc:
+                self._fail(exc)
+
+    @property
+    def failed(self) -> bool:
+        """The log could not be written (:attr:`error` says why)."""
+        return self.error is not None
+
+    def _fail(self, exc: OSError) -> None:
+        self.error = f"{self.label}: cannot write ({exc.strerror or exc})"
+        self.discard()
+        raise UserError(self.error) from None
+
+    def hand_over(self) -> tuple[Path, Path, str] | None:
+        """``(temporary, target, label)`` for a trace writer that renames the log into
+        place with its trace (:class:`hdhil.can.traces.writer.WriterProcess`'s
+        ``companions``); :meth:`close` then only closes the file.  ``None`` without a
+        file (no path, or standard output)."""
+        if self._tmp is None or self._target is None:
+            return None
+        self.handed_over = True
+        return self._tmp, self._target, self.label
+
+    def finish(self) -> None:
+        """Close the file (every line is in it), without renaming it into place; an error
+        discards it (:class:`UserError`)."""
+        fh, self._fh = self._fh, None
+        if fh is None:
+            return
+        try:
+            fh.close()
+        except OSError as exc:
+            self._fail(exc)
 
     def close(self) -> None:
-        if self._fh is not None:
-            self._fh.close()
-            self._fh = None
+        """Close the file and rename it into place (unless it failed, or was handed over
+        to a trace writer, which renames it with its trace)."""
+        self.finish()
+        if self._tmp is None or self._target is None or self.handed_over:
+            return
+        if self.failed:
+            self.discard()
+            return
+        tmp, self._tmp = self._tmp, None
+        try:
+            commit_temporary(tmp, self._target, self.label)
+        except UserError as exc:
+            self.error = str(exc)
+            raise
+
+    def discard(self) -> None:
+        """Close and remove the temporary: the old file at ``path`` stays as it was."""
+        fh, self._fh = self._fh, None
+        if fh is not None:
+            with contextlib.suppress(OSError):
+                fh.close()
+        if self._tmp is not None:
+            discard_temporary(self._tmp)
+            self._tmp = None
 
 
 def fault_rng(seed: int, where: str, kind: str) -> random.Random:

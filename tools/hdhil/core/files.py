@@ -12,6 +12,12 @@ Temporary files are removed on every exit path: normal return, exception, Ctrl-C
 be caught; the temporary file of a killed process (its name carries the pid) is removed
 by the next write to the same target.
 
+Several outputs that belong together (a trace, its sidecar and the run's fault log) are
+renamed into place as one (:func:`commit_together`): every one or, if a rename fails,
+none, the old files restored.  An output is never one of the command's own inputs
+(:func:`check_not_inputs`, by resolved path and by file identity): refused in one line
+before any work starts.
+
 Inputs (:func:`check_input`, :func:`read_config`, :func:`load_toml`): configuration and
 data files must be regular files (a FIFO, ``/dev/zero`` or a directory would block or
 never end), under a size cap; TOML and JSON documents under a nesting cap.  Every
@@ -29,7 +35,7 @@ import shutil
 import stat
 import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -55,11 +61,16 @@ __all__ = [
     "AtomicOutput",
     "check_depth",
     "check_input",
+    "check_not_inputs",
     "check_output",
+    "commit_outputs",
+    "commit_together",
+    "discard_outputs",
     "load_json",
     "load_toml",
     "parse_toml",
     "read_config",
+    "same_file",
     "write_text",
 ]
 
@@ -261,6 +272,45 @@ def check_output(path: str | Path, what: str = "") -> Path | None:
     return p
 
 
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """Whether ``a`` and ``b`` name one file: the same path once symbolic links and
+    ``..`` are resolved, or (both existing) the same file by device and inode (a hard
+    link).  ``-`` (standard output) is no file."""
+    if str(a) == "-" or str(b) == "-":
+        return False
+    try:
+        if os.path.realpath(a) == os.path.realpath(b):
+            return True
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):
+        return False
+
+
+def check_not_inputs(
+    outputs: Iterable[tuple[str | Path | None, str]],
+    inputs: Iterable[tuple[str | Path | None, str]],
+) -> None:
+    """Refuse, with a one-line :class:`UserError`, an output that is one of the
+    command's inputs (``(path, what)`` pairs, ``None`` paths skipped) or another of its
+    outputs (:func:`same_file`): a command never writes over what it reads, nor two of
+    its outputs into one file.  Called before any work starts."""
+    outs = [(p, w) for p, w in outputs if p is not None and str(p) not in ("", "-")]
+    ins = [(p, w) for p, w in inputs if p is not None and str(p) not in ("", "-")]
+    for i, (out, what) in enumerate(outs):
+        for src, src_what in ins:
+            if same_file(out, src):
+                raise UserError(
+                    f"{_label(out, what)}: would overwrite the {src_what} {src} this "
+                    "command reads; refused (name another file)"
+                )
+        for other, other_what in outs[:i]:
+            if same_file(out, other):
+                raise UserError(
+                    f"{_label(out, what)}: is also the {other_what} {other} this command "
+                    "writes; refused (two outputs cannot be one file)"
+                )
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -343,6 +393,67 @@ def commit_temporary(tmp: Path, target: Path, label: str) -> None:
     _LIVE.discard(str(tmp))
 
 
+def commit_together(items: Sequence[tuple[Path, Path, str]]) -> None:
+    """Rename each temporary over its target (``(temporary, target, label)``), as one
+    output: every target replaced, or none.
+
+    Every target must (still) be a regular file or absent, checked before the first
+    rename.  An existing target is kept under a hard link first (no data copied, no
+    space needed); if a rename fails, the targets already replaced get their old files
+    back (or are removed where there was none).  Every temporary is removed in the end,
+    whatever happened; a failure is a one-line :class:`UserError` naming the output."""
+    backups: list[tuple[Path, Path | None]] = []  # (target, its old file's link or None)
+    done: list[tuple[Path, Path | None]] = []
+    try:
+        for tmp, target, label in items:
+            try:
+                st = os.lstat(target)
+            except FileNotFoundError:
+                st = None
+            except OSError as exc:
+                raise UserError(f"{label}: cannot write ({exc.strerror or exc})") from None
+            if st is not None and not stat.S_ISREG(st.st_mode):
+                raise UserError(f"{label}: became {_kind(st.st_mode)} while writing; not replaced")
+            with contextlib.suppress(OSError):  # the old file's permissions (or umask's)
+                os.chmod(tmp, stat.S_IMODE(st.st_mode) if st else 0o666 & ~_umask())
+            keep = None
+            if st is not None and len(items) > 1:
+                keep = _backup_link(target)
+            backups.append((target, keep))
+        for (tmp, target, label), (_, keep) in zip(items, backups, strict=True):
+            try:
+                os.replace(tmp, target)
+            except OSError as exc:
+                raise UserError(f"{label}: cannot write ({exc.strerror or exc})") from None
+            _LIVE.discard(str(tmp))
+            done.append((target, keep))
+        done = []  # every one in place: nothing to undo
+    finally:
+        for target, keep in reversed(done):  # undo, newest first
+            with contextlib.suppress(OSError):
+                if keep is not None:
+                    os.replace(keep, target)
+                else:
+                    os.unlink(target)
+        for _, keep in backups:
+            if keep is not None:
+                discard_temporary(keep)
+        for tmp, _, _ in items:
+            discard_temporary(tmp)
+
+
+def _backup_link(target: Path) -> Path | None:
+    """A hard link to ``target`` beside it, registered for removal (``None`` where the
+    file system has no hard links: that target cannot be restored)."""
+    name = f"{target.parent}/.{target.name}.hdhil-{os.getpid()}-{os.urandom(4).hex()}.old"
+    try:
+        os.link(target, name)
+    except OSError:
+        return None
+    _LIVE.add(name)
+    return Path(name)
+
+
 def discard_temporary(tmp: Path) -> None:
     """Remove temporary file (or directory) ``tmp``, if it is still there."""
     _unlink(str(tmp))
@@ -363,14 +474,19 @@ class AtomicOutput:
     libraries that want a file name, e.g. ``savefig``; ``None`` for standard output).
     On a clean exit the temporary file replaces the target; on any exception, Ctrl-C
     included, it is removed and the target is left as it was.
+
+    ``deferred=True``: a clean exit only closes the complete temporary; several such
+    outputs of one command are then renamed into place together by
+    :func:`commit_outputs` (all or none).
     """
 
     def __init__(self, path: str | Path, what: str = "", binary: bool = False,
-                 open_file: bool = True) -> None:  # fmt: skip
+                 open_file: bool = True, deferred: bool = False) -> None:  # fmt: skip
         self.label = "stdout" if str(path) == "-" else _label(path, what)
         self.target = check_output(path, what)
         self.binary = binary
         self.open_file = open_file
+        self.deferred = deferred
         self.path: Path | None = None
         self.file: IO[Any] | None = None
 
@@ -405,21 +521,41 @@ class AtomicOutput:
         if exc_type is not None:
             discard_temporary(self.path)
             return
-        commit_temporary(self.path, self.target, self.label)
+        if not self.deferred:
+            commit_temporary(self.path, self.target, self.label)
+
+
+def commit_outputs(outputs: Sequence[AtomicOutput]) -> None:
+    """Rename the complete temporaries of ``outputs`` (each written with
+    ``deferred=True``) into place together (:func:`commit_together`): all or none."""
+    commit_together([(o.path, o.target, o.label) for o in outputs
+                     if o.path is not None and o.target is not None])  # fmt: skip
+
+
+def discard_outputs(outputs: Sequence[AtomicOutput]) -> None:
+    """Remove the temporaries of deferred ``outputs`` (the command failed)."""
+    for o in outputs:
+        if o.path is not None:
+            discard_temporary(o.path)
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | Path, what: str = "") -> Iterator[Path]:
+def atomic_path(path: str | Path, what: str = "", deferred: AtomicOutput | None = None
+                ) -> Iterator[Path]:  # fmt: skip
     """A temporary path to hand to a library that writes by name; it replaces ``path``
-    when the block ends without an exception."""
-    with AtomicOutput(path, what, open_file=False) as out:
+    when the block ends without an exception (with ``deferred``, an
+    ``AtomicOutput(path, what, open_file=False, deferred=True)``: when
+    :func:`commit_outputs` renames it with the command's other outputs)."""
+    with deferred or AtomicOutput(path, what, open_file=False) as out:
         if out.path is None:
             raise UserError(f"{out.label}: standard output is not possible here")
         yield out.path
 
 
-def write_text(path: str | Path, text: str, what: str = "") -> None:
-    """Write ``text`` to ``path`` (``-``: standard output) atomically."""
-    with AtomicOutput(path, what) as out:
+def write_text(path: str | Path, text: str, what: str = "",
+               deferred: AtomicOutput | None = None) -> None:  # fmt: skip
+    """Write ``text`` to ``path`` (``-``: standard output) atomically (with ``deferred``,
+    an ``AtomicOutput(path, what, deferred=True)``: renamed by :func:`commit_outputs`)."""
+    with deferred or AtomicOutput(path, what) as out:
         assert out.file is not None
         out.file.write(text)

@@ -38,9 +38,13 @@ def _is_json(path: Path) -> bool:
     return path.suffix.lower() == ".json"
 
 
-def write_calibration(path: str | Path, result: CalibrationResult, scenario: str = "") -> None:
+def write_calibration(
+    path: str | Path, result: CalibrationResult, scenario: str = "", deferred: Any = None
+) -> None:
     """Write ``{firmware: {calibration: {volt2Nm: gain}}}`` to ``path`` (JSON if it ends
-    in ``.json``, TOML otherwise)."""
+    in ``.json``, TOML otherwise); ``deferred``: the
+    :class:`hdhil.core.files.AtomicOutput` to write it through, renamed into place with
+    the command's other outputs (:func:`hdhil.core.files.commit_outputs`)."""
     path = Path(path)
     gain = result.gain_Nm_per_V
     if _is_json(path):
@@ -54,7 +58,7 @@ def write_calibration(path: str | Path, result: CalibrationResult, scenario: str
             "[firmware.calibration]\n"
             f"volt2Nm = {gain!r}\n"
         )
-    write_text(path, text, "--out")
+    write_text(path, text, "--out", deferred=deferred)
 
 
 def load_calibration(path: str | Path) -> dict[str, Any]:

@@ -56,16 +56,32 @@ def _suffixed(trace: Path, label: str) -> Path:
     return trace.with_name(f"{base}-{label}{trace.name[len(base) :]}")
 
 
+def _compared(request: RunRequest) -> list[tuple[str, str, dict[str, Any]]]:
+    laws = list(COMPARED_LAWS)
+    if request.scenario.firmware.control.friction.coulomb_Nm > 0.0:
+        laws.insert(1, WITHOUT_FRICTION_COMPENSATION)
+        laws[0] = ("JTF1 with friction comp. (Eq. 5)", "jtf1", {"law": "jtf1"})
+    return laws
+
+
+def compared_traces(request: RunRequest, trace: Path) -> list[Path]:
+    """The traces :func:`compare_laws` writes for ``trace`` (one per law), so that they
+    can be checked before the first run."""
+    return [_suffixed(trace, slug) for _, slug, _ in _compared(request)]
+
+
 def compare_laws(request: RunRequest, **kwargs: Any) -> list[dict[str, Any]]:
     """Run ``request`` once per law of :data:`COMPARED_LAWS` (and without friction
     compensation if the scenario has it), each closed over the bus."""
     rows = []
     trace: Path | None = kwargs.pop("trace", None)
-    laws = list(COMPARED_LAWS)
+    laws = _compared(request)
     scenario = request.scenario
-    if scenario.firmware.control.friction.coulomb_Nm > 0.0:
-        laws.insert(1, WITHOUT_FRICTION_COMPENSATION)
-        laws[0] = ("JTF1 with friction comp. (Eq. 5)", "jtf1", {"law": "jtf1"})
+    if trace is not None:
+        from hdhil.can.traces.writer import check_trace_path
+
+        for law_trace in compared_traces(request, trace):
+            check_trace_path(law_trace)  # every one writable before the first run
     base = scenario_data(scenario)
     for label, slug, control in laws:
         variant = scenario_from_dict(merge(base, {"firmware": {"control": control}}), label)

@@ -33,6 +33,7 @@ from hdhil.can.groups import GroupChannel
 from hdhil.can.simbus import SimBus, SimClock
 from hdhil.can.traces.tap import BusTap
 from hdhil.core.dataconf import ConfigError
+from hdhil.core.errors import UserError
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller import ControllerNode
 from hdhil.rig.evaluate import evaluate_listener as evaluate_recording
@@ -207,10 +208,21 @@ def run_lockstep(
     metadata = {**run_metadata(request), **(metadata or {})}
     evaluate_skip_s = request.evaluate_from_s
     # Injected faults (the scenario's [faults] table), reproducible by their seed and logged.
-    injector = (
-        FaultInjector(scenario.faults, FaultLog(fault_log)) if scenario.faults is not None else None
-    )
-    clock = WallClock() if realtime else SimClock()
+    # The fault log is written whenever it is asked for: empty for a run without faults
+    # (an old log never passes for this run's).
+    fault_file = FaultLog(fault_log) if fault_log is not None else None
+    try:
+        injector = (
+            FaultInjector(scenario.faults, fault_file or FaultLog())
+            if scenario.faults is not None
+            else None
+        )
+        clock = WallClock() if realtime else SimClock()
+        buses = RigBuses(plan, clock, injector, open_control_bus)
+    except BaseException:
+        if fault_file is not None:
+            fault_file.discard()  # nothing ran: no temporary left behind
+        raise
     # One BLAS thread for the run: the matrices here are at most 7x7, so BLAS threads
     # only spin and take the core the trace writer runs on; and a thread pool created
     # under SCHED_FIFO on one pinned CPU (OpenBLAS restarts its pool lazily after the
@@ -218,7 +230,6 @@ def run_lockstep(
     blas = threadpool_limits(limits=1)
     if start_time is None:
         start_time = round(time.time(), 3)  # whole ms: the resolution of BLF's header date
-    buses = RigBuses(plan, clock, injector, open_control_bus)
     listening: RunListeners | None = None
     listeners: list[can.Listener] = []
     wall = 0.0
@@ -226,8 +237,11 @@ def run_lockstep(
     completed = False
     try:
         nodes = build_nodes(plan, buses, controller_factory, factories, injector)
+        # The fault log is renamed into place with the trace (one output: both or none).
+        log_file = fault_file.hand_over() if fault_file is not None and trace else None
         listening = build_listeners(plan, trace, evaluate, evaluate_skip_s, extra_listeners,
-                                    start_time, metadata, keep_recording)  # fmt: skip
+                                    start_time, metadata, keep_recording,
+                                    (log_file,) if log_file else ())  # fmt: skip
         listeners = listening.all
         tap = BusTap(nodes.tap_buses, listeners)
         controller = nodes.controller
@@ -270,10 +284,10 @@ def run_lockstep(
         frames_sent = _frames_sent(nodes.controller_bus, nodes.truth_bus)
         completed = True
     finally:
-        # Close the trace (flush, valid file) and release the buses whatever happened.
+        # Close the trace (flush, valid file) and release the buses whatever happened;
+        # the run's outputs (trace, sidecar, fault log) land together or not at all.
         try:
-            for listener in listeners:
-                listener.stop()
+            _finish_outputs(listening, listeners, fault_file)
         except BaseException:
             completed = False
             raise
@@ -281,8 +295,8 @@ def run_lockstep(
             if not completed and listening is not None:
                 discard_evaluation(listening)
             buses.shutdown()
-            if injector is not None:
-                injector.log.close()  # every injected fault is on disk
+            if fault_file is not None:
+                fault_file.close()  # every injected fault is on disk (or none is)
             blas.restore_original_limits()
     try:
         if counts.keyboard and stop_requested is None:
@@ -296,6 +310,37 @@ def run_lockstep(
         discard_evaluation(listening)  # not collected (interrupted, failed): none comes
     result.start_time = start_time if plan.clock_time else None
     return result
+
+
+def _finish_outputs(
+    listening: RunListeners | None,
+    listeners: Sequence[can.Listener],
+    log: FaultLog | None,
+) -> None:
+    """Stop the listeners: the trace writer renames the trace, its sidecar and the fault
+    log into place.  A fault log that could not be written (disk full) stops the writer
+    without renaming anything (the old files stay as they were) and is the error; a run
+    that failed before its listeners were built keeps no fault log either."""
+    log_error: UserError | None = None
+    if log is not None and (listening is None or (log.handed_over and listening.writer is None)):
+        log.discard()  # the run never started its outputs: nothing to keep
+    if log is not None:
+        try:
+            log.finish()  # every line in the file before the writer renames it
+        except UserError as exc:
+            log_error = exc
+        if log.error is not None and log_error is None:
+            log_error = UserError(log.error)
+    writer = listening.writer if listening is not None else None
+    if log_error is not None and writer is not None:
+        writer.abort()
+    try:
+        for listener in listeners:
+            if listener is not writer or log_error is None:
+                listener.stop()
+    finally:
+        if log_error is not None:
+            raise log_error
 
 
 def collect_evaluation(listening: RunListeners) -> dict[str, Any]:

@@ -255,6 +255,8 @@ class RunListeners:
     #: The trace writer whose process runs the evaluation in place of ``recorder``
     #: (its result: :func:`hdhil.rig.runner.collect_evaluation`).
     evaluating_writer: WriterProcess | None = None
+    #: The trace writer (renames the trace, its sidecar and the companions into place).
+    writer: WriterProcess | None = None
 
 
 def build_listeners(
@@ -266,6 +268,7 @@ def build_listeners(
     start_time: float = 0.0,
     metadata: dict[str, Any] | None = None,
     keep_recording: bool = True,
+    companions: Sequence[tuple[Path, Path, str]] = (),
 ) -> RunListeners:
     """The tap's listeners, the trace writer first (it sees every frame as it came).
 
@@ -278,7 +281,10 @@ def build_listeners(
     waits for the end, so that it takes no time from the loop's deadlines.  A run in
     lockstep that writes a trace and keeps no recording is scored in the trace writer's
     process instead (:class:`LiveEvaluationFactory`), unless the writer cannot take it
-    (``spawn`` start method and a configuration that cannot be pickled)."""
+    (``spawn`` start method and a configuration that cannot be pickled).
+
+    ``companions`` (``(temporary, target, label)``: the run's fault log) are renamed into
+    place by the trace writer together with the trace and its sidecar."""
     counter, scorer = FrameCounter(), TorqueScorer()
     listeners: list[can.Listener] = [counter, scorer]
     tracking = recorder = None
@@ -317,7 +323,7 @@ def build_listeners(
         )
         # the sidecar is written with the finished trace (both renamed into place)
         writer = WriterProcess(trace, time_offset=offset, metadata=sidecar,
-                               child_listener=offload)  # fmt: skip
+                               child_listener=offload, companions=tuple(companions))  # fmt: skip
         listeners.insert(0, writer)
     evaluating = writer if writer is not None and writer.child_listening else None
     if evaluate and (scored or keep_recording) and evaluating is None:
@@ -330,4 +336,5 @@ def build_listeners(
         )
         listeners.append(recorder)
     listeners += extra
-    return RunListeners(counter, scorer, tracking, recorder, listeners, keep_recording, evaluating)
+    return RunListeners(counter, scorer, tracking, recorder, listeners, keep_recording, evaluating,
+                        writer)  # fmt: skip

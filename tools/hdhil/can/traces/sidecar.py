@@ -4,7 +4,7 @@ A JSON object with what a trace format has no place for: the scenario, seed, sta
 and bus of the run, the drive's PDO mapping when it came from a DCF, and whatever the
 caller adds.  The commands that read a trace (evaluate, plot, the PDO-aware decoder)
 take what ran from it.  Written atomically (:mod:`hdhil.core.files`), by the trace
-writer right after the trace itself is in place.
+writer together with the trace itself: both are renamed into place, or neither.
 """
 
 from __future__ import annotations
@@ -25,6 +25,12 @@ def metadata_path(trace: Path) -> Path:
     return trace.with_name(trace.name + METADATA_SUFFIX)
 
 
+def metadata_text(metadata: dict[str, Any]) -> str:
+    """The sidecar's text for ``metadata``: JSON, sorted keys, non-finite numbers as
+    ``null`` (:mod:`hdhil.core.jsonout`)."""
+    return jsonout.dumps(metadata, indent=1, sort_keys=True) + "\n"
+
+
 def write_metadata(trace: Path, metadata: dict[str, Any]) -> Path:
     """Write ``metadata`` (scenario, seed, start time, ...) as JSON next to ``trace``.
 
@@ -34,7 +40,7 @@ def write_metadata(trace: Path, metadata: dict[str, Any]) -> Path:
     (:mod:`hdhil.core.jsonout`)."""
     target = metadata_path(trace)
     try:
-        write_text(target, jsonout.dumps(metadata, indent=1, sort_keys=True) + "\n", "sidecar")
+        write_text(target, metadata_text(metadata), "sidecar")
     except UserError as exc:
         raise ValueError(f"cannot write {target}: {exc}") from None
     return target

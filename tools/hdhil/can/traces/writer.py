@@ -21,8 +21,9 @@ without the trace's offset), and sends its ``result()`` back when the input ends
 (:meth:`WriterProcess.child_result`; the protocol is described at :func:`_writer_main`).
 
 Traces are written atomically: to a temporary beside the target, renamed into place when
-complete, with the sidecar (:mod:`hdhil.can.traces.sidecar`) right after, as every output
-of hdhil (:mod:`hdhil.core.files`).
+complete together with the sidecar (:mod:`hdhil.can.traces.sidecar`) and any companion
+file of the run (its fault log), as one output: all of them or none, the old files left
+as they were (:func:`hdhil.core.files.commit_together`).
 """
 
 from __future__ import annotations
@@ -53,14 +54,15 @@ from hdhil.can.traces.formats import (
     supported_formats,
     trace_format,
 )
-from hdhil.can.traces.sidecar import write_metadata
+from hdhil.can.traces.sidecar import metadata_path, metadata_text
 from hdhil.core.errors import UserError
 from hdhil.core.files import (
     check_output,
-    commit_temporary_dir,
+    commit_together,
     discard_temporary,
     release_temporary,
     temporary_dir_for,
+    temporary_for,
 )
 from hdhil.core.signals import (
     leave_stopping_signals_to_parent,
@@ -88,6 +90,7 @@ def check_trace_path(path: Path) -> None:
     if path.parent and not path.parent.exists():
         raise ValueError(f"cannot write trace {path}: directory {path.parent} does not exist")
     check_output(path, "trace")  # only a regular file is ever overwritten
+    check_output(metadata_path(path), "sidecar")  # nor for the sidecar written with it
 
 
 def open_writer(path: Path) -> can.io.generic.MessageWriter:
@@ -320,16 +323,20 @@ def _writer_main(
     offset: float,
     metadata: dict[str, Any] | None,
     child_listener: ChildListenerFactory | None = None,
+    companions: tuple[tuple[str, str, str], ...] = (),
 ) -> None:
     """The child: open the writer, write every batch until the pipe closes, close the file
     and rename it into place.
 
     The file is written as ``tmp_dir/<the trace's name>`` (python-can picks the format
-    from the name) and renamed over ``target`` only once closed, so an existing trace is
-    never half overwritten; then the sidecar ``metadata`` is written beside it.  End of
-    input, whether the run stopped, was interrupted or died (even by SIGKILL), finalises
-    and keeps the trace of what happened.  On an error the temporary is removed and
-    ``target`` left as it was.
+    from the name), the sidecar ``metadata`` to a temporary beside the sidecar; once
+    both are complete they are renamed over ``target`` and its sidecar together with the
+    ``companions`` (``(temporary, target, label)``: files the run wrote, its fault log),
+    all of them or none (:func:`commit_together`), so an existing trace and its sidecar
+    are never half overwritten nor split.  End of input, whether the run stopped, was
+    interrupted or died (even by SIGKILL), finalises and keeps the trace of what
+    happened.  On an error every temporary (the companions' too) is removed and the
+    targets left as they were.
 
     Reports ``("ready", None)`` or ``("error", text)`` at start, and ``("done", frames
     written)`` or ``("error", text)`` at the end, on ``status``.  Signals meant for the run
@@ -378,18 +385,49 @@ def _writer_main(
         except OSError as exc:
             error = error or f"cannot close trace {shown}: {exc.strerror or exc}"
     if error is None:
-        try:
-            commit_temporary_dir(work, Path(target), label)
-            if metadata is not None:
-                write_metadata(Path(shown), metadata)
-        except (UserError, ValueError) as exc:
-            error = str(exc)
+        error = _commit(work, Path(target), Path(shown), label, metadata, companions)
     discard_temporary(work)
+    for tmp, _, _ in companions:
+        discard_temporary(Path(tmp))  # renamed into place, or not to be kept
     with contextlib.suppress(OSError):
         status.send(("error", error) if error else ("done", written))
     if listening is not None:
         with contextlib.suppress(OSError):  # the parent no longer waits for it
             status.send(("result", listening.result()))
+
+
+def _commit(
+    work: Path,
+    target: Path,
+    shown: Path,
+    label: str,
+    metadata: dict[str, Any] | None,
+    companions: tuple[tuple[str, str, str], ...],
+) -> str | None:
+    """Write the sidecar (to a temporary beside it) once the trace in ``work`` is
+    closed, then rename the trace, the sidecar and the companions into place as one;
+    the error's text, or ``None``."""
+    items = [(work / target.name, target, label)]
+    items += [(Path(tmp), Path(dest), what) for tmp, dest, what in companions]
+    try:
+        if metadata is not None:
+            side = metadata_path(shown)
+            dest = check_output(side, "sidecar")
+            assert dest is not None
+            side_tmp = temporary_for(dest)  # beside the sidecar: renamed, never copied
+            items.insert(1, (side_tmp, dest, f"sidecar {side}"))
+            try:
+                with open(side_tmp, "w", encoding="utf-8") as fh:
+                    fh.write(metadata_text(metadata))
+            except OSError as exc:
+                raise UserError(f"cannot write sidecar {side}: {exc.strerror or exc}") from None
+        commit_together(items)
+    except (UserError, ValueError, OSError) as exc:
+        for tmp, _, _ in items[1:]:
+            discard_temporary(tmp)
+        text = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        return str(text)
+    return None
 
 
 _pack = _RECORD.pack
@@ -434,11 +472,14 @@ class WriterProcess(can.Listener):
     ``time_offset`` (s) is added to every frame's timestamp as it is written: simulated
     time starts at 0, the file gets the wall-clock time of the run's start plus it.
 
-    The trace is written to a temporary beside ``path`` and renamed over it when the
-    file is complete (:func:`_writer_main`), with its sidecar ``metadata``
-    (:func:`write_metadata`) written right after: only a regular file is ever replaced,
-    and never half.  A run that is interrupted or dies still gets a valid trace of every
-    frame handed over; a writer that fails leaves ``path`` as it was.
+    The trace is written to a temporary beside ``path`` and its sidecar ``metadata`` to
+    one beside the sidecar; both are renamed into place together when complete
+    (:func:`_writer_main`), with the ``companions`` (``(temporary, target, label)``:
+    another file of the run, its fault log, complete when ``stop`` is called; the child
+    renames or removes them): only regular files are ever replaced, never half, and all
+    of them or none.  A run that is interrupted or dies still gets a valid trace of every
+    frame handed over; a writer that fails (or is stopped by :meth:`abort`) leaves
+    ``path``, its sidecar and the companions' targets as they were.
 
     A :class:`can.Listener`: ``on_message_received`` copies the frame's fields into the
     current batch; full batches go through a pipe.  ``stop`` sends the rest, waits for the
@@ -453,11 +494,14 @@ class WriterProcess(can.Listener):
 
     def __init__(self, path: Path, time_offset: float = 0.0,
                  metadata: dict[str, Any] | None = None,
-                 child_listener: ChildListenerFactory | None = None) -> None:  # fmt: skip
+                 child_listener: ChildListenerFactory | None = None,
+                 companions: tuple[tuple[Path, Path, str], ...] = ()) -> None:  # fmt: skip
         check_trace_path(path)
         target = check_output(path, "trace")
         assert target is not None
         self.path = path
+        self._companions = tuple(Path(tmp) for tmp, _, _ in companions)
+        self._failure: str | None = None  # why handing on frames failed
         self.time_offset = time_offset
         self.sent = 0
         self._batch = bytearray()
@@ -480,7 +524,8 @@ class WriterProcess(can.Listener):
         self._proc = ctx.Process(
             target=_writer_main,
             args=(str(self._tmp), str(target), str(path), frames_r, status_w, frames_w,
-                  time_offset, metadata, child_listener),
+                  time_offset, metadata, child_listener,
+                  tuple((str(t), str(d), w) for t, d, w in companions)),
             daemon=False, name=f"hdhil trace writer {path.name}",
         )  # fmt: skip
         # Signals stay blocked across the fork: a Ctrl-C reaching the whole process group
@@ -499,9 +544,11 @@ class WriterProcess(can.Listener):
             self._proc.join()
             discard_temporary(self._tmp)
             raise ValueError(detail)
-        # The child renames or removes the temporary from now on, even after this
-        # process is gone: removing it at this process's exit would lose the trace.
+        # The child renames or removes the temporaries from now on, even after this
+        # process is gone: removing them at this process's exit would lose the trace.
         release_temporary(self._tmp)
+        for tmp in self._companions:
+            release_temporary(tmp)
 
     def _report(self) -> tuple[str, Any]:
         try:
@@ -557,18 +604,34 @@ class WriterProcess(can.Listener):
         # The batch goes whole or not at all, and is counted with it: a Ctrl-C between
         # the two would make stop() send it again, or leave half of it in the pipe.
         with signals_deferred():
+            if self._failure is not None:
+                raise WriterError(self._failure)
             try:
                 self._frames.send_bytes(self._batch)
             except OSError as exc:
-                raise WriterError(
+                # The child said why it stopped (disk full), else it is gone.
+                self._failure = self._failure_reported() or (
                     f"the trace writer for {self.path} is gone ({exc.strerror or exc}); "
                     f"the trace holds at most {self.sent} frames"
-                ) from None
+                )
+                raise WriterError(self._failure) from None
             # Counted from the bytes (fixed-size records, each appended whole): a Ctrl-C
             # between appending a frame and counting it cannot make the two disagree.
             self.sent += len(self._batch) // _RECORD.size
             self._batch = bytearray()
             self._batched = 0
+
+    def _failure_reported(self) -> str | None:
+        """The error the child reported before it ended (it could not write the trace),
+        if any."""
+        try:
+            if self._status.poll(1.0):
+                kind, detail = self._status.recv()
+                if kind == "error":
+                    return str(detail)
+        except (EOFError, OSError, ValueError):
+            pass
+        return None
 
     def stop(self) -> None:
         """Hand on the last frames, let the child close the file, check the count."""
@@ -578,7 +641,7 @@ class WriterProcess(can.Listener):
             self._send()
         finally:
             self._frames.close()
-            kind, detail = self._report()
+            kind, detail = ("error", self._failure) if self._failure else self._report()
             if self.child_listening and kind in ("done", "error"):
                 self._awaiting_result = True  # the child's listener result follows
                 if kind != "done":
@@ -587,13 +650,39 @@ class WriterProcess(can.Listener):
                 self._proc.join(WRITER_EXIT_TIMEOUT_S)
                 self._status.close()
             if kind != "done":  # the child failed or died: nothing of it may stay behind
-                discard_temporary(self._tmp)
+                self._discard_temporaries()
         if kind == "error":
             raise WriterError(detail)
         if detail != self.sent:
             raise WriterError(
                 f"the trace writer wrote {detail} of {self.sent} frames to {self.path}"
             )
+
+    def abort(self) -> None:
+        """End the writer without renaming anything into place (another output of the
+        run could not be written): the child is stopped at once (it ignores the stopping
+        signals: killed) before it sees the end of its input, and the temporaries (the
+        trace's, the sidecar's, the companions') are removed; the targets stay as they
+        were.  A no-op once :meth:`stop` has run."""
+        if self._frames.closed:
+            return
+        self._awaiting_result = False
+        self._proc.kill()
+        self._proc.join(WRITER_EXIT_TIMEOUT_S)
+        self._frames.close()
+        self._status.close()
+        self._discard_temporaries()
+
+    def _discard_temporaries(self) -> None:
+        discard_temporary(self._tmp)
+        for tmp in self._companions:
+            discard_temporary(tmp)
+        # a sidecar temporary the child had made when it stopped (named after its pid)
+        side = metadata_path(self.path)
+        pid = self._proc.pid
+        if pid is not None:
+            for stale in side.parent.glob(f".{side.name}.hdhil-{pid}-*"):
+                discard_temporary(stale)
 
     def child_result(self) -> Any:
         """The result of the child listener, once :meth:`stop` has finished the trace:
