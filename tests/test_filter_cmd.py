@@ -217,6 +217,34 @@ def test_trace_is_filtered_exactly_as_the_firmware_did(tmp_path, suffix, capsys)
         np.testing.assert_allclose(rows[:, 0], np.arange(800) * 1e-3 + 1e-4, atol=2e-6)
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["paper", "recommended"])
+def test_a_run_s_trace_is_replayed_from_the_firmware_s_first_interrupt(tmp_path, mode, capsys):
+    """The firmware leaves out the sensor frames before its first interrupt (the drive's
+    start-up and, in paper mode, the listing's settling pause): the replay does too, so
+    every filtered sample equals the telemetry's T_filtered from the first one on (within
+    half the telemetry's resolution)."""
+    config = tmp_path / "fw.toml"
+    config.write_text(f'[firmware.ripple]\nmode = "{mode}"\n')
+    trace = tmp_path / "t.blf"
+    argv = ["run", "--scenario", "free-motion", "--duration", "0.2", "--override", str(config),
+            "--trace", str(trace)]  # fmt: skip
+    assert main(argv) == 0
+    out = tmp_path / "o.csv"
+    paper = ["--paper"] if mode == "paper" else []
+    assert main(["filter", str(trace), "--out", str(out), "--config", str(config), *paper]) == 0
+    err = capsys.readouterr().err
+    assert "sensor frames before the firmware's first interrupt left out" in err
+    tele = codec("control", "CTRL_TPDO1")
+    with can.LogReader(str(trace)) as reader:
+        filtered = [tele.decode(m.data)[1] for m in reader
+                    if m.arbitration_id == tele.frame_id and not m.is_extended_id]  # fmt: skip
+    _, rows = _read_output(out)
+    assert len(rows) >= len(filtered) == 200
+    lsb = tele.message.get_signal_by_name("T_filtered").scale
+    np.testing.assert_allclose(rows[: len(filtered), 5], filtered, rtol=0, atol=lsb / 2 + 1e-9)
+
+
 def test_trace_without_sensor_frames_is_an_error(tmp_path, capsys) -> None:
     trace = tmp_path / "truth_only.asc"
     writer = open_writer(trace)

@@ -176,6 +176,9 @@ class FilterSummary:
         self.skipped = 0
         self.covariance_resets = 0
         self.malformed_frames = 0
+        #: Sensor frames before the firmware's first interrupt (start-up, settling pause),
+        #: left out as the firmware left them.
+        self.before_first_interrupt = 0
         self.damage: list[str] = []
 
     def line(self, out_label: str) -> str:
@@ -191,6 +194,11 @@ class FilterSummary:
             parts.append(f"{self.covariance_resets} covariance resets")
         if self.malformed_frames:
             parts.append(f"{self.malformed_frames} malformed DRIVE_TPDO1 frames ignored")
+        if self.before_first_interrupt:
+            parts.append(
+                f"{self.before_first_interrupt} sensor frames before the firmware's first "
+                "interrupt left out"
+            )
         return f"hdhil filter: {', '.join(parts)} ({what}); wrote {out_label}"
 
 
@@ -317,16 +325,64 @@ def _sensor_frames(path: Path, summary: FilterSummary) -> Iterator[tuple[float, 
     summary.damage = [d.describe(trace.path) for d in trace.damage]
 
 
+def _first_interrupt_time(path: Path) -> float | None:
+    """The time (from the trace's first frame) of the controller's first telemetry frame
+    (``CTRL_TPDO1``), or None when the trace has none (a logger of another firmware).
+
+    hdhil's firmware sends it from every interrupt it runs and from nothing else, so the
+    sensor frame of its first interrupt is the last DRIVE_TPDO1 before it: those before
+    came while the controller was starting the drive or held the start-up output
+    (``FirmwareConfig.startup_settle_s``, [Taghirad97] listing ``main()``)."""
+    from hdhil.can.traces.reader import read_trace
+    from hdhil.dbc import codec
+
+    telemetry_id = codec("control", "CTRL_TPDO1").frame_id
+    trace = read_trace(path)
+    with trace:
+        t0 = trace.first_time or 0.0
+        for msg in trace:
+            if msg.arbitration_id == telemetry_id and not msg.is_extended_id:
+                return float(msg.timestamp - t0)
+    return None
+
+
+def _from_first_interrupt(
+    frames: Iterator[tuple[float, tuple[int, ...]]], first: float, summary: FilterSummary
+) -> Iterator[tuple[float, tuple[int, ...]]]:
+    """``frames`` from the last one before ``first`` on (the others counted as left out)."""
+    held = None
+    for item in frames:
+        if item[0] < first:
+            if held is not None:
+                summary.before_first_interrupt += 1
+            held = item
+            continue
+        if held is not None:
+            yield held
+            held = None
+        yield item
+    if held is not None:
+        yield held
+
+
 def filter_trace(path: Path, cfg: FirmwareConfig, writer: Any) -> FilterSummary:
     """Filter the DRIVE_TPDO1 frames of a trace through the firmware's interrupt
-    handler (ADC read, calibration, :class:`TorqueFilterChain`), writing output rows."""
+    handler (ADC read, calibration, :class:`TorqueFilterChain`), writing output rows.
+
+    A trace of hdhil's firmware (its telemetry tells when its first interrupt ran) is
+    replayed from that interrupt's sensor frame, as the firmware filtered it; any other
+    trace from its first sensor frame."""
     isr = InterruptHandler(cfg)
     summary = FilterSummary(cfg, cfg.ripple.phase_source, "DRIVE_TPDO1 frames")
     writerow = writer.writerow
     n = 0
     Ts = cfg.sample_period_s
     previous: float | None = None
-    for t, (torque, tacho, current, encoder) in _sensor_frames(path, summary):
+    frames = _sensor_frames(path, summary)
+    first = _first_interrupt_time(path)
+    if first is not None:
+        frames = _from_first_interrupt(frames, first, summary)
+    for t, (torque, tacho, current, encoder) in frames:
         # Periods without a sensor frame: the firmware's interrupt was told of each.
         if previous is not None and round((t - previous) / Ts) <= 0:
             continue  # a second sensor frame in one period: the firmware ignores it too
