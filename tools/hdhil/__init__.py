@@ -16,7 +16,10 @@ stays cheap.
 from __future__ import annotations
 
 import importlib
-from typing import Any
+
+TYPE_CHECKING = False  # typing is not imported: the console's start-up runs after this
+if TYPE_CHECKING:
+    from typing import Any
 
 #: Public name -> the module that defines it.
 _EXPORTS = {

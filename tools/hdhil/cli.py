@@ -22,6 +22,7 @@ from collections.abc import Iterator, Sequence
 from typing import NoReturn
 
 from hdhil.core.errors import ConfigError, UserError
+from hdhil.core.files import display_name
 from hdhil.core.signals import restore_handlers, terminate_as_interrupt
 
 #: Every subcommand, in the order ``hdhil --help`` lists them: its module in
@@ -60,6 +61,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 __all__ = ["COMMANDS", "ConfigError", "UserError", "build_parser", "main", "version"]
+
+
+#: Commands that end a run stopped by a signal (exit code 130) with their own line
+#: starting ``hdhil: interrupted``; for the others :func:`main` prints that line.
+_SAYS_INTERRUPTED = frozenset({"campaign"})
 
 
 def version() -> str:
@@ -177,16 +183,47 @@ def _start_up_collection() -> Iterator[None]:
             gc.enable()
 
 
+@contextlib.contextmanager
+def _escaping_output() -> Iterator[None]:
+    """Standard output escapes what its encoding cannot write (``\\udcff``) instead of
+    raising ``UnicodeEncodeError``: a file name may hold bytes that are not UTF-8 (Python
+    keeps them as lone surrogates), and a command prints the names it wrote.  Standard
+    error does so already (Python's default there)."""
+    stream = sys.stdout
+    errors = getattr(stream, "errors", None)
+    change = errors == "strict" and hasattr(stream, "reconfigure")
+    if change:
+        with contextlib.suppress(ValueError, OSError):
+            stream.reconfigure(errors="backslashreplace")
+    try:
+        yield
+    finally:
+        if change:
+            with contextlib.suppress(ValueError, OSError):
+                stream.reconfigure(errors=errors)
+
+
+def _error(message: object) -> None:
+    """The one line of an input error: ``hdhil: error: ...``, names in it escaped
+    (:func:`~hdhil.core.files.display_name`: no raw control character or undecodable
+    byte, so it stays one line on any terminal)."""
+    print(f"hdhil: error: {display_name(str(message))}", file=sys.stderr)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command; the exit code (see the module docstring)."""
     previous = terminate_as_interrupt()  # SIGTERM/SIGHUP: like Ctrl-C; temporaries removed
     try:
-        with _start_up_collection():
-            parser = build_parser(argv)
-            args = parser.parse_args(argv)
-        return int(args.func(args) or 0)
+        with _escaping_output():
+            with _start_up_collection():
+                parser = build_parser(argv)
+                args = parser.parse_args(argv)
+            code = int(args.func(args) or 0)
+        if code == 130 and args.command not in _SAYS_INTERRUPTED:
+            print("hdhil: interrupted", file=sys.stderr)  # stopped at a signal (run, soak, ...)
+        return code
     except (UserError, ConfigError) as exc:
-        print(f"hdhil: error: {exc}", file=sys.stderr)
+        _error(exc)
         return 2
     except KeyboardInterrupt:
         print("hdhil: interrupted", file=sys.stderr)
@@ -206,8 +243,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     except OSError as exc:
         # Disk full, a file vanished mid-run, ...: one line naming what failed.
-        what = f" {exc.filename}" if getattr(exc, "filename", None) else ""
-        print(f"hdhil: error:{what} {exc.strerror or exc}", file=sys.stderr)
+        what = f"{exc.filename} " if getattr(exc, "filename", None) else ""
+        _error(f"{what}{exc.strerror or exc}")
         return 2
     finally:
         restore_handlers(previous)

@@ -56,6 +56,7 @@ __all__ = [
     "check_depth",
     "check_input",
     "check_output",
+    "display_name",
     "load_json",
     "load_toml",
     "parse_toml",
@@ -76,6 +77,21 @@ def _kind(mode: int) -> str:
     if stat.S_ISSOCK(mode):
         return "a socket"
     return "not a regular file"
+
+
+def display_name(name: str | bytes | os.PathLike[Any]) -> str:
+    """``name`` as text that can be printed anywhere and stays on one line: bytes that are
+    not UTF-8 (a str holds them as lone surrogates, ``os.fsdecode``) shown as ``\\xff``,
+    control characters (a newline, an escape) as Python writes them in a string literal;
+    any other name unchanged.  Also good for a message that holds names."""
+    text = os.fsdecode(name) if isinstance(name, (bytes, os.PathLike)) else name
+    if text.isprintable():
+        return text
+    try:
+        text = text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    except UnicodeEncodeError:  # a surrogate that no undecodable byte produces
+        text = text.encode("utf-8", "backslashreplace").decode("utf-8")
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode() for c in text)
 
 
 def _label(path: Path | str, what: str) -> str:

@@ -1,0 +1,221 @@
+"""Odd file names and hostile input files: any name the OS accepts works or is refused in
+one line ``hdhil: error: ...``, printing it never raises, and reading a file of junk
+takes bounded memory whatever its size."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import tracemalloc
+import zlib
+from pathlib import Path
+
+import pytest
+
+from hdhil.can.traces import reader as trace_reader
+from hdhil.can.traces.reader import TraceError, read_trace
+from hdhil.can.traces.sidecar import read_metadata
+from hdhil.cli import main
+from hdhil.core.files import CONFIG_MAX_BYTES, display_name
+
+#: A name that is no UTF-8 (a byte 0xff), as Python holds it: a lone surrogate.
+BAD = os.fsdecode(b"tr\xff")
+
+
+# ----------------------------------------------------------------------- display
+@pytest.mark.parametrize(
+    ("name", "shown"),
+    [
+        (b"tr\xff.blf", "tr\\xff.blf"),
+        (f"{BAD}.blf", "tr\\xff.blf"),
+        ("a\nb.blf", "a\\nb.blf"),
+        ("\x1b[31mred", "\\x1b[31mred"),
+        ("grün é.blf", "grün é.blf"),
+        (Path("dir") / "x.blf", "dir/x.blf"),
+    ],
+)
+def test_display_name_escapes_what_cannot_be_printed_on_one_line(name, shown):
+    text = display_name(name)
+    assert text == shown
+    text.encode("utf-8")  # printable anywhere: no lone surrogate left
+
+
+# ------------------------------------------------------------ non-UTF-8 names (1)
+def test_a_non_utf8_output_name_is_written_and_printed(tmp_path, capsys):
+    # pytest's capture encodes UTF-8 strictly, like a terminal outside the C locale (or
+    # PYTHONIOENCODING=utf-8): printing the name raised UnicodeEncodeError.
+    assert sys.stdout.errors == "strict"
+    out = tmp_path / f"{BAD}.dbc"
+    assert main(["dbc", "export", str(out)]) == 0
+    assert out.is_file()
+    assert "tr\\udcff.dbc" in capsys.readouterr().out  # escaped, not raised
+
+
+@pytest.mark.slow
+def test_plot_of_a_trace_with_a_non_utf8_name(tmp_path, capsys):
+    """The figure's title names the trace: matplotlib refused the lone surrogate."""
+    trace = tmp_path / f"{BAD}.blf"
+    assert main(["run", "-q", "--duration", "0.4", "--no-evaluate", "--trace", str(trace)]) == 0
+    out = tmp_path / f"{BAD}.png"
+    assert main(["plot", str(trace), "--out", str(out)]) == 0
+    assert out.stat().st_size > 0
+    assert "hdhil: error" not in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_campaign_parquet_in_a_non_utf8_folder(tmp_path):
+    """pyarrow refused a file name that is not UTF-8; the table goes through a buffer."""
+    pytest.importorskip("pyarrow")
+    from hdhil.rig.campaign_file import load_campaign
+    from hdhil.rig.campaign_report import columns, write_parquet
+
+    campaign = load_campaign("smoke")
+    folder = tmp_path / f"{BAD}-out"
+    folder.mkdir()
+    row = dict.fromkeys(columns(campaign))
+    row.update(variant="v0", scenario="free-motion", seed=1, status="pass")
+    path = folder / "results.parquet"
+    assert write_parquet(path, campaign, [row]) is None
+    assert path.read_bytes()[:4] == b"PAR1"
+    assert [p.name for p in folder.iterdir()] == ["results.parquet"]  # no temporary left
+
+
+# ---------------------------------------------------------- one error line (2)
+LONG = "x" * 300  # > NAME_MAX (255 bytes)
+DEEP = "/".join(["d" * 200] * 25)  # > PATH_MAX (4096 bytes)
+ODD_NAMES = {"newline": "a\nb", "escape": "\x1b[2J", "long": LONG, "deep": DEEP, "bad": BAD}
+
+
+def _commands(stem: str, tmp: Path) -> dict[str, list[str]]:
+    name = str(tmp / stem) if not stem.startswith("d" * 200) else stem
+    return {
+        "dump": ["dump", f"{name}.blf"],
+        "evaluate": ["evaluate", f"{name}.blf"],
+        "run-scenario": ["run", "--trace", "", "--scenario", f"{name}.toml"],
+        "run-trace": ["run", "--duration", "0.05", "--trace", f"{name}/x.blf"],
+        "campaign": ["campaign", f"{name}.toml"],
+        "filter": ["filter", f"{name}.csv", "--out", f"{name}.out.csv"],
+        "tune-out": ["tune", f"{name}.blf", "--out", f"{name}/t.toml"],
+    }
+
+
+CASES = [(kind, cmd) for kind in ODD_NAMES for cmd in _commands("x", Path("."))]
+
+
+@pytest.mark.parametrize(("kind", "command"), CASES, ids=[f"{k}-{c}" for k, c in CASES])
+def test_an_odd_name_is_refused_in_one_line(kind, command, tmp_path, capsys):
+    argv = _commands(ODD_NAMES[kind], tmp_path)[command]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("hdhil: error: "), err
+    assert lines[0].isprintable(), lines[0]  # no control character for the terminal
+    lines[0].encode("utf-8")  # no lone surrogate either
+
+
+# ------------------------------------------------------------ bounded reading (4)
+def _peak_while(fn) -> int:
+    """Peak Python allocation (bytes) while ``fn`` runs."""
+    tracemalloc.start()
+    try:
+        fn()
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def _refused(path: Path) -> str:
+    with pytest.raises(TraceError) as info:
+        read_trace(path)
+    return str(info.value)
+
+
+JUNK_BYTES = 6 * 1024 * 1024
+#: What reading may allocate, far below the junk's size.
+READ_BOUND = 1024 * 1024
+
+
+@pytest.mark.parametrize(
+    "junk",
+    [
+        b"x" * JUNK_BYTES,  # one endless line
+        b"not a frame, not a comment\n" * (JUNK_BYTES // 27),  # lines the reader skips
+    ],
+    ids=["one-line", "many-lines"],
+)
+@pytest.mark.parametrize("suffix", [".asc", ".log", ".csv", ".trc"])
+def test_a_junk_text_trace_is_refused_in_bounded_memory(junk, suffix, tmp_path):
+    path = tmp_path / f"junk{suffix}"
+    path.write_bytes(junk)
+    message = []
+    peak = _peak_while(lambda: message.append(_refused(path)))
+    assert peak < READ_BOUND, f"{peak} bytes allocated reading {len(junk)} bytes of junk"
+    assert "not a readable" in message[0]
+
+
+def test_legitimate_lines_without_a_frame_are_read_up_to_a_bound(tmp_path, monkeypatch):
+    """Comment lines are no damage, but a file of nothing else is given up on."""
+    monkeypatch.setattr(trace_reader, "MAX_LEADING_CHARS", 64 * 1024)
+    path = tmp_path / "comments.asc"
+    path.write_bytes(b"// a comment line\n" * 100_000)  # 1.8 MB
+    message = []
+    peak = _peak_while(lambda: message.append(_refused(path)))
+    assert peak < READ_BOUND
+    assert "no CAN frame in the first 65536 characters" in message[0]
+
+
+def _blf_with_container(tmp_path: Path, payload: bytes) -> Path:
+    """A BLF file (header of a real one) holding one zlib log container of ``payload``."""
+    from can.io import blf
+
+    real = tmp_path / "real.blf"
+    with blf.BLFWriter(str(real)) as writer:
+        writer.on_message_received(__import__("can").Message(arbitration_id=1, data=b"\x01"))
+    header = real.read_bytes()[: blf.FILE_HEADER_SIZE]
+    packed = zlib.compress(payload, 9)
+    body = blf.LOG_CONTAINER_STRUCT.pack(blf.ZLIB_DEFLATE, len(payload)) + packed
+    size = blf.OBJ_HEADER_BASE_STRUCT.size + len(body)
+    obj = blf.OBJ_HEADER_BASE_STRUCT.pack(
+        b"LOBJ", blf.OBJ_HEADER_BASE_STRUCT.size, 1, size, blf.LOG_CONTAINER
+    )
+    path = tmp_path / "bomb.blf"
+    path.write_bytes(header + obj + body + b"\0" * (size % 4))
+    return path
+
+
+def test_a_blf_container_that_decompresses_to_gigabytes_is_refused(tmp_path, monkeypatch):
+    """A few kilobytes of zlib can inflate to gigabytes (here 16 MiB, the cap lowered)."""
+    limit = 1024 * 1024
+    monkeypatch.setattr(trace_reader, "MAX_BLF_OBJECT_BYTES", limit, raising=False)
+    path = _blf_with_container(tmp_path, b"\0" * (16 * limit))
+    assert path.stat().st_size < 64 * 1024
+    message = []
+    peak = _peak_while(lambda: message.append(_refused(path)))
+    assert peak < 2 * limit + READ_BOUND
+    assert "decompressing to more than" in message[0]
+
+
+def test_a_huge_sidecar_is_not_read(tmp_path):
+    trace = tmp_path / "t.blf"
+    side = tmp_path / "t.blf.json"
+    side.write_text('{"seed": 1, "pad": "' + "x" * CONFIG_MAX_BYTES + '"}')
+    assert read_metadata(trace) is None
+    side.write_text('{"seed": 1}')
+    assert read_metadata(trace) == {"seed": 1}
+
+
+def test_a_stream_in_place_of_a_sidecar_is_not_read(tmp_path):
+    trace = tmp_path / "t.blf"
+    os.mkfifo(tmp_path / "t.blf.json")  # reading it would block for ever
+
+    def blocked(signum, frame):
+        raise AssertionError("read_metadata blocked on a FIFO")
+
+    previous = signal.signal(signal.SIGALRM, blocked)
+    signal.alarm(5)
+    try:
+        assert read_metadata(trace) is None
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
