@@ -219,3 +219,32 @@ def test_a_stream_in_place_of_a_sidecar_is_not_read(tmp_path):
     finally:
         signal.alarm(0)
         signal.signal(signal.SIGALRM, previous)
+
+
+@pytest.mark.parametrize(
+    "junk",
+    [
+        b"time,T_meas,velocity\n" + b"1," * (JUNK_BYTES // 2) + b"\n",  # millions of fields
+        b"time,T_meas,velocity\n" + b"1" * JUNK_BYTES,  # one endless field
+        b"t" * JUNK_BYTES,  # an endless header
+    ],
+    ids=["many-fields", "long-field", "long-header"],
+)
+def test_a_junk_signal_csv_is_refused_in_bounded_memory(junk, tmp_path):
+    from hdhil.core.errors import UserError
+    from hdhil.firmware.config import FirmwareConfig
+    from hdhil.rig.offline import filter_signal_csv
+
+    path = tmp_path / "junk.csv"
+    path.write_bytes(junk)
+    FirmwareConfig()  # built once before measuring
+
+    class Rows:
+        def writerow(self, row: object) -> None:
+            raise AssertionError("no row of junk is a sample")
+
+    def read() -> None:
+        with pytest.raises(UserError, match="longer than 4096 characters"):
+            filter_signal_csv(path, False, FirmwareConfig(), Rows())
+
+    assert _peak_while(read) < READ_BOUND

@@ -47,12 +47,17 @@ DATA_MAX_BYTES = 64 * 1024**3
 #: Deepest nesting of tables/arrays accepted in a TOML or JSON document (hdhil's own
 #: configurations nest at most 5 deep).
 MAX_DEPTH = 32
+#: Longest line read from a text data file (text trace, signal CSV): an ASC CAN FD frame
+#: line of 64 bytes is about 300 characters; a longer line is no data.
+MAX_LINE_CHARS = 4096
 
 __all__ = [
     "CONFIG_MAX_BYTES",
     "DATA_MAX_BYTES",
     "MAX_DEPTH",
+    "MAX_LINE_CHARS",
     "AtomicOutput",
+    "bounded_lines",
     "check_depth",
     "check_input",
     "check_output",
@@ -138,6 +143,18 @@ def check_input(path: str | Path, what: str = "", max_bytes: int = DATA_MAX_BYTE
     if not os.access(p, os.R_OK):
         raise UserError(f"{label}: cannot read (permission denied)")
     return p
+
+
+def bounded_lines(stream: IO[str], label: str, max_chars: int = MAX_LINE_CHARS) -> Iterator[str]:
+    """The lines of text ``stream``, none held longer than ``max_chars`` characters: a
+    longer one is a :class:`UserError` naming ``label`` and the line number (a file of
+    junk with no line end is not read whole into memory)."""
+    lineno = 0
+    while line := stream.readline(max_chars + 1):
+        lineno += 1
+        if len(line) > max_chars and not line.endswith(("\n", "\r")):
+            raise UserError(f"{label}:{lineno}: a line longer than {max_chars} characters")
+        yield line
 
 
 def read_config(path: str | Path, what: str = "", max_bytes: int = CONFIG_MAX_BYTES) -> str:

@@ -12,7 +12,8 @@ python-can's own warnings are reported too (per format: :class:`TraceReadResult`
 Channels come out as python-can channel numbers (control 0, truth 1).
 
 Memory stays bounded whatever the file holds: text is read line by line with a cap on a
-line's length (:data:`MAX_LINE_CHARS`), lines the reader skipped are checked as they
+line's length (:data:`hdhil.core.files.MAX_LINE_CHARS`, a longer line ends the reading
+as damage), lines the reader skipped are checked as they
 go, reading gives up on a file with no frame in its first :data:`MAX_LEADING_CHARS`
 characters, and a BLF object or container larger than python-can's own
 (:data:`MAX_BLF_OBJECT_BYTES`, also decompressed) ends the reading as damage.
@@ -45,7 +46,7 @@ from hdhil.can.traces.formats import (
     trace_format,
 )
 from hdhil.core.errors import UserError
-from hdhil.core.files import check_input
+from hdhil.core.files import MAX_LINE_CHARS, check_input
 
 #: Reader class per (lower-case) file extension: python-can's own table, the one
 #: :class:`can.LogReader` picks from, for the formats hdhil writes.
@@ -58,9 +59,6 @@ _PATH_READERS = frozenset({".mf4"})
 
 #: Reading stops after this many damaged spots (bad or wrongly skipped lines).
 MAX_DAMAGE = 100
-#: Longest line of a text trace read (an ASC CAN FD frame of 64 bytes is about 300
-#: characters); a longer one ends the reading as damage.
-MAX_LINE_CHARS = 4096
 #: A text trace with no frame in its first this many characters is refused.
 MAX_LEADING_CHARS = 1024 * 1024
 #: Largest BLF object, and largest decompressed log container, read (python-can writes
