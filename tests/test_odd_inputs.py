@@ -248,3 +248,11 @@ def test_a_junk_signal_csv_is_refused_in_bounded_memory(junk, tmp_path):
             filter_signal_csv(path, False, FirmwareConfig(), Rows())
 
     assert _peak_while(read) < READ_BOUND
+
+
+@pytest.mark.parametrize(("command", "kind"), [("run", "scenario"), ("campaign", "campaign")])
+def test_a_bare_name_too_long_for_a_file_is_an_unknown_name(command, kind, capsys):
+    argv = ["run", "--trace", "", "--scenario", LONG] if command == "run" else [command, LONG]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"hdhil: error: unknown {kind} 'xxx") and err.count("\n") == 1

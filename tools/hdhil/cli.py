@@ -17,6 +17,7 @@ import argparse
 import contextlib
 import gc
 import importlib
+import os
 import sys
 from collections.abc import Iterator, Sequence
 from typing import NoReturn
@@ -243,7 +244,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     except OSError as exc:
         # Disk full, a file vanished mid-run, ...: one line naming what failed.
-        what = f"{exc.filename} " if getattr(exc, "filename", None) else ""
+        name = getattr(exc, "filename", None)
+        what = f"{os.fsdecode(name) if isinstance(name, bytes) else name}: " if name else ""
         _error(f"{what}{exc.strerror or exc}")
         return 2
     finally:

@@ -112,8 +112,9 @@ def shipped_or_path(text: str, folder: Path, kind: str, known: list[str]) -> Pat
 
     if not (text.endswith(".toml") or "/" in text or "\\" in text):
         path = folder / f"{text}.toml"
-        if path.is_file():
-            return path
+        with contextlib.suppress(OSError):  # e.g. a name too long for the file system
+            if path.is_file():
+                return path
         raise ConfigError(
             f"unknown {kind} {text!r} (known: {', '.join(known) or 'none'}; "
             "or give a path to a .toml file)"
