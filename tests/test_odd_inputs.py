@@ -256,3 +256,17 @@ def test_a_bare_name_too_long_for_a_file_is_an_unknown_name(command, kind, capsy
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"hdhil: error: unknown {kind} 'xxx") and err.count("\n") == 1
+
+
+def test_damage_warnings_stay_one_line_each_whatever_the_name(tmp_path, capsys):
+    frame = "   {t:.6f} 1  181             Rx   d 8 00 00 00 00 00 00 00 00\n"
+    text = "date Thu Nov 26 12:00:00.000 am 2026\nbase hex  timestamps absolute\n"
+    text += "no internal events logged\n" + frame.format(t=0.0) + "garbage\n"
+    text += frame.format(t=0.001)
+    path = tmp_path / "a\nb.asc"
+    path.write_text(text)
+    assert main(["dump", str(path)]) == 1
+    err = capsys.readouterr().err
+    lines = err.splitlines()
+    assert len(lines) >= 2 and all(line.startswith("hdhil: ") for line in lines), err
+    assert "a\\nb.asc: damaged after frame 1" in err

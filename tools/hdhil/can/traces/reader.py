@@ -46,7 +46,7 @@ from hdhil.can.traces.formats import (
     trace_format,
 )
 from hdhil.core.errors import UserError
-from hdhil.core.files import MAX_LINE_CHARS, check_input
+from hdhil.core.files import MAX_LINE_CHARS, check_input, display_name
 
 #: Reader class per (lower-case) file extension: python-can's own table, the one
 #: :class:`can.LogReader` picks from, for the formats hdhil writes.
@@ -111,7 +111,7 @@ class TraceDamage:
         when = "n/a" if self.last_time is None else f"{self.last_time:.6f}s"
         where = f"line {self.line}: " if self.line is not None else ""
         tail = "; skipped, reading resumed" if self.resumed else ""
-        head = f"{path}: damaged after frame {self.frames_before} (t={when})"
+        head = f"{display_name(path)}: damaged after frame {self.frames_before} (t={when})"
         return f"{head}: {where}{self.reason}{tail}"
 
     def as_dict(self) -> dict[str, Any]:
