@@ -17,7 +17,7 @@ from hdhil.can.traces import reader as trace_reader
 from hdhil.can.traces.reader import TraceError, read_trace
 from hdhil.can.traces.sidecar import read_metadata
 from hdhil.cli import main
-from hdhil.core.files import CONFIG_MAX_BYTES, display_name
+from hdhil.core.files import CONFIG_MAX_BYTES, display_name, load_toml
 
 #: A name that is no UTF-8 (a byte 0xff), as Python holds it: a lone surrogate.
 BAD = os.fsdecode(b"tr\xff")
@@ -53,13 +53,19 @@ def test_a_non_utf8_output_name_is_written_and_printed(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_plot_of_a_trace_with_a_non_utf8_name(tmp_path, capsys):
-    """The figure's title names the trace: matplotlib refused the lone surrogate."""
+def test_plot_and_tune_of_a_trace_with_a_non_utf8_name(tmp_path, capsys):
+    """The figure's title and the tuned TOML's comment name the trace: matplotlib refused
+    the lone surrogate, and the TOML file (UTF-8) could not hold it."""
     trace = tmp_path / f"{BAD}.blf"
-    assert main(["run", "-q", "--duration", "0.4", "--no-evaluate", "--trace", str(trace)]) == 0
+    assert main(["run", "-q", "--duration", "0.6", "--no-evaluate", "--trace", str(trace)]) == 0
     out = tmp_path / f"{BAD}.png"
     assert main(["plot", str(trace), "--out", str(out)]) == 0
     assert out.stat().st_size > 0
+    tuned = tmp_path / f"{BAD}.toml"
+    argv = ["tune", "-q", str(trace), "--max-evals", "2", "--skip", "0.1", "--out", str(tuned)]
+    assert main(argv) == 0
+    assert "tr\\xff.blf" in tuned.read_text(encoding="utf-8")
+    assert "firmware" in load_toml(tuned)
     assert "hdhil: error" not in capsys.readouterr().err
 
 
