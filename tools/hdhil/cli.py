@@ -220,20 +220,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                 parser = build_parser(argv)
                 args = parser.parse_args(argv)
             code = int(args.func(args) or 0)
-        if code == 130 and args.command not in _SAYS_INTERRUPTED:
+        if code == 130 and getattr(args, "command", None) not in _SAYS_INTERRUPTED:
             print("hdhil: interrupted", file=sys.stderr)  # stopped at a signal (run, soak, ...)
         return code
     except (UserError, ConfigError) as exc:
         _error(exc)
         return 2
     except KeyboardInterrupt:
-        print("hdhil: interrupted", file=sys.stderr)
-        return 130
-    except ImportError as exc:
-        # A Ctrl-C inside a compiled extension's import (scipy's, loaded by a command on
-        # first use) reaches here as the ImportError the extension raised instead.
-        if not _caused_by_interrupt(exc):
-            raise
         print("hdhil: interrupted", file=sys.stderr)
         return 130
     except SystemExit as exc:  # --help (0); in-process callers get the code back
@@ -248,6 +241,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         what = f"{os.fsdecode(name) if isinstance(name, bytes) else name}: " if name else ""
         _error(f"{what}{exc.strerror or exc}")
         return 2
+    except Exception as exc:
+        # A Ctrl-C inside code that turns it into an error of its own (a compiled
+        # extension's import, scipy's loaded by a command on first use, raises ImportError)
+        # is still an interrupt; any other exception is a bug and keeps its traceback.
+        if not _caused_by_interrupt(exc):
+            raise
+        print("hdhil: interrupted", file=sys.stderr)
+        return 130
     finally:
         restore_handlers(previous)
 
