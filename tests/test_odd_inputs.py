@@ -276,3 +276,26 @@ def test_damage_warnings_stay_one_line_each_whatever_the_name(tmp_path, capsys):
     lines = err.splitlines()
     assert len(lines) >= 2 and all(line.startswith("hdhil: ") for line in lines), err
     assert "a\\nb.asc: damaged after frame 1" in err
+
+
+def test_stats_of_countless_identifiers_and_channels_stay_bounded(monkeypatch):
+    """``dump --stats`` keeps a record per identifier and per bus: a trace of random
+    identifiers on random channels (junk that parses as frames) grew them without end."""
+    import can
+
+    from hdhil.can.traces import stats as trace_stats
+
+    monkeypatch.setattr(trace_stats, "MAX_IDS", 50, raising=False)
+    monkeypatch.setattr(trace_stats, "MAX_BUSES", 4, raising=False)
+    acc = trace_stats.StatsAccumulator()
+    for i in range(1000):
+        ident = 0x100000 + i
+        msg = can.Message(timestamp=i * 1e-3, arbitration_id=ident, is_extended_id=True)
+        msg.channel, msg.data = 10 + i % 20, bytearray(1)
+        acc.add(msg)
+    result = acc.result()
+    assert len(result["ids"]) == 50 and result["unlisted_frames"] == 950
+    assert len(result["buses"]) == 5  # four channels, then "other"
+    assert sum(b["frames"] for b in result["buses"].values()) == 1000
+    assert all(b["unknown_ids"] <= 50 for b in result["buses"].values())
+    assert "950 frames of identifiers beyond the first 50" in trace_stats.format_stats(result)
