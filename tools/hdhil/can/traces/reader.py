@@ -152,8 +152,8 @@ class _LineSource:
         self.lineno = 0
         self.pending: list[tuple[int | None, str]] = []
         self.last_line_terminated = True
-        #: Characters read so far; more than ``leading_limit`` (if set) before the limit
-        #: is lifted (at the first frame) ends the reading.
+        #: Characters read while ``leading_limit`` is set (until the first frame); more
+        #: than that ends the reading.
         self.chars = 0
         self.leading_limit: int | None = MAX_LEADING_CHARS
 
@@ -171,25 +171,28 @@ class _LineSource:
             lines, self.pending = self.pending, []
             if not self._check(lines):
                 raise StopIteration  # too much damage: reading ends
+        readline = self._stream.readline
         while True:
             try:
-                line = self._stream.readline(MAX_LINE_CHARS + 1)
+                line = readline(MAX_LINE_CHARS + 1)
             except Exception as exc:
                 raise _StreamError(f"{type(exc).__name__}: {exc}") from exc
             if not line:
                 raise StopIteration
             self.lineno += 1
-            self.chars += len(line)
-            self.last_line_terminated = line.endswith("\n")
-            if len(line) > MAX_LINE_CHARS and not self.last_line_terminated:
+            terminated = self.last_line_terminated = line[-1] == "\n"
+            if not terminated and len(line) > MAX_LINE_CHARS:
                 raise _StreamError(
                     f"line longer than {MAX_LINE_CHARS} characters (no text trace line)",
                     self.lineno,
                 )
-            if self.leading_limit is not None and self.chars > self.leading_limit:
-                raise _StreamError(
-                    f"no CAN frame in the first {self.leading_limit} characters", self.lineno
-                )
+            if self.leading_limit is not None:
+                self.chars += len(line)
+                if self.chars > self.leading_limit:
+                    raise _StreamError(
+                        f"no CAN frame in the first {self.leading_limit} characters",
+                        self.lineno,
+                    )
             if line.strip():
                 break
         self.pending.append((self.lineno, line))
