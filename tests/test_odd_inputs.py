@@ -303,3 +303,20 @@ def test_stats_of_countless_identifiers_and_channels_stay_bounded(monkeypatch):
     assert sum(b["frames"] for b in result["buses"].values()) == 1000
     assert all(b["unknown_ids"] <= 50 for b in result["buses"].values())
     assert "950 frames of identifiers beyond the first 50" in trace_stats.format_stats(result)
+
+
+def test_a_blf_object_size_beyond_the_file_is_refused_before_reading(tmp_path):
+    """A damaged size field (512 MiB here) was handed to ``read``, which allocates
+    that much before finding the file shorter."""
+    from can.io import blf
+
+    path = _blf_with_container(tmp_path, b"\0" * 64)
+    data = bytearray(path.read_bytes())
+    blf.OBJ_HEADER_BASE_STRUCT.pack_into(
+        data, blf.FILE_HEADER_SIZE, b"LOBJ", blf.OBJ_HEADER_BASE_STRUCT.size, 1, 512 << 20, 10
+    )
+    path.write_bytes(bytes(data))
+    message = []
+    peak = _peak_while(lambda: message.append(_refused(path)))
+    assert peak < READ_BOUND
+    assert "a damaged BLF size field: 536870896 bytes to read at byte 160" in message[0]

@@ -218,7 +218,7 @@ class _CountingReader:
     def read(self, size: int = -1) -> bytes:
         if size is None or not 0 <= size <= MAX_BLF_OBJECT_BYTES:
             raise _StreamError(
-                f"a BLF size field of {size} bytes at byte {self.bytes_read} "
+                f"a damaged BLF size field: {size} bytes to read at byte {self.bytes_read} "
                 f"(accepted: 0 to {MAX_BLF_OBJECT_BYTES})"
             )
         data = self._stream.read(size)
