@@ -268,11 +268,22 @@ def test_a_bare_name_too_long_for_a_file_is_an_unknown_name(command, kind, capsy
     assert err.startswith(f"hdhil: error: unknown {kind} 'xxx") and err.count("\n") == 1
 
 
+FRAME = "   {t:.6f} 1  181             Rx   d 8 00 00 00 00 00 00 00 00\n"
+ASC_HEAD = "date Thu Nov 26 12:00:00.000 am 2026\nbase hex  timestamps absolute\n"
+ASC_HEAD += "no internal events logged\n"
+
+
+def test_a_trace_whose_sidecar_name_would_be_too_long_is_read(tmp_path, capsys):
+    """255 bytes is a valid name; the sidecar's (the name plus .json) is not, and looking
+    for it must not refuse the trace."""
+    path = tmp_path / ("x" * 251 + ".asc")
+    path.write_text(ASC_HEAD + FRAME.format(t=0.0) + FRAME.format(t=0.001))
+    assert main(["dump", str(path), "--stats"]) == 0
+    assert "hdhil: error" not in capsys.readouterr().err
+
+
 def test_damage_warnings_stay_one_line_each_whatever_the_name(tmp_path, capsys):
-    frame = "   {t:.6f} 1  181             Rx   d 8 00 00 00 00 00 00 00 00\n"
-    text = "date Thu Nov 26 12:00:00.000 am 2026\nbase hex  timestamps absolute\n"
-    text += "no internal events logged\n" + frame.format(t=0.0) + "garbage\n"
-    text += frame.format(t=0.001)
+    text = ASC_HEAD + FRAME.format(t=0.0) + "garbage\n" + FRAME.format(t=0.001)
     path = tmp_path / "a\nb.asc"
     path.write_text(text)
     assert main(["dump", str(path)]) == 1

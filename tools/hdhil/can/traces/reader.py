@@ -11,12 +11,12 @@ no legitimate non-frame line, a cut last line, a truncated or never finalised BL
 python-can's own warnings are reported too (per format: :class:`TraceReadResult`).
 Channels come out as python-can channel numbers (control 0, truth 1).
 
-Memory stays bounded whatever the file holds: text is read line by line with a cap on a
-line's length (:data:`hdhil.core.files.MAX_LINE_CHARS`, a longer line ends the reading
-as damage), lines the reader skipped are checked as they
-go, reading gives up on a file with no frame in its first :data:`MAX_LEADING_CHARS`
-characters, and a BLF object or container larger than python-can's own
-(:data:`MAX_BLF_OBJECT_BYTES`, also decompressed) ends the reading as damage.
+Memory stays bounded whatever the file holds: text is read line by line, a line at most
+:data:`hdhil.core.files.MAX_LINE_CHARS` long (a longer one ends the reading as damage);
+lines the reader skipped are checked as they go; reading gives up on a file with no
+frame in its first :data:`MAX_LEADING_CHARS` characters; a BLF object or container
+larger than :data:`MAX_BLF_OBJECT_BYTES` (also once decompressed) ends the reading as
+damage.
 """
 
 from __future__ import annotations

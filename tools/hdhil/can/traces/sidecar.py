@@ -46,9 +46,7 @@ def read_metadata(trace: Path) -> dict[str, Any] | None:
     (:func:`hdhil.core.files.load_json`): a regular file, size and nesting capped, so a
     FIFO or a huge file in its place neither blocks nor fills the memory."""
     path = metadata_path(Path(trace))
-    if not path.exists():
-        return None
-    try:
+    try:  # none, unreadable, or a name too long for the file system: no sidecar
         data = load_json(path, "sidecar")
     except (UserError, OSError):
         return None
