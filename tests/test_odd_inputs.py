@@ -268,6 +268,20 @@ def test_a_bare_name_too_long_for_a_file_is_an_unknown_name(command, kind, capsy
     assert err.startswith(f"hdhil: error: unknown {kind} 'xxx") and err.count("\n") == 1
 
 
+@pytest.mark.parametrize("length", [222, 240])
+def test_a_name_whose_temporary_or_sidecar_would_be_too_long_is_refused_up_front(
+    length, tmp_path, capsys
+):
+    """The name itself is valid, but the trace's temporary (at 240) or its sidecar's (at
+    222: NAME.blf.json beside a temporary) is not: the trace was written and the sidecar
+    then failed, after the whole run."""
+    trace = tmp_path / ("v" * length + ".blf")
+    assert main(["run", "-q", "--duration", "0.05", "--no-evaluate", "--trace", str(trace)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "name too long" in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
 FRAME = "   {t:.6f} 1  181             Rx   d 8 00 00 00 00 00 00 00 00\n"
 ASC_HEAD = "date Thu Nov 26 12:00:00.000 am 2026\nbase hex  timestamps absolute\n"
 ASC_HEAD += "no internal events logged\n"

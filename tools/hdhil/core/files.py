@@ -285,7 +285,26 @@ def check_output(path: str | Path, what: str = "") -> Path | None:
         raise UserError(f"{label}: directory {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise UserError(f"{label}: cannot write in directory {parent} (permission denied)")
+    _check_temporary_name(p, label)
     return p
+
+
+def _check_temporary_name(target: Path, label: str) -> None:
+    """Refuse up front a name whose temporary file (:func:`temporary_for`: the name with
+    about 30 bytes around it) would be longer than the file system allows: the write
+    would fail only once the work is done."""
+    longest = f".{target.name}.hdhil-{'9' * 7}-{'x' * 8}.tmp{target.suffix}"
+    try:
+        limit = os.pathconf(target.parent, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    size = len(os.fsencode(longest))
+    if limit > 0 and size > limit:
+        raise UserError(
+            f"{label}: name too long ({len(os.fsencode(target.name))} bytes): the temporary "
+            f"file written beside it takes up to {size}, more than the {limit} the file "
+            "system allows"
+        )
 
 
 def _pid_alive(pid: int) -> bool:

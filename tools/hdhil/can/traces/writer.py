@@ -52,7 +52,7 @@ from hdhil.can.traces.formats import (
     supported_formats,
     trace_format,
 )
-from hdhil.can.traces.sidecar import write_metadata
+from hdhil.can.traces.sidecar import metadata_path, write_metadata
 from hdhil.core.errors import UserError
 from hdhil.core.files import (
     check_output,
@@ -434,6 +434,8 @@ class WriterProcess(can.Listener):
         check_trace_path(path)
         target = check_output(path, "trace")
         assert target is not None
+        if metadata is not None:  # written after the trace: its name is checked now
+            check_output(metadata_path(path), "sidecar")
         self.path = path
         self.time_offset = time_offset
         self.sent = 0
