@@ -14,6 +14,7 @@ Exit codes: 0 completed, 1 stopped early by a fault reaction or a failed verdict
 from __future__ import annotations
 
 import argparse
+import codecs
 import contextlib
 import gc
 import importlib
@@ -184,18 +185,36 @@ def _start_up_collection() -> Iterator[None]:
             gc.enable()
 
 
+def _escape_unencodable(exc: UnicodeError) -> tuple[str, int]:
+    """Codec error handler ``hdhil-escape``: a byte that was not UTF-8 in a file name
+    (held as a lone surrogate U+DC80..U+DCFF) as ``\\xff``, as
+    :func:`~hdhil.core.files.display_name` shows it; anything else as
+    ``backslashreplace`` does."""
+    if not isinstance(exc, UnicodeEncodeError):
+        raise exc
+    text = exc.object[exc.start : exc.end]
+    return "".join(
+        f"\\x{ord(c) - 0xDC00:02x}" if 0xDC80 <= ord(c) <= 0xDCFF
+        else c.encode("ascii", "backslashreplace").decode("ascii")
+        for c in text
+    ), exc.end  # fmt: skip
+
+
+codecs.register_error("hdhil-escape", _escape_unencodable)
+
+
 @contextlib.contextmanager
 def _escaping_output() -> Iterator[None]:
-    """Standard output escapes what its encoding cannot write (``\\udcff``) instead of
-    raising ``UnicodeEncodeError``: a file name may hold bytes that are not UTF-8 (Python
-    keeps them as lone surrogates), and a command prints the names it wrote.  Standard
-    error does so already (Python's default there)."""
+    """Standard output escapes what its encoding cannot write (``\\xff``, ``\\u2014``)
+    instead of raising ``UnicodeEncodeError``: a file name may hold bytes that are not
+    UTF-8 (Python keeps them as lone surrogates), and a command prints the names it
+    wrote.  Standard error never raises there (Python's default is backslashreplace)."""
     stream = sys.stdout
     errors = getattr(stream, "errors", None)
     change = errors == "strict" and hasattr(stream, "reconfigure")
     if change:
         with contextlib.suppress(ValueError, OSError):
-            stream.reconfigure(errors="backslashreplace")
+            stream.reconfigure(errors="hdhil-escape")
     try:
         yield
     finally:
