@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import importlib
 
-TYPE_CHECKING = False  # typing is not imported: the console's start-up runs after this
+# typing only for type checkers: this runs before the console's first Ctrl-C handler is
+# in place (hdhil.console), so it imports nothing it does not need.
+TYPE_CHECKING = False
 if TYPE_CHECKING:
     from typing import Any
 
