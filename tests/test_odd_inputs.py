@@ -43,14 +43,17 @@ def test_display_name_escapes_what_cannot_be_printed_on_one_line(name, shown):
 
 
 # ------------------------------------------------------------ non-UTF-8 names (1)
-def test_a_non_utf8_output_name_is_written_and_printed(tmp_path, capsys):
-    # pytest's capture encodes UTF-8 strictly, like a terminal outside the C locale (or
+def test_a_non_utf8_output_name_is_written_and_printed(tmp_path, monkeypatch):
+    # Standard output that encodes UTF-8 strictly, as outside the C locale (or with
     # PYTHONIOENCODING=utf-8): printing the name raised UnicodeEncodeError.
-    assert sys.stdout.errors == "strict"
+    stdout = io.TextIOWrapper(io.BytesIO(), encoding="utf-8", errors="strict")
+    monkeypatch.setattr(sys, "stdout", stdout)
     out = tmp_path / f"{BAD}.dbc"
     assert main(["dbc", "export", str(out)]) == 0
     assert out.is_file()
-    assert "tr\\xff.dbc" in capsys.readouterr().out  # escaped as in errors, not raised
+    stdout.flush()
+    assert b"tr\\xff.dbc" in stdout.buffer.getvalue()  # escaped as in errors, not raised
+    assert stdout.errors == "strict"  # as it was
 
 
 @pytest.mark.slow
