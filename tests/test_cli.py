@@ -139,3 +139,33 @@ def test_an_import_error_caused_by_ctrl_c_is_an_interruption(monkeypatch, capsys
     parser.func = failed_import
     with pytest.raises(ImportError, match="no module named nothing"):
         cli.main(["x"])
+
+
+def test_every_interruption_ends_with_the_line(monkeypatch, capsys) -> None:
+    """A command that stopped cleanly at a signal returns 130 and main says so (run, soak,
+    log, emulate and firmware printed their summary only); an error of any kind raised
+    because of a Ctrl-C is an interruption too, any other keeps its traceback."""
+    from hdhil import cli
+
+    def stopped(_args):
+        print("summary")
+        return 130
+
+    def interrupted(_args):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise RuntimeError("a library's own error while Ctrl-C was handled") from None
+
+    class Parser:
+        func = None
+
+        def parse_args(self, argv):
+            return argparse.Namespace(func=self.func, command="run")
+
+    parser = Parser()
+    monkeypatch.setattr(cli, "build_parser", lambda argv: parser)
+    for func in (stopped, interrupted):
+        parser.func = func
+        assert cli.main(["run"]) == 130
+        assert capsys.readouterr().err == "hdhil: interrupted\n"

@@ -112,8 +112,8 @@ def _check(code: int, err: str, took: float) -> None:
     assert "Traceback" not in err and "Exception ignored" not in err, err
     assert code in (0, 1, 2, 130), (code, err)  # never -2: killed by the signal
     lines = [line for line in err.splitlines() if line.strip()]
-    if code == 130 and lines:  # a run stopped by the signal prints its summary instead
-        assert lines[-1].startswith("hdhil: interrupted"), err
+    if code == 130:  # also a run stopped cleanly by the signal (summary on stdout)
+        assert lines and lines[-1].startswith("hdhil: interrupted"), err
     if code == 2:
         assert len(lines) == 1 and lines[0].startswith("hdhil: error:"), err
     assert took < STOP_BOUND_S, f"ended {took:.1f} s after the signal"
@@ -156,3 +156,28 @@ def test_bench_stops_promptly_in_each_section():
         code, err, took = _interrupt(["bench", "--realtime-s", "20"], after_s)
         _check(code, err, took)
         assert code == 130 and took < 2.5, (after_s, took)
+
+
+def test_ctrl_c_while_the_signal_handlers_are_imported(tmp_path):
+    """The console's first handler is in place before it imports anything of hdhil: a
+    Ctrl-C while :mod:`hdhil.core.signals` itself is being imported (sent by an import
+    hook, so the moment is exact) still ends with the one line and 130."""
+    script = (
+        "import importlib.abc, os, signal, sys\n"
+        "class Hook(importlib.abc.MetaPathFinder):\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name == 'hdhil.core.signals':\n"
+        "            os.kill(os.getpid(), signal.SIGINT)\n"
+        "        return None\n"
+        "sys.meta_path.insert(0, Hook())\n"
+        "from hdhil.console import run\n"
+        "sys.argv = ['hdhil', '--version']\n"
+        "run()\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    proc = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
+    assert proc.returncode == 130, (proc.returncode, proc.stderr)
+    assert proc.stderr == "hdhil: interrupted\n"

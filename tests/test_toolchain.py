@@ -161,6 +161,33 @@ def test_mf4_round_trip(tmp_path, capsys):
 
 
 @pytest.mark.slow
+@pytest.mark.subprocess
+def test_truncated_mf4_is_one_error_line(tmp_path):
+    """A cut MF4 file: asammdf raises in its constructor and the half-built object's
+    finaliser raises again when collected ("Exception ignored in ..."); both end as the
+    one line ``hdhil: error: ...``, exit 2, in every command that reads a trace."""
+    skip_covered_elsewhere(
+        importlib.util.find_spec("asammdf") is not None,
+        "asammdf (the mf4 extra)",
+        "HDHIL_MF4_ELSEWHERE",
+        "the MF4 step of .ci/run, in a venv of its own",
+    )
+    whole = _run(tmp_path, "whole.mf4").read_bytes()
+    for keep in (len(whole) // 8, len(whole) - 512):
+        cut = tmp_path / f"cut{keep}.mf4"
+        cut.write_bytes(whole[:keep])
+        for argv in (["dump", str(cut)], ["evaluate", str(cut)]):
+            proc = subprocess.run(
+                [sys.executable, "-m", "hdhil", *argv], capture_output=True, text=True,
+                timeout=120,
+            )  # fmt: skip
+            lines = proc.stderr.splitlines()
+            assert proc.returncode == 2, (argv, proc.returncode, proc.stderr)
+            assert len(lines) == 1 and lines[0].startswith("hdhil: error: "), proc.stderr
+            assert "not a readable MF4 trace" in lines[0]
+
+
+@pytest.mark.slow
 def test_mf4_without_asammdf_is_a_clear_error(tmp_path, monkeypatch, capsys):
     import hdhil.can.traces.formats as formats
 

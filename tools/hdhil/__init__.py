@@ -16,7 +16,12 @@ stays cheap.
 from __future__ import annotations
 
 import importlib
-from typing import Any
+
+# typing only for type checkers: this runs before the console's first Ctrl-C handler is
+# in place (hdhil.console), so it imports nothing it does not need.
+TYPE_CHECKING = False
+if TYPE_CHECKING:
+    from typing import Any
 
 #: Public name -> the module that defines it.
 _EXPORTS = {

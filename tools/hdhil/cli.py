@@ -14,14 +14,17 @@ Exit codes: 0 completed, 1 stopped early by a fault reaction or a failed verdict
 from __future__ import annotations
 
 import argparse
+import codecs
 import contextlib
 import gc
 import importlib
+import os
 import sys
 from collections.abc import Iterator, Sequence
 from typing import NoReturn
 
 from hdhil.core.errors import ConfigError, UserError
+from hdhil.core.files import display_name
 from hdhil.core.signals import restore_handlers, terminate_as_interrupt
 
 #: Every subcommand, in the order ``hdhil --help`` lists them: its module in
@@ -60,6 +63,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 __all__ = ["COMMANDS", "ConfigError", "UserError", "build_parser", "main", "version"]
+
+
+#: Commands that end a run stopped by a signal (exit code 130) with their own line
+#: starting ``hdhil: interrupted``; for the others :func:`main` prints that line.
+_SAYS_INTERRUPTED = frozenset({"campaign"})
 
 
 def version() -> str:
@@ -177,25 +185,67 @@ def _start_up_collection() -> Iterator[None]:
             gc.enable()
 
 
+def _escape_unencodable(exc: UnicodeError) -> tuple[str, int]:
+    """Codec error handler ``hdhil-escape``: a byte that was not UTF-8 in a file name
+    (held as a lone surrogate U+DC80..U+DCFF) as ``\\xff``, as
+    :func:`~hdhil.core.files.display_name` shows it; anything else as
+    ``backslashreplace`` does."""
+    if not isinstance(exc, UnicodeEncodeError):
+        raise exc
+    text = exc.object[exc.start : exc.end]
+    return "".join(
+        f"\\x{ord(c) - 0xDC00:02x}" if 0xDC80 <= ord(c) <= 0xDCFF
+        else c.encode("ascii", "backslashreplace").decode("ascii")
+        for c in text
+    ), exc.end  # fmt: skip
+
+
+codecs.register_error("hdhil-escape", _escape_unencodable)
+
+
+@contextlib.contextmanager
+def _escaping_output() -> Iterator[None]:
+    """Standard output escapes what its encoding cannot write (``\\xff``, ``\\u2014``)
+    instead of raising ``UnicodeEncodeError``: a file name may hold bytes that are not
+    UTF-8 (Python keeps them as lone surrogates), and a command prints the names it
+    wrote.  Standard error never raises there (Python's default is backslashreplace)."""
+    stream = sys.stdout
+    errors = getattr(stream, "errors", None)
+    change = errors == "strict" and hasattr(stream, "reconfigure")
+    if change:
+        with contextlib.suppress(ValueError, OSError):
+            stream.reconfigure(errors="hdhil-escape")
+    try:
+        yield
+    finally:
+        if change:
+            with contextlib.suppress(ValueError, OSError):
+                stream.reconfigure(errors=errors)
+
+
+def _error(message: object) -> None:
+    """The one line of an input error: ``hdhil: error: ...``, names in it escaped
+    (:func:`~hdhil.core.files.display_name`: no raw control character or undecodable
+    byte, so it stays one line on any terminal)."""
+    print(f"hdhil: error: {display_name(str(message))}", file=sys.stderr)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command; the exit code (see the module docstring)."""
     previous = terminate_as_interrupt()  # SIGTERM/SIGHUP: like Ctrl-C; temporaries removed
     try:
-        with _start_up_collection():
-            parser = build_parser(argv)
-            args = parser.parse_args(argv)
-        return int(args.func(args) or 0)
+        with _escaping_output():
+            with _start_up_collection():
+                parser = build_parser(argv)
+                args = parser.parse_args(argv)
+            code = int(args.func(args) or 0)
+        if code == 130 and getattr(args, "command", None) not in _SAYS_INTERRUPTED:
+            print("hdhil: interrupted", file=sys.stderr)  # stopped at a signal (run, soak, ...)
+        return code
     except (UserError, ConfigError) as exc:
-        print(f"hdhil: error: {exc}", file=sys.stderr)
+        _error(exc)
         return 2
     except KeyboardInterrupt:
-        print("hdhil: interrupted", file=sys.stderr)
-        return 130
-    except ImportError as exc:
-        # A Ctrl-C inside a compiled extension's import (scipy's, loaded by a command on
-        # first use) reaches here as the ImportError the extension raised instead.
-        if not _caused_by_interrupt(exc):
-            raise
         print("hdhil: interrupted", file=sys.stderr)
         return 130
     except SystemExit as exc:  # --help (0); in-process callers get the code back
@@ -206,9 +256,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     except OSError as exc:
         # Disk full, a file vanished mid-run, ...: one line naming what failed.
-        what = f" {exc.filename}" if getattr(exc, "filename", None) else ""
-        print(f"hdhil: error:{what} {exc.strerror or exc}", file=sys.stderr)
+        name = getattr(exc, "filename", None)
+        what = f"{os.fsdecode(name) if isinstance(name, bytes) else name}: " if name else ""
+        _error(f"{what}{exc.strerror or exc}")
         return 2
+    except Exception as exc:
+        # A Ctrl-C inside code that turns it into an error of its own (a compiled
+        # extension's import, scipy's loaded by a command on first use, raises ImportError)
+        # is still an interrupt; any other exception is a bug and keeps its traceback.
+        if not _caused_by_interrupt(exc):
+            raise
+        print("hdhil: interrupted", file=sys.stderr)
+        return 130
     finally:
         restore_handlers(previous)
 

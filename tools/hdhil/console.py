@@ -15,18 +15,43 @@ process with exit code 130 and the one line ``hdhil: interrupted``, never a trac
    shut-down (joining the trace writer, which renames the finished trace into place), so
    the signals are ignored and the process ends with the command's exit code.
 
-Python's own start-up, before the first line of this module runs, is out of hdhil's
-reach: a Ctrl-C there ends the process the way it ends any Python program.
+Python's own start-up, before the first line of this module runs (the interpreter and
+its ``site`` module, a few tens of milliseconds), is out of hdhil's reach: a Ctrl-C there
+ends the process the way it ends any Python program.  From this module's first line on,
+a handler written with built-in modules only is in place until the full start-up handler
+replaces it, so that importing the handlers is covered too.
 """
 
 from __future__ import annotations
 
-import contextlib
+import _signal  # built in: nothing to load before the first handler is in place
 import os
-import sys
-from typing import NoReturn
 
-from hdhil.core.signals import (
+
+def _interrupted_early(signum: int, frame: object) -> None:
+    """Stretch 1 until :func:`hdhil.core.signals.install_start_up_handler` replaces it:
+    the same one line and exit code 130."""
+    for sig in _EARLY_SIGNALS:
+        _signal.signal(sig, _signal.SIG_IGN)
+    try:
+        os.write(2, b"hdhil: interrupted\n")
+    finally:
+        os._exit(130)
+
+
+_EARLY_SIGNALS = tuple(
+    getattr(_signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(_signal, name)
+)
+for _sig in _EARLY_SIGNALS:
+    if _signal.getsignal(_sig) != _signal.SIG_IGN:  # nohup, background: stays ignored
+        _signal.signal(_sig, _interrupted_early)
+
+# The rest after the first handler, on purpose.
+import contextlib  # noqa: E402
+import sys  # noqa: E402
+from typing import NoReturn  # noqa: E402
+
+from hdhil.core.signals import (  # noqa: E402
     ignore_stopping_signals,
     install_start_up_handler,
     raise_interrupts_in_command,

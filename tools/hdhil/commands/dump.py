@@ -25,6 +25,7 @@ from hdhil.can.traces.reader import TraceReadResult, read_trace
 from hdhil.can.traces.stats import StatsAccumulator, format_stats
 from hdhil.core import jsonout
 from hdhil.core.errors import UserError
+from hdhil.core.files import display_name
 from hdhil.core.numbers import arg_int
 
 
@@ -205,10 +206,11 @@ def _report(
         print(summary, file=err)
     for damage in trace.damage[:5]:
         print(f"hdhil: warning: {damage.describe(trace.path)}", file=err)
+    name = display_name(trace.path)  # one line whatever the name holds
     if len(trace.damage) > 5:
-        print(f"hdhil: warning: {trace.path}: {len(trace.damage) - 5} more damaged spots", file=err)
+        print(f"hdhil: warning: {name}: {len(trace.damage) - 5} more damaged spots", file=err)
     lines = [d.line for d in trace.damage if d.line is not None]
     if lines:  # text formats: how many lines could not be read, and where it starts
-        print(f"hdhil: warning: {trace.path}: {len(lines)} unreadable line"
+        print(f"hdhil: warning: {name}: {len(lines)} unreadable line"
               f"{'s' if len(lines) != 1 else ''}, the first at line {min(lines)}",
               file=err)  # fmt: skip

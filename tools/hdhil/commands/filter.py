@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from hdhil.core.errors import UserError
+from hdhil.core.files import display_name
 from hdhil.firmware.config import paper_config
 from hdhil.rig.offline import (
     OUTPUT_COLUMNS,
@@ -86,5 +87,5 @@ def run(args: argparse.Namespace) -> int:
         print(f"hdhil: warning: {damage}", file=sys.stderr)
     if len(summary.damage) > 5:
         more = len(summary.damage) - 5
-        print(f"hdhil: warning: {path}: {more} more damaged spots", file=sys.stderr)
+        print(f"hdhil: warning: {display_name(path)}: {more} more damaged spots", file=sys.stderr)
     return 1 if summary.damage else 0

@@ -18,7 +18,7 @@ from matplotlib.figure import Figure
 
 from hdhil.analysis.ripple_figures import FORMATS, make_figure, plot_data
 from hdhil.core.errors import UserError
-from hdhil.core.files import atomic_path, check_output
+from hdhil.core.files import atomic_path, check_output, display_name
 from hdhil.core.numbers import arg_seconds
 from hdhil.firmware.config import FirmwareConfig
 
@@ -95,8 +95,9 @@ def run(args: argparse.Namespace) -> int:
         run += f", seed {meta['seed']}"
     if meta.get("start_time_utc"):
         run += f", recorded {meta['start_time_utc']}"
+    trace_name = display_name(args.trace.name)  # a figure's text must be valid Unicode
     title = (
-        f"{args.trace.name}: scenario {name}{run}, {len(data)} samples, {data.mode} filter, "
+        f"{trace_name}: scenario {name}{run}, {len(data)} samples, {data.mode} filter, "
         f"{truth}\nafter [Taghirad97] (Taghirad, CIM-TR-97-06) Figs. 8-11"
     )
     window = tuple(args.window) if args.window is not None else None
@@ -127,8 +128,9 @@ def _run_fig8(args: argparse.Namespace, scenario: Any) -> int:
     data, damage = fig8_data(args.trace)
     skip = scenario.evaluate_from_s if scenario is not None else 0.0
     name = scenario.name if scenario else "(not given)"
+    trace_name = display_name(args.trace.name)
     title = (
-        f"{args.trace.name}: scenario {name}, {len(data)} samples; figures from t >= {skip:g} s\n"
+        f"{trace_name}: scenario {name}, {len(data)} samples; figures from t >= {skip:g} s\n"
         "after [Vertechy] (Vertechy et al.) Fig. 8, seed sign convention"
     )
     fig = make_fig8(data, title, skip)

@@ -24,7 +24,7 @@ from hdhil.analysis.tuning import (
 from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core import jsonout
 from hdhil.core.errors import UserError
-from hdhil.core.files import check_output, write_text
+from hdhil.core.files import check_output, display_name, write_text
 from hdhil.core.numbers import arg_int, arg_seconds
 from hdhil.firmware.config import FirmwareConfig
 
@@ -110,9 +110,10 @@ def run(args: argparse.Namespace) -> int:
                              on_evaluation=bar.update_to)  # fmt: skip
     label = f"{args.trace}, scenario {scenario.name if scenario else '(firmware defaults)'}"
     if args.out is not None:
+        trace = display_name(args.trace)  # a TOML comment: one line of UTF-8
         comments = [
             "hdhil tune: recommended ripple filter tuned by maximum innovation likelihood",
-            f"trace {args.trace!s}, scenario {scenario.name if scenario else 'defaults'}, "
+            f"trace {trace}, scenario {scenario.name if scenario else 'defaults'}, "
             f"{res.samples} samples from {res.window[0] * res.sample_period_s:g} s",
             f"log-likelihood per sample (nats): paper {res.loglik_paper:.4f}, "
             f"default {res.loglik_default:.4f}, tuned {res.loglik_tuned:.4f}",

@@ -53,12 +53,17 @@ DATA_MAX_BYTES = 64 * 1024**3
 #: Deepest nesting of tables/arrays accepted in a TOML or JSON document (hdhil's own
 #: configurations nest at most 5 deep).
 MAX_DEPTH = 32
+#: Longest line read from a text data file (text trace, signal CSV): an ASC CAN FD frame
+#: line of 64 bytes is about 300 characters; a longer line is no data.
+MAX_LINE_CHARS = 4096
 
 __all__ = [
     "CONFIG_MAX_BYTES",
     "DATA_MAX_BYTES",
     "MAX_DEPTH",
+    "MAX_LINE_CHARS",
     "AtomicOutput",
+    "bounded_lines",
     "check_depth",
     "check_input",
     "check_not_inputs",
@@ -66,6 +71,7 @@ __all__ = [
     "commit_outputs",
     "commit_together",
     "discard_outputs",
+    "display_name",
     "load_json",
     "load_toml",
     "parse_toml",
@@ -89,6 +95,21 @@ def _kind(mode: int) -> str:
     return "not a regular file"
 
 
+def display_name(name: str | bytes | os.PathLike[Any]) -> str:
+    """``name`` as text that can be printed anywhere and stays on one line: bytes that are
+    not UTF-8 (a str holds them as lone surrogates, ``os.fsdecode``) shown as ``\\xff``,
+    control characters (a newline, an escape) as Python writes them in a string literal;
+    any other name unchanged.  Also good for a message that holds names."""
+    text = os.fsdecode(name) if isinstance(name, (bytes, os.PathLike)) else name
+    if text.isprintable():
+        return text
+    try:
+        text = text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    except UnicodeEncodeError:  # a surrogate that no undecodable byte produces
+        text = text.encode("utf-8", "backslashreplace").decode("utf-8")
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode() for c in text)
+
+
 def _label(path: Path | str, what: str) -> str:
     return f"{what} {path}" if what else str(path)
 
@@ -102,8 +123,9 @@ def shipped_or_path(text: str, folder: Path, kind: str, known: list[str]) -> Pat
 
     if not (text.endswith(".toml") or "/" in text or "\\" in text):
         path = folder / f"{text}.toml"
-        if path.is_file():
-            return path
+        with contextlib.suppress(OSError):  # e.g. a name too long for the file system
+            if path.is_file():
+                return path
         raise ConfigError(
             f"unknown {kind} {text!r} (known: {', '.join(known) or 'none'}; "
             "or give a path to a .toml file)"
@@ -133,6 +155,18 @@ def check_input(path: str | Path, what: str = "", max_bytes: int = DATA_MAX_BYTE
     if not os.access(p, os.R_OK):
         raise UserError(f"{label}: cannot read (permission denied)")
     return p
+
+
+def bounded_lines(stream: IO[str], label: str, max_chars: int = MAX_LINE_CHARS) -> Iterator[str]:
+    """The lines of text ``stream``, none held longer than ``max_chars`` characters: a
+    longer one is a :class:`UserError` naming ``label`` and the line number (a file of
+    junk with no line end is not read whole into memory)."""
+    lineno = 0
+    while line := stream.readline(max_chars + 1):
+        lineno += 1
+        if len(line) > max_chars and not line.endswith(("\n", "\r")):
+            raise UserError(f"{label}:{lineno}: a line longer than {max_chars} characters")
+        yield line
 
 
 def read_config(path: str | Path, what: str = "", max_bytes: int = CONFIG_MAX_BYTES) -> str:
@@ -269,6 +303,7 @@ def check_output(path: str | Path, what: str = "") -> Path | None:
         raise UserError(f"{label}: directory {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise UserError(f"{label}: cannot write in directory {parent} (permission denied)")
+    _check_temporary_name(p, label)
     return p
 
 
@@ -309,6 +344,24 @@ def check_not_inputs(
                     f"{_label(out, what)}: is also the {other_what} {other} this command "
                     "writes; refused (two outputs cannot be one file)"
                 )
+
+
+def _check_temporary_name(target: Path, label: str) -> None:
+    """Refuse up front a name whose temporary file (:func:`temporary_for`: the name with
+    about 30 bytes around it) would be longer than the file system allows: the write
+    would fail only once the work is done."""
+    longest = f".{target.name}.hdhil-{'9' * 7}-{'x' * 8}.tmp{target.suffix}"
+    try:
+        limit = os.pathconf(target.parent, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    size = len(os.fsencode(longest))
+    if limit > 0 and size > limit:
+        raise UserError(
+            f"{label}: name too long ({len(os.fsencode(target.name))} bytes): the temporary "
+            f"file written beside it takes up to {size}, more than the {limit} the file "
+            "system allows"
+        )
 
 
 def _pid_alive(pid: int) -> bool:

@@ -112,10 +112,9 @@ def write_parquet(path: Path, campaign: Campaign, table: list[dict[str, Any]]) -
             data[col] = [None if x is None else (x if integral else float(x)) for x in values]
         else:
             data[col] = [None if x is None else _cell(x) for x in values]
-    tmp = path.with_name(f".{path.name}.tmp")
-    pq.write_table(pa.table(data), tmp)
-    _write_atomic(path, tmp.read_bytes())
-    tmp.unlink()
+    sink = io.BytesIO()  # not a path: pyarrow refuses names that are not UTF-8
+    pq.write_table(pa.table(data), sink)
+    _write_atomic(path, sink.getvalue())
     return None
 
 

@@ -33,7 +33,7 @@ from typing import Any, TextIO
 from hdhil.can.traces.formats import SUPPORTED_SUFFIXES as TRACE_EXTENSIONS
 from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
-from hdhil.core.files import AtomicOutput, check_input, load_toml
+from hdhil.core.files import MAX_LINE_CHARS, AtomicOutput, bounded_lines, check_input, load_toml
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.isr import AdcSample, InterruptHandler, TorqueFilterChain
 from hdhil.rig.evaluate import missed_cycles
@@ -159,7 +159,7 @@ def _is_can_csv(path: Path, compressed: bool) -> bool:
     """A ``.csv`` whose first line is python-can's trace header."""
     try:
         with _open_text(path, compressed) as fh:
-            first = fh.readline()
+            first = fh.readline(MAX_LINE_CHARS)
     except (OSError, EOFError) as exc:
         raise UserError(f"{path}: cannot read ({exc})") from None
     return first.lstrip("\ufeff").strip().replace(" ", "").startswith(_CAN_CSV_HEADER)
@@ -235,7 +235,7 @@ def filter_signal_csv(
     """Filter a signal CSV through :class:`TorqueFilterChain`, writing output rows."""
     label = str(path)
     with _open_text(path, compressed) as fh:
-        reader = csv.reader(fh)
+        reader = csv.reader(bounded_lines(fh, label))
         try:
             header = next(reader)
         except StopIteration:

@@ -290,10 +290,10 @@ def _seconds(value: Any, what: str, zero: bool = False) -> float:
 
 def _mapping(name: str | None, drive_dcf: Path | str | None) -> Mapping:
     if drive_dcf is not None:
-        from hdhil.core.files import check_input
+        from hdhil.core.files import CONFIG_MAX_BYTES, check_input
 
         try:
-            path = check_input(drive_dcf, "DCF")
+            path = check_input(drive_dcf, "DCF", CONFIG_MAX_BYTES)
         except UserError as exc:
             raise ConfigError(str(exc)) from None
         return Mapping(path.name, path)

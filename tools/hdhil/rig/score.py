@@ -365,13 +365,7 @@ def trace_time_offset(trace: Path) -> float | None:
     """The time offset of a trace written by ``hdhil run`` (its metadata file's
     ``time_offset_s``: simulated time 0 as a wall-clock time), or None when it has no
     metadata (then its first frame is taken as time 0)."""
-    import json
+    from hdhil.can.traces.sidecar import read_metadata
 
-    from hdhil.can.traces.sidecar import metadata_path
-
-    meta = metadata_path(trace)
-    try:
-        value = json.loads(meta.read_text()).get("time_offset_s")
-    except (OSError, ValueError, AttributeError):
-        return None
+    value = (read_metadata(trace) or {}).get("time_offset_s")
     return float(value) if isinstance(value, (int, float)) else None

@@ -10,16 +10,26 @@ line is reported with its number and reading resumes after it; a skipped line th
 no legitimate non-frame line, a cut last line, a truncated or never finalised BLF and
 python-can's own warnings are reported too (per format: :class:`TraceReadResult`).
 Channels come out as python-can channel numbers (control 0, truth 1).
+
+Memory stays bounded whatever the file holds: text is read line by line, a line at most
+:data:`hdhil.core.files.MAX_LINE_CHARS` long (a longer one ends the reading as damage);
+lines the reader skipped are checked as they go; reading gives up on a file with no
+frame in its first :data:`MAX_LEADING_CHARS` characters; a BLF object or container
+larger than :data:`MAX_BLF_OBJECT_BYTES` (also once decompressed) ends the reading as
+damage.
 """
 
 from __future__ import annotations
 
 import contextlib
+import gc
 import gzip
 import itertools
 import logging
 import os
 import re
+import sys
+import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,7 +46,7 @@ from hdhil.can.traces.formats import (
     trace_format,
 )
 from hdhil.core.errors import UserError
-from hdhil.core.files import check_input
+from hdhil.core.files import MAX_LINE_CHARS, check_input, display_name
 
 #: Reader class per (lower-case) file extension: python-can's own table, the one
 #: :class:`can.LogReader` picks from, for the formats hdhil writes.
@@ -49,6 +59,13 @@ _PATH_READERS = frozenset({".mf4"})
 
 #: Reading stops after this many damaged spots (bad or wrongly skipped lines).
 MAX_DAMAGE = 100
+#: A text trace with no frame in its first this many characters is refused.
+MAX_LEADING_CHARS = 1024 * 1024
+#: Largest BLF object, and largest decompressed log container, read (python-can writes
+#: containers of 128 KiB); a larger one ends the reading as damage.
+MAX_BLF_OBJECT_BYTES = 16 * 1024 * 1024
+#: Skipped lines held before they are checked.
+_PENDING_MAX = 32
 
 _BLF_HEADER_SIZE = 144  # python-can BLFWriter: header as written before the file is closed
 _CSV_HEADER = "timestamp,arbitration_id,extended,remote,error,dlc,data\n"
@@ -94,7 +111,7 @@ class TraceDamage:
         when = "n/a" if self.last_time is None else f"{self.last_time:.6f}s"
         where = f"line {self.line}: " if self.line is not None else ""
         tail = "; skipped, reading resumed" if self.resumed else ""
-        head = f"{path}: damaged after frame {self.frames_before} (t={when})"
+        head = f"{display_name(path)}: damaged after frame {self.frames_before} (t={when})"
         return f"{head}: {where}{self.reason}{tail}"
 
     def as_dict(self) -> dict[str, Any]:
@@ -108,7 +125,12 @@ class TraceDamage:
 
 
 class _StreamError(Exception):
-    """Reading the file itself failed (e.g. a cut gzip stream): no line to skip."""
+    """Reading the file itself failed (e.g. a cut gzip stream, a line longer than any
+    trace line): no line to skip, reading ends.  ``line``: where, if known."""
+
+    def __init__(self, message: str, line: int | None = None) -> None:
+        super().__init__(message)
+        self.line = line
 
 
 class _LineSource:
@@ -119,12 +141,21 @@ class _LineSource:
     reader skipped can be checked afterwards.
     """
 
-    def __init__(self, stream: TextIO) -> None:
+    def __init__(
+        self,
+        stream: TextIO,
+        check_skipped: Callable[[list[tuple[int | None, str]]], bool] | None = None,
+    ) -> None:
         self._stream = stream
         self._inject: list[str] = []
+        self._check = check_skipped
         self.lineno = 0
         self.pending: list[tuple[int | None, str]] = []
         self.last_line_terminated = True
+        #: Characters read while ``leading_limit`` is set (until the first frame); more
+        #: than that ends the reading.
+        self.chars = 0
+        self.leading_limit: int | None = MAX_LEADING_CHARS
 
     def __iter__(self) -> _LineSource:
         return self
@@ -134,15 +165,34 @@ class _LineSource:
             line = self._inject.pop(0)
             self.pending.append((None, line))
             return line
+        if len(self.pending) >= _PENDING_MAX and self._check is not None:
+            # Every line handed out before this request was skipped by the reader (the
+            # readers read no line ahead): check them now rather than hold them all.
+            lines, self.pending = self.pending, []
+            if not self._check(lines):
+                raise StopIteration  # too much damage: reading ends
+        readline = self._stream.readline
         while True:
             try:
-                line = next(self._stream)
-            except StopIteration:
-                raise
+                line = readline(MAX_LINE_CHARS + 1)
             except Exception as exc:
                 raise _StreamError(f"{type(exc).__name__}: {exc}") from exc
+            if not line:
+                raise StopIteration
             self.lineno += 1
-            self.last_line_terminated = line.endswith("\n")
+            terminated = self.last_line_terminated = line[-1] == "\n"
+            if not terminated and len(line) > MAX_LINE_CHARS:
+                raise _StreamError(
+                    f"line longer than {MAX_LINE_CHARS} characters (no text trace line)",
+                    self.lineno,
+                )
+            if self.leading_limit is not None:
+                self.chars += len(line)
+                if self.chars > self.leading_limit:
+                    raise _StreamError(
+                        f"no CAN frame in the first {self.leading_limit} characters",
+                        self.lineno,
+                    )
             if line.strip():
                 break
         self.pending.append((self.lineno, line))
@@ -157,19 +207,73 @@ class _LineSource:
 
 
 class _CountingReader:
-    """The binary file object handed to the BLF reader: counts the bytes it reads."""
+    """The binary file object handed to the BLF reader: counts the bytes it reads, and
+    refuses a read larger than :data:`MAX_BLF_OBJECT_BYTES` (an object size read from a
+    damaged header)."""
 
     def __init__(self, stream: Any) -> None:
         self._stream = stream
         self.bytes_read = 0
 
     def read(self, size: int = -1) -> bytes:
+        if size is None or not 0 <= size <= MAX_BLF_OBJECT_BYTES:
+            raise _StreamError(
+                f"a damaged BLF size field: {size} bytes to read at byte {self.bytes_read} "
+                f"(accepted: 0 to {MAX_BLF_OBJECT_BYTES})"
+            )
         data = self._stream.read(size)
         self.bytes_read += len(data)
         return data
 
     def close(self) -> None:
         self._stream.close()
+
+
+class _BoundedBLFReader(can.BLFReader):
+    """python-can's BLF reader with its memory bounded: a log container decompresses to
+    at most :data:`MAX_BLF_OBJECT_BYTES` and the part of an object carried over into the
+    next container (``_tail``) stays under that size too; beyond, :class:`_StreamError`.
+    The loop is python-can's own (4.6), with those two checks."""
+
+    def __iter__(self) -> Iterator[can.Message]:
+        from can.io import blf
+
+        header_size = blf.OBJ_HEADER_BASE_STRUCT.size
+        while True:
+            data = self.file.read(header_size)
+            if not data:
+                break
+            signature, _, _, obj_size, obj_type = blf.OBJ_HEADER_BASE_STRUCT.unpack(data)
+            if signature != b"LOBJ":
+                raise blf.BLFParseError()
+            obj_data = self.file.read(obj_size - header_size)
+            self.file.read(obj_size % 4)  # padding
+            if obj_type != blf.LOG_CONTAINER:
+                continue
+            method, _ = blf.LOG_CONTAINER_STRUCT.unpack_from(obj_data)
+            container = obj_data[blf.LOG_CONTAINER_STRUCT.size :]
+            if method == blf.NO_COMPRESSION:
+                data = container
+            elif method == blf.ZLIB_DEFLATE:
+                inflate = zlib.decompressobj()
+                data = inflate.decompress(container, MAX_BLF_OBJECT_BYTES)
+                if inflate.unconsumed_tail:
+                    raise _StreamError(
+                        f"a BLF log container decompressing to more than "
+                        f"{MAX_BLF_OBJECT_BYTES} bytes"
+                    )
+            else:
+                logging.getLogger("can.io.blf").warning("Unknown compression method (%d)", method)
+                continue
+            yield from self._parse_container(data)
+            if len(self._tail) > MAX_BLF_OBJECT_BYTES:
+                raise _StreamError(
+                    f"a BLF object spanning more than {MAX_BLF_OBJECT_BYTES} bytes of containers"
+                )
+        self.stop()
+
+
+READERS[".blf"] = _BoundedBLFReader
 
 
 class _LogCapture(logging.Handler):
@@ -190,6 +294,27 @@ def _one_line(text: str, limit: int = 160) -> str:
     """``text`` as one printable ASCII line of at most ``limit`` characters."""
     text = " ".join(text.split()).encode("ascii", "backslashreplace").decode("ascii")
     return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _open_by_name(
+    reader_cls: type[can.io.generic.MessageReader], path: Path
+) -> can.io.generic.MessageReader:
+    """``reader_cls(path)`` for a reader that opens the file itself (MF4: asammdf).  On a
+    damaged file the half-built reader is collected at once with its finaliser's errors
+    silenced (asammdf's ``MDF4.__del__`` raises on an object its constructor left
+    incomplete, which Python would print as "Exception ignored in ..."); the error is
+    raised as :class:`ValueError` with the library's one-line message."""
+    hook = sys.unraisablehook
+    sys.unraisablehook = lambda unraisable: None
+    try:
+        try:
+            return reader_cls(os.fspath(path))
+        except Exception as exc:  # any library error: the file is not readable
+            reason = _one_line(str(exc)) or type(exc).__name__
+        gc.collect()  # the reader left by the exception, while the hook is silent
+        raise ValueError(reason)
+    finally:
+        sys.unraisablehook = hook
 
 
 class TraceReadResult:
@@ -288,7 +413,7 @@ class TraceReadResult:
                 raise ValueError(f"{self.format} traces cannot be read gzip-compressed")
             if self.format == ".mf4" and not formats.mf4_available():
                 raise TraceError(MF4_MISSING)
-            self._reader = reader_cls(str(self.path))
+            self._reader = _open_by_name(reader_cls, self.path)
             return
         opener: Callable[..., Any] = gzip.open if self.compressed else open
         if issubclass(reader_cls, can.io.generic.BinaryIOMessageReader):
@@ -296,7 +421,7 @@ class TraceReadResult:
             self._reader = reader_cls(self._binary)
         else:
             stream = opener(self.path, "rt", encoding="utf-8", errors="replace", newline=None)
-            self._source = _LineSource(stream)
+            self._source = _LineSource(stream, self._check_lines)
             self._reader = reader_cls(self._source)
 
     def _close_file(self) -> None:
@@ -356,7 +481,12 @@ class TraceReadResult:
         source = self._source
         if source is None or not source.pending:
             return
-        lines = source.pending[:-1] if keep_last else source.pending
+        self._check_lines(source.pending[:-1] if keep_last else source.pending)
+        source.pending.clear()
+
+    def _check_lines(self, lines: list[tuple[int | None, str]]) -> bool:
+        """Record the lines among ``lines`` (skipped by the reader) that are damage;
+        whether reading goes on (not after :data:`MAX_DAMAGE` spots)."""
         for lineno, text in lines:
             if lineno is None:
                 continue
@@ -365,7 +495,7 @@ class TraceReadResult:
             problem = self._skipped_line_problem(text)
             if problem is not None:
                 self._add_damage(problem, lineno, resumed=True)
-        source.pending.clear()
+        return not self._stopped
 
     def _restart_text(self) -> Iterator[can.Message]:
         """A fresh iterator of the same text reader, continuing after the bad line."""
@@ -403,6 +533,8 @@ class TraceReadResult:
                 self._normalise_channel(msg)
                 if self.first_time is None:
                     self.first_time = msg.timestamp
+                    if self._source is not None:
+                        self._source.leading_limit = None
                 self.frame_count += 1
                 self._prev_time, self.last_time = self.last_time, msg.timestamp
                 yield msg
@@ -418,6 +550,10 @@ class TraceReadResult:
         """
         if isinstance(exc, _StreamError):
             reason = _one_line(str(exc))
+            if exc.line is not None:
+                self._check_skipped(keep_last=False)
+                self._add_damage(reason, exc.line)
+                return False
         else:
             reason = _one_line(f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__)
         source = self._source

@@ -14,7 +14,7 @@ from typing import Any
 
 from hdhil.core import jsonout
 from hdhil.core.errors import UserError
-from hdhil.core.files import write_text
+from hdhil.core.files import load_json, write_text
 
 #: The sidecar file next to a trace: ``run.blf`` -> ``run.blf.json``.
 METADATA_SUFFIX = ".json"
@@ -48,12 +48,12 @@ def write_metadata(trace: Path, metadata: dict[str, Any]) -> Path:
 
 def read_metadata(trace: Path) -> dict[str, Any] | None:
     """The sidecar metadata of ``trace`` (:func:`write_metadata`), or ``None`` if there
-    is none or it is not a JSON object."""
-    import json
-
+    is none or it is not a JSON object.  Read like any configuration file
+    (:func:`hdhil.core.files.load_json`): a regular file, size and nesting capped, so a
+    FIFO or a huge file in its place neither blocks nor fills the memory."""
     path = metadata_path(Path(trace))
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
+    try:  # none, unreadable, or a name too long for the file system: no sidecar
+        data = load_json(path, "sidecar")
+    except (UserError, OSError):
         return None
     return data if isinstance(data, dict) else None

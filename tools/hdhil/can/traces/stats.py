@@ -131,6 +131,13 @@ class _CounterTrack:
 #: Frames of one counter after which a count still missing is lost for good (a
 #: reordered frame arrives at most a few frames late).
 REORDER_WINDOW = 32
+#: Distinct identifiers listed (all buses together; hdhil's buses carry 15, a vehicle bus
+#: a few hundred): frames of further identifiers count in their bus's frame totals and
+#: actual load only, so a trace of random identifiers cannot fill the memory.
+MAX_IDS = 4096
+#: Distinct buses (channels) listed; frames of further channels count under OTHER_BUS.
+MAX_BUSES = 64
+OTHER_BUS = "other"
 
 
 @dataclass
@@ -181,6 +188,7 @@ class StatsAccumulator:
         self._ids: dict[tuple[str, bool, int], _IdStats] = {}
         self._buses: dict[str, _BusStats] = {}
         self.counts = {kind: 0 for kind in FrameKind}
+        self.unlisted = 0  # frames of identifiers beyond MAX_IDS
         self.first = math.inf
         self.last = -math.inf
         # Cycle counters whose gaps show lost frames: (name, signal index, modulus).
@@ -194,7 +202,7 @@ class StatsAccumulator:
         # channels, or two senders of one counter, are never mixed into one sequence.
         self._tracks: dict[tuple[str, int, str], _CounterTrack] = {}
 
-    def _count(self, frame: DecodedFrame) -> None:
+    def _count(self, frame: DecodedFrame, bus: str) -> None:
         key = (frame.arbitration_id, frame.is_extended_id)
         name, index, modulus = self._counters[key]
         try:
@@ -203,7 +211,7 @@ class StatsAccumulator:
             return
         # Works for both counters: SYNC runs 1..240 and wraps to 1, so (value - last) mod
         # 240 is 1 across the wrap as well; the command's cycle counter runs mod 256.
-        track_key = (frame.bus, frame.arbitration_id, name)
+        track_key = (bus, frame.arbitration_id, name)
         track = self._tracks.get(track_key)
         if track is None:
             track = self._tracks[track_key] = _CounterTrack(modulus)
@@ -241,9 +249,14 @@ class StatsAccumulator:
             self.first = t
         if t > self.last:
             self.last = t
-        bus = self._buses.get(frame.bus)
+        label = frame.bus
+        bus = self._buses.get(label)
         if bus is None:
-            bus = self._buses[frame.bus] = _BusStats()
+            if len(self._buses) >= MAX_BUSES:
+                label = OTHER_BUS
+                bus = self._buses.get(label)
+            if bus is None:
+                bus = self._buses[label] = _BusStats()
         bus.frames += 1
         if t < bus.first:
             bus.first = t
@@ -254,24 +267,28 @@ class StatsAccumulator:
             return  # error frames have no identifier and no schedule
         if frame.kind is FrameKind.UNKNOWN:
             bus.unknown_frames += 1
-            bus.unknown_ids.add((frame.is_extended_id, frame.arbitration_id))
+            if len(bus.unknown_ids) < MAX_IDS:
+                bus.unknown_ids.add((frame.is_extended_id, frame.arbitration_id))
         elif frame.kind is FrameKind.MALFORMED:
             bus.malformed += 1
         elif frame.kind is FrameKind.REMOTE:
             bus.remote += 1
-        key = (frame.bus, frame.is_extended_id, frame.arbitration_id)
+        key = (label, frame.is_extended_id, frame.arbitration_id)
         stats = self._ids.get(key)
-        if stats is None:
+        if stats is None and len(self._ids) < MAX_IDS:
             stats = self._ids[key] = _IdStats(
-                frame.bus, frame.arbitration_id, frame.is_extended_id, frame.message
+                label, frame.arbitration_id, frame.is_extended_id, frame.message
             )
-        payload = 0 if frame.kind is FrameKind.REMOTE else len(frame.data)
-        stats.add(t, payload, frame.kind is FrameKind.MALFORMED)
+        if stats is not None:
+            payload = 0 if frame.kind is FrameKind.REMOTE else len(frame.data)
+            stats.add(t, payload, frame.kind is FrameKind.MALFORMED)
+        else:
+            self.unlisted += 1
         remote = frame.kind is FrameKind.REMOTE
         ident = (frame.arbitration_id, frame.is_extended_id)
         bus.actual_bits += frame_bits(*ident, remote, bytes(frame.data[:8]))
         if frame.kind is FrameKind.DECODED and ident in self._counters:
-            self._count(frame)
+            self._count(frame, label)
 
     def result(self) -> dict[str, Any]:
         """The statistics as a JSON-ready dict.
@@ -298,8 +315,14 @@ class StatsAccumulator:
         than with the rate inside its burst),
         ``actual_load_percent`` (the frames' exact bits incl. real stuff bits,
         :mod:`hdhil.can.bittiming`, over the duration),
-        ``over_limit`` (load above ``load_limit_percent``), ``unknown_ids`` (distinct),
-        ``unknown_frames``, ``malformed``, ``error_frames``, ``remote_frames``.
+        ``over_limit`` (load above ``load_limit_percent``), ``unknown_ids`` (distinct,
+        counted up to :data:`MAX_IDS`), ``unknown_frames``, ``malformed``,
+        ``error_frames``, ``remote_frames``.  At most :data:`MAX_BUSES` buses are listed
+        (frames of further channels under :data:`OTHER_BUS`).
+
+        ``unlisted_frames``: frames of identifiers beyond the first :data:`MAX_IDS`, in
+        their bus's ``frames`` and ``actual_load_percent`` but in no ``ids`` entry (nor in
+        the worst-case ``load_percent``).
         """
         ids = []
         loads: dict[str, float] = {}
@@ -368,6 +391,7 @@ class StatsAccumulator:
             "end": self.last if any_frames else None,
             "duration": self.last - self.first if any_frames else None,
             "ids": ids,
+            "unlisted_frames": self.unlisted,
             "buses": buses,
             # Gaps in the cycle counters (lost frames): per counter, the number of jumps and
             # of counts missing: SYNC.sync_counter (CiA 301, 1..240), DRIVE_RPDO1.cycle.
@@ -425,6 +449,11 @@ def format_stats(stats: Mapping[str, Any]) -> str:
             f"bus {bus}: {b['duration']:.6f} s, {b['frames']} frames, worst-case load "
             f"{b['load_percent']:.1f} % of {kbit:g} kbit/s{flag}, actual "
             f"{_fmt(b.get('actual_load_percent'), '.1f')} %; {', '.join(extras)}"
+        )
+    if stats.get("unlisted_frames"):
+        lines.append(
+            f"{stats['unlisted_frames']} frames of identifiers beyond the first {MAX_IDS} not "
+            "listed (counted in their bus's frames and actual load only)"
         )
     for g in stats.get("counter_gaps_by_channel", []):
         lines.append(

@@ -499,6 +499,8 @@ class WriterProcess(can.Listener):
         check_trace_path(path)
         target = check_output(path, "trace")
         assert target is not None
+        if metadata is not None:  # written after the trace: its name is checked now
+            check_output(metadata_path(path), "sidecar")
         self.path = path
         self._companions = tuple(Path(tmp) for tmp, _, _ in companions)
         self._failure: str | None = None  # why handing on frames failed
