@@ -143,3 +143,21 @@ def test_a_scenario_name_is_text_in_every_entry_point() -> None:
         load_scenario(b"free-motion")  # type: ignore[arg-type]
     assert load_scenario(Path("free-motion")).name == hdhil.load_scenario("free-motion").name
     assert api.load_scenario is hdhil.load_scenario
+
+
+def test_numpy_scalars_are_numbers_like_any_other() -> None:
+    """A seed or a duration computed with numpy (``np.int64``, ``np.float32``) is taken
+    as the int or float it holds, not refused for its type."""
+    import numpy as np
+
+    request = hdhil.resolve(seed=np.int64(3), duration_s=np.float32(0.5))
+    assert request.seed == 3 and type(request.seed) is int
+    assert request.duration_s == 0.5
+    with pytest.raises(TypeError, match="seed must be an int"):
+        hdhil.resolve(seed=np.float64(3.0))
+
+
+@pytest.mark.parametrize("call", [hdhil.read_trace, hdhil.evaluate_trace])
+def test_a_path_with_a_nul_character_is_refused_naming_the_argument(call) -> None:
+    with pytest.raises(ValueError, match=r"^path: a path cannot hold a NUL character"):
+        call("a\0.blf")

@@ -414,3 +414,22 @@ def test_outputs_committed_together_are_all_replaced_or_none(tmp_path, monkeypat
     tb.write_text("new b")
     commit_together([(ta, a, "a"), (tb, b, "b")])
     assert a.read_text() == "new a" and b.read_text() == "new b" and _stray(tmp_path) == []
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("free", [0, 4096])
+def test_a_campaign_on_a_full_disk_leaves_no_temporary_and_no_empty_folder(
+    tiny_fs: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], free: int
+) -> None:
+    """A campaign whose records the disk cannot take: exit 2 naming the file, no record
+    temporary left, and the --out folder it created (holding nothing) removed."""
+    campaign = tmp_path / "c.toml"
+    campaign.write_text('[campaign]\nname = "full"\nscenarios = ["free-motion"]\n'
+                        'duration_s = 0.2\ncriteria = ["stopped_early == false"]\n'
+                        "[axes]\nseed = [1, 2]\n")  # fmt: skip
+    _fill(tiny_fs, free)
+    out = tiny_fs / "camp"
+    assert main(["campaign", str(campaign), "--workers", "1", "--out", str(out)]) == 2
+    errors = _errors(capsys)
+    assert len(errors) == 1 and "cannot write" in errors[0] and "camp" in errors[0], errors
+    assert sorted(p.name for p in tiny_fs.iterdir()) == ["filler"]

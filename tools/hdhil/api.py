@@ -24,6 +24,7 @@ Names and paths are ``str`` or :class:`os.PathLike` (``bytes`` are refused with 
 from __future__ import annotations
 
 import functools
+import numbers
 import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -65,12 +66,14 @@ def _number(
     integer: bool = False,
 ) -> Any:
     """``value`` checked as the command line checks a number option: ``TypeError`` if it
-    is not an ``int`` (``integer``) or a real number (``bool`` is neither), a
-    :class:`ConfigError` naming ``name`` if it is not finite or not in range."""
-    kinds: tuple[type, ...] = (int,) if integer else (int, float)
-    if isinstance(value, bool) or not isinstance(value, kinds):
+    is not an integer (``integer``) or a real number (``bool`` is neither; numpy's
+    scalars are either), a :class:`ConfigError` naming ``name`` if it is not finite or
+    not in range."""
+    kind = numbers.Integral if integer else numbers.Real
+    if isinstance(value, bool) or not isinstance(value, kind):
         what = "an int" if integer else "a number"
         raise TypeError(f"{name} must be {what}, got {type(value).__name__}")
+    value = int(value) if integer or isinstance(value, numbers.Integral) else float(value)
     return check_number(value, name, lo=lo, hi=hi, lo_open=lo_open, integer=integer)
 
 
@@ -82,6 +85,8 @@ def _path_arg(value: Any, name: str, optional: bool = True) -> Path | None:
     text = os.fspath(value)
     if not isinstance(text, str):
         raise TypeError(f"{name} must be a str path, got {type(text).__name__}")
+    if "\0" in text:
+        raise ConfigError(f"{name}: a path cannot hold a NUL character")
     return Path(text)
 
 
@@ -121,11 +126,11 @@ def resolve(
     if not isinstance(scenario, Scenario):
         scenario = _path_arg(scenario, "scenario", optional=False)
     if duration_s is not None:
-        _number(duration_s, "duration_s", lo=0.0, lo_open=True, hi=MAX_SECONDS)
+        duration_s = _number(duration_s, "duration_s", lo=0.0, lo_open=True, hi=MAX_SECONDS)
     if evaluate_from_s is not None:
-        _number(evaluate_from_s, "evaluate_from_s", lo=0.0, hi=MAX_SECONDS)
+        evaluate_from_s = _number(evaluate_from_s, "evaluate_from_s", lo=0.0, hi=MAX_SECONDS)
     if seed is not None:
-        _number(seed, "seed", lo=0, hi=2**63 - 1, integer=True)
+        seed = _number(seed, "seed", lo=0, hi=2**63 - 1, integer=True)
     if overrides is None:
         items: list[Any] = []
     elif isinstance(overrides, dict):
@@ -198,7 +203,7 @@ def run(
     if not isinstance(evaluate, bool):
         raise TypeError(f"evaluate must be a bool, got {type(evaluate).__name__}")
     if start_time is not None:
-        _number(start_time, "start_time", lo=0.0, hi=MAX_UNIX_TIME)
+        start_time = _number(start_time, "start_time", lo=0.0, hi=MAX_UNIX_TIME)
     if controller_factory is not None and not callable(controller_factory):
         raise TypeError(
             f"controller_factory must be callable, got {type(controller_factory).__name__}"
@@ -290,7 +295,7 @@ def evaluate_trace(
     assert trace is not None
     named = _path_arg(scenario, "scenario")
     if skip_s is not None:
-        _number(skip_s, "skip_s", lo=0.0, hi=MAX_SECONDS)
+        skip_s = _number(skip_s, "skip_s", lo=0.0, hi=MAX_SECONDS)
     scores, damage = score_trace(trace, None if named is None else str(named), skip_s)
     if damage:
         raise ValueError(damage)

@@ -10,6 +10,7 @@ are kept; run the same command again to complete the campaign).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import sys
@@ -166,7 +167,7 @@ def _check_out_dir(out: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hdhil.rig.campaign import local_executor, run_campaign
+    from hdhil.rig.campaign import local_executor
     from hdhil.rig.campaign_file import load_campaign
     from hdhil.rig.campaign_variants import expand
 
@@ -188,10 +189,41 @@ def run(args: argparse.Namespace) -> int:
         def make_executor() -> Any:
             return local_executor(workers)
 
+    created = not os.path.lexists(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"cannot create --out {out}: {exc}") from None
+    try:
+        return _run(args, campaign, variants, out, make_executor, lost, client)
+    except (UserError, OSError):
+        if created:  # a campaign that wrote nothing (a full disk) leaves no folder either
+            _remove_empty_tree(out)
+        raise
+
+
+def _remove_empty_tree(out: Path) -> None:
+    """Remove ``out`` and the folders in it if none holds anything but empty folders."""
+    walk = list(os.walk(out, topdown=False))
+    if any(files for _, _, files in walk):
+        return
+    for folder, _, _ in walk:
+        with contextlib.suppress(OSError):
+            os.rmdir(folder)
+
+
+def _run(
+    args: argparse.Namespace,
+    campaign: Campaign,
+    variants: list[Variant],
+    out: Path,
+    make_executor: Any,
+    lost: tuple[type[BaseException], ...],
+    client: Any,
+) -> int:
+    """Run the campaign into ``out`` (checked and created), report it; the exit code."""
+    from hdhil.rig.campaign import run_campaign
+
     progress = _Progress(len(variants), enabled=sys.stderr.isatty() and not args.json)
     previous = terminate_as_interrupt((signal.SIGTERM,))  # as Ctrl-C: finished variants kept
     try:

@@ -257,12 +257,23 @@ class CampaignRun:
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
-    """Write ``path`` whole or not at all; only a regular file is ever replaced."""
+    """Write ``path`` whole or not at all; only a regular file is ever replaced. A write
+    that fails (a full disk) leaves ``path`` as it was and no temporary, and raises a
+    one-line :class:`UserError` naming the file."""
     if path.is_symlink() or (path.exists() and not path.is_file()):
         raise ConfigError(f"{path} exists and is not a regular file: not overwriting it")
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    try:
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
 
 
 def _load_stored(path: Path, variant: Variant) -> tuple[dict[str, Any] | None, str | None]:
