@@ -174,7 +174,8 @@ def test_a_damaged_stored_record_is_run_again_with_a_one_line_warning(tmp_path, 
     out = tmp_path / "out"
     (out / "runs").mkdir(parents=True)
     for v in variants:
-        record = {"digest": v.digest, "variant": v.id, "result": None,
+        record = {"digest": v.digest, "variant": v.id,
+                  "result": {"cycles": 10, "controller": {}, "drive": {}},
                   "error": None, "wall_s": 1.0, "worker": "there:2"}  # fmt: skip
         (out / "runs" / f"{v.digest}.json").write_text(json.dumps(record))
     damaged = out / "runs" / f"{variants[0].digest}.json"

@@ -121,6 +121,9 @@ class _Canned(cf.Executor):
         return fut
 
 
+_RESULT = {"cycles": 10, "controller": {}, "drive": {}}
+
+
 def _stored(tmp_path: Path, body: str = HEAD + "[axes]\nseed = [1, 2]\n"):
     """A campaign of two variants, both with a good stored record."""
     campaign = load_campaign(_campaign(tmp_path, body))
@@ -128,13 +131,10 @@ def _stored(tmp_path: Path, body: str = HEAD + "[axes]\nseed = [1, 2]\n"):
     out = tmp_path / "out"
     (out / "runs").mkdir(parents=True)
     for v in variants:
-        record = {"digest": v.digest, "variant": v.id, "result": None,
+        record = {"digest": v.digest, "variant": v.id, "result": _RESULT,
                   "error": None, "wall_s": 1.0, "worker": "there:2"}  # fmt: skip
         (out / "runs" / f"{v.digest}.json").write_text(json.dumps(record))
     return campaign, variants, out
-
-
-_RESULT = {"cycles": 10, "controller": {}, "drive": {}}
 
 
 @pytest.mark.parametrize(
@@ -150,8 +150,16 @@ _RESULT = {"cycles": 10, "controller": {}, "drive": {}}
         ),
         (lambda rec: json.dumps(rec) + " " * CONFIG_MAX_BYTES, "bytes"),
         (lambda rec: json.dumps({**rec, "wall_s": 1.0}).replace("1.0", "1e999"), "wall_s"),
+        (lambda rec: json.dumps({**rec, "result": None}), "neither a result nor an error"),
     ],
-    ids=["nested-past-the-stack", "truncated", "cycles-beyond-int", "too-large", "wall_s-inf"],
+    ids=[
+        "nested-past-the-stack",
+        "truncated",
+        "cycles-beyond-int",
+        "too-large",
+        "wall_s-inf",
+        "result-null",
+    ],
 )
 def test_a_damaged_record_is_run_again_with_one_warning(tmp_path, damage, why):
     campaign, variants, out = _stored(tmp_path)

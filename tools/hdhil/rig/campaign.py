@@ -300,6 +300,8 @@ def _load_stored(path: Path, variant: Variant) -> tuple[dict[str, Any] | None, s
         wanted = dict if key == "result" else str
         if value is not None and not isinstance(value, wanted):
             return None, f"{key} is a {type(value).__name__}"
+    if stored.get("result") is None and stored.get("error") is None:
+        return None, "holds neither a result nor an error"
     return stored, None
 
 
