@@ -13,6 +13,7 @@ registered in pyproject.toml; docs/testing.md lists the tiers.
 
 from __future__ import annotations
 
+import concurrent.futures
 import itertools
 import os
 import shutil
@@ -361,3 +362,51 @@ def serve_drive() -> Iterator[ServeDrive]:
         stop.set()
         thread.join(5)
         bus.shutdown()
+
+
+# ------------------------------------------------------------------ full disks
+@pytest.fixture
+def tiny_fs(tmp_path: Any) -> Iterator[Any]:
+    """A 256 KiB tmpfs mounted for the test (root only: skipped otherwise, with the
+    reason), unmounted after it."""
+    if not hasattr(os, "geteuid") or os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root")
+    where = tmp_path / "tiny"
+    where.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(where)],
+                          capture_output=True, text=True)  # fmt: skip
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs: {done.stderr.strip()}")
+    try:
+        yield where
+    finally:
+        for _ in range(50):  # a process of the test may still hold a file open
+            if subprocess.run(["umount", str(where)], capture_output=True).returncode == 0:
+                break
+            time.sleep(0.1)
+        else:
+            subprocess.run(["umount", "-l", str(where)], capture_output=True)
+
+
+def fill_fs(fs: Any, leave: int = 0) -> None:
+    """Fill the file system of ``fs`` so that ``leave`` bytes (whole pages) stay free."""
+    st = os.statvfs(fs)
+    free = st.f_bavail * st.f_frsize
+    with open(fs / "filler", "wb") as fh:
+        fh.write(b"\0" * max(free - leave, 0))
+
+
+class CannedExecutor(concurrent.futures.Executor):
+    """A campaign executor that runs nothing: each variant 'finishes' at once with a
+    fixed error (and ``trace``'s bytes as its trace); ``submitted`` counts them."""
+
+    submitted = 0
+    trace: bytes | None = None
+
+    def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> concurrent.futures.Future[Any]:
+        CannedExecutor.submitted += 1
+        fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
+        fut.set_result({"result": None, "error": "RuntimeError: canned",
+                        "trace": CannedExecutor.trace, "sidecar": None, "wall_s": 0.0,
+                        "worker": "here:1"})  # fmt: skip
+        return fut

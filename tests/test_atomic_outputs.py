@@ -17,10 +17,10 @@ import subprocess
 import sys
 import textwrap
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from conftest import fill_fs
 
 from hdhil.cli import main
 from hdhil.core.errors import UserError
@@ -36,29 +36,7 @@ OLD = b"the old file\n"
 
 
 # ----------------------------------------------------------------------------- helpers
-@pytest.fixture
-def tiny_fs(tmp_path: Path) -> Iterator[Path]:
-    """A 256 KiB tmpfs mounted for the test (root only), unmounted after it."""
-    if not hasattr(os, "geteuid") or os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root")
-    where = tmp_path / "tiny"
-    where.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(where)],
-                          capture_output=True, text=True)  # fmt: skip
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs: {done.stderr.strip()}")
-    try:
-        yield where
-    finally:
-        subprocess.run(["umount", "-l", str(where)], check=False)
-
-
-def _fill(fs: Path, leave: int = 0) -> None:
-    """Fill ``fs`` so that ``leave`` bytes (whole pages) stay free."""
-    st = os.statvfs(fs)
-    free = st.f_bavail * st.f_frsize
-    with open(fs / "filler", "wb") as fh:
-        fh.write(b"\0" * max(free - leave, 0))
+_fill = fill_fs
 
 
 def _pages(n: int) -> int:

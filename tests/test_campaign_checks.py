@@ -5,7 +5,6 @@ campaign, even when it is killed."""
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import contextlib
 import json
 import os
@@ -16,6 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import CannedExecutor
 
 from hdhil.cli import main
 from hdhil.rig.campaign import run_campaign
@@ -142,17 +142,7 @@ def test_an_unusable_out_is_refused_before_any_variant_runs(
     assert sorted(p.name for p in tmp_path.iterdir()) == before
 
 
-class _Canned(cf.Executor):
-    """An executor that runs nothing: each variant 'finishes' at once with a fixed error."""
-
-    submitted = 0
-
-    def submit(self, fn, /, *args, **kwargs):
-        _Canned.submitted += 1
-        fut: cf.Future = cf.Future()
-        fut.set_result({"result": None, "error": "RuntimeError: canned", "trace": None,
-                        "wall_s": 0.0, "worker": "here:1"})  # fmt: skip
-        return fut
+_Canned = CannedExecutor
 
 
 @pytest.mark.parametrize(

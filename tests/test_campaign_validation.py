@@ -18,6 +18,7 @@ import weakref
 from pathlib import Path
 
 import pytest
+from conftest import CannedExecutor
 
 from hdhil.cli import main
 from hdhil.core import dataconf
@@ -107,18 +108,7 @@ def test_an_out_on_a_read_only_file_system_is_refused_leaving_nothing(tmp_path, 
 
 
 # ------------------------------------------------------------------------ resume store
-class _Canned(cf.Executor):
-    """Runs nothing: each variant 'finishes' at once (with a trace when ``trace``)."""
-
-    submitted = 0
-    trace: bytes | None = None
-
-    def submit(self, fn, /, *args, **kwargs):
-        type(self).submitted += 1
-        fut: cf.Future = cf.Future()
-        fut.set_result({"result": None, "error": "RuntimeError: canned", "trace": self.trace,
-                        "sidecar": None, "wall_s": 0.0, "worker": "here:1"})  # fmt: skip
-        return fut
+_Canned = CannedExecutor
 
 
 _RESULT = {"cycles": 10, "controller": {}, "drive": {}}

@@ -17,7 +17,6 @@ their own (root only, else skipped with the reason); cases that start processes
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import contextlib
 import json
 import math
@@ -32,6 +31,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from conftest import CannedExecutor, fill_fs
 
 import hdhil
 from hdhil.cli import main
@@ -209,17 +209,7 @@ def test_a_hostile_campaign_file_is_refused_in_one_line_leaving_nothing(tmp_path
             os.chdir(cwd)
 
 
-class _Canned(cf.Executor):
-    """An executor that runs nothing: each variant 'finishes' at once with a fixed error."""
-
-    submitted = 0
-
-    def submit(self, fn, /, *args, **kwargs):
-        _Canned.submitted += 1
-        fut: cf.Future = cf.Future()
-        fut.set_result({"result": None, "error": "RuntimeError: canned", "trace": None,
-                        "wall_s": 0.0, "worker": "here:1"})  # fmt: skip
-        return fut
+_Canned = CannedExecutor
 
 
 @pytest.mark.parametrize("kind", ["sparse-3GB", "binary-junk", "cut-short"])
@@ -466,32 +456,15 @@ def test_an_old_fault_log_is_kept_when_the_run_is_refused_late(tmp_path, capsys)
 
 
 @pytest.fixture
-def full_disk(tmp_path: Path) -> Iterator[Callable[[int], Path]]:
-    """A 256 KiB tmpfs of the test's own; call it with the bytes to leave free."""
-    if os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root")
-    where = tmp_path / "disk"
-    where.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(where)],
-                          capture_output=True, text=True)  # fmt: skip
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs: {done.stderr.strip()}")
+def full_disk(tiny_fs: Path) -> Callable[[int], Path]:
+    """The test's own 256 KiB tmpfs (conftest ``tiny_fs``); call it with the bytes to
+    leave free."""
 
     def fill(free: int) -> Path:
-        st = os.statvfs(where)
-        with open(where / "filler", "wb") as f, contextlib.suppress(OSError):
-            f.write(b"\0" * max(0, st.f_bavail * st.f_frsize - free))
-        return where
+        fill_fs(tiny_fs, free)
+        return tiny_fs
 
-    try:
-        yield fill
-    finally:
-        for _ in range(50):
-            if subprocess.run(["umount", str(where)], capture_output=True).returncode == 0:
-                break
-            time.sleep(0.1)
-        else:
-            subprocess.run(["umount", "-l", str(where)], capture_output=True)
+    return fill
 
 
 FULL = {
