@@ -32,6 +32,7 @@ import multiprocessing
 import os
 import signal
 import socket
+import sys
 import time
 import warnings
 from collections.abc import Callable
@@ -83,6 +84,18 @@ def _worker_stop(signum: int, frame: object) -> None:
     os._exit(128 + signum)
 
 
+def _worker_unraisable(unraisable: Any) -> None:
+    """A local pool worker's ``sys.unraisablehook``: the ``KeyboardInterrupt`` of
+    :func:`_worker_stop` that lands in a finaliser (a ``__del__`` run by the garbage
+    collector, which cannot pass an exception on) is neither printed nor lost: the
+    stopping signal is sent again, and its handler raises where the variant can unwind.
+    Anything else goes to Python's own hook."""
+    if _stopping is not None and isinstance(unraisable.exc_value, KeyboardInterrupt):
+        signal.raise_signal(_stopping)
+        return
+    sys.__unraisablehook__(unraisable)
+
+
 def _worker_init(parent_pid: int) -> None:
     """Start of a local pool worker: leave Ctrl-C to the campaign (it cancels and keeps
     results), end on SIGTERM and SIGHUP without returning a result (the handlers
@@ -94,6 +107,7 @@ def _worker_init(parent_pid: int) -> None:
     leave_interrupt_to_parent()
     for sig in TERMINATING_SIGNALS:
         signal.signal(sig, _worker_stop)
+    sys.unraisablehook = _worker_unraisable
     die_with_parent(parent_pid)
     gc.freeze()
 
