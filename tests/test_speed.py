@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import statistics
+import sys
 from pathlib import Path
 
 import pytest
@@ -124,3 +125,21 @@ def test_speed_guard_loop_against_python_can_virtual(tmp_path: Path) -> None:
         f"{ratio:.2f}x python-can virtual carrying its frames "
         f"({statistics.median(ref):.0f} us/cycle); guard {speed.GUARD_RATIO}x"
     )
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_a_timed_child_ended_by_ctrl_c_interrupts_the_bench() -> None:
+    """Ctrl-C reaches the whole process group: a timed child that ended of it first
+    interrupts the bench (KeyboardInterrupt, exit 130), it is no failed run (exit 2)."""
+    from hdhil.analysis.speed import timed_process
+    from hdhil.core.errors import UserError
+
+    with pytest.raises(KeyboardInterrupt):
+        timed_process([sys.executable, "-c", "raise SystemExit(130)"])
+    with pytest.raises(KeyboardInterrupt):
+        timed_process(
+            [sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGTERM)"]
+        )
+    with pytest.raises(UserError, match="failed"):
+        timed_process([sys.executable, "-c", "raise SystemExit(3)"])

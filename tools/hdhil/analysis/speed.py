@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import statistics
 import sys
 import tempfile
@@ -132,6 +133,17 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
+#: Exit codes of a child ended by a stopping signal: hdhil's 130, or killed by one.
+_INTERRUPTED = frozenset(
+    (
+        130,
+        -signal.SIGINT,
+        -signal.SIGTERM,
+        *((-signal.SIGHUP,) if hasattr(signal, "SIGHUP") else ()),
+    )
+)
+
+
 def timed_process(argv: Sequence[str]) -> dict[str, Any]:
     """One child process: wall time from spawn to exit, its CPU time (``os.wait4``), its
     peak RSS (the high-water mark it reports, :data:`STAGES_CHILD`) and its stamps."""
@@ -151,6 +163,10 @@ def timed_process(argv: Sequence[str]) -> dict[str, Any]:
         proc.returncode = os.waitstatus_to_exitcode(status)
         err.seek(0)
         stderr = err.read()
+    if proc.returncode in _INTERRUPTED:
+        # Ctrl-C reaches the whole process group: the child may end of it before this
+        # process's own KeyboardInterrupt is raised; the bench is interrupted, not failed
+        raise KeyboardInterrupt
     if proc.returncode != 0:
         raise UserError(f"bench: {' '.join(argv[2:5])} failed: {stderr.strip()[-300:]}")
     stamps: dict[str, float] = {}
