@@ -260,14 +260,12 @@ class TrackingScorer(can.Listener):
         self._tau_ext = 0.0
         self._tau_m = 0.0
         self.n = 0
-        self._sum_e2 = 0.0
         self._sum_d2 = 0.0
         self._sum_x2 = 0.0
-        self._max_e = 0.0
         self._max_x = 0.0
         self._max_m = 0.0
-        self._within = 0
         self._T_meas: float | None = None
+        self._true = _ErrorStats()
         self._measured = _ErrorStats()
         self._estimated = _ErrorStats()
 
@@ -302,7 +300,7 @@ class TrackingScorer(can.Listener):
         ):
             return
         _dtau, tau_lgd_hat, tau_sD, e_hat = self._tele.decode(msg.data)
-        e = self._T_true - tau_sD
+        self._true.add(self._T_true - tau_sD)
         if self._T_meas is not None:  # each measured sample scores once
             self._measured.add(self._T_meas - tau_sD)
             self._T_meas = None
@@ -310,28 +308,25 @@ class TrackingScorer(can.Listener):
         d = tau_lgd_hat - self._tau_lgd
         x = tau_lgd_hat - self._tau_ext
         self.n += 1
-        self._sum_e2 += e * e
         self._sum_d2 += d * d
         self._sum_x2 += x * x
-        self._max_e = max(self._max_e, abs(e))
         self._max_x = max(self._max_x, abs(x))
         self._max_m = max(self._max_m, abs(self._tau_m))
-        if abs(e) <= TRACKING_GOAL_NM:
-            self._within += 1
 
     def result(self) -> TrackingScore:
         n = self.n
         if not n:
             return TrackingScore(0, math.nan, math.nan, math.nan)
+        max_e, rms_e, within = self._true.result()
         return TrackingScore(
             n,
-            self._max_e,
-            math.sqrt(self._sum_e2 / n),
+            max_e,
+            rms_e,
             math.sqrt(self._sum_d2 / n),
             self._max_x,
             math.sqrt(self._sum_x2 / n),
             self._max_m,
-            self._within / n,
+            within,
             *self._measured.result(),
             *self._estimated.result(),
         )

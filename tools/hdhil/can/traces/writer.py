@@ -496,11 +496,9 @@ class WriterProcess(can.Listener):
                  metadata: dict[str, Any] | None = None,
                  child_listener: ChildListenerFactory | None = None,
                  companions: tuple[tuple[Path, Path, str], ...] = ()) -> None:  # fmt: skip
-        check_trace_path(path)
+        check_trace_path(path)  # the sidecar's name too: it is written after the trace
         target = check_output(path, "trace")
         assert target is not None
-        if metadata is not None:  # written after the trace: its name is checked now
-            check_output(metadata_path(path), "sidecar")
         self.path = path
         self._companions = tuple(Path(tmp) for tmp, _, _ in companions)
         self._failure: str | None = None  # why handing on frames failed
