@@ -87,11 +87,11 @@ def _worker_stop(signum: int, frame: object) -> None:
 def _worker_unraisable(unraisable: Any) -> None:
     """A local pool worker's ``sys.unraisablehook``: the ``KeyboardInterrupt`` of
     :func:`_worker_stop` that lands in a finaliser (a ``__del__`` run by the garbage
-    collector, which cannot pass an exception on) is neither printed nor lost: the
-    stopping signal is sent again, and its handler raises where the variant can unwind.
-    Anything else goes to Python's own hook."""
+    collector, which cannot pass an exception on) is not printed: the worker is stopping
+    anyway, and :func:`execute_variant` exits without a result once the variant returns
+    (or the campaign ends the worker after :data:`WORKER_GRACE_S`). Anything else goes
+    to Python's own hook."""
     if _stopping is not None and isinstance(unraisable.exc_value, KeyboardInterrupt):
-        signal.raise_signal(_stopping)
         return
     sys.__unraisablehook__(unraisable)
 
