@@ -34,6 +34,8 @@ SCENARIOS = (
     "speed-chirp",
     "torque-steps",
     "lqg-tracking",
+    "lqg-tracking-slow-link",
+    "lqg-tracking-squared-weights",
     "lqg-misalignment",
     "lqg-experiment",
 )

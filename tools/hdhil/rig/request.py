@@ -32,6 +32,7 @@ from hdhil.rig.factories import DriveSlot, RigLayout
 from hdhil.rig.faults import with_fault_flags
 from hdhil.rig.scenario import (
     Scenario,
+    actuation_delay,
     scenario_data,
     scenario_file_data,
     scenario_from_dict,
@@ -244,8 +245,10 @@ def resolve(
         data = merge(scenario_data(resolved), {"firmware": table})
         resolved = scenario_from_dict(data, f"calibration file {calibration}")
     extra: dict[str, Any] = {}
-    if actuation is not None:
+    if actuation is not None:  # the firmware's delay compensation follows the drive's
         extra["link"] = {"actuation": actuation}
+        if actuation in ("next-sync", "immediate"):
+            extra["firmware"] = {"control": {"delay_samples": actuation_delay(actuation)}}
     if bitrate is not None:
         extra["bus"] = {"bitrate": bitrate}
     if extra:

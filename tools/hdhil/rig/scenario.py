@@ -34,6 +34,7 @@ __all__ = [
     "LinkConfig",
     "Scenario",
     "ScenarioHeader",
+    "actuation_delay",
     "list_scenarios",
     "load_scenario",
     "scenario_data",
@@ -64,6 +65,12 @@ class LinkConfig:
     modes) or as soon as it arrives."""
 
     actuation: Literal["next-sync", "immediate"] = "next-sync"
+
+
+def actuation_delay(actuation: str) -> int:
+    """The samples of delay between a command's sample and its action with this
+    actuation: the firmware's ``control.delay_samples`` must equal it."""
+    return 1 if actuation == "next-sync" else 0
 
 
 @dataclass(frozen=True)
@@ -109,6 +116,13 @@ class Scenario:
         if not isinstance(self.plant, PlantConfig):
             raise ValueError(f"plant must be a PlantConfig, got {self.plant!r}")
         check_step(self.plant, self.firmware.sample_period_s)
+        control = self.firmware.control
+        if control.active and control.delay_samples != actuation_delay(self.link.actuation):
+            raise ValueError(
+                f"firmware.control.delay_samples = {control.delay_samples} does not match "
+                f"link.actuation = {self.link.actuation!r} (delay_samples = "
+                f"{actuation_delay(self.link.actuation)}; --actuation sets both)"
+            )
 
     @property
     def scored(self) -> tuple[Score, ...]:
