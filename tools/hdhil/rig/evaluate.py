@@ -39,7 +39,7 @@ COLUMNS = (
     "adc_torque", "adc_tacho", "adc_current", "encoder",
     "T_meas_tele", "T_filtered_tele", "velocity_tele",
     "T_true", "T_ripple", "theta_motor", "omega_motor", "theta_output", "missed",
-    "torque_actual", "position_actual",
+    "torque_actual", "position_actual", "joint_torque_mV",
 )  # fmt: skip
 
 
@@ -71,9 +71,11 @@ class Recording:
     def __init__(self, sample_period_s: float) -> None:
         self.sample_period_s = sample_period_s
         self._cols = {name: array("d") for name in COLUMNS}
-        #: "raw" (the seed's ADC counts and encoder in ``adc_*``/``encoder``) or "cst"
+        #: "raw" (the seed's ADC counts and encoder in ``adc_*``/``encoder``), "cst"
         #: (CiA 402 torque actual and position actual in ``torque_actual`` /
-        #: ``position_actual``, ``encoder`` their low 16 bits, the ADC columns NaN).
+        #: ``position_actual``, ``encoder`` their low 16 bits, the ADC columns NaN) or
+        #: "cst-sensor" (those and the joint-torque sensor 0x2102 in ``joint_torque_mV``,
+        #: NaN in the other mappings).
         self.sensor_mapping = "raw"
         #: The drive's motor rated torque 0x6076 (Nm) as read by the controller at boot
         #: (its SDO answer in the trace); None in the raw mapping or before it is seen.
@@ -162,7 +164,7 @@ class RecordingListener(can.Listener):
         self._sensor = codec("control", "DRIVE_TPDO1").expect(
             "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
         )
-        self._cst: tuple[int, int] | None = None
+        self._cst: tuple[int, ...] | None = None
         if drive_pdos:
             self._use_mapping(drive_pdos)
         self._sdo = codec("control", "SDO_TX_DRIVE").expect(
@@ -203,6 +205,9 @@ class RecordingListener(can.Listener):
             self._sensor = sensor
             self._cst = (names.index("torque_actual_value"), names.index("position_actual_value"))
             self.recording.sensor_mapping = "cst"
+            if "joint_torque_sensor" in names:
+                self._cst += (names.index("joint_torque_sensor"),)
+                self.recording.sensor_mapping = "cst-sensor"
         elif set(names) != {"ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"}:
             raise ValueError(
                 f"the trace's sensor frame maps ({', '.join(names)}): neither the raw nor "
@@ -259,12 +264,16 @@ class RecordingListener(can.Listener):
 
     def _on_sensor(self, data: bytes) -> None:
         nan = math.nan
+        gauge = nan
         if self._cst is None:
             torque, tacho, current, encoder = self._sensor.decode(data)
             actual = position = nan
         else:
             values = self._sensor.decode(data)
-            actual, position = values[self._cst[0]], values[self._cst[1]]
+            picks = self._cst
+            actual, position = values[picks[0]], values[picks[1]]
+            if len(picks) > 2:
+                gauge = values[picks[2]]
             torque = tacho = current = nan
             encoder = int(position) & 0xFFFF
         Ts = self.recording.sample_period_s
@@ -275,7 +284,8 @@ class RecordingListener(can.Listener):
         self._last_sensor_t = self._t
         t = self._truth
         row = (torque, tacho, current, encoder, math.nan, math.nan, math.nan,
-               t[0], t[1], t[2], t[3], t[4], float(self._missed), actual, position)  # fmt: skip
+               t[0], t[1], t[2], t[3], t[4], float(self._missed), actual, position,
+               gauge)  # fmt: skip
         # The truth of one SYNC belongs to one sample: a sample whose truth frames never
         # came (truth faults) has none, rather than the previous sample's.
         self._truth = [math.nan] * 5
@@ -526,7 +536,8 @@ def offline_chain(
 
 class _Calibration:
     """T_meas and motor velocity from recorded counts, chunk by chunk, through the
-    firmware's stages (in the CST mapping its :class:`firmware.stages.CstSource`).
+    firmware's stages (in the CST mappings its :class:`firmware.stages.CstSource`, with
+    the torque sensor's calibration when the joint-torque sensor 0x2102 is mapped).
 
     In the raw mapping each channel is calibrated on its own (:func:`firmware.stages.
     calibrate`: T_meas from the torque count, the velocity from the tacho count), so
@@ -537,7 +548,7 @@ class _Calibration:
         self, cfg: FirmwareConfig, sensor_mapping: str, rated_torque_Nm: float | None
     ) -> None:
         self._cst: CstSource | None = None
-        if sensor_mapping == "cst":
+        if sensor_mapping in ("cst", "cst-sensor"):
             if rated_torque_Nm is None:
                 raise ValueError(
                     "the trace holds no answer to the controller's read of the drive's rated "
@@ -546,6 +557,7 @@ class _Calibration:
             self._cst = CstSource(
                 rated_torque_Nm, cfg.calibration.encoder_counts_per_rev, cfg.diff_tau_s,
                 cfg.sample_period_s,
+                cfg.calibration if sensor_mapping == "cst-sensor" else None,
             )  # fmt: skip
         adc, cal = cfg.adc, cfg.calibration
         self._torque = _PerCount(lambda q: calibrate(*adc_read(q, 0, 0, adc), cal)[0])
@@ -558,14 +570,20 @@ class _Calibration:
         n = len(cols["torque_actual"])
         T_meas = np.empty(n)
         vel = np.empty(n)
-        for k, (q, pos) in enumerate(
+        gauge: list[int] | list[None] = (
+            cols["joint_torque_mV"].astype(np.int64).tolist()
+            if source.calibration is not None
+            else [None] * n
+        )
+        for k, (q, pos, mV) in enumerate(
             zip(
                 cols["torque_actual"].astype(np.int64).tolist(),
                 cols["position_actual"].astype(np.int64).tolist(),
+                gauge,
                 strict=True,
             )
         ):
-            T_meas[k], vel[k] = source(CstSample(q, pos))[:2]
+            T_meas[k], vel[k] = source(CstSample(q, pos, mV))[:2]
         return T_meas, vel
 
 

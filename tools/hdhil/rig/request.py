@@ -210,8 +210,9 @@ def resolve(
     """Resolve a run: the base scenario, then each override (a TOML file or a nested
     dict in the scenario file's layout, in order), the ``--fault`` flags
     (``control.loss_rate=0.05``), the calibration file (``hdhil calibrate --out``), the
-    mapping (``raw``/``cst`` or ``drive_dcf``), then duration, seed, evaluation start,
-    actuation and bit rate (None keeps the scenario's). Raises :class:`ConfigError`."""
+    mapping (a name of :data:`hdhil.dbc.MAPPINGS` or ``drive_dcf``), then duration, seed,
+    evaluation start, actuation and bit rate (None keeps the scenario's). Raises
+    :class:`ConfigError`."""
     from hdhil.firmware.odlimits import check_od_limits
 
     if mapping is not None and drive_dcf is not None:
