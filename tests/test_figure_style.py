@@ -17,7 +17,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from hdhil.analysis.paper_figures import Fig8Data, make_calibration_figure, make_fig8
-from hdhil.analysis.ripple_figures import PlotData, make_figure, steady_start
+from hdhil.analysis.ripple_figures import PlotData, has_misalignment, make_figure, steady_start
 from hdhil.core.plotlabels import key_label, split_unit
 from hdhil.rig.campaign_file import Axis, Campaign
 from hdhil.rig.campaign_metrics import METRIC_WORDS, METRICS, Criterion
@@ -82,13 +82,13 @@ def test_every_campaign_metric_has_words() -> None:
 def _fig8_data() -> Fig8Data:
     """20 s of a sine tracked, with a start-up transient (|e| 2.6 N·m) before 1 s."""
     t = np.arange(0.0, 4.0, Ts)
-    sd = 20.0 * np.sin(0.4 * math.pi * t)
+    sd = 20.0 * np.cos(0.4 * math.pi * (t - 5.1))  # peaks where a legend in the axes would sit
     e = 0.3 * np.sin(2.0 * math.pi * t) + np.where(t < 1.0, 2.6 * np.exp(-t / 0.05), 0.0)
-    tl = 20.0 * np.sin(0.4 * math.pi * t + 0.1)
+    tl = 20.0 * np.cos(0.4 * math.pi * (t - 5.0))
     return Fig8Data(t=t, tau_s_meas=sd + e + 0.05, tau_s_hat=sd + e, tau_sD=sd,
                     tau_s_true=sd + e, tau_l_hat=tl + 0.8 * np.sin(t), tau_l_meas=tl,
                     theta_l_deg=30.0 * np.sin(t), omega_l=0.5 * np.cos(t),
-                    tau_m=35.0 * np.sin(0.4 * math.pi * t))  # fmt: skip
+                    tau_m=35.0 * np.cos(0.4 * math.pi * (t - 5.1)))  # fmt: skip
 
 
 def test_fig8_draws_the_window_its_figures_are_over() -> None:
@@ -137,6 +137,17 @@ def _plot_data(misalignment: bool) -> PlotData:
     return PlotData(sample_period_s=Ts, t=t, T_meas=meas, velocity=v, T_filtered=filtered,
                     filtered_label="filtered", T_expected=np.zeros_like(t), T_true=true,
                     output_angle=out, output_angle_source="truth", mode="recommended")  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("scenario", "expected"),
+    [("free-motion", False), ("torque-steps", False), ("misalignment", True),
+     ("lqg-misalignment", True)],
+)  # fmt: skip
+def test_which_scenarios_get_misalignment_panels(scenario: str, expected: bool) -> None:
+    from hdhil.rig.request import resolve
+
+    assert has_misalignment(resolve(scenario).scenario) is expected
 
 
 def test_free_motion_has_no_misalignment_panels() -> None:

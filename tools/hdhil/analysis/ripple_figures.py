@@ -491,10 +491,10 @@ def _draw_misalignment(
         filtered = np.where(keep, data.T_filtered, np.nan)
         exp = np.where(keep, data.T_expected, np.nan)
         true = np.where(keep, data.T_true, np.nan) if data.T_true is not None else None
-        if true is not None:
-            ax.plot(xs, true, label="true (truth channel)", **_TRUE)
         ax.plot(xs, filtered, label=data.filtered_label, **_FILT)
         ax.plot(xs, exp, label=_EXP_LABEL, zorder=3, **_EXP)
+        if true is not None:  # on top: the reference the filtered torque is read against
+            ax.plot(xs, true, label="true (truth channel)", zorder=4, **_TRUE)
         _fit_ylim(ax, [filtered, true, exp])
         if keep.any():
             ax.set_xlim(np.nanmin(xs), np.nanmax(xs))
@@ -502,5 +502,5 @@ def _draw_misalignment(
             ax.set_title(f"Fig. 11: misalignment after filtering, {what} (steady part)")
         else:
             ax.set_title(what if keep.any() else f"{what}: none", fontsize=10)
-    for ax in (ax10, ax11):
-        _legend_below(ax)
+    _legend_below(ax10)
+    _legend_below(ax11, below=-0.2)  # the figure's last row: clear of its x label
