@@ -290,6 +290,14 @@ class ControlConfig:
         """True when a control law runs (``law`` is not ``NONE``)."""
         return self.law is not Law.NONE
 
+    @property
+    def ripple_filter_in_loop(self) -> bool:
+        """True when the torque-ripple filter's output is used: without a law it is the
+        torque the telemetry reports (``CTRL_TPDO1.T_filtered``), with one only if the
+        regulator feeds back on it (``feedback = "T_filtered"``); otherwise the filter
+        has nothing to act on and the telemetry carries the law's estimate τ̂s."""
+        return not self.active or self.feedback == "T_filtered"
+
 
 #: JTF1 + feedforward tuned for the [Vertechy] §VI tracking scenario (link moved as
 #: ``θl = 20° sin 2πt``, ``τsD = 20 sin 0.4πt``), max |e| <= 0.3 Nm

@@ -127,10 +127,15 @@ class Scenario:
     @property
     def scored(self) -> tuple[Score, ...]:
         """What the evaluation scores: ``scores`` if given, else the tracking of a
-        torque-control law or, without one, the ripple filter."""
-        if self.scores:
-            return self.scores
-        return ("tracking",) if self.firmware.control.law != Law.NONE else ("ripple",)
+        torque-control law or, without one, the ripple filter. The ripple filter is
+        scored only where its output is used (:attr:`hdhil.firmware.config.ControlConfig.
+        ripple_filter_in_loop`): a law regulating on the measured torque leaves it out
+        of the loop, and ``scores`` naming it there score the tracking only."""
+        control = self.firmware.control
+        scored = self.scores or (("tracking",) if control.law != Law.NONE else ("ripple",))
+        if not control.ripple_filter_in_loop:
+            scored = tuple(s for s in scored if s != "ripple") or ("tracking",)
+        return scored
 
 
 @dataclass(frozen=True)
