@@ -34,7 +34,8 @@ def evaluation_section(output: str) -> list[str]:
 def readme_block(text: str) -> tuple[int, int, list[str]]:
     """The fenced lines between the markers, and where they sit in ``text``'s lines."""
     lines = text.splitlines()
-    begin, end = lines.index(BEGIN), lines.index(END)
+    begin = lines.index(BEGIN)
+    end = lines.index(END, begin)
     assert lines[begin + 1] == "```text" and lines[end - 1] == "```", "a ```text fence"
     return begin + 2, end - 1, lines[begin + 2 : end - 1]
 

@@ -241,7 +241,8 @@ def table(*, project: bool = True) -> str:
 
 def readme_table(text: str) -> str:
     """The table between the markers of README.md's text."""
-    start, end = text.index(BEGIN), text.index(END)
+    start = text.index(BEGIN)
+    end = text.index(END, start)
     return text[start + len(BEGIN) : end].strip("\n") + "\n"
 
 
@@ -265,7 +266,8 @@ def main(argv: list[str] | None = None) -> int:
             print("README.md's fidelity table is out of date: python tools/docs/fidelity.py")
             return 1
         return 0
-    start, end = text.index(BEGIN), text.index(END)
+    start = text.index(BEGIN)
+    end = text.index(END, start)
     README.write_text(text[: start + len(BEGIN)] + "\n" + new + text[end:], encoding="utf-8")
     return 0
 
