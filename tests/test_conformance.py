@@ -77,6 +77,10 @@ def test_every_case_passes_against_the_emulated_drive_in_process(drive_channel):
                  for o in od.values())  # fmt: skip
     assert sum(o.case.group == "objects" for o in result.outcomes) == 2 * n_vars
     assert result.seconds < 15
+    # Object dictionary consistency (#25 item 6): the boot value of 0x6076 equals its EDS
+    # default, and a stray upload segment is answered with abort 0x05040001.
+    assert _status(result, "0x6076:00 motor_rated_torque: boot value") == "pass"
+    assert _status(result, "§7.2.4.3.17 upload segment, no transfer") == "pass"
 
 
 @pytest.mark.slow
@@ -118,6 +122,19 @@ def test_no_motion_never_commands_enable_operation(drive_channel):
     assert result.ok
     assert words and 0x0F not in words and not any(w & 0x0F == 0x0F for w in words)
     assert _status(result, "transition 4") == "skip"
+
+
+@pytest.mark.slow
+def test_no_node_on_the_bus_fails_every_case_after_one_boot_wait(capsys):
+    """Nobody answers: one wait for the boot-up, then every case fails at once (exit 1)."""
+    start = time.monotonic()
+    channel = f"nobody-{time.monotonic_ns()}"
+    code = main(["conformance", "--interface", "virtual", "--channel", channel,
+                 "--only", "nmt,objects"])  # fmt: skip
+    out = capsys.readouterr().out
+    assert code == 1
+    assert "the node never booted; group set-up: no boot-up message (0x702 00)" in out
+    assert time.monotonic() - start < 10
 
 
 @pytest.mark.parametrize(

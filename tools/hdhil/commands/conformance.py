@@ -52,7 +52,8 @@ def run_conformance(args: argparse.Namespace) -> int:
     od, name = _object_dictionary(args.eds, args.node)
     try:
         options = Options(node_id=args.node, master_id=args.master_id,
-                          motion=not args.no_motion, only=only, skip=skip)  # fmt: skip
+                          motion=not args.no_motion, only=only, skip=skip,
+                          retries=args.retries)  # fmt: skip
     except ValueError as exc:
         raise UserError(str(exc)) from None
     cases = build_cases(od, options)
@@ -100,6 +101,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-motion", action="store_true",
                    help="never command enable operation: the power stage stays off "
                    "(for a drive on a machine)")  # fmt: skip
+    p.add_argument("--retries", type=arg_int(0, 10), default=1,
+                   help="run a failed case again up to this many times, from a reset node; "
+                   "it passes if a retry does, and the report says so (default 1)")  # fmt: skip
     p.add_argument("--junit", metavar="FILE", default=None, help="write JUnit XML here")
     p.add_argument("--verbose", "-v", action="store_true",
                    help="list every case, not only the failed ones")  # fmt: skip

@@ -169,7 +169,7 @@ def heartbeat_loss(ctx: Context, timeout_ms: int = 100) -> tuple[float, float, i
     sub = consumer_entry(ctx)
     ctx.write(0x1016, sub, ctx.options.master_id << 16 | timeout_ms)
     ctx.start_heartbeat(timeout_ms * 0.25e-3)
-    time.sleep(timeout_ms * 2e-3)
+    time.sleep(timeout_ms * 1.2e-3)
     mark = ctx.recorder.mark()
     last = ctx.stop_heartbeat()
     return last, last + timeout_ms * 1e-3, mark
@@ -351,8 +351,10 @@ def heartbeat_cases(od: ObjectDictionary) -> list[Case]:
     def producer_change(ctx: Context) -> str:
         ctx.need(0x1017, 0)
         ctx.write(0x1017, 0, 40)
-        times = _heartbeat_times(ctx, 6, 1.0)
+        times = arrivals(ctx, HEARTBEAT_BASE + ctx.node_id, 0.05, 0.3)
         gaps = [b - a for a, b in itertools.pairwise(times)]
+        if len(gaps) < 4:
+            raise CaseFailed(f"{len(times)} heartbeats in 0.3 s after 0x1017 = 40")
         mean = sum(gaps) / len(gaps)
         if abs(mean - 0.040) > 0.040 * max(ctx.options.period_tolerance, 0.25):
             raise CaseFailed(f"mean heartbeat period {mean * 1e3:.1f} ms after 0x1017 = 40")
@@ -408,10 +410,10 @@ def heartbeat_cases(od: ObjectDictionary) -> list[Case]:
         sub = consumer_entry(ctx)
         ctx.write(0x1016, sub, ctx.options.master_id << 16)  # time 0: not monitored
         ctx.start_heartbeat(0.02)
-        time.sleep(0.1)
+        time.sleep(0.08)
         mark = ctx.recorder.mark()
         ctx.stop_heartbeat()
-        hit = emcy_wait(ctx, lambda c: c == 0x8130, 0.4, mark)
+        hit = emcy_wait(ctx, lambda c: c == 0x8130, 0.3, mark)
         if hit is not None:
             raise CaseFailed("EMCY 0x8130 with consumer time 0 (entry not used)")
         return "no EMCY"
@@ -436,27 +438,12 @@ def heartbeat_cases(od: ObjectDictionary) -> list[Case]:
     ]
 
 
-def _heartbeat_times(ctx: Context, n: int, timeout: float) -> list[float]:
+def arrivals(ctx: Context, cob_id: int, settle_s: float, window_s: float) -> list[float]:
+    """Arrival times of frame ``cob_id`` over ``window_s`` after ``settle_s``."""
+    time.sleep(settle_s)
     mark = ctx.recorder.mark()
-    end = time.monotonic() + timeout + n * 0.2
-    times: list[float] = []
-    while len(times) < n + 1 and time.monotonic() < end:
-        hit = ctx.recorder.wait(cob(HEARTBEAT_BASE + ctx.node_id), timeout, mark)
-        if hit is None:
-            break
-        mark = ctx.recorder.mark() if hit[0] is None else _index_after(ctx, hit)
-        times.append(hit[0])
-    if len(times) < n + 1:
-        raise CaseFailed(f"{len(times)} heartbeats, {n + 1} expected")
-    return times[1:]  # the first may follow the write by any time
-
-
-def _index_after(ctx: Context, hit: tuple[float, Any]) -> int:
-    frames = ctx.recorder.frames
-    for i in range(len(frames) - 1, -1, -1):
-        if frames[i][1] is hit[1]:
-            return i + 1
-    return len(frames)
+    time.sleep(window_s)
+    return [t for t, _ in ctx.recorder.since(mark, cob(cob_id))]
 
 
 # ------------------------------------------------------------------ SDO
@@ -928,13 +915,10 @@ def pdo_cases(od: ObjectDictionary) -> list[Case]:
         comm, cob_id = event_tpdo(ctx)
         ctx.write(comm, 5, 20)
         ctx.nmt(NMT_START)
-        time.sleep(0.1)
-        mark = ctx.recorder.mark()
-        time.sleep(0.5)
-        times = [t for t, _ in ctx.recorder.since(mark, cob(cob_id))]
+        times = arrivals(ctx, cob_id, 0.05, 0.3)
         gaps = [b - a for a, b in itertools.pairwise(times)]
         if len(gaps) < 5:
-            raise CaseFailed(f"{len(times)} frames in 0.5 s with an event timer of 20 ms")
+            raise CaseFailed(f"{len(times)} frames in 0.3 s with an event timer of 20 ms")
         mean = sum(gaps) / len(gaps)
         if abs(mean - 0.02) > 0.02 * max(ctx.options.period_tolerance, 0.2):
             raise CaseFailed(f"mean period {mean * 1e3:.1f} ms with event timer 20 ms")
@@ -949,13 +933,10 @@ def pdo_cases(od: ObjectDictionary) -> list[Case]:
         ctx.write(comm, 5, 10)
         ctx.write(comm, 1, raw & ~PDO_NOT_VALID)
         ctx.nmt(NMT_START)
-        time.sleep(0.1)
-        mark = ctx.recorder.mark()
-        time.sleep(0.4)
-        times = [t for t, _ in ctx.recorder.since(mark, cob(cob_id))]
+        times = arrivals(ctx, cob_id, 0.05, 0.3)
         gaps = [b - a for a, b in itertools.pairwise(times)]
         if len(gaps) < 3:
-            raise CaseFailed(f"{len(times)} frames in 0.4 s")
+            raise CaseFailed(f"{len(times)} frames in 0.3 s")
         short = min(gaps)
         if short < 0.040 * 0.9:
             raise CaseFailed(f"frames {short * 1e3:.1f} ms apart with inhibit time 40 ms")
@@ -1185,7 +1166,7 @@ def emcy_cases(od: ObjectDictionary) -> list[Case]:
         ctx.nmt(NMT_STOP)
         time.sleep(0.02)
         _, _, mark = heartbeat_loss_stopped(ctx)
-        hit = emcy_wait(ctx, lambda c: True, 0.4, mark)
+        hit = emcy_wait(ctx, lambda c: True, 0.3, mark)
         if hit is not None:
             raise CaseFailed(f"EMCY 0x{hit[1]:04X} in STOPPED")
         return "no EMCY in STOPPED"
@@ -1208,7 +1189,7 @@ def heartbeat_loss_stopped(ctx: Context) -> tuple[float, float, int]:
     ctx.write(0x1016, sub, ctx.options.master_id << 16 | 100)
     ctx.nmt(NMT_STOP)
     ctx.start_heartbeat(0.025)
-    time.sleep(0.2)
+    time.sleep(0.12)
     mark = ctx.recorder.mark()
     last = ctx.stop_heartbeat()
     return last, last + 0.1, mark

@@ -13,8 +13,8 @@ _MARK = {"pass": "ok  ", "fail": "FAIL", "skip": "skip", "error": "ERR "}
 
 
 def text_report(result: SuiteResult, verbose: bool = False) -> str:
-    """One line per case that did not pass (all cases with ``verbose``), a line per
-    group and the totals."""
+    """One line per case that failed or passed only on a retry (all cases with
+    ``verbose``), a line per group and the totals."""
     lines = [f"hdhil conformance: node {result.options.node_id}, {result.eds}"]
     for group, items in groupby(result.outcomes, key=lambda o: o.case.group):
         outs = list(items)
@@ -22,13 +22,19 @@ def text_report(result: SuiteResult, verbose: bool = False) -> str:
         lines.append(f"[{group}] {counts['pass']} passed, {counts['fail'] + counts['error']} "
                      f"failed, {counts['skip']} skipped")  # fmt: skip
         for o in outs:
-            if verbose or o.status in ("fail", "error"):
+            if verbose or o.status in ("fail", "error") or _retried(o.detail):
                 lines.append(f"  {_MARK[o.status]} {o.case.name}: {o.detail}")
     n = len(result.outcomes)
     failed = result.count("fail") + result.count("error")
-    lines.append(f"{n} cases: {result.count('pass')} passed, {failed} failed, "
+    retried = sum(_retried(o.detail) for o in result.outcomes if o.status == "pass")
+    again = f" ({retried} on a retry)" if retried else ""
+    lines.append(f"{n} cases: {result.count('pass')} passed{again}, {failed} failed, "
                  f"{result.count('skip')} skipped in {result.seconds:.1f} s")  # fmt: skip
     return "\n".join(lines) + "\n"
+
+
+def _retried(detail: str) -> bool:
+    return "(passed on retry " in detail
 
 
 def junit_xml(result: SuiteResult) -> str:
