@@ -9,12 +9,16 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from hdhil.commands.options import add_bus_options, open_bus
 from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.errors import UserError
 from hdhil.core.files import check_input, check_output, write_text
 from hdhil.core.numbers import arg_int
+
+if TYPE_CHECKING:
+    from canopen.objectdictionary import ObjectDictionary
 
 
 def _groups(values: list[str] | None) -> tuple[str, ...]:
@@ -29,7 +33,7 @@ def _groups(values: list[str] | None) -> tuple[str, ...]:
     return tuple(out)
 
 
-def _object_dictionary(text: str | None, node_id: int):
+def _object_dictionary(text: str | None, node_id: int) -> tuple[ObjectDictionary, str]:
     import canopen
 
     from hdhil.dbc import eds_path
@@ -60,7 +64,9 @@ def run_conformance(args: argparse.Namespace) -> int:
     if not cases:
         raise UserError("no case selected (--only/--skip leave no group)")
     bus, _ = open_bus(args, "control bus")
-    logging.getLogger("canopen").setLevel(logging.CRITICAL)  # the suite reports aborts
+    canopen_log = logging.getLogger("canopen")
+    level = canopen_log.level
+    canopen_log.setLevel(logging.CRITICAL)  # the suite reports the aborts it provokes
     try:
         with progress(args, len(cases), "conformance", unit="case") as bar:
 
@@ -70,6 +76,7 @@ def run_conformance(args: argparse.Namespace) -> int:
 
             result = run_suite(bus, od, options, name, told, cases)
     finally:
+        canopen_log.setLevel(level)
         bus.shutdown()
     sys.stdout.write(text_report(result, verbose=args.verbose))
     if args.junit is not None:

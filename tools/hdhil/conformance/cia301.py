@@ -68,8 +68,11 @@ def _hex(index: int, sub: int) -> str:
     return f"0x{index:04X}:{sub:02X}"
 
 
+_INTEGER_TYPES = frozenset(dt.INTEGER_TYPES)
+
+
 def _int_types() -> frozenset[int]:
-    return frozenset(dt.INTEGER_TYPES)
+    return _INTEGER_TYPES
 
 
 # ------------------------------------------------------------------ helpers
@@ -175,7 +178,11 @@ def heartbeat_loss(ctx: Context, timeout_ms: int = 100) -> tuple[float, float, i
     return last, last + timeout_ms * 1e-3, mark
 
 
-def case(group: str, ref: str, title: str, motion: bool = False):
+def case(
+    group: str, ref: str, title: str, motion: bool = False
+) -> Callable[[Callable[[Context], str | None]], Case]:
+    """A decorator making a :class:`Case` of a check function."""
+
     def wrap(fn: Callable[[Context], str | None]) -> Case:
         return Case(group, ref, title, fn, motion)
 
@@ -615,7 +622,9 @@ def sdo_cases(od: ObjectDictionary) -> list[Case]:
 def _range_case(g: str, var: ODVariable, value: int, code: int, title: str) -> Case:
     def run(ctx: Context) -> str:
         before = ctx.upload(var.index, var.subindex)
-        detail = ctx.expect_abort(lambda: ctx.write(var.index, var.subindex, value),
+        # Packed as the type says, without canopen's own range warning on encoding.
+        data = ODVariable.STRUCT_TYPES[var.data_type].pack(value)
+        detail = ctx.expect_abort(lambda: ctx.download(var.index, var.subindex, data),
                                   (code,), f"{value}")  # fmt: skip
         if ctx.upload(var.index, var.subindex) != before:
             raise CaseFailed("the refused write changed the value")
