@@ -200,6 +200,8 @@ class CyclicIO:
         self._rpdo_handlers: dict[int, PdoLayout] = {}
         self._rpdo_deadlines: dict[int, float] = {}
         self._fast_sensor = True
+        #: The synchronous TPDOs besides TPDO1 (sent on SYNC on the fast path too).
+        self._other_sync_tpdos: list[Tpdo] = []
         for index in [*range(0x1400, 0x1404), *range(0x1600, 0x1604),
                       *range(0x1800, 0x1804), *range(0x1A00, 0x1A04)]:  # fmt: skip
             obj = od.get(index)
@@ -285,6 +287,8 @@ class CyclicIO:
                 msg.data = self._sensor.encode(*sample)
                 self.bus.send(msg)
                 d.sensor_frames += 1
+                for tpdo in self._other_sync_tpdos:  # TPDO2-4 mapped synchronous
+                    tpdo.on_sync(now)
             else:
                 for tpdo in self._tpdos:
                     if tpdo.layout.synchronous:
@@ -517,6 +521,7 @@ class CyclicIO:
             and first.cob_id == default.cob_id
             and _same_mapping(first, default)
         )
+        self._other_sync_tpdos = [t for t in tpdos[1:] if t.layout.valid and t.layout.synchronous]
         self._sync_period_s = (
             read(OD_SYNC_PERIOD) * 1e-6 if variable(od, OD_SYNC_PERIOD, 0) is not None else 0.0
         )
