@@ -112,6 +112,30 @@ def test_experiment_friction_is_the_seed_model_and_an_unmodelled_viscous_term() 
 
 
 # ------------------------------------------------------------------ firmware Eq. 5
+def test_eq5_fade_in_reading_is_the_printed_formula_with_one_bracket_moved() -> None:
+    """[Vertechy] Eq. 5 read as -13.7 sgn(w) (1 + tanh(|w|/2 - 4)) / 2, w the motor-shaft
+    speed: a compensation that fades in around 8 rad/s; selectable beside the tanh one."""
+    fade = FrictionModelConfig(coulomb_Nm=13.7, velocity_scale_radps=2.0, model="fade-in")
+    for w in (-300.0, -20.0, -8.0, -3.0, -0.5, 1e-3, 0.7, 4.0, 8.0, 9.5, 30.0, 100.0):
+        expected = -13.7 * math.copysign(1.0, w) * (1.0 + math.tanh(abs(w) / 2.0 - 4.0)) / 2.0
+        assert fade.torque(w) == pytest.approx(expected, rel=1e-12, abs=1e-15)
+    assert fade.torque(0.0) == 0.0
+    assert fade.torque(8.0) == pytest.approx(-13.7 / 2.0)
+    assert abs(fade.torque(2.0)) < 0.05 < 0.3 * abs(SEED_FRICTION_MODEL.torque(2.0))
+    # the key of a scenario file, and its check
+    ctl = from_dict(ControlConfig, {"law": "jtf1", "friction": {"coulomb_Nm": 13.7,
+                                                                 "model": "fade-in"}})  # fmt: skip
+    assert ctl.friction == fade
+    assert from_dict(ControlConfig, {"friction": {"coulomb_Nm": 13.7}}).friction.model == "tanh"
+    with pytest.raises(ConfigError, match="model"):
+        from_dict(ControlConfig, {"friction": {"coulomb_Nm": 13.7, "model": "sgn"}})
+    # the interrupt stage applies it on the tacho velocity
+    stage = TorqueControl(FirmwareConfig(control=ControlConfig(law=Law.JTF1, friction=fade)))
+    out = IsrOutput()
+    stage(0, 0.0, out, 8.0)
+    assert out.tau_d_hat == pytest.approx(-13.7 / 2.0)
+
+
 def test_interrupt_stage_applies_eq5_with_the_tacho_velocity() -> None:
     """TorqueControl passes tau_d_hat = model(velocity) to the LQG controller (Eq. 5):
     the same commands as a controller driven by hand with that model."""

@@ -121,8 +121,9 @@ class DriveTrainConfig:
     out at 13.7 Nm, smooth through zero velocity, with a velocity scale of 2 rad/s
     (the ``|w|/2``).  (Moving the bracket, ``-13.7 sign(w) (1 + tanh(|w|/2 - 4)) / 2``,
     also tops out at 13.7 Nm, but as a smooth step centred at |w| = 8 rad/s that
-    vanishes near rest, which no friction does; we do not take that reading.)  The
-    tanh Coulomb model here is the reading we take:
+    vanishes near rest, which no friction does: a reading for the firmware's
+    compensation, ``firmware.config.FrictionModelConfig.model = "fade-in"``, not for the
+    plant.)  The tanh Coulomb model here is the reading we take:
     ``tau_d = -13.7 tanh(dq_m / eps)``, i.e. ``coulomb_motor = 13.7``, ``b_motor =
     0``, with ``eps = friction_smoothing``.  The seed's w is the motor velocity
     reduced to the output (§II: all quantities reduced to the output link), so the
