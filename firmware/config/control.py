@@ -151,7 +151,9 @@ class FrictionModelConfig:
           τ̂d = -coulomb_Nm · sgn(ω) · (1 + tanh(|ω| / s - fade_in_offset)) / 2
 
       with ``s = velocity_scale_radps``.  Against a plant whose friction is the tanh
-      one, the link's reversals stick and slip (``docs/papers.md``).
+      one, its rise between about 4 and 12 rad/s is a negative damping at the motor
+      and the joint mode oscillates while the motor turns that slowly
+      (``docs/papers.md``).
 
     ``ω`` is the motor-shaft velocity the firmware measures (tachometer, rad/s at the
     motor shaft, not reduced to the output) and ``velocity_scale_radps`` the ``2`` of

@@ -21,6 +21,8 @@ compensation of Eq. 5 on the Kalman observer of Eq. 8:
   and the firmware's model in either reading of the garbled Eq. 5 (``"tanh"``:
   ``-C tanh(w/s)``; ``"fade-in"``: ``-C sgn(w) (1 + tanh(|w|/s - 4)) / 2``), on a
   tachometer with white noise;
+- optionally a friction on the link side of the sensor (``link_coulomb_Nm``), which
+  the observer counts as external torque and the handle's sensor does not see;
 - the person: five sinusoids of 0.05-0.25 Hz from ``numpy.random.default_rng(seed)``,
   amplitudes ∝ 1/f, scaled to a 60 deg peak over the first 20 s and to at most 1000 rpm of
   the motor (the same recipe as the emulator's ``person`` link, rebuilt here).
@@ -62,6 +64,10 @@ class Fig8Setup:
     coulomb_Nm: float = 13.7  # plant and model
     velocity_scale_radps: float = 2.0  # at the motor shaft
     viscous_Nm_per_motor_radps: float = 0.15  # plant only (unmodelled)
+    # a Coulomb friction on the link side of the sensor (output-shaft bearings, Nm,
+    # smoothed over 0.01 rad/s of the link): the handle's sensor does not see it, the
+    # observer lumps it into tau_lg
+    link_coulomb_Nm: float = 0.0
     model: str = "tanh"  # the firmware's reading of Eq. 5: "tanh" or "fade-in"
     plant_model: str = "tanh"  # the plant's Coulomb friction, the same two forms
     fade_in_offset: float = 4.0
@@ -200,7 +206,8 @@ def simulate(s: Fig8Setup = Fig8Setup()) -> Fig8Result:
         y = tau_s + noise[i]
         w_meas = wm * N + tacho[i]
         td_hat = friction_model(s, w_meas)
-        tau_l = s.Jl * al + tau_s + c * (wl - wm)
+        # the handle's torque: what moves the link against the joint and the bearings
+        tau_l = s.Jl * al + tau_s + c * (wl - wm) + s.link_coulomb_Nm * math.tanh(wl / 0.01)
         out[i] = (t, tau_s, y, desired(i), tau_l, xh[2], cmd)
         # observer over this sample, fed the command acting now plus the model (§V)
         xh = Ad @ xh + Bd @ np.array([cmd + td_hat, y])
