@@ -14,6 +14,7 @@ import pytest
 
 from hdhil.cli import main
 from hdhil.firmware.lqg_design import JointParams, LqgWeights, design_lqg
+from hdhil.rig.scenario import load_scenario
 
 _PATH = Path(__file__).resolve().parents[1] / "tools" / "docs" / "independent" / "vertechy_fig8.py"
 
@@ -72,3 +73,22 @@ def test_independent_fig8_agrees_with_the_project_run() -> None:
     assert ind.within_true == pytest.approx(row["share_within_goal"], abs=0.02)
     assert ind.within_measured == pytest.approx(row["share_within_goal_measured"], abs=0.02)
     assert ind.max_abs_tau_l_err == pytest.approx(row["max_external_error"], abs=0.5)
+
+
+def test_independent_setup_is_the_scenario() -> None:
+    """The independent defaults are the scenario's plant: the motor friction exact (no
+    viscous term) and the output bearings' Coulomb friction before the handle."""
+    m = _module()
+    s = m.Fig8Setup()
+    plant = load_scenario("lqg-experiment").plant
+    d, link = plant.drivetrain, plant.link
+    assert s.viscous_Nm_per_motor_radps == d.b_motor / d.gear_ratio
+    assert (s.coulomb_Nm, s.velocity_scale_radps) == (
+        d.coulomb_motor,
+        d.friction_smoothing * d.gear_ratio,
+    )
+    assert (s.link_coulomb_Nm, s.link_smoothing_radps) == (
+        link.bearing_coulomb_Nm,
+        link.bearing_smoothing_radps,
+    )
+    assert (s.W, plant.sensors.torque_noise_Nm) == (0.12, 0.12)

@@ -17,12 +17,16 @@ compensation of Eq. 5 on the Kalman observer of Eq. 8:
 - one sample of actuation delay: the command computed at sample k from the observer's
   estimate for sample k+1 acts from sample k+1; a first-order current lag;
 - the plant's motor friction ``-C tanh(w_m / s) - b w_m`` (``w_m`` the motor-shaft
-  speed, ``C`` 13.7 Nm, ``s`` 2 rad/s, ``b`` output-referred torque per motor rad/s),
+  speed, ``C`` 13.7 Nm, ``s`` 2 rad/s, ``b`` output-referred torque per motor rad/s, 0 in
+  the scenario: the model exact; 0.15 the motor-viscous reading),
   and the firmware's model in either reading of the garbled Eq. 5 (``"tanh"``:
   ``-C tanh(w/s)``; ``"fade-in"``: ``-C sgn(w) (1 + tanh(|w|/s - 4)) / 2``), on a
   tachometer with white noise;
-- optionally a friction on the link side of the sensor (``link_coulomb_Nm``), which
-  the observer counts as external torque and the handle's sensor does not see;
+- a Coulomb friction in the output-shaft bearings, on the link side of the joint's
+  torque sensor and before the handle (``link_coulomb_Nm``, 3 Nm as in the scenario):
+  the person at the handle overcomes it, so the handle's sensor (``tau_l``, the
+  handle torque the estimate is scored against) does not see it, and the observer,
+  which sees all torque on the link, counts it as external torque;
 - the person: five sinusoids of 0.05-0.25 Hz from ``numpy.random.default_rng(seed)``,
   amplitudes ∝ 1/f, scaled to a 60 deg peak over the first 20 s and to at most 1000 rpm of
   the motor (the same recipe as the emulator's ``person`` link, rebuilt here).
@@ -63,11 +67,12 @@ class Fig8Setup:
     frequency_Hz: float = 0.2
     coulomb_Nm: float = 13.7  # plant and model
     velocity_scale_radps: float = 2.0  # at the motor shaft
-    viscous_Nm_per_motor_radps: float = 0.15  # plant only (unmodelled)
+    viscous_Nm_per_motor_radps: float = 0.0  # plant only (unmodelled; 0.15: the viscous reading)
     # a Coulomb friction on the link side of the sensor (output-shaft bearings, Nm,
-    # smoothed over 0.01 rad/s of the link): the handle's sensor does not see it, the
-    # observer lumps it into tau_lg
-    link_coulomb_Nm: float = 0.0
+    # smoothed over link_smoothing_radps of the link): the handle's sensor does not see
+    # it, the observer lumps it into tau_lg
+    link_coulomb_Nm: float = 3.0
+    link_smoothing_radps: float = 0.01
     model: str = "tanh"  # the firmware's reading of Eq. 5: "tanh" or "fade-in"
     plant_model: str = "tanh"  # the plant's Coulomb friction, the same two forms
     fade_in_offset: float = 4.0
@@ -207,7 +212,12 @@ def simulate(s: Fig8Setup = Fig8Setup()) -> Fig8Result:
         w_meas = wm * N + tacho[i]
         td_hat = friction_model(s, w_meas)
         # the handle's torque: what moves the link against the joint and the bearings
-        tau_l = s.Jl * al + tau_s + c * (wl - wm) + s.link_coulomb_Nm * math.tanh(wl / 0.01)
+        tau_l = (
+            s.Jl * al
+            + tau_s
+            + c * (wl - wm)
+            + s.link_coulomb_Nm * math.tanh(wl / s.link_smoothing_radps)
+        )
         out[i] = (t, tau_s, y, desired(i), tau_l, xh[2], cmd)
         # observer over this sample, fed the command acting now plus the model (§V)
         xh = Ad @ xh + Bd @ np.array([cmd + td_hat, y])
