@@ -16,13 +16,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib.figure import Figure
 
 from hdhil.core.errors import UserError
 from hdhil.core.plotlabels import NM, axis_label
+
+if TYPE_CHECKING:
+    from hdhil.hostsim.plant import LinkMotionConfig
 
 __all__ = [
     "Fig8Data",
@@ -46,7 +49,9 @@ class Fig8Data:
     tau_sD: np.ndarray  #: τsD, the desired torque from telemetry
     tau_s_true: np.ndarray  #: τs, truth (NaN without a truth channel)
     tau_l_hat: np.ndarray  #: the observer's exogenous-torque estimate (τ̂lg with Eq. 5)
-    tau_l_meas: np.ndarray  #: the true external torque τl + τg (the handle's sensor)
+    #: τl^m (+ τg): what the handle's sensor measures, true (``TRUTH_JOINT.tau_ext`` less
+    #: the output bearings' friction, ``LinkMotionConfig.handle_torque``)
+    tau_l_meas: np.ndarray
     theta_l_deg: np.ndarray
     omega_l: np.ndarray
     tau_m: np.ndarray  #: commanded motor torque (output-referred)
@@ -55,8 +60,10 @@ class Fig8Data:
         return len(self.t)
 
 
-def fig8_data(trace: Path) -> tuple[Fig8Data, str]:
-    """Read a trace of a torque-control run into :class:`Fig8Data` (and a damage note)."""
+def fig8_data(trace: Path, handle: LinkMotionConfig | None = None) -> tuple[Fig8Data, str]:
+    """Read a trace of a torque-control run into :class:`Fig8Data` (and a damage note).
+    ``handle``: the run's link (``[plant.link]``), whose bearing friction separates the
+    handle torque τl^m from ``TRUTH_JOINT.tau_ext``; None: τl^m is ``tau_ext``."""
     from hdhil.can.traces.reader import read_trace
     from hdhil.dbc import codec
 
@@ -107,6 +114,8 @@ def fig8_data(trace: Path) -> tuple[Fig8Data, str]:
         )
     a = np.array(rows, dtype=float)
     theta = np.degrees((a[:, 7] + math.pi) % (2.0 * math.pi) - math.pi)  # link within ±180°
+    if handle is not None and handle.bearing_coulomb_Nm:
+        a[:, 6] = [handle.handle_torque(x, w) for x, w in zip(a[:, 6], a[:, 8], strict=True)]
     return (
         Fig8Data(
             t=a[:, 0],
@@ -164,7 +173,7 @@ def make_fig8(d: Fig8Data, title: str, skip_s: float = 0.0) -> Figure:
 
     1. the raw sensor torque τs^m, the Kalman estimate τ̂s and the desired torque τsD;
     2. the external-torque estimate τ̂l and the handle's measurement τl^m (here the
-       emulator's true external torque, ``TRUTH_JOINT.tau_ext``), dashed on top so
+       emulator's true handle torque, :attr:`Fig8Data.tau_l_meas`), dashed on top so
        that both show where they agree;
     3. the tracking error e and the difference τ̂l − τl^m ("the proposed controller is
        able to keep the torque sensor tracking error e within ±0.5 Nm"; "the
@@ -195,7 +204,7 @@ def make_fig8(d: Fig8Data, title: str, skip_s: float = 0.0) -> Figure:
     ax = axes[1]
     ax.plot(t, d.tau_l_hat[w], color="C1", lw=1.6, label=r"$\hat{\tau}_l$ (observer)")
     ax.plot(t, d.tau_l_meas[w], color="k", lw=0.9, ls=(0, (4, 2)), zorder=3,
-            label=r"$\tau_l^m$ (handle: true external torque)")  # fmt: skip
+            label=r"$\tau_l^m$ (handle torque, true)")  # fmt: skip
     ax.set_ylabel(axis_label("external torque", NM))
     ax = axes[2]
     e_label = rf"$e = \tau_s - \tau_{{sD}}$ (max $|e|$ {stats.max_abs_e:.2f} {NM})"

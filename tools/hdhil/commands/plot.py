@@ -131,7 +131,7 @@ def _run_fig8(args: argparse.Namespace, scenario: Any) -> int:
     """``hdhil plot --figure fig8``: [Vertechy] Fig. 8 (:mod:`hdhil.analysis.paper_figures`)."""
     from hdhil.analysis.paper_figures import fig8_data, make_fig8
 
-    data, damage = fig8_data(args.trace)
+    data, damage = fig8_data(args.trace, scenario.plant.link if scenario is not None else None)
     skip = scenario.evaluate_from_s if scenario is not None else 0.0
     name = scenario.name if scenario else "(not given)"
     trace_name = display_name(args.trace.name)
