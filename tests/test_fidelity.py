@@ -37,10 +37,13 @@ def test_every_paper_figure_has_one_row_with_a_command() -> None:
 
 
 def test_independent_column_is_what_the_independent_scripts_give() -> None:
-    """The cheap part: each row's independent cell recomputed (numpy/scipy, < 1 s)."""
+    """The cheap part: each row's independent cell recomputed (numpy/scipy, < 1 s); the
+    rows whose independent computation is a closed-loop simulation are in the slow test
+    below, with the whole table."""
     rows = fidelity.readme_rows(README.read_text(encoding="utf-8"))
     for cells, row in zip(rows, fidelity.ROWS, strict=True):
-        assert cells[2] == fidelity.cells(row, project=False)[2], row.figure
+        if not row.slow:
+            assert cells[2] == fidelity.cells(row, project=False)[2], row.figure
 
 
 def test_a_changed_number_is_caught() -> None:

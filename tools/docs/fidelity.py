@@ -142,8 +142,8 @@ def hdhil_fig8() -> str:
     t = _run("lqg-experiment")["tracking"]
     return (
         f"e within ±0.5 Nm: {_pct(t['share_within_goal'])} true, "
-        f"{_pct(t['share_within_goal_measured'])} measured; max |τ̂l − τl| "
-        f"{t['max_external_error']:.1f} Nm; max |τm| {t['max_abs_tau_m']:.0f} Nm"
+        f"{_pct(t['share_within_goal_measured'])} measured; max |τ̂l − τl^m| "
+        f"{t['max_external_error']:.1f} Nm; max |τm| {t['max_abs_tau_m']:.1f} Nm"
     )
 
 
@@ -173,6 +173,14 @@ def independent_fig7() -> str:
     )
 
 
+def independent_fig8() -> str:
+    r = independent("vertechy_fig8").simulate()
+    return (
+        f"e within ±0.5 Nm: {_pct(r.within_true)} true, {_pct(r.within_measured)} measured; "
+        f"max |τ̂l − τl^m| {r.max_abs_tau_l_err:.1f} Nm; max |τm| {r.max_abs_tau_m:.1f} Nm"
+    )
+
+
 def no_independent() -> str:
     return NONE
 
@@ -190,6 +198,9 @@ class Row:
     independent: Callable[[], str]
     hdhil: Callable[[], str]
     command: str
+    #: the independent computation takes seconds (a closed-loop simulation): checked in
+    #: the slow tier only
+    slow: bool = False
 
 
 ROWS: tuple[Row, ...] = (
@@ -206,8 +217,8 @@ ROWS: tuple[Row, ...] = (
     Row("[Vertechy] Fig. 7", "JTF1 \\|e\\| ≤ 0.3 Nm; JTF1 < JTF3 < JTF2", independent_fig7,
         hdhil_fig7, "`hdhil run --scenario lqg-tracking --compare-laws`; `hdhil run "
         "--scenario lqg-tracking-slow-link` (and `lqg-tracking-squared-weights`)"),
-    Row("[Vertechy] Fig. 8", "e within ±0.5 Nm; τ̂l − τl ≈ ±3 Nm; τm within ±40 Nm",
-        no_independent, hdhil_fig8, "`hdhil run --scenario lqg-experiment`"),
+    Row("[Vertechy] Fig. 8", "e within ±0.5 Nm; τ̂l − τl^m ≈ ±3 Nm; τm within ±40 Nm",
+        independent_fig8, hdhil_fig8, "`hdhil run --scenario lqg-experiment`", slow=True),
 )  # fmt: skip
 
 HEAD = ("paper figure", "paper", "independent (numpy/scipy)", "hdhil", "command")
