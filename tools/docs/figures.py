@@ -27,6 +27,7 @@ real-time figures vary with the machine and stay hand-written in docs/figures.md
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import dataclasses
 import functools
@@ -171,17 +172,25 @@ def run_scenario(
     duration_s: float | None = None,
     mapping: str | None = None,
     faults: tuple[str, ...] = (),
+    overrides: str = "",
 ) -> Run:
     """One run of a shipped scenario with its trace: what ``hdhil run --scenario S --seed
-    N [--duration D] [--mapping M] [--fault F ...] --trace T`` does."""
+    N [--duration D] [--mapping M] [--fault F ...] [--override FILE] --trace T`` does
+    (``overrides``: the override file's tables as JSON text, hashable)."""
     import hashlib
+    import json
 
     import hdhil
 
-    key = repr((scenario, seed, duration_s, mapping, faults)).encode()
+    key = repr((scenario, seed, duration_s, mapping, faults, overrides)).encode()
     trace = _workdir() / f"{scenario}-{hashlib.sha1(key).hexdigest()[:12]}.blf"
     request = hdhil.resolve(
-        scenario, duration_s=duration_s, seed=seed, mapping=mapping, faults=faults
+        scenario,
+        duration_s=duration_s,
+        seed=seed,
+        mapping=mapping,
+        faults=faults,
+        overrides=[json.loads(overrides)] if overrides else None,
     )
     return Run(request, hdhil.run(request, trace=trace), trace)
 
@@ -844,6 +853,136 @@ def faults_duplicates_block() -> str:
         f"`hdhil run --duration {clean.scenario.duration_s:g} --json` (seed 1, free-motion, "
         "whole-run `torque.rms_error_filtered`):\n\n"
         + table(["faults", "filtered error", "ratio to clean"], rows)
+    )
+
+
+#: The sensor faults of the plausibility table ([faults.sensors], fault seed 0).
+SPIKES_AND_GLITCHES = {
+    "tacho_spike_rate": 0.02,
+    "tacho_spike_V": 1.0,
+    "encoder_glitch_rate": 0.005,
+    "encoder_glitch_counts": 200,
+}
+TACHO_SATURATED = {"saturated": [{"channel": "tacho", "start_s": 1.0, "duration_s": 0.05}]}
+
+
+def _plausibility_error(sensors: dict[str, Any] | None, enabled: bool, mode: str) -> float:
+    """The firmware's filtered-torque RMS error of free-motion with ``sensors`` faults and
+    the plausibility stage on or off."""
+    import json
+
+    overrides: dict[str, Any] = {
+        "firmware": {"plausibility": {"enabled": enabled}, "ripple": {"mode": mode}}
+    }
+    if sensors is not None:
+        overrides["faults"] = {"seed": 0, "sensors": sensors}
+    run = run_scenario("free-motion", overrides=json.dumps(overrides, sort_keys=True))
+    return _firmware_error(run)
+
+
+@block("plausibility")
+def plausibility_block() -> str:
+    modes = ("recommended", "paper")
+    clean = {m: _plausibility_error(None, True, m) for m in modes}
+    on = {m: _plausibility_error(SPIKES_AND_GLITCHES, True, m) for m in modes}
+    off = {m: _plausibility_error(SPIKES_AND_GLITCHES, False, m) for m in modes}
+    sat_on = {m: _plausibility_error(TACHO_SATURATED, True, m) for m in modes}
+    sat_off = {m: _plausibility_error(TACHO_SATURATED, False, m) for m in modes}
+    tacho_gain = load_scenario_firmware("free-motion").calibration.volt2radps
+    s = SPIKES_AND_GLITCHES
+    w = TACHO_SATURATED["saturated"][0]
+    rows = [
+        ["clean", *(f"{clean[m]:.4f} Nm" for m in modes)],
+        [
+            f"{s['tacho_spike_V']:g} V tacho spikes ({s['tacho_spike_V'] * tacho_gain:.0f} "
+            f"rad/s) at {100 * s['tacho_spike_rate']:g} % and {s['encoder_glitch_counts']}-count "
+            f"encoder glitches at {100 * s['encoder_glitch_rate']:g} %, with the stage",
+            *(f"{on[m]:.4f} Nm ({on[m] / clean[m]:.2f}x)" for m in modes),
+        ],
+        [
+            "the same without the stage (`enabled = false`)",
+            *(f"{off[m]:.3g} Nm ({off[m] / clean[m]:.1f}x)" for m in modes),
+        ],
+        [
+            f"tacho saturated for {1000 * w['duration_s']:g} ms at {w['start_s']:g} s, with / "
+            "without the stage",
+            *(f"{sat_on[m]:.3g} / {sat_off[m]:.3g} Nm" for m in modes),
+        ],
+    ]
+    return (
+        para(
+            "**Sensor plausibility.** `hdhil run --override FILE` with the row's "
+            "`[faults.sensors]`, `seed = 0` (free-motion; filtered-torque RMS error from "
+            f"{scenario_evaluate_from('free-motion'):g} s; the paper column with "
+            "`[firmware.plausibility] enabled = true` where the stage is on):"
+        )
+        + "\n\n"
+        + table(["run", "recommended", "paper"], rows)
+    )
+
+
+def load_scenario_firmware(name: str) -> Any:
+    from hdhil.rig.scenario import load_scenario
+
+    return load_scenario(name).firmware
+
+
+# ---------------------------------------------------------------------- tidy exports
+
+
+def _csv_shape(path: Path) -> tuple[int, int, float]:
+    """Rows (without the header), columns and the share of empty cells of a CSV file."""
+    with path.open(newline="", encoding="utf-8") as f:
+        reader = csv.reader(f)
+        columns = len(next(reader))
+        rows = empty = 0
+        for row in reader:
+            rows += 1
+            empty += sum(1 for cell in row if cell == "")
+    return rows, columns, empty / (rows * columns)
+
+
+def _thousands(n: int) -> str:
+    return f"{n:,}".replace(",", " ")
+
+
+@block("tidy-exports")
+def tidy_exports_block() -> str:
+    import hdhil
+    from hdhil.cli import main as hdhil_main
+
+    start = "2026-01-02T03:04:05Z"
+    folder = _workdir() / "tidy"
+    folder.mkdir()
+    trace = folder / "fm.blf"
+    unix = 1767323045.0  # the start above, as Unix seconds
+    hdhil.run(hdhil.resolve("free-motion", duration_s=2.0, seed=1), trace=trace, start_time=unix)
+    rows = []
+    for label, extra in (
+        ("per frame (`--per-frame`)", ["--per-frame"]),
+        ("per control cycle (`--csv`, default)", []),
+    ):
+        out = folder / f"out{len(rows)}.csv"
+        argv = ["dump", str(trace), "--csv", str(out), *extra]
+        said = io.StringIO()
+        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+            code = hdhil_main(argv)
+        if code != 0:
+            raise RuntimeError(f"hdhil {' '.join(argv)}: exit {code}: {said.getvalue()}")
+        n, cols, empty = _csv_shape(out)
+        rows.append(
+            [
+                label,
+                _thousands(n),
+                str(cols),
+                f"{100 * empty:.2g} %" if empty < 0.01 else f"{100 * empty:.1f} %",
+                f"{_thousands(out.stat().st_size)} bytes",
+            ]
+        )
+    return (
+        f"`hdhil run --duration 2 --seed 1 --trace fm.blf --start-time {start}`, then\n"
+        "`hdhil dump fm.blf --csv out.csv` and `--csv out.csv --per-frame`:\n\n"
+        + table(["export", "rows", "columns", "empty cells", "size"], rows)
     )
 
 
