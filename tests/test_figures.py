@@ -103,6 +103,22 @@ def test_a_picture_is_checked_by_the_data_it_is_drawn_from(registry, tmp_path):
     assert check() == [f"{png}: picture 'pic' is stale"]
 
 
+def test_every_marked_block_has_a_generator_and_every_generator_a_block(figures):
+    """Cheap, in the fast tier: markers that pair up, a generator for each name, no
+    generator left without a block (the slow check below compares the contents)."""
+    used = set()
+    for path in figures.documents():
+        text = path.read_text(encoding="utf-8")
+        names = [m["name"] for m in figures.BLOCK.finditer(text)]
+        starts = re.findall(r"^<!-- generated:", text, re.M)
+        ends = re.findall(r"^<!-- end generated -->$", text, re.M)
+        assert len(starts) == len(names), f"{path}: a marker without its end"
+        assert len(ends) == len(names), f"{path}: a stray end marker"
+        used.update(names)
+    assert used <= set(figures.BLOCKS), f"no generator for {sorted(used - set(figures.BLOCKS))}"
+    assert set(figures.BLOCKS) <= used, f"no block for {sorted(set(figures.BLOCKS) - used)}"
+
+
 def test_a_paragraph_keeps_numbers_with_their_units(figures):
     text = figures.para("word " * 15 + "gives 12.5 % and 0.026 Nm over 20 s", width=80)
     assert "12.5 %" in text and "0.026 Nm" in text and "20 s" in text
