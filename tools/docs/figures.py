@@ -201,6 +201,58 @@ def scenario_evaluate_from(name: str) -> float:
     return float(load_scenario(name).evaluate_from_s)
 
 
+# ---------------------------------------------------------------------------- README
+
+
+def readme_code(section: str) -> str:
+    """The first Python example of the README's ``section`` (a heading's text)."""
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    match = re.search(r"```python\n(.*?)```", text[text.index(section) :], re.S)
+    assert match is not None, f"no Python example under {section!r}"
+    return match[1]
+
+
+def _exec_printing(code: str, cwd: Path) -> tuple[str, dict[str, Any]]:
+    """Run a README example in-process in ``cwd``: what it prints and its names."""
+    namespace: dict[str, Any] = {"__name__": "readme_example"}
+    printed = io.StringIO()
+    before = Path.cwd()
+    os.chdir(cwd)
+    try:
+        with contextlib.redirect_stdout(printed):
+            exec(compile(code, "README.md", "exec"), namespace)
+    finally:
+        os.chdir(before)
+    return printed.getvalue(), namespace
+
+
+@block("readme-api")
+def readme_api_block() -> str:
+    """What the README's Python API example prints, run as it stands."""
+    folder = _workdir() / "readme-api"
+    folder.mkdir()
+    printed, _ = _exec_printing(readme_code("## Python API"), folder)
+    return "It prints:\n\n```\n" + printed.rstrip("\n") + "\n```"
+
+
+@block("readme-own-plant")
+def readme_own_plant_block() -> str:
+    """What the README's own-plant example prints, run as it stands, and why."""
+    folder = _workdir() / "readme-own-plant"
+    folder.mkdir()
+    said, namespace = _exec_printing(readme_code("### Your own plant or controller"), folder)
+    plant = namespace["RigidInertia"]
+    request = namespace["request"]
+    ref = request.scenario.firmware.reference
+    volts, t0 = ref.amplitude_V, ref.step_time_s
+    return para(
+        f"It prints `{said.strip()}`: the firmware's reference steps to "
+        f"{volts:.3f} V at {t0:g} s, so the inertia ramps at k V / J = "
+        f"{plant.k * volts / plant.J:.1f} rad/s² for the {request.duration_s - t0:g} s left, "
+        "as read by the firmware's own tachometer."
+    )
+
+
 # --------------------------------------------------------------------------- calibrate
 
 #: ``hdhil calibrate --seed S --samples 50 --lever-error E`` over these seeds for the
