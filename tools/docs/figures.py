@@ -125,6 +125,8 @@ def para(text: str, width: int = 88) -> str:
     """``text`` as one Markdown paragraph, wrapped at ``width`` (never inside a word)."""
     # a number stays on the line of its unit
     joined = _UNIT.sub(lambda m: m[1] + "\0" + m[2], " ".join(text.split()))
+    # and inline code stays on one line
+    joined = re.sub(r"`[^`]*`", lambda m: m[0].replace(" ", "\0"), joined)
     wrapped = textwrap.fill(joined, width, break_long_words=False, break_on_hyphens=False)
     return wrapped.replace("\0", " ")
 
@@ -643,6 +645,40 @@ def _largest_deviation(k: list[float], L: list[float]) -> float:
 
 def _g(x: float, digits: int) -> str:
     return f"{x:.{digits}f}".replace("-", "−")
+
+
+@block("vertechy-gains")
+def vertechy_gains_block() -> str:
+    """docs/papers.md: the reading of [Vertechy] that reproduces the printed gains."""
+    from hdhil.firmware.lqg_design import JointParams
+
+    k, L = _lqg_gains()
+    k_J, L_J = _lqg_gains(0.7125)
+    p = JointParams()
+    k3p, k4p = VERTECHY_K[2], VERTECHY_K[3]
+    residual = sorted(abs(a / b - 1) for a, b in ((k[2], k3p), (k[3], k4p)))
+    bullets = [
+        "**LQ gains (Eqs. 4, 6).** The printed gains come out of the continuous Riccati "
+        "equation when the weights enter linearly, Q = diag(q1, q2), R = 1, not as the "
+        "q1², q2² that Eq. 6 prints. With `G = R⁻¹BᵀP` and `tau_m = −G e − G0 tau_0`, "
+        "`[k1, k2] = G` and `[k3, k4] = G0` with the sign of Eq. 4, where G0 is "
+        "Friedland's steady-state gain on constant exogenous inputs: "
+        "`G0 = −R⁻¹ Bᵀ (A − B G)⁻ᵀ P E`. With the paper's Jm, Jl, k, c, q1, q2 this gives "
+        f"k1..k4 = {_g(k[0], 3)}, {_g(k[1], 5)}, {_g(k[2], 4)}, {_g(k[3], 4)} against the "
+        "printed " + ", ".join(f"{x:g}".replace("-", "−") for x in VERTECHY_K) + ".",
+        "**Kalman gain (Eq. 8).** `L = P Cᵀ W⁻¹` from the filter Riccati equation "
+        "`A'P + PA'ᵀ − P Cᵀ W⁻¹ C P + Γ V Γᵀ = 0`, with W = 0.12 and V = 1e4 taken as "
+        f"numbers in one and the same convention, gives L = [{L[0]:.2f}, {L[1]:.1f}, "
+        f"{L[2]:.2f}] against the printed [{VERTECHY_L[0]:g}, {VERTECHY_L[1]:g}, "
+        f"{VERTECHY_L[2]:g}] (`L3 = sqrt(V/W)`).",
+        f"**Jl is 0.7125.** The residual {100 * residual[0]:.0f}-{100 * residual[1]:.1f} % on "
+        "k3, k4 is not rounding of the gains: any G0 of this form has `k3/k4 = −Jm/(Jm + "
+        f"Jl) = {_g(-p.Jm / (p.Jm + p.Jl), 5)}` exactly, while the printed pair gives "
+        f"{_g(k3p / k4p, 4)}. With Jl = 0.7125 kg m² instead of the rounded {p.Jl:g}, and "
+        "nothing else changed, all four LQ gains and the three Kalman gains match within "
+        f"{100 * _largest_deviation(k_J, L_J):.2f} %.",
+    ]
+    return "\n".join("- " + para(b, 86).replace("\n", "\n  ") for b in bullets)
 
 
 @block("papers-figures")
