@@ -279,7 +279,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     start = text.index(BEGIN)
     end = text.index(END, start)
-    README.write_text(text[: start + len(BEGIN)] + "\n" + new + text[end:], encoding="utf-8")
+    # the layout of every generated block (tools/docs/figures.py): a blank line each side
+    README.write_text(
+        text[: start + len(BEGIN)] + "\n\n" + new + "\n" + text[end:], encoding="utf-8"
+    )
     return 0
 
 

@@ -65,7 +65,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=CalibrationRig.lever_error,
         metavar="FRACTION",
         help="relative standard deviation of the arm's effective length per mounting "
-        "(default: %(default)s; 0.02 reproduces [Taghirad97] Table 1's 2 %% consistency)",
+        "(default: %(default)s; its effect on the consistency, against [Taghirad97] "
+        "Table 1's 2 %%: docs/filter-and-control.md)",
     )
     p.add_argument(
         "--plot",

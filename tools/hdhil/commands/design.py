@@ -74,7 +74,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--feedforward",
         choices=[f.value for f in Feedforward],
         default=Feedforward.LQ.value,
-        help="k3..k5: Friedland's LQ exogenous-input gains (default, reproduces the seed) "
+        help="k3..k5: Friedland's LQ exogenous-input gains, as in the seed (default), "
         "or the zero-steady-state-error feedforward",
     )
     p.add_argument(
