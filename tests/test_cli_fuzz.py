@@ -177,6 +177,10 @@ OPTIONS: dict[str, dict[str, object]] = {
             "ADDR": st.sampled_from(["0x1000", "0x123456:1", "0x1000:300", "x", "0x2400:3"]),
             "--timeout": st.sampled_from([*BAD_NUMBERS, "0.05"])},
     "nmt": {"ACTION": st.sampled_from(["start", "stop", "reset", "x"]), "NODE": NUMBER},
+    "conformance": {"--node": NUMBER, "--master-id": NUMBER, "--eds": INPUT,
+                    "--junit": OUTPUT, "--retries": NUMBER,
+                    "--only": st.sampled_from(["nmt", "objects,sdo", "x", ",", ""]),
+                    "--skip": st.sampled_from(["timing", "nope", ""])},
     "bench": {"--duration": BAD, "--repeat": BAD},
     "campaign": {"FILE": INPUT, "--workers": BAD, "--json": None},
     "dbc": {"ACTION": st.sampled_from(["export", "x", "--help"]), "TRACE": INPUT, "OUT": OUTPUT},
@@ -197,8 +201,10 @@ def argv_for(draw: st.DrawFn, command: str, files: dict[str, Path]) -> list[str]
     for name in positional:  # positionals in their order, usually present
         if name in chosen or draw(st.integers(0, 4)) > 0:
             argv.append(_value(draw, options[name], files))
-    if command in ("emulate", "firmware", "log", "sdo", "nmt"):
+    if command in ("emulate", "firmware", "log", "sdo", "nmt", "conformance"):
         argv += VIRTUAL
+    if command == "conformance":  # nobody answers on the fuzz bus: one short boot wait
+        argv += ["--boot-timeout", "0.05", "--quiet"]
     if command in ("emulate", "firmware", "log") and "--duration" not in chosen:
         argv += ["--duration", "0.1"]
     if command in ("bench", "soak") and not [c for c in chosen if c.startswith("-")]:

@@ -135,6 +135,10 @@ def test_no_node_on_the_bus_fails_every_case_after_one_boot_wait(capsys):
     assert code == 1
     assert "the node never booted; group set-up: no boot-up message (0x702 00)" in out
     assert time.monotonic() - start < 10
+    # one line per group for the cases failed for one reason, not one per case
+    fails = [line for line in out.splitlines() if line.startswith("  FAIL")]
+    assert len(fails) == 2, out
+    assert fails[0].startswith("  FAIL 16 cases from ") and " cases from 0x1000:00 " in fails[1]
 
 
 @pytest.mark.parametrize(

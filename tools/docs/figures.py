@@ -209,7 +209,7 @@ def torque_steps_evaluation_block() -> str:
         [*command, "--trace", "", "--quiet"], capture_output=True, text=True, check=False
     )
     if proc.returncode != 0:
-        raise RuntimeError(f"hdhil run --scenario torque-steps: exit {proc.returncode}: {proc.stderr}")
+        raise RuntimeError(f"{' '.join(command[3:])}: exit {proc.returncode}: {proc.stderr}")
     lines = proc.stdout.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith("  evaluation vs truth"))
     end = next(

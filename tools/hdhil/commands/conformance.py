@@ -15,7 +15,7 @@ from hdhil.commands.options import add_bus_options, open_bus
 from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.errors import UserError
 from hdhil.core.files import check_input, check_output, write_text
-from hdhil.core.numbers import arg_int
+from hdhil.core.numbers import arg_float, arg_int
 
 if TYPE_CHECKING:
     from canopen.objectdictionary import ObjectDictionary
@@ -57,7 +57,8 @@ def run_conformance(args: argparse.Namespace) -> int:
     try:
         options = Options(node_id=args.node, master_id=args.master_id,
                           motion=not args.no_motion, only=only, skip=skip,
-                          retries=args.retries)  # fmt: skip
+                          retries=args.retries,
+                          boot_timeout_s=args.boot_timeout)  # fmt: skip
     except ValueError as exc:
         raise UserError(str(exc)) from None
     cases = build_cases(od, options)
@@ -111,6 +112,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--retries", type=arg_int(0, 10), default=1,
                    help="run a failed case again up to this many times, from a reset node; "
                    "it passes if a retry does, and the report says so (default 1)")  # fmt: skip
+    p.add_argument("--boot-timeout", type=arg_float(0.01, 60.0), default=3.0, metavar="S",
+                   help="how long to wait for the node's boot-up message after an NMT "
+                   "reset (default 3 s); a node that never boots fails every case after "
+                   "one wait")  # fmt: skip
     p.add_argument("--junit", metavar="FILE", default=None, help="write JUnit XML here")
     p.add_argument("--verbose", "-v", action="store_true",
                    help="list every case, not only the failed ones")  # fmt: skip

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
+from collections import Counter
 from itertools import groupby
 
 from hdhil.conformance.suite import SuiteResult
@@ -21,9 +22,16 @@ def text_report(result: SuiteResult, verbose: bool = False) -> str:
         counts = {s: sum(o.status == s for o in outs) for s in _MARK}
         lines.append(f"[{group}] {counts['pass']} passed, {counts['fail'] + counts['error']} "
                      f"failed, {counts['skip']} skipped")  # fmt: skip
-        for o in outs:
-            if verbose or o.status in ("fail", "error") or _retried(o.detail):
+        shown = [o for o in outs if verbose or o.status in ("fail", "error") or _retried(o.detail)]
+        same = Counter(o.detail for o in shown if o.status in ("fail", "error"))
+        told: set[str] = set()
+        for o in shown:
+            if verbose or same[o.detail] < _SAME or o.status not in ("fail", "error"):
                 lines.append(f"  {_MARK[o.status]} {o.case.name}: {o.detail}")
+            elif o.detail not in told:  # one line for many cases failed for one reason
+                told.add(o.detail)
+                lines.append(f"  {_MARK[o.status]} {same[o.detail]} cases from "
+                             f"{o.case.name}: {o.detail}")  # fmt: skip
     n = len(result.outcomes)
     failed = result.count("fail") + result.count("error")
     retried = sum(_retried(o.detail) for o in result.outcomes if o.status == "pass")
@@ -31,6 +39,11 @@ def text_report(result: SuiteResult, verbose: bool = False) -> str:
     lines.append(f"{n} cases: {result.count('pass')} passed{again}, {failed} failed, "
                  f"{result.count('skip')} skipped in {result.seconds:.1f} s")  # fmt: skip
     return "\n".join(lines) + "\n"
+
+
+#: Failed cases of a group sharing one detail (the node never booted, a group's set-up
+#: failed) are told in one line from this many on, unless ``verbose``.
+_SAME = 3
 
 
 def _retried(detail: str) -> bool:
