@@ -54,7 +54,7 @@ def test_emulator_firmware_and_logger_as_three_processes(netns, tmp_path):
         outs = [proc.communicate(timeout=60) for proc in (emulator, logger)]
         firmware.kill()
     for proc, (_out, err) in zip((emulator, logger), outs, strict=True):
-        assert proc.returncode == 130, err
+        assert proc.returncode == 0, err  # a clean stop by SIGTERM
     logged = json.loads(outs[1][0].strip().splitlines()[-1])
     # The trace decodes, holds every frame the logger counted, and shows the loop closed.
     with can.LogReader(str(trace)) as reader:

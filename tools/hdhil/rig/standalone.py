@@ -5,8 +5,9 @@ The commands open the buses, stop on signals and print; here each node is built 
 :class:`~hdhil.rig.request.RunRequest`, given the faults that arise in its own process,
 booted and run in the one node loop (:mod:`hdhil.rig.loop`) until ``stop()``, and summed
 up as the JSON summary the command prints (with its verdict when the run stopped early).
-The firmware paces SYNC in network lockstep (SYNC k+1 once the drive's cycle k is
-answered, or after the loop's cycle timeout) or by the pacer of ``hdhil run --realtime``;
+The firmware paces SYNC by the pacer of ``hdhil run --realtime`` (the command's default)
+or, for tests and emulated drives, in network lockstep (SYNC k+1 once the drive's cycle
+k is answered, or after the loop's cycle timeout);
 a drive that never boots or answers is a start-up verdict. The logger taps the buses into
 a trace whose sidecar says what was recorded from where and, for a known run, its request
 (so that ``hdhil evaluate`` scores the trace with its settings).
@@ -25,6 +26,7 @@ import can
 from hdhil.can.faults import FaultLog, FaultyTransmitBus, check_node_transmit_faults
 from hdhil.can.traces.tap import BusTap, FrameCounter
 from hdhil.can.traces.writer import WriterError, WriterProcess
+from hdhil.canopen.nmt import state_name as nmt_state_name
 from hdhil.core.dataconf import ConfigError
 from hdhil.core.errors import UserError
 from hdhil.dbc import CHANNEL_NUMBER
@@ -155,7 +157,8 @@ class StandaloneDrive:
         d = drive.diagnostics
         verdict = drive_verdict(drive)
         summary = {"node": "drive", "syncs": d.syncs, "commands": d.commands,
-                   "nmt_state": str(drive.nmt_state), "drive_state": str(drive.drive_state),
+                   "nmt_state": nmt_state_name(drive.nmt_state),
+                   "drive_state": getattr(drive.drive_state, "name", str(drive.drive_state)),
                    "plant_time_s": drive.plant.time, "faults": self.injector.summary()}  # fmt: skip
         if verdict is not None:
             summary["verdict"] = verdict
