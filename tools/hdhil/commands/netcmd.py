@@ -120,6 +120,8 @@ def run_firmware(args: argparse.Namespace) -> int:
         ctrl = StandaloneController(request, bus, injector, args.boot_timeout)
         with stop_on_signals() as stop:
             failed = ctrl.boot(stop.is_set)
+            if ctrl.recovery is not None:
+                print(f"hdhil: firmware: {ctrl.recovery}", file=sys.stderr)
             if failed is not None:  # no boot-up (or no SDO answer): a stop, told as a verdict
                 print(jsonout.dumps(failed))
                 return _verdict_exit("firmware", failed)

@@ -38,6 +38,7 @@ from hdhil.rig.faults import FaultConfig, FaultInjector, parse_fault_flags
 from hdhil.rig.loop import NodeLoop, controller_expects_answer, serve
 from hdhil.rig.realtime import RealtimeLoop
 from hdhil.rig.request import RunRequest
+from hdhil.rig.session import SessionLog, end_session, start_session
 from hdhil.rig.sidecar import run_metadata
 from hdhil.rig.verdict import dcf_refused, drive_verdict, startup_verdict, stop_verdict
 
@@ -141,12 +142,14 @@ class StandaloneDrive:
             truth_bus=self.truth,
             faults=injector,
         )
+        self.sessions = SessionLog(self.node)
 
     def serve(self, stop: Callable[[], bool], duration_s: float | None = None) -> None:
         """Boot the drive and serve it until ``stop()`` or ``duration_s`` wall seconds
         (none: until a stop)."""
         t_end = time.monotonic() + duration_s if duration_s else float("inf")
-        self.node.boot(time.monotonic())
+        self.sessions.origin = now = time.monotonic()
+        self.node.boot(now)
         serve(self.node, stop, lambda: time.monotonic() >= t_end)
 
     def summary(self) -> dict[str, Any]:
@@ -159,7 +162,9 @@ class StandaloneDrive:
         summary = {"node": "drive", "syncs": d.syncs, "commands": d.commands,
                    "nmt_state": nmt_state_name(drive.nmt_state),
                    "drive_state": getattr(drive.drive_state, "name", str(drive.drive_state)),
-                   "plant_time_s": drive.plant.time, "faults": self.injector.summary()}  # fmt: skip
+                   "plant_time_s": drive.plant.time, "faults": self.injector.summary(),
+                   "sessions": len(self.sessions.sessions),
+                   "session_log": self.sessions.summary()}  # fmt: skip
         if verdict is not None:
             summary["verdict"] = verdict
         return summary
@@ -193,6 +198,10 @@ class StandaloneController:
             raise UserError(str(exc)) from None
         self.pacer: RealtimeLoop | None = None
         self.operational_cycles = 0
+        #: The start-up check's line for stderr (a drive found in FAULT was reset), or None.
+        self.recovery: str | None = None
+        #: Whether the session ended clean (the drive's 0x1016 entry cleared).
+        self.ended_clean = False
 
     def boot(self, stop: Callable[[], bool]) -> dict[str, Any] | None:
         """Boot and wait for the drive's boot-up (or the timeout) while producing
@@ -200,6 +209,7 @@ class StandaloneController:
         to change); a drive that never booted or answered (without a stop) gives the JSON
         summary with its start-up verdict, returned; else None."""
         ctrl = self.node
+        self.recovery = start_session(self.bus, ctrl.drive_node_id, CONTROLLER_NODE_ID)
         ctrl.boot(time.monotonic())
         serve(ctrl, stop, lambda: ctrl.phase != "wait-boot" or bool(ctrl.boot_error))
         if dcf_refused(ctrl):
@@ -252,6 +262,7 @@ class StandaloneController:
         finally:
             if pacer is not None:
                 pacer.exit()
+        self.ended_clean = end_session(self.bus, ctrl.drive_node_id, CONTROLLER_NODE_ID)
         return self.operational_cycles
 
     def summary(self, stopped: bool) -> dict[str, Any]:
@@ -266,7 +277,9 @@ class StandaloneController:
         summary = {"node": "controller", "operational_cycles": done,
                    "syncs_sent": d.syncs_sent, "sensor_frames": d.sensor_frames,
                    "phase": str(ctrl.phase.value), "mapping": ctrl.sensor_mapping,
-                   "faults": self.injector.summary()}  # fmt: skip
+                   "faults": self.injector.summary(), "ended_clean": self.ended_clean}  # fmt: skip
+        if self.recovery is not None:
+            summary["recovery"] = self.recovery
         if ctrl.rated_torque_Nm is not None:
             summary["rated_torque_Nm"] = ctrl.rated_torque_Nm
         if ctrl.phase == "safe":
