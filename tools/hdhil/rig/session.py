@@ -3,11 +3,12 @@ drive's record of the sessions it served (``hdhil firmware`` against ``hdhil emu
 or a real drive).
 
 A configuring master ends a session so that its drive does not fault when the master's
-heartbeat stops: CiA 402 "disable voltage" (controlword 0x0000 by SDO), NMT "enter
-pre-operational", and its own entry of the drive's heartbeat consumer 0x1016 cleared
-(sub-index written 0).  At the next start it puts that entry back (the drive's EDS
-default) when it finds it cleared, and a drive it finds in FAULT is reset: CiA 402 fault
-reset (0x0000, then 0x0080 by SDO), and NMT "reset node" when the drive refuses it.
+heartbeat stops: its own entry of the drive's heartbeat consumer 0x1016 cleared first
+(sub-index written 0, before the drive could time the stopped heartbeat out), then CiA
+402 "disable voltage" (controlword 0x0000 by SDO) and NMT "enter pre-operational". At
+the next start it puts that entry back (the drive's EDS default) when it finds it
+cleared, and a drive it finds in FAULT is reset: CiA 402 fault reset (0x0000, then
+0x0080 by SDO), and NMT "reset node" when the drive refuses it.
 These steps are blocking SDO transfers on the bus, outside the node loop, so the
 in-process ``hdhil run`` never sends them.
 """
@@ -115,15 +116,19 @@ def _wait_boot(bus: can.BusABC, drive: int) -> None:
 
 
 def end_session(bus: can.BusABC, drive: int, controller: int) -> bool:
-    """The clean end: disable voltage, NMT pre-operational, the controller's 0x1016 entry
-    cleared. True when the drive confirmed the clearing."""
+    """The clean end: the controller's 0x1016 entry cleared, disable voltage, NMT
+    pre-operational. True when the drive confirmed the clearing (or had no entry of the
+    controller's to clear)."""
     client = SdoClient(bus, drive)
+    # The consumer entry first: the controller's heartbeat has stopped with its node loop,
+    # and the drive must not time it out (250 ms) while the other transfers take place.
+    entry = _read(bus, client, CONSUMER_HEARTBEAT, 1)
+    cleared = entry is not None
+    if cleared and (entry >> 16) & 0xFF == controller:
+        cleared = _write(bus, client, CONSUMER_HEARTBEAT, 1, bytes(4))
     _write(bus, client, CONTROLWORD, 0, bytes(2))
     bus.send(nmt_frame(NmtCommand.ENTER_PRE_OPERATIONAL, drive))
-    entry = _read(bus, client, CONSUMER_HEARTBEAT, 1)
-    if entry is None or (entry >> 16) & 0xFF != controller:
-        return entry is not None
-    return _write(bus, client, CONSUMER_HEARTBEAT, 1, bytes(4))
+    return cleared
 
 
 # ------------------------------------------------------------------ the drive's side
