@@ -5,7 +5,8 @@ run every node's timers, let the SYNC producer start the cycle, then handle fram
 until the cycle is complete. On the simulated bus (``pump``) delivery is immediate: the
 nodes are polled until a round in which none sent a frame. On any other python-can bus
 the loop handles frames until the producer has answered the cycle's sensor frame or
-:data:`CYCLE_TIMEOUT_S` passed; a timed-out cycle is closed and counted, and the
+:data:`CYCLE_TIMEOUT_S` passed, running the nodes' timers (heartbeats) every
+:data:`TIMER_SLICE_S` meanwhile; a timed-out cycle is closed and counted, and the
 controller's sensor hold decides whether the peer is gone. Without a SYNC producer (a
 drive or a logger alone) a cycle is one receive slice (:data:`RECV_SLICE_S`).
 Listeners that only read (the host tap) are drained every ``listen_every`` cycles.
@@ -33,6 +34,10 @@ STARTUP_WAIT_S = 0.005
 RECV_SLICE_S = 0.002
 #: The pause of a loop with several nodes when no frame is waiting (s).
 IDLE_SLEEP_S = 50e-6
+#: While a cycle waits for its answer on a real bus, the nodes' timers run this often (s):
+#: a node's heartbeat goes on while its peer is slow to answer (CiA 301: the producer
+#: runs on the node's clock, not on the SYNC cycle).
+TIMER_SLICE_S = 0.01
 
 
 @runtime_checkable
@@ -221,7 +226,14 @@ class NodeLoop:
         if self.pacer is not None:  # paced: never past the next cycle's deadline
             deadline = min(deadline, self.pacer.cycle_end_s())
         alone = self.nodes[0] if len(self.nodes) == 1 and not self.listeners else None
+        node_time = self.node_time  # None: simulated time, which does not pass while waiting
+        next_timers = clock() + TIMER_SLICE_S
         while answers() <= answered:
+            if node_time is not None and clock() >= next_timers:
+                now = node_time()
+                for node in self.nodes:
+                    node.tick(now)
+                next_timers = clock() + TIMER_SLICE_S
             if self._poll_all():
                 continue
             left = deadline - clock()
