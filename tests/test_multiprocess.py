@@ -38,7 +38,10 @@ def test_emulator_firmware_and_logger_as_three_processes(netns, tmp_path):
     logger = _hdhil(netns, "log", str(trace), *bus, *truth)
     emulator = _hdhil(netns, "emulate", *bus, *truth, "--scenario", "free-motion")
     time.sleep(1.5)  # both processes up and listening before the firmware boots
-    firmware = _hdhil(netns, "firmware", *bus, "--scenario", "free-motion", "--duration", "0.6")
+    # Network lockstep: this test is about three processes and their trace, not about
+    # real-time scheduling (test_firmware_paces_sync_in_real_time_by_default is).
+    firmware = _hdhil(netns, "firmware", *bus, "--scenario", "free-motion", "--duration", "0.6",
+                      "--lockstep")  # fmt: skip
     try:
         out, err = firmware.communicate(timeout=120)
         assert firmware.returncode == 0, err
@@ -51,7 +54,7 @@ def test_emulator_firmware_and_logger_as_three_processes(netns, tmp_path):
         outs = [proc.communicate(timeout=60) for proc in (emulator, logger)]
         firmware.kill()
     for proc, (_out, err) in zip((emulator, logger), outs, strict=True):
-        assert proc.returncode == 130, err
+        assert proc.returncode == 0, err  # a clean stop by SIGTERM
     logged = json.loads(outs[1][0].strip().splitlines()[-1])
     # The trace decodes, holds every frame the logger counted, and shows the loop closed.
     with can.LogReader(str(trace)) as reader:
@@ -65,3 +68,24 @@ def test_emulator_firmware_and_logger_as_three_processes(netns, tmp_path):
     assert len(velocities) >= 600
     assert velocities[-1] > 100.0  # the motor ran up under the firmware's reference
     assert any(m.is_extended_id for m in frames)  # truth was logged on its own bus
+
+
+def test_firmware_paces_sync_in_real_time_by_default(netns, tmp_path):
+    """Without flags, `hdhil firmware` on another interface than the in-process rig paces
+    SYNC by the wall clock at the scenario's period (never as fast as the drive answers)."""
+    bus = ["--interface", "udp_multicast", "--channel", GROUP_CONTROL]
+    emulator = _hdhil(netns, "emulate", *bus, "--scenario", "free-motion")
+    time.sleep(1.5)
+    firmware = _hdhil(netns, "firmware", *bus, "--scenario", "free-motion", "--duration", "0.5")
+    try:
+        out, err = firmware.communicate(timeout=120)
+        assert firmware.returncode == 0, err
+        fw = json.loads(out.strip().splitlines()[-1])
+        assert fw["operational_cycles"] == 500
+        rt = fw["realtime"]
+        assert rt["sample_period_s"] == pytest.approx(1e-3)
+        assert rt["cycles"] >= 500
+    finally:
+        emulator.send_signal(signal.SIGTERM)
+        emulator.communicate(timeout=60)
+        firmware.kill()
