@@ -82,3 +82,53 @@ def test_a_drive_left_in_fault_is_reset_by_the_next_firmware(capsys, monkeypatch
     assert printed["ended_clean"] and "verdict" not in printed
     assert summary["session_log"][0]["end"] == "heartbeat lost"
     assert summary["session_log"][-1]["end"] == "clean"
+
+
+class _SlowConsumerRequests:
+    """A python-can bus on which the drive sees the SDO requests about 0x1016 (its
+    heartbeat consumer) ``delay_s`` late: a drive busy elsewhere when the firmware ends
+    its session (everything else as the wrapped bus)."""
+
+    def __init__(self, bus: can.BusABC, delay_s: float) -> None:
+        self._bus = bus
+        self.delay_s = delay_s
+        self.delayed = 0
+        self._held: list[tuple[float, can.Message]] = []
+
+    def __getattr__(self, name: str):
+        return getattr(self._bus, name)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        if self._held and self._held[0][0] <= time.monotonic():
+            return self._held.pop(0)[1]
+        msg = self._bus.recv(timeout)
+        if msg is not None and msg.arbitration_id == 0x602 and bytes(msg.data[1:3]) == b"\x16\x10":
+            self.delayed += 1
+            self._held.append((time.monotonic() + self.delay_s, msg))
+            return None
+        return msg
+
+
+def test_the_heartbeat_goes_on_while_a_slow_drive_answers_the_session_end(capsys):
+    """The session end's transfers wait for the drive's answers with the controller's
+    heartbeat going on: a drive that takes each of them up 150 ms late (the read and
+    the clearing of the entry: 300 ms, more than its 250 ms consumer time, were the
+    heartbeat stopped) stays healthy and records a clean end."""
+    channel = f"hdhil-sessions-slow-{time.monotonic_ns()}"
+    slow = _SlowConsumerRequests(can.Bus(interface="virtual", channel=channel), 0.15)
+    injector = FaultInjector(FaultConfig(), FaultLog(None, keep=False), stream="test")
+    drive = StandaloneDrive(resolve("free-motion", duration_s=0.05), slow, None, injector)
+    stop = threading.Event()
+    served = threading.Thread(target=drive.serve, args=(stop.is_set,), daemon=True)
+    served.start()
+    try:
+        # 0.3 s in real time: heartbeats (every 100 ms) after the boot-up: the drive monitors
+        assert _firmware(channel, 0.3, lockstep=False) == 0
+        time.sleep(0.4)  # longer than the drive's consumer time: a loss would show
+    finally:
+        summary = _stop(drive, stop, served)
+    assert slow.delayed >= 2  # the read and the clearing of the entry were both late
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert printed["ended_clean"]
+    assert [s["end"] for s in summary["session_log"]] == ["clean"]
+    assert summary["drive_state"] != "FAULT" and "verdict" not in summary

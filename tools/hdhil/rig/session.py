@@ -4,8 +4,10 @@ or a real drive).
 
 A configuring master ends a session so that its drive does not fault when the master's
 heartbeat stops: its own entry of the drive's heartbeat consumer 0x1016 cleared first
-(sub-index written 0, before the drive could time the stopped heartbeat out), then CiA
-402 "disable voltage" (controlword 0x0000 by SDO) and NMT "enter pre-operational". At
+(sub-index written 0), then CiA 402 "disable voltage" (controlword 0x0000 by SDO) and
+NMT "enter pre-operational"; its heartbeat goes on while these transfers wait for their
+answers (a master is alive until it has left), so a drive slow to answer them does not
+time the controller out. A transfer without an answer is sent again. At
 the next start it puts that entry back (the drive's EDS default) when it finds it
 cleared, and a drive it finds in FAULT is reset: CiA 402 fault reset (0x0000, then
 0x0080 by SDO), and NMT "reset node" when the drive refuses it.
@@ -16,6 +18,7 @@ in-process ``hdhil run`` never sends them.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,35 +35,56 @@ __all__ = ["SessionLog", "end_session", "start_session"]
 CONTROLWORD = 0x6040
 STATUSWORD = 0x6041
 CONSUMER_HEARTBEAT = 0x1016
-#: How long one SDO transfer of the session steps may take (s).
+#: How long one SDO transfer of the session steps may wait for its answer (s).
 SDO_TIMEOUT_S = 0.2
+#: How often a transfer that got no answer is sent again (a lost frame, a busy drive).
+SDO_ATTEMPTS = 3
 #: How long the drive may take to boot after an NMT reset node (s).
 RESET_BOOT_S = 2.0
+#: How often a waiting transfer runs the controller's heartbeat producer (s).
+KEEPALIVE_SLICE_S = 0.01
+
+#: Runs the controller's heartbeat producer at a time (s): a master that ends its
+#: session is alive, and its heartbeat goes on until its 0x1016 entry is cleared.
+Keepalive = Callable[[float], None]
 
 
-def _transfer(bus: can.BusABC, client: SdoClient, send: Any) -> Any:
-    """One SDO transfer: ``send()``, then the result (None: no answer in time)."""
-    send()
-    deadline = time.monotonic() + SDO_TIMEOUT_S
-    while time.monotonic() < deadline:
-        msg = bus.recv(0.01)
-        if msg is not None and msg.arbitration_id == client.response_id:
-            result = client.on_response(msg)
-            if result is not None:
-                return result
-    return None
+class _Master:
+    """Blocking SDO transfers to the drive, outside the node loop, with the controller's
+    heartbeat kept going (``keepalive``) while each waits for its answer."""
 
+    def __init__(self, bus: can.BusABC, drive: int, keepalive: Keepalive | None) -> None:
+        self.bus = bus
+        self.client = SdoClient(bus, drive)
+        self.keepalive = keepalive
 
-def _read(bus: can.BusABC, client: SdoClient, index: int, sub: int = 0) -> int | None:
-    result = _transfer(bus, client, lambda: client.upload(index, sub))
-    if result is None or not result.ok:
+    def _transfer(self, send: Callable[[], None]) -> Any:
+        """``send()``, then the result (None: no answer after :data:`SDO_ATTEMPTS`)."""
+        client, recv, keepalive = self.client, self.bus.recv, self.keepalive
+        for _ in range(SDO_ATTEMPTS):
+            send()
+            deadline = time.monotonic() + SDO_TIMEOUT_S
+            while (now := time.monotonic()) < deadline:
+                if keepalive is not None:
+                    keepalive(now)
+                msg = recv(KEEPALIVE_SLICE_S)
+                if msg is not None and msg.arbitration_id == client.response_id:
+                    result = client.on_response(msg)
+                    if result is not None:
+                        return result
         return None
-    return int.from_bytes(bytes(result.data[:4]), "little")
 
+    def read(self, index: int, sub: int = 0) -> int | None:
+        client = self.client
+        result = self._transfer(lambda: client.upload(index, sub))
+        if result is None or not result.ok:
+            return None
+        return int.from_bytes(bytes(result.data[:4]), "little")
 
-def _write(bus: can.BusABC, client: SdoClient, index: int, sub: int, data: bytes) -> bool:
-    result = _transfer(bus, client, lambda: client.download(index, sub, data))
-    return result is not None and result.ok
+    def write(self, index: int, sub: int, data: bytes) -> bool:
+        client = self.client
+        result = self._transfer(lambda: client.download(index, sub, data))
+        return result is not None and result.ok
 
 
 def _consumer_default() -> int:
@@ -82,27 +106,39 @@ def start_session(bus: can.BusABC, drive: int, controller: int) -> str | None:
     """Before booting the controller: a drive found in FAULT is reset, and the
     controller's cleared entry of the drive's 0x1016 is put back. Returns the one line
     for stderr when the drive was reset, else None (also for a drive not up yet)."""
-    client = SdoClient(bus, drive)
-    statusword = _read(bus, client, STATUSWORD)
+    master = _Master(bus, drive, None)  # not booted: no heartbeat of its own yet
+    statusword = _read_once(master, STATUSWORD)
     if statusword is None:
         return None  # not booted yet: the normal boot handles it
-    line = None
     if _is_fault(statusword):
-        _write(bus, client, CONTROLWORD, 0, bytes(2))
-        _write(bus, client, CONTROLWORD, 0, (0x0080).to_bytes(2, "little"))
-        after = _read(bus, client, STATUSWORD)
+        master.write(CONTROLWORD, 0, bytes(2))
+        master.write(CONTROLWORD, 0, (0x0080).to_bytes(2, "little"))
+        after = master.read(STATUSWORD)
         what = f"drive (node {drive}) was in FAULT (statusword 0x{statusword:04X})"
         if not _is_fault(after):
             return f"{what}: fault reset"
         bus.send(nmt_frame(NmtCommand.RESET_NODE, drive))
-        line = f"{what} and refused the fault reset: NMT reset node"
         _wait_boot(bus, drive)
-        return line  # power-on values again, 0x1016 included
-    entry = _read(bus, client, CONSUMER_HEARTBEAT, 1)
+        return f"{what} and refused the fault reset: NMT reset node"  # power-on values again
+    entry = master.read(CONSUMER_HEARTBEAT, 1)
     default = _consumer_default()
     if entry == 0 and default >> 16 == controller:
-        _write(bus, client, CONSUMER_HEARTBEAT, 1, default.to_bytes(4, "little"))
-    return line
+        master.write(CONSUMER_HEARTBEAT, 1, default.to_bytes(4, "little"))
+    return None
+
+
+def _read_once(master: _Master, index: int) -> int | None:
+    """One upload without retries: a drive that is not up yet is normal at start."""
+    client = master.client
+    deadline = time.monotonic() + SDO_TIMEOUT_S
+    client.upload(index, 0)
+    while time.monotonic() < deadline:
+        msg = master.bus.recv(KEEPALIVE_SLICE_S)
+        if msg is not None and msg.arbitration_id == client.response_id:
+            result = client.on_response(msg)
+            if result is not None:
+                return int.from_bytes(bytes(result.data[:4]), "little") if result.ok else None
+    return None
 
 
 def _wait_boot(bus: can.BusABC, drive: int) -> None:
@@ -115,18 +151,20 @@ def _wait_boot(bus: can.BusABC, drive: int) -> None:
             return
 
 
-def end_session(bus: can.BusABC, drive: int, controller: int) -> bool:
+def end_session(
+    bus: can.BusABC, drive: int, controller: int, keepalive: Keepalive | None = None
+) -> bool:
     """The clean end: the controller's 0x1016 entry cleared, disable voltage, NMT
     pre-operational. True when the drive confirmed the clearing (or had no entry of the
-    controller's to clear)."""
-    client = SdoClient(bus, drive)
-    # The consumer entry first: the controller's heartbeat has stopped with its node loop,
-    # and the drive must not time it out (250 ms) while the other transfers take place.
-    entry = _read(bus, client, CONSUMER_HEARTBEAT, 1)
+    controller's to clear). ``keepalive`` runs the controller's heartbeat producer while
+    the transfers wait: a drive slow to answer them must not time the controller out
+    (250 ms) before its entry is cleared."""
+    master = _Master(bus, drive, keepalive)
+    entry = master.read(CONSUMER_HEARTBEAT, 1)
     cleared = entry is not None
     if cleared and (entry >> 16) & 0xFF == controller:
-        cleared = _write(bus, client, CONSUMER_HEARTBEAT, 1, bytes(4))
-    _write(bus, client, CONTROLWORD, 0, bytes(2))
+        cleared = master.write(CONSUMER_HEARTBEAT, 1, bytes(4))
+    master.write(CONTROLWORD, 0, bytes(2))
     bus.send(nmt_frame(NmtCommand.ENTER_PRE_OPERATIONAL, drive))
     return cleared
 

@@ -262,7 +262,9 @@ class StandaloneController:
         finally:
             if pacer is not None:
                 pacer.exit()
-        self.ended_clean = end_session(self.bus, ctrl.drive_node_id, CONTROLLER_NODE_ID)
+        self.ended_clean = end_session(
+            self.bus, ctrl.drive_node_id, CONTROLLER_NODE_ID, ctrl.services.produce_heartbeat
+        )
         return self.operational_cycles
 
     def summary(self, stopped: bool) -> dict[str, Any]:
