@@ -84,8 +84,65 @@ def test_firmware_paces_sync_in_real_time_by_default(netns, tmp_path):
         assert fw["operational_cycles"] == 500
         rt = fw["realtime"]
         assert rt["sample_period_s"] == pytest.approx(1e-3)
-        assert rt["cycles"] >= 500
+        # The statistics cover the cycles in which the interrupt ran: the first operation
+        # cycle only when its sensor frame came after the statusword (RealtimeLoop).
+        assert rt["cycles"] in (499, 500)
     finally:
         emulator.send_signal(signal.SIGTERM)
         emulator.communicate(timeout=60)
         firmware.kill()
+
+
+def _realtime_priority(ns: str) -> list[str]:
+    """``chrt -f 20`` before the emulator where the machine allows it (root, util-linux):
+    the firmware paces in real time under SCHED_FIFO and goes safe after 10 SYNCs
+    (10 ms) without a sensor frame, so an emulator at normal priority on a loaded
+    machine can be held off the CPU for longer than that; a drive's own firmware runs
+    at such a priority. Elsewhere nothing (the test may then see that stop)."""
+    probe = subprocess.run(["ip", "netns", "exec", ns, "chrt", "-f", "20", "true"],
+                           capture_output=True)  # fmt: skip
+    return ["chrt", "-f", "20"] if probe.returncode == 0 else []
+
+
+def test_two_real_time_sessions_against_one_emulator_at_1_khz(netns, tmp_path):
+    """Done means (issue 25): two `hdhil firmware` sessions without flags against one
+    `hdhil emulate` both exit 0, the emulator reports two sessions ended clean and exits
+    0 on SIGTERM, and the first session, logged by `hdhil log`, has SYNC at 1 kHz within
+    0.5 % by `hdhil dump --stats` (the logger's receive times)."""
+    trace = tmp_path / "paced.blf"
+    bus = ["--interface", "udp_multicast", "--channel", GROUP_CONTROL]
+    logger = _hdhil(netns, "log", str(trace), *bus)
+    emulator = subprocess.Popen(
+        ["ip", "netns", "exec", netns, *_realtime_priority(netns), sys.executable, "-m",
+         "hdhil", "emulate", *bus, "--scenario", "free-motion"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    time.sleep(1.5)
+    runs = []
+    try:
+        for _ in range(2):
+            fw = _hdhil(netns, "firmware", *bus, "--scenario", "free-motion", "--duration", "2")
+            runs.append(fw.communicate(timeout=120))
+            assert fw.returncode == 0, runs[-1][1]
+            if logger.poll() is None:  # the logger records the first session only
+                logger.send_signal(signal.SIGTERM)
+                _, log_err = logger.communicate(timeout=60)
+                assert logger.returncode == 0, log_err
+    finally:
+        for proc in (logger, emulator):
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+        emu_out, emu_err = emulator.communicate(timeout=60)
+        logger.kill()
+    assert emulator.returncode == 0, emu_err
+    emulated = json.loads(emu_out.strip().splitlines()[-1])
+    assert emulated["sessions"] == 2, emulated
+    assert [s["end"] for s in emulated["session_log"]] == ["clean", "clean"]
+    assert all(json.loads(out.strip().splitlines()[-1])["ended_clean"] for out, _ in runs)
+    dumped = subprocess.run([sys.executable, "-m", "hdhil", "dump", "--json", str(trace)],
+                            capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert dumped.returncode == 0, dumped.stderr
+    stats = json.loads(dumped.stdout)
+    sync = next(s for s in stats["ids"] if s["id"] == 0x080 and not s["extended"])
+    assert sync["count"] >= 2000  # 2 s of operation, plus the start-up and stop walks
+    assert sync["rate_hz"] == pytest.approx(1000.0, rel=0.005), sync
