@@ -26,17 +26,20 @@ GROUP_TRUTH = "239.74.163.5"
 
 #: The independent firmware: python-can for the cyclic frames (its own bus object, read
 #: by the loop itself), canopen for NMT, SDO and the heartbeat (a second bus object on
-#: the same group, with canopen's notifier). It prints one JSON line.
+#: the same group, with canopen's notifier). It waits for the drive's heartbeat, starts
+#: it, walks it to OPERATION ENABLED while taring the torque bridge (command 0), then
+#: makes the measured torque follow a sine by a proportional law on every sensor frame,
+#: and ends its session as docs/own-firmware.md says. It prints one JSON line.
 FIRMWARE = r"""
-import json, struct, sys, time
+import json, math, struct, sys, time
 import can, canopen
 
 group, seconds, eds = sys.argv[1], float(sys.argv[2]), sys.argv[3]
-TS = 1e-3                      # sample period: SYNC at 1 kHz
+TS = 1e-3                       # sample period: SYNC at 1 kHz
 NM_PER_COUNT = 10 / 2048 * 6.6  # ADC counts -> V -> Nm (the bridge's 6.6 Nm/V)
 COUNTS_PER_V = 2048 / 10        # DAC counts per volt
-TAU_REF = 0.5                   # Nm, the torque loop's set point (measured torque)
-KP, KI = 2.0, 200.0             # V/Nm, V/(Nm s)
+AMP, FREQ = 0.2, 1.0            # the torque set point: 0.2 Nm sine at 1 Hz about the tare
+KP = 1.5                        # V/Nm, proportional (the plant's gain margin is about 2.5x)
 LIMIT = 800                     # DAC counts (3.9 V)
 
 net = canopen.Network(can.Bus(interface="udp_multicast", channel=group))
@@ -44,16 +47,25 @@ net.connect()
 drive = net.add_node(2, eds)
 cyc = can.Bus(interface="udp_multicast", channel=group)
 
-net.send_message(0x701, b"\x00")                     # boot-up of node 1
-beat = net.send_periodic(0x701, b"\x05", 0.1)         # heartbeat, 100 ms
-drive.nmt.send_command(0x01)                         # NMT start node 2
+def wait_for(cob_id, seconds):  # a frame of the drive (its heartbeat: it is up)
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        msg = cyc.recv(0.1)
+        if msg is not None and msg.arbitration_id == cob_id:
+            return
+    sys.exit(f"no frame 0x{cob_id:03X} within {seconds} s")
+
+wait_for(0x702, 60)
+net.send_message(0x701, b"\x00")                    # boot-up of node 1
+beat = net.send_periodic(0x701, b"\x05", 0.1)        # heartbeat, 100 ms
+drive.nmt.send_command(0x01)                        # NMT start node 2
 time.sleep(0.05)
 
 def rpdo(dac, cw, k):
     cyc.send(can.Message(arbitration_id=0x202, is_extended_id=False,
                          data=struct.pack("<hHB", dac, cw, k & 0xFF)))
 
-answered = 0; taus = []; dacs = []; integ = 0.0
+answered = 0; taus = []; refs = []; dacs = []; tare = []; dac = 0
 walk = [0x0006] * 30 + [0x0007] * 30 + [0x000F] * 40
 n = int(round(seconds / TS)) + len(walk)
 t0 = time.perf_counter()
@@ -69,28 +81,30 @@ for k in range(n):
         msg = cyc.recv(2e-4)
         if msg is not None and msg.arbitration_id == 0x182 and not msg.is_extended_id:
             sensor = msg
-    if k < len(walk):
+    if k < len(walk):                   # the walk, command 0: the bridge's offset tared
+        if sensor is not None:
+            tare.append(struct.unpack_from("<h", sensor.data, 0)[0] * NM_PER_COUNT)
         rpdo(0, walk[k], k)
         continue
-    if sensor is None:
-        rpdo(dacs[-1] if dacs else 0, 0x000F, k)
+    offset = sum(tare[-30:]) / len(tare[-30:])
+    if sensor is None:                  # late: the last command again
+        rpdo(dac, 0x000F, k)
         continue
     answered += 1
-    tau = struct.unpack_from("<h", sensor.data, 0)[0] * NM_PER_COUNT
-    e = TAU_REF - tau
-    integ = min(max(integ + KI * e * TS, -LIMIT / COUNTS_PER_V), LIMIT / COUNTS_PER_V)
-    dac = int(round(max(-LIMIT, min(LIMIT, (KP * e + integ) * COUNTS_PER_V))))
+    tau = struct.unpack_from("<h", sensor.data, 0)[0] * NM_PER_COUNT - offset
+    ref = AMP * math.sin(2 * math.pi * FREQ * (k - len(walk)) * TS)
+    dac = int(round(max(-LIMIT, min(LIMIT, KP * (ref - tau) * COUNTS_PER_V))))
     rpdo(dac, 0x000F, k)
-    taus.append(tau); dacs.append(dac)
+    taus.append(tau); refs.append(ref); dacs.append(dac)
 elapsed = time.perf_counter() - t0
 statusword = drive.sdo[0x6041].raw
-drive.sdo[0x1016][1].raw = 0                          # end: heartbeat entry cleared
-drive.sdo[0x6040].raw = 0x0000                        # disable voltage
-drive.nmt.send_command(0x80)                         # NMT pre-operational
+drive.sdo[0x1016][1].raw = 0                        # end: heartbeat entry cleared
+drive.sdo[0x6040].raw = 0x0000                      # disable voltage
+drive.nmt.send_command(0x80)                        # NMT pre-operational
 beat.stop()
 net.disconnect(); cyc.shutdown()
 print(json.dumps({"cycles": n - len(walk), "answered": answered, "elapsed_s": elapsed,
-                  "statusword": statusword, "taus": taus, "dacs": dacs}))
+                  "statusword": statusword, "taus": taus, "refs": refs, "dacs": dacs}))
 """
 
 
@@ -121,7 +135,12 @@ def test_an_independent_firmware_closes_a_torque_loop_and_is_scored(netns, tmp_p
         _in(netns, *hdhil, "log", str(trace), *bus, *truth, "--scenario", "free-motion")
     )
     emulator = _popen(_in(netns, *rt, *hdhil, "emulate", *bus, *truth, "--scenario", "free-motion"))
-    time.sleep(1.5)  # both up and listening
+    # The logger listens once its trace's temporary is there (its buses are open before);
+    # the firmware itself waits for the drive's heartbeat, as a master does.
+    deadline = time.monotonic() + 60
+    while {p.name for p in tmp_path.iterdir()} <= {script.name}:
+        assert time.monotonic() < deadline and logger.poll() is None, logger.stderr
+        time.sleep(0.05)
     try:
         fw = subprocess.run(_in(netns, *rt, sys.executable, str(script), GROUP_CONTROL, "2.0",
                                 str(eds_path("drive"))),
@@ -148,14 +167,25 @@ def test_an_independent_firmware_closes_a_torque_loop_and_is_scored(netns, tmp_p
     # Closed: most cycles had their sensor frame within 0.8 ms (90 %: on a loaded 2-core
     # machine a few frames come late; such a cycle repeats its command).
     assert result["answered"] >= 0.9 * result["cycles"]
-    dacs = result["dacs"]
-    assert max(dacs) - min(dacs) > 20  # the command follows the feedback
+    # And it tracks: over the last second the measured torque follows the 0.2 Nm sine
+    # with an RMS error below 0.75 of the set point's RMS (about 0.5 measured: the
+    # proportional law leaves an error; without the loop, command 0, the error is the
+    # set point itself, 1.0, and the torque stays at the bridge noise, 0.02 Nm RMS);
+    # the margin is for late sensor frames on a loaded machine.
+    taus, refs = result["taus"], result["refs"]
+    half = len(taus) // 2
+    rms = lambda xs: (sum(x * x for x in xs) / len(xs)) ** 0.5  # noqa: E731
+    err = [t - r for t, r in zip(taus[half:], refs[half:], strict=True)]
+    assert rms(err) < 0.75 * rms(refs[half:]), (rms(err), rms(refs[half:]))
+    assert rms(taus[half:]) > 0.5 * rms(refs[half:])
     # Scored: evaluate reads the trace (its sidecar names the scenario) and scores the
     # filters against the emulator's ground truth, logged on its own bus.
     ev = subprocess.run([*hdhil, "evaluate", "--json", str(trace)], capture_output=True,
                         text=True, timeout=300)  # fmt: skip
     assert ev.returncode == 0, ev.stderr
     scored = json.loads(ev.stdout)
-    assert scored["samples"] > 1000 and scored["rms_true"] > 0
+    # Samples: the cycles with both a sensor frame and its truth, from the scenario's
+    # evaluation start (0.3 s) on; 2 s of operation give 900-1200 here, 500 leaves room.
+    assert scored["samples"] > 500 and scored["rms_true"] > 0
     raw = next(c for c in scored["candidates"] if c["name"] == "raw")
     assert raw["rms_error"] is not None and raw["rms_error"] > 0
