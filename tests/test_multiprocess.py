@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import can
 import pytest
@@ -24,19 +25,44 @@ GROUP_CONTROL = "239.74.163.2"
 GROUP_TRUTH = "239.74.163.3"
 
 
-def _hdhil(ns: str, *args: str) -> subprocess.Popen:
+def _hdhil(ns: str, *args: str, priority: bool = False) -> subprocess.Popen:
+    """``hdhil ARGS`` in the namespace; ``priority``: at a real-time priority where the
+    machine allows it (:func:`_realtime_priority`)."""
+    rt = _realtime_priority(ns) if priority else []
     return subprocess.Popen(
-        ["ip", "netns", "exec", ns, sys.executable, "-m", "hdhil", *args],
+        ["ip", "netns", "exec", ns, *rt, sys.executable, "-m", "hdhil", *args],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
+
+
+def _realtime_priority(ns: str) -> list[str]:
+    """``chrt -f 20`` where the machine allows it (root, util-linux), for the emulator and
+    the logger: on a loaded machine a process at normal priority can be held off the CPU
+    for tens of milliseconds. The emulator then misses the real-time firmware's sensor
+    hold (10 SYNCs, 10 ms), and the logger's socket receive buffer overflows (about 200
+    udp_multicast frames, 55 ms of this bus), so the kernel drops frames the trace never
+    sees. A drive's firmware and a bus logger run at such priorities. Elsewhere nothing."""
+    probe = subprocess.run(["ip", "netns", "exec", ns, "chrt", "-f", "20", "true"],
+                           capture_output=True)  # fmt: skip
+    return ["chrt", "-f", "20"] if probe.returncode == 0 else []
+
+
+def _wait_listening(logger: subprocess.Popen, folder: Path) -> None:
+    """Until ``hdhil log`` listens: its trace's temporary appears in ``folder`` once its
+    buses are open (a fixed sleep was too short on a loaded machine)."""
+    deadline = time.monotonic() + 60
+    while not any(folder.iterdir()):
+        assert time.monotonic() < deadline and logger.poll() is None, "the logger did not start"
+        time.sleep(0.05)
 
 
 def test_emulator_firmware_and_logger_as_three_processes(netns, tmp_path):
     trace = tmp_path / "three.blf"
     bus = ["--interface", "udp_multicast", "--channel", GROUP_CONTROL]
     truth = ["--truth-interface", "udp_multicast", "--truth-channel", GROUP_TRUTH]
-    logger = _hdhil(netns, "log", str(trace), *bus, *truth)
-    emulator = _hdhil(netns, "emulate", *bus, *truth, "--scenario", "free-motion")
+    logger = _hdhil(netns, "log", str(trace), *bus, *truth, priority=True)
+    emulator = _hdhil(netns, "emulate", *bus, *truth, "--scenario", "free-motion", priority=True)
+    _wait_listening(logger, tmp_path)
     time.sleep(1.5)  # both processes up and listening before the firmware boots
     # Network lockstep: this test is about three processes and their trace, not about
     # real-time scheduling (test_firmware_paces_sync_in_real_time_by_default is).
@@ -74,11 +100,7 @@ def test_firmware_paces_sync_in_real_time_by_default(netns, tmp_path):
     """Without flags, `hdhil firmware` on another interface than the in-process rig paces
     SYNC by the wall clock at the scenario's period (never as fast as the drive answers)."""
     bus = ["--interface", "udp_multicast", "--channel", GROUP_CONTROL]
-    emulator = subprocess.Popen(
-        ["ip", "netns", "exec", netns, *_realtime_priority(netns), sys.executable, "-m",
-         "hdhil", "emulate", *bus, "--scenario", "free-motion"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+    emulator = _hdhil(netns, "emulate", *bus, "--scenario", "free-motion", priority=True)
     time.sleep(1.5)
     firmware = _hdhil(netns, "firmware", *bus, "--scenario", "free-motion", "--duration", "0.5")
     try:
@@ -97,17 +119,6 @@ def test_firmware_paces_sync_in_real_time_by_default(netns, tmp_path):
         firmware.kill()
 
 
-def _realtime_priority(ns: str) -> list[str]:
-    """``chrt -f 20`` before the emulator where the machine allows it (root, util-linux):
-    the firmware paces in real time under SCHED_FIFO and goes safe after 10 SYNCs
-    (10 ms) without a sensor frame, so an emulator at normal priority on a loaded
-    machine can be held off the CPU for longer than that; a drive's own firmware runs
-    at such a priority. Elsewhere nothing (the test may then see that stop)."""
-    probe = subprocess.run(["ip", "netns", "exec", ns, "chrt", "-f", "20", "true"],
-                           capture_output=True)  # fmt: skip
-    return ["chrt", "-f", "20"] if probe.returncode == 0 else []
-
-
 def test_two_real_time_sessions_against_one_emulator_at_1_khz(netns, tmp_path):
     """Done means (issue 25): two `hdhil firmware` sessions without flags against one
     `hdhil emulate` both exit 0, the emulator reports two sessions ended clean and exits
@@ -115,12 +126,9 @@ def test_two_real_time_sessions_against_one_emulator_at_1_khz(netns, tmp_path):
     0.5 % by `hdhil dump --stats` (the logger's receive times)."""
     trace = tmp_path / "paced.blf"
     bus = ["--interface", "udp_multicast", "--channel", GROUP_CONTROL]
-    logger = _hdhil(netns, "log", str(trace), *bus)
-    emulator = subprocess.Popen(
-        ["ip", "netns", "exec", netns, *_realtime_priority(netns), sys.executable, "-m",
-         "hdhil", "emulate", *bus, "--scenario", "free-motion"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+    logger = _hdhil(netns, "log", str(trace), *bus, priority=True)
+    emulator = _hdhil(netns, "emulate", *bus, "--scenario", "free-motion", priority=True)
+    _wait_listening(logger, tmp_path)
     time.sleep(1.5)
     runs = []
     try:

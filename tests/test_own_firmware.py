@@ -117,8 +117,9 @@ def _popen(cmd: list[str]) -> subprocess.Popen:
 
 
 def _priority(ns: str) -> list[str]:
-    """``chrt -f 20`` where the machine allows it: on a loaded machine a process at
-    normal priority can be held off the CPU for milliseconds, many 1 ms cycles."""
+    """``chrt -f 20`` where the machine allows it, for the firmware, the emulator and the
+    logger: on a loaded machine a process at normal priority can be held off the CPU for
+    tens of milliseconds, many 1 ms cycles (test_multiprocess._realtime_priority)."""
     probe = subprocess.run(_in(ns, "chrt", "-f", "20", "true"), capture_output=True)
     return ["chrt", "-f", "20"] if probe.returncode == 0 else []
 
@@ -132,7 +133,7 @@ def test_an_independent_firmware_closes_a_torque_loop_and_is_scored(netns, tmp_p
     truth = ["--truth-interface", "udp_multicast", "--truth-channel", GROUP_TRUTH]
     hdhil = [sys.executable, "-m", "hdhil"]
     logger = _popen(
-        _in(netns, *hdhil, "log", str(trace), *bus, *truth, "--scenario", "free-motion")
+        _in(netns, *rt, *hdhil, "log", str(trace), *bus, *truth, "--scenario", "free-motion")
     )
     emulator = _popen(_in(netns, *rt, *hdhil, "emulate", *bus, *truth, "--scenario", "free-motion"))
     # The logger listens once its trace's temporary is there (its buses are open before);
