@@ -45,8 +45,13 @@ def eds_path(node: NodeName) -> Path:
 
 #: The drive mappings shipped here by name: the drive's DCF (None: the EDS defaults, the
 #: raw ADC/DAC mapping of [Taghirad97]'s signals; ``drive-cst.dcf``: CiA 402 cyclic
-#: synchronous torque).
-MAPPINGS: dict[str, str | None] = {"raw": None, "cst": "drive-cst.dcf"}
+#: synchronous torque; ``drive-cst-sensor.dcf``: the same with the joint-torque sensor
+#: 0x2102 beside 0x6077 and 0x6064 in the sensor PDO).
+MAPPINGS: dict[str, str | None] = {
+    "raw": None,
+    "cst": "drive-cst.dcf",
+    "cst-sensor": "drive-cst-sensor.dcf",
+}
 
 
 def dcf_path(name: str) -> Path:

@@ -46,12 +46,15 @@ class AdcSample(NamedTuple):
 class CstSample(NamedTuple):
     """The drive's sensor frame in the CiA 402 cyclic synchronous torque mapping:
     torque actual value 0x6077 (per mille of the drive's rated torque 0x6076) and
-    position actual value 0x6064 (encoder increments, 32 bits).  The handler's sensor
-    source (:class:`firmware.stages.CstSource`) turns them into torque, angle and
-    velocity.  An immutable named tuple, as :class:`AdcSample`."""
+    position actual value 0x6064 (encoder increments, 32 bits), and when the mapping
+    carries it the joint-torque sensor 0x2102 (mV of the strain-gauge bridge's amplified
+    output; None when not mapped).  The handler's sensor source
+    (:class:`firmware.stages.CstSource`) turns them into torque, angle and velocity.  An
+    immutable named tuple, as :class:`AdcSample`."""
 
     torque_actual: int
     position: int
+    joint_torque_mV: int | None = None
 
 
 @dataclass(slots=True)

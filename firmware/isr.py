@@ -462,27 +462,33 @@ class InterruptHandler:
         from the next sample on); a CST source keeps its rated torque and velocity."""
         source = self.source
         if isinstance(source, CstSource):
-            new = self.use_cst_source(source.rated_torque_Nm)
+            new = self.use_cst_source(source.rated_torque_Nm, source.calibration is not None)
             new.differentiator = source.differentiator
             new.primed = source.primed
         else:
             self.source = AdcSource(self.cfg.adc, self.cfg.calibration)
 
-    def use_cst_source(self, rated_torque_Nm: float) -> CstSource:
+    def use_cst_source(
+        self, rated_torque_Nm: float, joint_torque_sensor: bool = False
+    ) -> CstSource:
         """Take the samples as :class:`CstSample` (CiA 402 torque actual 0x6077 and
         position actual 0x6064) through :class:`firmware.stages.CstSource`, with the
-        drive's rated torque 0x6076 (Nm); returns the source."""
+        drive's rated torque 0x6076 (Nm); with ``joint_torque_sensor`` (the drive's
+        0x2102 is mapped) the torque is the strain-gauge bridge's, calibrated with this
+        configuration's calibration.  Returns the source."""
         cfg = self.cfg
         source = CstSource(
             rated_torque_Nm,
             cfg.calibration.encoder_counts_per_rev,
             cfg.diff_tau_s,
             cfg.sample_period_s,
+            cfg.calibration if joint_torque_sensor else None,
         )
         self.source = source
         # The stuck-channel check tells a dead bridge or tacho by a reading that no longer
         # wobbles while the motor turns; the amplifier's torque actual value is steady in
-        # per mille at a steady speed and there is no tacho, so it is off here.
+        # per mille at a steady speed and there is no tacho (the check needs both), so it
+        # is off here.
         self.stuck = None
         return source
 

@@ -863,3 +863,23 @@ def test_cst_torque_through_0x6071_moves_the_joint_as_the_raw_dac_object_does():
     position = [int.from_bytes(f[2:6], "little", signed=True) for f in frames]
     assert abs(torque_actual[-1] - 250) <= 5  # per mille of rated torque
     assert position[-1] != position[0]
+
+
+def test_a_synchronous_tpdo_mapped_at_run_time_is_sent_beside_the_default_tpdo1(rig):
+    """TPDO3 mapped by the CiA 301 procedure (statusword, transmission type 2) goes out on
+    every second SYNC while TPDO1 keeps its default mapping and goes out on every SYNC."""
+    rig.boot()
+    tpdo3 = 0x382
+    writes = [
+        (0x1A02, 0, b"\x00"),
+        (0x1A02, 1, struct.pack("<I", 0x60410010)),
+        (0x1A02, 0, b"\x01"),
+        (0x1802, 2, b"\x02"),
+        (0x1802, 1, struct.pack("<I", tpdo3)),  # valid
+    ]
+    for index, sub, data in writes:
+        assert sdo_download(rig, index, sub, data) is None, hex(index)
+    rig.nmt(NmtCommand.START)
+    seen = [ids(rig.cycle(SHUTDOWN)) for _ in range(4)]
+    assert [s.count(TPDO1) for s in seen] == [1, 1, 1, 1]
+    assert [s.count(tpdo3) for s in seen] == [0, 1, 0, 1]

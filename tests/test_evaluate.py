@@ -9,7 +9,13 @@ import pytest
 
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.stages import adc_read, calibrate
-from hdhil.rig.evaluate import Recording, calibrated_signals, estimate_lag, harmonic_amplitude
+from hdhil.rig.evaluate import (
+    COLUMNS,
+    Recording,
+    calibrated_signals,
+    estimate_lag,
+    harmonic_amplitude,
+)
 
 
 def test_harmonic_amplitude_recovers_each_component():
@@ -41,7 +47,7 @@ def test_calibrated_signals_are_the_firmware_stages_sample_by_sample():
     rec = Recording(1e-3)
     codes = rng.integers(-2100, 2100, size=(400, 3)).tolist()
     for torque, tacho, current in codes:
-        rec.append_row((torque, tacho, current) + (math.nan,) * 12)
+        rec.append_row((torque, tacho, current) + (math.nan,) * (len(COLUMNS) - 3))
     T_meas, vel = calibrated_signals(rec, cfg)
     want = [calibrate(*adc_read(q, tq, cu, cfg.adc), cfg.calibration) for q, tq, cu in codes]
     assert T_meas.tolist() == [w[0] for w in want]

@@ -33,7 +33,10 @@ SCENARIOS = (
     "chirp",
     "speed-chirp",
     "torque-steps",
+    "sine-load",
     "lqg-tracking",
+    "lqg-tracking-slow-link",
+    "lqg-tracking-squared-weights",
     "lqg-misalignment",
     "lqg-experiment",
 )
@@ -125,10 +128,10 @@ def test_free_motion_trace_unchanged(tmp_path: Path) -> None:
     _check("trace/free-motion", _trace_digest(trace))
 
 
-#: Scenarios whose whole trace is digested beside free-motion: a load, a misalignment
+#: Scenarios whose whole trace is digested beside free-motion: loads, a misalignment
 #: and the torque-control laws, so a move of the plant, the nodes or the trace path
 #: that changes any frame of them fails here.
-TRACED = ("torque-steps", "misalignment", "lqg-tracking", "lqg-experiment")
+TRACED = ("torque-steps", "sine-load", "misalignment", "lqg-tracking", "lqg-experiment")
 
 
 @pytest.mark.parametrize("scenario", TRACED)

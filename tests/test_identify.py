@@ -257,7 +257,9 @@ def test_identify_plot_has_phase_and_coherence_panels(chirp_trace) -> None:
                      model_values(plant))  # fmt: skip
     fig = make_figure(ident)
     labels = [ax.get_ylabel() for ax in fig.axes]
-    assert labels == ["magnitude [dB]", "phase [deg]", "coherence", "normalised"]
+    # One notation for units on every figure: "quantity (unit)" (hdhil.core.plotlabels).
+    assert labels == ["magnitude (dB)", "phase (deg)", "coherence", "normalised amplitude"]
+    assert {ax.get_xlabel() for ax in fig.axes} == {"frequency (Hz)", "time (s)"}
     phase_ax = fig.axes[1]
     measured = next(line for line in phase_ax.get_lines() if line.get_label() == "arg H1")
     f, phase = (np.asarray(v, dtype=float) for v in measured.get_data())

@@ -95,23 +95,114 @@ def test_person_link_is_integrated_exactly_and_its_torque_is_truth() -> None:
     )
 
 
-def test_experiment_friction_is_the_seed_model_and_an_unmodelled_viscous_term() -> None:
+def test_experiment_motor_friction_is_the_seed_model_exactly() -> None:
     """The plant's tau_d is the firmware's Eq. 5 model (13.7 Nm, 2 rad/s at the motor
-    shaft) plus a viscous term the model does not have, 0.15 Nm per rad/s of the motor,
-    both opposing the motion."""
+    shaft), opposing the motion: the unmodelled friction is on the link side."""
     sc = load_scenario("lqg-experiment")
     fw = from_dict(FirmwareConfig, sc.firmware, "firmware")
     assert fw.control.friction == SEED_FRICTION_MODEL
     plant = Plant(sc.plant)
     for w_motor in (-50.0, -2.0, -0.3, 0.0, 0.5, 2.0, 80.0):
         plant._wm = w_motor / sc.plant.drivetrain.gear_ratio
-        unmodelled = plant.truth().tau_d_Nm - fw.control.friction.torque(w_motor)
-        assert unmodelled == pytest.approx(-0.15 * w_motor, abs=1e-9)
+        assert plant.truth().tau_d_Nm == pytest.approx(
+            fw.control.friction.torque(w_motor), abs=1e-9
+        )
     assert fw.control.friction.torque(100.0) == pytest.approx(-13.7, rel=1e-9)
     assert fw.control.friction.torque(-100.0) > 13.69
+    assert sc.plant.link.bearing_coulomb_Nm > 0.0
+
+
+def test_link_bearing_friction_separates_the_handle_torque_from_tau_ext() -> None:
+    """The output-shaft bearings' friction between the sensor and the handle: the
+    person supplies it, so the joint moves as without it, tau_ext (what the observer
+    estimates, TRUTH_JOINT.tau_ext) keeps it and the handle torque tau_l does not."""
+    sc = load_scenario("lqg-experiment")
+    link = sc.plant.link
+    without = dataclasses.replace(sc.plant, link=dataclasses.replace(link, bearing_coulomb_Nm=0.0))
+    a, b = Plant(sc.plant, seed=3), Plant(without, seed=3)
+    for k in range(1500):
+        v = 0.4 * math.sin(0.003 * k)
+        a.advance(v, 1e-3)
+        b.advance(v, 1e-3)
+        if k % 50:
+            continue
+        ta, tb = a.truth(), b.truth()
+        assert a.sample() == b.sample()
+        assert ta[:10] == tb[:10]  # every truth-channel field, tau_ext included
+        bearing = -link.bearing_coulomb_Nm * math.tanh(ta.omega_output_radps / 0.01)
+        assert ta.load_friction_Nm == pytest.approx(bearing, abs=1e-12)
+        assert ta.tau_l_Nm == pytest.approx(tb.tau_l_Nm - bearing, abs=1e-9)
+        assert ta.tau_l_Nm == pytest.approx(
+            link.handle_torque(ta.tau_ext_Nm, ta.omega_output_radps), abs=1e-9
+        )
+    assert link.handle_torque(1.0, 0.5) == pytest.approx(1.0 + link.bearing_coulomb_Nm)
+    assert LinkMotionConfig().handle_torque(1.0, 0.5) == 1.0
+    with pytest.raises(ConfigError, match="coulomb_load"):
+        from_dict(LinkMotionConfig, {"bearing_coulomb_Nm": 3.0})  # a free link
+    with pytest.raises(ConfigError, match="bearing_smoothing_radps"):
+        from_dict(LinkMotionConfig, {"kind": "hold", "bearing_smoothing_radps": 0.0})
+
+
+def test_the_tracking_score_compares_the_estimate_with_the_handle_torque() -> None:
+    """With a bearing friction the external-torque estimate is scored against the
+    handle torque: TRUTH_JOINT.tau_ext less the friction at TRUTH_MOTION.omega_output;
+    the disturbance estimate still against tau_ext (what the observer estimates)."""
+    from hdhil.dbc import codec
+    from hdhil.rig.score import TrackingScorer
+
+    truth = codec("truth", "TRUTH_TORQUE")
+    motion = codec("truth", "TRUTH_MOTION")
+    joint = codec("truth", "TRUTH_JOINT")
+    tele2 = codec("control", "CTRL_TPDO2")
+    link = LinkMotionConfig(kind="hold", bearing_coulomb_Nm=3.0)
+    scorers = [TrackingScorer(0.28, 0.0, True, 1e-3, h) for h in (None, LinkMotionConfig(), link)]
+
+    def frame(c, t, *values):
+        return can.Message(timestamp=t, arbitration_id=c.frame_id,
+                           is_extended_id=c.is_extended_id, data=c.encode(*values))  # fmt: skip
+
+    # (link velocity, tau_ext, tau_lgd_hat): the estimate follows tau_ext
+    samples = [(0.5, 2.0, 2.0), (-0.5, -1.0, -1.0), (0.0, 0.0, 0.0)]
+    for k, (w, tau_ext, est) in enumerate(samples):
+        t = k * 1e-3
+        for sc in scorers:
+            sc.on_message_received(frame(truth, t, 0.0, 0.0))
+            sc.on_message_received(frame(motion, t, 0.0, 0.0, 100.0 * w, w))
+            sc.on_message_received(frame(joint, t, tau_ext, 0.0, 0.0, 0.0))
+            sc.on_message_received(frame(tele2, t, 0.0, est, 0.0, 0.0))
+    plain, default, handle = (sc.result() for sc in scorers)
+    assert plain == default
+    assert plain.max_external_error == pytest.approx(0.0, abs=1e-9)
+    assert handle.max_external_error == pytest.approx(3.0, abs=1e-6)  # 3 tanh(50)
+    assert handle.rms_external_error == pytest.approx(math.sqrt(2 * 9.0 / 3), abs=1e-6)
+    assert handle.rms_disturbance_error == plain.rms_disturbance_error == 0.0
 
 
 # ------------------------------------------------------------------ firmware Eq. 5
+def test_eq5_fade_in_reading_is_the_printed_formula_with_one_bracket_moved() -> None:
+    """[Vertechy] Eq. 5 read as -13.7 sgn(w) (1 + tanh(|w|/2 - 4)) / 2, w the motor-shaft
+    speed: a compensation that fades in around 8 rad/s; selectable beside the tanh one."""
+    fade = FrictionModelConfig(coulomb_Nm=13.7, velocity_scale_radps=2.0, model="fade-in")
+    for w in (-300.0, -20.0, -8.0, -3.0, -0.5, 1e-3, 0.7, 4.0, 8.0, 9.5, 30.0, 100.0):
+        expected = -13.7 * math.copysign(1.0, w) * (1.0 + math.tanh(abs(w) / 2.0 - 4.0)) / 2.0
+        assert fade.torque(w) == pytest.approx(expected, rel=1e-12, abs=1e-15)
+    assert fade.torque(0.0) == 0.0
+    assert fade.torque(8.0) == pytest.approx(-13.7 / 2.0)
+    assert abs(fade.torque(2.0)) < 0.05 < 0.3 * abs(SEED_FRICTION_MODEL.torque(2.0))
+    # the key of a scenario file, and its check
+    ctl = from_dict(ControlConfig, {"law": "jtf1", "friction": {"coulomb_Nm": 13.7,
+                                                                 "model": "fade-in"}})  # fmt: skip
+    assert ctl.friction == fade
+    assert from_dict(ControlConfig, {"friction": {"coulomb_Nm": 13.7}}).friction.model == "tanh"
+    with pytest.raises(ConfigError, match="model"):
+        from_dict(ControlConfig, {"friction": {"coulomb_Nm": 13.7, "model": "sgn"}})
+    # the interrupt stage applies it on the tacho velocity
+    stage = TorqueControl(FirmwareConfig(control=ControlConfig(law=Law.JTF1, friction=fade)))
+    out = IsrOutput()
+    stage(0, 0.0, out, 8.0)
+    assert out.tau_d_hat == pytest.approx(-13.7 / 2.0)
+
+
 def test_interrupt_stage_applies_eq5_with_the_tacho_velocity() -> None:
     """TorqueControl passes tau_d_hat = model(velocity) to the LQG controller (Eq. 5):
     the same commands as a controller driven by hand with that model."""
@@ -179,14 +270,33 @@ def test_experiment_with_friction_compensation_meets_the_seed(experiment) -> Non
     assert eq5["share_within_goal"] > 0.97
     assert eq5["share_within_goal_measured"] > 0.95
     assert eq5["max_abs_error_measured"] > eq5["max_abs_error"]  # the sensor's noise
-    assert eq5["max_abs_tau_m"] < 60.0
+    assert eq5["max_abs_tau_m"] <= 40.0
     # the external-torque estimate follows the handle torque with Eq. 5 up to the
-    # unmodelled friction (seed: "roughly ±3 Nm"), and much worse without it
-    assert 1.0 < eq5["max_external_error"] < 5.0
-    assert eq4["max_external_error"] > 4.0
+    # unmodelled bearing friction (seed: "roughly ±3 Nm"); without Eq. 5 it is tau_lgd,
+    # off by Jl/Jm tau_d (3.8 Nm) against the motion, and the bearing friction's 3 Nm
+    # partly cancels that
+    assert 2.0 < eq5["max_external_error"] < 5.0
+    assert eq4["rms_disturbance_error"] > eq5["rms_disturbance_error"]
     assert eq4["max_abs_error"] > 2.0 * eq5["max_abs_error"]
     # seed §V: the filter-fed JTF3 is worse than the observer-fed one on the noisy sensor
     assert rows["JTF3, filters (§V)"]["rms_error"] > 3.0 * rows["JTF3"]["rms_error"]
+
+
+@pytest.mark.slow
+def test_the_experiment_meets_the_three_statements_of_fig8() -> None:
+    """The whole run as the scenario sets it (20 s, from 1 s): [Vertechy] §VI "τm ...
+    remains within ±40 Nm", e within ±0.5 Nm on the measured torque (>= 95 % of the
+    samples: the sensor's noise alone leaves it now and then) and τ̂l off the handle's
+    τl^m by "roughly ±3 Nm"."""
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(["run", "--scenario", "lqg-experiment", "--json"]) == 0
+    row = json.loads(buf.getvalue())["tracking"]
+    assert row["samples"] == 19000
+    assert row["max_abs_tau_m"] <= 40.0
+    assert row["share_within_goal_measured"] >= 0.95
+    assert 2.0 <= row["max_external_error"] <= 4.5
+    assert row["rms_external_error"] >= 1.5  # an error of that order throughout, not a spike
 
 
 @pytest.mark.slow
@@ -208,8 +318,9 @@ def test_tracking_from_python_is_what_evaluate_reports(experiment, capsys) -> No
 
     _rows, out = experiment
     trace = out.with_name(f"{out.stem}-jtf1{out.suffix}")
-    fw = from_dict(FirmwareConfig, load_scenario("lqg-experiment").firmware, "firmware")
-    tracking = tracking_from_trace(trace, fw, 1.0)
+    sc = load_scenario("lqg-experiment")
+    fw = from_dict(FirmwareConfig, sc.firmware, "firmware")
+    tracking = tracking_from_trace(trace, fw, 1.0, sc.plant.link)
     assert main(["evaluate", str(trace), "--scenario", "lqg-experiment", "--skip", "1",
                  "--json"]) == 0  # fmt: skip
     assert json.loads(json.dumps(tracking)) == json.loads(capsys.readouterr().out)["tracking"]
@@ -228,6 +339,14 @@ def test_plot_draws_fig8(experiment, tmp_path, capsys) -> None:
     data, damage = fig8_data(trace)
     assert damage == ""
     assert np.max(np.abs(data.theta_l_deg)) <= 60.5
+    # τl^m: the handle torque, tau_ext less the bearing friction at the link's velocity
+    link = load_scenario("lqg-experiment").plant.link
+    handle, _ = fig8_data(trace, link)
+    np.testing.assert_allclose(
+        handle.tau_l_meas - data.tau_l_meas,
+        link.bearing_coulomb_Nm * np.tanh(data.omega_l / link.bearing_smoothing_radps),
+        atol=1e-9,
+    )
     # seed sign: the desired torque is +20 sin(0.4 pi t)
     k = np.searchsorted(data.t, 1.25)
     assert data.tau_sD[k] == pytest.approx(20.0 * math.sin(0.4 * math.pi * data.t[k]), abs=0.05)

@@ -27,6 +27,7 @@ from hdhil.firmware.config.control import (
     ControlFeedback,
     DesiredTorqueConfig,
     Estimates,
+    FrictionForm,
     FrictionModelConfig,
     Law,
 )
@@ -100,6 +101,7 @@ __all__ = [
     "Estimates",
     "FilterMode",
     "FirmwareConfig",
+    "FrictionForm",
     "FrictionModelConfig",
     "Law",
     "Oscillator",

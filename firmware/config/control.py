@@ -35,6 +35,7 @@ __all__ = [
     "ControlFeedback",
     "DesiredTorqueConfig",
     "Estimates",
+    "FrictionForm",
     "FrictionModelConfig",
     "Law",
 ]
@@ -119,6 +120,12 @@ class DesiredTorqueConfig:
         )
 
 
+#: The two readings of [Vertechy]'s garbled Eq. 5 friction model
+#: (:class:`FrictionModelConfig`): ``"tanh"``, ``-C tanh(ω/s)``, or ``"fade-in"``,
+#: ``-C sgn(ω) (1 + tanh(|ω|/s - o)) / 2``.
+FrictionForm = Literal["tanh", "fade-in"]
+
+
 @dataclass(frozen=True)
 class FrictionModelConfig:
     """The motor-disturbance model ``τ̂d`` of [Vertechy] Eq. 5 (JTF1 with friction
@@ -126,17 +133,32 @@ class FrictionModelConfig:
 
     [Vertechy] §VI: "the experimentally determined motor
     friction torque model ``τ̂d = [-13.7 sign(ϑ̇m)(1 + tanh(|ϑ̇m|/2) - 4)]/2`` Nm, the
-    controller implements (5) instead of (4)".  Printed garbled; the reading we take
-    (the one that reproduces the paper's ``max(τsD + τ̂d) ≈ 33.7`` Nm with ``τsD`` ≤ 20
-    Nm, ``hostsim.plant.DriveTrainConfig``) is a friction that opposes the motion,
-    tops out at 13.7 Nm and is smooth through rest::
+    controller implements (5) instead of (4)".  Printed garbled; both readings below top
+    out at 13.7 Nm and oppose the motion, as the paper's ``max(τsD + τ̂d) ≈ 33.7`` Nm with
+    ``τsD`` ≤ 20 Nm needs (``docs/papers.md``, "the experiment of §VI"):
 
-        τ̂d = -coulomb_Nm · tanh(ω / velocity_scale_radps)
+    - the tanh reading, ``model = "tanh"`` (the default): a friction that is smooth
+      through rest and saturates at a few ``velocity_scale_radps``::
 
-    with ``ω`` the motor velocity the firmware measures (tachometer, rad/s at the motor
-    shaft) and ``velocity_scale_radps`` the ``2`` of ``|ϑ̇m|/2`` read at the motor shaft
-    (2 rad/s, i.e. 0.02 rad/s at the output).  Torques at the output, the same sign in
-    the product convention and [Vertechy]'s (``firmware.isr``).
+          τ̂d = -coulomb_Nm · tanh(ω / velocity_scale_radps)
+
+    - the fade-in reading, ``model = "fade-in"``: the printed formula with one bracket
+      moved, a smooth step centred at ``|ω| = fade_in_offset · velocity_scale_radps``
+      (8 rad/s) that vanishes near rest, so that the compensation is faded in once
+      the motor turns (it is not applied where the sign of a slow velocity is
+      uncertain)::
+
+          τ̂d = -coulomb_Nm · sgn(ω) · (1 + tanh(|ω| / s - fade_in_offset)) / 2
+
+      with ``s = velocity_scale_radps``.  Against a plant whose friction is the tanh
+      one, its rise between about 4 and 12 rad/s is a negative damping at the motor
+      and the joint mode oscillates while the motor turns that slowly
+      (``docs/papers.md``).
+
+    ``ω`` is the motor-shaft velocity the firmware measures (tachometer, rad/s at the
+    motor shaft, not reduced to the output) and ``velocity_scale_radps`` the ``2`` of
+    ``|ϑ̇m|/2``; the torque is output-referred, the same sign in the product
+    convention and [Vertechy]'s (``firmware.isr``).
 
     ``coulomb_Nm = 0`` (the default) switches the compensation off: the law is Eq. 4 and
     the observer's third state is ``τlgd``; with a model it is ``τlg`` ([Vertechy] §V: "the
@@ -144,11 +166,24 @@ class FrictionModelConfig:
     τ̂lgd"), on a vertical joint (τg = 0) the external torque ``τl``.
     """
 
+    #: Nm (output-referred) the model tops out at; 0 switches Eq. 5 off.
     coulomb_Nm: float = 0.0
+    #: rad/s of the motor shaft: the ``2`` of ``|ϑ̇m|/2``.
     velocity_scale_radps: float = 2.0
+    #: The reading of the garbled Eq. 5: ``"tanh"``, ``-C tanh(ω/s)``, or ``"fade-in"``,
+    #: ``-C sgn(ω) (1 + tanh(|ω|/s - o)) / 2`` (ω the motor-shaft speed).
+    model: FrictionForm = "tanh"
+    #: ``o`` of the fade-in reading (the ``4``): the step is centred at ``o s`` rad/s.
+    fade_in_offset: float = 4.0
 
     def __post_init__(self) -> None:
-        check_fields(self, {"coulomb_Nm": ">=0", "velocity_scale_radps": ">0"})
+        if self.model not in ("tanh", "fade-in"):
+            raise ValueError(
+                f"control.friction.model must be 'tanh' or 'fade-in', got {self.model!r}"
+            )
+        check_fields(
+            self, {"coulomb_Nm": ">=0", "velocity_scale_radps": ">0", "fade_in_offset": ">=0"}
+        )
 
     @property
     def active(self) -> bool:
@@ -157,7 +192,13 @@ class FrictionModelConfig:
 
     def torque(self, velocity_radps: float) -> float:
         """``τ̂d`` (Nm, output) at the motor velocity ``velocity_radps`` (rad/s, motor)."""
-        return -self.coulomb_Nm * math.tanh(velocity_radps / self.velocity_scale_radps)
+        x = velocity_radps / self.velocity_scale_radps
+        if self.model == "tanh":
+            return -self.coulomb_Nm * math.tanh(x)
+        if x == 0.0:
+            return 0.0
+        step = 0.5 * (1.0 + math.tanh(abs(x) - self.fade_in_offset))
+        return -math.copysign(self.coulomb_Nm * step, x)
 
 
 #: [Vertechy] §VI: the experiment's motor friction model (13.7 Nm, 2 rad/s at the motor).
@@ -289,6 +330,14 @@ class ControlConfig:
     def active(self) -> bool:
         """True when a control law runs (``law`` is not ``NONE``)."""
         return self.law is not Law.NONE
+
+    @property
+    def ripple_filter_in_loop(self) -> bool:
+        """True when the torque-ripple filter's output is used: without a law it is the
+        torque the telemetry reports (``CTRL_TPDO1.T_filtered``), with one only if the
+        regulator feeds back on it (``feedback = "T_filtered"``); otherwise the filter
+        has nothing to act on and the telemetry carries the law's estimate τ̂s."""
+        return not self.active or self.feedback == "T_filtered"
 
 
 #: JTF1 + feedforward tuned for the [Vertechy] §VI tracking scenario (link moved as

@@ -18,22 +18,25 @@ from hdhil.dbc import FrameCodec, codec
 
 __all__ = ["LinkCodecs", "default_codecs", "mapped_codecs"]
 
-#: The sensor objects of the raw mapping and of the CiA 402 CST mapping, by name.
+#: The sensor objects of the raw mapping and of the CiA 402 CST mapping, by name, and the
+#: drive's joint-torque sensor (0x2102), which the CST mapping may carry beside them.
 RAW_SENSOR = ("ADC_torque", "ADC_tacho", "ADC_current", "ENC_count")
 CST_SENSOR = ("torque_actual_value", "position_actual_value")
+JOINT_TORQUE_SENSOR = "joint_torque_sensor"
 
 
 @dataclass
 class LinkCodecs:
     """The frames of the link and how the node reads and fills them.
 
-    ``sensor_mapping``: which sensor objects the drive sends, "raw" (the seed's ADC counts
-    and encoder) or "cst" (CiA 402 torque actual 0x6077 and position actual 0x6064).
-    ``sensor_picks`` / ``command_picks``: the positions of the objects the node uses in
-    the sensor and command frames (raw: torque, tacho, current, encoder; CST: torque,
-    position; command: DAC code or target torque, controlword, then the cycle counter if
-    mapped).  ``dbc_command``: the command frame is ``control.dbc``'s, encoded in its
-    signal order.
+    ``sensor_mapping``: which sensor objects the drive sends, "raw" (the seed's ADC counts and
+    encoder), "cst" (CiA 402 torque actual 0x6077 and position actual 0x6064) or
+    "cst-sensor" (those and the joint-torque sensor 0x2102, mV of the strain-gauge bridge).
+    ``sensor_picks`` / ``command_picks``: the positions of the objects the node uses in the
+    sensor and command frames (raw: torque, tacho, current, encoder; CST: torque, position,
+    then the joint-torque sensor if mapped; command: DAC code or target torque, controlword,
+    then the cycle counter if mapped).  ``dbc_command``: the command frame is
+    ``control.dbc``'s, encoded in its signal order.
     """
 
     sensor: FrameCodec
@@ -68,12 +71,15 @@ def mapped_codecs(od: Any, read: Any, control_active: bool) -> LinkCodecs:
     the sensor frame, RPDO2 the statusword, TPDO3 the command), with the objects picked
     by name: the sensor frame must carry the seed's ADC channels and encoder or the CiA
     402 torque and position actual values, the command the controlword and the DAC
-    command or the target torque.  The telemetry keeps ``control.dbc``'s layout.
+    command or the target torque.  The telemetry keeps ``control.dbc``'s layout.  Which
+    torque the firmware filters follows from the mapping read here, not from a name:
+    when the sensor frame carries the joint-torque sensor 0x2102 beside 0x6077 the
+    mapping is "cst-sensor" and the filter runs on the gauge torque.
 
     Raises ``ValueError`` for a mapping the firmware cannot run, and for a torque-control
-    law (``control_active``) in the CST mapping: [Vertechy]'s laws regulate the sensor
-    torque tau_s = k (theta_l - theta_m) (Eq. 2, 8), and 0x6077 is the amplifier's motor
-    torque, a different quantity.
+    law (``control_active``) in the CST mapping without the joint-torque sensor:
+    [Vertechy]'s laws regulate the sensor torque tau_s = k (theta_l - theta_m) (Eq. 2,
+    8), and 0x6077 is the amplifier's motor torque, a different quantity.
     """
     layouts = od_layouts(od, read)
 
@@ -107,11 +113,13 @@ def mapped_codecs(od: Any, read: Any, control_active: bool) -> LinkCodecs:
         )
     cycle = picks(command, ("cycle",))
     status = live("rpdo", 2, "DRIVE_TPDO2").expect("statusword")
-    if raw is None and control_active:
+    gauge = picks(sensor, (JOINT_TORQUE_SENSOR,)) if raw is None else None
+    if raw is None and gauge is None and control_active:
         raise ValueError(
             "the torque-control laws ([Vertechy]) regulate the strain-gauge sensor "
             "torque; the CiA 402 CST mapping carries the amplifier's torque 0x6077 "
-            "only: run them in the raw mapping"
+            "only: run them in the raw mapping or map the joint-torque sensor 0x2102 "
+            "(--mapping cst-sensor)"
         )
     default = default_codecs()
     return LinkCodecs(
@@ -120,8 +128,8 @@ def mapped_codecs(od: Any, read: Any, control_active: bool) -> LinkCodecs:
         telemetry=default.telemetry,
         control_telemetry=default.control_telemetry,
         status=status,
-        sensor_mapping="raw" if raw is not None else "cst",
-        sensor_picks=raw if raw is not None else cst,  # type: ignore[arg-type]
+        sensor_mapping="raw" if raw is not None else "cst" if gauge is None else "cst-sensor",
+        sensor_picks=raw if raw is not None else (*cst, *(gauge or ())),  # type: ignore[misc]
         command_picks=(*order, *(cycle or ())),
         dbc_command=False,
     )

@@ -90,6 +90,8 @@ class CyclicIo:
         self.telemetry = codecs.telemetry
         self.control_telemetry = codecs.control_telemetry
         self.raw = codecs.sensor_mapping == "raw"
+        #: The sensor frame carries the joint-torque sensor 0x2102 (the mapping "cst-sensor").
+        self.gauge = codecs.sensor_mapping == "cst-sensor"
         self.sensor_picks = codecs.sensor_picks
         self.command_picks = codecs.command_picks
         self.dbc_command = codecs.dbc_command
@@ -204,6 +206,9 @@ class CyclicIo:
         elif self.raw:
             a, b, c, e = self.sensor_picks
             sample = AdcSample(values[a], values[b], values[c], values[e])
+        elif self.gauge:
+            a, b, c = self.sensor_picks
+            sample = CstSample(values[a], values[b], values[c])
         else:
             a, b = self.sensor_picks
             sample = CstSample(values[a], values[b])

@@ -172,8 +172,9 @@ class ControllerNode(CanNode):
             objects.take_drive_mapping(drive_dcf)  # ValueError: a mapping it cannot run
         self.walk = Cia402Walk(drive_node_id, objects.mirror_controlword)
         codecs = self._codecs()
-        #: Which sensor objects the drive sends: "raw" (the seed's ADC counts and encoder)
-        #: or "cst" (CiA 402 torque actual 0x6077 and position actual 0x6064).
+        #: Which sensor objects the drive sends: "raw" (the seed's ADC counts and encoder),
+        #: "cst" (CiA 402 torque actual 0x6077 and position actual 0x6064) or "cst-sensor"
+        #: (those and the joint-torque sensor 0x2102), as read from the live mapping.
         self.sensor_mapping = codecs.sensor_mapping
         self.sequencer = Sequencer(self, codecs.status)
         self.io = CyclicIo(self, codecs)

@@ -129,7 +129,7 @@ class Sequencer:
         """In the CiA 402 CST mapping, read the drive's motor rated torque 0x6076 by SDO
         first (0x6071 and 0x6077 are per mille of it); then start the drive."""
         node = self.node
-        if node.sensor_mapping != "cst" or node.rated_torque_Nm is not None:
+        if node.sensor_mapping == "raw" or node.rated_torque_Nm is not None:
             self.start_drive()
         elif not self.rated_requested:
             self.rated_requested = True
@@ -158,7 +158,9 @@ class Sequencer:
             return
         node.rated_torque_Nm = value * 1e-3
         if node.own_isr:
-            cast(InterruptHandler, node.isr).use_cst_source(node.rated_torque_Nm)
+            cast(InterruptHandler, node.isr).use_cst_source(
+                node.rated_torque_Nm, node.sensor_mapping == "cst-sensor"
+            )
         self.start_drive()
 
     def start_drive(self) -> None:

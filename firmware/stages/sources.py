@@ -4,8 +4,9 @@
 ([Taghirad97], listing A.1, ``c_int10``) on the counts of the drive's sensor frame.
 ``CstSource`` is the CiA 402 cyclic synchronous torque mapping (not in the papers): the
 drive's torque and position actual values, the velocity through the listing's
-differentiator.  Both return the same tuple, so the stages after them do not know which
-mapping runs.
+differentiator; with the drive's joint-torque sensor 0x2102 mapped, the torque is the
+strain-gauge bridge's, calibrated as the listing calibrates its ADC channel.  Both return
+the same tuple, so the stages after them do not know which mapping runs.
 """
 
 from __future__ import annotations
@@ -92,14 +93,20 @@ class CstSource:
     - the encoder count handed to the ripple filter's phase is ``0x6064 & 0xFFFF``, the
       16 bits the raw mapping carries (``EncoderUnwrap`` unwraps it again).
     - there is no current channel: ``current`` is 0.
+    - with ``calibration`` (the drive's joint-torque sensor 0x2102 is mapped: the mapping
+      "cst-sensor"), ``T_meas`` is the strain-gauge torque instead of 0x6077: the
+      sample's ``joint_torque_mV`` in volts, calibrated as :class:`AdcSource` calibrates
+      the torque channel (``T_meas = (V - torque_offset_V) * volt2Nm``).  0x6077 is not
+      used then.
 
-    Returns the tuple :class:`AdcSource` returns, with ``T_meas`` and ``vel`` in place
-    of the channels in volts.
+    Returns the tuple :class:`AdcSource` returns, with ``T_meas`` (without a gauge) or
+    the gauge's volts (with one) and ``vel`` in place of the channels in volts.
     """
 
-    name = "cst"
+    name = "cst"  # the same with or without the gauge (``calibration``)
 
-    __slots__ = ("_rad_per_count", "differentiator", "primed", "rated_torque_Nm")
+    __slots__ = ("_gauge", "_rad_per_count", "calibration", "differentiator", "primed",
+                 "rated_torque_Nm")  # fmt: skip
 
     def __init__(
         self,
@@ -107,6 +114,7 @@ class CstSource:
         counts_per_rev: int,
         diff_tau_s: float,
         sample_period_s: float,
+        calibration: Calibration | None = None,
     ) -> None:
         if not (math.isfinite(rated_torque_Nm) and rated_torque_Nm > 0):
             raise ValueError(f"rated torque must be > 0 Nm, got {rated_torque_Nm!r}")
@@ -114,16 +122,26 @@ class CstSource:
         self._rad_per_count = 2.0 * math.pi / counts_per_rev
         self.differentiator = Differentiator(diff_tau_s, sample_period_s)
         self.primed = False
+        #: The torque sensor's calibration when the joint-torque sensor is mapped, else None.
+        self.calibration = calibration
+        self._gauge = (
+            None if calibration is None else (calibration.torque_offset_V, calibration.volt2Nm)
+        )
 
     def __call__(self, sample: object) -> tuple[float, float, float, int, float, float]:
-        s = sample  # CstSample
-        T_meas = s.torque_actual * 1e-3 * self.rated_torque_Nm  # type: ignore[attr-defined]
-        angle = s.position * self._rad_per_count  # type: ignore[attr-defined]
+        s: Any = sample  # CstSample
+        gauge = self._gauge
+        if gauge is None:
+            T_meas = Torque = s.torque_actual * 1e-3 * self.rated_torque_Nm
+        else:
+            Torque = s.joint_torque_mV * 1e-3
+            T_meas = (Torque - gauge[0]) * gauge[1]
+        angle = s.position * self._rad_per_count
         if not self.primed:
             self.differentiator.reseed(angle)
             self.primed = True
         vel = self.differentiator.step(angle)
-        return T_meas, vel, 0.0, s.position & 0xFFFF, T_meas, vel  # type: ignore[attr-defined]
+        return T_meas, vel, 0.0, s.position & 0xFFFF, Torque, vel
 
     def reset(self) -> None:
         self.differentiator.reset()

@@ -39,6 +39,7 @@ __all__ = [
     "OD_ADC_COUNTS",
     "OD_DAC_COMMAND",
     "OD_ENCODER",
+    "OD_JOINT_TORQUE_SENSOR",
     "OD_SYNC_PERIOD",
     "OD_SYNC_WINDOW",
     "CyclicIO",
@@ -46,6 +47,8 @@ __all__ = [
 
 OD_ADC_COUNTS = 0x2100
 OD_ENCODER = 0x2101
+#: The joint-torque sensor: the torque channel's analog input in mV (drive.eds, 0x2102).
+OD_JOINT_TORQUE_SENSOR = 0x2102
 OD_DAC_COMMAND = 0x2200
 OD_SYNC_PERIOD = 0x1006
 OD_SYNC_WINDOW = 0x1007
@@ -197,6 +200,8 @@ class CyclicIO:
         self._rpdo_handlers: dict[int, PdoLayout] = {}
         self._rpdo_deadlines: dict[int, float] = {}
         self._fast_sensor = True
+        #: The synchronous TPDOs besides TPDO1 (sent on SYNC on the fast path too).
+        self._other_sync_tpdos: list[Tpdo] = []
         for index in [*range(0x1400, 0x1404), *range(0x1600, 0x1604),
                       *range(0x1800, 0x1804), *range(0x1A00, 0x1A04)]:  # fmt: skip
             obj = od.get(index)
@@ -213,11 +218,21 @@ class CyclicIO:
         self._sync_lost = False
 
     def live_values(self) -> dict[tuple[int, int], Callable[[], int]]:
-        """0x2100 ADC counts and 0x2101 encoder count of the latest sample."""
+        """0x2100 ADC counts and 0x2101 encoder count of the latest sample, and 0x2102 the
+        joint-torque sensor (:meth:`joint_torque_sensor_mV`)."""
         live: dict[tuple[int, int], Callable[[], int]] = {(OD_ENCODER, 0): lambda: self.sample[3]}
         for i, channel in enumerate(ADC_CHANNELS):
             live[(OD_ADC_COUNTS, channel)] = lambda i=i: self.sample[i]
+        live[(OD_JOINT_TORQUE_SENSOR, 0)] = self.joint_torque_sensor_mV
         return live
+
+    def joint_torque_sensor_mV(self) -> int:
+        """0x2102: the strain-gauge bridge's amplified output as the torque channel of the
+        latest sample reads it (0x2100 sub 1, the same ADC code), in mV (INTEGER16).  The
+        joint torque is the sensor's calibration of it (drive.eds: volt2Nm x (mV / 1000 -
+        offset)); the drive applies none, as a drive's analog input does not."""
+        value = round(self.sample[0] * self._adc.lsb_V * 1e3)
+        return min(max(value, -32768), 32767)
 
     # ------------------------------------------------------------------ SYNC
 
@@ -272,6 +287,8 @@ class CyclicIO:
                 msg.data = self._sensor.encode(*sample)
                 self.bus.send(msg)
                 d.sensor_frames += 1
+                for tpdo in self._other_sync_tpdos:  # TPDO2-4 mapped synchronous
+                    tpdo.on_sync(now)
             else:
                 for tpdo in self._tpdos:
                     if tpdo.layout.synchronous:
@@ -504,6 +521,7 @@ class CyclicIO:
             and first.cob_id == default.cob_id
             and _same_mapping(first, default)
         )
+        self._other_sync_tpdos = [t for t in tpdos[1:] if t.layout.valid and t.layout.synchronous]
         self._sync_period_s = (
             read(OD_SYNC_PERIOD) * 1e-6 if variable(od, OD_SYNC_PERIOD, 0) is not None else 0.0
         )

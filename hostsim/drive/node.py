@@ -124,8 +124,9 @@ class DriveNode(CanNode):
     **SDO**: the checked server of ``CanopenServices`` (types, lengths, access, LowLimit
     / HighLimit of the EDS, with CiA 301 abort codes; a refused write changes nothing).
     Live values are read from the node: 0x6041 statusword, 0x6040 controlword (as last
-    applied), 0x6061 mode display, 0x603F error code, 0x2100 ADC counts and 0x2101 encoder
-    count of the latest sample, the CST objects (:class:`~hdhil.hostsim.drive.cst.CstObjects`).
+    applied), 0x6061 mode display, 0x603F error code, 0x2100 ADC counts, 0x2101 encoder
+    count and 0x2102 joint-torque sensor (mV) of the latest sample, the CST objects
+    (:class:`~hdhil.hostsim.drive.cst.CstObjects`).
     Writable application objects: 0x2300 and 0x2310
     (:class:`~hdhil.hostsim.drive.emulator.EmulatorObjects`); 0x6040 controlword, an SDO
     write applied at once, like an immediate RPDO; 0x6007 abort connection option code

@@ -121,8 +121,9 @@ class DriveTrainConfig:
     out at 13.7 Nm, smooth through zero velocity, with a velocity scale of 2 rad/s
     (the ``|w|/2``).  (Moving the bracket, ``-13.7 sign(w) (1 + tanh(|w|/2 - 4)) / 2``,
     also tops out at 13.7 Nm, but as a smooth step centred at |w| = 8 rad/s that
-    vanishes near rest, which no friction does; we do not take that reading.)  The
-    tanh Coulomb model here is the reading we take:
+    vanishes near rest, which no friction does: a reading for the firmware's
+    compensation, ``firmware.config.FrictionModelConfig.model = "fade-in"``, not for the
+    plant.)  The tanh Coulomb model here is the reading we take:
     ``tau_d = -13.7 tanh(dq_m / eps)``, i.e. ``coulomb_motor = 13.7``, ``b_motor =
     0``, with ``eps = friction_smoothing``.  The seed's w is the motor velocity
     reduced to the output (§II: all quantities reduced to the output link), so the
@@ -365,15 +366,30 @@ class LinkMotionConfig:
       velocity bound sets the scale.  Smooth to every derivative, so the environment
       torque it takes (the handle torque) is smooth too.
 
-    The torque the environment applies to impose it is truth:
-    ``Truth.tau_l_Nm`` and ``Truth.tau_ext_Nm``
-    (``tau_l + tau_g = J_l ddtheta_l - T_transmitted``).  At t = 0 the motor starts
+    The torque it takes is truth: ``Truth.tau_ext_Nm = J_l ddtheta_l - T_transmitted``
+    on the link, and ``Truth.tau_l_Nm``, that less gravity and the output bearings'
+    friction, at the handle.  At t = 0 the motor starts
     where a rigid joint would be: no twist, and moving with the link's initial velocity
     (so a sine does not begin with a velocity jump across the damper).
 
     The discretisation is exact: the sine comes from a harmonic exosystem integrated
     with the joint in the same matrix exponential (:func:`prescribed_model`), so the
     only sub-step-dependent part is the motor's Coulomb friction, as in free motion.
+
+    ``bearing_coulomb_Nm``: a Coulomb friction in the output-shaft bearings between the
+    joint's torque sensor and the handle where the person's torque is measured
+    (``τl^m`` of [Vertechy] §VI), ``-bearing_coulomb_Nm tanh(dtheta_l /
+    bearing_smoothing_radps)`` on the link, the same smoothed form as the motor's
+    Coulomb friction (:class:`DriveTrainConfig`).  The environment imposes the motion,
+    so it does not change the joint's dynamics: the person supplies it, and it is the
+    difference between what the handle's sensor measures (``Truth.tau_l_Nm``) and the
+    torque acting on the link besides the joint's (``Truth.tau_ext_Nm``, the truth
+    channel's ``TRUTH_JOINT.tau_ext``), which is what the joint's observer estimates.
+    :meth:`handle_torque` takes one to the other; the scorer compares the observer's
+    external-torque estimate with the handle torque.  Not in [Vertechy]'s model (Eq. 1);
+    0 (the default) makes the two the same.  Only with a prescribed motion: on a free
+    link the output bearings' friction is the drive train's ``b_load`` and
+    ``coulomb_load``, which move the link.
     """
 
     kind: LinkMotionKind = "none"
@@ -383,6 +399,11 @@ class LinkMotionConfig:
     motion_seed: int = 0
     horizon_s: float = 60.0
     max_velocity_radps: float = 1000.0 * TWO_PI / 60.0 / 100.0
+    #: Nm: Coulomb friction of the output-shaft bearings between the torque sensor and
+    #: the handle (not seen by the handle's sensor); only with a prescribed motion.
+    bearing_coulomb_Nm: float = 0.0
+    #: rad/s of the link: the width of ``tanh`` in the bearing friction.
+    bearing_smoothing_radps: float = 0.01
 
     def __post_init__(self) -> None:
         if self.kind not in ("none", "hold", "sine", "person"):
@@ -397,8 +418,16 @@ class LinkMotionConfig:
                 "offset_deg": "finite",
                 "horizon_s": ">0",
                 "max_velocity_radps": ">0",
+                "bearing_coulomb_Nm": ">=0",
+                "bearing_smoothing_radps": ">0",
             },
         )
+        if self.bearing_coulomb_Nm and self.kind == "none":
+            raise ValueError(
+                "LinkMotionConfig.bearing_coulomb_Nm is for a prescribed motion (kind hold, "
+                "sine or person); a free link's bearing friction is "
+                "plant.drivetrain.coulomb_load"
+            )
         ms = self.motion_seed
         if isinstance(ms, bool) or not isinstance(ms, int) or ms < 0:
             raise ValueError(f"LinkMotionConfig.motion_seed must be an integer >= 0, got {ms!r}")
@@ -461,6 +490,20 @@ class LinkMotionConfig:
             return sum(a * w * math.cos(w * t + p) for a, w, p in self.components())
         w = self.omega_radps
         return self.amplitude_rad * w * math.cos(w * t)
+
+    def bearing_friction(self, velocity: float) -> float:
+        """The output-shaft bearings' friction on the link (Nm) at the link velocity
+        ``velocity`` (rad/s): ``-bearing_coulomb_Nm tanh(velocity /
+        bearing_smoothing_radps)``."""
+        c = self.bearing_coulomb_Nm
+        return -c * math.tanh(velocity / self.bearing_smoothing_radps) if c else 0.0
+
+    def handle_torque(self, tau_ext: float, velocity: float) -> float:
+        """What the handle's sensor measures, ``τl^m`` (plus gravity, ``τl + τg``), from
+        the torque on the link besides the joint's ``tau_ext`` (``Truth.tau_ext_Nm``,
+        ``TRUTH_JOINT.tau_ext``) at the link velocity ``velocity``: ``tau_ext`` without
+        the bearing friction (:meth:`bearing_friction`)."""
+        return tau_ext - self.bearing_friction(velocity)
 
     def acceleration(self, t: float) -> float:
         """Prescribed link acceleration (rad/s²) at time ``t``."""

@@ -507,7 +507,10 @@ class Plant:
 
         The external load torque ``tau_l`` is the value held with
         :meth:`set_load_torque` plus the :class:`LoadTorqueConfig` profile at
-        :attr:`time`; with a prescribed link motion, what it takes to impose the motion.
+        :attr:`time`; with a prescribed link motion, what it takes to impose the motion
+        at the handle: ``tau_ext`` less gravity and the output bearings' friction
+        (``load_friction_Nm``: the drive train's load friction and the link's
+        ``bearing_coulomb_Nm``).
         """
         d = self.cfg.drivetrain
         n, twist, wm, wl, q_l = self._n, self._d, self._wm, self._wl, self._ql
@@ -526,6 +529,8 @@ class Plant:
         else:
             accel = link.acceleration(self._t)
             tau_ext = d.J_load * accel - transmitted
+            if link.bearing_coulomb_Nm:  # between the sensor and the handle
+                friction += link.bearing_friction(wl)
             tau_l = tau_ext - tau_g - friction
         kt_out = n * self.cfg.amplifier.torque_constant_Nm_per_A
         # Built by tuple.__new__, all fields given in order: the NamedTuple's generated

@@ -71,7 +71,9 @@ class Truth(NamedTuple):
     #: Everything the torque sensor adds to ``T_true_Nm``, noise and offset aside (Nm).
     T_ripple_Nm: float = 0.0
     #: All torque on the link except the joint's, ``tau_l + tau_g`` of [Vertechy]
-    #: (Nm): ``J_l ddtheta_l - T_transmitted``; the output bearings' friction counts in.
+    #: (Nm): ``J_l ddtheta_l - T_transmitted``; the output bearings' friction counts in,
+    #: so it is the torque the joint's observer estimates, and not the handle torque
+    #: (``tau_l_Nm``) when the bearings have friction (``load_friction_Nm``).
     tau_ext_Nm: float = 0.0
     #: Every torque on the motor inertia except ``tau_m`` and the joint's, ``tau_d`` of
     #: [Vertechy] Eq. 1 (Nm): the motor friction.
@@ -83,11 +85,15 @@ class Truth(NamedTuple):
     #: Motor current (A).
     current_A: float = _NAN
     #: ``tau_l`` (Nm): the torque the environment applies to the link. A free link: the
-    #: load torque (held value plus profile); a prescribed motion: what imposing it takes.
+    #: load torque (held value plus profile); a prescribed motion: what imposing it takes
+    #: at the handle, what a sensor in the handle measures ([Vertechy]'s ``τl^m``):
+    #: ``tau_ext_Nm - tau_g_Nm - load_friction_Nm``.
     tau_l_Nm: float = _NAN
     #: ``tau_g`` (Nm): gravity on the link (GravityConfig).
     tau_g_Nm: float = _NAN
-    #: The output bearings' friction on the link (Nm); not in [Vertechy], part of tau_l.
+    #: The output bearings' friction on the link (Nm): the drive train's load friction,
+    #: and with a prescribed motion the link's ``bearing_coulomb_Nm``; not in
+    #: [Vertechy]; part of ``tau_ext_Nm``, not of ``tau_l_Nm``.
     load_friction_Nm: float = _NAN
     #: Link angular acceleration (rad/s²).
     link_acceleration_radps2: float = _NAN

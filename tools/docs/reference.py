@@ -291,7 +291,43 @@ def frames_page() -> str:
             out += [*_table(head, rows), ""]
             if tables:
                 out += ["Value tables:", "", *tables, ""]
+    out += _mapping_frames()
     return _HEADER + "\n".join(out).rstrip() + "\n"
+
+
+def _mapping_frames() -> list[str]:
+    """The drive's PDO messages each shipped mapping changes, built from its DCF and the
+    drive's EDS (:func:`hdhil.canopen.mapping.mapping_database`)."""
+    import hdhil.dbc
+    from hdhil.canopen.mapping import mapping_database
+
+    def layout(m: Any) -> list[tuple[str, int, int]]:
+        return [(s.name, s.start, s.length) for s in m.signals]
+
+    base = {m.name: m for m in hdhil.dbc.database("control").messages}
+    out = [
+        "## The drive's PDOs in the shipped mappings",
+        "",
+        "`--mapping NAME` configures the drive from a DCF shipped in `dbc/`; the PDO "
+        "messages whose layout differs from `control.dbc`, built from the DCF and the "
+        "drive's EDS (`hdhil dbc export OUT.dbc --mapping NAME` writes the whole database, "
+        "`hdhil dump` decodes a trace of the mapping with them):",
+        "",
+    ]
+    rows = []
+    for name, dcf in hdhil.dbc.MAPPINGS.items():
+        if dcf is None:
+            continue
+        for m in mapping_database(name).messages:
+            if m.name in base and layout(m) == layout(base[m.name]):
+                continue
+            signals = "; ".join(
+                f"`{s.name}` ({s.comment or ''}: bit {s.start}, {s.length} bits, "
+                f"{'signed' if s.is_signed else 'unsigned'})"
+                for s in sorted(m.signals, key=lambda s: s.start)
+            )
+            rows.append([f"`{name}`", f"0x{m.frame_id:03X}", f"`{m.name}`", str(m.length), signals])
+    return [*out, *_table(["mapping", "ID", "name", "bytes", "signals"], rows), ""]
 
 
 # --------------------------------------------------------------------------- objects

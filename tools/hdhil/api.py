@@ -118,8 +118,9 @@ def resolve(
     """The :class:`hdhil.rig.request.RunRequest` for ``scenario`` (a shipped name, a TOML
     file or a :class:`~hdhil.rig.scenario.Scenario`) with ``overrides`` (nested dicts in
     the scenario file's layout, or TOML files, in order), ``faults`` (``--fault`` flags:
-    ``"control.loss_rate=0.05"``), a calibration file, a mapping (``"raw"``, ``"cst"``)
-    or a DCF, duration, seed and evaluation start; as ``hdhil run`` resolves its options."""
+    ``"control.loss_rate=0.05"``), a calibration file, a mapping (``"raw"``, ``"cst"``,
+    ``"cst-sensor"``) or a DCF, duration, seed and evaluation start; as ``hdhil run``
+    resolves its options."""
     from hdhil.rig.request import resolve as resolve_request
     from hdhil.rig.scenario import Scenario
 

@@ -50,6 +50,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "log": ("netcmd", "record a CAN interface (and the truth bus) to a trace"),
     "sdo": ("netcmd", "read or write a node's object dictionary (SDO client)"),
     "nmt": ("netcmd", "send an NMT command"),
+    "conformance": ("conformance", "CiA 301 + CiA 402 conformance and timing suite against a node"),
     "dbc": ("dbc", "CAN databases: export the control bus and ground truth as one DBC"),
     "bench": ("bench", "measure throughput, per-stage compute time and memory (medians)"),
     "soak": (

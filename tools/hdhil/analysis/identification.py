@@ -553,6 +553,8 @@ def make_figure(ident: Identification, title: str = "") -> Any:
     from matplotlib.figure import Figure
     from matplotlib.ticker import FuncFormatter
 
+    from hdhil.core.plotlabels import axis_label
+
     hp, ld, fr = ident.half_power, ident.log_decrement, ident.response
     lo, hi = fr.band
     f = fr.f[lo : hi + 1]
@@ -580,10 +582,10 @@ def make_figure(ident: Identification, title: str = "") -> Any:
     ax.set_title(
         title
         or f"sensor torque / motor torque command: fn {fn:.2f} Hz, zeta {zeta:.4f}, "
-        f"c {c:.2f} Nms/rad"
+        f"c {c:.2f} N·m·s/rad"
     )
-    ax.set_xlabel("frequency [Hz]")
-    ax.set_ylabel("magnitude [dB]")
+    ax.set_xlabel(axis_label("frequency", "Hz"))
+    ax.set_ylabel(axis_label("magnitude", "dB"))
     plain = FuncFormatter(lambda v, _pos: f"{v:g}")
     ax.xaxis.set_major_formatter(plain)
     ax.xaxis.set_minor_formatter(plain)
@@ -600,8 +602,8 @@ def make_figure(ident: Identification, title: str = "") -> Any:
     ax_ph.semilogx(f, fit_phase, "--", color="C7", lw=1.0, label="2nd-order fit")
     ax_ph.axvline(fn, color="C3", lw=0.8, ls=":", label=f"fn {fn:.2f} Hz")
     ax_ph.axhline(-90.0, color="0.5", lw=0.6)
-    ax_ph.set_ylabel("phase [deg]")
-    ax_ph.set_xlabel("frequency [Hz]")
+    ax_ph.set_ylabel(axis_label("phase", "deg"))
+    ax_ph.set_xlabel(axis_label("frequency", "Hz"))
     ax_ph.grid(True, which="both", alpha=0.3)
     ax_ph.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
 
@@ -610,7 +612,7 @@ def make_figure(ident: Identification, title: str = "") -> Any:
     ax_coh.semilogx(f, fr.coherence[lo : hi + 1], color="C2", lw=1.2, label="coherence")
     ax_coh.set_ylim(0.0, 1.05)
     ax_coh.set_ylabel("coherence")
-    ax_coh.set_xlabel("frequency [Hz]")
+    ax_coh.set_xlabel(axis_label("frequency", "Hz"))
     ax_coh.grid(True, which="both", alpha=0.3)
     ax_coh.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     for axis in (ax_ph, ax_coh):
@@ -624,8 +626,8 @@ def make_figure(ident: Identification, title: str = "") -> Any:
     ax2.plot(ld.t[shown], np.abs(ld.h[shown]), color="C7", lw=0.8, ls="--", label="envelope")
     ax2.plot(ld.peak_t, ld.peak_x, "o", color="C3", label=f"log decrement {ld.delta:.3f}")
     ax2.set_title(f"logarithmic decrement: zeta {ld.zeta:.4f}, fd {ld.fd_Hz:.2f} Hz")
-    ax2.set_xlabel("time [s]")
-    ax2.set_ylabel("normalised")
+    ax2.set_xlabel(axis_label("time", "s"))
+    ax2.set_ylabel("normalised amplitude")
     ax2.grid(True, alpha=0.3)
     ax2.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     return fig

@@ -16,14 +16,26 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib.figure import Figure
 
 from hdhil.core.errors import UserError
+from hdhil.core.plotlabels import NM, axis_label
 
-__all__ = ["Fig8Data", "fig8_data", "make_calibration_figure", "make_fig8"]
+if TYPE_CHECKING:
+    from hdhil.hostsim.plant import LinkMotionConfig
+
+__all__ = [
+    "Fig8Data",
+    "Fig8Stats",
+    "fig8_data",
+    "fig8_stats",
+    "fig8_window",
+    "make_calibration_figure",
+    "make_fig8",
+]
 
 
 @dataclass
@@ -37,7 +49,9 @@ class Fig8Data:
     tau_sD: np.ndarray  #: τsD, the desired torque from telemetry
     tau_s_true: np.ndarray  #: τs, truth (NaN without a truth channel)
     tau_l_hat: np.ndarray  #: the observer's exogenous-torque estimate (τ̂lg with Eq. 5)
-    tau_l_meas: np.ndarray  #: the true external torque τl + τg (the handle's sensor)
+    #: τl^m (+ τg): what the handle's sensor measures, true (``TRUTH_JOINT.tau_ext`` less
+    #: the output bearings' friction, ``LinkMotionConfig.handle_torque``)
+    tau_l_meas: np.ndarray
     theta_l_deg: np.ndarray
     omega_l: np.ndarray
     tau_m: np.ndarray  #: commanded motor torque (output-referred)
@@ -46,8 +60,10 @@ class Fig8Data:
         return len(self.t)
 
 
-def fig8_data(trace: Path) -> tuple[Fig8Data, str]:
-    """Read a trace of a torque-control run into :class:`Fig8Data` (and a damage note)."""
+def fig8_data(trace: Path, handle: LinkMotionConfig | None = None) -> tuple[Fig8Data, str]:
+    """Read a trace of a torque-control run into :class:`Fig8Data` (and a damage note).
+    ``handle``: the run's link (``[plant.link]``), whose bearing friction separates the
+    handle torque τl^m from ``TRUTH_JOINT.tau_ext``; None: τl^m is ``tau_ext``."""
     from hdhil.can.traces.reader import read_trace
     from hdhil.dbc import codec
 
@@ -98,6 +114,8 @@ def fig8_data(trace: Path) -> tuple[Fig8Data, str]:
         )
     a = np.array(rows, dtype=float)
     theta = np.degrees((a[:, 7] + math.pi) % (2.0 * math.pi) - math.pi)  # link within ±180°
+    if handle is not None and handle.bearing_coulomb_Nm:
+        a[:, 6] = [handle.handle_torque(x, w) for x, w in zip(a[:, 6], a[:, 8], strict=True)]
     return (
         Fig8Data(
             t=a[:, 0],
@@ -115,88 +133,132 @@ def fig8_data(trace: Path) -> tuple[Fig8Data, str]:
     )
 
 
-def make_fig8(d: Fig8Data, title: str, skip_s: float = 0.0) -> Figure:
-    """[Vertechy] Fig. 8's four panels; the figures in the legends (max |e|, the τ̂l −
-    τl^m range, the τm envelope) are over ``t >= skip_s``.  From top to bottom:
+#: Legends beside the axes, outside the data (the constrained layout makes room).
+_BESIDE = {"loc": "upper left", "bbox_to_anchor": (1.01, 1.0), "fontsize": 8, "frameon": False}
 
-    1. the raw sensor torque τs^m and the Kalman estimate τ̂s;
+
+@dataclass(frozen=True)
+class Fig8Stats:
+    """The figures quoted in Fig. 8's legends, over exactly the samples drawn."""
+
+    max_abs_e: float  #: max |e|, e = τs − τsD (N·m)
+    max_abs_dl: float  #: max |τ̂l − τl^m| (N·m)
+    max_abs_tau_m: float  #: max |τm| (N·m)
+
+
+def fig8_window(d: Fig8Data, skip_s: float) -> np.ndarray:
+    """The samples Fig. 8 draws (and computes its legend figures over): ``t >= skip_s``."""
+    return d.t >= skip_s
+
+
+def fig8_stats(d: Fig8Data, skip_s: float) -> Fig8Stats:
+    """:class:`Fig8Stats` over :func:`fig8_window`."""
+    w = fig8_window(d, skip_s)
+
+    def peak(x: np.ndarray) -> float:
+        x = x[w & np.isfinite(x)]
+        return float(np.max(np.abs(x))) if x.size else math.nan
+
+    return Fig8Stats(
+        max_abs_e=peak(d.tau_s_true - d.tau_sD),
+        max_abs_dl=peak(d.tau_l_hat - d.tau_l_meas),
+        max_abs_tau_m=peak(d.tau_m),
+    )
+
+
+def make_fig8(d: Fig8Data, title: str, skip_s: float = 0.0) -> Figure:
+    """[Vertechy] Fig. 8 over ``t >= skip_s`` (the start-up before it is not drawn; the
+    figures in the legends, :func:`fig8_stats`, are over the same samples).  One axis
+    per quantity, from top to bottom:
+
+    1. the raw sensor torque τs^m, the Kalman estimate τ̂s and the desired torque τsD;
     2. the external-torque estimate τ̂l and the handle's measurement τl^m (here the
-       emulator's true external torque, ``TRUTH_JOINT.tau_ext``);
+       emulator's true handle torque, :attr:`Fig8Data.tau_l_meas`), dashed on top so
+       that both show where they agree;
     3. the tracking error e and the difference τ̂l − τl^m ("the proposed controller is
        able to keep the torque sensor tracking error e within ±0.5 Nm"; "the
        significant difference (roughly ±3 Nm) between τ̂l and τl^m");
-    4. the link position and velocity with the commanded motor torque τm ("τm is
-       rather smooth and remains within ±40 Nm").
+    4. the commanded motor torque τm ("τm is rather smooth and remains within ±40 Nm");
+    5. the link position θl, and its velocity on its own (right) axis (no legend: the
+       axes' coloured labels name them).
 
     Everything comes from the trace: the controller's telemetry (``CTRL_TPDO1``,
     ``CTRL_TPDO2``: τ̂s, τ̂lgd, τsD), the drive's command (``TRUTH_JOINT.tau_m_cmd``)
-    and the truth channel.
+    and the truth channel.  Legends sit beside the axes, outside the data.
     """
-    fig = Figure(figsize=(11, 11))
-    axes = fig.subplots(4, 1, sharex=True)
-    t = d.t
-    ev = t >= skip_s
-    e = d.tau_s_true - d.tau_sD
-    dl = d.tau_l_hat - d.tau_l_meas
-
-    def peak(x: np.ndarray) -> float:
-        x = x[ev & np.isfinite(x)]
-        return float(np.max(np.abs(x))) if x.size else math.nan
+    fig = Figure(figsize=(12, 14), layout="constrained")
+    axes = fig.subplots(5, 1, sharex=True, height_ratios=(3, 3, 2.5, 2.5, 2.5))
+    w = fig8_window(d, skip_s)
+    if not w.any():
+        raise UserError(f"the trace ends before t = {skip_s:g} s: nothing to draw from there")
+    stats = fig8_stats(d, skip_s)
+    t = d.t[w]
+    e = (d.tau_s_true - d.tau_sD)[w]
+    dl = (d.tau_l_hat - d.tau_l_meas)[w]
 
     ax = axes[0]
-    ax.plot(t, d.tau_s_meas, color="0.6", lw=0.6, label="τs^m (measured)")
-    ax.plot(t, d.tau_s_hat, color="C0", lw=1.0, label="τ̂s (Kalman estimate)")
-    ax.plot(t, d.tau_sD, "k--", lw=0.8, label="τsD (desired)")
-    ax.set_ylabel("sensor torque / Nm")
-    ax.legend(loc="upper right", fontsize=8)
+    ax.plot(t, d.tau_s_meas[w], color="0.6", lw=2.0, label=r"$\tau_s^m$ (measured)")
+    ax.plot(t, d.tau_s_hat[w], color="C0", lw=0.8, label=r"$\hat{\tau}_s$ (Kalman estimate)")
+    ax.plot(t, d.tau_sD[w], "k--", lw=0.8, label=r"$\tau_{sD}$ (desired)")
+    ax.set_ylabel(axis_label("sensor torque", NM))
     ax = axes[1]
-    ax.plot(t, d.tau_l_meas, color="0.6", lw=0.8, label="τl^m (handle: true external torque)")
-    ax.plot(t, d.tau_l_hat, color="C1", lw=1.0, label="τ̂l (observer)")
-    ax.set_ylabel("external torque / Nm")
-    ax.legend(loc="upper right", fontsize=8)
+    ax.plot(t, d.tau_l_hat[w], color="C1", lw=1.6, label=r"$\hat{\tau}_l$ (observer)")
+    ax.plot(t, d.tau_l_meas[w], color="k", lw=0.9, ls=(0, (4, 2)), zorder=3,
+            label=r"$\tau_l^m$ (handle torque, true)")  # fmt: skip
+    ax.set_ylabel(axis_label("external torque", NM))
     ax = axes[2]
-    ax.plot(t, e, color="C3", lw=0.8, label=f"e = τs − τsD (max |e| {peak(e):.2f} Nm)")
-    ax.plot(t, dl, color="C2", lw=0.8, label=f"τ̂l − τl^m (max {peak(dl):.2f} Nm)")
+    e_label = rf"$e = \tau_s - \tau_{{sD}}$ (max $|e|$ {stats.max_abs_e:.2f} {NM})"
+    dl_label = rf"$\hat{{\tau}}_l - \tau_l^m$ (max $|\cdot|$ {stats.max_abs_dl:.2f} {NM})"
+    ax.plot(t, e, color="C3", lw=0.8, label=e_label)
+    ax.plot(t, dl, color="C2", lw=0.8, label=dl_label)
     for y in (-0.5, 0.5):
         ax.axhline(y, color="k", lw=0.5, ls=":")
-    ax.set_ylabel("error / Nm")
-    ax.legend(loc="upper right", fontsize=8)
+    ax.set_ylabel(axis_label("error", NM))
     ax = axes[3]
-    ax.plot(t, d.theta_l_deg, color="C0", lw=1.0, label="θl / deg")
-    ax.plot(t, np.degrees(d.omega_l), color="C4", lw=0.8, label="θ̇l / (deg/s)")
-    ax.plot(t, d.tau_m, color="C3", lw=0.8, label=f"τm / Nm (max |τm| {peak(d.tau_m):.1f})")
+    ax.plot(t, d.tau_m[w], color="C3", lw=0.8,
+            label=rf"$\tau_m$ (max $|\tau_m|$ {stats.max_abs_tau_m:.1f} {NM})")  # fmt: skip
     for y in (-40.0, 40.0):
-        ax.axhline(y, color="k", lw=0.5, ls=":")
-    ax.set_ylabel("link, motor torque")
-    ax.set_xlabel("time / s")
-    ax.legend(loc="upper right", fontsize=8)
+        ax.axhline(y, color="k", lw=0.5, ls=":", label="±40 N·m" if y > 0 else None)
+    ax.set_ylabel(axis_label("motor torque", NM))
+    ax = axes[4]
+    ax.plot(t, d.theta_l_deg[w], color="C0", lw=1.0)
+    ax.set_ylabel(axis_label(r"link angle $\theta_l$", "deg"), color="C0")
+    ax.tick_params(axis="y", colors="C0")
+    ax_v = ax.twinx()
+    ax_v.plot(t, np.degrees(d.omega_l[w]), color="C4", lw=0.8)
+    ax_v.set_ylabel(axis_label(r"link velocity $\dot{\theta}_l$", "deg/s"), color="C4")
+    ax_v.tick_params(axis="y", colors="C4")
+    ax.set_xlabel(axis_label("time", "s"))
+    ax.set_xlim(t[0], t[-1])
     for ax in axes:
         ax.grid(True, lw=0.3)
+        if ax.get_legend_handles_labels()[0]:  # the last panel: its axes' labels say it
+            ax.legend(**_BESIDE)
     fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
     return fig
 
 
 def make_calibration_figure(result: Any, title: str) -> Figure:
     """[Taghirad97] Figs. 6-7: torque against bridge voltage per experiment, fitted lines,
-    one panel per load range (``result`` a :class:`hdhil.hostsim.calibration.CalibrationResult`)."""
+    one panel per load range (``result`` a :class:`hdhil.hostsim.calibration.CalibrationResult`);
+    legends below the axes, outside the data."""
     ranges = sorted({e.range_Nm for e in result.experiments})
-    fig = Figure(figsize=(6.0 * len(ranges), 5.0))
+    fig = Figure(figsize=(6.0 * len(ranges), 5.5), layout="constrained")
     axes = np.atleast_1d(fig.subplots(1, len(ranges)))
     for ax, rng, fig_no in zip(axes, ranges, range(6, 6 + len(ranges)), strict=False):
         for e in (x for x in result.experiments if x.range_Nm == rng):
             v = np.asarray(e.volts)
             (pts,) = ax.plot(
-                v, e.torques_Nm, "o", ms=3, label=f"exp. {e.index}: {e.gain_Nm_per_V:.3f} Nm/V"
+                v, e.torques_Nm, "o", ms=3, label=f"exp. {e.index}: {e.gain_Nm_per_V:.3f} {NM}/V"
             )
             line = np.array([v.min(), v.max()])
             ax.plot(line, e.gain_Nm_per_V * (line - e.offset_V), lw=0.7, color=pts.get_color())
         kind = "low-range" if rng == ranges[0] and len(ranges) > 1 else "full-range"
-        ax.set_title(f"[Taghirad97] Fig. {fig_no}: {kind} loading (±{rng:g} Nm)", fontsize=9)
-        ax.set_xlabel("bridge amplifier output / V")
-        ax.set_ylabel("applied torque / Nm")
+        ax.set_title(f"[Taghirad97] Fig. {fig_no}: {kind} loading (±{rng:g} {NM})", fontsize=9)
+        ax.set_xlabel(axis_label("bridge amplifier output", "V"))
+        ax.set_ylabel(axis_label("applied torque", NM))
         ax.grid(True, lw=0.3)
-        ax.legend(fontsize=7, loc="upper left")
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncols=2,
+                  frameon=False)  # fmt: skip
     fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
     return fig

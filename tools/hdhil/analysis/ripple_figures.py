@@ -23,6 +23,7 @@ from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 from scipy.signal import find_peaks, periodogram
 
 from hdhil.core.errors import UserError
+from hdhil.core.plotlabels import NM, axis_label
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.isr import TorqueFilterChain
 
@@ -31,10 +32,12 @@ __all__ = [
     "SPECTRUM_WINDOW_S",
     "PlotData",
     "flat_velocity_window",
+    "has_misalignment",
     "make_figure",
     "plot_data",
     "ripple_peaks",
     "spectrum_peaks",
+    "steady_start",
     "torque_spectrum",
 ]
 
@@ -232,12 +235,46 @@ _MEAS = {"color": "0.6", "lw": 0.6}
 _FILT = {"color": "tab:blue", "lw": 1.0}
 _TRUE = {"color": "black", "lw": 1.0, "ls": "--"}
 _EXP = {"color": "tab:orange", "lw": 1.4, "ls": "-."}
+_EXP_LABEL = r"expected $J_\mathrm{load}\,\dot{\omega}_m/N$"
+_TIME = axis_label("time", "s")
+_TORQUE = axis_label("torque", NM)
 
 
-def make_figure(data: PlotData, title: str, window: tuple[float, float] | None = None) -> Figure:
-    """The 3 x 2 figure; ``window`` = (T0, T1) in s for the spectrum, else
-    auto-detected (:func:`flat_velocity_window`).  Time is the sample index times the
-    firmware's sample period.
+def has_misalignment(scenario: Any) -> bool:
+    """Whether a scenario (:class:`hdhil.rig.scenario.Scenario`) contains misalignment:
+    the plant's misalignment torque or a firmware oscillator at the output angle.  Figs.
+    10-11 are drawn only then."""
+    plant = scenario.plant.ripple.misalignment_pp_Nm > 0.0
+    return plant or any(o.source == "output" for o in scenario.firmware.ripple.oscillators)
+
+
+def steady_start(data: PlotData, steady_from_s: float | None = None) -> float:
+    """Where Fig. 11's steady part starts (s): ``steady_from_s`` when given (the
+    scenario's ``evaluate_from_s``), else one output revolution after the motor starts
+    turning (the filter's output oscillator learns the misalignment over a revolution);
+    0 when the output never turns a whole revolution."""
+    if steady_from_s is not None:
+        return max(0.0, float(steady_from_s))
+    turning = np.flatnonzero(np.abs(data.velocity) >= TURNING_RADPS)
+    if turning.size == 0:
+        return 0.0
+    k0 = int(turning[0])
+    turned = np.abs(data.output_angle[k0:] - data.output_angle[k0])
+    done = np.flatnonzero(turned >= 2.0 * math.pi)
+    return float(data.t[k0 + int(done[0])]) if done.size else 0.0
+
+
+def make_figure(
+    data: PlotData,
+    title: str,
+    window: tuple[float, float] | None = None,
+    *,
+    misalignment: bool | None = None,
+    steady_from_s: float | None = None,
+) -> Figure:
+    """The figure; ``window`` = (T0, T1) in s for the spectrum, else auto-detected
+    (:func:`flat_velocity_window`).  Time is the sample index times the firmware's sample
+    period.  Every axis holds one quantity; legends sit below the axes, outside the data.
 
     - **Fig. 8, top** (§4): the measured torque and the motor velocity against time.
     - **Fig. 8, bottom** (§4): the power spectrum of the measured torque over a window
@@ -247,32 +284,38 @@ def make_figure(data: PlotData, title: str, window: tuple[float, float] | None =
       markers at 2x and 4x the mean motor velocity and the peaks found
       (:func:`ripple_peaks`).
     - **Fig. 9** (§4): the measured torque against the Kalman-filtered torque, plus the
-      true torque when the trace carries ground truth; the whole run, and a 0.1 s
-      close-up in the spectrum window so that single ripple periods show.
-    - **Figs. 10-11** (§5): misalignment before / after filtering: the measured and
-      filtered torque (and the expected torque J_load·acc/N, Fig. 10's solid line, and
-      the true torque if known) against the output angle in revolutions, over the
-      samples where the motor turns.  The output angle comes from the truth channel when
-      present, else from the firmware's encoder count (motor angle / gear ratio).
+      true torque when the trace carries ground truth, over the whole run; and a 0.1 s
+      close-up in the spectrum window so that single ripple periods show, in two panels
+      on one time axis: the measured torque above, the filtered (and true) torque below,
+      each scaled to its own curves.
+    - **Figs. 10-11** (§5), only when the scenario contains misalignment
+      (``misalignment``: :func:`has_misalignment`; None, no scenario known: drawn):
+      misalignment before / after filtering, against the output angle in revolutions,
+      over the samples where the motor turns.  Fig. 10: the measured and expected torque
+      (J_load·acc/N, Fig. 10's solid line).  Fig. 11: the filtered, expected and true
+      torque, scaled to the steady part (from :func:`steady_start`), with the start-up
+      before it in a panel of its own.  The output angle comes from the truth channel
+      when present, else from the firmware's encoder count (motor angle / gear ratio).
     """
-    fig = Figure(figsize=(14, 16), layout="constrained")
+    with_mis = misalignment is None or misalignment
+    fig = Figure(figsize=(14, 16 if with_mis else 8.5), layout="constrained")
     fig.suptitle(title, fontsize=13)
-    grid = fig.add_gridspec(4, 2)
+    grid = fig.add_gridspec(4 if with_mis else 2, 2)
     ax_tv = fig.add_subplot(grid[0, 0])
     ax_sp = fig.add_subplot(grid[0, 1])
     ax_f9 = fig.add_subplot(grid[1, 0])
-    ax_zo = fig.add_subplot(grid[1, 1])
-    ax_m10 = fig.add_subplot(grid[2, :])
-    ax_m11 = fig.add_subplot(grid[3, :], sharex=ax_m10)
+    close = grid[1, 1].subgridspec(2, 1, hspace=0.0)
+    ax_zm = fig.add_subplot(close[0])
+    ax_zo = fig.add_subplot(close[1], sharex=ax_zm)
     t = data.t
     span = _window_samples(data, window)
 
-    # Fig. 8 top: measured torque and velocity.
-    ax_tv.plot(t, data.T_meas, label="measured torque", **_FILT)
-    ax_tv.set(xlabel="time (s)", ylabel="torque (Nm)", title="Fig. 8: measured torque, velocity")
+    # Fig. 8 top: measured torque and velocity, each on its own axis.
+    ax_tv.plot(t, data.T_meas, label="measured torque (left axis)", **_FILT)
+    ax_tv.set(xlabel=_TIME, ylabel=_TORQUE, title="Fig. 8: measured torque, velocity")
     ax_v = ax_tv.twinx()
-    ax_v.plot(t, data.velocity, color="tab:red", lw=1.0, label="motor velocity")
-    ax_v.set_ylabel("motor velocity (rad/s)", color="tab:red")
+    ax_v.plot(t, data.velocity, color="tab:red", lw=1.0, label="motor velocity (right axis)")
+    ax_v.set_ylabel(axis_label("motor velocity", "rad/s"), color="tab:red")
     ax_v.tick_params(axis="y", colors="tab:red")
     if span is not None:
         ax_tv.axvspan(t[span[0]], t[span[1] - 1], color="tab:green", alpha=0.15,
@@ -285,53 +328,63 @@ def make_figure(data: PlotData, title: str, window: tuple[float, float] | None =
     # Fig. 8 bottom: spectrum over the flat-velocity window.
     _draw_spectrum(ax_sp, data, span)
 
-    # Fig. 9: measured vs filtered (+ true), whole run and a close-up.
-    for ax, sl in ((ax_f9, slice(None)), (ax_zo, _close_up(data, span))):
-        true = data.T_true[sl] if data.T_true is not None else None
-        if ax is ax_zo:
-            # The close-up: the measured torque on its own (right) axis, so that an
-            # offset of the measurement (misalignment, ripple) does not flatten the
-            # filtered and true curves, whose ripple-free detail is the point here.
-            ax_m = ax.twinx()
-            ax_m.plot(t[sl], data.T_meas[sl], label="measured (right axis)", **_MEAS)
-            ax_m.set_ylabel("measured torque (Nm)", color="0.45")
-            ax_m.tick_params(axis="y", colors="0.45")
-            _fit_ylim(ax_m, [data.T_meas[sl]])
-            ax.set_zorder(ax_m.get_zorder() + 1)
-            ax.patch.set_visible(False)
-        else:
-            ax.plot(t[sl], data.T_meas[sl], label="measured", **_MEAS)
-        ax.plot(t[sl], data.T_filtered[sl], label=data.filtered_label, **_FILT)
-        if true is not None:
-            ax.plot(t[sl], true, label="true (truth channel)", **_TRUE)
-        ax.set(xlabel="time (s)", ylabel="torque (Nm)")
-        ax.grid(alpha=0.3)
-        if ax is ax_zo:
-            _fit_ylim(ax, [data.T_filtered[sl], true])
-            h, lab = ax.get_legend_handles_labels()
-            hm, labm = ax_m.get_legend_handles_labels()
-            _legend_below(ax, hm + h, labm + lab)
-        else:
-            _fit_ylim(ax, [data.T_meas[sl], data.T_filtered[sl], true])
-            _legend_below(ax)
-    ax_f9.set_title("Fig. 9: measured vs Kalman-filtered torque")
+    # Fig. 9: measured vs filtered (+ true) over the whole run.
+    true = data.T_true
+    ax_f9.plot(t, data.T_meas, label="measured", **_MEAS)
+    ax_f9.plot(t, data.T_filtered, label=data.filtered_label, **_FILT)
+    if true is not None:
+        ax_f9.plot(t, true, label="true (truth channel)", **_TRUE)
+    ax_f9.set(xlabel=_TIME, ylabel=_TORQUE, title="Fig. 9: measured vs Kalman-filtered torque")
+    ax_f9.grid(alpha=0.3)
+    _fit_ylim(ax_f9, [data.T_meas, data.T_filtered, true])
+    _legend_below(ax_f9)
+
+    # Fig. 9 close-up: measured above, filtered and true below (one axis each).
     zoom = _close_up(data, span)
-    ax_zo.set_title(
-        f"Fig. 9 close-up: {t[zoom][0]:.2f}-{t[zoom][-1]:.2f} s "
+    tz = t[zoom]
+    ax_zm.plot(tz, data.T_meas[zoom], label="measured", **_MEAS)
+    _fit_ylim(ax_zm, [data.T_meas[zoom]])
+    ax_zm.set_ylabel(axis_label("measured", NM))
+    ax_zm.tick_params(axis="x", labelbottom=False)
+    ax_zm.set_title(
+        f"Fig. 9 close-up: {tz[0]:.2f}-{tz[-1]:.2f} s "
         f"(mean velocity {np.mean(data.velocity[zoom]):.0f} rad/s)"
     )
+    ax_zo.plot(tz, data.T_filtered[zoom], label=data.filtered_label, **_FILT)
+    zoom_true = true[zoom] if true is not None else None
+    if zoom_true is not None:
+        ax_zo.plot(tz, zoom_true, label="true (truth channel)", **_TRUE)
+    _fit_ylim(ax_zo, [data.T_filtered[zoom], zoom_true])
+    ax_zo.set(
+        xlabel=_TIME, ylabel=axis_label("filtered" if zoom_true is None else "filtered, true", NM)
+    )
+    h, lab = ax_zm.get_legend_handles_labels()
+    h2, lab2 = ax_zo.get_legend_handles_labels()
+    _legend_below(ax_zo, h + h2, lab + lab2, below=-0.34)  # a half-height axes
+    for ax in (ax_zm, ax_zo):
+        ax.grid(alpha=0.3)
 
     # Figs. 10-11: misalignment vs output angle, before and after filtering.
-    _draw_misalignment(ax_m10, ax_m11, data)
+    if with_mis:
+        ax_m10 = fig.add_subplot(grid[2, :])
+        after = grid[3, :].subgridspec(1, 2, width_ratios=(1, 3))
+        _draw_misalignment(
+            ax_m10,
+            fig.add_subplot(after[0]),
+            fig.add_subplot(after[1]),
+            data,
+            steady_start(data, steady_from_s),
+        )
     return fig
 
 
-def _legend_below(ax: Any, handles: Any = None, labels: Any = None) -> None:
-    """The axes' legend under it, outside the data (the constrained layout makes room)."""
+def _legend_below(ax: Any, handles: Any = None, labels: Any = None, below: float = -0.16) -> None:
+    """The axes' legend under it, outside the data (the constrained layout makes room);
+    ``below``: its top in axes heights under the axes' bottom edge (clear of the x label)."""
     if handles is None:
         handles, labels = ax.get_legend_handles_labels()
     if handles:
-        ax.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, -0.16),
+        ax.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, below),
                   ncols=min(3, len(handles)), fontsize=8, frameon=False)  # fmt: skip
 
 
@@ -359,7 +412,10 @@ def _close_up(data: PlotData, span: tuple[int, int] | None) -> slice:
 
 def _draw_spectrum(ax: Any, data: PlotData, span: tuple[int, int] | None) -> None:
     Ts = data.sample_period_s
-    ax.set(xlabel="angular frequency (rad/s)", ylabel="PSD of measured torque (Nm²/(rad/s))")
+    ax.set(
+        xlabel=axis_label("angular frequency", "rad/s"),
+        ylabel=axis_label("PSD of measured torque", "N²·m²·s/rad"),
+    )
     if span is None:
         ax.set_title("Fig. 8: power spectrum (no window with the motor turning at constant speed)")
         ax.text(0.5, 0.5, "motor never at a steady speed >= "
@@ -392,40 +448,59 @@ def _draw_spectrum(ax: Any, data: PlotData, span: tuple[int, int] | None) -> Non
     _legend_below(ax)
 
 
-def _draw_misalignment(ax10: Any, ax11: Any, data: PlotData) -> None:
-    """Fig. 10 (before: measured and expected torque) and Fig. 11 (after: filtered and
-    true torque) in two panels, each scaled to its own curves: on one axis the measured
-    torque's misalignment swing flattens the filtered and true curves."""
+def _draw_misalignment(
+    ax10: Any, ax_start: Any, ax11: Any, data: PlotData, steady_s: float
+) -> None:
+    """Fig. 10 (before: measured and expected torque) and Fig. 11 (after: filtered,
+    expected and true torque), each scaled to its own curves: on one axis the measured
+    torque's misalignment swing flattens the filtered and true curves.  Fig. 11 is drawn
+    from ``steady_s`` on, scaled to that steady part; the start-up before it (where the
+    filter is still learning) has a panel of its own."""
     turning = np.abs(data.velocity) >= TURNING_RADPS
-    for ax in (ax10, ax11):
-        ax.set(ylabel="torque (Nm)")
-        ax.set_xlabel(f"output angle (revolutions, from {data.output_angle_source})")
+    rev_label = axis_label(f"output angle from {data.output_angle_source}", "rev")
+    for ax in (ax10, ax_start, ax11):
+        ax.set(ylabel=_TORQUE, xlabel=rev_label)
         ax.grid(alpha=0.3)
     if not turning.any():
         ax10.set_title("Fig. 10: misalignment (motor not turning: nothing to show)")
         ax11.set_title("Fig. 11: misalignment after filtering (motor not turning)")
+        ax_start.set_title("start-up")
         return
     rev = (data.output_angle - data.output_angle[turning][0]) / (2.0 * math.pi)
     # Keep gaps where the motor stops: mask instead of dropping samples.
     x = np.where(turning, rev, np.nan)
     meas = np.where(turning, data.T_meas, np.nan)
     expected = np.where(turning, data.T_expected, np.nan)
-    filtered = np.where(turning, data.T_filtered, np.nan)
-    true = np.where(turning, data.T_true, np.nan) if data.T_true is not None else None
     ax10.plot(x, meas, label="measured", **_MEAS)
-    ax10.plot(x, expected, label="expected J_load·acc/N (the seed's solid line)", zorder=3,
-              **_EXP)  # fmt: skip
+    ax10.plot(x, expected, label=f"{_EXP_LABEL} (the seed's solid line)", zorder=3, **_EXP)
     _fit_ylim(ax10, [meas, expected])
     extent = np.nanmax(np.abs(x[turning]))
     ax10.set_title(
         f"Fig. 10: misalignment before filtering, {extent:.2f} output revolutions with "
         f"|motor velocity| >= {TURNING_RADPS:g} rad/s"
     )
-    if true is not None:
-        ax11.plot(x, true, label="true (truth channel)", **_TRUE)
-    ax11.plot(x, filtered, label=data.filtered_label, **_FILT)
-    ax11.plot(x, expected, label="expected J_load·acc/N", zorder=3, **_EXP)
-    _fit_ylim(ax11, [filtered, true, expected])
-    ax11.set_title("Fig. 11: misalignment after filtering (scaled to the filtered torque)")
-    for ax in (ax10, ax11):
-        _legend_below(ax)
+    steady = data.t >= steady_s
+    if not (turning & steady).any():  # no steady part: all of it is start-up
+        steady = np.zeros_like(turning)
+    for ax, part, what in (
+        (ax_start, ~steady, f"start-up, t < {steady_s:g} s"),
+        (ax11, steady, f"t >= {steady_s:g} s" if steady_s > 0 else "whole run"),
+    ):
+        keep = turning & part
+        xs = np.where(keep, rev, np.nan)
+        filtered = np.where(keep, data.T_filtered, np.nan)
+        exp = np.where(keep, data.T_expected, np.nan)
+        true = np.where(keep, data.T_true, np.nan) if data.T_true is not None else None
+        ax.plot(xs, filtered, label=data.filtered_label, **_FILT)
+        ax.plot(xs, exp, label=_EXP_LABEL, zorder=3, **_EXP)
+        if true is not None:  # on top: the reference the filtered torque is read against
+            ax.plot(xs, true, label="true (truth channel)", zorder=4, **_TRUE)
+        _fit_ylim(ax, [filtered, true, exp])
+        if keep.any():
+            ax.set_xlim(np.nanmin(xs), np.nanmax(xs))
+        if ax is ax11:
+            ax.set_title(f"Fig. 11: misalignment after filtering, {what} (steady part)")
+        else:
+            ax.set_title(what if keep.any() else f"{what}: none", fontsize=10)
+    _legend_below(ax10)
+    _legend_below(ax11, below=-0.2)  # the figure's last row: clear of its x label

@@ -13,8 +13,10 @@ mapping is typed twice:
   dictionary;
 - :func:`control_database`: ``control.dbc`` with the PDO messages a non-default mapping
   changes rebuilt from the drive's EDS, so tools decode a trace of that mapping;
+- :func:`mapping_database`: ``control.dbc`` as a shipped mapping leaves it;
 - :data:`MAPPINGS`: the shipped mappings by name (``raw``: the EDS defaults, no DCF;
-  ``cst``: ``dbc/drive-cst.dcf``, CiA 402 cyclic synchronous torque).
+  ``cst``: ``dbc/drive-cst.dcf``, CiA 402 cyclic synchronous torque; ``cst-sensor``:
+  ``dbc/drive-cst-sensor.dcf``, the same with the joint-torque sensor 0x2102).
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ __all__ = [
     "layout_message",
     "layouts_from_json",
     "layouts_to_json",
+    "mapping_database",
     "mapping_dcf",
     "peer_pdo_writes",
     "raw_sensor_frames",
@@ -278,6 +281,19 @@ def control_database(drive_layouts: Mapping[tuple[str, int], PdoLayout]) -> Any:
         db.messages.append(message)
     db.refresh()
     return db
+
+
+def mapping_database(name: str) -> Any:
+    """``control.dbc`` with the drive's PDOs as the shipped mapping ``name`` configures
+    them (:func:`control_database` of its DCF; ``control.dbc`` itself for ``raw``).
+    ``ValueError`` for an unknown name."""
+    from hdhil.dbc import database, node_ids
+
+    dcf = mapping_dcf(name)
+    if dcf is None:
+        return database("control")
+    _, layouts = dcf_layouts(dcf, node_ids("control")["DRIVE"])
+    return control_database(layouts)
 
 
 def trace_decoder(trace: Path) -> Any:

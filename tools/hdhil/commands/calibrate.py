@@ -156,8 +156,8 @@ def _plot(path: str, result: object, scenario: str, deferred: AtomicOutput) -> N
     check_output(out, "--plot")  # a regular file or a new one, in an existing directory
     r = result
     title = (
-        f"hdhil calibrate: scenario {scenario}, seed {r.seed}: gain {r.gain_Nm_per_V:.4f} Nm/V, "  # type: ignore[attr-defined]
-        f"consistency {100 * r.consistency:.2f} % ([Taghirad97] Table 1: 6.60 Nm/V, 2 %)"  # type: ignore[attr-defined]
+        f"hdhil calibrate: scenario {scenario}, seed {r.seed}: gain {r.gain_Nm_per_V:.4f} N·m/V, "  # type: ignore[attr-defined]
+        f"consistency {100 * r.consistency:.2f} % ([Taghirad97] Table 1: 6.60 N·m/V, 2 %)"  # type: ignore[attr-defined]
     )
     fig = make_calibration_figure(result, title)
     try:

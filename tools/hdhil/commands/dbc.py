@@ -8,7 +8,11 @@ This command writes both as one DBC: every message with its signals, units, valu
 tables, comments and attributes (cycle times, send types, the CANopen object kind, the
 node-IDs and the bus's bit rate), the nodes of both.  The identifiers never collide
 (11-bit against 29-bit), so one database decodes every frame.  The shipped files stay
-the source; the merged one is made from them each time.
+the source; the merged one is made from them each time.  With ``--mapping NAME`` the
+drive's PDO messages are those of a shipped mapping (e.g. ``cst-sensor``: DRIVE_TPDO1
+carries 0x6077, 0x6064 and the joint-torque sensor 0x2102), built from its DCF and the
+drive's EDS (:func:`hdhil.canopen.mapping.mapping_database`), as ``hdhil dump`` decodes
+a trace of that mapping.
 """
 
 from __future__ import annotations
@@ -22,17 +26,24 @@ from hdhil.core.errors import UserError
 from hdhil.core.files import atomic_path, check_not_inputs, check_output
 
 
-def merged_database() -> Any:
-    """The control and truth databases as one :class:`cantools.database.can.Database`."""
+def merged_database(mapping: str = "raw") -> Any:
+    """The control and truth databases as one :class:`cantools.database.can.Database`,
+    the drive's PDOs as the shipped ``mapping`` configures them."""
+    import copy
+
     import cantools
     from cantools.database.can import Database
     from cantools.database.can.formats.dbc.dbc_specifics import DbcSpecifics
 
+    from hdhil.canopen.mapping import mapping_database
     from hdhil.dbc import dbc_path
 
-    control, truth = (
-        cantools.database.load_file(str(dbc_path(bus))) for bus in ("control", "truth")
+    control = (
+        cantools.database.load_file(str(dbc_path("control")))
+        if mapping == "raw"
+        else copy.deepcopy(mapping_database(mapping))
     )
+    truth = cantools.database.load_file(str(dbc_path("truth")))
     definitions: OrderedDict[str, Any] = OrderedDict(control.dbc.attribute_definitions)
     for name, definition in truth.dbc.attribute_definitions.items():
         definitions.setdefault(name, definition)
@@ -57,26 +68,26 @@ def merged_database() -> Any:
     )
 
 
-def merged_dbc_text() -> str:
+def merged_dbc_text(mapping: str = "raw") -> str:
     """The merged database as DBC text, checked by loading it back."""
     import cantools
 
-    text = merged_database().as_dbc_string()
+    text = merged_database(mapping).as_dbc_string()
     cantools.database.load_string(text, database_format="dbc", strict=True)
     return text
 
 
-def export(out: Path) -> int:
+def export(out: Path, mapping: str = "raw") -> int:
     """Write the merged DBC to ``out`` (a temporary file renamed over it, so a failure
-    leaves no half-written file; only a regular file is ever replaced).  Returns the
-    number of messages written."""
+    leaves no half-written file; only a regular file is ever replaced), the drive's PDOs
+    as the shipped ``mapping`` configures them.  Returns the number of messages written."""
     from hdhil.dbc import dbc_path
 
     if out.exists() and not out.is_file():
         raise UserError(f"{out}: exists and is not a regular file")
     check_output(out)  # a regular file or a new one, in an existing directory
     check_not_inputs([(out, "")], [(dbc_path(bus), "database") for bus in ("control", "truth")])
-    text = merged_dbc_text()
+    text = merged_dbc_text(mapping)
     with atomic_path(out) as tmp:
         try:
             tmp.write_text(text, encoding="cp1252", errors="strict", newline="\r\n")
@@ -87,8 +98,9 @@ def export(out: Path) -> int:
 
 
 def run_export(args: argparse.Namespace) -> int:
-    n = export(Path(args.out))
-    print(f"hdhil dbc export: {n} messages (control bus and ground truth) in {args.out}")
+    n = export(Path(args.out), args.mapping)
+    what = "" if args.mapping == "raw" else f", the drive's PDOs in the {args.mapping} mapping"
+    print(f"hdhil dbc export: {n} messages (control bus and ground truth{what}) in {args.out}")
     return 0
 
 
@@ -106,4 +118,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "take one database per trace (cantools decode/plot, CANalyzer, asammdf).",
     )
     e.add_argument("out", metavar="OUT.dbc", help="the DBC file to write")
+    from hdhil.dbc import MAPPINGS
+
+    e.add_argument(
+        "--mapping",
+        choices=list(MAPPINGS),
+        default="raw",
+        metavar="NAME",
+        help=f"the drive's PDO messages as this shipped mapping configures them "
+        f"({', '.join(MAPPINGS)}; default raw, control.dbc as it is)",
+    )
     e.set_defaults(func=run_export)

@@ -94,8 +94,10 @@ def add_scenario_arguments(
         choices=list(MAPPINGS),
         default=None,
         help="the drive's PDO mapping by name: raw ([Taghirad97]'s ADC/DAC objects, the "
-        "default) or cst (CiA 402 cyclic synchronous torque: 0x6040 + 0x6071 in, 0x6077 + "
-        "0x6064 out; the DCF shipped as drive-cst.dcf)",
+        "default), cst (CiA 402 cyclic synchronous torque: 0x6040 + 0x6071 in, 0x6077 + "
+        "0x6064 out; the DCF shipped as drive-cst.dcf) or cst-sensor (cst with the "
+        "joint-torque sensor 0x2102 beside 0x6077 + 0x6064, which the firmware filters; "
+        "drive-cst-sensor.dcf)",
     )
 
 

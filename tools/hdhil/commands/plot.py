@@ -16,7 +16,7 @@ from typing import Any
 
 from matplotlib.figure import Figure
 
-from hdhil.analysis.ripple_figures import FORMATS, make_figure, plot_data
+from hdhil.analysis.ripple_figures import FORMATS, has_misalignment, make_figure, plot_data
 from hdhil.core.errors import UserError
 from hdhil.core.files import atomic_path, check_output, display_name
 from hdhil.core.numbers import arg_seconds
@@ -101,7 +101,13 @@ def run(args: argparse.Namespace) -> int:
         f"{truth}\nafter [Taghirad97] (Taghirad, CIM-TR-97-06) Figs. 8-11"
     )
     window = tuple(args.window) if args.window is not None else None
-    fig = make_figure(data, title, window)  # type: ignore[arg-type]
+    fig = make_figure(
+        data,
+        title,
+        window,  # type: ignore[arg-type]
+        misalignment=has_misalignment(scenario) if scenario is not None else None,
+        steady_from_s=scenario.evaluate_from_s if scenario is not None else None,
+    )
     return _save(fig, args.out, damage)
 
 
@@ -125,12 +131,14 @@ def _run_fig8(args: argparse.Namespace, scenario: Any) -> int:
     """``hdhil plot --figure fig8``: [Vertechy] Fig. 8 (:mod:`hdhil.analysis.paper_figures`)."""
     from hdhil.analysis.paper_figures import fig8_data, make_fig8
 
-    data, damage = fig8_data(args.trace)
+    data, damage = fig8_data(args.trace, scenario.plant.link if scenario is not None else None)
     skip = scenario.evaluate_from_s if scenario is not None else 0.0
     name = scenario.name if scenario else "(not given)"
     trace_name = display_name(args.trace.name)
+    start = f"from t >= {skip:g} s (start-up not drawn)" if skip > 0 else "whole run"
     title = (
-        f"{trace_name}: scenario {name}, {len(data)} samples; figures from t >= {skip:g} s\n"
+        f"{trace_name}: scenario {name}, {len(data)} samples; {start}, legend figures "
+        "over the samples drawn\n"
         "after [Vertechy] (Vertechy et al.) Fig. 8, seed sign convention"
     )
     fig = make_fig8(data, title, skip)

@@ -80,7 +80,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=("next-sync", "immediate"),
         default=None,
         help="when the drive applies a command (default: the scenario's [link] actuation, "
-        "next-sync)",
+        "next-sync); sets the control law's delay compensation to match "
+        "(firmware.control.delay_samples 1 or 0)",
     )
     add_bus_options(
         p,

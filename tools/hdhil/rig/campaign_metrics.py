@@ -23,7 +23,16 @@ from hdhil.rig.headline import candidate_row
 if TYPE_CHECKING:
     from hdhil.rig.campaign_variants import Variant
 
-__all__ = ["METRICS", "Criterion", "Metric", "format_value", "judge", "metrics_of", "stop_reason"]
+__all__ = [
+    "METRICS",
+    "METRIC_WORDS",
+    "Criterion",
+    "Metric",
+    "format_value",
+    "judge",
+    "metrics_of",
+    "stop_reason",
+]
 
 # ----------------------------------------------------------------------------- metrics
 
@@ -131,6 +140,39 @@ METRICS: dict[str, Metric] = {
     "plausibility_errors": Metric.at("controller.plausibility_errors", "int"),
     "covariance_resets": Metric.at("controller.covariance_resets", "int"),
     "covariance_finite": Metric.at("controller.covariance_finite", "bool"),
+}
+
+
+#: Every metric in words, for the campaign plots' axes (the unit comes from the name's
+#: suffix, :func:`hdhil.core.plotlabels.split_unit`).
+METRIC_WORDS: dict[str, str] = {
+    "stopped_early": "stopped early",
+    "simulated_s": "simulated time",
+    "cycles": "control cycles",
+    "headline_Nm": "headline torque error",
+    "filtered_rms_err_Nm": "RMS error of the filtered torque",
+    "filtered_to_raw": "RMS error, filtered relative to raw",
+    "raw_rms_err_Nm": "RMS error of the raw torque",
+    "filtered_rms_err_whole_run_Nm": "RMS error of the filtered torque, whole run",
+    "filtered_max_err_whole_run_Nm": "max error of the filtered torque, whole run",
+    "raw_rms_err_whole_run_Nm": "RMS error of the raw torque, whole run",
+    "true_rms_whole_run_Nm": "RMS of the true torque, whole run",
+    "eval_rms_err_Nm": "RMS error of the filtered torque",
+    "eval_reduction_2x_dB": "reduction of the 2x motor ripple",
+    "eval_reduction_4x_dB": "reduction of the 4x motor ripple",
+    "max_abs_e_Nm": "max tracking error |e|",
+    "rms_e_Nm": "RMS tracking error e",
+    "velocity_final_radps": "final velocity",
+    "velocity_peak_radps": "peak velocity",
+    "frames_total": "CAN frames",
+    "faults_injected": "faults injected",
+    "malformed_frames": "malformed frames",
+    "kalman_skipped": "Kalman updates skipped",
+    "tacho_rejections": "tachometer samples rejected",
+    "encoder_rejections": "encoder samples rejected",
+    "plausibility_errors": "plausibility errors",
+    "covariance_resets": "covariance resets",
+    "covariance_finite": "covariance finite",
 }
 
 

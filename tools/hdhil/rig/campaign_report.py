@@ -19,9 +19,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from hdhil.core.plotlabels import axis_label, key_label, split_unit
 from hdhil.rig.campaign import CampaignRun, Record, _write_atomic
 from hdhil.rig.campaign_file import Campaign
-from hdhil.rig.campaign_metrics import METRICS, format_value
+from hdhil.rig.campaign_metrics import METRIC_WORDS, METRICS, format_value
 from hdhil.rig.campaign_variants import Variant
 
 #: Variants listed per criterion under "worst variants".
@@ -122,13 +123,55 @@ def _axis_label(value: Any) -> str:
     return _cell(value) if not isinstance(value, str) else value
 
 
+#: Campaign axes (scenario keys) in words; other keys read as their last two parts.
+AXIS_WORDS: dict[str, str] = {
+    "scenario": "scenario",
+    "seed": "noise seed",
+    "faults.seed": "fault seed",
+    "firmware.ripple.mode": "ripple filter",
+    "faults.control.loss_rate": "control-bus frame loss rate",
+    "faults.sensor.loss_rate": "sensor-bus frame loss rate",
+}
+
+
+def is_categorical(axis: str, values: Sequence[Any]) -> bool:
+    """Whether a campaign axis is a set of labels rather than a quantity: any non-numeric
+    value, or a seed (an integer that names a noise pattern; its order means nothing).
+    Over a categorical axis the plots draw points per category, never a line between
+    categories."""
+    numeric = all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in values)
+    return not numeric or axis == "seed" or axis.endswith(".seed")
+
+
+def _is_fraction(axis: str) -> bool:
+    """A fault rate, a fraction of frames or samples: drawn in per cent."""
+    return axis.startswith("faults.") and axis.rsplit(".", 1)[-1].endswith("_rate")
+
+
+def axis_words(axis: str) -> str:
+    """A campaign axis as an axis label: words and unit (:data:`AXIS_WORDS`)."""
+    if _is_fraction(axis):
+        return axis_label(AXIS_WORDS.get(axis) or key_label(axis), "%")
+    return key_label(axis, AXIS_WORDS)
+
+
+def metric_words(metric: str) -> str:
+    """A metric as an axis label: its words and unit (:data:`METRIC_WORDS`)."""
+    return key_label(metric, METRIC_WORDS)
+
+
 def plot_files(campaign: Campaign, table: list[dict[str, Any]], plots: Path) -> list[Path]:
-    """One PNG per plotted metric and axis: every variant as a dot, the mean per axis
-    value as a line, coloured by another axis with few values when there is one."""
+    """One PNG per plotted metric and axis, labelled in words and units, with the legend
+    beside the axes.  Every variant is a dot, coloured by another axis with few values
+    when there is one.  Over a numeric axis (a loss rate) a line joins the means per
+    value; over a categorical one (the ripple filter, the seed) each category has its
+    points side by side per colour and a bar at their mean, with no line across
+    categories."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter
 
     axes = [a.key for a in campaign.axes] + [group[0].key for group in campaign.zips]
     if len(campaign.scenarios) > 1:
@@ -147,9 +190,9 @@ def plot_files(campaign: Campaign, table: list[dict[str, Any]], plots: Path) -> 
             for r in ok:
                 if r[axis] not in xs_all:
                     xs_all.append(r[axis])
+            categorical = is_categorical(axis, xs_all)
             numeric = all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in xs_all)
             order = sorted(xs_all) if numeric else xs_all
-            pos = {x: (x if numeric else i) for i, x in enumerate(order)}
             colour_by = next(
                 (
                     a
@@ -161,44 +204,72 @@ def plot_files(campaign: Campaign, table: list[dict[str, Any]], plots: Path) -> 
             groups: dict[str, list[dict[str, Any]]] = {}
             for r in ok:
                 groups.setdefault(_cell(r[colour_by]) if colour_by else "", []).append(r)
-            fig, ax = plt.subplots(figsize=(5.0, 3.2), dpi=90)
-            for label, members in groups.items():
+            fig, ax = plt.subplots(figsize=(7.0, 3.4), dpi=90, layout="constrained")
+            # Categories at 0, 1, ...; the colour groups side by side within each.
+            width = 0.7 / max(1, len(groups))
+            for g, members in enumerate(groups.values()):
+                shift = (g - (len(groups) - 1) / 2.0) * width if categorical else 0.0
+                pos = {x: (order.index(x) + shift if categorical else x) for x in order}
                 pts = [(pos[r[axis]], r[metric]) for r in members if _finite(r[metric])]
                 if not pts:
                     continue
-                line = ax.plot(
-                    [p[0] for p in pts], [p[1] for p in pts], "o", alpha=0.35, markersize=3
-                )[0]
+                value = members[0][colour_by] if colour_by else None
+                name = (
+                    f"{_words_of(colour_by)} = {_value_words(colour_by, value)}"
+                    if colour_by
+                    else "variants"
+                )
+                dots = ax.plot([p[0] for p in pts], [p[1] for p in pts], "o", alpha=0.45,
+                               markersize=3, label=name)[0]  # fmt: skip
                 means = []
                 for x in order:
                     ys = [r[metric] for r in members if r[axis] == x and _finite(r[metric])]
                     if ys:
                         means.append((pos[x], sum(ys) / len(ys)))
-                ax.plot(
-                    [m[0] for m in means],
-                    [m[1] for m in means],
-                    "-",
-                    color=line.get_color(),
-                    label=f"{colour_by} = {label} (mean)" if colour_by else "mean",
-                )
+                mx, my = [m[0] for m in means], [m[1] for m in means]
+                if categorical:
+                    ax.plot(mx, my, "_", color=dots.get_color(), markersize=16, mew=2.0)
+                else:
+                    ax.plot(mx, my, "-", color=dots.get_color())
+            # One neutral legend entry for the means, in the style drawn.
+            mean_style = {"marker": "_", "markersize": 16, "mew": 2.0, "ls": "none"}
+            ax.plot([], [], color="0.2", label="mean per category" if categorical
+                    else "mean per value", **(mean_style if categorical else {}))  # fmt: skip
             for c in campaign.criteria:
                 if c.metric == metric and not isinstance(c.value, bool):
                     ax.axhline(c.value, color="0.3", linestyle="--", linewidth=0.8,
                                label=f"criterion {c.op} {format_value(c.value)}")  # fmt: skip
-            if not numeric:
+            if categorical:
                 ax.set_xticks(range(len(order)), [_axis_label(x) for x in order])
-            unit = metric.rsplit("_", 1)[-1] if "_" in metric else ""
-            ax.set_xlabel(axis)
-            ax.set_ylabel(f"{metric}" + (f" ({unit})" if unit in ("Nm", "dB", "radps") else ""))
-            ax.set_title(f"{campaign.name}: {metric} over {axis}", fontsize=9)
+                ax.set_xlim(-0.5, len(order) - 0.5)
+            elif _is_fraction(axis):
+                ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{100.0 * v:g}"))
+            ax.set_xlabel(axis_words(axis))
+            ax.set_ylabel(metric_words(metric))
+            what = f"{_words_of(metric, METRIC_WORDS)} over {_words_of(axis)}"
+            ax.set_title(f"{campaign.name}: {what}", fontsize=9)
             ax.grid(True, alpha=0.3)
-            ax.legend(fontsize=7)
-            fig.tight_layout()
+            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
             path = plots / f"{metric}-over-{axis.replace('.', '_')}.png"
             fig.savefig(path)
             plt.close(fig)
             files.append(path)
     return files
+
+
+def _value_words(axis: str | None, value: Any) -> str:
+    """An axis value as a legend shows it (a fault rate in per cent)."""
+    if axis is not None and _is_fraction(axis) and _finite(value):
+        return f"{100.0 * value:g} %"
+    return _axis_label(value)
+
+
+def _words_of(key: str | None, words: dict[str, str] | None = None) -> str:
+    """A key in words without its unit (for titles and legends)."""
+    if key is None:
+        return ""
+    words = AXIS_WORDS if words is None else words
+    return words.get(key) or key_label(split_unit(key)[0])
 
 
 def _finite(value: Any) -> bool:

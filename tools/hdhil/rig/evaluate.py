@@ -10,7 +10,10 @@ listing's Butterworth low-pass at several cut-offs and a 2x/4x notch bank. Metri
 against the true torque: RMS error (and its share of raw), the error's amplitude at each
 ripple harmonic (2x, 4x motor angle; 1x output angle: the residual misalignment) by
 demodulation with the true angle, and the lag that best aligns a candidate with the truth
-(where the true torque varies enough to define one).
+and the gain (the share of the true torque's variation it passes at that lag), where the
+true torque varies enough to define them (:class:`_AlignSums`). :func:`evaluation_notes`
+says what the table shows: the best candidate, when a low-pass wins, why the firmware's
+filter is worse than raw where it is.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+import textwrap
 from array import array
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -39,7 +43,7 @@ COLUMNS = (
     "adc_torque", "adc_tacho", "adc_current", "encoder",
     "T_meas_tele", "T_filtered_tele", "velocity_tele",
     "T_true", "T_ripple", "theta_motor", "omega_motor", "theta_output", "missed",
-    "torque_actual", "position_actual",
+    "torque_actual", "position_actual", "joint_torque_mV",
 )  # fmt: skip
 
 
@@ -56,7 +60,7 @@ def missed_cycles(previous_s: float | None, now_s: float, sample_period_s: float
 
 
 #: Butterworth cut-offs (Hz) evaluated as baselines.
-BUTTERWORTH_CUTOFFS_HZ = (10.0, 20.0, 50.0, 100.0)
+BUTTERWORTH_CUTOFFS_HZ = (5.0, 10.0, 20.0, 50.0, 100.0)
 #: Harmonics scored: (label, source, multiple).
 HARMONICS = (("2x motor", "motor", 2.0), ("4x motor", "motor", 4.0), ("1x output", "output", 1.0))
 #: Below this motor speed (rad/s) a sample is not used for harmonic amplitudes.
@@ -71,9 +75,11 @@ class Recording:
     def __init__(self, sample_period_s: float) -> None:
         self.sample_period_s = sample_period_s
         self._cols = {name: array("d") for name in COLUMNS}
-        #: "raw" (the seed's ADC counts and encoder in ``adc_*``/``encoder``) or "cst"
+        #: "raw" (the seed's ADC counts and encoder in ``adc_*``/``encoder``), "cst"
         #: (CiA 402 torque actual and position actual in ``torque_actual`` /
-        #: ``position_actual``, ``encoder`` their low 16 bits, the ADC columns NaN).
+        #: ``position_actual``, ``encoder`` their low 16 bits, the ADC columns NaN) or
+        #: "cst-sensor" (those and the joint-torque sensor 0x2102 in ``joint_torque_mV``,
+        #: NaN in the other mappings).
         self.sensor_mapping = "raw"
         #: The drive's motor rated torque 0x6076 (Nm) as read by the controller at boot
         #: (its SDO answer in the trace); None in the raw mapping or before it is seen.
@@ -162,7 +168,7 @@ class RecordingListener(can.Listener):
         self._sensor = codec("control", "DRIVE_TPDO1").expect(
             "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
         )
-        self._cst: tuple[int, int] | None = None
+        self._cst: tuple[int, ...] | None = None
         if drive_pdos:
             self._use_mapping(drive_pdos)
         self._sdo = codec("control", "SDO_TX_DRIVE").expect(
@@ -203,6 +209,9 @@ class RecordingListener(can.Listener):
             self._sensor = sensor
             self._cst = (names.index("torque_actual_value"), names.index("position_actual_value"))
             self.recording.sensor_mapping = "cst"
+            if "joint_torque_sensor" in names:
+                self._cst += (names.index("joint_torque_sensor"),)
+                self.recording.sensor_mapping = "cst-sensor"
         elif set(names) != {"ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"}:
             raise ValueError(
                 f"the trace's sensor frame maps ({', '.join(names)}): neither the raw nor "
@@ -259,12 +268,16 @@ class RecordingListener(can.Listener):
 
     def _on_sensor(self, data: bytes) -> None:
         nan = math.nan
+        gauge = nan
         if self._cst is None:
             torque, tacho, current, encoder = self._sensor.decode(data)
             actual = position = nan
         else:
             values = self._sensor.decode(data)
-            actual, position = values[self._cst[0]], values[self._cst[1]]
+            picks = self._cst
+            actual, position = values[picks[0]], values[picks[1]]
+            if len(picks) > 2:
+                gauge = values[picks[2]]
             torque = tacho = current = nan
             encoder = int(position) & 0xFFFF
         Ts = self.recording.sample_period_s
@@ -275,7 +288,8 @@ class RecordingListener(can.Listener):
         self._last_sensor_t = self._t
         t = self._truth
         row = (torque, tacho, current, encoder, math.nan, math.nan, math.nan,
-               t[0], t[1], t[2], t[3], t[4], float(self._missed), actual, position)  # fmt: skip
+               t[0], t[1], t[2], t[3], t[4], float(self._missed), actual, position,
+               gauge)  # fmt: skip
         # The truth of one SYNC belongs to one sample: a sample whose truth frames never
         # came (truth faults) has none, rather than the previous sample's.
         self._truth = [math.nan] * 5
@@ -359,7 +373,11 @@ class CandidateScore:
     harmonics: dict[str, float]  # amplitude of the error at each harmonic (Nm)
     reduction_dB: dict[str, float]  # vs raw
     misalignment_pp: float
+    #: Delay (ms) that best aligns the candidate with the true torque, and the share of
+    #: the true torque's variation it passes at that delay (:class:`_AlignSums`); None
+    #: where the true torque varies too little to tell (:data:`MIN_TRUE_STD_NM`).
     lag_ms: float | None
+    gain: float | None
 
 
 def harmonic_amplitude(
@@ -405,11 +423,26 @@ def _lag_ms(costs: np.ndarray, sample_period_s: float) -> float:
     return float((i + shift) * sample_period_s * 1e3)
 
 
+@dataclass(frozen=True)
+class Alignment:
+    """How a candidate follows the true torque: its delay behind it and the share of the
+    true torque's variation it passes at that delay (:class:`_AlignSums`); both None
+    when the true torque varies too little (or the run is too short) to tell."""
+
+    lag_ms: float | None
+    gain: float | None
+
+
+def estimate_alignment(x: np.ndarray, truth: np.ndarray, sample_period_s: float) -> Alignment:
+    """Lag and gain of ``x`` against ``truth`` (:class:`_AlignSums`)."""
+    sums = _AlignSums()
+    sums.add(np.asarray(x, dtype=np.float64), np.asarray(truth, dtype=np.float64))
+    return sums.result(sample_period_s)
+
+
 def estimate_lag(x: np.ndarray, truth: np.ndarray, sample_period_s: float) -> float | None:
     """Delay (ms) of ``x`` behind ``truth``: argmin over d of mean (x(k) − truth(k−d))²."""
-    lag = _LagSums()
-    lag.add(np.asarray(x, dtype=np.float64), np.asarray(truth, dtype=np.float64))
-    return lag.result(sample_period_s)
+    return estimate_alignment(x, truth, sample_period_s).lag_ms
 
 
 class _Sums:
@@ -430,6 +463,12 @@ class _Sums:
     def total(self) -> np.ndarray:
         s = self._s
         return np.where(np.isfinite(s), s + self._c, s)
+
+
+#: Below this standard deviation of the true torque (Nm) no gain or lag is given: the
+#: torque varies too little against the sensor noise and the filters' residuals to
+#: measure how a candidate follows it (free motion: a few mNm).
+MIN_TRUE_STD_NM = 0.1
 
 
 class _LagSums:
@@ -474,9 +513,73 @@ class _LagSums:
             return None
         total = self._sums.total
         mean = total[M + 1] / n
-        if total[M + 2] / n - mean * mean < 1e-2:  # the truth's variance
+        if not total[M + 2] / n - mean * mean >= MIN_TRUE_STD_NM**2:  # the truth's variance
             return None
         return _lag_ms(total[: M + 1] / (n - M), sample_period_s)
+
+
+class _AlignSums:
+    """Lag and gain of a candidate x against the true torque t, over a signal that comes
+    in chunks.
+
+    The **lag** is :class:`_LagSums`'s: the delay d (0 … :data:`MAX_LAG_SAMPLES`
+    samples, refined between samples by a parabola) that minimises the mean of
+    (x(k) − t(k − d))², which is where the cross-correlation of x with t peaks. The
+    **gain** is the least-squares slope of x(k) on t(k − d) at that delay (the nearest
+    whole sample), means removed: cov(x(k), t(k − d)) / var(t(k − d)), the share of the
+    true torque's variation the candidate passes once aligned (1: in full; a filter
+    that absorbs 64 % of a torque change gives 0.36). Kept for the gain are, per d, the
+    sums of t, t² and x·t over k ≥ MAX_LAG_SAMPLES (the last MAX_LAG_SAMPLES truth
+    samples carried from chunk to chunk). A sample without a value (NaN: telemetry or
+    truth lost) counts as 0 in both, so that the chunks add up to the whole."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.lag = _LagSums()
+        self._history = np.zeros(0)  # the last (up to) M truth samples
+        M = MAX_LAG_SAMPLES
+        self._sums = _Sums(3 * (M + 1) + 1)  # per d: Σt(k−d), Σt(k−d)², Σx(k)t(k−d); Σx
+
+    def add(self, x: np.ndarray, truth: np.ndarray) -> None:
+        M = MAX_LAG_SAMPLES
+        size = len(x)
+        if size == 0:
+            return
+        xc = np.nan_to_num(x, nan=0.0)
+        tc = np.nan_to_num(truth, nan=0.0)
+        self.lag.add(xc, tc)
+        contrib = np.zeros(3 * (M + 1) + 1)
+        ext = np.concatenate((self._history, tc))
+        first = max(M, self.n)  # the first k scored in this chunk
+        count = self.n + size - first
+        if count > 0:
+            at = first - self.n + len(self._history)  # ext index of truth(first)
+            seg = ext[at - M : at + count]  # t(k − d) for d = M … 0 and the k scored
+            # Σ t(k − d) and Σ t(k − d)² from running sums, Σ x(k) t(k − d) as one product
+            # with the window whose row i is t(k − (M − i))
+            for j, values in enumerate((seg, np.square(seg))):
+                run = np.concatenate(([0.0], np.cumsum(values)))
+                contrib[j * (M + 1) : (j + 1) * (M + 1)] = (run[count:] - run[: M + 1])[::-1]
+            window = np.lib.stride_tricks.sliding_window_view(seg, count)
+            xk = xc[first - self.n :]
+            contrib[2 * M + 2 : 3 * M + 3] = (window @ xk)[::-1]
+            contrib[3 * M + 3] = xk.sum()
+        self._sums.add(contrib)
+        self._history = ext[-M:].copy()
+        self.n += size
+
+    def result(self, sample_period_s: float) -> Alignment:
+        lag = self.lag.result(sample_period_s)  # None: too short, or too little variation
+        if lag is None:
+            return Alignment(None, None)
+        M = MAX_LAG_SAMPLES
+        d = min(M, round(lag * 1e-3 / sample_period_s))
+        total = self._sums.total / (self.n - M)
+        mean_t, mean_tt, mean_xt = total[d], total[M + 1 + d], total[2 * M + 2 + d]
+        mean_x = total[3 * M + 3]
+        var_t = mean_tt - mean_t * mean_t
+        gain = (mean_xt - mean_x * mean_t) / var_t if var_t > 0 else math.nan
+        return Alignment(lag, float(gain))
 
 
 class ChainReplay:
@@ -526,7 +629,8 @@ def offline_chain(
 
 class _Calibration:
     """T_meas and motor velocity from recorded counts, chunk by chunk, through the
-    firmware's stages (in the CST mapping its :class:`firmware.stages.CstSource`).
+    firmware's stages (in the CST mappings its :class:`firmware.stages.CstSource`, with
+    the torque sensor's calibration when the joint-torque sensor 0x2102 is mapped).
 
     In the raw mapping each channel is calibrated on its own (:func:`firmware.stages.
     calibrate`: T_meas from the torque count, the velocity from the tacho count), so
@@ -537,7 +641,7 @@ class _Calibration:
         self, cfg: FirmwareConfig, sensor_mapping: str, rated_torque_Nm: float | None
     ) -> None:
         self._cst: CstSource | None = None
-        if sensor_mapping == "cst":
+        if sensor_mapping in ("cst", "cst-sensor"):
             if rated_torque_Nm is None:
                 raise ValueError(
                     "the trace holds no answer to the controller's read of the drive's rated "
@@ -546,6 +650,7 @@ class _Calibration:
             self._cst = CstSource(
                 rated_torque_Nm, cfg.calibration.encoder_counts_per_rev, cfg.diff_tau_s,
                 cfg.sample_period_s,
+                cfg.calibration if sensor_mapping == "cst-sensor" else None,
             )  # fmt: skip
         adc, cal = cfg.adc, cfg.calibration
         self._torque = _PerCount(lambda q: calibrate(*adc_read(q, 0, 0, adc), cal)[0])
@@ -558,14 +663,20 @@ class _Calibration:
         n = len(cols["torque_actual"])
         T_meas = np.empty(n)
         vel = np.empty(n)
-        for k, (q, pos) in enumerate(
+        gauge: list[int] | list[None] = (
+            cols["joint_torque_mV"].astype(np.int64).tolist()
+            if source.calibration is not None
+            else [None] * n
+        )
+        for k, (q, pos, mV) in enumerate(
             zip(
                 cols["torque_actual"].astype(np.int64).tolist(),
                 cols["position_actual"].astype(np.int64).tolist(),
+                gauge,
                 strict=True,
             )
         ):
-            T_meas[k], vel[k] = source(CstSample(q, pos))[:2]
+            T_meas[k], vel[k] = source(CstSample(q, pos, mV))[:2]
         return T_meas, vel
 
 
@@ -609,7 +720,13 @@ class _Candidates:
         Ts = cfg.sample_period_s
         paper = paper_config(cfg)
         recommended = recommended_config(cfg)
-        self._firmware = f"firmware ({cfg.ripple.mode})"
+        # With a law the telemetry's torque is the law's estimate τ̂s (the regulator's
+        # observer fed by the ripple filter), not the ripple filter's output.
+        self._firmware = (
+            f"firmware (LQG on {cfg.ripple.mode})"
+            if cfg.control.active
+            else f"firmware ({cfg.ripple.mode})"
+        )
         self._chains = {
             f"kalman paper ({paper.ripple.order}th order)": ChainReplay(paper),
             f"kalman recommended ({len(recommended.ripple.oscillators)} harmonics)": (
@@ -702,13 +819,13 @@ class _Demodulation:
 
 class _CandidateStats:
     """One candidate's running scores: its squared error, the error's harmonics and
-    the sums for its lag."""
+    the sums for its lag and gain."""
 
     def __init__(self) -> None:
         self.ok = 0
         self.squares = _Sums(1)
         self.harmonics = _Demodulation()
-        self.lag = _LagSums()
+        self.alignment = _AlignSums()
 
 
 class StreamingEvaluation:
@@ -733,6 +850,8 @@ class StreamingEvaluation:
         self._samples = 0  # in the window, with truth
         self._without_truth = 0  # in the window, without
         self._true_squares = _Sums(1)
+        self._true_shift: float | None = None  # subtracted before the variance's sums
+        self._true_moments = _Sums(2)  # Σ(t − shift), Σ(t − shift)²
         self._true_ripple = _Demodulation()
         self._angles = {"motor": _Unwrap(), "output": _Unwrap()}
         self._candidates: _Candidates | None = None
@@ -759,7 +878,12 @@ class StreamingEvaluation:
         self._without_truth += size - j0 - in_window
         if signals is None or j0 == size:
             return
-        self._true_squares.add(np.array([(T_true[window] ** 2).sum()]))
+        in_truth = T_true[window]
+        self._true_squares.add(np.array([(in_truth**2).sum()]))
+        if self._true_shift is None and in_truth.size:
+            self._true_shift = float(in_truth.mean())
+        centred = in_truth - (self._true_shift or 0.0)
+        self._true_moments.add(np.array([centred.sum(), (centred**2).sum()]))
         turning = window & (np.abs(cols["omega_motor"]) > MIN_SPEED_RADPS)
         at = np.flatnonzero(turning)
         phasors = [np.exp(-1j * mult * angles[src][at]) for _, src, mult in HARMONICS]
@@ -774,7 +898,7 @@ class StreamingEvaluation:
             stats.squares.add(np.array([(err_ok**2).sum()]))
             m = ok[at]
             stats.harmonics.add(x[at][m] - T_true_at[m], [p[m] for p in phasors])
-            stats.lag.add(np.where(ok, x, 0.0)[j0:], np.where(ok, T_true, 0.0)[j0:])
+            stats.alignment.add(np.where(ok, x, math.nan)[j0:], np.where(ok, T_true, math.nan)[j0:])
 
     def _signals(self, cols: dict[str, np.ndarray]) -> dict[str, np.ndarray] | None:
         if self._error is not None:
@@ -786,6 +910,11 @@ class StreamingEvaluation:
         except ValueError as exc:  # e.g. a CST trace without the rated torque
             self._error = exc
             return None
+
+    def _true_std(self) -> float:
+        """The true torque's standard deviation over the samples scored (Nm)."""
+        s, ss = self._true_moments.total / self._samples
+        return math.sqrt(max(0.0, ss - s * s))
 
     def result(self) -> dict[str, Any]:
         """The scores of every row fed: what :func:`evaluate` returns (JSON-ready)."""
@@ -808,6 +937,7 @@ class StreamingEvaluation:
         for name, stats in self._stats.items():
             rms = math.sqrt(stats.squares.total[0] / stats.ok) if stats.ok else math.nan
             harm = stats.harmonics.amplitudes()
+            alignment = stats.alignment.result(self.cfg.sample_period_s)
             if raw_rms is None:
                 raw_rms, raw_harm = rms, harm
             assert raw_harm is not None
@@ -816,12 +946,13 @@ class StreamingEvaluation:
                 name=name, rms_error=rms, rms_ratio=rms / raw_rms if raw_rms else math.nan,
                 harmonics=harm, reduction_dB=reduction,
                 misalignment_pp=2.0 * harm["1x output"],
-                lag_ms=stats.lag.result(self.cfg.sample_period_s),
+                lag_ms=alignment.lag_ms, gain=alignment.gain,
             ))  # fmt: skip
         return {
             "samples": self._samples,
             "skip_s": skip_s,
             "rms_true": math.sqrt(self._true_squares.total[0] / self._samples),
+            "std_true": self._true_std(),
             "true_ripple": self._true_ripple.amplitudes(),
             "candidates": [dataclasses.asdict(s) for s in scores],
             **missing,
@@ -938,11 +1069,95 @@ def evaluate_listener(
 
 
 def _fmt(v: float | None, spec: str) -> str:
+    """``v`` formatted by ``spec``; "—" for none, "∞" for infinity, right-aligned to the
+    width ``spec`` gives."""
+    width = spec.split(".")[0]
     if v is None or (isinstance(v, float) and math.isnan(v)):
-        return "—"
+        return format("—", f">{width}") if width else "—"
     if isinstance(v, float) and math.isinf(v):
-        return "∞"
+        return format("∞", f">{width}") if width else "∞"
     return format(v, spec)
+
+
+#: Below this true ripple amplitude (Nm) at every harmonic the plant carries no ripple.
+NO_RIPPLE_NM = 1e-3
+
+
+#: Width (characters) the notes under the evaluation table are wrapped to.
+NOTE_WIDTH = 99
+
+
+def _is_low_pass(name: str) -> bool:
+    return name.startswith("butterworth")
+
+
+def evaluation_notes(ev: dict[str, Any]) -> list[str]:
+    """What the table says, in words: the best candidate by RMS error against the true
+    torque, when a low-pass wins, why the firmware's filter is worse than raw where it
+    is, and why gain and lag are missing where they are."""
+    rows = [c for c in ev.get("candidates") or () if not math.isnan(c["rms_error"])]
+    if not rows:
+        return []
+    best = min(rows, key=lambda c: c["rms_error"])
+    firmware = next((c for c in rows if c["name"].startswith("firmware")), None)
+    notes = [f"best by RMS error: {best['name']}, "
+             f"{best['rms_error']:.4f} Nm"]  # fmt: skip
+    if firmware is not None and firmware is not best:
+        same = f"{firmware['rms_error']:.4f}" == f"{best['rms_error']:.4f}"
+        notes[0] += (
+            ", as the firmware's filter"
+            if same
+            else f"; the firmware's filter {firmware['rms_error']:.4f} Nm"
+        )
+    if firmware is not None and firmware["name"].startswith("firmware (LQG"):
+        notes.append(
+            "firmware (LQG on ...): the torque the firmware reports is the regulator's "
+            "estimate τ̂s, its observer fed by the ripple filter's output"
+        )
+    std = ev.get("std_true", math.nan)
+    if _is_low_pass(best["name"]):
+        notes.append(
+            f"a low-pass wins here: the true torque hardly varies (std {std:.4f} Nm), so "
+            "its lag costs nothing and it removes the sensor noise with the ripple; on a "
+            "varying torque it lags (and at low cut-offs loses gain) where the Kalman "
+            "filter passes the torque in full with no lag (scenarios torque-steps, "
+            "sine-load)"
+        )
+    else:
+        notes.append(
+            "a low-pass wins only on a near-constant load (it also removes sensor noise, "
+            "and its lag does not show); on a varying torque the Kalman filter passes it in "
+            "full with no lag"
+        )
+    if firmware is not None and firmware["rms_ratio"] > 1.0:
+        ripple = ev.get("true_ripple") or {}
+        red = firmware["reduction_dB"]
+        worst = max(("2x motor", "4x motor"), key=lambda h: -red.get(h, math.nan)
+                    if not math.isnan(red.get(h, math.nan)) else -math.inf)  # fmt: skip
+        up = -red.get(worst, math.nan)
+        plant = (
+            "the plant carries no ripple here, so all the filter can subtract is true torque"
+            if ripple and max(ripple.values()) < NO_RIPPLE_NM
+            else "it subtracts true torque along with the ripple"
+        )
+        where = (
+            f": its error at {worst} angle is {up:.0f} dB above raw's, the true torque's "
+            "variation at the ripple frequencies taken for ripple"
+            if up > 0
+            else ""
+        )
+        notes.append(
+            f"the firmware's filter makes the torque worse than raw "
+            f"({firmware['rms_ratio']:.1f}x raw's RMS error): {plant}{where}"
+        )
+    if any(c["gain"] is None for c in rows):
+        if not std >= MIN_TRUE_STD_NM:
+            why = (f"the true torque varies too little to measure them (std {std:.4f} Nm, "
+                   f"below {MIN_TRUE_STD_NM:g} Nm)")  # fmt: skip
+        else:
+            why = f"too few samples (fewer than {4 * MAX_LAG_SAMPLES})"
+        notes.append(f"gain, lag —: {why}")
+    return notes
 
 
 def format_evaluation(ev: dict[str, Any]) -> str:
@@ -955,26 +1170,28 @@ def format_evaluation(ev: dict[str, Any]) -> str:
         return f"  evaluation: no samples with ground truth{start} (run longer or use --skip)"
     lines = [
         f"  evaluation vs truth ({ev['samples']} samples after {ev['skip_s']:g} s; "
-        f"RMS true torque {ev['rms_true']:.4f} Nm)",
+        f"RMS true torque {ev['rms_true']:.4f} Nm, std {_fmt(ev.get('std_true'), '.4f')} Nm)",
     ]
     if without:
         lines.append(
             f"    {without} samples without ground truth (truth frames missing) are left out"
         )
     lines += [
-        f"    {'candidate':<34} {'RMS err/Nm':>10} {'% raw':>7} {'2x dB':>7} {'4x dB':>7} "
-        f"{'mis p-p/Nm':>10} {'lag/ms':>7}",
+        f"    {'candidate':<34} {'RMS err/Nm':>10} {'% raw':>7} {'gain':>6} {'lag/ms':>7} "
+        f"{'2x dB':>7} {'4x dB':>7} {'mis p-p/Nm':>10}",
     ]
     for c in ev["candidates"]:
         red = c["reduction_dB"]
         lines.append(
             f"    {c['name']:<34} {_fmt(c['rms_error'], '10.4f')} "
-            f"{_fmt(100 * c['rms_ratio'], '7.1f')} {_fmt(red['2x motor'], '7.1f')} "
-            f"{_fmt(red['4x motor'], '7.1f')} {_fmt(c['misalignment_pp'], '10.3f')} "
-            f"{_fmt(c['lag_ms'], '7.2f')}"
+            f"{_fmt(100 * c['rms_ratio'], '7.1f')} {_fmt(c.get('gain'), '6.3f')} "
+            f"{_fmt(c['lag_ms'], '7.2f')} {_fmt(red['2x motor'], '7.1f')} "
+            f"{_fmt(red['4x motor'], '7.1f')} {_fmt(c['misalignment_pp'], '10.3f')}"
         )
     lines.append(
-        "    (dB: reduction of the error's harmonic amplitude against raw; "
-        "mis p-p: residual at 1x output angle)"
+        "    (gain: slope on the true torque at the lag, 1 = in full; lag: delay aligning best; "
+        "dB: vs raw)"
     )
+    for note in evaluation_notes(ev):
+        lines += textwrap.wrap(note, NOTE_WIDTH, initial_indent="    ", subsequent_indent="      ")
     return "\n".join(lines)

@@ -32,6 +32,7 @@ from hdhil.rig.factories import DriveSlot, RigLayout
 from hdhil.rig.faults import with_fault_flags
 from hdhil.rig.scenario import (
     Scenario,
+    actuation_delay,
     scenario_data,
     scenario_file_data,
     scenario_from_dict,
@@ -209,8 +210,9 @@ def resolve(
     """Resolve a run: the base scenario, then each override (a TOML file or a nested
     dict in the scenario file's layout, in order), the ``--fault`` flags
     (``control.loss_rate=0.05``), the calibration file (``hdhil calibrate --out``), the
-    mapping (``raw``/``cst`` or ``drive_dcf``), then duration, seed, evaluation start,
-    actuation and bit rate (None keeps the scenario's). Raises :class:`ConfigError`."""
+    mapping (a name of :data:`hdhil.dbc.MAPPINGS` or ``drive_dcf``), then duration, seed,
+    evaluation start, actuation and bit rate (None keeps the scenario's). Raises
+    :class:`ConfigError`."""
     from hdhil.firmware.odlimits import check_od_limits
 
     if mapping is not None and drive_dcf is not None:
@@ -244,8 +246,10 @@ def resolve(
         data = merge(scenario_data(resolved), {"firmware": table})
         resolved = scenario_from_dict(data, f"calibration file {calibration}")
     extra: dict[str, Any] = {}
-    if actuation is not None:
+    if actuation is not None:  # the firmware's delay compensation follows the drive's
         extra["link"] = {"actuation": actuation}
+        if actuation in ("next-sync", "immediate"):
+            extra["firmware"] = {"control": {"delay_samples": actuation_delay(actuation)}}
     if bitrate is not None:
         extra["bus"] = {"bitrate": bitrate}
     if extra:

@@ -34,6 +34,7 @@ __all__ = [
     "LinkConfig",
     "Scenario",
     "ScenarioHeader",
+    "actuation_delay",
     "list_scenarios",
     "load_scenario",
     "scenario_data",
@@ -64,6 +65,12 @@ class LinkConfig:
     modes) or as soon as it arrives."""
 
     actuation: Literal["next-sync", "immediate"] = "next-sync"
+
+
+def actuation_delay(actuation: str) -> int:
+    """The samples of delay between a command's sample and its action with this
+    actuation: the firmware's ``control.delay_samples`` must equal it."""
+    return 1 if actuation == "next-sync" else 0
 
 
 @dataclass(frozen=True)
@@ -109,14 +116,26 @@ class Scenario:
         if not isinstance(self.plant, PlantConfig):
             raise ValueError(f"plant must be a PlantConfig, got {self.plant!r}")
         check_step(self.plant, self.firmware.sample_period_s)
+        control = self.firmware.control
+        if control.active and control.delay_samples != actuation_delay(self.link.actuation):
+            raise ValueError(
+                f"firmware.control.delay_samples = {control.delay_samples} does not match "
+                f"link.actuation = {self.link.actuation!r} (delay_samples = "
+                f"{actuation_delay(self.link.actuation)}; --actuation sets both)"
+            )
 
     @property
     def scored(self) -> tuple[Score, ...]:
         """What the evaluation scores: ``scores`` if given, else the tracking of a
-        torque-control law or, without one, the ripple filter."""
-        if self.scores:
-            return self.scores
-        return ("tracking",) if self.firmware.control.law != Law.NONE else ("ripple",)
+        torque-control law or, without one, the ripple filter. The ripple filter is
+        scored only where its output is used (:attr:`hdhil.firmware.config.ControlConfig.
+        ripple_filter_in_loop`): a law regulating on the measured torque leaves it out
+        of the loop, and ``scores`` naming it there score the tracking only."""
+        control = self.firmware.control
+        scored = self.scores or (("tracking",) if control.law != Law.NONE else ("ripple",))
+        if not control.ripple_filter_in_loop:
+            scored = tuple(s for s in scored if s != "ripple") or ("tracking",)
+        return scored
 
 
 @dataclass(frozen=True)

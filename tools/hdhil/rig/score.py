@@ -14,11 +14,15 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import can
 
 from hdhil.can.groups import FrameGroup
 from hdhil.dbc import codec
+
+if TYPE_CHECKING:
+    from hdhil.hostsim.plant import LinkMotionConfig
 
 
 @dataclass(frozen=True)
@@ -182,9 +186,11 @@ class TrackingScore:
       τl + τg − τd Jl/Jm`` (Eq. 4), or ``τlg = τl + τg`` with friction compensation
       (Eq. 5, seed §V);
     - ``max_external_error`` / ``rms_external_error``: the same estimate against the
-      true external torque ``τl + τg`` (``TRUTH_JOINT.tau_ext``; on the vertical joint
-      of the experiment the handle torque, Fig. 8 second and third panels: "roughly
-      ±3 Nm" in the seed);
+      handle torque ``τl^m`` (plus ``τg``), what a sensor in the handle measures:
+      ``TRUTH_JOINT.tau_ext`` less the friction of the output-shaft bearings between
+      the torque sensor and the handle (``[plant.link] bearing_coulomb_Nm``) at the
+      link velocity ``TRUTH_MOTION.omega_output``, ``tau_ext`` itself where there is
+      none (Fig. 8 second and third panels: "roughly ±3 Nm" in the seed);
     - ``max_abs_tau_m``: the envelope of the commanded motor torque (Fig. 8 bottom
       panel: "within ±40 Nm");
     - ``share_within_goal``: the share of samples with ``|e| <= 0.5`` Nm
@@ -225,8 +231,11 @@ class TrackingScorer(can.Listener):
     ``skip_s`` counts, from the first telemetry frame (the first sample in operation).
     The measured torque of the same sample comes from ``CTRL_TPDO1`` (sent before
     ``CTRL_TPDO2``), the estimate's error from ``CTRL_TPDO2.e_hat``.
-    Everything it needs is on the two buses, so a trace alone scores a run
-    (``hdhil evaluate TRACE``).
+    ``handle`` (the scenario's :class:`~hdhil.hostsim.plant.LinkMotionConfig`) gives
+    the handle torque the external-torque estimate is scored against
+    (:meth:`~hdhil.hostsim.plant.LinkMotionConfig.handle_torque`); None: ``tau_ext``.
+    Everything else it needs is on the two buses, so a trace and its scenario score a
+    run (``hdhil evaluate TRACE``).
     """
 
     def __init__(
@@ -235,11 +244,14 @@ class TrackingScorer(can.Listener):
         skip_s: float = 0.0,
         friction_compensated: bool = False,
         sample_period_s: float = 1e-3,
+        handle: LinkMotionConfig | None = None,
     ) -> None:
         self.sample_period_s = sample_period_s
         self.skip_s = skip_s
         self.jl_over_jm = jl_over_jm
         self.friction_compensated = friction_compensated
+        #: the link whose bearing friction separates tau_ext from the handle torque
+        self.handle = handle if handle is not None and handle.bearing_coulomb_Nm else None
         self._tele = codec("control", "CTRL_TPDO2").expect(
             "dtau_s_hat", "tau_lgd_hat", "tau_sD", "e_hat"
         )
@@ -248,12 +260,18 @@ class TrackingScorer(can.Listener):
         self._meas = codec("control", "CTRL_TPDO1").expect(
             "T_meas", "T_filtered", "velocity", "current"
         )
+        self._motion = codec("truth", "TRUTH_MOTION").expect(
+            "theta_motor", "theta_output", "omega_motor", "omega_output"
+        )
         self._keys = {
             (self._meas.frame_id, False): self._on_measured,
             (self._tele.frame_id, False): self._on_tele,
             (self._truth.frame_id, True): self._on_truth,
             (self._joint.frame_id, True): self._on_joint,
         }
+        if self.handle is not None:
+            self._keys[self._motion.frame_id, True] = self._on_motion
+        self._omega_l = 0.0
         self._t0: float | None = None
         self._T_true: float | None = None
         self._tau_lgd: float | None = None
@@ -283,6 +301,9 @@ class TrackingScorer(can.Listener):
         self._tau_m = tau_m_cmd
         self._tau_lgd = tau_ext if self.friction_compensated else tau_ext - tau_d * self.jl_over_jm
 
+    def _on_motion(self, msg: can.Message) -> None:
+        self._omega_l = self._motion.decode(msg.data)[3]
+
     def _on_measured(self, msg: can.Message) -> None:
         self._T_meas = self._meas.decode(msg.data)[0]
 
@@ -306,7 +327,11 @@ class TrackingScorer(can.Listener):
             self._T_meas = None
         self._estimated.add(e_hat)
         d = tau_lgd_hat - self._tau_lgd
-        x = tau_lgd_hat - self._tau_ext
+        handle = self.handle
+        if handle is None:
+            x = tau_lgd_hat - self._tau_ext
+        else:  # TRUTH_MOTION comes before TRUTH_JOINT: the same sample
+            x = tau_lgd_hat - handle.handle_torque(self._tau_ext, self._omega_l)
         self.n += 1
         self._sum_d2 += d * d
         self._sum_x2 += x * x

@@ -18,6 +18,7 @@ import numpy as np
 
 from hdhil.core.errors import UserError
 from hdhil.firmware.config import FirmwareConfig
+from hdhil.hostsim.plant import LinkMotionConfig
 from hdhil.rig.evaluate import evaluate, recording_from_trace
 from hdhil.rig.headline import headline
 from hdhil.rig.sidecar import request_for_trace
@@ -25,15 +26,21 @@ from hdhil.rig.sidecar import request_for_trace
 __all__ = ["score_trace", "tracking_from_trace"]
 
 
-def tracking_from_trace(trace: Path, fw: FirmwareConfig, skip_s: float) -> dict[str, Any] | None:
+def tracking_from_trace(
+    trace: Path, fw: FirmwareConfig, skip_s: float, handle: LinkMotionConfig | None = None
+) -> dict[str, Any] | None:
     """[Vertechy] tracking figures from the trace alone (desired torque and estimates from
     the controller's CTRL_TPDO2, truth from the truth channel), or None without
-    torque-control telemetry."""
+    torque-control telemetry.  ``handle``: the run's link (``[plant.link]``), whose
+    bearing friction separates the handle torque from ``TRUTH_JOINT.tau_ext``
+    (:class:`~hdhil.rig.score.TrackingScorer`)."""
     from hdhil.can.traces.reader import read_trace
     from hdhil.rig.score import TrackingScorer
 
     c = fw.control
-    scorer = TrackingScorer(c.joint.Jl / c.joint.Jm, skip_s, c.friction.active, fw.sample_period_s)
+    scorer = TrackingScorer(
+        c.joint.Jl / c.joint.Jm, skip_s, c.friction.active, fw.sample_period_s, handle
+    )
     with read_trace(trace) as frames:
         for msg in frames:
             scorer.on_message_received(msg)
@@ -63,7 +70,8 @@ def score_trace(
             "nothing to score against (`hdhil filter` runs the filter without truth)"
         )
     out: dict[str, Any] = evaluate(rec, fw, skip_s) if "ripple" in scored else {"skip_s": skip_s}
-    tracking = tracking_from_trace(trace, fw, skip_s) if "tracking" in scored else None
+    handle = request.scenario.plant.link if request is not None else None
+    tracking = tracking_from_trace(trace, fw, skip_s, handle) if "tracking" in scored else None
     if tracking is not None:
         out["tracking"] = tracking
     out["scored"] = list(scored)

@@ -295,6 +295,7 @@ def build_listeners(
             evaluate_skip_s,
             control.friction.active,
             plan.sample_period_s,
+            plan.scenario.plant.link,
         )
         listeners.append(tracking)
     scored = evaluate and "ripple" in plan.scenario.scored
