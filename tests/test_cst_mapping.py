@@ -228,7 +228,7 @@ def test_hdhil_firmware_closes_the_loop_over_cst_against_a_served_drive(serve_dr
 
     sc = load_scenario("free-motion")
     drive, bus_args = serve_drive(lambda bus: DriveNode(bus, Plant(sc.plant, 1), DriveConfig()))
-    code = main(["firmware", *bus_args, "--duration", "0.3", "--mapping", "cst"])
+    code = main(["firmware", *bus_args, "--lockstep", "--duration", "0.3", "--mapping", "cst"])
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert code == 0 and out["phase"] == "stopped", out
     assert out["mapping"] == "cst" and out["operational_cycles"] == 300

@@ -33,7 +33,7 @@ def test_firmware_in_the_cst_mapping_against_hdhil_emulate_over_udp(netns, tmp_p
     emulator = _hdhil(netns, "emulate", *bus, *truth, "--scenario", "free-motion")
     time.sleep(1.5)  # both up and listening before the firmware boots
     firmware = _hdhil(netns, "firmware", *bus, "--scenario", "free-motion", "--duration", "0.6",
-                      "--mapping", "cst")  # fmt: skip
+                      "--mapping", "cst", "--lockstep")  # fmt: skip
     try:
         out, err = firmware.communicate(timeout=120)
         assert firmware.returncode == 0, err
@@ -43,6 +43,8 @@ def test_firmware_in_the_cst_mapping_against_hdhil_emulate_over_udp(netns, tmp_p
             proc.send_signal(signal.SIGTERM)
         outs = [proc.communicate(timeout=60) for proc in (emulator, logger)]
         firmware.kill()
+    for proc, (_out, err) in zip((emulator, logger), outs, strict=True):
+        assert proc.returncode == 0, err  # a clean stop by SIGTERM
     assert fw["mapping"] == "cst" and fw["phase"] == "stopped", fw
     assert fw["operational_cycles"] == 600 and fw["rated_torque_Nm"] > 0
     assert outs[0][0] and json.loads(outs[0][0].strip().splitlines()[-1])["commands"] >= 600

@@ -347,7 +347,9 @@ def test_hdhil_firmware_filters_the_sensor_against_a_served_drive(serve_drive, c
 
     sc = load_scenario("free-motion")
     drive, bus_args = serve_drive(lambda bus: DriveNode(bus, Plant(sc.plant, 1), DriveConfig()))
-    code = main(["firmware", *bus_args, "--duration", "0.3", "--mapping", "cst-sensor"])
+    code = main(
+        ["firmware", *bus_args, "--lockstep", "--duration", "0.3", "--mapping", "cst-sensor"]
+    )
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert code == 0 and out["phase"] == "stopped", out
     assert out["mapping"] == "cst-sensor" and out["operational_cycles"] == 300

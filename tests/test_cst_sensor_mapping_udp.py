@@ -35,7 +35,7 @@ def test_firmware_in_the_cst_sensor_mapping_against_hdhil_emulate_over_udp(netns
     emulator = _hdhil(netns, "emulate", *bus, *truth, "--scenario", "free-motion")
     time.sleep(1.5)  # both up and listening before the firmware boots
     firmware = _hdhil(netns, "firmware", *bus, "--scenario", "free-motion", "--duration", "0.6",
-                      "--mapping", "cst-sensor")  # fmt: skip
+                      "--mapping", "cst-sensor", "--lockstep")  # fmt: skip
     try:
         out, err = firmware.communicate(timeout=120)
         assert firmware.returncode == 0, err

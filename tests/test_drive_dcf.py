@@ -83,12 +83,15 @@ def test_hdhil_firmware_configures_a_served_drive_from_its_dcf(tmp_path, serve_d
 
     dcf = _dcf(tmp_path, {"1801sub5": "40", "605A": "6"})
     drive, bus_args = serve_drive(lambda bus: DriveNode(bus, Plant(PlantConfig()), DriveConfig()))
-    code = main(["firmware", *bus_args, "--duration", "0.2", "--drive-dcf", str(dcf)])
+    code = main(["firmware", *bus_args, "--lockstep", "--duration", "0.2", "--drive-dcf", str(dcf)])
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert code == 0 and out["phase"] == "stopped"
     assert drive.services.read(0x1801, 5) == 40
     assert drive.services.read(0x605A) == 6
     bad = tmp_path / "bad.dcf"
     bad.write_text("not an ini file")
-    assert main(["firmware", *bus_args, "--duration", "0.1", "--drive-dcf", str(bad)]) == 2
+    assert (
+        main(["firmware", *bus_args, "--lockstep", "--duration", "0.1", "--drive-dcf", str(bad)])
+        == 2
+    )
     assert "hdhil: error:" in capsys.readouterr().err

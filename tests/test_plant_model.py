@@ -208,7 +208,9 @@ def test_a_rigid_inertia_served_alone_follows_the_firmware_in_its_own_loop(serve
         return DriveNode(bus, plants[0], DriveConfig())
 
     drive, bus_args = serve_drive(make)
-    code = main(["firmware", *bus_args, "--scenario", "free-motion", "--duration", "0.3"])
+    code = main(
+        ["firmware", *bus_args, "--lockstep", "--scenario", "free-motion", "--duration", "0.3"]
+    )
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert code == 0 and out["operational_cycles"] == 300
     plant = plants[0]
@@ -259,15 +261,14 @@ def test_the_readme_example_runs_and_prints_what_the_readme_says():
 @pytest.mark.slow
 @pytest.mark.realtime
 def test_firmware_realtime_paces_with_the_run_pacer_and_reports_its_statistics(serve_drive, capsys):
-    """``hdhil firmware --realtime`` against a served drive: SYNC paced by the pacer of
-    ``hdhil run --realtime``, its statistics in the summary line, covering the cycles in
-    operation, each cycle no shorter than the period."""
+    """``hdhil firmware`` (real time by default) against a served drive: SYNC paced by the
+    pacer of ``hdhil run --realtime``, its statistics in the summary line, covering the
+    cycles in operation, each cycle no shorter than the period."""
     import time
 
     drive, bus_args = serve_drive(lambda bus: DriveNode(bus, RigidInertia(), DriveConfig()))
     t0 = time.monotonic()
-    code = main(["firmware", *bus_args, "--scenario", "free-motion", "--duration", "0.2",
-                 "--realtime"])  # fmt: skip
+    code = main(["firmware", *bus_args, "--scenario", "free-motion", "--duration", "0.2"])
     wall = time.monotonic() - t0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert code == 0 and out["operational_cycles"] == 200 and out["phase"] == "stopped"

@@ -6,13 +6,17 @@ against what ``hdhil emulate``/``firmware``/``log`` print or write."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 import threading
 import time
+from collections.abc import Callable
 
 import can
 import pytest
 
 from hdhil.can.traces.sidecar import read_metadata
+from hdhil.canopen.cia402 import State
 from hdhil.cli import main
 from hdhil.core.dataconf import ConfigError
 from hdhil.core.faultbase import FaultLog
@@ -61,6 +65,8 @@ def test_drive_and_controller_on_one_bus_run_the_request(capsys):
     assert summary["operational_cycles"] == request.cycles
     assert summary["phase"] == "stopped" and summary["syncs_sent"] >= request.cycles
     assert drive_summary["node"] == "drive" and drive_summary["syncs"] >= request.cycles
+    assert drive_summary["nmt_state"] in ("OPERATIONAL", "PRE-OPERATIONAL", "STOPPED")
+    assert drive_summary["drive_state"] in State.__members__
 
     # `hdhil firmware` against a drive served the same way prints the same summary
     channel = _channel("cmd")
@@ -71,7 +77,7 @@ def test_drive_and_controller_on_one_bus_run_the_request(capsys):
     served.start()
     try:
         code = main(["firmware", "--interface", "virtual", "--channel", channel,
-                     "--duration", "0.05"])  # fmt: skip
+                     "--lockstep", "--duration", "0.05"])  # fmt: skip
     finally:
         stop_drive.set()
         served.join(5)
@@ -81,6 +87,80 @@ def test_drive_and_controller_on_one_bus_run_the_request(capsys):
     assert printed.keys() == summary.keys()
     for key in ("node", "operational_cycles", "phase", "mapping", "faults"):
         assert printed[key] == json.loads(json.dumps(summary[key])), key
+
+
+def test_the_drive_summary_has_plain_state_names():
+    """``hdhil emulate``'s JSON: the CiA 402 state and the NMT state by name, as a script
+    compares them ("FAULT", "PRE-OPERATIONAL"), not as Python reprs or heartbeat codes."""
+    request = resolve("free-motion", duration_s=0.05)
+    bus = can.Bus(interface="virtual", channel=_channel("names"))
+    try:
+        drive = StandaloneDrive(request, bus, None, _no_faults())
+        drive.node.boot(time.monotonic())
+        booted = json.loads(json.dumps(drive.summary()))
+        drive.node.state_machine.fault(0x8100)
+        faulted = json.loads(json.dumps(drive.summary()))
+    finally:
+        bus.shutdown()
+    assert booted["nmt_state"] == "PRE-OPERATIONAL"
+    assert booted["drive_state"] == "SWITCH_ON_DISABLED" and "verdict" not in booted
+    assert faulted["drive_state"] == "FAULT" and faulted["verdict"]["phase"] == "fault"
+    assert faulted["nmt_state"] == "PRE-OPERATIONAL"
+
+
+def test_firmware_paces_in_real_time_unless_lockstep_is_asked_for():
+    """``hdhil firmware``'s pacing options: real time by default (``--realtime`` kept as a
+    no-op), network lockstep only with ``--lockstep``, never both."""
+    from hdhil.cli import build_parser
+
+    parser = build_parser(["firmware"])
+    assert parser.parse_args(["firmware"]).lockstep is False
+    assert parser.parse_args(["firmware", "--realtime"]).lockstep is False
+    assert parser.parse_args(["firmware", "--lockstep"]).lockstep is True
+    assert main(["firmware", "--lockstep", "--realtime"]) == 2
+    help_text = " ".join(parser._subparsers._group_actions[0].choices["firmware"]
+                         .format_help().split())  # fmt: skip
+    assert "NEVER with a motor" in help_text and "no effect" in help_text
+
+
+def _when_stopping_on_signals(action: Callable[[], None]) -> threading.Thread:
+    """Run ``action`` once this process's SIGTERM handler is the command's stop request
+    (:func:`hdhil.core.signals.stop_on_signals`), i.e. once the command is in its loop."""
+
+    def wait() -> None:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            handler = signal.getsignal(signal.SIGTERM)
+            if "stop_on_signals" in getattr(handler, "__qualname__", ""):
+                action()
+                return
+            time.sleep(0.005)
+
+    thread = threading.Thread(target=wait, daemon=True)
+    thread.start()
+    return thread
+
+
+@pytest.mark.slow
+@pytest.mark.realtime
+@pytest.mark.parametrize("command", ["emulate", "log"])
+def test_emulate_and_log_stopped_by_sigterm_exit_0(command, tmp_path, capsys):
+    """A server ended by Ctrl-C or SIGTERM after a clean stop exits 0 with its summary,
+    as python-can's can.logger does (130 stays for interrupted work)."""
+    bus = ["--interface", "virtual", "--channel", _channel(command)]
+    argv = [command, *bus, "--duration", "30"]
+    if command == "log":
+        argv.append(str(tmp_path / "stopped.blf"))
+    sender = _when_stopping_on_signals(lambda: os.kill(os.getpid(), signal.SIGTERM))
+    t0 = time.monotonic()
+    code = main(argv)
+    sender.join(5)
+    assert code == 0 and time.monotonic() - t0 < 20
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    if command == "log":
+        assert printed["frames"] == 0 and (tmp_path / "stopped.blf").is_file()
+    else:
+        assert printed["drive_state"] == "SWITCH_ON_DISABLED" and "verdict" not in printed
 
 
 @pytest.mark.realtime

@@ -66,7 +66,7 @@ def test_a_dcf_value_the_drive_refuses_is_an_input_error(tmp_path, serve_drive, 
     _drive, bus_args = serve_drive(
         lambda bus: DriveNode(bus, Plant(PlantConfig()), DriveConfig())
     )  # fmt: skip
-    code = main(["firmware", *bus_args, "--duration", "0.2", "--drive-dcf", str(dcf)])
+    code = main(["firmware", *bus_args, "--lockstep", "--duration", "0.2", "--drive-dcf", str(dcf)])
     err = capsys.readouterr().err
     assert code == 2
     assert err.startswith("hdhil: error:") and "0x1800:02" in err and "0x06090030" in err

@@ -295,7 +295,7 @@ def test_log_interrupted_keeps_a_valid_trace(tmp_path):
     finally:
         with contextlib.suppress(ProcessLookupError):
             proc.kill()
-    assert proc.returncode == 130, err
+    assert proc.returncode == 0, err  # a clean stop of a server, as can.logger
     assert json.loads(out)["frames"] == 0
     with can.ASCReader(str(trace)) as reader:
         assert list(reader) == []

@@ -26,6 +26,7 @@ __all__ = [
     "NmtState",
     "ResetKind",
     "nmt_frame",
+    "state_name",
 ]
 
 #: NMT node control COB-ID (CiA 301 §7.2.8.3.1).
@@ -65,6 +66,12 @@ COMMAND_NAMES: dict[str, NmtCommand] = {
 }
 
 ResetKind = Literal["node", "communication"]
+
+
+def state_name(state: int) -> str:
+    """The state's name as CiA 301 and canopen spell it ("OPERATIONAL", "PRE-OPERATIONAL",
+    "STOPPED", "INITIALISING"), for summaries a script reads."""
+    return NMT_STATES.get(int(state), str(int(state)))
 
 
 def nmt_frame(cs: int, node_id: int = 0) -> can.Message:

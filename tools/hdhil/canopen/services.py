@@ -411,6 +411,16 @@ class CanopenServices:
             for monitor in consumer.expired(now):
                 self._heartbeat_lost(monitor)
 
+    def produce_heartbeat(self, now: float) -> None:
+        """The heartbeat producer alone (a heartbeat when due, no timeout detection):
+        for a master that stays alive outside its node loop, e.g. while it ends a
+        session by blocking SDO transfers (its heartbeat must not stop before its entry
+        in the drive's consumer 0x1016 is cleared)."""
+        self.now = now
+        if now + TIME_EPSILON >= self.heartbeat.next_due:
+            self.heartbeat.send(now, self.state)
+            self.counters.heartbeats_sent += 1
+
     # --------------------------------------------------------------- NMT slave
 
     def _set_permissions(self, state: NmtState) -> None:

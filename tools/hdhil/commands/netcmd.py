@@ -71,7 +71,29 @@ def _truth_bus(args: argparse.Namespace) -> can.BusABC | None:
     return bus
 
 
+def _refuse_simbus(args: argparse.Namespace, command: str, truth: bool = False) -> None:
+    """A one-line :class:`UserError` when the control bus (or with ``truth`` the truth bus)
+    is ``simbus``: the simulated bus lives inside one process, so a node on it alone would
+    wait for peers that can never join. Checked before anything opens or waits; a bus
+    configuration that does not resolve is left to the command's own error."""
+    for prefix in (None, "truth") if truth else (None,):
+        if prefix is not None and not bus_named(args, prefix):
+            continue
+        try:
+            interface = resolve_bus_config(args, prefix).get("interface")
+        except UserError:
+            continue
+        if interface == "simbus":
+            option = f"--{prefix}-interface" if prefix else "--interface"
+            option = option if bus_named(args, prefix) else "the configured interface"
+            raise UserError(
+                f"{command}: {option} simbus is the simulated bus inside one process: use "
+                "`hdhil run`, or udp_multicast or socketcan between processes"
+            )
+
+
 def run_emulate(args: argparse.Namespace) -> int:
+    _refuse_simbus(args, "emulate", truth=True)
     request = request_from_args(args)
     check_outputs(run_outputs([], args.fault_log), scenario_inputs(args))
     injector = drive_faults(request, args.fault, args.fault_log, truth=bus_named(args, "truth"))
@@ -80,9 +102,8 @@ def run_emulate(args: argparse.Namespace) -> int:
         bus = _control_bus(args)
         truth = _truth_bus(args)
         drive = StandaloneDrive(request, bus, truth, injector)
-        with stop_on_signals() as stop:
+        with stop_on_signals() as stop:  # Ctrl-C or SIGTERM: how a server ends, not an error
             drive.serve(stop.is_set, args.duration)
-        stopped_by_signal = stop.is_set()
         summary = drive.summary()
         print(jsonout.dumps(summary))
     finally:
@@ -90,12 +111,11 @@ def run_emulate(args: argparse.Namespace) -> int:
             if b is not None:
                 b.shutdown()
         injector.log.close()
-    if stopped_by_signal:
-        return 130
-    return _verdict_exit("emulate", summary)
+    return _verdict_exit("emulate", summary)  # 0 also after a stop by Ctrl-C or SIGTERM
 
 
 def run_firmware(args: argparse.Namespace) -> int:
+    _refuse_simbus(args, "firmware")
     request = request_from_args(args)
     check_outputs(run_outputs([], args.fault_log), scenario_inputs(args))
     injector = controller_faults(request, args.fault, args.fault_log)
@@ -105,10 +125,12 @@ def run_firmware(args: argparse.Namespace) -> int:
         ctrl = StandaloneController(request, bus, injector, args.boot_timeout)
         with stop_on_signals() as stop:
             failed = ctrl.boot(stop.is_set)
+            if ctrl.recovery is not None:
+                print(f"hdhil: firmware: {ctrl.recovery}", file=sys.stderr)
             if failed is not None:  # no boot-up (or no SDO answer): a stop, told as a verdict
                 print(jsonout.dumps(failed))
                 return _verdict_exit("firmware", failed)
-            ctrl.run(stop.is_set, realtime=args.realtime)
+            ctrl.run(stop.is_set, realtime=not args.lockstep)
         summary = ctrl.summary(stopped=stop.is_set())
         print(jsonout.dumps(summary))
         if stop.is_set():
@@ -130,6 +152,7 @@ def _verdict_exit(command: str, summary: dict[str, Any]) -> int:
 
 
 def run_log(args: argparse.Namespace) -> int:
+    _refuse_simbus(args, "log", truth=True)
     try:
         check_trace_path(Path(args.trace))  # a bad name or format: before any bus opens
     except ValueError as exc:
@@ -160,7 +183,7 @@ def run_log(args: argparse.Namespace) -> int:
         for bus in (control, truth):
             if bus is not None:
                 bus.shutdown()
-    return 130 if recording.stopped else 0
+    return 0  # also after Ctrl-C or SIGTERM: the trace is complete (as can.logger)
 
 
 def _parse_index(text: str) -> tuple[int, int]:
@@ -180,8 +203,10 @@ def _parse_index(text: str) -> tuple[int, int]:
 def run_sdo(args: argparse.Namespace) -> int:
     import canopen
 
+    from hdhil.canopen.sdo import ABORT_TIMEOUT
     from hdhil.canopen.services import SdoError, sdo_read, sdo_write
 
+    _refuse_simbus(args, "sdo")
     index, sub = _parse_index(args.address)
     node_eds = {n: name.lower() for name, n in dbc_node_ids("control").items()}.get(args.node)
     od = canopen.import_od(str(eds_path(node_eds)), args.node) if node_eds else None
@@ -199,6 +224,11 @@ def run_sdo(args: argparse.Namespace) -> int:
                       timeout=args.timeout)  # fmt: skip
             print("ok")
     except SdoError as exc:
+        if exc.code == ABORT_TIMEOUT:  # the node did not answer: the system, not the input
+            print(f"hdhil: sdo {args.action} 0x{index:04X}:{sub:02X}: node {args.node} did "
+                  f"not answer within {args.timeout:g} s (SDO abort 0x{exc.code:08X}: "
+                  f"{exc.text})", file=sys.stderr)  # fmt: skip
+            return 1
         raise UserError(f"SDO abort 0x{exc.code:08X}: {exc.text}") from None
     except (TypeError, ValueError, KeyError, ArithmeticError, struct.error) as exc:
         raise UserError(f"sdo {args.action} 0x{index:04X}:{sub:02X} on node {args.node}: "
@@ -220,9 +250,16 @@ def _parse_value(text: str) -> int | float:
 
 
 def run_nmt(args: argparse.Namespace) -> int:
+    _refuse_simbus(args, "nmt")
     bus = _control_bus(args)
     try:
-        bus.send(nmt_frame(NMT_COMMAND_NAMES[args.action], args.node))
+        bus.send(nmt_frame(NMT_COMMAND_NAMES[args.action], args.node), timeout=args.timeout)
+    except can.CanError as exc:  # not sent: no node acknowledged it (the system, not the input)
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"hdhil: nmt {args.action} node {args.node}: the command was not sent within "
+              f"{args.timeout:g} s, no node answered on the bus ({text})",
+              file=sys.stderr)  # fmt: skip
+        return 1
     finally:
         bus.shutdown()
     print("ok")
@@ -246,10 +283,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         what="its [firmware], and [faults] control.* on the controller's own frames",
         duration_help="simulated seconds of operation (default: the scenario's)",
     )
-    p.add_argument(
+    pacing = p.add_mutually_exclusive_group()
+    pacing.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="network lockstep: the next SYNC as soon as the drive answered, faster than "
+        "the sample period the filters, differentiator and LQG assume; for tests and "
+        "emulated drives only, NEVER with a motor (default: real time at the sample period)",
+    )
+    pacing.add_argument(
         "--realtime",
         action="store_true",
-        help="pace SYNC at the sample period on the monotonic clock",
+        help="no effect, accepted for older scripts: SYNC is paced at the sample period on "
+        "the monotonic clock by default",
     )
     p.add_argument(
         "--boot-timeout",
@@ -284,4 +330,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_bus_arguments(p)
     p.add_argument("action", choices=tuple(NMT_COMMAND_NAMES))
     p.add_argument("node", type=arg_int(0, 127), help="node-ID (0 = all nodes)")
+    p.add_argument(
+        "--timeout",
+        type=arg_seconds(hi=3600.0),
+        default=1.0,
+        help="seconds for the command to leave (no node acknowledging it on the bus: exit 1)",
+    )
     p.set_defaults(func=run_nmt)

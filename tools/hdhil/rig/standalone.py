@@ -5,8 +5,9 @@ The commands open the buses, stop on signals and print; here each node is built 
 :class:`~hdhil.rig.request.RunRequest`, given the faults that arise in its own process,
 booted and run in the one node loop (:mod:`hdhil.rig.loop`) until ``stop()``, and summed
 up as the JSON summary the command prints (with its verdict when the run stopped early).
-The firmware paces SYNC in network lockstep (SYNC k+1 once the drive's cycle k is
-answered, or after the loop's cycle timeout) or by the pacer of ``hdhil run --realtime``;
+The firmware paces SYNC by the pacer of ``hdhil run --realtime`` (the command's default)
+or, for tests and emulated drives, in network lockstep (SYNC k+1 once the drive's cycle
+k is answered, or after the loop's cycle timeout);
 a drive that never boots or answers is a start-up verdict. The logger taps the buses into
 a trace whose sidecar says what was recorded from where and, for a known run, its request
 (so that ``hdhil evaluate`` scores the trace with its settings).
@@ -25,6 +26,7 @@ import can
 from hdhil.can.faults import FaultLog, FaultyTransmitBus, check_node_transmit_faults
 from hdhil.can.traces.tap import BusTap, FrameCounter
 from hdhil.can.traces.writer import WriterError, WriterProcess
+from hdhil.canopen.nmt import state_name as nmt_state_name
 from hdhil.core.dataconf import ConfigError
 from hdhil.core.errors import UserError
 from hdhil.dbc import CHANNEL_NUMBER
@@ -36,6 +38,7 @@ from hdhil.rig.faults import FaultConfig, FaultInjector, parse_fault_flags
 from hdhil.rig.loop import NodeLoop, controller_expects_answer, serve
 from hdhil.rig.realtime import RealtimeLoop
 from hdhil.rig.request import RunRequest
+from hdhil.rig.session import SessionLog, end_session, start_session
 from hdhil.rig.sidecar import run_metadata
 from hdhil.rig.verdict import dcf_refused, drive_verdict, startup_verdict, stop_verdict
 
@@ -139,12 +142,14 @@ class StandaloneDrive:
             truth_bus=self.truth,
             faults=injector,
         )
+        self.sessions = SessionLog(self.node)
 
     def serve(self, stop: Callable[[], bool], duration_s: float | None = None) -> None:
         """Boot the drive and serve it until ``stop()`` or ``duration_s`` wall seconds
         (none: until a stop)."""
         t_end = time.monotonic() + duration_s if duration_s else float("inf")
-        self.node.boot(time.monotonic())
+        self.sessions.origin = now = time.monotonic()
+        self.node.boot(now)
         serve(self.node, stop, lambda: time.monotonic() >= t_end)
 
     def summary(self) -> dict[str, Any]:
@@ -155,8 +160,11 @@ class StandaloneDrive:
         d = drive.diagnostics
         verdict = drive_verdict(drive)
         summary = {"node": "drive", "syncs": d.syncs, "commands": d.commands,
-                   "nmt_state": str(drive.nmt_state), "drive_state": str(drive.drive_state),
-                   "plant_time_s": drive.plant.time, "faults": self.injector.summary()}  # fmt: skip
+                   "nmt_state": nmt_state_name(drive.nmt_state),
+                   "drive_state": getattr(drive.drive_state, "name", str(drive.drive_state)),
+                   "plant_time_s": drive.plant.time, "faults": self.injector.summary(),
+                   "sessions": len(self.sessions.sessions),
+                   "session_log": self.sessions.summary()}  # fmt: skip
         if verdict is not None:
             summary["verdict"] = verdict
         return summary
@@ -190,6 +198,10 @@ class StandaloneController:
             raise UserError(str(exc)) from None
         self.pacer: RealtimeLoop | None = None
         self.operational_cycles = 0
+        #: The start-up check's line for stderr (a drive found in FAULT was reset), or None.
+        self.recovery: str | None = None
+        #: Whether the session ended clean (the drive's 0x1016 entry cleared).
+        self.ended_clean = False
 
     def boot(self, stop: Callable[[], bool]) -> dict[str, Any] | None:
         """Boot and wait for the drive's boot-up (or the timeout) while producing
@@ -197,6 +209,7 @@ class StandaloneController:
         to change); a drive that never booted or answered (without a stop) gives the JSON
         summary with its start-up verdict, returned; else None."""
         ctrl = self.node
+        self.recovery = start_session(self.bus, ctrl.drive_node_id, CONTROLLER_NODE_ID)
         ctrl.boot(time.monotonic())
         serve(ctrl, stop, lambda: ctrl.phase != "wait-boot" or bool(ctrl.boot_error))
         if dcf_refused(ctrl):
@@ -249,6 +262,9 @@ class StandaloneController:
         finally:
             if pacer is not None:
                 pacer.exit()
+        self.ended_clean = end_session(
+            self.bus, ctrl.drive_node_id, CONTROLLER_NODE_ID, ctrl.services.produce_heartbeat
+        )
         return self.operational_cycles
 
     def summary(self, stopped: bool) -> dict[str, Any]:
@@ -263,7 +279,9 @@ class StandaloneController:
         summary = {"node": "controller", "operational_cycles": done,
                    "syncs_sent": d.syncs_sent, "sensor_frames": d.sensor_frames,
                    "phase": str(ctrl.phase.value), "mapping": ctrl.sensor_mapping,
-                   "faults": self.injector.summary()}  # fmt: skip
+                   "faults": self.injector.summary(), "ended_clean": self.ended_clean}  # fmt: skip
+        if self.recovery is not None:
+            summary["recovery"] = self.recovery
         if ctrl.rated_torque_Nm is not None:
             summary["rated_torque_Nm"] = ctrl.rated_torque_Nm
         if ctrl.phase == "safe":
