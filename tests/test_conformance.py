@@ -4,6 +4,7 @@ defects planted in a deliberately broken slave built with canopen's ``LocalNode`
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
 import time
@@ -26,12 +27,12 @@ from hdhil.rig.loop import serve
 GROUP = "239.74.163.25"
 
 
-@pytest.fixture
-def drive_channel() -> Iterator[str]:
-    """The emulated drive served in real time on a fresh simbus channel, as ``hdhil
-    emulate`` serves it; the channel's name."""
+@contextlib.contextmanager
+def _served(interface: str) -> Iterator[str]:
+    """The emulated drive served in real time on a fresh channel of ``interface``, as
+    ``hdhil emulate`` serves it; the channel's name."""
     channel = f"conformance-{time.monotonic_ns()}"
-    bus = can.Bus(interface="simbus", channel=channel, bitrate=0)
+    bus = can.Bus(interface=interface, channel=channel, bitrate=0)
     node = DriveNode(bus, Plant(PlantConfig()), DriveConfig())
     stop = threading.Event()
 
@@ -41,10 +42,27 @@ def drive_channel() -> Iterator[str]:
 
     thread = threading.Thread(target=run, daemon=True)
     thread.start()
-    yield channel
-    stop.set()
-    thread.join(5)
-    bus.shutdown()
+    try:
+        yield channel
+    finally:
+        stop.set()
+        thread.join(5)
+        bus.shutdown()
+
+
+@pytest.fixture
+def drive_channel() -> Iterator[str]:
+    """The emulated drive on a simbus channel (the suite's own tests, in-process)."""
+    with _served("simbus") as channel:
+        yield channel
+
+
+@pytest.fixture
+def virtual_drive_channel() -> Iterator[str]:
+    """The emulated drive on a python-can ``virtual`` channel: the command refuses
+    simbus, which has no peer outside its process."""
+    with _served("virtual") as channel:
+        yield channel
 
 
 def _suite(channel: str, **options):
@@ -85,9 +103,9 @@ def test_every_case_passes_against_the_emulated_drive_in_process(drive_channel):
 
 @pytest.mark.slow
 @pytest.mark.realtime
-def test_command_writes_junit_and_exits_0(drive_channel, tmp_path, capsys):
+def test_command_writes_junit_and_exits_0(virtual_drive_channel, tmp_path, capsys):
     junit = tmp_path / "conformance.xml"
-    code = main(["conformance", "--interface", "simbus", "--channel", drive_channel,
+    code = main(["conformance", "--interface", "virtual", "--channel", virtual_drive_channel,
                  "--only", "nmt,sdo", "--no-motion", "--junit", str(junit)])  # fmt: skip
     out = capsys.readouterr().out
     assert code == 0, out
@@ -148,6 +166,7 @@ def test_no_node_on_the_bus_fails_every_case_after_one_boot_wait(capsys):
         ["--skip", "nmt,nope"],
         ["--eds", "/nonexistent/drive.eds"],
         ["--master-id", "2"],
+        ["--interface", "simbus"],  # no peer outside this process: refused, not waited on
     ],
 )
 def test_bad_input_exits_2_with_one_line(argv, capsys):

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from hdhil.commands.options import add_bus_options, open_bus
+from hdhil.commands.options import add_bus_options, open_bus, refuse_simbus
 from hdhil.commands.progress import add_quiet_argument, progress
 from hdhil.core.errors import UserError
 from hdhil.core.files import check_input, check_output, write_text
@@ -50,6 +50,7 @@ def run_conformance(args: argparse.Namespace) -> int:
 
     from hdhil.conformance import Options, build_cases, junit_xml, run_suite, text_report
 
+    refuse_simbus(args, "conformance")
     only, skip = _groups(args.only), _groups(args.skip)
     if args.junit is not None:
         check_output(args.junit, "--junit")

@@ -28,6 +28,7 @@ from hdhil.commands.options import (
     bus_named,
     check_outputs,
     open_bus,
+    refuse_simbus,
     request_from_args,
     resolve_bus_config,
     run_outputs,
@@ -71,29 +72,8 @@ def _truth_bus(args: argparse.Namespace) -> can.BusABC | None:
     return bus
 
 
-def _refuse_simbus(args: argparse.Namespace, command: str, truth: bool = False) -> None:
-    """A one-line :class:`UserError` when the control bus (or with ``truth`` the truth bus)
-    is ``simbus``: the simulated bus lives inside one process, so a node on it alone would
-    wait for peers that can never join. Checked before anything opens or waits; a bus
-    configuration that does not resolve is left to the command's own error."""
-    for prefix in (None, "truth") if truth else (None,):
-        if prefix is not None and not bus_named(args, prefix):
-            continue
-        try:
-            interface = resolve_bus_config(args, prefix).get("interface")
-        except UserError:
-            continue
-        if interface == "simbus":
-            option = f"--{prefix}-interface" if prefix else "--interface"
-            option = option if bus_named(args, prefix) else "the configured interface"
-            raise UserError(
-                f"{command}: {option} simbus is the simulated bus inside one process: use "
-                "`hdhil run`, or udp_multicast or socketcan between processes"
-            )
-
-
 def run_emulate(args: argparse.Namespace) -> int:
-    _refuse_simbus(args, "emulate", truth=True)
+    refuse_simbus(args, "emulate", truth=True)
     request = request_from_args(args)
     check_outputs(run_outputs([], args.fault_log), scenario_inputs(args))
     injector = drive_faults(request, args.fault, args.fault_log, truth=bus_named(args, "truth"))
@@ -115,7 +95,7 @@ def run_emulate(args: argparse.Namespace) -> int:
 
 
 def run_firmware(args: argparse.Namespace) -> int:
-    _refuse_simbus(args, "firmware")
+    refuse_simbus(args, "firmware")
     request = request_from_args(args)
     check_outputs(run_outputs([], args.fault_log), scenario_inputs(args))
     injector = controller_faults(request, args.fault, args.fault_log)
@@ -152,7 +132,7 @@ def _verdict_exit(command: str, summary: dict[str, Any]) -> int:
 
 
 def run_log(args: argparse.Namespace) -> int:
-    _refuse_simbus(args, "log", truth=True)
+    refuse_simbus(args, "log", truth=True)
     try:
         check_trace_path(Path(args.trace))  # a bad name or format: before any bus opens
     except ValueError as exc:
@@ -206,7 +186,7 @@ def run_sdo(args: argparse.Namespace) -> int:
     from hdhil.canopen.sdo import ABORT_TIMEOUT
     from hdhil.canopen.services import SdoError, sdo_read, sdo_write
 
-    _refuse_simbus(args, "sdo")
+    refuse_simbus(args, "sdo")
     index, sub = _parse_index(args.address)
     node_eds = {n: name.lower() for name, n in dbc_node_ids("control").items()}.get(args.node)
     od = canopen.import_od(str(eds_path(node_eds)), args.node) if node_eds else None
@@ -250,7 +230,7 @@ def _parse_value(text: str) -> int | float:
 
 
 def run_nmt(args: argparse.Namespace) -> int:
-    _refuse_simbus(args, "nmt")
+    refuse_simbus(args, "nmt")
     bus = _control_bus(args)
     try:
         bus.send(nmt_frame(NMT_COMMAND_NAMES[args.action], args.node), timeout=args.timeout)

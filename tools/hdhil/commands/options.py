@@ -306,3 +306,24 @@ def check_outputs(outputs: Files, inputs: Files) -> None:
     from hdhil.core.files import check_not_inputs
 
     check_not_inputs(outputs, inputs)
+
+
+def refuse_simbus(args: argparse.Namespace, command: str, truth: bool = False) -> None:
+    """A one-line :class:`UserError` when the control bus (or with ``truth`` the truth bus)
+    is ``simbus``: the simulated bus lives inside one process, so a node on it alone would
+    wait for peers that can never join. Checked before anything opens or waits; a bus
+    configuration that does not resolve is left to the command's own error."""
+    for prefix in (None, "truth") if truth else (None,):
+        if prefix is not None and not bus_named(args, prefix):
+            continue
+        try:
+            interface = resolve_bus_config(args, prefix).get("interface")
+        except UserError:
+            continue
+        if interface == "simbus":
+            option = f"--{prefix}-interface" if prefix else "--interface"
+            option = option if bus_named(args, prefix) else "the configured interface"
+            raise UserError(
+                f"{command}: {option} simbus is the simulated bus inside one process: use "
+                "`hdhil run`, or udp_multicast or socketcan between processes"
+            )
