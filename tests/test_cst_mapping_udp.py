@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import signal
 import time
+from pathlib import Path
 
 import can
 import canopen
@@ -25,15 +26,21 @@ GROUP_CONTROL = "239.74.163.5"
 GROUP_TRUTH = "239.74.163.6"
 
 
-def test_firmware_in_the_cst_mapping_against_hdhil_emulate_over_udp(netns, tmp_path):
-    trace = tmp_path / "cst.blf"
-    bus = ["--interface", "udp_multicast", "--channel", GROUP_CONTROL]
-    truth = ["--truth-interface", "udp_multicast", "--truth-channel", GROUP_TRUTH]
+def run_over_udp(
+    netns: str, tmp_path: Path, mapping: str, groups: tuple[str, str]
+) -> tuple[dict, list[can.Message]]:
+    """``hdhil firmware --mapping MAPPING`` (0.6 s, network lockstep) against ``hdhil
+    emulate``, with ``hdhil log`` recording, each a process in ``netns`` on the
+    udp_multicast ``groups`` (control, truth): the firmware's JSON summary and the
+    logged frames.  Emulator and logger must stop cleanly by SIGTERM (exit 0)."""
+    trace = tmp_path / f"{mapping}.blf"
+    bus = ["--interface", "udp_multicast", "--channel", groups[0]]
+    truth = ["--truth-interface", "udp_multicast", "--truth-channel", groups[1]]
     logger = _hdhil(netns, "log", str(trace), *bus, *truth)
     emulator = _hdhil(netns, "emulate", *bus, *truth, "--scenario", "free-motion")
     time.sleep(1.5)  # both up and listening before the firmware boots
     firmware = _hdhil(netns, "firmware", *bus, "--scenario", "free-motion", "--duration", "0.6",
-                      "--mapping", "cst", "--lockstep")  # fmt: skip
+                      "--mapping", mapping, "--lockstep")  # fmt: skip
     try:
         out, err = firmware.communicate(timeout=120)
         assert firmware.returncode == 0, err
@@ -45,12 +52,17 @@ def test_firmware_in_the_cst_mapping_against_hdhil_emulate_over_udp(netns, tmp_p
         firmware.kill()
     for proc, (_out, err) in zip((emulator, logger), outs, strict=True):
         assert proc.returncode == 0, err  # a clean stop by SIGTERM
-    assert fw["mapping"] == "cst" and fw["phase"] == "stopped", fw
-    assert fw["operational_cycles"] == 600 and fw["rated_torque_Nm"] > 0
+    assert fw["mapping"] == mapping and fw["phase"] == "stopped", fw
+    assert fw["operational_cycles"] == 600
     assert outs[0][0] and json.loads(outs[0][0].strip().splitlines()[-1])["commands"] >= 600
-
     with can.LogReader(str(trace)) as reader:
-        frames = [m for m in reader if not m.is_error_frame]
+        return fw, [m for m in reader if not m.is_error_frame]
+
+
+def test_firmware_in_the_cst_mapping_against_hdhil_emulate_over_udp(netns, tmp_path):
+    fw, frames = run_over_udp(netns, tmp_path, "cst", (GROUP_CONTROL, GROUP_TRUTH))
+    assert fw["rated_torque_Nm"] > 0
+
     network = canopen.Network()  # not connected: the logged frames are handed to it
     node = network.add_node(2, str(mapping_dcf("cst")))
     node.rpdo.read(from_od=True)

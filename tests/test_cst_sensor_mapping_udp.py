@@ -7,15 +7,10 @@ moves.  Skipped, with the reason, where a namespace cannot be created."""
 
 from __future__ import annotations
 
-import json
-import signal
-import time
-
-import can
 import canopen
 import numpy as np
 import pytest
-from test_multiprocess import _hdhil
+from test_cst_mapping_udp import run_over_udp
 
 from hdhil.canopen.mapping import mapping_dcf
 from hdhil.dbc import codec
@@ -28,29 +23,7 @@ GROUP_TRUTH = "239.74.163.8"
 
 
 def test_firmware_in_the_cst_sensor_mapping_against_hdhil_emulate_over_udp(netns, tmp_path):
-    trace = tmp_path / "cst-sensor.blf"
-    bus = ["--interface", "udp_multicast", "--channel", GROUP_CONTROL]
-    truth = ["--truth-interface", "udp_multicast", "--truth-channel", GROUP_TRUTH]
-    logger = _hdhil(netns, "log", str(trace), *bus, *truth)
-    emulator = _hdhil(netns, "emulate", *bus, *truth, "--scenario", "free-motion")
-    time.sleep(1.5)  # both up and listening before the firmware boots
-    firmware = _hdhil(netns, "firmware", *bus, "--scenario", "free-motion", "--duration", "0.6",
-                      "--mapping", "cst-sensor", "--lockstep")  # fmt: skip
-    try:
-        out, err = firmware.communicate(timeout=120)
-        assert firmware.returncode == 0, err
-        fw = json.loads(out.strip().splitlines()[-1])
-    finally:
-        for proc in (emulator, logger):
-            proc.send_signal(signal.SIGTERM)
-        for proc in (emulator, logger):
-            proc.communicate(timeout=60)
-        firmware.kill()
-    assert fw["mapping"] == "cst-sensor" and fw["phase"] == "stopped", fw
-    assert fw["operational_cycles"] == 600
-
-    with can.LogReader(str(trace)) as reader:
-        frames = [m for m in reader if not m.is_error_frame]
+    _fw, frames = run_over_udp(netns, tmp_path, "cst-sensor", (GROUP_CONTROL, GROUP_TRUTH))
     network = canopen.Network()  # not connected: the logged frames are handed to it
     node = network.add_node(2, str(mapping_dcf("cst-sensor")))
     node.tpdo.read(from_od=True)

@@ -221,23 +221,17 @@ def torque_steps_evaluation_block() -> str:
 @block("fidelity")
 def fidelity_block() -> str:
     """The README's fidelity table (``tools/docs/fidelity.py``)."""
-    return _docs_script("fidelity").table()
+    return _fidelity().table()
 
 
-def _docs_script(name: str) -> Any:
-    """A script of tools/docs/ (``fidelity``) or of tools/docs/independent/, by file."""
-    import importlib.util
-
-    here = Path(__file__).resolve().parent
-    path = here / f"{name}.py"
-    if not path.exists():
-        path = here / "independent" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(f"hdhil_docs_{name}", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while defined
-    spec.loader.exec_module(module)
-    return module
+def _fidelity() -> Any:
+    """``tools/docs/fidelity.py`` (a script beside this one, not a package)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    try:
+        import fidelity  # type: ignore[import-not-found]
+    finally:
+        sys.path.pop(0)
+    return fidelity
 
 
 def scenario_evaluate_from(name: str) -> float:
@@ -759,8 +753,8 @@ def papers_figures_block() -> str:
     viscous = run_scenario("lqg-experiment", overrides=VISCOUS_READING).result.tracking
     slow = run_scenario("lqg-tracking-slow-link").result.tracking
     squared = run_scenario("lqg-tracking-squared-weights").result.tracking
-    fig7 = _docs_script("vertechy_fig7").figures()
-    fig8 = _docs_script("vertechy_fig8").simulate()
+    fig7 = _fidelity().independent("vertechy_fig7").figures()
+    fig8 = _fidelity().independent("vertechy_fig8").simulate()
     pct1 = lambda x: f"{100 * x:.1f}"  # noqa: E731
 
     def db(c: dict[str, Any]) -> str:
