@@ -261,20 +261,29 @@ def test_the_filtered_error_with_the_sensor_is_within_1_2x_the_raw_mappings(scen
 
 
 @pytest.mark.slow
-def test_an_lqg_scenario_runs_over_the_sensor():
+def test_an_lqg_scenario_runs_over_the_sensor(tmp_path):
     """[Vertechy]'s LQG law (JTF1, LQ feed-forward, Kalman observer) closes its torque loop
-    on the sensor torque through 0x6071 and tracks the desired torque: its RMS error
-    against the true joint torque is finite and within 2x the raw mapping's (the
-    mapping has no tacho and commands in per mille of the rated torque; docs/figures.md
-    gives the whole scenario)."""
-    from hdhil import api
+    on the sensor torque through 0x6071 and tracks the desired torque.  The mapping has
+    no tacho: Eq. 5's compensation on the encoder's differentiated velocity (0.785 rad/s a
+    count) chatters around standstill, most at the start before the person's strokes are
+    under way (docs/figures.md, "CST mapping"); from 2 s on, e on the true torque is
+    within 1.5x the raw mapping's, and over the whole scored run within 2x."""
+    import numpy as np
 
-    def tracking(mapping: str) -> dict:
-        return api.run("lqg-experiment", mapping=mapping, seed=1, duration_s=3.0).tracking
+    import hdhil
 
-    raw, sensor = tracking("raw"), tracking("cst-sensor")
-    assert sensor["law"] == "jtf1" and sensor["samples"] == raw["samples"] > 1000
+    def run(mapping: str) -> tuple[dict, float]:
+        trace = tmp_path / f"{mapping}.blf"
+        result = hdhil.run(hdhil.resolve("lqg-experiment", mapping=mapping, seed=1), trace=trace)
+        c = hdhil.read_trace(trace)
+        e = c["T_true_Nm"] - c["tau_sD_Nm"]
+        later = np.isfinite(e) & (c["time_s"] >= 2.0)
+        return result.tracking, float(np.sqrt(np.mean(e[later] ** 2)))
+
+    (raw, raw_later), (sensor, sensor_later) = run("raw"), run("cst-sensor")
+    assert sensor["law"] == "jtf1" and sensor["samples"] == raw["samples"] > 15000
     assert math.isfinite(sensor["rms_error"]) and sensor["rms_error"] <= 2.0 * raw["rms_error"]
+    assert sensor_later <= 1.5 * raw_later
 
 
 # ------------------------------------------------------------------ the commands
