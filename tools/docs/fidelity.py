@@ -9,8 +9,10 @@ independent computation's and hdhil's, with the command for each.
 
 Run ``python tools/docs/fidelity.py`` to rewrite the table in README.md between
 ``<!-- generated: fidelity -->`` and ``<!-- end generated -->``; ``--check`` exits 1 if
-the README's table differs from what the commands give now.  ``tests/test_fidelity.py``
-checks the independent column in the fast tier and the whole table in the slow tier.
+the README's table differs from what the commands give now.  The table is also the
+block ``fidelity`` of ``tools/docs/figures.py``, which rewrites every generated block;
+``tests/test_fidelity.py`` checks the independent column in the fast tier, and
+``tests/test_figures.py`` the whole table with the other blocks in the slow tier.
 """
 
 from __future__ import annotations
