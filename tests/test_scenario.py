@@ -99,6 +99,35 @@ def one_line_error(*args, match: str) -> str:
     return message
 
 
+def test_a_file_starts_from_its_base_scenario(tmp_path: Path) -> None:
+    """``[scenario] base``: a shipped name, or a .toml path relative to the file; the
+    file's own tables are deep-merged over the base's."""
+    (tmp_path / "sub").mkdir()
+    mine = write(tmp_path, 'scenario = {base = "free-motion", name = "mine"}\n'
+                 "[plant.drivetrain]\nb_motor = 2.5\n", "sub/mine.toml")  # fmt: skip
+    scn, fm = load_scenario(mine), load_scenario("free-motion")
+    assert scn.name == "mine" and scn.plant.drivetrain.b_motor == 2.5
+    assert scn.duration_s == fm.duration_s and scn.firmware == fm.firmware
+    assert scn.plant.drivetrain.coulomb_motor == fm.plant.drivetrain.coulomb_motor
+    child = write(tmp_path, 'scenario = {base = "mine.toml", seed = 7}\n', "sub/child.toml")
+    two = load_scenario(child)  # a base's own base, the path relative to the file
+    assert (two.name, two.seed, two.plant.drivetrain.b_motor) == ("mine", 7, 2.5)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ('scenario = {base = "a.toml", name = "b"}\n', "leads back to a file of its chain"),
+        ("scenario = {base = 3}\n", "scenario.base must be a scenario name or a .toml path"),
+        ('scenario = {base = "nope"}\n', "nope"),
+    ],
+)
+def test_a_bad_base_is_refused_in_one_line(tmp_path: Path, text: str, message: str) -> None:
+    write(tmp_path, 'scenario = {base = "b.toml", name = "a", duration_s = 1}\n', "a.toml")
+    with pytest.raises(ConfigError, match=message):
+        load_scenario(write(tmp_path, text, "b.toml"))
+
+
 def test_unknown_name_lists_the_known_ones() -> None:
     message = one_line_error("free-motoin", match="unknown scenario 'free-motoin'")
     assert "free-motion" in message

@@ -597,7 +597,12 @@ def _shipped(kind: str) -> list[list[str]]:
     rows = []
     folder = resources.files("hdhil.rig").joinpath(kind)
     for path in sorted(Path(str(folder)).glob("*.toml")):
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        if kind == "scenarios":  # merged over its [scenario] base, if it names one
+            from hdhil.rig.scenario import scenario_file_data
+
+            data = scenario_file_data(path)[1]
+        else:
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
         head = data.get("scenario" if kind == "scenarios" else "campaign", {})
         row = [f"`{path.stem}`"]
         if kind == "scenarios":
@@ -612,7 +617,9 @@ def scenario_keys_page() -> str:
         "# Scenario keys",
         "",
         "A scenario is a TOML file: the shipped ones are in `tools/hdhil/rig/scenarios/`, and "
-        "`--scenario FILE` takes your own. `--override FILE.toml` merges tables over it and "
+        "`--scenario FILE` takes your own (`base` in its `[scenario]` table: start from a shipped "
+        "scenario's name or another file's path, relative to it). `--override FILE.toml` "
+        "merges tables over it and "
         "`--fault KEY=VALUE` sets `[faults]` keys; a campaign axis names a key of this page, "
         "dotted (`firmware.ripple.mode`). An unknown key, a value of the wrong type or out "
         "of range is a one-line error naming the key (exit 2).",

@@ -242,13 +242,42 @@ def scenario_path(name_or_path: str) -> Path:
     return shipped_or_path(str(name_or_path), _scenario_dir(), "scenario", list_scenarios())
 
 
-def scenario_file_data(name_or_path: str | Path) -> tuple[Path, dict[str, Any]]:
-    """The scenario file's path and its plain data (not validated yet)."""
+#: How many scenario files a chain of ``[scenario] base`` may hold.
+MAX_BASE_DEPTH = 8
+
+
+def scenario_file_data(
+    name_or_path: str | Path, _chain: tuple[Path, ...] = ()
+) -> tuple[Path, dict[str, Any]]:
+    """The scenario file's path and its plain data (not validated yet).
+
+    A file whose ``[scenario]`` table has ``base`` (a shipped scenario's name, or a
+    ``.toml`` path relative to the file) starts from that scenario's data: its own tables
+    are deep-merged over the base's, as ``--override`` files are over a scenario.
+    """
     path = scenario_path(str(name_or_path))
     try:
-        return path, load_toml(path, "scenario file")
+        data = load_toml(path, "scenario file")
     except UserError as exc:
         raise ConfigError(str(exc)) from None
+    header = data.get("scenario")
+    if not isinstance(header, dict) or "base" not in header:
+        return path, data
+    base = header["base"]
+    if not isinstance(base, str) or not base.strip():
+        raise ConfigError(f"{path}: scenario.base must be a scenario name or a .toml path")
+    chain = (*_chain, path.resolve())
+    if len(chain) > MAX_BASE_DEPTH:
+        raise ConfigError(f"{path}: scenario.base: more than {MAX_BASE_DEPTH} files in a chain")
+    if "/" in base or base.endswith(".toml"):
+        base_ref: str | Path = path.parent / base
+    else:
+        base_ref = base
+    if scenario_path(str(base_ref)).resolve() in chain:
+        raise ConfigError(f"{path}: scenario.base {base!r} leads back to a file of its chain")
+    _, base_data = scenario_file_data(base_ref, chain)
+    own = {**data, "scenario": {k: v for k, v in header.items() if k != "base"}}
+    return path, merge(base_data, own)
 
 
 def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
