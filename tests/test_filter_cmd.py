@@ -245,6 +245,99 @@ def test_a_run_s_trace_is_replayed_from_the_firmware_s_first_interrupt(tmp_path,
     np.testing.assert_allclose(rows[: len(filtered), 5], filtered, rtol=0, atol=lsb / 2 + 1e-9)
 
 
+def _real_time_trace(n: int = 300) -> tuple[list[can.Message], list[tuple[float, float, int]]]:
+    """Frames as a real-time run over udp_multicast logs them (every control frame twice,
+    the logger joined to both groups), with the firmware's cycle as it runs there: at each
+    SYNC it reads the frames that came, runs its interrupt on the first and ignores the
+    others; with none it takes the first to come in the cycle, and a frame coming after its
+    answer waits for the next SYNC.  The drive stalls once (three frames late, in a burst:
+    the firmware answers a cycle behind) and the firmware reads late once (it catches up,
+    one frame ignored).  Returns the frames and, per interrupt, (sensor frame time, the
+    telemetry's T_filtered, periods skipped before it)."""
+    sensor = codec("control", "DRIVE_TPDO1")
+    sync = codec("control", "SYNC")
+    tele = codec("control", "CTRL_TPDO1")
+    command = codec("control", "DRIVE_RPDO1")
+    isr = InterruptHandler(FirmwareConfig())
+    ms = 1e-3
+    arrival = [k * ms + 0.12 * ms for k in range(n)]
+    for i, k in enumerate((100, 101, 102)):  # the drive's process held up
+        arrival[k] = 102.3 * ms + 0.02 * ms * i
+    read_late = {110: 0.5 * ms}  # the firmware's process held up
+    counts = []
+    for k in range(n):
+        theta = 120.0 * k * ms
+        counts.append((
+            round((1.0 + 0.6 * math.sin(2 * theta)) / 6.6 / (10 / 2048)) + k % 3 - 1,
+            round(120.0 / 56.2565 / (10 / 2048)) + k % 2,
+            k % 7,
+            math.floor(theta * 8000 / (2 * math.pi)) % 65536,
+        ))  # fmt: skip
+    events: list[tuple[float, can.Message]] = []
+
+    def add(t: float, frame_id: int, data: bytes) -> None:
+        events.append((t, can.Message(timestamp=t, arbitration_id=frame_id,
+                                      is_extended_id=False, data=data, channel=0)))  # fmt: skip
+
+    interrupts: list[tuple[float, float, int]] = []
+    next_frame = 0  # the first frame the firmware has not read
+    missed = 0
+    for k in range(n):
+        add(k * ms, sync.frame_id, sync.encode(k % 240 + 1))
+        add(arrival[k], sensor.frame_id, sensor.encode(*counts[k]))
+        read = k * ms + read_late.get(k, 0.05 * ms)
+        came = [j for j in range(next_frame, n) if arrival[j] < read]
+        if came:
+            taken, at = came[0], read
+            next_frame = came[-1] + 1  # the others read in this cycle: ignored
+        elif next_frame < n and arrival[next_frame] < (k + 1) * ms:
+            taken, at = next_frame, arrival[next_frame]
+            next_frame += 1
+        else:
+            missed += 1
+            continue
+        for _ in range(missed):
+            isr.sample_missed()
+        o = isr(AdcSample(*counts[taken]))
+        add(at + 0.08 * ms, command.frame_id, command.encode(o.dac_counts, 15, k % 256))
+        data = tele.encode(o.T_meas, o.T_filtered, o.velocity, o.current)
+        add(at + 0.1 * ms, tele.frame_id, data)
+        interrupts.append((arrival[taken], tele.decode(data)[1], missed))
+        missed = 0
+    frames = []
+    for _, msg in sorted(events, key=lambda e: e[0]):
+        frames.append(msg)
+        twin = msg.__copy__()
+        twin.channel = 1
+        frames.append(twin)
+    return frames, interrupts
+
+
+def test_a_real_time_trace_is_replayed_as_the_firmware_ran(tmp_path, capsys) -> None:
+    """In real time the firmware's cycles are not the frames' timestamps: a late frame is
+    answered a cycle later, a burst loses all but one frame.  The replay takes the samples
+    the firmware took (its telemetry names them) and the periods it skipped, so every
+    filtered sample equals the telemetry's T_filtered (within half its resolution)."""
+    frames, interrupts = _real_time_trace()
+    assert sum(m for _, _, m in interrupts) == 2  # the stall: two periods without a sample
+    trace = tmp_path / "rt.blf"
+    writer = open_writer(trace)
+    for msg in frames:
+        writer.on_message_received(msg)
+    writer.stop()
+    out = tmp_path / "o.csv"
+    assert main(["filter", str(trace), "--out", str(out)]) == 0
+    capsys.readouterr()
+    _, rows = _read_output(out)
+    # 300 periods, two skipped; 300 frames, two ignored (one after the stall, one late read)
+    assert len(rows) == len(interrupts) == 300 - 2
+    np.testing.assert_allclose(rows[:, 0], [t for t, _, _ in interrupts], atol=2e-6)
+    lsb = codec("control", "CTRL_TPDO1").message.get_signal_by_name("T_filtered").scale
+    np.testing.assert_allclose(
+        rows[:, 5], [f for _, f, _ in interrupts], rtol=0, atol=lsb / 2 + 1e-9
+    )
+
+
 def test_trace_without_sensor_frames_is_an_error(tmp_path, capsys) -> None:
     trace = tmp_path / "truth_only.asc"
     writer = open_writer(trace)

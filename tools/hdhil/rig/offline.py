@@ -346,49 +346,202 @@ def _first_interrupt_time(path: Path) -> float | None:
     return None
 
 
-def _from_first_interrupt(
-    frames: Iterator[tuple[float, tuple[int, ...]]], first: float, summary: FilterSummary
-) -> Iterator[tuple[float, tuple[int, ...]]]:
-    """``frames`` from the last one before ``first`` on (the others counted as left out)."""
-    held = None
-    for item in frames:
-        if item[0] < first:
-            if held is not None:
-                summary.before_first_interrupt += 1
-            held = item
+def _control_frames(
+    path: Path, summary: FilterSummary
+) -> Iterator[tuple[str, float, bytes | tuple[int, ...]]]:
+    """The control-bus frames the replay needs, in the trace's order: ``("sensor", t,
+    (torque, tacho, current, encoder))`` for DRIVE_TPDO1, ``("sync", t, data)`` and
+    ``("telemetry", t, data)`` for the controller's SYNC and CTRL_TPDO1.
+
+    Only the sensor frames' channel is read: a logger joined to two buses that both carry
+    the control frames (two multicast groups on one port) records each frame twice."""
+    from hdhil.can.traces.reader import read_trace
+    from hdhil.dbc import codec
+
+    sensor = codec("control", "DRIVE_TPDO1").expect(
+        "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
+    )
+    sensor_id = sensor.frame_id
+    length = sensor.length
+    decode = sensor.decode
+    sync_id = codec("control", "SYNC").frame_id
+    telemetry_id = codec("control", "CTRL_TPDO1").frame_id
+    channel: object = _UNSET
+    trace = read_trace(path)
+    with trace:
+        t0 = trace.first_time or 0.0
+        for msg in trace:
+            fid = msg.arbitration_id
+            if msg.is_extended_id or fid not in (sensor_id, sync_id, telemetry_id):
+                continue
+            if fid == sensor_id:
+                if msg.is_remote_frame or msg.is_error_frame or len(msg.data) != length:
+                    summary.malformed_frames += 1
+                    continue
+                if channel is _UNSET:
+                    channel = msg.channel
+                elif msg.channel != channel:
+                    continue
+                yield "sensor", msg.timestamp - t0, decode(msg.data)  # type: ignore[misc]
+            elif msg.is_remote_frame or msg.is_error_frame:
+                continue
+            elif channel is _UNSET or msg.channel == channel:
+                kind = "sync" if fid == sync_id else "telemetry"
+                yield kind, msg.timestamp - t0, bytes(msg.data)
+    summary.damage = [d.describe(trace.path) for d in trace.damage]
+
+
+_UNSET = object()
+
+
+def _by_timestamp(
+    frames: Iterator[tuple[float, tuple[int, ...]]], sample_period_s: float
+) -> Iterator[tuple[int, float, tuple[int, ...]]]:
+    """``(missed, t, counts)`` of a trace without hdhil's telemetry: a sample per period
+    from the frames' timestamps (a second frame in one period left out, as the firmware
+    leaves it), the periods without a frame counted as missed."""
+    previous: float | None = None
+    for t, counts in frames:
+        if previous is not None and round((t - previous) / sample_period_s) <= 0:
             continue
-        if held is not None:
-            yield held
-            held = None
-        yield item
-    if held is not None:
-        yield held
+        missed = missed_cycles(previous, t, sample_period_s)
+        previous = t
+        yield missed, t, counts
+
+
+class _FirmwareView:
+    """Which sensor frames the firmware ran its interrupt on, and the periods it skipped,
+    from the order of the control-bus frames (the frames of :func:`_control_frames`).
+
+    The firmware runs its interrupt once per SYNC, on the first sensor frame it reads
+    after that SYNC, and answers it with its telemetry (``CTRL_TPDO1``); a frame it reads
+    later in the same cycle is ignored, and a frame that reaches it after its answer waits
+    for the next SYNC.  In lockstep the trace's order is the firmware's; in real time a
+    late frame (the drive's process held up) is answered a cycle later and a burst of
+    frames loses all but one, which the frames' timestamps do not tell.  The telemetry
+    does: it carries the sample's ``T_meas``, velocity and current, which name the sensor
+    frame among those not yet answered.  The periods the firmware skipped are the SYNCs
+    between two telemetry frames, less one.  A sensor frame alone in a period without
+    telemetry (its telemetry lost, or the drive's stop) counts as a sample, as does one
+    whose telemetry names none of the frames waiting (another firmware, another
+    calibration): the last one waiting, as a lockstep trace has it.
+
+    Yields ``(missed, t, counts)``: the periods skipped before the sample, its frame's
+    time and counts."""
+
+    def __init__(self, cfg: FirmwareConfig, summary: FilterSummary) -> None:
+        from hdhil.dbc import codec
+        from hdhil.firmware.stages.sources import AdcSource
+
+        self._source = AdcSource(cfg.adc, cfg.calibration)
+        self._telemetry = codec("control", "CTRL_TPDO1")
+        self._summary = summary
+        self._period_s = cfg.sample_period_s
+
+    def _key(self, counts: tuple[int, ...]) -> bytes:
+        T_meas, velocity, current, *_ = self._source(AdcSample(*counts))
+        data = self._telemetry.encode(T_meas, 0.0, velocity, current)
+        return data[:2] + data[4:]
+
+    def samples(
+        self, frames: Iterator[tuple[str, float, Any]]
+    ) -> Iterator[tuple[int, float, tuple[int, ...]]]:
+        summary = self._summary
+        # Sensor frames not yet answered: (period index, first in its period, t, counts).
+        waiting: list[tuple[int, bool, float, tuple[int, ...]]] = []
+        period = 0  # SYNCs seen
+        last_sync: bytes | None = None
+        last_sync_t = 0.0
+        sensor_in_period = False
+        answered: int | None = None  # the period of the last sample (None: none yet)
+        for kind, t, value in frames:
+            if kind == "sync":
+                if value and value == last_sync:
+                    continue  # a duplicated SYNC (its counter repeats)
+                period += self._periods(last_sync, last_sync_t, value, t)
+                last_sync, last_sync_t = value, t
+                sensor_in_period = False
+            elif kind == "sensor":
+                waiting.append((period, not sensor_in_period, t, value))
+                sensor_in_period = True
+            elif waiting:  # telemetry answering one of the waiting frames
+                want = value[:2] + value[4:]
+                # Before the first interrupt every frame was answered in its period (the
+                # drive's start-up, the start-up pause): its frame came in this period or
+                # late in the previous one.
+                start = 0
+                if answered is None:
+                    start = next(
+                        (i for i, w in enumerate(waiting) if w[0] >= period - 1),
+                        len(waiting) - 1,
+                    )
+                matches = [
+                    i for i in range(start, len(waiting)) if self._key(waiting[i][3]) == want
+                ]
+                # Equal counts (the encoder aside) in several frames: the first frame of
+                # this period, as in lockstep, else the oldest.
+                index = next(
+                    (i for i in matches if waiting[i][0] == period and waiting[i][1]),
+                    matches[0] if matches else len(waiting) - 1,
+                )
+                if answered is None:
+                    summary.before_first_interrupt += index
+                else:
+                    for sample in self._unanswered(waiting[:index], answered, period):
+                        answered += sample[0] + 1
+                        yield sample
+                missed = 0 if answered is None else max(0, period - answered - 1)
+                _, _, ts, counts = waiting[index]
+                answered = period
+                del waiting[: index + 1]
+                yield missed, ts, counts
+        if answered is not None:
+            yield from self._unanswered(waiting, answered, period + 1)
+
+    def _periods(self, last: bytes | None, last_t: float, sync: bytes, t: float) -> int:
+        """Periods from the SYNC ``last`` (at ``last_t``) to ``sync`` (at ``t``): by the
+        CiA 301 counter, or where it wrapped or is not sent, by the time (a SYNC lost on
+        the bus is a period all the same)."""
+        if last is None:
+            return 1
+        if sync and last and sync[0] > last[0]:
+            return sync[0] - last[0]
+        return max(1, round((t - last_t) / self._period_s))
+
+    def _unanswered(
+        self, waiting: list[tuple[int, bool, float, tuple[int, ...]]], after: int, before: int
+    ) -> Iterator[tuple[int, float, tuple[int, ...]]]:
+        """The frames of ``waiting`` the firmware ran its interrupt on without telemetry:
+        the first frame of each period between ``after`` and ``before`` (exclusive) that
+        has no telemetry; the others were ignored."""
+        last = after
+        for p, first, ts, counts in waiting:
+            if first and last < p < before:
+                yield p - last - 1, ts, counts
+                last = p
 
 
 def filter_trace(path: Path, cfg: FirmwareConfig, writer: Any) -> FilterSummary:
     """Filter the DRIVE_TPDO1 frames of a trace through the firmware's interrupt
     handler (ADC read, calibration, :class:`TorqueFilterChain`), writing output rows.
 
-    A trace of hdhil's firmware (its telemetry tells when its first interrupt ran) is
-    replayed from that interrupt's sensor frame, as the firmware filtered it; any other
-    trace from its first sensor frame."""
+    The samples are those the firmware ran its interrupt on, in its cycles
+    (:class:`_FirmwareView`): a trace of hdhil's firmware (its telemetry tells) is
+    replayed from its first interrupt's sensor frame, with the frames it ignored left out
+    and the periods it skipped told to the handler; any other trace from its first sensor
+    frame, one frame per period."""
     isr = InterruptHandler(cfg)
     summary = FilterSummary(cfg, cfg.ripple.phase_source, "DRIVE_TPDO1 frames")
     writerow = writer.writerow
     n = 0
-    Ts = cfg.sample_period_s
-    previous: float | None = None
-    frames = _sensor_frames(path, summary)
-    first = _first_interrupt_time(path)
-    if first is not None:
-        frames = _from_first_interrupt(frames, first, summary)
-    for t, (torque, tacho, current, encoder) in frames:
-        # Periods without a sensor frame: the firmware's interrupt was told of each.
-        if previous is not None and round((t - previous) / Ts) <= 0:
-            continue  # a second sensor frame in one period: the firmware ignores it too
-        for _ in range(missed_cycles(previous, t, Ts)):
+    samples = (
+        _FirmwareView(cfg, summary).samples(_control_frames(path, summary))
+        if _first_interrupt_time(path) is not None
+        else _by_timestamp(_sensor_frames(path, summary), cfg.sample_period_s)
+    )
+    for missed, t, (torque, tacho, current, encoder) in samples:
+        for _ in range(missed):
             isr.sample_missed()
-        previous = t
         out = isr(AdcSample(torque, tacho, current, encoder))
         writerow((t, out.T_meas, out.acceleration, out.T_expected, out.ripple, out.T_filtered))
         n += 1
