@@ -90,3 +90,74 @@ def test_per_minute_blocks_count_from_the_first_frame_whatever_the_clock():
             )
         )
     assert scorer.block_rms == pytest.approx([0.1, 0.2], abs=0.003)
+
+
+@pytest.mark.slow
+def test_a_logged_trace_pairs_each_sample_with_the_truth_sent_after_it(tmp_path) -> None:
+    """`hdhil log` in another process receives each sample's truth frames after its sensor
+    frame (the drive sends the sensor frame first); `hdhil run`'s tap stamps them at the
+    sample instant, before it.  The same run, its truth frames moved behind the sensor
+    frame they belong to, is recorded with the same truth per sample when its sidecar says
+    `hdhil log` recorded it (and one sample off when it does not say so)."""
+    import json
+
+    import can
+    import numpy as np
+
+    from hdhil.cli import main
+    from hdhil.rig.evaluate import recording_from_trace
+
+    lockstep = tmp_path / "lockstep.blf"
+    assert main(["run", "--duration", "0.3", "--trace", str(lockstep), "--quiet"]) == 0
+    with can.LogReader(str(lockstep)) as reader:
+        frames = list(reader)
+    moved, held = [], []
+    for msg in frames:  # each truth frame goes right behind the next sensor frame
+        if msg.is_extended_id and msg.arbitration_id >> 16 == 0x1F:
+            held.append(msg)
+            continue
+        moved.append(msg)
+        if msg.arbitration_id == 0x182 and not msg.is_extended_id and held:
+            for i, t in enumerate(held):
+                t.timestamp = msg.timestamp + 20e-6 * (i + 1)
+            moved += held
+            held = []
+    meta = json.loads(lockstep.with_name(lockstep.name + ".json").read_text())
+
+    def recorded(name: str, by: str | None) -> np.ndarray:
+        path = tmp_path / name
+        with can.BLFWriter(str(path)) as writer:
+            for msg in moved:
+                writer.on_message_received(msg)
+        side = {**meta, "recorded_by": by} if by else {k: v for k, v in meta.items()
+                                                       if k != "recorded_by"}  # fmt: skip
+        path.with_name(path.name + ".json").write_text(json.dumps(side))
+        rec, _ = recording_from_trace(path)
+        return np.asarray(rec.column("T_true")) + np.asarray(rec.column("T_ripple"))
+
+    rec, _ = recording_from_trace(lockstep)
+    truth = np.asarray(rec.column("T_true")) + np.asarray(rec.column("T_ripple"))
+    logged = recorded("logged.blf", "hdhil log")
+    assert logged.shape == truth.shape and np.array_equal(logged, truth, equal_nan=True)
+    unlabelled = recorded("unlabelled.blf", None)
+    assert not np.array_equal(unlabelled, truth, equal_nan=True)
+    assert np.array_equal(unlabelled[1:], truth[:-1], equal_nan=True)  # one sample late
+
+
+def test_the_angle_unwraps_past_a_sample_without_truth() -> None:
+    """A sample whose truth frames never came has no angle: it stays NaN, and the angle
+    unwraps on past it (a NaN carried into the running sum left every later phase NaN,
+    and with it the harmonic figures of the whole run)."""
+    import numpy as np
+
+    from hdhil.rig.evaluate import _Unwrap
+
+    angle = np.mod(np.linspace(0.0, 40.0, 400), 2 * np.pi)
+    holed = angle.copy()
+    holed[[3, 150, 151]] = np.nan
+    unwrap = _Unwrap()
+    got = np.concatenate([unwrap(holed[:200]), unwrap(holed[200:])])  # in two chunks
+    expected = np.full(400, np.nan)
+    finite = np.isfinite(holed)
+    expected[finite] = np.unwrap(holed[finite])
+    assert np.allclose(got, expected, equal_nan=True, rtol=0, atol=1e-12)

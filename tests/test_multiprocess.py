@@ -91,7 +91,9 @@ def test_emulator_firmware_and_logger_as_three_processes(netns, tmp_path):
     tele = codec("control", "CTRL_TPDO1")
     velocities = [tele.decode(m.data)[2] for m in frames
                   if m.arbitration_id == tele.frame_id and not m.is_extended_id]  # fmt: skip
-    assert len(velocities) >= 600
+    # the firmware's 600 telemetry frames, each once (on the control bus only): a loaded
+    # machine may drop a few udp_multicast frames before the logger reads them
+    assert 590 <= len(velocities) <= 600
     assert velocities[-1] > 100.0  # the motor ran up under the firmware's reference
     assert any(m.is_extended_id for m in frames)  # truth was logged on its own bus
 

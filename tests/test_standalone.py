@@ -243,3 +243,34 @@ def test_a_process_refuses_faults_that_do_not_act_in_it(tmp_path):
     injector = drive_faults(request, ["seed=3"], tmp_path / "faults.jsonl", truth=True)
     injector.log.close()
     assert (tmp_path / "faults.jsonl").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.realtime
+def test_log_records_each_bus_its_own_frames(tmp_path):
+    """python-can's udp_multicast hands every group joined on the host's port to each
+    socket, so the control bus also receives the truth frames and the truth bus the
+    control frames; `hdhil log` (`record`) keeps each bus's own frames only."""
+    from hdhil.dbc import codec
+    from hdhil.rig.standalone import record
+
+    stamp = time.monotonic_ns()
+    control = can.Bus(interface="virtual", channel=f"c{stamp}")
+    truth = can.Bus(interface="virtual", channel=f"t{stamp}")
+    to_control = can.Bus(interface="virtual", channel=f"c{stamp}")
+    to_truth = can.Bus(interface="virtual", channel=f"t{stamp}")
+    sync = can.Message(arbitration_id=0x080, data=b"\x01", is_extended_id=False)
+    torque = codec("truth", "TRUTH_TORQUE")
+    true = can.Message(arbitration_id=torque.frame_id, data=bytes(8), is_extended_id=True)
+    for bus in (to_control, to_truth):  # each frame on both buses, as udp_multicast does
+        bus.send(sync)
+        bus.send(true)
+    trace = tmp_path / "own.blf"
+    try:
+        record(trace, control, truth, {}, lambda: False, duration_s=0.3)
+    finally:
+        for bus in (control, truth, to_control, to_truth):
+            bus.shutdown()
+    with can.LogReader(str(trace)) as reader:
+        got = sorted((m.channel, m.arbitration_id) for m in reader)
+    assert got == [(0, 0x080), (1, torque.frame_id)]

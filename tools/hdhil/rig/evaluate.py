@@ -39,6 +39,9 @@ from hdhil.firmware.isr import TorqueFilterChain
 from hdhil.firmware.stages import CstSource, adc_read, calibrate
 
 #: Recording columns, in order.
+#: The truth columns, in the order of :attr:`RecordingListener._truth`.
+_TRUTH_COLUMNS = ("T_true", "T_ripple", "theta_motor", "omega_motor", "theta_output")
+
 COLUMNS = (
     "adc_torque", "adc_tacho", "adc_current", "encoder",
     "T_meas_tele", "T_filtered_tele", "velocity_tele",
@@ -155,6 +158,7 @@ class RecordingListener(can.Listener):
         firmware: FirmwareConfig | None = None,
         skip_s: float = 0.0,
         keep: bool = True,
+        truth_after_sensor: bool = False,
     ) -> None:
         #: The rows recorded (all of them with ``keep``; without, those not yet scored).
         self.recording = Recording(sample_period_s)
@@ -182,6 +186,12 @@ class RecordingListener(can.Listener):
             "theta_motor", "theta_output", "omega_motor", "omega_output"
         )
         self._truth = [math.nan] * 5  # T_true, T_ripple, theta_m, omega_m, theta_out
+        #: Where a sample's truth frames stand: before its sensor frame (the lockstep tap
+        #: stamps them at the sample instant) or after it (a logger in another process
+        #: receives them as the drive sends them, the sensor frame first).
+        self._truth_after = truth_after_sensor
+        self._truth_t = -math.inf  # when the truth kept for the next sensor frame came
+        self._row_has = {0: False, 2: False}  # the last row's truth groups, by position
         self._status = codec("control", "DRIVE_TPDO2").expect("statusword")
         self._enabled: bool | None = None  # unknown until a statusword is seen
         self._t = 0.0  # timestamp of the frame being handled
@@ -287,16 +297,22 @@ class RecordingListener(can.Listener):
         self._missed += missed_cycles(last, self._t, Ts)
         self._last_sensor_t = self._t
         t = self._truth
+        if self._truth_after:
+            if self._t - self._truth_t >= 0.5 * Ts:
+                t = [math.nan] * 5  # kept from an earlier SYNC whose sensor frame was lost
+            # which truth groups (torque from 0, motion from 2) the new row has
+            self._row_has = {0: not math.isnan(t[0]), 2: not math.isnan(t[2])}
         row = (torque, tacho, current, encoder, math.nan, math.nan, math.nan,
                t[0], t[1], t[2], t[3], t[4], float(self._missed), actual, position,
                gauge)  # fmt: skip
         # The truth of one SYNC belongs to one sample: a sample whose truth frames never
-        # came (truth faults) has none, rather than the previous sample's.
+        # came (truth faults) has none, rather than the previous or the next sample's.
         self._truth = [math.nan] * 5
         if self._enabled is False:
             self._pending = row  # recorded if the firmware's telemetry answers it
             return
         self._append(row)
+        self._pending = None  # an older row waiting for telemetry is not the firmware's
         self._missed = 0
 
     def _append(self, row: tuple[float, ...]) -> None:
@@ -319,11 +335,33 @@ class RecordingListener(can.Listener):
         rec.set_last("velocity_tele", velocity)
 
     def _on_truth_torque(self, data: bytes) -> None:
-        self._truth[0], self._truth[1] = self._truth_torque.decode(data)
+        T_true, T_ripple = self._truth_torque.decode(data)
+        self._take_truth(0, (T_true, T_ripple))
 
     def _on_truth_motion(self, data: bytes) -> None:
         theta_m, theta_o, omega_m, _omega_o = self._truth_motion.decode(data)
-        self._truth[2], self._truth[3], self._truth[4] = theta_m, omega_m, theta_o
+        self._take_truth(2, (theta_m, omega_m, theta_o))
+
+    def _take_truth(self, first: int, values: tuple[float, ...]) -> None:
+        """Truth values from position ``first`` of :attr:`_truth`: for the next sensor
+        frame, or with ``truth_after_sensor`` for the last one while its row has none of
+        them yet (the drive sends them after its sensor frame; a logger reading two
+        sockets may stamp them late, past the next SYNC, or early, before their sensor
+        frame: those are kept for it)."""
+        if self._truth_after and self._last_sensor_t is not None and not self._row_has[first]:
+            self._row_has[first] = True
+            names = _TRUTH_COLUMNS[first : first + len(values)]
+            if self._pending is not None:
+                row = list(self._pending)
+                for name, value in zip(names, values, strict=True):
+                    row[COLUMNS.index(name)] = value
+                self._pending = tuple(row)
+            else:
+                for name, value in zip(names, values, strict=True):
+                    self.recording.set_last(name, value)
+            return
+        self._truth[first : first + len(values)] = values
+        self._truth_t = self._t
 
 
 @dataclass(frozen=True)
@@ -357,7 +395,10 @@ def recording_from_trace(path: Path, sample_period_s: float = 1e-3) -> tuple[Rec
     from hdhil.can.traces.sidecar import read_metadata
 
     meta = read_metadata(path) or {}
-    listener = RecordingListener(sample_period_s, meta.get("drive_pdos"))
+    # `hdhil log` records the drive's frames as it sends them, each sample's sensor frame
+    # before its truth frames; `hdhil run`'s tap stamps the truth at the sample instant.
+    after = meta.get("recorded_by") == "hdhil log"
+    listener = RecordingListener(sample_period_s, meta.get("drive_pdos"), truth_after_sensor=after)
     with read_trace(path) as trace:
         for msg in trace:
             listener.on_message_received(msg)
@@ -768,6 +809,12 @@ class _Unwrap:
     def __call__(self, p: np.ndarray) -> np.ndarray:
         if len(p) == 0:
             return p.copy()
+        finite = np.isfinite(p)
+        if not finite.all():  # a sample without truth: NaN there, the others unwrapped
+            out = np.full(len(p), math.nan)
+            if finite.any():
+                out[finite] = self(p[finite])
+            return out
         first = p[:1] if self._last is None else np.array([self._last])
         dd = np.diff(p, prepend=first)
         ddmod = np.mod(dd + math.pi, 2 * math.pi) - math.pi

@@ -29,7 +29,7 @@ from hdhil.can.traces.writer import WriterError, WriterProcess
 from hdhil.canopen.nmt import state_name as nmt_state_name
 from hdhil.core.dataconf import ConfigError
 from hdhil.core.errors import UserError
-from hdhil.dbc import CHANNEL_NUMBER
+from hdhil.dbc import CHANNEL_NUMBER, known_frames
 from hdhil.dbc import node_ids as dbc_node_ids
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveConfig, DriveNode
@@ -345,6 +345,36 @@ class Recording:
     stopped: bool
 
 
+class OwnBusFrames:
+    """Hands on each bus's own frames only: a truth frame received on the control bus, or a
+    control frame on the truth bus, is dropped.  python-can's udp_multicast delivers every
+    group that any socket of the host joined on its port to each of them, so a logger of
+    two groups would record every frame twice, once on the wrong bus."""
+
+    def __init__(self, listeners: Sequence[Any]) -> None:
+        self.listeners = list(listeners)
+        self._truth = known_frames("truth")
+        self._channel = CHANNEL_NUMBER["truth"]
+
+    def on_frames(self, frames: list[can.Message]) -> None:
+        truth, channel = self._truth, self._channel
+        own = [
+            m
+            for m in frames
+            if ((m.arbitration_id, m.is_extended_id) in truth) == (m.channel == channel)
+        ]
+        if own:
+            for listener in self.listeners:
+                listener.on_frames(own)
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.on_frames([msg])
+
+    def stop(self) -> None:
+        for listener in self.listeners:
+            listener.stop()
+
+
 def record(
     trace: Path,
     control: can.BusABC,
@@ -365,7 +395,8 @@ def record(
         writer = WriterProcess(trace, metadata=metadata)
     except ValueError as exc:
         raise UserError(str(exc)) from None
-    tap = BusTap(buses, [writer, counter])
+    listeners: list[Any] = [writer, counter]
+    tap = BusTap(buses, [OwnBusFrames(listeners)] if truth is not None else listeners)
     t_end = time.monotonic() + duration_s if duration_s else float("inf")
     try:
         while not stop() and time.monotonic() < t_end:
