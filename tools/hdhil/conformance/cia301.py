@@ -358,13 +358,11 @@ def heartbeat_cases(od: ObjectDictionary) -> list[Case]:
     def producer_change(ctx: Context) -> str:
         ctx.need(0x1017, 0)
         ctx.write(0x1017, 0, 40)
-        times = arrivals(ctx, HEARTBEAT_BASE + ctx.node_id, 0.05, 0.3)
-        gaps = [b - a for a, b in itertools.pairwise(times)]
+        times, gaps = arrival_gaps(ctx, HEARTBEAT_BASE + ctx.node_id, 0.05, 0.3)
         if len(gaps) < 4:
             raise CaseFailed(f"{len(times)} heartbeats in 0.3 s after 0x1017 = 40")
-        mean = sum(gaps) / len(gaps)
-        if abs(mean - 0.040) > 0.040 * max(ctx.options.period_tolerance, 0.25):
-            raise CaseFailed(f"mean heartbeat period {mean * 1e3:.1f} ms after 0x1017 = 40")
+        mean = mean_period(gaps, 0.040, max(ctx.options.period_tolerance, 0.25),
+                           "mean heartbeat period {} ms after 0x1017 = 40")  # fmt: skip
         return f"mean period {mean * 1e3:.1f} ms"
 
     def producer_off(ctx: Context) -> str:
@@ -451,6 +449,23 @@ def arrivals(ctx: Context, cob_id: int, settle_s: float, window_s: float) -> lis
     mark = ctx.recorder.mark()
     time.sleep(window_s)
     return [t for t, _ in ctx.recorder.since(mark, cob(cob_id))]
+
+
+def arrival_gaps(
+    ctx: Context, cob_id: int, settle_s: float, window_s: float
+) -> tuple[list[float], list[float]]:
+    """:func:`arrivals` and the gaps between them (s)."""
+    times = arrivals(ctx, cob_id, settle_s, window_s)
+    return times, [b - a for a, b in itertools.pairwise(times)]
+
+
+def mean_period(gaps: list[float], expected_s: float, tolerance: float, failed: str) -> float:
+    """The mean of ``gaps``; :class:`CaseFailed` with ``failed`` (its ``{}`` the mean in ms)
+    when it is more than ``tolerance`` (relative) off ``expected_s``."""
+    mean = sum(gaps) / len(gaps)
+    if abs(mean - expected_s) > expected_s * tolerance:
+        raise CaseFailed(failed.format(f"{mean * 1e3:.1f}"))
+    return mean
 
 
 # ------------------------------------------------------------------ SDO
@@ -924,13 +939,11 @@ def pdo_cases(od: ObjectDictionary) -> list[Case]:
         comm, cob_id = event_tpdo(ctx)
         ctx.write(comm, 5, 20)
         ctx.nmt(NMT_START)
-        times = arrivals(ctx, cob_id, 0.05, 0.3)
-        gaps = [b - a for a, b in itertools.pairwise(times)]
+        times, gaps = arrival_gaps(ctx, cob_id, 0.05, 0.3)
         if len(gaps) < 5:
             raise CaseFailed(f"{len(times)} frames in 0.3 s with an event timer of 20 ms")
-        mean = sum(gaps) / len(gaps)
-        if abs(mean - 0.02) > 0.02 * max(ctx.options.period_tolerance, 0.2):
-            raise CaseFailed(f"mean period {mean * 1e3:.1f} ms with event timer 20 ms")
+        mean = mean_period(gaps, 0.02, max(ctx.options.period_tolerance, 0.2),
+                           "mean period {} ms with event timer 20 ms")  # fmt: skip
         return f"mean period {mean * 1e3:.1f} ms"
 
     def inhibit(ctx: Context) -> str:
@@ -942,8 +955,7 @@ def pdo_cases(od: ObjectDictionary) -> list[Case]:
         ctx.write(comm, 5, 10)
         ctx.write(comm, 1, raw & ~PDO_NOT_VALID)
         ctx.nmt(NMT_START)
-        times = arrivals(ctx, cob_id, 0.05, 0.3)
-        gaps = [b - a for a, b in itertools.pairwise(times)]
+        times, gaps = arrival_gaps(ctx, cob_id, 0.05, 0.3)
         if len(gaps) < 3:
             raise CaseFailed(f"{len(times)} frames in 0.3 s")
         short = min(gaps)

@@ -4,12 +4,12 @@ frames at the suite (the monotonic clock), the same on every interface."""
 
 from __future__ import annotations
 
-import itertools
 import time
 
 from canopen.objectdictionary import ObjectDictionary
 
 from hdhil.conformance.cia301 import (
+    arrival_gaps,
     emcy_wait,
     first_sync_tpdo,
     heartbeat_loss,
@@ -66,10 +66,8 @@ def timing_cases(od: ObjectDictionary) -> list[Case]:
         if not period_ms:
             raise CaseSkipped("0x1017 = 0")
         n = max(4, min(20, int(0.6 / (period_ms * 1e-3))))
-        mark = ctx.recorder.mark()
-        time.sleep((n + 1.5) * period_ms * 1e-3)
-        times = [t for t, _ in ctx.recorder.since(mark, cob(HEARTBEAT_BASE + ctx.node_id))]
-        gaps = [b - a for a, b in itertools.pairwise(times)]
+        window_s = (n + 1.5) * period_ms * 1e-3
+        times, gaps = arrival_gaps(ctx, HEARTBEAT_BASE + ctx.node_id, 0.0, window_s)
         if len(gaps) < n - 1:
             raise CaseFailed(f"{len(times)} heartbeats in {(n + 1.5) * period_ms:g} ms")
         mean = sum(gaps) / len(gaps)

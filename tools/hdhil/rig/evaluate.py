@@ -48,6 +48,9 @@ COLUMNS = (
     "T_true", "T_ripple", "theta_motor", "omega_motor", "theta_output", "missed",
     "torque_actual", "position_actual", "joint_torque_mV",
 )  # fmt: skip
+#: :attr:`RecordingListener._truth` position -> its column in a row (truth columns are
+#: consecutive, in the same order).
+_TRUTH_INDEX = {k: COLUMNS.index(name) for k, name in enumerate(_TRUTH_COLUMNS)}
 
 
 def missed_cycles(previous_s: float | None, now_s: float, sample_period_s: float) -> int:
@@ -103,6 +106,11 @@ class Recording:
         if rows > 0:
             # New arrays rather than resizing in place: a view of the old ones may live on.
             self._cols = {name: col[rows:] for name, col in self._cols.items()}
+
+    def last(self, column: int) -> float:
+        """The last row's value in column number ``column`` (NaN without rows)."""
+        col = self._cols[COLUMNS[column]]
+        return col[-1] if col else math.nan
 
     def set_last(self, name: str, value: float) -> None:
         col = self._cols[name]
@@ -191,7 +199,6 @@ class RecordingListener(can.Listener):
         #: receives them as the drive sends them, the sensor frame first).
         self._truth_after = truth_after_sensor
         self._truth_t = -math.inf  # when the truth kept for the next sensor frame came
-        self._row_has = {0: False, 2: False}  # the last row's truth groups, by position
         self._status = codec("control", "DRIVE_TPDO2").expect("statusword")
         self._enabled: bool | None = None  # unknown until a statusword is seen
         self._t = 0.0  # timestamp of the frame being handled
@@ -297,11 +304,8 @@ class RecordingListener(can.Listener):
         self._missed += missed_cycles(last, self._t, Ts)
         self._last_sensor_t = self._t
         t = self._truth
-        if self._truth_after:
-            if self._t - self._truth_t >= 0.5 * Ts:
-                t = [math.nan] * 5  # kept from an earlier SYNC whose sensor frame was lost
-            # which truth groups (torque from 0, motion from 2) the new row has
-            self._row_has = {0: not math.isnan(t[0]), 2: not math.isnan(t[2])}
+        if self._truth_after and self._t - self._truth_t >= 0.5 * Ts:
+            t = [math.nan] * 5  # kept from an earlier SYNC whose sensor frame was lost
         row = (torque, tacho, current, encoder, math.nan, math.nan, math.nan,
                t[0], t[1], t[2], t[3], t[4], float(self._missed), actual, position,
                gauge)  # fmt: skip
@@ -348,18 +352,19 @@ class RecordingListener(can.Listener):
         them yet (the drive sends them after its sensor frame; a logger reading two
         sockets may stamp them late, past the next SYNC, or early, before their sensor
         frame: those are kept for it)."""
-        if self._truth_after and self._last_sensor_t is not None and not self._row_has[first]:
-            self._row_has[first] = True
-            names = _TRUTH_COLUMNS[first : first + len(values)]
-            if self._pending is not None:
-                row = list(self._pending)
-                for name, value in zip(names, values, strict=True):
-                    row[COLUMNS.index(name)] = value
-                self._pending = tuple(row)
-            else:
-                for name, value in zip(names, values, strict=True):
-                    self.recording.set_last(name, value)
-            return
+        column = _TRUTH_INDEX[first]
+        if self._truth_after and self._last_sensor_t is not None:
+            pending = self._pending
+            has = pending[column] if pending is not None else self.recording.last(column)
+            if math.isnan(has):  # the last row has none of these yet: they are its own
+                if pending is not None:
+                    row = list(pending)
+                    row[column : column + len(values)] = values
+                    self._pending = tuple(row)
+                else:
+                    for name, value in zip(_TRUTH_COLUMNS[first:], values, strict=False):
+                        self.recording.set_last(name, value)
+                return
         self._truth[first : first + len(values)] = values
         self._truth_t = self._t
 
