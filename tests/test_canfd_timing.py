@@ -254,6 +254,18 @@ def test_classical_bound_for_an_identifier() -> None:
             assert frame_bits(can_id, extended, False, data) <= bound
 
 
+def test_classical_bound_for_an_identifier_by_hand() -> None:
+    """The header (SOF to DLC) stuffed here, then the data and CRC bits at their worst:
+    the first stuff bit after 5 - run of them, one after every 4 more (the last CRC bit
+    included: classical stuffing runs to the end of the CRC)."""
+    for can_id, n in ((0x080, 1), (0x182, 8), (0x000, 8), (0x7FF, 0), (0x555, 3)):
+        header = _stuff("0" + f"{can_id:011b}" + "000" + f"{n:04b}", after_last=True)
+        run = len(header) - len(header.rstrip(header[-1]))
+        free = 8 * n + 15
+        stuff = (free - (5 - run)) // 4 + 1
+        assert worst_case_frame_bits_for(can_id, False, n) == len(header) + free + stuff + 13
+
+
 def test_figures_of_the_issue() -> None:
     # Classical 1 Mbit/s: SYNC (1 byte) <= 65 us, an 8-byte frame <= 135 us, stuffing
     # at its worst; the bounds for the CANopen identifiers are within them.
