@@ -23,6 +23,7 @@ from hdhil.can.bittiming import (
     fd_length,
     fd_phases,
     frame_bits,
+    frame_seconds,
     worst_case_fd_frame_bits,
     worst_case_fd_frame_seconds,
     worst_case_frame_bits_for,
@@ -287,3 +288,30 @@ def test_figures_of_the_issue() -> None:
     assert mean == pytest.approx(150e-6, rel=0.07)
     # The data phase is what BRS speeds up: the same frame without BRS at 1 Mbit/s.
     assert worst_case_fd_frame_seconds(64, 1e6, 5e6, brs=False) > 4 * worst
+
+
+def test_python_can_messages_are_timed_by_their_format() -> None:
+    import can
+
+    data = bytes(range(20))
+    fd = can.Message(
+        arbitration_id=0x181, data=data, is_extended_id=False, is_fd=True, bitrate_switch=True
+    )
+    assert frame_seconds(fd, 1e6, 5e6) == fd_frame_bits(0x181, False, data).seconds(1e6, 5e6)
+    with pytest.raises(ValueError, match="data bit rate"):
+        frame_seconds(fd, 1e6)
+    slow = can.Message(
+        arbitration_id=0x181,
+        data=data,
+        is_extended_id=False,
+        is_fd=True,
+        error_state_indicator=True,
+    )
+    assert (
+        frame_seconds(slow, 1e6)
+        == fd_frame_bits(0x181, False, data, brs=False, esi=True).total / 1e6
+    )
+    classic = can.Message(arbitration_id=0x182, data=b"\x00" * 8, is_extended_id=False)
+    assert frame_seconds(classic, 1e6) == frame_bits(0x182, False, False, bytes(8)) / 1e6
+    remote = can.Message(arbitration_id=0x182, is_remote_frame=True, dlc=8, is_extended_id=False)
+    assert frame_seconds(remote, 1e6) == frame_bits(0x182, False, True, bytes(8)) / 1e6

@@ -21,6 +21,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import can
 
 _CRC15_POLY = 0x4599
 
@@ -550,3 +554,27 @@ def worst_case_frame_bits_for(arbitration_id: int, extended: bool, length: int) 
     nbits, _crc, state, added = _header(arbitration_id, extended, False, length)
     free = 8 * length + 15
     return nbits + free + added + _most_stuff_bits(free, (state & 3) + 1) + 13
+
+
+def frame_seconds(msg: can.Message, bitrate: float, data_bitrate: float | None = None) -> float:
+    """Exact time on the wire of a python-can message, classical or FD, IFS included: an
+    FD frame's data phase at ``data_bitrate`` when it has ``bitrate_switch`` set.  A
+    classical remote frame counts with its DLC, carrying no data."""
+    data = bytes(msg.data or b"")
+    if not msg.is_fd:
+        if msg.is_remote_frame:
+            data = bytes(min(msg.dlc, 8))
+        bits = frame_bits(msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, data)
+        return bits / bitrate
+    if msg.is_remote_frame:
+        raise ValueError("CAN FD has no remote frames")
+    if msg.bitrate_switch and data_bitrate is None:
+        raise ValueError("an FD frame with bit-rate switching needs a data bit rate")
+    fd_bits = fd_frame_bits(
+        msg.arbitration_id,
+        msg.is_extended_id,
+        data,
+        brs=msg.bitrate_switch,
+        esi=msg.error_state_indicator,
+    )
+    return fd_bits.seconds(bitrate, data_bitrate or bitrate)
