@@ -1,4 +1,4 @@
-"""Exact bit counts of classical CAN frames: CRC-15 and bit stuffing (ISO 11898-1).
+"""Exact bit counts of classical and CAN FD frames: CRC, bit stuffing (ISO 11898-1).
 
 The time a frame occupies the wire depends on its content: the stuffing rule inserts a
 complementary bit after five identical bits from the start-of-frame to the end of the
@@ -15,6 +15,11 @@ Stuffing is counted with a table over bytes: for each byte and each state (value
 last bit, length of its run) the number of stuff bits and the new state; the CRC of the
 data with a table per byte position (the CRC is linear in the bits).  Both are tested
 against a plain bit-by-bit implementation.
+
+CAN FD frames (ISO 11898-1:2015; the layout at the section below) are counted by phase,
+nominal and data bit rate (:func:`fd_frame_bits`, :func:`fd_bitstream`), with
+worst-case bounds per payload length (:func:`worst_case_fd_frame_bits`);
+:func:`frame_seconds` times any python-can message.  docs/schedule.md has the formulas.
 """
 
 from __future__ import annotations
