@@ -134,8 +134,8 @@ def test_ctrl_tpdo2_layout_and_codec_agree_with_cantools() -> None:
 
 def test_bus_load_with_the_control_telemetry() -> None:
     load = schedule_load("control", 1_000_000, 1e-3)
-    # SYNC 65 + DRIVE_TPDO1 135 + DRIVE_RPDO1 105 + CTRL_TPDO1 135 + CTRL_TPDO2 135 us
-    assert load.worst_case_load == pytest.approx(575 / 1000)
+    # SYNC 62 + DRIVE_TPDO1 132 + DRIVE_RPDO1 102 + CTRL_TPDO1 132 + CTRL_TPDO2 132 us
+    assert load.worst_case_load == pytest.approx(560 / 1000)
     assert load.fits()
 
 

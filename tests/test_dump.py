@@ -371,17 +371,20 @@ def test_stats_of_1khz_schedule():
         assert s["period_ms"] == pytest.approx(1.0, rel=1e-9)
         assert s["jitter_std_us"] == pytest.approx(0.0, abs=1e-6)
         assert s["jitter_max_us"] == pytest.approx(0.0, abs=1e-6)
-    assert by_id[0x80]["worst_case_bits"] == 65 and by_id[0x80]["frame_time_us"] == 65.0
-    assert by_id[0x181]["worst_case_bits"] == 135 and by_id[0x181]["payload_bytes"] == 8
+    # each identifier at its own worst case (docs/design.md, "Frame budget"): 62 bits for
+    # the 1-byte SYNC, 132 for these 8-byte frames, a few below the bounds for any
+    # identifier (65, 135)
+    assert by_id[0x80]["worst_case_bits"] == 62 and by_id[0x80]["frame_time_us"] == 62.0
+    assert by_id[0x181]["worst_case_bits"] == 132 and by_id[0x181]["payload_bytes"] == 8
     assert by_id[0x381]["name"] is None
     control = stats["buses"]["control"]
-    assert control["load_percent"] == pytest.approx((65 + 3 * 135) / 1000 * 100, rel=1e-9)
+    assert control["load_percent"] == pytest.approx((62 + 3 * 132) / 1000 * 100, rel=1e-9)
     assert control["frames"] == 4000
     assert control["unknown_ids"] == 1 and control["unknown_frames"] == 1000
     assert control["duration"] == pytest.approx(0.999 + 300e-6)
     assert not control["over_limit"]
     slow = compute_stats(schedule(100), bitrate=500_000)
-    assert slow["buses"]["control"]["load_percent"] == pytest.approx(94.0)
+    assert slow["buses"]["control"]["load_percent"] == pytest.approx(2 * (62 + 3 * 132) / 10)
     assert slow["buses"]["control"]["over_limit"]
 
 
@@ -414,9 +417,9 @@ def test_a_burst_of_sdo_frames_counts_spread_over_the_bus_duration():
     stats = compute_stats(burst + cyclic, bitrate=1_000_000)
     control = stats["buses"]["control"]
     by_id = {s["id"]: s for s in stats["ids"]}
-    assert by_id[0x602]["load_percent"] > 60  # the burst's own rate: 5 kHz of 135 us
-    cyclic_load = (65 + 3 * 135) / 1000 * 100
-    burst_load = 200 * 135e-6 / control["duration"] * 100
+    assert by_id[0x602]["load_percent"] > 60  # the burst's own rate: 5 kHz of 132 us
+    cyclic_load = (62 + 3 * 132) / 1000 * 100
+    burst_load = 200 * 132e-6 / control["duration"] * 100
     assert control["load_percent"] == pytest.approx(cyclic_load + burst_load, rel=2e-3)
     assert control["load_percent"] < 60 and not control["over_limit"]
 
@@ -439,14 +442,14 @@ def test_stats_cli_text_and_json(tmp_path, capsys):
     trace = write_trace(tmp_path / "s.blf", schedule(200) + make_frames(3)[-1:])
     rc, out, _ = run_cli(capsys, trace, "--stats")
     assert rc == 0
-    assert re.search(r"bus control: .* worst-case load 47\.0 % of 1000 kbit/s", out)
+    assert re.search(r"bus control: .* worst-case load 45\.8 % of 1000 kbit/s", out)
     assert re.search(r"control\s+080\s+SYNC\s+200\s+1000\.00", out)
     assert "unknown IDs 1 (200 frames)" in out
     rc, out, err = run_cli(capsys, trace, "--json", "--bitrate", "500000")
     assert rc == 0
     data = json.loads(out)
     assert data["bitrate"] == 500_000
-    assert data["buses"]["control"]["load_percent"] == pytest.approx(94.0, rel=1e-3)
+    assert data["buses"]["control"]["load_percent"] == pytest.approx(2 * 45.8, rel=1e-3)
     assert data["buses"]["truth"]["frames"] == 1
     assert data["damage"] == [] and data["trace"].endswith("s.blf")
     assert {"id", "id_hex", "name", "count", "rate_hz", "jitter_std_us", "load_percent"} <= set(

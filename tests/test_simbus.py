@@ -251,10 +251,12 @@ def test_control_schedule_fits_the_budget():
     load = schedule_load("control", 1_000_000, 1e-3)
     names = {name for name, _, _ in load.frames}
     assert names == {"SYNC", "DRIVE_TPDO1", "DRIVE_RPDO1", "CTRL_TPDO1", "CTRL_TPDO2"}
-    # 65 (SYNC) + 135 (8 B) + 105 (5 B) + 135 (8 B) + 135 (8 B, control law telemetry)
-    # us per 1 ms cycle: the worst case counts CTRL_TPDO2 although it is only sent with a
+    # Each frame at its worst case for its identifier (docs/design.md's table): SYNC 62,
+    # 8 bytes 132, 5 bytes 102 us per 1 ms cycle, below the bounds for any identifier
+    # (65, 135, 105); the worst case counts CTRL_TPDO2 although it is only sent with a
     # control law active.
-    assert load.worst_case_load == pytest.approx((65 + 135 + 105 + 135 + 135) / 1000)
+    assert load.worst_case_load == pytest.approx((62 + 132 + 102 + 132 + 132) / 1000)
+    assert load.worst_case_load < (65 + 135 + 105 + 135 + 135) / 1000
     assert load.fits()
     # The same schedule at 500 kbit/s needs twice the time: over budget.
     assert not schedule_load("control", 500_000, 1e-3).fits()

@@ -33,6 +33,7 @@ import hdhil.hostsim.plant
 import hdhil.rig.faults
 import hdhil.rig.layout
 import hdhil.rig.scenario
+from hdhil.can.bittiming import worst_case_frame_bits_for
 
 #: The tables of a scenario file: (TOML table, configuration dataclass).  The walker
 #: follows nested dataclasses (and lists of them) from here.
@@ -254,7 +255,7 @@ def frames_page() -> str:
                 f"{m.cycle_time} ms" if m.cycle_time else "sporadic",
             ]
             if bitrate:
-                bits = hdhil.dbc.worst_case_frame_bits(m.length, m.is_extended_frame)
+                bits = worst_case_frame_bits_for(m.frame_id, m.is_extended_frame, m.length)
                 micros = bits * 1e6 / bitrate
                 row.append(f"{micros:.0f} µs")
                 if m.cycle_time:
@@ -265,7 +266,8 @@ def frames_page() -> str:
             out += [
                 f"Worst-case load of the cyclic frames: {cyclic_us:.0f} µs per millisecond, "
                 f"{cyclic_us / 10:.1f} % of the bus (stuff bits and interframe space "
-                "included; see [the frame budget](../design.md)).",
+                "included, each frame at its worst case for its identifier; see [the frame "
+                "budget](../design.md#frame-budget)).",
                 "",
             ]
         for m in db.messages:

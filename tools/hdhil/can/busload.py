@@ -1,9 +1,12 @@
 """Control-bus budget: worst-case load of the cyclic schedule described in the DBC.
 
-docs/design.md, "Frame budget": a classical base frame with n data bytes takes at most
-47 + 8n bits (incl. the 3-bit interframe space) plus floor((34 + 8n - 1)/4) stuff bits.
-The cyclic schedule is every message with a ``GenMsgCycleTime`` attribute; its worst-case
-load is the sum of worst-case frame times over one cycle divided by the cycle.  CAN FD
+docs/design.md, "Frame budget": a classical frame's worst case for its known identifier
+and length (:func:`hdhil.can.bittiming.worst_case_frame_bits_for`: the header stuffed
+exactly, the data and CRC bits at their most stuff bits), never above the bound for any
+identifier (47 + 8n bits incl. the 3-bit interframe space plus floor((34 + 8n - 1)/4)
+stuff bits).  The cyclic schedule is every message with a ``GenMsgCycleTime`` attribute;
+its worst-case load is the sum of worst-case frame times over one cycle divided by the
+cycle, as the planner of several joints computes it (:mod:`hdhil.can.schedule`).  CAN FD
 messages (``is_fd`` in the DBC) count with :func:`hdhil.can.bittiming.worst_case_fd_frame_bits`,
 their data phase at ``data_bitrate`` (bit-rate switching) when one is given.
 """
@@ -12,8 +15,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from hdhil.can.bittiming import worst_case_fd_frame_bits
-from hdhil.dbc import BusName, database, worst_case_frame_bits
+from hdhil.can.bittiming import worst_case_fd_frame_bits, worst_case_frame_bits_for
+from hdhil.dbc import BusName, database
 
 #: Above this worst-case load the schedule leaves too little room for SDO, heartbeat,
 #: EMCY and retransmissions (docs/design.md: keep it at or below 60 %).
@@ -59,7 +62,7 @@ def schedule_load(
             bits = fd_bits.total
             seconds = fd_bits.seconds(bitrate, data_bitrate or bitrate)
         else:
-            bits = worst_case_frame_bits(msg.length, msg.is_extended_frame)
+            bits = worst_case_frame_bits_for(msg.frame_id, msg.is_extended_frame, msg.length)
             seconds = bits / bitrate
         frames.append((msg.name, bits, period))
         load += seconds / period

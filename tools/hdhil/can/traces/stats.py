@@ -17,7 +17,7 @@ from typing import Any
 
 import can
 
-from hdhil.can.bittiming import frame_bits
+from hdhil.can.bittiming import frame_bits, worst_case_frame_bits_for
 from hdhil.can.busload import LOAD_LIMIT
 from hdhil.can.traces.decode import (
     UNKNOWN_BUS,
@@ -304,7 +304,8 @@ class StatsAccumulator:
         ``period_ms`` (mean period), ``jitter_std_us`` (population std of the periods),
         ``jitter_max_us`` (max |period - mean period|), ``payload_bytes`` (largest seen),
         ``worst_case_bits`` and ``frame_time_us`` (worst case incl. stuffing and
-        interframe space, :func:`hdhil.dbc.worst_case_frame_bits`), ``load_percent``
+        interframe space, for the identifier:
+        :func:`hdhil.can.bittiming.worst_case_frame_bits_for`), ``load_percent``
         (rate x worst-case bits / bitrate).  Rate, period, jitter and load are ``None``
         for an identifier seen once (or with no time span).
 
@@ -329,7 +330,13 @@ class StatsAccumulator:
         bus_spans = {name: b.last - b.first for name, b in self._buses.items()}
         for key in sorted(self._ids, key=lambda k: (_bus_sort_key(k[0]), k[1], k[2])):
             s = self._ids[key]
-            bits = worst_case_frame_bits(s.payload, s.is_extended_id)
+            # the worst case for this identifier (as hdhil run and hdhil plan count it);
+            # a payload longer than a classical frame's: the bound for any identifier
+            bits = (
+                worst_case_frame_bits_for(key[2], s.is_extended_id, s.payload)
+                if s.payload <= 8
+                else worst_case_frame_bits(s.payload, s.is_extended_id)
+            )
             span = s.last - s.first
             if s.count >= 2 and span > 0:
                 rate = (s.count - 1) / span
