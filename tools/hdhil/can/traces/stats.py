@@ -331,10 +331,12 @@ class StatsAccumulator:
         for key in sorted(self._ids, key=lambda k: (_bus_sort_key(k[0]), k[1], k[2])):
             s = self._ids[key]
             # the worst case for this identifier (as hdhil run and hdhil plan count it);
-            # a payload longer than a classical frame's: the bound for any identifier
+            # a payload longer than a classical frame's, or an identifier out of its
+            # range (a damaged trace): the bound for any identifier
+            valid = key[2] < (1 << (29 if s.is_extended_id else 11))
             bits = (
                 worst_case_frame_bits_for(key[2], s.is_extended_id, s.payload)
-                if s.payload <= 8
+                if s.payload <= 8 and valid
                 else worst_case_frame_bits(s.payload, s.is_extended_id)
             )
             span = s.last - s.first
