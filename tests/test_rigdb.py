@@ -1,9 +1,9 @@
 """The CAN databases of a rig of several drives (:mod:`hdhil.canopen.rigdb`), generated
-from the object dictionaries and node-IDs: one drive at node-ID 2 gives today's merged
-database exactly; several drives on several buses get the CiA 301 pre-defined
-connection set's identifiers, distinct truth identifiers and unique names; cantools and
-python-can decode every joint's frames by name, also after a round trip through a .dbc
-file; a bad layout is a one-line UserError."""
+from the object dictionaries and node-IDs: one drive at node-ID 2 gives the merged
+database of ``hdhil dbc export`` exactly; several drives on several buses get the CiA
+301 pre-defined connection set's identifiers, distinct truth identifiers and unique
+names; cantools and python-can decode every joint's frames by name, also after a round
+trip through a .dbc file; a bad layout is a one-line UserError."""
 
 from __future__ import annotations
 
@@ -53,16 +53,16 @@ def _attributes(obj):
 
 
 @pytest.mark.parametrize("mapping", list(MAPPINGS))
-def test_one_drive_at_node_2_is_todays_merged_database(mapping):
+def test_one_drive_at_node_2_is_the_exported_merged_database(mapping):
     """The single-joint layout (no joint name, drive node-ID 2, controller node-ID 1)
-    is the database ``hdhil dbc export`` writes today, message for message, and as DBC
-    text, in every shipped mapping: existing traces decode as before."""
+    is the database ``hdhil dbc export`` writes, message for message, and as DBC text,
+    in every shipped mapping: a single-joint trace decodes with either."""
     ours = rig_databases([RigDrive("", 2, mapping=mapping)])
     assert list(ours) == ["control"]
     db = ours["control"]
-    today = merged_database(mapping)
-    assert [m.name for m in db.messages] == [m.name for m in today.messages]
-    for mine, theirs in zip(db.messages, today.messages, strict=True):
+    exported = merged_database(mapping)
+    assert [m.name for m in db.messages] == [m.name for m in exported.messages]
+    for mine, theirs in zip(db.messages, exported.messages, strict=True):
         assert (mine.frame_id, mine.is_extended_frame, mine.length) == (
             theirs.frame_id, theirs.is_extended_frame, theirs.length)  # fmt: skip
         assert mine.senders == theirs.senders
@@ -71,9 +71,9 @@ def test_one_drive_at_node_2_is_todays_merged_database(mapping):
         assert _attributes(mine) == _attributes(theirs)
         assert _signals(mine) == _signals(theirs)
     assert [(n.name, n.comment, _attributes(n)) for n in db.nodes] == [
-        (n.name, n.comment, _attributes(n)) for n in today.nodes
+        (n.name, n.comment, _attributes(n)) for n in exported.nodes
     ]
-    assert db.as_dbc_string() == today.as_dbc_string()
+    assert db.as_dbc_string() == exported.as_dbc_string()
 
 
 def _expected_ids(node_id: int, controller: int, rank: int) -> dict[str, int]:
@@ -129,7 +129,7 @@ def test_four_drives_on_two_buses_follow_the_predefined_connection_set(four):
     assert "drive node-IDs 4 (J3), 5 (J4), 500 kbit/s" in four["can1"].buses[0].comment
 
 
-def test_truth_frames_are_distinct_across_the_rig_and_joint_0_keeps_todays(four):
+def test_truth_frames_are_distinct_across_the_rig_and_joint_0_keeps_truth_dbcs(four):
     ids = {m.name: m.frame_id for db in four.values() for m in db.messages if m.is_extended_frame}
     for index, joint in enumerate(("J1", "J2", "J3", "J4")):
         assert ids[f"{joint}_TRUTH_TORQUE"] == 0x1F0001 + 16 * index
@@ -261,7 +261,9 @@ def test_a_dbc_file_written_by_cantools_decodes_every_joint_after_loading(tmp_pa
         ([RigDrive("", 2), RigDrive("J2", 3)],
          "every joint of a rig of several drives needs a name"),
         ([RigDrive("J1", 2), RigDrive("J1", 3, "b")], "joint J1 is listed twice"),
-        ([RigDrive("1x", 2)], "joint name '1x' is not a DBC identifier"),
+        ([RigDrive("1x", 2)], "joint name '1x' is not a name"),
+        ([RigDrive("a-b", 2), RigDrive("a_b", 3)],
+         "joints a-b and a_b have the same DBC name a_b"),
         ([RigDrive("J1", 2, mapping="csp")], "joint J1: unknown mapping 'csp'"),
         ([RigDrive("J1", 2), RigDrive("J2", 3), RigDrive("J3", 4)],
          "give joint J3 a controller node of its own"),
@@ -284,6 +286,8 @@ def test_the_same_node_id_on_two_buses_is_fine_and_bus_settings_are_checked():
         ([RigBus("a", controller_node_id=0)], "the controller of bus a: node-ID 0"),
         ([RigBus("a", bitrate=2_000_000)], "bus a: bit rate 2000000"),
         ([RigBus("a"), RigBus("a")], "bus a is listed twice"),
+        ([RigBus("a", data_bitrate=2_000_000)], "bus a: data bit rate 2000000 needs fd"),
+        ([RigBus("a", fd=True, data_bitrate=500_000)], "bus a: data bit rate 500000"),
         ([RigBus("x")], "joint J1: unknown bus 'a' (known: x)"),
     ):
         with pytest.raises(UserError, match=expected.replace("(", r"\(").replace(")", r"\)")):
@@ -349,3 +353,22 @@ def test_a_pdo_the_dcf_turns_off_is_not_on_the_rig(tmp_path):
     dcf = _edited_dcf(tmp_path, "quiet.dcf", {("[1801sub1]", "0x00000282"): "0x80000282"})
     names = {m.name for m in rig_databases([RigDrive("J1", 2, dcf=dcf)])["control"].messages}
     assert "J1_DRIVE_TPDO1" in names and "J1_DRIVE_TPDO2" not in names
+
+
+def test_names_from_a_urdf_and_a_can_fd_bus(tmp_path):
+    """Joint names as a URDF writes them (``.`` and ``-``) give DBC identifiers; an FD
+    bus is marked as one (BusType "CAN FD", the data phase's bit rate) and its frames
+    still decode after a round trip through a .dbc file."""
+    drives = [RigDrive("shoulder.flex", 2, "fd0"), RigDrive("elbow-1", 3, "fd0")]
+    db = rig_databases(drives, [RigBus("fd0", fd=True, data_bitrate=5_000_000)])["fd0"]
+    assert "shoulder_flex_DRIVE_TPDO1" in [m.name for m in db.messages]
+    assert db.get_node_by_name("elbow_1_DRIVE").dbc.attributes["NodeId"].value == 3
+    assert db.buses[0].fd_baudrate == 5_000_000
+    assert "CAN FD at 1 Mbit/s, data phase 5 Mbit/s" in db.buses[0].comment
+    path = tmp_path / "fd0.dbc"
+    cantools.database.dump_file(db, str(path))
+    assert 'BA_ "BusType" "CAN FD";' in path.read_text(encoding="cp1252")
+    loaded = cantools.database.load_file(str(path))
+    frame = _frame(db, "elbow_1_CTRL_TPDO1", J3_TELEMETRY)
+    name, values = _decode(loaded, frame)
+    assert name == "elbow_1_CTRL_TPDO1" and values == pytest.approx(J3_TELEMETRY, abs=0.002)

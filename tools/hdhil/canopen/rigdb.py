@@ -3,7 +3,7 @@ dictionaries and node-IDs instead of typed.
 
 A rig is a list of :class:`RigDrive` (joint name, node-ID, bus, the drive's mapping or
 DCF, optionally its own controller node) and of :class:`RigBus` (name, the
-controller's node-ID, bit rate).  :func:`rig_databases` gives one
+controller's node-ID, bit rate, classical or CAN FD).  :func:`rig_databases` gives one
 :class:`cantools.database.can.Database` per bus: every frame on that bus and the
 ground-truth frames of its joints, with the signals, units, scaling, value tables,
 comments and attributes of the single-joint databases (``control.dbc`` as the drive's
@@ -12,7 +12,7 @@ One database per bus, because every bus has its own SYNC (0x080), NMT (0x000) an
 controller identifiers.
 
 How identifiers are made (the single-joint layout, one drive at node-ID 2 with the
-controller at node-ID 1 and an empty joint name, gives today's merged database
+controller at node-ID 1 and an empty joint name, gives ``hdhil dbc export``'s database
 exactly, :func:`hdhil.commands.dbc.merged_database`):
 
 - per bus: SYNC 0x080 and NMT 0x000, sent by the bus's controller;
@@ -28,16 +28,17 @@ exactly, :func:`hdhil.commands.dbc.merged_database`):
   TPDO(2r+1) and TPDO(2r+2), so one controller node reports at most two joints;
 - the ground truth of the ``j``-th joint of the rig (0-based, across all buses): the
   29-bit identifiers ``0x1F0000 | j << 4 | k`` (k = 1 torque, 2 motion, 3 joint), so
-  joint 0 keeps today's 0x1F0001..0x1F0003 and 4096 joints fit.
+  joint 0 keeps ``truth.dbc``'s 0x1F0001..0x1F0003 and 4096 joints fit.
 
 Names: a joint's messages and its drive node carry the joint name as a prefix
-(``J1_DRIVE_TPDO1``, ``J1_CTRL_TPDO1``, ``J1_TRUTH_TORQUE``, node ``J1_DRIVE``); an
-empty joint name keeps the single-joint names and is allowed only in a rig of one
-drive.  A bus with one controller node names it ``CONTROLLER`` and its service frames
-``HEARTBEAT_CTRL`` etc.; with several, the node-ID is appended (``CONTROLLER3``,
-``HEARTBEAT_CTRL3``).  A mistake in the layout (a node-ID outside 1..127 or used twice
-on a bus, a joint name that is not a DBC identifier or used twice, an unknown mapping,
-two frames with one identifier) is a one-line :class:`hdhil.core.errors.UserError`.
+(``J1_DRIVE_TPDO1``, ``J1_CTRL_TPDO1``, ``J1_TRUTH_TORQUE``, node ``J1_DRIVE``; a ``.``
+or ``-`` of the name written ``_``); an empty joint name keeps the single-joint names
+and is allowed only in a rig of one drive. A bus with one controller node names it
+``CONTROLLER`` and its service frames ``HEARTBEAT_CTRL`` etc.; with several, the node-ID
+is appended (``CONTROLLER3``, ``HEARTBEAT_CTRL3``). A mistake in the layout (a node-ID
+outside 1..127 or used twice on a bus, a joint name that is not a name or used twice, an
+unknown mapping, two frames with one identifier) is a one-line
+:class:`hdhil.core.errors.UserError`.
 """
 
 from __future__ import annotations
@@ -93,24 +94,35 @@ _PDO_FUNCTION = {
 }
 _SERVICE_BASES = (EMCY_BASE, HEARTBEAT_BASE, SDO_TX_BASE, SDO_RX_BASE)
 _IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-_MAX_CLASSICAL_BITRATE = 1_000_000
+#: Joint and bus names (as a scenario's ``[joints.NAME]`` and ``[buses.NAME]``); in DBC
+#: names a joint's ``.`` and ``-`` become ``_``.
+_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.-]*")
+#: The arbitration phase's bit rate at most (ISO 11898-2), classical or FD.
+_MAX_NOMINAL_BITRATE = 1_000_000
+_MAX_DATA_BITRATE = 12_000_000
 
 
 @dataclass(frozen=True)
 class RigBus:
-    """One classical CAN bus of the rig: its name, the node-ID of its controller (the
-    SYNC producer and NMT master; drives use it unless they name their own) and its
-    bit rate (1 Mbit/s at most)."""
+    """One CAN bus of the rig: its name, the node-ID of its controller (the SYNC producer
+    and NMT master; drives use it unless they name their own), its (arbitration-phase)
+    bit rate, 1 Mbit/s at most, and whether it is a CAN FD bus (``data_bitrate``: the
+    data phase's bit rate with bit-rate switching, 0 for none).  On an FD bus the
+    database says so (``BusType`` "CAN FD"); its messages stay the classical frames of
+    the single-joint layout, which an FD bus carries as they are."""
 
     name: str = "control"
     controller_node_id: int = 1
     bitrate: int = 1_000_000
+    fd: bool = False
+    data_bitrate: int = 0
 
 
 @dataclass(frozen=True)
 class RigDrive:
-    """One drive of the rig: the joint it moves (a DBC identifier, e.g. ``J1``; empty
-    for the single-joint names), its CANopen node-ID, the bus it sits on, its PDO
+    """One drive of the rig: the joint it moves (e.g. ``J1``: letters, digits, ``_``,
+    ``.`` and ``-``, not starting with a digit, the two last written ``_`` in DBC names;
+    empty for the single-joint names), its CANopen node-ID, the bus it sits on, its PDO
     mapping (a shipped mapping name, :data:`hdhil.dbc.MAPPINGS`, or a DCF of the drive
     that overrides it) and the node-ID of the controller node that runs its loop (None:
     the bus's controller)."""
@@ -354,13 +366,23 @@ def _check_layout(
         raise UserError("the rig has no drives")
     by_bus: dict[str, RigBus] = {}
     for bus in buses:
-        if not isinstance(bus.name, str) or not _IDENTIFIER.fullmatch(bus.name):
-            raise UserError(f"bus name {bus.name!r} is not an identifier (letters, digits, _)")
+        if not isinstance(bus.name, str) or not _NAME.fullmatch(bus.name):
+            raise UserError(f"bus name {bus.name!r} is not a name (letters, digits, _ . -)")
         if bus.name in by_bus:
             raise UserError(f"bus {bus.name} is listed twice")
         _check_node_id(bus.controller_node_id, f"the controller of bus {bus.name}")
-        if not _int(bus.bitrate) or not 0 < bus.bitrate <= _MAX_CLASSICAL_BITRATE:
+        if not _int(bus.bitrate) or not 0 < bus.bitrate <= _MAX_NOMINAL_BITRATE:
             raise UserError(f"bus {bus.name}: bit rate {bus.bitrate!r} is not 1..1000000 bit/s")
+        if not isinstance(bus.fd, bool):
+            raise UserError(f"bus {bus.name}: fd must be true or false, not {bus.fd!r}")
+        if bus.data_bitrate != 0 and not (
+            bus.fd and _int(bus.data_bitrate)
+            and bus.bitrate <= bus.data_bitrate <= _MAX_DATA_BITRATE
+        ):  # fmt: skip
+            raise UserError(
+                f"bus {bus.name}: data bit rate {bus.data_bitrate!r} needs fd and is "
+                f"{bus.bitrate}..{_MAX_DATA_BITRATE} bit/s"
+            )
         by_bus[bus.name] = bus
     joints: list[_Joint] = []
     for index, drive in enumerate(drives):
@@ -369,25 +391,31 @@ def _check_layout(
             raise UserError(f"joint name {drive.joint!r} is not a string")
         if drive.joint == "" and len(drives) > 1:
             raise UserError("every joint of a rig of several drives needs a name")
-        if drive.joint and not _IDENTIFIER.fullmatch(drive.joint):
+        if drive.joint and not _NAME.fullmatch(drive.joint):
             raise UserError(
-                f"joint name {drive.joint!r} is not a DBC identifier (letters, digits and _, "
-                "not starting with a digit)"
+                f"joint name {drive.joint!r} is not a name (letters, digits, _ . -, not "
+                "starting with a digit)"
             )
-        if any(j.drive.joint == drive.joint for j in joints):
-            raise UserError(f"joint {drive.joint} is listed twice")
+        prefix = f"{re.sub(r'[.-]', '_', drive.joint)}_" if drive.joint else ""
+        for other in joints:
+            if other.drive.joint == drive.joint:
+                raise UserError(f"joint {drive.joint} is listed twice")
+            if other.prefix == prefix:
+                raise UserError(
+                    f"joints {other.drive.joint} and {drive.joint} have the same DBC name "
+                    f"{prefix[:-1]} (. and - are written _)"
+                )
         _check_node_id(drive.node_id, what)
         if drive.bus not in by_bus:
             if buses:
                 raise UserError(f"{what}: unknown bus {drive.bus!r} (known: {', '.join(by_bus)})")
-            if not isinstance(drive.bus, str) or not _IDENTIFIER.fullmatch(drive.bus):
-                raise UserError(f"{what}: bus name {drive.bus!r} is not an identifier")
+            if not isinstance(drive.bus, str) or not _NAME.fullmatch(drive.bus):
+                raise UserError(f"{what}: bus name {drive.bus!r} is not a name")
             by_bus[drive.bus] = RigBus(drive.bus)
         controller = by_bus[drive.bus].controller_node_id
         if drive.controller_node_id is not None:
             controller = _check_node_id(drive.controller_node_id, f"the controller of {what}")
         _drive_file(drive)
-        prefix = f"{drive.joint}_" if drive.joint else ""
         joints.append(_Joint(index, drive, prefix, f"{prefix}DRIVE", controller))
     if len(joints) > MAX_TRUTH_JOINTS:
         raise UserError(f"a rig has at most {MAX_TRUTH_JOINTS} joints")
@@ -430,7 +458,11 @@ def _bus_comment(
         listed = ", ".join(f"{j.drive.node_id} ({j.drive.joint})" for j in joints)
         drives = f"drive node-ID{'s' if len(joints) > 1 else ''} {listed}"
     legacy = "controller node-ID 1, drive node-ID 2, 1 Mbit/s"
-    text = template.replace(legacy, f"{ctrl}, {drives}, {_speed(bus.bitrate)}")
+    speed = _speed(bus.bitrate)
+    if bus.fd:
+        data = f", data phase {_speed(bus.data_bitrate)}" if bus.data_bitrate else ""
+        speed = f"CAN FD at {speed}{data} (classical frames)"
+    text = template.replace(legacy, f"{ctrl}, {drives}, {speed}")
     if bus.name != "control":
         text = text.replace(
             "Control bus of the hdhil drive link", f"Control bus {bus.name} of the hdhil rig"
@@ -438,9 +470,10 @@ def _bus_comment(
     return text
 
 
-def _specifics(control: Any, truth: Any, bitrate: int) -> Any:
-    """The database-level DBC specifics: ``control``'s attributes (the bit rate set),
-    both databases' attribute definitions and value tables (as the merged export)."""
+def _specifics(control: Any, truth: Any, bus: RigBus) -> Any:
+    """The database-level DBC specifics: ``control``'s attributes (the bus's bit rate and
+    type set), both databases' attribute definitions and value tables (as the merged
+    export)."""
     from cantools.database.can.formats.dbc.dbc_attribute import DbcAttribute
     from cantools.database.can.formats.dbc.dbc_specifics import DbcSpecifics
 
@@ -451,7 +484,9 @@ def _specifics(control: Any, truth: Any, bitrate: int) -> Any:
     value_tables.update(truth.dbc.value_tables)
     attributes = OrderedDict(control.dbc.attributes)
     if "Baudrate" in attributes:
-        attributes["Baudrate"] = DbcAttribute(bitrate, attributes["Baudrate"].definition)
+        attributes["Baudrate"] = DbcAttribute(bus.bitrate, attributes["Baudrate"].definition)
+    if bus.fd and "BusType" in attributes:
+        attributes["BusType"] = DbcAttribute("CAN FD", attributes["BusType"].definition)
     return DbcSpecifics(
         attributes=attributes,
         attribute_definitions=definitions,
@@ -610,9 +645,9 @@ def _bus_database(bus: RigBus, joints: Sequence[_Joint]) -> Any:
     return Database(
         messages=messages,
         nodes=nodes,
-        buses=[Bus(bus.name, comment, baudrate=bus.bitrate)],
+        buses=[Bus(bus.name, comment, baudrate=bus.bitrate, fd_baudrate=bus.data_bitrate or None)],
         version=reference.version,
-        dbc_specifics=_specifics(reference, truth, bus.bitrate),
+        dbc_specifics=_specifics(reference, truth, bus),
         strict=True,
     )
 
