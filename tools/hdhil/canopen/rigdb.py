@@ -580,11 +580,11 @@ def _bus_database(bus: RigBus, joints: Sequence[_Joint]) -> Any:
             frame_id = predefined_cob_id("tpdo", number, controller.node_id)
         to = {"CONTROLLER": [controller.name], "DRIVE": [joint.node_name]}
         renumber = {drive_id: joint.drive.node_id, controller_id: controller.node_id}
-        return _message(message, frame_id, joint_names(joint)[message.name], to,
-                        joint_names(joint), renumber)  # fmt: skip
+        names = joint_names(joint)
+        return _message(message, frame_id, names[message.name], to, names, renumber)
 
     messages: list[Any] = []
-    placed: set[tuple[int, Any]] = set()
+    placed: set[tuple[int, str]] = set()
     for message in reference.messages:
         role = roles[message.frame_id]
         if role == ("bus",):
