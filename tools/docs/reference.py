@@ -31,6 +31,7 @@ from typing import Any
 import hdhil.firmware.config
 import hdhil.hostsim.plant
 import hdhil.rig.faults
+import hdhil.rig.layout
 import hdhil.rig.scenario
 
 #: The tables of a scenario file: (TOML table, configuration dataclass).  The walker
@@ -42,6 +43,9 @@ ROOTS: list[tuple[str, type]] = [
     ("faults", hdhil.rig.faults.FaultConfig),
     ("bus", hdhil.rig.scenario.BusConfig),
     ("link", hdhil.rig.scenario.LinkConfig),
+    ("buses.NAME", hdhil.rig.layout.BusSpec),
+    ("joints.NAME", hdhil.rig.layout.JointTable),
+    ("robot", hdhil.rig.layout.RobotSpec),
 ]
 
 REPO = Path(__file__).resolve().parents[2]

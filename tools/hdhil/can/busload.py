@@ -3,13 +3,16 @@
 docs/design.md, "Frame budget": a classical base frame with n data bytes takes at most
 47 + 8n bits (incl. the 3-bit interframe space) plus floor((34 + 8n - 1)/4) stuff bits.
 The cyclic schedule is every message with a ``GenMsgCycleTime`` attribute; its worst-case
-load is the sum of worst-case frame times over one cycle divided by the cycle.
+load is the sum of worst-case frame times over one cycle divided by the cycle.  CAN FD
+messages (``is_fd`` in the DBC) count with :func:`hdhil.can.bittiming.worst_case_fd_frame_bits`,
+their data phase at ``data_bitrate`` (bit-rate switching) when one is given.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+from hdhil.can.bittiming import worst_case_fd_frame_bits
 from hdhil.dbc import BusName, database, worst_case_frame_bits
 
 #: Above this worst-case load the schedule leaves too little room for SDO, heartbeat,
@@ -29,7 +32,10 @@ class ScheduleLoad:
 
 
 def schedule_load(
-    bus: BusName = "control", bitrate: int = 1_000_000, sample_period_s: float = 1e-3
+    bus: BusName = "control",
+    bitrate: int = 1_000_000,
+    sample_period_s: float = 1e-3,
+    data_bitrate: int | None = None,
 ) -> ScheduleLoad:
     """Worst-case load of ``bus``'s cyclic frames at ``bitrate``.
 
@@ -38,6 +44,8 @@ def schedule_load(
     """
     if bitrate <= 0:
         raise ValueError(f"bitrate must be > 0, got {bitrate}")
+    if data_bitrate is not None and data_bitrate <= 0:
+        raise ValueError(f"data bitrate must be > 0, got {data_bitrate}")
     frames = []
     load = 0.0
     for msg in database(bus).messages:
@@ -45,7 +53,14 @@ def schedule_load(
         if not cycle_ms:
             continue
         period = cycle_ms * sample_period_s
-        bits = worst_case_frame_bits(msg.length, msg.is_extended_frame)
+        if msg.is_fd:
+            brs = data_bitrate is not None
+            fd_bits = worst_case_fd_frame_bits(msg.length, msg.is_extended_frame, brs=brs)
+            bits = fd_bits.total
+            seconds = fd_bits.seconds(bitrate, data_bitrate or bitrate)
+        else:
+            bits = worst_case_frame_bits(msg.length, msg.is_extended_frame)
+            seconds = bits / bitrate
         frames.append((msg.name, bits, period))
-        load += bits / bitrate / period
+        load += seconds / period
     return ScheduleLoad(bus, bitrate, tuple(frames), load)

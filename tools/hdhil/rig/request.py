@@ -92,6 +92,17 @@ class RunRequest:
     def firmware(self) -> FirmwareConfig:
         return self.scenario.firmware
 
+    def require_one_joint(self, what: str = "hdhil run") -> None:
+        """Refuse a rig of several joints (:mod:`hdhil.rig.layout`) where only the
+        single-joint rig runs: one-line :class:`ConfigError` naming what takes it."""
+        s = self.scenario
+        if s.is_rig:
+            raise ConfigError(
+                f"scenario {s.name} lays out {len(s.joints)} joint(s) on "
+                f"{len(s.buses)} bus(es): {what} emulates the single-joint rig only; "
+                f"hdhil plan and hdhil dbc export --scenario take this layout"
+            )
+
     @property
     def name(self) -> str:
         return self.scenario.name

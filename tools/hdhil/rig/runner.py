@@ -145,6 +145,7 @@ def plan_run(
             f"run_lockstep takes a RunRequest (hdhil.rig.request.resolve), got "
             f"{type(request).__name__}"
         )
+    request.require_one_joint("a run")
     Ts = request.sample_period_s
     load = schedule_load("control", request.bitrate, Ts)
     if load.worst_case_load > 1.0:

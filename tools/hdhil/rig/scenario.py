@@ -28,6 +28,7 @@ from hdhil.core.files import load_toml, shipped_or_path
 from hdhil.firmware.config import FirmwareConfig, Law
 from hdhil.hostsim.plant import PlantConfig, check_step
 from hdhil.rig.faults import FaultConfig
+from hdhil.rig.layout import BusSpec, JointSpec, RobotSpec, parse_buses, parse_joints
 
 __all__ = [
     "BusConfig",
@@ -41,7 +42,7 @@ __all__ = [
     "scenario_from_dict",
 ]
 
-_TOP_LEVEL = ("scenario", "plant", "firmware", "faults", "bus", "link")
+_TOP_LEVEL = ("scenario", "plant", "firmware", "faults", "bus", "link", "buses", "joints", "robot")
 
 #: What an evaluation can score: the torque-ripple filter against the true torque, and
 #: the torque-control law's tracking of its desired torque ([Vertechy]).
@@ -93,6 +94,20 @@ class Scenario:
     link: LinkConfig = field(default_factory=LinkConfig)
     #: What the evaluation scores; empty = by the law (:attr:`scored`).
     scores: tuple[Score, ...] = ()
+    #: A rig of several joints (:mod:`hdhil.rig.layout`): its named buses (empty: the one
+    #: bus of ``bus``), its joints (empty: the one joint of ``plant`` and ``firmware``),
+    #: the URDF they come from (None: none) and each joint's merged configuration.
+    buses: tuple[tuple[str, BusSpec], ...] = ()
+    joints: tuple[JointSpec, ...] = ()
+    robot: RobotSpec | None = None
+    joint_configs: tuple[tuple[PlantConfig, FirmwareConfig], ...] = field(
+        default=(), compare=False, repr=False
+    )
+
+    @property
+    def is_rig(self) -> bool:
+        """Whether the scenario lays out a rig of its own (``[joints]`` or ``[robot]``)."""
+        return bool(self.joints)
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip():
@@ -116,13 +131,18 @@ class Scenario:
         if not isinstance(self.plant, PlantConfig):
             raise ValueError(f"plant must be a PlantConfig, got {self.plant!r}")
         check_step(self.plant, self.firmware.sample_period_s)
-        control = self.firmware.control
-        if control.active and control.delay_samples != actuation_delay(self.link.actuation):
-            raise ValueError(
-                f"firmware.control.delay_samples = {control.delay_samples} does not match "
-                f"link.actuation = {self.link.actuation!r} (delay_samples = "
-                f"{actuation_delay(self.link.actuation)}; --actuation sets both)"
-            )
+        firmwares = [("firmware", self.firmware)] + [
+            (f"joints.{j.name}.firmware", fw)
+            for j, (_, fw) in zip(self.joints, self.joint_configs, strict=False)
+        ]
+        for where, fw in firmwares:
+            control = fw.control
+            if control.active and control.delay_samples != actuation_delay(self.link.actuation):
+                raise ValueError(
+                    f"{where}.control.delay_samples = {control.delay_samples} does not match "
+                    f"link.actuation = {self.link.actuation!r} (delay_samples = "
+                    f"{actuation_delay(self.link.actuation)}; --actuation sets both)"
+                )
 
     @property
     def scored(self) -> tuple[Score, ...]:
@@ -194,23 +214,56 @@ def scenario_from_dict(data: dict[str, Any], source: str = "scenario") -> Scenar
             if not isinstance(faults_data, dict):
                 raise ConfigError(f"faults: expected a table, got {faults_data!r}")
             faults = from_dict(FaultConfig, faults_data, "faults")
+        plant_data, firmware_data = _table(data, "plant"), _table(data, "firmware")
+        robot = None
+        if "robot" in data:
+            robot_data = _table(data, "robot")
+            if "urdf" not in robot_data:
+                raise ConfigError("missing key robot.urdf")
+            robot = from_dict(RobotSpec, robot_data, "robot")
+        buses: tuple[tuple[str, BusSpec], ...] = ()
+        joints: tuple[JointSpec, ...] = ()
+        if any(key in data for key in ("buses", "joints", "robot")):
+            buses = parse_buses(data.get("buses"), _table(data, "bus"))
+            joints = parse_joints(data.get("joints"), buses, robot)
+            if not joints:
+                raise ConfigError("joints: a rig needs joints ([joints.NAME] or [robot] urdf)")
+        joint_configs = tuple(_joint_config(j, plant_data, firmware_data) for j in joints)
         return Scenario(
             name=header.name,
             description=header.description,
             duration_s=header.duration_s,
             seed=header.seed,
-            plant=from_dict(PlantConfig, _table(data, "plant"), "plant"),
-            firmware=from_dict(FirmwareConfig, _table(data, "firmware"), "firmware"),
+            plant=from_dict(PlantConfig, plant_data, "plant"),
+            firmware=from_dict(FirmwareConfig, firmware_data, "firmware"),
             evaluate_from_s=header.evaluate_from_s,
             faults=faults,
             bus=from_dict(BusConfig, _table(data, "bus"), "bus"),
             link=from_dict(LinkConfig, _table(data, "link"), "link"),
             scores=header.scores,
+            buses=buses,
+            joints=joints,
+            robot=robot,
+            joint_configs=joint_configs,
         )
     except ConfigError as exc:
         raise ConfigError(f"{source}: {exc}") from None
     except ValueError as exc:  # Scenario.__post_init__
         raise ConfigError(f"{source}: {exc}") from None
+
+
+def _joint_config(
+    joint: JointSpec, plant: dict[str, Any], firmware: dict[str, Any]
+) -> tuple[PlantConfig, FirmwareConfig]:
+    """A joint's plant and firmware: its own keys deep-merged over the scenario's."""
+    where = f"joints.{joint.name}"
+    plant_cfg = from_dict(PlantConfig, merge(plant, joint.plant_overrides), f"{where}.plant")
+    fw = from_dict(FirmwareConfig, merge(firmware, joint.firmware_overrides), f"{where}.firmware")
+    try:
+        check_step(plant_cfg, fw.sample_period_s)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    return plant_cfg, fw
 
 
 def scenario_data(scenario: Scenario) -> dict[str, Any]:
@@ -234,6 +287,16 @@ def scenario_data(scenario: Scenario) -> dict[str, Any]:
     }
     if scenario.faults is not None:
         data["faults"] = to_dict(scenario.faults)
+    if scenario.joints:
+        data["buses"] = {name: to_dict(spec) for name, spec in scenario.buses}
+        # each joint's whole configuration: a mode-dependent default (the ripple filter's
+        # oscillators) must not be read back from the scenario's table under its own mode
+        data["joints"] = {
+            j.name: {**j.to_data(), "plant": to_dict(plant), "firmware": to_dict(fw)}
+            for j, (plant, fw) in zip(scenario.joints, scenario.joint_configs, strict=True)
+        }
+    if scenario.robot is not None:
+        data["robot"] = to_dict(scenario.robot)
     return data
 
 
@@ -260,6 +323,10 @@ def scenario_file_data(
         data = load_toml(path, "scenario file")
     except UserError as exc:
         raise ConfigError(str(exc)) from None
+    robot = data.get("robot")
+    if isinstance(robot, dict) and isinstance(robot.get("urdf"), str):
+        # a URDF is named relative to the file that names it
+        data = {**data, "robot": {**robot, "urdf": str(path.parent / robot["urdf"])}}
     header = data.get("scenario")
     if not isinstance(header, dict) or "base" not in header:
         return path, data

@@ -131,6 +131,7 @@ class StandaloneDrive:
         truth: can.BusABC | None,
         injector: FaultInjector,
     ) -> None:
+        request.require_one_joint("hdhil emulate")
         config = DriveConfig(sample_period_s=request.firmware.sample_period_s)
         self.injector = injector
         self.bus = _with_faults(bus, injector, "control", config.node_id)
@@ -183,6 +184,7 @@ class StandaloneController:
         injector: FaultInjector,
         boot_timeout_s: float,
     ) -> None:
+        request.require_one_joint("hdhil firmware")
         self.request = request
         self.injector = injector
         self.bus = _with_faults(bus, injector, "control", CONTROLLER_NODE_ID)

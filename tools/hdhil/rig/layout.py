@@ -1,0 +1,288 @@
+"""A rig of several joints as scenario data: named buses, joints and an optional URDF.
+
+A scenario describes one joint on one bus with ``[plant]``, ``[firmware]`` and ``[bus]``.
+A rig of several adds three tables (``docs/reference/scenario-keys.md``):
+
+- ``[buses.NAME]``: each CAN bus, its bit rate, classical or FD (``fd``, and
+  ``data_bitrate`` for bit-rate switching), and the node-ID of the controller node that
+  produces its SYNC. Keys not given come from ``[bus]``.
+- ``[joints.NAME]``: each joint, the bus it sits on and its drive's node-ID, plus
+  ``plant`` and ``firmware`` sub-tables deep-merged over the scenario's own (gear ratio,
+  stiffness, ripple, sensor, filter, law and gains per joint).
+- ``[robot] urdf``: a URDF file (a path relative to the scenario file). Its revolute and
+  continuous joints are the rig's joints, in the file's order; ``[joints.NAME]`` tables
+  override them by URDF joint name, and a joint type hdhil cannot emulate is a one-line
+  error. Fixed joints are not actuated (they join their links).
+
+Node-IDs not given are the lowest free ones on the bus from 2 (the controller is 1, as in
+the single-joint rig); a joint without ``bus`` sits on the only bus, and must name one
+when there are several. Each joint's PDO COB-IDs follow from its node-ID (CiA 301's
+predefined connection set). Everything here is validated when the scenario loads, so a
+mistake is one :class:`~hdhil.core.dataconf.ConfigError` naming the key.
+"""
+
+from __future__ import annotations
+
+import re
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from hdhil.core.dataconf import ConfigError, from_dict, merge
+
+__all__ = [
+    "BusSpec",
+    "JointSpec",
+    "RobotSpec",
+    "UrdfJoint",
+    "urdf_joints",
+]
+
+#: The bus of a single-joint scenario (``[bus]``): the name its frames carry in traces.
+DEFAULT_BUS = "control"
+#: The joint of a single-joint scenario.
+DEFAULT_JOINT = "joint"
+#: URDF joint types hdhil gives an actuator.
+ACTUATED_TYPES = ("revolute", "continuous")
+#: URDF joint types that join two links rigidly.
+PASSIVE_TYPES = ("fixed",)
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]*$")
+
+
+@dataclass(frozen=True)
+class BusSpec:
+    """One CAN bus of the rig (``[buses.NAME]``)."""
+
+    #: Nominal (arbitration-phase) bit rate, bit/s.
+    bitrate: int = 1_000_000
+    #: CAN FD frames (ISO 11898-1:2015) instead of classical ones.
+    fd: bool = False
+    #: FD data-phase bit rate with bit-rate switching, bit/s; 0: no switching.
+    data_bitrate: int = 0
+    #: The node-ID of the controller node on this bus (NMT master and SYNC producer).
+    controller_node_id: int = 1
+
+    def __post_init__(self) -> None:
+        if isinstance(self.bitrate, bool) or not 10_000 <= self.bitrate <= 8_000_000:
+            raise ValueError(f"bitrate must be 10000..8000000 bit/s, got {self.bitrate!r}")
+        if not isinstance(self.fd, bool):
+            raise ValueError(f"fd must be true or false, got {self.fd!r}")
+        if self.data_bitrate:
+            if not self.fd:
+                raise ValueError("data_bitrate needs fd = true (bit-rate switching is CAN FD)")
+            if isinstance(self.data_bitrate, bool) or not (
+                self.bitrate <= self.data_bitrate <= 12_000_000
+            ):
+                raise ValueError(
+                    f"data_bitrate must be bitrate..12000000 bit/s, got {self.data_bitrate!r}"
+                )
+        _check_node_id(self.controller_node_id, "controller_node_id")
+
+
+@dataclass(frozen=True)
+class JointSpec:
+    """One joint of the rig: its bus, its drive's node-ID, and the scenario's ``[plant]``
+    and ``[firmware]`` tables with the joint's own keys merged over them (plain data,
+    validated into :class:`~hdhil.hostsim.plant.PlantConfig` and
+    :class:`~hdhil.firmware.config.FirmwareConfig` by the scenario)."""
+
+    name: str
+    bus: str
+    node_id: int
+    #: The joint's own ``plant`` and ``firmware`` keys (what ``[joints.NAME]`` gave).
+    plant_overrides: dict[str, Any] = field(default_factory=dict, compare=False)
+    firmware_overrides: dict[str, Any] = field(default_factory=dict, compare=False)
+
+    def to_data(self) -> dict[str, Any]:
+        """The ``[joints.NAME]`` table of this joint (without its name)."""
+        data: dict[str, Any] = {"bus": self.bus, "node_id": self.node_id}
+        if self.plant_overrides:
+            data["plant"] = self.plant_overrides
+        if self.firmware_overrides:
+            data["firmware"] = self.firmware_overrides
+        return data
+
+
+@dataclass(frozen=True)
+class JointTable:
+    """One joint of the rig (``[joints.NAME]``): its bus, its drive's node-ID, and its own
+    plant and firmware keys (:func:`parse_joints` reads the table)."""
+
+    #: The bus the joint sits on (a ``[buses.NAME]``); may be left out with one bus.
+    bus: str = ""
+    #: The drive's CANopen node-ID; 0: the lowest free one on its bus from 2.
+    node_id: int = 0
+    #: The joint's own ``[plant]`` keys, merged over the scenario's (same layout).
+    plant: dict[str, Any] = field(default_factory=dict)
+    #: The joint's own ``[firmware]`` keys, merged over the scenario's (same layout).
+    firmware: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class UrdfJoint:
+    """A joint of a URDF file: its name, type, and the links it connects."""
+
+    name: str
+    type: str
+    parent: str
+    child: str
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """``[robot]``: the URDF whose actuated joints are the rig's joints."""
+
+    #: The URDF file (resolved against the scenario file when it loads).
+    urdf: str
+
+    @property
+    def joints(self) -> tuple[UrdfJoint, ...]:
+        return urdf_joints(Path(self.urdf))
+
+
+def _check_node_id(value: Any, key: str) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 127:
+        raise ValueError(f"{key} must be a CANopen node-ID 1..127, got {value!r}")
+
+
+def urdf_joints(path: Path) -> tuple[UrdfJoint, ...]:
+    """The joints of a URDF file, in file order; a type hdhil cannot emulate (prismatic,
+    floating, planar) raises :class:`ConfigError` naming the joint."""
+    try:
+        root = ET.parse(path).getroot()
+    except FileNotFoundError:
+        raise ConfigError(f"robot.urdf: no such file: {path}") from None
+    except (OSError, ET.ParseError) as exc:
+        raise ConfigError(f"robot.urdf: cannot read {path}: {exc}") from None
+    if root.tag != "robot":
+        raise ConfigError(f"robot.urdf: {path} is not a URDF file (root <{root.tag}>)")
+    joints = []
+    for element in root.findall("joint"):
+        name = element.get("name", "")
+        kind = element.get("type", "")
+        if kind not in ACTUATED_TYPES + PASSIVE_TYPES:
+            raise ConfigError(
+                f"robot.urdf: joint {name!r} is {kind!r}; hdhil emulates revolute and "
+                "continuous joints (and fixed ones as rigid)"
+            )
+        parent, child = element.find("parent"), element.find("child")
+        joints.append(
+            UrdfJoint(
+                name,
+                kind,
+                parent.get("link", "") if parent is not None else "",
+                child.get("link", "") if child is not None else "",
+            )
+        )
+    return tuple(joints)
+
+
+def parse_buses(buses: Any, bus_defaults: dict[str, Any]) -> tuple[tuple[str, BusSpec], ...]:
+    """``[buses.NAME]`` tables (None: the one bus of ``[bus]``) as (name, spec) pairs."""
+    if buses is None:
+        return ((DEFAULT_BUS, from_dict(BusSpec, _bus_keys(bus_defaults), "bus")),)
+    if not isinstance(buses, dict) or not buses:
+        raise ConfigError(f"buses: expected a table of named buses, got {buses!r}")
+    out = []
+    for name, table in buses.items():
+        if not _NAME.match(name):
+            raise ConfigError(f"buses.{name}: a bus name is letters, digits, _ . -")
+        if not isinstance(table, dict):
+            raise ConfigError(f"buses.{name}: expected a table, got {table!r}")
+        out.append((name, from_dict(BusSpec, merge(_bus_keys(bus_defaults), table),
+                                    f"buses.{name}")))  # fmt: skip
+    return tuple(out)
+
+
+def _bus_keys(bus: dict[str, Any]) -> dict[str, Any]:
+    """What ``[bus]`` passes on to every named bus (its bit rate)."""
+    return {k: v for k, v in bus.items() if k == "bitrate"}
+
+
+def parse_joints(
+    joints: Any,
+    buses: tuple[tuple[str, BusSpec], ...],
+    robot: RobotSpec | None,
+) -> tuple[JointSpec, ...]:
+    """``[joints.NAME]`` tables (with the URDF's actuated joints, if any) as specs in
+    order: the URDF's order, else the tables' order. Empty: a single-joint scenario."""
+    if joints is None:
+        joints = {}
+    if not isinstance(joints, dict):
+        raise ConfigError(f"joints: expected a table of named joints, got {joints!r}")
+    names = list(joints)
+    if robot is not None:
+        actuated = [j.name for j in robot.joints if j.type in ACTUATED_TYPES]
+        if not actuated:
+            raise ConfigError(f"robot.urdf: {robot.urdf} has no revolute or continuous joint")
+        unknown = [n for n in names if n not in actuated]
+        if unknown:
+            raise ConfigError(
+                f"joints.{unknown[0]}: the URDF has no actuated joint of that name "
+                f"(it has: {', '.join(actuated)})"
+            )
+        names = actuated
+    if not names:
+        return ()
+    bus_names = [name for name, _ in buses]
+    specs = dict(buses)
+    taken: dict[str, set[int]] = {b: {specs[b].controller_node_id} for b in bus_names}
+    chosen: list[tuple[str, str, int | None, dict[str, Any]]] = []
+    for name in names:
+        if not _NAME.match(name):
+            raise ConfigError(f"joints.{name}: a joint name is letters, digits, _ . -")
+        table = joints.get(name, {})
+        if not isinstance(table, dict):
+            raise ConfigError(f"joints.{name}: expected a table, got {table!r}")
+        unknown_keys = sorted(set(table) - {"bus", "node_id", "plant", "firmware"})
+        if unknown_keys:
+            raise ConfigError(
+                f"unknown key joints.{name}.{unknown_keys[0]} "
+                "(known: bus, firmware, node_id, plant)"
+            )
+        bus = table.get("bus") or None
+        if bus is None:
+            if len(bus_names) > 1:
+                raise ConfigError(
+                    f"joints.{name}.bus: the rig has buses {', '.join(bus_names)}; "
+                    "say which one this joint sits on"
+                )
+            bus = bus_names[0]
+        if bus not in specs:
+            raise ConfigError(f"joints.{name}.bus: no bus {bus!r} (buses: {', '.join(bus_names)})")
+        node_id = table.get("node_id")
+        if node_id == 0 and not isinstance(node_id, bool):  # 0: the lowest free one
+            node_id = None
+        if node_id is not None:
+            try:
+                _check_node_id(node_id, f"joints.{name}.node_id")
+            except ValueError as exc:
+                raise ConfigError(str(exc)) from None
+            if node_id in taken[bus]:
+                raise ConfigError(
+                    f"joints.{name}.node_id: node-ID {node_id} is already taken on bus {bus}"
+                )
+            taken[bus].add(node_id)
+        chosen.append((name, bus, node_id, table))
+    out = []
+    for name, bus, node_id, table in chosen:
+        if node_id is None:  # the lowest free node-ID on the bus
+            free = next((n for n in range(2, 128) if n not in taken[bus]), None)
+            if free is None:
+                raise ConfigError(f"joints.{name}: bus {bus} has no free node-ID left")
+            taken[bus].add(free)
+            node_id = free
+        for key in ("plant", "firmware"):
+            if not isinstance(table.get(key, {}), dict):
+                raise ConfigError(f"joints.{name}.{key}: expected a table")
+        out.append(
+            JointSpec(
+                name,
+                bus,
+                node_id,
+                dict(table.get("plant", {})),
+                dict(table.get("firmware", {})),
+            )
+        )
+    return tuple(out)
