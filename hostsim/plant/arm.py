@@ -108,7 +108,10 @@ class ArmPlant:
         self._gain = col([a.gain_A_per_V for a in amps])
         self._ilim = col([a.current_limit_A for a in amps])
         self._lag = col([a.current_lag_s for a in amps])
-        self._kt = col([c.max_motor_torque_Nm / c.amplifier.current_limit_A for c in joints])
+        # N Kt: motor torque at the output per A
+        self._kt = col(
+            [d.gear_ratio * a.torque_constant_Nm_per_A for d, a in zip(dts, amps, strict=True)]
+        )
         self._jm = col([d.J_motor for d in dts])
         self._bm = col([d.b_motor for d in dts])
         self._cm = col([d.coulomb_motor for d in dts])
@@ -250,7 +253,7 @@ class ArmPlant:
         profiles = self._profiles if any(p is not None for p in self._profiles) else None
         t0 = self._t
         for j in range(self._substeps):
-            f = link.free_torques(q, wl, wrenches) + loads
+            f = link.free_torques(q + a * wl, wl, wrenches) + loads
             if profiles is not None:
                 f += [0.0 if p is None else p(t0 + j * h) for p in profiles]
             tm = kt * (i_cmd + (i - i_cmd) * mean)  # the exact mean current over h
