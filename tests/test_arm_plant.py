@@ -20,6 +20,7 @@ from hdhil.hostsim.plant import (
     AmplifierConfig,
     DriveTrainConfig,
     GravityConfig,
+    LoadTorqueConfig,
     NonFiniteStateError,
     Plant,
     PlantConfig,
@@ -210,7 +211,8 @@ def _held_arm(tmp_path: Path, sign: float) -> tuple[ArmPlant, np.ndarray, np.nda
 def test_two_joint_arm_holds_against_gravity(tmp_path: Path) -> None:
     """Motors supplying the gravity torques hold a frictionless two-joint arm where it is
     (static equilibrium): over 0.5 s nothing moves beyond round-off; the truth says
-    gravity is balanced by the flexsplines ([Vertechy]'s sign: tau_g = -gravity)."""
+    gravity is balanced by the flexsplines ([Vertechy]'s sign: tau_g = -gravity).  Load
+    torques at the outputs equal to the gravity torques hold it too, motors off."""
     arm, q0, volts = _held_arm(tmp_path, 1.0)
     for _ in range(500):
         arm.advance(volts, DT)
@@ -220,6 +222,17 @@ def test_two_joint_arm_holds_against_gravity(tmp_path: Path) -> None:
         truth = arm.truth(k)
         assert truth.T_true_Nm == pytest.approx(-truth.tau_g_Nm, rel=1e-9)
         assert abs(truth.link_acceleration_radps2) < 1e-6
+    # load torques at the outputs (one held, one a profile) hold it as well, motors off
+    link = arm.link
+    hold = link.gravity(q0)
+    cfg = _frictionless(PlantConfig(), c_flex=5.0)
+    profile = replace(cfg, load=LoadTorqueConfig(kind="constant", bias_Nm=float(hold[1])))
+    loaded = ArmPlant(link, [cfg, profile], [1, 2], q0=q0)
+    loaded.set_load_torque(0, float(hold[0]))
+    for _ in range(200):
+        loaded.advance([0.0, 0.0], DT)
+    assert np.abs(loaded.q - q0).max() < 1e-12
+    assert [loaded.truth(k).tau_l_Nm for k in range(2)] == pytest.approx(hold, rel=1e-12)
     # the same arm with its motors pushing the wrong way falls
     arm, q0, volts = _held_arm(tmp_path, -1.0)
     for _ in range(100):
@@ -262,9 +275,11 @@ def test_coupling_is_stable_at_1_ms(robot: str, substeps: int) -> None:
     from a pose where gravity pulls every joint, the motors off: the arm is passive (the
     flexspline damper and the motor friction only take energy out), so the energy of
     motors, springs and links must never rise above its start, and the flexspline
-    vibrations must die out (the twist settles to what gravity loads it with).  With one
-    sub-step the wrist's joint mode (about 1.3e3 rad/s against the 3.8e-3 kg m² of its
-    link) is past an explicit step's ``omega h < 2``."""
+    vibrations must die out (the twist settles to what gravity loads it with).  At this
+    pose the Panda wrist's link has 4.7e-3 kg m² (the smallest eigenvalue of ``M``), so
+    with one sub-step an explicit step is past its bounds (the joint mode at 1.2e3 rad/s
+    is within ``omega h < 2``, but the damper's rate ``c / lambda_min`` is 2.5e3 /s,
+    ``c h`` = 2.5 > 2): an explicit coupling fails this case, the trapezoidal one not."""
     link = LinkDynamics.from_urdf(shipped_robot(robot))
     cfg = replace(_ag1(), substeps=substeps)
     n = link.size
