@@ -183,21 +183,12 @@ class ArmPlant:
             self.link.external_torques(self._q, self._wrenches)  # an unknown link: now
         self._link_truth = None
 
-    def _constants(self, dt: float) -> tuple[np.ndarray, ...]:
-        """Per-joint coefficients of the sub-step (module docstring) for steps of ``dt``."""
+    def _constants(self, dt: float) -> _StepConstants:
+        """What the sub-steps of a step of ``dt`` share whatever the pose
+        (:class:`_StepConstants`)."""
         c = self._consts.get(dt)
         if c is None:
-            h = dt / self._substeps
-            a = 0.5 * h
-            kac = self._k * a + self._c
-            dm = self._jm + a * (kac + self._bm)
-            beta = a * kac / dm
-            diag = a * self._bl + a * kac * (1.0 - beta)
-            lag = self._lag
-            with np.errstate(divide="ignore"):
-                decay = np.where(lag > 0.0, np.exp(-h / np.where(lag > 0, lag, 1.0)), 0.0)
-                mean = np.where(lag > 0.0, lag / h * (1.0 - decay), 0.0)
-            c = (np.array(h), np.array(a), kac, dm, beta, diag, decay, mean)
+            c = _StepConstants(self, dt)
             if len(self._consts) >= 16:
                 self._consts.clear()
             self._consts[dt] = c
@@ -241,39 +232,46 @@ class ArmPlant:
             raise ValueError(
                 f"advance needs dt > 0 and {self.size} numbers of volts, got {volts!r}"
             )
-        h, a, kac, dm, beta, diag, decay, mean = self._constants(dt)
+        c = self._constants(dt)
+        n, a, h = self.size, c.a, c.h
         link, wrenches = self.link, self._wrenches
         i_cmd = np.clip(self._gain * u, -self._ilim, self._ilim)
-        d, wm, wl, i, q = self._d, self._wm, self._wl, self._i, self._q
-        mass = link.mass_matrix(q)  # held over the step
-        s_inv = np.linalg.inv(mass + np.diag(diag))
-        k, jm, kt = self._k, self._jm, self._kt
-        two_jm, h_k, two_a_k, a_kac = 2.0 * jm, h * k, 2.0 * a * k, a * kac
+        # the sub-step map with M(q) held: x+ = phi @ [x, tau_m, f], x = [d, w_m, w_l, q]
+        mass = link.mass_matrix(self._q)
+        rhs = c.rhs0.copy()
+        rhs[:, 2 * n : 3 * n] = 2.0 * mass
+        sig_l = np.linalg.inv(mass + c.diag) @ rhs
+        phi = c.phi0 + c.rows * sig_l[c.tiled]
+        # the motor torque of each sub-step: the exact mean of the lagging current
+        i_gap = self._i - i_cmd
+        torques = self._kt * (i_cmd + i_gap * c.current_means)
+        z = np.concatenate([self._d, self._wm, self._wl, self._q, self._kt, self._kt])
+        wm, wl, q = z[n : 2 * n], z[2 * n : 3 * n], z[3 * n : 4 * n]
         loads = self._tau_load
         profiles = self._profiles if any(p is not None for p in self._profiles) else None
+        coulomb, cm, cl, inv_eps = self._coulomb, self._cm, self._cl, self._inv_eps
         t0 = self._t
         for j in range(self._substeps):
+            # gravity, Coriolis and wrenches at the sub-step's predicted midpoint
             f = link.free_torques(q + a * wl, wl, wrenches) + loads
             if profiles is not None:
                 f += [0.0 if p is None else p(t0 + j * h) for p in profiles]
-            tm = kt * (i_cmd + (i - i_cmd) * mean)  # the exact mean current over h
-            if self._coulomb:
-                tm -= self._cm * np.tanh(wm * self._inv_eps)
-                f -= self._cl * np.tanh(wl * self._inv_eps)
-            alpha = (two_jm * wm - two_a_k * d + h * tm) / dm
-            sig_l = s_inv @ (mass @ (2.0 * wl) + h_k * d + a_kac * alpha + h * f)
-            sig_m = alpha + beta * sig_l
-            d = d + a * (sig_m - sig_l)
-            wm = sig_m - wm
-            wl = sig_l - wl
-            q = q + a * sig_l
-            i = i_cmd + (i - i_cmd) * decay
-        state = (d, wm, wl, i, q)
-        if not all(np.isfinite(x).all() for x in state):
-            names = ("twist", "motor velocity", "link velocity", "current", "link angle")
-            bad = tuple(nm for nm, x in zip(names, state, strict=True) if not np.isfinite(x).all())
+            if coulomb:
+                z[4 * n : 5 * n] = torques[j] - cm * np.tanh(wm * inv_eps)
+                z[5 * n :] = f - cl * np.tanh(wl * inv_eps)
+            else:
+                z[4 * n : 5 * n] = torques[j]
+                z[5 * n :] = f
+            z[: 4 * n] = phi @ z
+        x = z[: 4 * n].copy()
+        i = i_cmd + i_gap * c.current_decay
+        if not (np.isfinite(x).all() and np.isfinite(i).all()):
+            names = ("twist", "motor velocity", "link velocity", "link angle", "current")
+            parts = (*(x[r * n : (r + 1) * n] for r in range(4)), i)
+            bad = tuple(nm for nm, v in zip(names, parts, strict=True) if not np.isfinite(v).all())
             raise NonFiniteStateError(self._t + dt, bad)
-        self._d, self._wm, self._wl, self._i, self._q = state
+        self._d, self._wm, self._wl, self._q = x[:n], x[n : 2 * n], x[2 * n : 3 * n], x[3 * n :]
+        self._i = i
         self._i_cmd = i_cmd
         self._volts = u
         y = dt - self._t_carry
@@ -364,6 +362,57 @@ class ArmPlant:
         """A copy of the (N, 5) state: twist, reduced motor velocity, link velocity,
         current, link angle (:attr:`PlantBank.state`'s columns)."""
         return np.stack([self._d, self._wm, self._wl, self._i, self._q], axis=1)
+
+
+class _StepConstants:
+    """The parts of :class:`ArmPlant`'s sub-step that depend on the step, not the pose.
+
+    Per joint, with ``a = h / 2`` and ``g = a (k a + c)``, the trapezoidal rule over a
+    sub-step ``h`` eliminates the motor side: ``sigma_m = alpha + beta sigma_l`` with
+    ``alpha = (2 J_m w_m - 2 a k d + h tau_m) / D``, ``D = J_m + a (k a + c + b_m)``,
+    ``beta = g / D``, and ``(M + diag(a b_l + g (1 - beta))) sigma_l = 2 M w_l + (h k -
+    2 a g k / D) d + (2 g J_m / D) w_m + (g h / D) tau_m + h f``, where ``sigma = w +
+    w+`` (a velocity before plus after the sub-step), ``tau_m`` the motor's torque
+    (current and Coulomb friction) and ``f`` the held link torques; then ``d+ = d + a
+    (sigma_m - sigma_l)``, ``w+ = sigma - w``, ``q+ = q + a sigma_l``.  All linear in
+    ``z = [d, w_m, w_l, q, tau_m, f]``: ``x+ = phi z`` with ``phi = phi0 + rows *
+    [sigma_l; sigma_l; sigma_l; sigma_l]``, ``sigma_l = (M + diag)^-1 rhs``, where only
+    ``rhs``'s ``w_l`` columns (``2 M``) depend on the pose.
+    """
+
+    def __init__(self, arm: ArmPlant, dt: float) -> None:
+        n, s = arm.size, arm._substeps
+        self.h = h = dt / s
+        self.a = a = 0.5 * h
+        k, jm = arm._k, arm._jm
+        g = a * (k * a + arm._c)
+        dm = jm + a * (k * a + arm._c + arm._bm)
+        beta = g / dm
+        self.diag = np.diag(a * arm._bl + g * (1.0 - beta))
+        eye, zeros = np.eye(n), np.zeros((n, n))
+        # columns: d, w_m, w_l, q, tau_m, f (w_l's 2 M is set per step)
+        self.rhs0 = np.hstack(
+            [eye * (h * k - 2.0 * a * g * k / dm), eye * (2.0 * g * jm / dm), zeros, zeros,
+             eye * (g * h / dm), eye * h]
+        )  # fmt: skip
+        alpha = np.hstack(
+            [eye * (-2.0 * a * k / dm), eye * (2.0 * jm / dm), zeros, zeros, eye * (h / dm),
+             zeros]
+        )  # fmt: skip
+        own = np.eye(4 * n, 6 * n)  # x's own columns, by block of rows
+        block = [own[r * n : (r + 1) * n] for r in range(4)]
+        self.phi0 = np.vstack([block[0] + a * alpha, alpha - block[1], -block[2], block[3]])
+        self.rows = np.concatenate([a * (beta - 1.0), beta, np.ones(n), np.full(n, a)])[:, None]
+        self.tiled = np.tile(np.arange(n), 4)  # sigma_l's rows for the four blocks of x
+        # the current, i(t) = i_cmd + (i0 - i_cmd) exp(-t / lag): its mean over sub-step j
+        # and its value after the step; an ideal amplifier (lag 0) has i = i_cmd
+        lag = arm._lag
+        lagging = lag > 0.0
+        safe = np.where(lagging, lag, 1.0)
+        decay = np.where(lagging, np.exp(-h / safe), 0.0)
+        mean = np.where(lagging, safe / h * (1.0 - decay), 0.0)
+        self.current_means = mean[None, :] * decay[None, :] ** np.arange(s)[:, None]
+        self.current_decay = decay**s
 
 
 class ArmJoint:
