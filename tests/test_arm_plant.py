@@ -243,6 +243,7 @@ def test_two_joint_arm_holds_against_gravity(tmp_path: Path) -> None:
 # ------------------------------------------------------------------ energy
 
 
+@pytest.mark.slow
 def test_unforced_frictionless_arm_keeps_its_energy(tmp_path: Path) -> None:
     """Motors off, no friction, no damping: a swinging two-joint arm on its undamped
     flexsplines has constant energy; the step keeps it within 0.5 % of the potential
@@ -378,3 +379,49 @@ def test_refusals_and_non_finite_state(tmp_path: Path) -> None:
         for _ in range(10):
             arm.advance([0.0, 0.0], DT)
     assert np.all(np.isfinite(arm.state)) and arm.state.shape == state.shape
+
+
+@pytest.mark.slow
+def test_two_drive_nodes_share_one_arm(tmp_path: Path, bus_harness) -> None:
+    """Two CiA 402 drives (node-IDs 2 and 3) on one bus, each around one joint of the
+    arm: at every SYNC the first drive's advance moves the whole arm once with both
+    drives' held inputs (``input_source``), and each drive reads its own joint: its
+    samples are those of a twin arm stepped by hand with the same inputs."""
+    from hdhil.dbc import codec
+    from hdhil.hostsim.drive import DriveConfig, DriveNode
+
+    link = _two_link(tmp_path)
+    cfg = PlantConfig()
+    arm = ArmPlant(link, [cfg, cfg], [5, 6], q0=[0.3, -0.2])
+    twin = ArmPlant(link, [cfg, cfg], [5, 6], q0=[0.3, -0.2])
+    harness = bus_harness("t-arm")
+    drives = [
+        harness.add(DriveNode(harness.bus(), arm.joint(k), DriveConfig(node_id=2 + k)))
+        for k in range(2)
+    ]
+    inputs: list[list[float]] = []
+
+    def held() -> list[float]:
+        inputs.append([d.io.step_V for d in drives])
+        return inputs[-1]
+
+    arm.input_source = held
+    for d in drives:
+        d.boot(0.0)
+    harness.send(0x000, bytes((1, 0)))  # NMT start, all nodes
+    harness.pump()
+    command = codec("control", "DRIVE_RPDO1")
+    for cycle in range(60):
+        harness.tick()
+        harness.send_sync()
+        harness.pump()
+        cw = (0x06, 0x07, 0x0F)[min(cycle, 2)]
+        harness.send(0x202, command.encode(600, cw, cycle & 0xFF))
+        harness.pump()
+        harness.k += 1
+        if cycle:  # the first SYNC marks t(0)
+            twin.advance(inputs[-1], DT)
+        assert [d.io.sample for d in drives] == [twin.sample(0), twin.sample(1)]
+    assert len(inputs) == 59 and arm.time == pytest.approx(59 * DT)
+    assert inputs[-1] == [2.9296875, 2.9296875]  # both enabled (one command ID for both)
+    assert arm.truth(0) == twin.truth(0)
