@@ -246,9 +246,10 @@ def test_two_joint_arm_holds_against_gravity(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_unforced_frictionless_arm_keeps_its_energy(tmp_path: Path) -> None:
     """Motors off, no friction, no damping: a swinging two-joint arm on its undamped
-    flexsplines has constant energy; the step keeps it within 0.5 % of the potential
-    energy's span (measured 0.1 %) over 2 s, and shows no growth (the last
-    quarter's error no larger than twice the first quarter's)."""
+    flexsplines has constant energy; the step keeps it within 1e-4 of the potential
+    energy's span over 2 s (measured 1.2e-5; with gravity taken at the start of each
+    sub-step instead of its predicted midpoint the energy drifts, 6e-4 after 2 s and
+    growing linearly)."""
     link = _two_link(tmp_path)
     cfg = replace(_frictionless(PlantConfig()), amplifier=AmplifierConfig(current_lag_s=0.0))
     q0 = np.array([1.2, -0.6])
@@ -261,8 +262,7 @@ def test_unforced_frictionless_arm_keeps_its_energy(tmp_path: Path) -> None:
         errors.append(abs(_arm_energy(arm, _two_link_potential(arm.q)) - e0) / span)
         speed = max(speed, float(np.abs(arm.qd).max()))
     assert speed > 2.0  # it swings
-    assert max(errors) < 5e-3
-    assert max(errors[1500:]) < 2.0 * max(max(errors[:500]), 1e-4)
+    assert max(errors) < 1e-4
 
 
 # ------------------------------------------------------------------ the shipped arms

@@ -10,21 +10,23 @@ torques, ``tau_f`` the output bearings' friction, ``w`` external wrenches.
 
 Coupling.  The flexspline is stiff: ``k`` 6.3e3-1e4 Nm/rad against link inertias down to
 the 4e-3 kg m² of a Panda wrist (the smallest eigenvalue of ``M``) puts the joint mode
-near ``sqrt(k / lambda_min(M))`` = 1.3e3-1.6e3 rad/s, so an explicit step of ``h``
-needs ``omega h < 2`` and 1 ms is past it.  Each step of ``dt`` is therefore split
-into ``plant.substeps`` sub-steps ``h``; ``M(q)`` is evaluated once per step and held
-over it, ``b(q, qd) - J^T w`` and the Coulomb frictions once per sub-step and held over
-it (as :class:`Plant` holds gravity and friction), and the linear rest (spring, damper,
-viscous friction, both inertias) is integrated by the trapezoidal rule, solved exactly
-for the new velocities: per joint the motor side is eliminated, leaving one N x N
-symmetric positive-definite system ``(M + diag(s)) sigma = r`` per sub-step, its
-inverse formed once per step.  The current follows its first-order lag exactly.
+near ``sqrt(k / lambda_min(M))`` = 1.2e3-1.6e3 rad/s and the damper's rate ``c /
+lambda_min(M)`` past 2e3 /s, so an explicit step of 1 ms (``omega h < 2``, ``c h /
+lambda_min < 2``) fails.  Each step of ``dt`` is split into ``plant.substeps`` sub-steps
+``h``.  ``M(q)`` is evaluated once per step and held over it; gravity, Coriolis and
+external wrenches (``LinkDynamics.free_torques``) once per sub-step at its predicted
+midpoint ``q + h qd / 2`` (which keeps an unforced arm's energy bounded where the value
+at the start lets it drift), the Coulomb frictions at its start, as :class:`Plant`
+does; the linear rest (spring, damper, viscous friction, both inertias) is integrated
+by the trapezoidal rule, solved exactly: the motor sides eliminated, one N x N
+symmetric positive-definite system per step gives the sub-step as one affine map
+(:class:`_StepConstants`).  The current follows its first-order lag exactly.
 Stability condition: the trapezoidal rule is A-stable, so with ``M`` held the linear
-part (passive: every eigenvalue has ``Re <= 0``) is stable for any ``k`` and ``h``; what
-remains explicit has the bounds of :mod:`.stability`: the held Coulomb frictions need
-``h C_m / (eps J_m) <= 2`` and ``h C_l / (eps lambda_min(M)) <= 2``, and the held
-configuration terms need ``h`` far below the links' own time scales (gravity and
-Coriolis, tens of rad/s).  The trapezoidal rule warps the joint mode's frequency by
+part (passive: every eigenvalue has ``Re <= 0``) is stable for any ``k``, ``c`` and
+``h``; what stays explicit has :mod:`.stability`'s bound for held Coulomb friction,
+``h C_m / (eps J_m) <= 2`` and ``h C_l / (eps lambda_min(M)) <= 2``
+(:meth:`ArmPlant.step_problems`), and ``h`` far below the links' own time scales
+(gravity and Coriolis: tens of rad/s).  The rule warps the joint mode's frequency by
 ``(omega h)^2 / 12`` (0.3 % at 783 rad/s and 0.25 ms) and does not damp it.
 
 One step of the arm serves N drives (:meth:`ArmPlant.joint`): ``docs/multibody.md``.
