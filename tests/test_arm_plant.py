@@ -425,3 +425,22 @@ def test_two_drive_nodes_share_one_arm(tmp_path: Path, bus_harness) -> None:
     assert len(inputs) == 59 and arm.time == pytest.approx(59 * DT)
     assert inputs[-1] == [2.9296875, 2.9296875]  # both enabled (one command ID for both)
     assert arm.truth(0) == twin.truth(0)
+
+
+def test_held_friction_bound_is_checked(tmp_path: Path) -> None:
+    """A Coulomb friction too sharp for the sub-step (``h C / (eps J) > 2``) is named by
+    ``prepare`` before a run, on the motor (``J_m``) and on the link (the smallest
+    eigenvalue of ``M``); more sub-steps lift it."""
+    link = _two_link(tmp_path)
+    cfg = PlantConfig()
+    sharp = replace(cfg, drivetrain=replace(cfg.drivetrain, coulomb_load=5.0))
+    arm = ArmPlant(link, [cfg, sharp], [0, 1])
+    lam = float(np.linalg.eigvalsh(link.mass_matrix(np.zeros(2)))[0])
+    h = DT / cfg.substeps
+    assert h * 5.0 / (0.01 * lam) > 2.0  # past the bound on the link
+    with pytest.raises(ValueError, match=r"joint j2: coulomb_load 5 Nm"):
+        arm.prepare(DT)
+    fine = replace(sharp, substeps=64)
+    ArmPlant(link, [replace(cfg, substeps=64), fine], [0, 1]).prepare(DT)
+    motor = replace(cfg, drivetrain=replace(cfg.drivetrain, coulomb_motor=500.0))
+    assert "coulomb_motor" in ArmPlant(link, [motor, cfg], [0, 1]).step_problems(DT)[0]
