@@ -123,6 +123,8 @@ class ArmPlant:
         self._c = col([d.c_flex for d in dts])
         self._inv_eps = col([1.0 / d.friction_smoothing for d in dts])
         self._coulomb = bool(np.any(self._cm) or np.any(self._cl))
+        self._inv_eps2 = np.concatenate([self._inv_eps, self._inv_eps])
+        self._coulomb2 = np.concatenate([self._cm, self._cl])
         self._profiles = [None if c.load.kind == "none" else c.load.value for c in joints]
         self._tau_load = np.zeros(n)
         self._wrenches: tuple[Wrench, ...] | None = None
@@ -248,22 +250,23 @@ class ArmPlant:
         i_gap = self._i - i_cmd
         torques = self._kt * (i_cmd + i_gap * c.current_means)
         z = np.concatenate([self._d, self._wm, self._wl, self._q, self._kt, self._kt])
-        wm, wl, q = z[n : 2 * n], z[2 * n : 3 * n], z[3 * n : 4 * n]
-        loads = self._tau_load
+        wl, q = z[2 * n : 3 * n], z[3 * n : 4 * n]
+        loads = self._tau_load if self._tau_load.any() else None
         profiles = self._profiles if any(p is not None for p in self._profiles) else None
-        coulomb, cm, cl, inv_eps = self._coulomb, self._cm, self._cl, self._inv_eps
+        coulomb, slopes, friction = self._coulomb, self._inv_eps2, self._coulomb2
+        velocities, held = z[n : 3 * n], z[4 * n :]  # (w_m, w_l) and (tau_m, f) as views
         t0 = self._t
         for j in range(self._substeps):
             # gravity, Coriolis and wrenches at the sub-step's predicted midpoint
-            f = link.free_torques(q + a * wl, wl, wrenches) + loads
+            f = link.free_torques(q + a * wl, wl, wrenches)
+            if loads is not None:
+                f += loads
             if profiles is not None:
                 f += [0.0 if p is None else p(t0 + j * h) for p in profiles]
-            if coulomb:
-                z[4 * n : 5 * n] = torques[j] - cm * np.tanh(wm * inv_eps)
-                z[5 * n :] = f - cl * np.tanh(wl * inv_eps)
-            else:
-                z[4 * n : 5 * n] = torques[j]
-                z[5 * n :] = f
+            z[4 * n : 5 * n] = torques[j]
+            z[5 * n :] = f
+            if coulomb:  # both Coulomb frictions at once, from the sub-step's start
+                held -= friction * np.tanh(velocities * slopes)
             z[: 4 * n] = phi @ z
         x = z[: 4 * n].copy()
         i = i_cmd + i_gap * c.current_decay
