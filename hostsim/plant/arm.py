@@ -128,7 +128,7 @@ class ArmPlant:
         self._profiles = [None if c.load.kind == "none" else c.load.value for c in joints]
         self._tau_load = np.zeros(n)
         self._wrenches: tuple[Wrench, ...] | None = None
-        self._consts: dict[float, tuple[np.ndarray, ...]] = {}
+        self._consts: dict[float, _StepConstants] = {}
         # state: twist (output-referred), motor velocity (output-referred), link
         # velocity, current, link angle; the current command; the amplifier input
         q = np.zeros(n) if q0 is None else np.array(q0, dtype=np.float64).reshape(n)
