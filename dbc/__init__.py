@@ -300,7 +300,10 @@ def known_frames(
     ids = node_ids(bus)
     moved = {
         old: new
-        for old, new in ((ids.get("DRIVE"), drive_node_id), (ids.get("CONTROLLER"), controller_node_id))
+        for old, new in (
+            (ids.get("DRIVE"), drive_node_id),
+            (ids.get("CONTROLLER"), controller_node_id),
+        )
         if old is not None and new is not None and new != old
     }
     frames = set()

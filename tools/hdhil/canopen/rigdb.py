@@ -71,6 +71,7 @@ __all__ = [
     "drive_pdo_layouts",
     "predefined_cob_id",
     "rig_databases",
+    "single_joint_databases",
     "truth_database",
     "truth_frame_id",
 ]
@@ -683,3 +684,23 @@ def truth_database(drives: Sequence[RigDrive], buses: Sequence[RigBus] = ()) -> 
         dbc_specifics=copy.deepcopy(truth.dbc),
         strict=True,
     )
+
+
+@cache
+def single_joint_databases(
+    drive_node_id: int = 2,
+    controller_node_id: int = 1,
+    mapping: str = "raw",
+    dcf: str | None = None,
+) -> dict[str, Any]:
+    """The databases of the single-joint rig with its drive at ``drive_node_id`` and the
+    controller at ``controller_node_id`` (the drive's ``mapping``, or its ``dcf``), split
+    as ``control.dbc`` and ``truth.dbc`` are: ``{"control": ..., "truth": ...}``, the
+    first :func:`rig_databases`'s bus without its 29-bit truth frames.  Shared: for
+    reading only.  A mistake in the layout is a one-line :class:`UserError`."""
+    drives = [RigDrive("", drive_node_id, mapping=mapping, dcf=dcf)]
+    buses = [RigBus(controller_node_id=controller_node_id)]
+    control = rig_databases(drives, buses)["control"]
+    control.messages[:] = [m for m in control.messages if not m.is_extended_frame]
+    control.refresh()
+    return {"control": control, "truth": truth_database(drives, buses)}

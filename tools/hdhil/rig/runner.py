@@ -386,7 +386,8 @@ def _result(
         if tracking is not None
         else None
     )
-    names = frame_names()
+    layout = plan.layout
+    names = frame_names(layout.drives[0].node_id, layout.controller_node_id)
     counter = listening.counter
     frames = {
         names.get(key, f"channel {key[0]} 0x{key[1]:X}"): n
