@@ -24,6 +24,7 @@ from hdhil.canopen.nmt import COMMAND_NAMES as NMT_COMMAND_NAMES
 from hdhil.canopen.nmt import nmt_frame
 from hdhil.commands.options import (
     add_bus_options,
+    add_drive_node_id_argument,
     add_scenario_arguments,
     bus_named,
     check_outputs,
@@ -254,6 +255,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         what="its [plant] and [faults]: sensors.*, and control.*/truth.* on the drive's own frames",
         duration_help="wall seconds to serve (default: until Ctrl-C / SIGTERM)",
     )
+    add_drive_node_id_argument(p, "--node-id", "the emulated drive's")
     p.set_defaults(func=run_emulate)
 
     p = sub.add_parser("firmware", help="run the controller firmware alone on a CAN interface")
@@ -263,6 +265,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         what="its [firmware], and [faults] control.* on the controller's own frames",
         duration_help="simulated seconds of operation (default: the scenario's)",
     )
+    add_drive_node_id_argument(p, whose="the drive's (an emulated or a real one)")
     pacing = p.add_mutually_exclusive_group()
     pacing.add_argument(
         "--lockstep",
