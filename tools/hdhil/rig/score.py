@@ -28,7 +28,9 @@ if TYPE_CHECKING:
 def _telemetry_id(number: int, controller_node_id: int) -> int:
     """The controller's telemetry TPDO ``number`` at its node-ID (CiA 301 pre-defined
     connection set, as its EDS sets it: ``$NODEID+0x180``, ``$NODEID+0x280``)."""
-    return (0x100 + 0x80 * number) + controller_node_id
+    from hdhil.canopen.rigdb import predefined_cob_id
+
+    return predefined_cob_id("tpdo", number, controller_node_id)
 
 
 @dataclass(frozen=True)
