@@ -176,3 +176,20 @@ def test_a_bad_node_id_is_one_line_and_exit_2(args, message, capsys, tmp_path, m
     assert main([*args, "--trace", ""] if args[0] == "run" else args) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("hdhil: error: ") and message in err
+
+
+@pytest.mark.realtime
+def test_a_log_of_a_drive_at_node_id_5_records_its_layout(tmp_path, capsys):
+    """``hdhil log --drive-node-id 5``: the sidecar's layout, so ``dump`` and ``evaluate``
+    decode the drive's frames at 0x185 ... by name."""
+    from hdhil.can.traces.sidecar import read_metadata
+    from hdhil.canopen.mapping import trace_decoder
+    from hdhil.cli import main
+
+    trace = tmp_path / "log5.blf"
+    channel = f"hdhil-log-{time.monotonic_ns()}"
+    args = ["log", str(trace), "--interface", "virtual", "--channel", channel,
+            "--drive-node-id", "5", "--duration", "0.05"]  # fmt: skip
+    assert main(args) == 0, capsys.readouterr().err
+    assert read_metadata(trace)["layout"]["drives"] == [{"node_id": 5, "bus": "control"}]
+    assert trace_decoder(trace).by_name["DRIVE_TPDO1"][1].frame_id == 0x185
