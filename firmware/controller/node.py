@@ -80,8 +80,10 @@ class ControllerNode(CanNode):
     and ``supervision`` (heartbeat, NMT, sensor EMCYs).  The node uses nothing but a
     python-can bus, so the same node drives the emulator on ``simbus`` or a real drive
     on SocketCAN/PCAN/Kvaser; it never subscribes to ground truth.  PDO COB-IDs come from
-    ``control.dbc`` (pre-defined connection set of nodes 1 and 2); other node-IDs move
-    only the CiA 301 service frames.
+    the object dictionaries at the node-IDs: its own telemetry at ``node_id``'s
+    (``$NODEID+0x180``, ``$NODEID+0x280`` in its EDS), the PDOs it exchanges with the
+    drive at ``drive_node_id``'s (the drive's EDS or DCF there); the layouts are
+    ``control.dbc``'s.
 
     Args:
         bus: the control bus (any python-can bus).
