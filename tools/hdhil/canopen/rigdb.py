@@ -52,11 +52,10 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-import canopen
-
 from hdhil.canopen.emcy import EMCY_BASE
 from hdhil.canopen.mapping import control_database, mapping_database, mapping_dcf, od_layouts
 from hdhil.canopen.nmt import HEARTBEAT_BASE, NMT_COB_ID
+from hdhil.canopen.od import reference_od
 from hdhil.canopen.pdo import PdoLayout
 from hdhil.canopen.sdo import SDO_RX_BASE, SDO_TX_BASE
 from hdhil.canopen.sync import SYNC_COB_ID
@@ -212,11 +211,11 @@ def _file_layouts(stamp: tuple[str, int, int]) -> tuple[int, dict[tuple[str, int
     """The node-ID the file ``stamp`` names was written for and its PDOs at that
     node-ID."""
     path = stamp[0]
-    try:
-        written_for = canopen.import_od(path).node_id
+    try:  # each parse kept on disk (hdhil.canopen.od): a node's start-up reads it too
+        written_for = reference_od(path).node_id
         node = written_for if _int(written_for) and 1 <= written_for <= 127 else None
         node = node or node_ids("control")["DRIVE"]
-        return node, od_layouts(canopen.import_od(path, node))
+        return node, od_layouts(reference_od(path, node))
     except Exception as exc:
         raise UserError(f"{path}: not a readable DCF/EDS ({exc})") from None
 
