@@ -193,3 +193,14 @@ def test_a_log_of_a_drive_at_node_id_5_records_its_layout(tmp_path, capsys):
     assert main(args) == 0, capsys.readouterr().err
     assert read_metadata(trace)["layout"]["drives"] == [{"node_id": 5, "bus": "control"}]
     assert trace_decoder(trace).by_name["DRIVE_TPDO1"][1].frame_id == 0x185
+
+
+def test_the_api_takes_the_drive_node_id():
+    import hdhil.api
+    from hdhil.core.dataconf import ConfigError
+
+    assert hdhil.api.resolve(drive_node_id=5).layout.drives[0].node_id == 5
+    with pytest.raises(ConfigError, match="drive_node_id must be >= 2, got 1"):
+        hdhil.api.resolve(drive_node_id=1)
+    with pytest.raises(TypeError):
+        hdhil.api.run(drive_node_id=True)
