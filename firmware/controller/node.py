@@ -12,6 +12,7 @@ node builds and wires them, owns the link phase and its changes (including the w
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import can
@@ -79,8 +80,10 @@ class ControllerNode(CanNode):
     and ``supervision`` (heartbeat, NMT, sensor EMCYs).  The node uses nothing but a
     python-can bus, so the same node drives the emulator on ``simbus`` or a real drive
     on SocketCAN/PCAN/Kvaser; it never subscribes to ground truth.  PDO COB-IDs come from
-    ``control.dbc`` (pre-defined connection set of nodes 1 and 2); other node-IDs move
-    only the CiA 301 service frames.
+    the object dictionaries at the node-IDs: its own telemetry at ``node_id``'s
+    (``$NODEID+0x180``, ``$NODEID+0x280`` in its EDS), the PDOs it exchanges with the
+    drive at ``drive_node_id``'s (the drive's EDS or DCF there); the layouts are
+    ``control.dbc``'s.
 
     Args:
         bus: the control bus (any python-can bus).
@@ -124,7 +127,7 @@ class ControllerNode(CanNode):
     ) -> None:
         _check_arguments(sync_overflow, node_id, drive_node_id, boot_timeout_s,
                          sensor_hold_cycles)  # fmt: skip
-        super().__init__(bus)
+        super().__init__(bus, drive_node_id=drive_node_id, controller_node_id=node_id)
         check_od_limits(config)  # every OD parameter representable in its entry
         self.config = config
         #: The interrupt handler (:class:`firmware.interrupt.InterruptHandlerModel`): the
@@ -157,6 +160,7 @@ class ControllerNode(CanNode):
             heartbeat_producer_ms=heartbeat_ms,
             heartbeat_consumers={drive_node_id: drive_heartbeat_timeout_ms},
         )
+        _address_drive(self.services, drive_node_id, drive_dcf)
         self.objects = objects = ControllerObjects(self)
         self.supervision = Supervision(self)  # subscribes to the services' NMT events
         #: The SDO client of the drive's server (DCF writes, statusword and rated torque).
@@ -185,25 +189,33 @@ class ControllerNode(CanNode):
 
     def _codecs(self) -> LinkCodecs:
         """``control.dbc``'s codecs, or those of the mapping taken from the drive's DCF; in
-        the CST mapping no control law may be switched on later either."""
+        the CST mapping no control law may be switched on later either.  Each at the
+        identifier the object dictionary gives its PDO (RPDO1 0x1400, RPDO2 0x1401, TPDO1-3
+        0x1800-0x1802: this node's own telemetry at its node-ID, the drive's PDOs at the
+        drive's), its layout checked against the one the node encodes with."""
         services = self.services
         if not self.objects.pdo_writes:
-            return default_codecs()
-        codecs = mapped_codecs(services.od, services.read, self.config.control.active)
-        if codecs.sensor_mapping == "cst":
-            services.add_validator(0x2420, 1, lambda law: ABORT_DEVICE_STATE if law else None)
-        return codecs
+            codecs = default_codecs()
+        else:
+            codecs = mapped_codecs(services.od, services.read, self.config.control.active)
+            if codecs.sensor_mapping == "cst":
+                services.add_validator(0x2420, 1, lambda law: ABORT_DEVICE_STATE if law else None)
+        od, read = services.od, services.read
+        return replace(
+            codecs,
+            sensor=codecs.sensor.at(pdo_cob_id(od, 0x1400, codecs.sensor, read)),
+            status=codecs.status.at(pdo_cob_id(od, 0x1401, codecs.status, read)),
+            telemetry=codecs.telemetry.at(pdo_cob_id(od, 0x1800, codecs.telemetry, read)),
+            control_telemetry=codecs.control_telemetry.at(
+                pdo_cob_id(od, 0x1801, codecs.control_telemetry, read)
+            ),
+            command=codecs.command.at(pdo_cob_id(od, 0x1802, codecs.command, read)),
+        )
 
     def _route(self, codecs: LinkCodecs) -> None:
-        """Frames to the parts.  PDO identifiers come from the object dictionary (RPDO1
-        0x1400, RPDO2 0x1401; the TPDOs 0x1800-0x1802), each checked against the layout
-        the node encodes with."""
-        od = self.services.od
-        self.handle(pdo_cob_id(od, 0x1400, codecs.sensor), self.io.on_sensor_frame)
-        self.handle(pdo_cob_id(od, 0x1401, codecs.status), self.sequencer.on_statusword_frame)
-        for comm_index, frame in ((0x1800, codecs.telemetry), (0x1802, codecs.command),
-                                  (0x1801, codecs.control_telemetry)):  # fmt: skip
-            pdo_cob_id(od, comm_index, frame)
+        """Frames to the parts, at the identifiers of :meth:`_codecs`."""
+        self.handle(codecs.sensor.frame_id, self.io.on_sensor_frame)
+        self.handle(codecs.status.frame_id, self.sequencer.on_statusword_frame)
         self.handle(self.sdo.response_id, self.sequencer.on_sdo_response)
 
     # ------------------------------------------------------------------ public API
@@ -345,3 +357,32 @@ def _check_arguments(
         isinstance(sensor_hold_cycles, int) and sensor_hold_cycles >= 1
     ):
         raise ValueError(f"sensor_hold_cycles must be an integer >= 1, got {sensor_hold_cycles}")
+
+
+#: The controller's PDOs that pair with the drive's: RPDO1 takes its TPDO1 (sensors),
+#: RPDO2 its TPDO2 (statusword), TPDO3 is its RPDO1 (command).
+_PEER_PDOS = ((0x1400, ("tpdo", 1)), (0x1401, ("tpdo", 2)), (0x1802, ("rpdo", 1)))
+
+
+def _address_drive(
+    services: CanopenServices, drive_node_id: int, drive_dcf: str | Path | None
+) -> None:
+    """Give the controller's PDOs that pair with the drive's the drive's COB-IDs as their
+    power-on values: the drive's EDS or DCF at its node-ID
+    (:func:`hdhil.canopen.rigdb.drive_pdo_layouts`; the pre-defined connection set moves
+    with the node-ID), each PDO's validity as this node's EDS sets it."""
+    from hdhil.canopen.rigdb import RigDrive, drive_pdo_layouts
+    from hdhil.core.errors import UserError
+
+    try:
+        layouts = drive_pdo_layouts(RigDrive("", drive_node_id, dcf=drive_dcf))
+    except UserError as exc:
+        raise ValueError(str(exc)) from None
+    for comm, key in _PEER_PDOS:
+        layout = layouts.get(key)
+        if layout is None:
+            continue
+        old = int(services.read(comm, 1))
+        new = (old & ~0x7FF) | layout.cob_id
+        if new != old:
+            services.set_power_on_value(comm, 1, new)
