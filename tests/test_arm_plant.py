@@ -420,14 +420,15 @@ def test_two_drive_nodes_share_one_arm(tmp_path: Path, bus_harness) -> None:
         harness.send_sync()
         harness.pump()
         cw = (0x06, 0x07, 0x0F)[min(cycle, 2)]
-        harness.send(0x202, command.encode(600, cw, cycle & 0xFF))
+        for node_id in (2, 3):  # each drive's RPDO1 at its node-ID (0x200 + node-ID)
+            harness.send(0x200 + node_id, command.encode(600, cw, cycle & 0xFF))
         harness.pump()
         harness.k += 1
         if cycle:  # the first SYNC marks t(0)
             twin.advance(inputs[-1], DT)
         assert [d.io.sample for d in drives] == [twin.sample(0), twin.sample(1)]
     assert len(inputs) == 59 and arm.time == pytest.approx(59 * DT)
-    assert inputs[-1] == [2.9296875, 2.9296875]  # both enabled (one command ID for both)
+    assert inputs[-1] == [2.9296875, 2.9296875]  # both enabled, each by its own command
     assert arm.truth(0) == twin.truth(0)
 
 
