@@ -15,7 +15,7 @@ from hdhil.canopen.services import EmcyCode, NmtState, ResetKind
 from hdhil.firmware.controller.phases import COMMANDING, FINAL, Phase
 
 if TYPE_CHECKING:
-    from hdhil.firmware.controller.node import ControllerNode
+    from hdhil.firmware.controller.joint import ControllerJoint
 
 __all__ = ["Supervision"]
 
@@ -37,7 +37,7 @@ class Supervision:
     channels (:class:`hdhil.firmware.stages.StuckChannels`) are announced the same way.
     """
 
-    def __init__(self, node: ControllerNode) -> None:
+    def __init__(self, node: ControllerJoint) -> None:
         self.node = node
         self.plausibility_revision = 0
         self.stuck_revision = 0
@@ -45,8 +45,7 @@ class Supervision:
         services = node.services
         services.on_boot(self.on_boot)
         services.on_heartbeat_lost(self.on_heartbeat_lost)
-        services.on_state_change(self.on_nmt_state)
-        services.on_reset(self.on_reset)
+        services.on_state_change(self.on_nmt_state)  # on_reset: called by the node
 
     # ------------------------------------------------------------ NMT, heartbeat
 
@@ -80,8 +79,8 @@ class Supervision:
         node = self.node
         if node.own_nmt or node.phase in FINAL or new is NmtState.INITIALISING:
             return
-        monitor = node.services.heartbeat_consumer.monitored.get(node.drive_node_id)
-        if monitor is not None and monitor.status == "lost" and monitor.lost_at == node.now:
+        if any(m.status == "lost" and m.lost_at == node.now
+               for m in node.services.heartbeat_consumer.monitored.values()):  # fmt: skip
             return  # 0x1029 error behaviour on heartbeat loss: on_heartbeat_lost follows
         if new is NmtState.STOPPED or (old is NmtState.OPERATIONAL and node.phase in COMMANDING):
             node.enter_safe(f"NMT {new.name} commanded by another master")
@@ -90,7 +89,7 @@ class Supervision:
         """NMT reset of the controller by another master: OD values back to what the node
         runs, then "safe"."""
         node = self.node
-        node.objects.restore_after_reset(kind)
+        node.restore_after_reset(kind)
         if node.phase not in FINAL:
             node.enter_safe(f"NMT reset ({kind}) of the controller by another master")
 
