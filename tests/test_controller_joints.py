@@ -140,6 +140,28 @@ def test_a_drive_that_never_boots_leaves_the_other_joint_running_and_is_reported
     assert not [d for _, cob, d in harness.log if cob == 0x000 and d[1] == 3]
 
 
+def test_a_drive_that_falls_silent_in_operation_stops_its_joint_only():
+    with BusHarness("t-joints-silent", period_s=Ts) as harness:
+        ctrl = two_joints(harness)
+        d2, d3 = drive(harness, 2), drive(harness, 3)
+        run(harness, [ctrl, d2, d3], 60)
+        assert [j.phase for j in ctrl.joints] == ["operational", "operational"]
+        harness.nodes.remove(d3)  # drive 3 sends nothing more
+        before = ctrl.joints[0].isr.samplecount
+        for _ in range(30):
+            harness.cycle()
+    j1, j2 = ctrl.joints
+    assert (
+        j2.phase == "safe" and "no sensor frame from drive (node 3)" in j2.diagnostics.safe_reason
+    )
+    # EMCY 0x8250 "RPDO timeout" naming drive 3, and NMT pre-operational for drive 3 only
+    assert any(cob == 0x081 and d[:2] == b"\x50\x82" and d[3] == 3 for _, cob, d in harness.log)
+    assert [d for _, cob, d in harness.log if cob == 0x000][-1] == bytes((0x80, 3))
+    assert j1.phase == "operational" and j1.isr.samplecount == before + 30
+    assert d2.machine.state is State.OPERATION_ENABLED
+    assert ctrl.phase == "operational" and ctrl.services.state.name == "OPERATIONAL"
+
+
 def test_every_drive_missing_is_the_nodes_boot_error():
     with BusHarness("t-joints-none", period_s=Ts) as harness:
         ctrl = two_joints(harness, boot_timeout_s=0.02)
