@@ -88,6 +88,7 @@ def test_two_joints_reach_operation_each_interrupt_on_its_own_frames_and_config(
     assert d2.machine.state is State.OPERATION_ENABLED
     assert d3.machine.state is State.OPERATION_ENABLED
     assert j1.diagnostics.syncs_sent == j2.diagnostics.syncs_sent == 100
+    assert sum(cob == 0x080 for _, cob, _ in harness.log) == 100  # one SYNC per cycle
 
     db = rig_databases(RIG)["control"]
     log = harness.log
