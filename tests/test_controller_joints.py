@@ -141,6 +141,25 @@ def test_a_drive_that_never_boots_leaves_the_other_joint_running_and_is_reported
     assert not [d for _, cob, d in harness.log if cob == 0x000 and d[1] == 3]
 
 
+def test_joints_at_other_node_ids_follow_the_predefined_connection_set():
+    """Drives 4 and 5: joint 0's PDOs in the node's object dictionary move to drive 4's
+    identifiers, joint 1's are its link's; both reach operation on those frames."""
+    with BusHarness("t-joints-ids", period_s=Ts) as harness:
+        ctrl = harness.add(ControllerNode(harness.bus(), joints=[JointSetup(PAPER, 4, "J1"),
+                                                                 JointSetup(PAPER, 5, "J2")]),
+                           sync=True)  # fmt: skip
+        d4, d5 = drive(harness, 4), drive(harness, 5)
+        run(harness, [ctrl, d4, d5], 60)
+    od = [ctrl.services.read(index, 1) & 0x7FF for index in (0x1400, 0x1401, 0x1802, 0x1800)]
+    assert od == [0x184, 0x284, 0x204, 0x181]
+    assert [j.phase for j in ctrl.joints] == ["operational", "operational"]
+    assert d4.machine.state is d5.machine.state is State.OPERATION_ENABLED
+    db = rig_databases([RigDrive("J1", 4), RigDrive("J2", 5)])["control"]
+    ids = {cob for _, cob, _ in harness.log}
+    for name in ("J1_CTRL_TPDO1", "J2_CTRL_TPDO1", "J1_DRIVE_RPDO1", "J2_DRIVE_RPDO1"):
+        assert db.get_message_by_name(name).frame_id in ids, name
+
+
 def test_a_drive_that_falls_silent_in_operation_stops_its_joint_only():
     with BusHarness("t-joints-silent", period_s=Ts) as harness:
         ctrl = two_joints(harness)
