@@ -19,7 +19,7 @@ from hdhil.firmware.isr import InterruptHandler
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
 from hdhil.rig.factories import DriveSlot, NodeSite, RigLayout, layout_joints, scenario_controller
-from hdhil.rig.scenario import scenario_from_dict
+from hdhil.rig.scenario import load_scenario, scenario_from_dict
 
 Ts = 1e-3
 #: The rig of the tests: joints J1 (drive 2) and J2 (drive 3) on one bus, controller 1.
@@ -158,6 +158,23 @@ def test_joints_at_other_node_ids_follow_the_predefined_connection_set():
     ids = {cob for _, cob, _ in harness.log}
     for name in ("J1_CTRL_TPDO1", "J2_CTRL_TPDO1", "J1_DRIVE_RPDO1", "J2_DRIVE_RPDO1"):
         assert db.get_message_by_name(name).frame_id in ids, name
+
+
+def test_a_control_law_on_one_joint_sends_that_joints_control_telemetry_only():
+    law = load_scenario("lqg-experiment").firmware
+    assert law.control.active and not PAPER.control.active
+    with BusHarness("t-joints-law", period_s=Ts) as harness:
+        ctrl = harness.add(ControllerNode(harness.bus(), joints=[JointSetup(PAPER, 2, "J1"),
+                                                                 JointSetup(law, 3, "J2")]),
+                           sync=True)  # fmt: skip
+        run(harness, [ctrl, drive(harness, 2), drive(harness, 3)], 40)
+    db = rig_databases(RIG)["control"]
+    sent = {cob for _, cob, _ in harness.log}
+    assert db.get_message_by_name("J2_CTRL_TPDO2").frame_id in sent  # 0x481
+    assert db.get_message_by_name("J1_CTRL_TPDO2").frame_id not in sent  # 0x281: no law
+    j1, j2 = ctrl.joints
+    assert j2.diagnostics.control_frames_sent == j2.isr.samplecount > 0
+    assert j1.diagnostics.control_frames_sent == 0 and j1.phase == j2.phase == "operational"
 
 
 def test_a_drive_that_falls_silent_in_operation_stops_its_joint_only():
