@@ -199,6 +199,30 @@ def test_a_drive_that_falls_silent_in_operation_stops_its_joint_only():
     assert ctrl.phase == "operational" and ctrl.services.state.name == "OPERATIONAL"
 
 
+def test_each_joints_sensor_emcy_names_its_drive_and_clears_apart():
+    """Two joints with a stuck torque channel each: one EMCY 0x7300 per joint (the drive's
+    node-ID in manufacturer byte 4), and clearing one leaves the other's error active."""
+
+    class Stuck:
+        events, tacho_events, tacho_stuck = 1, 0, False
+
+        def __init__(self, stuck: bool, revision: int) -> None:
+            self.torque_stuck, self.revision = stuck, revision
+
+    with BusHarness("t-joints-emcy", period_s=Ts) as harness:
+        ctrl = two_joints(harness)
+        ctrl.boot(0.0)
+        j1, j2 = ctrl.joints
+        j1.supervision.report_stuck(Stuck(True, 1))
+        j2.supervision.report_stuck(Stuck(True, 1))
+        j1.supervision.report_stuck(Stuck(False, 2))
+        emcys = [d for cob, d in harness.pump() if cob == 0x081]
+    assert emcys[0][:2] == emcys[1][:2] == b"\x00\x73"
+    assert emcys[0][3:] == bytes((1, 0, 0, 0, 2)) and emcys[1][3:] == bytes((1, 0, 0, 0, 3))
+    assert emcys[2][:2] == b"\x00\x00" and emcys[2][2] != 0  # J2's error still active
+    assert list(ctrl.services.emcy.active) == [(0x7300, bytes((1, 0, 0, 0, 3)))]
+
+
 def test_every_drive_missing_is_the_nodes_boot_error():
     with BusHarness("t-joints-none", period_s=Ts) as harness:
         ctrl = two_joints(harness, boot_timeout_s=0.02)

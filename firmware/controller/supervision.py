@@ -42,6 +42,10 @@ class Supervision:
         self.plausibility_revision = 0
         self.stuck_revision = 0
         self.plausibility_emcy: set[int] = set()  # EMCY codes of active sensor errors
+        #: In a node of several joints the sensor EMCYs name the joint's drive: its
+        #: node-ID in manufacturer byte 4 (bytes 0-3 as in a node of one joint).
+        several = len(node.controller.joints) > 1
+        self.emcy_tag = bytes((node.drive_node_id,)) if several else b""
         services = node.services
         services.on_boot(self.on_boot)
         services.on_heartbeat_lost(self.on_heartbeat_lost)
@@ -105,6 +109,11 @@ class Supervision:
         if stuck is not None and stuck.revision != self.stuck_revision:
             self.report_stuck(stuck)
 
+    def manufacturer(self, data: bytes) -> bytes:
+        """A sensor EMCY's manufacturer bytes, with the joint's tag in a node of several."""
+        tag = self.emcy_tag
+        return data.ljust(4, b"\0") + tag if tag else data
+
     def report_stuck(self, stuck: Any) -> None:
         """An EMCY when a channel gets stuck, cleared when it reads again; the diagnostic
         counters follow.  Codes (CiA 402 / IEC 61800-7-201, "sensor" family 0x73xx), with
@@ -120,9 +129,9 @@ class Supervision:
             (EmcyCode.TACHO_FAULT, 2, stuck.tacho_stuck),
         ):
             if flag:
-                emcy.raise_error(code, manufacturer=bytes((channel,)))
+                emcy.raise_error(code, manufacturer=self.manufacturer(bytes((channel,))))
             else:
-                emcy.clear(code, bytes((channel,)))
+                emcy.clear(code, self.manufacturer(bytes((channel,))))
 
     def report_plausibility(self) -> None:
         """The plausibility stage's counters into the diagnostics, and its error flags on
@@ -151,7 +160,7 @@ class Supervision:
         ):
             if error and code not in active:
                 active.add(code)
-                emcy.raise_error(code)
+                emcy.raise_error(code, manufacturer=self.manufacturer(b""))
             elif not error and code in active:
                 active.discard(code)
-                emcy.clear(code, b"")  # not the stuck tacho's 0x7301
+                emcy.clear(code, self.manufacturer(b""))  # not the stuck tacho's 0x7301
