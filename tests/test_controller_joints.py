@@ -223,6 +223,23 @@ def test_each_joints_sensor_emcy_names_its_drive_and_clears_apart():
     assert list(ctrl.services.emcy.active) == [(0x7300, bytes((1, 0, 0, 0, 3)))]
 
 
+def test_a_stop_walks_every_drive_back_then_the_node_goes_pre_operational():
+    with BusHarness("t-joints-stop", period_s=Ts) as harness:
+        ctrl = two_joints(harness)
+        d2, d3 = drive(harness, 2), drive(harness, 3)
+        run(harness, [ctrl, d2, d3], 30)
+        ctrl.request_stop("test")
+        assert ctrl.phase == "stopping"
+        for _ in range(10):
+            if harness.cycle(stop=lambda: ctrl.phase == "stopped") is None:
+                break
+    assert [j.phase for j in ctrl.joints] == ["stopped", "stopped"]
+    nmt = [d for _, cob, d in harness.log if cob == 0x000]
+    assert nmt[-2:] in ([b"\x80\x02", b"\x80\x03"], [b"\x80\x03", b"\x80\x02"])
+    assert ctrl.services.state.name == "PRE_OPERATIONAL"
+    assert d2.machine.state is d3.machine.state is State.SWITCH_ON_DISABLED
+
+
 def test_every_drive_missing_is_the_nodes_boot_error():
     with BusHarness("t-joints-none", period_s=Ts) as harness:
         ctrl = two_joints(harness, boot_timeout_s=0.02)
