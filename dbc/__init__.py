@@ -264,6 +264,24 @@ class FrameCodec:
         self.decode: Callable[[bytes | bytearray], tuple[float, ...]] = namespace["decode"]
 
 
+#: The ground-truth frames' 29-bit identifiers: ``TRUTH_BASE | joint_index << 4 | k``
+#: (``truth.dbc`` holds joint 0's, k = 1..3; :mod:`hdhil.canopen.rigdb` numbers a rig's).
+TRUTH_BASE = 0x1F0000
+TRUTH_SHIFT = 4
+#: Joints whose truth frames fit the scheme (bits 4-15 of the identifier).
+MAX_TRUTH_JOINTS = 1 << 12
+
+
+def truth_frame_id(joint_index: int, template_id: int) -> int:
+    """The identifier of ``truth.dbc``'s frame ``template_id`` for a rig's
+    ``joint_index``-th joint (0: the frame's own identifier)."""
+    if not 0 <= joint_index < MAX_TRUTH_JOINTS:
+        raise ValueError(f"joint index must be 0..{MAX_TRUTH_JOINTS - 1}, got {joint_index}")
+    if template_id & ~0xF != TRUTH_BASE:
+        raise ValueError(f"truth frame 0x{template_id:X} is not in 0x{TRUTH_BASE:X}..+0xF")
+    return template_id | joint_index << TRUTH_SHIFT
+
+
 @cache
 def codec(bus: BusName, message_name: str) -> FrameCodec:
     """The compiled codec of ``message_name`` in ``bus``'s DBC."""

@@ -183,7 +183,9 @@ OPTIONS: dict[str, dict[str, object]] = {
                     "--skip": st.sampled_from(["timing", "nope", ""])},
     "bench": {"--duration": BAD, "--repeat": BAD},
     "campaign": {"FILE": INPUT, "--workers": BAD, "--json": None},
-    "dbc": {"ACTION": st.sampled_from(["export", "x", "--help"]), "TRACE": INPUT, "OUT": OUTPUT},
+    "dbc": {"ACTION": st.sampled_from(["export", "x", "--help"]), "TRACE": INPUT, "OUT": OUTPUT,
+            "--scenario": INPUT},
+    "plan": {"--scenario": INPUT, "--seed": NUMBER, "--override": INPUT, "--json": None},
     "soak": {"--duration": BAD, "--every": BAD},
 }  # fmt: skip
 
@@ -220,6 +222,8 @@ def argv_for(draw: st.DrawFn, command: str, files: dict[str, Path]) -> list[str]
         argv += ["--trace", ""]
     if command == "run":
         argv.append("--no-evaluate")
+    if command == "plan":  # the CPU prediction measures the cost model: a second a draw
+        argv.append("--no-cpu")
     return argv
 
 

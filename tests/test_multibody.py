@@ -421,3 +421,14 @@ def test_shipped_robot_names() -> None:
         assert shipped_robot(name).is_file()
     with pytest.raises(UserError, match="no shipped robot 'arm8'"):
         shipped_robot("arm8")
+
+
+@needs_mujoco
+def test_free_torques_are_the_wrenches_less_the_bias(tmp_path: Path) -> None:
+    """``free_torques`` is ``J^T w - b(q, qd)`` in one call (the arm's plant uses it)."""
+    dyn = LinkDynamics.from_urdf(_pendulum(tmp_path))
+    q, qd = np.array([0.7]), np.array([-1.3])
+    push = Wrench("tip", force=(3.0, 0.0, 1.0))
+    expected = dyn.external_torques(q, push) - dyn.bias(q, qd)
+    assert dyn.free_torques(q, qd, push) == pytest.approx(expected, rel=1e-12)
+    assert dyn.free_torques(q, qd) == pytest.approx(-M1 * G * C1 * math.sin(0.7), rel=1e-9)

@@ -75,3 +75,77 @@ def test_the_timers_run_while_a_cycle_waits_for_its_answer() -> None:
     assert nl.timeouts == 1
     gaps = [b - a for a, b in zip(node.ticks[:-1], node.ticks[1:], strict=True)]
     assert len(node.ticks) >= 10 and max(gaps) < 0.1, gaps
+
+
+class _Echo:
+    """A CanNode-like node on a simulated bus: as producer it sends SYNC; on SYNC it
+    answers with a PDO, and on that PDO the other node sends a command (a cycle of
+    three frames per bus, each frame requested on receiving the one before)."""
+
+    def __init__(self, bus, answers: dict[int, int], sync: bool) -> None:
+        self.bus = bus
+        self.answers = answers
+        self.sync = sync
+        self.got: list[tuple[int, float]] = []
+
+    def boot(self, now: float) -> None:
+        pass
+
+    def tick(self, now: float) -> None:
+        pass
+
+    def poll(self) -> int:
+        return self.bus.dispatch(self.on_message)
+
+    def on_message(self, msg) -> None:
+        import can
+
+        self.got.append((msg.arbitration_id, msg.timestamp))
+        reply = self.answers.get(msg.arbitration_id)
+        if reply is not None:
+            self.bus.send(can.Message(arbitration_id=reply, data=bytes(8), is_extended_id=False))
+
+    def send_sync(self) -> bool:
+        import can
+
+        self.bus.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
+        return True
+
+
+def test_several_simulated_buses_complete_every_cycle_each_on_its_own_wire() -> None:
+    """A rig of two buses in one process: each bus's SYNC starts its cycle, the frames
+    each node requests on receiving one are handled in the same cycle on both buses, and
+    each bus's frames are timed on its own wire (the second bus at half the bit rate
+    takes twice as long)."""
+    from hdhil.can.simbus import SimBus, SimClock
+
+    clock = SimClock()
+    nodes, pumps = [], []
+    for name, bitrate in (("a", 1_000_000), ("b", 500_000)):
+        channel = f"hdhil-test-buses-{name}"
+        master = _Echo(SimBus(channel=channel, clock=clock, bitrate=bitrate), {0x181: 0x201}, True)
+        slave = _Echo(SimBus(channel=channel, clock=clock, bitrate=bitrate), {0x080: 0x181}, False)
+        nodes += [master, slave]
+        pumps.append((master, master.bus))
+    try:
+        nl = loop.NodeLoop(nodes, producer=pumps[0][0], sim_clock=clock, node_time=None,
+                           pump=pumps[0][1], more_buses=pumps[1:])  # fmt: skip
+        for _ in range(3):
+            nl.cycle()
+    finally:
+        for node in nodes:
+            node.bus.shutdown()
+    for master, slave in (nodes[0:2], nodes[2:4]):
+        # every cycle: the slave got SYNC and the command, the master the PDO
+        assert [i for i, _ in slave.got] == [0x080, 0x201] * 3
+        assert [i for i, _ in master.got] == [0x181] * 3
+    # the command ends at the same place in each cycle, twice as late on the slower bus
+    end_a = nodes[1].got[1][1]
+    end_b = nodes[3].got[1][1]
+    assert end_b == pytest.approx(2 * end_a)
+    assert nodes[1].got[3][1] == pytest.approx(1e-3 + end_a)  # the second cycle's
+
+
+def test_more_buses_need_the_first_pump() -> None:
+    with pytest.raises(ValueError, match="first one's pump"):
+        loop.NodeLoop([], node_time=None, sim_clock=object(), more_buses=[(object(), object())])  # type: ignore[list-item,arg-type]

@@ -372,3 +372,30 @@ def test_names_from_a_urdf_and_a_can_fd_bus(tmp_path):
     frame = _frame(db, "elbow_1_CTRL_TPDO1", J3_TELEMETRY)
     name, values = _decode(loaded, frame)
     assert name == "elbow_1_CTRL_TPDO1" and values == pytest.approx(J3_TELEMETRY, abs=0.002)
+
+
+def test_the_drives_truth_publisher_sends_the_rigs_truth_identifiers() -> None:
+    """The emulated drive of the rig's j-th joint publishes its truth at the identifiers
+    the rig's database names for that joint, decoded by name with cantools."""
+    import can
+
+    from hdhil.canopen.rigdb import RigDrive, truth_database
+    from hdhil.hostsim.drive.truth_channel import TruthPublisher
+    from hdhil.hostsim.plant import Plant, PlantConfig
+
+    drives = [RigDrive(f"J{i + 1}", 2 + i) for i in range(3)]
+    db = truth_database(drives)
+    truth = Plant(PlantConfig(), seed=1).truth()
+    sent: list[can.Message] = []
+
+    class Bus:
+        def send_frames(self, msgs):
+            sent.extend(can.Message(arbitration_id=m.arbitration_id, data=bytes(m.data),
+                                    is_extended_id=True) for m in msgs)  # fmt: skip
+
+    TruthPublisher(Bus(), joint_index=2).publish(truth)  # type: ignore[arg-type]
+    names = [db.get_message_by_frame_id(m.arbitration_id).name for m in sent]
+    assert names == ["J3_TRUTH_TORQUE", "J3_TRUTH_MOTION", "J3_TRUTH_JOINT"]
+    torque = db.decode_message(sent[0].arbitration_id, sent[0].data)
+    assert torque["T_true"] == pytest.approx(truth.T_true_Nm, abs=1e-3)
+    assert TruthPublisher(None).ids == (0x1F0001, 0x1F0002, 0x1F0003)  # joint 0: truth.dbc's

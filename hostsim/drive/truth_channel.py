@@ -14,7 +14,7 @@ import math
 
 import can
 
-from hdhil.dbc import codec
+from hdhil.dbc import codec, truth_frame_id
 from hdhil.hostsim.plant.truth import Truth
 
 __all__ = ["TruthPublisher"]
@@ -23,9 +23,11 @@ TWO_PI = 2.0 * math.pi
 
 
 class TruthPublisher:
-    """Encodes a :class:`Truth` into the three truth frames and sends them on ``bus``."""
+    """Encodes a :class:`Truth` into the three truth frames and sends them on ``bus``;
+    the rig's ``joint_index``-th joint at its own identifiers
+    (:func:`hdhil.dbc.truth_frame_id`: joint 0 at ``truth.dbc``'s)."""
 
-    def __init__(self, bus: can.BusABC | None) -> None:
+    def __init__(self, bus: can.BusABC | None, joint_index: int = 0) -> None:
         self.bus = bus
         # Codecs are used by signal name: a DBC with reordered signals fails here, loudly.
         self._codecs = (
@@ -35,11 +37,13 @@ class TruthPublisher:
             ),
             codec("truth", "TRUTH_JOINT").expect("tau_ext", "tau_d", "tau_m", "tau_m_cmd"),
         )
+        #: The three frames' identifiers (TRUTH_TORQUE, TRUTH_MOTION, TRUTH_JOINT).
+        self.ids = tuple(truth_frame_id(joint_index, c.frame_id) for c in self._codecs)
         self._msgs = tuple(
-            can.Message(arbitration_id=c.frame_id, is_extended_id=True, dlc=c.length, check=False)
-            for c in self._codecs
+            can.Message(arbitration_id=i, is_extended_id=True, dlc=c.length, check=False)
+            for i, c in zip(self.ids, self._codecs, strict=True)
         )
-        self._ids = tuple(c.frame_id for c in self._codecs)
+        self._ids = self.ids
 
     @property
     def bus(self) -> can.BusABC | None:

@@ -6,7 +6,8 @@ One job per module: :mod:`.config` (the ``[plant]`` table as frozen dataclasses)
 (which configurations the stepper integrates at a given step) and :mod:`.truth` (the
 ground-truth record). Every public name is importable from here, as
 ``hdhil.hostsim.plant.PlantConfig``, except :mod:`.multibody`'s (the rigid-body link
-dynamics of a robot from its URDF, the ``arm`` extra), imported from there when needed.
+dynamics of a robot from its URDF, the ``arm`` extra) and :mod:`.arm`'s (an actuator on
+every joint of those links), imported from there when needed.
 
 The plant is what stands behind :class:`hdhil.hostsim.drive.DriveNode`; any object
 with the members of :class:`hdhil.hostsim.plant_model.PlantModel` can take its place.

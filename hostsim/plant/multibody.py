@@ -399,6 +399,20 @@ class LinkDynamics:
         mj.mj_comPos(m, d)
         return self._urdf_order(self._wrench_forces(external))
 
+    def free_torques(
+        self,
+        q: np.ndarray,
+        qd: np.ndarray,
+        external: Wrench | Sequence[Wrench] | None = None,
+    ) -> np.ndarray:
+        """``J(q)^T w - b(q, qd)``: the joint torques on the links from everything but the
+        actuators (gravity, Coriolis and centrifugal torques, external wrenches), Nm, in
+        one kinematics pass: ``M qdd = tau + free_torques(q, qd, w)``."""
+        out = -self._rne(q, qd)
+        if external is not None:
+            out += self._urdf_order(self._wrench_forces(external))
+        return out
+
     def forward_dynamics(
         self,
         q: np.ndarray,

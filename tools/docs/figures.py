@@ -219,6 +219,19 @@ def torque_steps_evaluation_block() -> str:
     return "```text\n" + "\n".join(lines[start:end]) + "\n```"
 
 
+@block("plan-rehabexos")
+def plan_rehabexos_block() -> str:
+    """What ``hdhil plan --scenario rehabexos --no-cpu`` prints (the bus figures only:
+    the CPU prediction is measured on the machine at hand)."""
+    import subprocess
+
+    command = [sys.executable, "-m", "hdhil", "plan", "--scenario", "rehabexos", "--no-cpu"]
+    proc = subprocess.run(command, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        raise RuntimeError(f"hdhil plan: exit {proc.returncode}: {proc.stderr}")
+    return "```text\n" + proc.stdout.rstrip("\n") + "\n```"
+
+
 @block("fidelity")
 def fidelity_block() -> str:
     """The README's fidelity table (``tools/docs/fidelity.py``)."""

@@ -51,6 +51,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sdo": ("netcmd", "read or write a node's object dictionary (SDO client)"),
     "nmt": ("netcmd", "send an NMT command"),
     "conformance": ("conformance", "CiA 301 + CiA 402 conformance and timing suite against a node"),
+    "plan": ("plan", "worst-case load of each bus of a scenario's rig, and the CPU a cycle needs"),
     "dbc": ("dbc", "CAN databases: export the control bus and ground truth as one DBC"),
     "bench": ("bench", "measure throughput, per-stage compute time and memory (medians)"),
     "soak": (

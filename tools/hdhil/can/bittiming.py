@@ -430,6 +430,14 @@ def _fd_header(
     return arbitration, control, _state_index(state) if state[1] < 5 else -1
 
 
+def _fd_phases(arbitration: int, in_data: int, brs: bool) -> FdBits:
+    """An FD frame's bits by phase: with bit-rate switching, the bits from BRS to the CRC
+    delimiter at the data bit rate, the rest (and the tail) at the nominal one."""
+    if brs:
+        return FdBits(arbitration + _FD_TAIL, in_data)
+    return FdBits(arbitration + in_data + _FD_TAIL, 0)
+
+
 def fd_frame_bits(
     arbitration_id: int,
     extended: bool,
@@ -459,9 +467,7 @@ def fd_frame_bits(
         # The last byte's first 7 bits may add stuff bits; its 8th never does.
         added += _STUFF7[(step & 0x700) >> 1 | data[-1] >> 1] >> 3
     in_data = control + 8 * n + added + _fd_crc_field(n)
-    if brs:
-        return FdBits(arbitration + _FD_TAIL, in_data)
-    return FdBits(arbitration + in_data + _FD_TAIL, 0)
+    return _fd_phases(arbitration, in_data, brs)
 
 
 def fd_frame_seconds(
@@ -528,9 +534,7 @@ def worst_case_fd_frame_bits(
         assert worst is not None
         arbitration, control = worst
         in_data = control + 8 * n + _fd_crc_field(n)
-    if brs:
-        return FdBits(arbitration + _FD_TAIL, in_data)
-    return FdBits(arbitration + in_data + _FD_TAIL, 0)
+    return _fd_phases(arbitration, in_data, brs)
 
 
 def worst_case_fd_frame_seconds(

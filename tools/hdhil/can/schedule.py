@@ -331,26 +331,17 @@ def cia402_schedule(
     frames = [CyclicFrame("SYNC", SYNC_COB_ID, sync_length, role="sync")]
     fd = fd_frames
     for index, (joint, node) in enumerate(zip(names, node_ids, strict=True)):
-        frames.append(
-            CyclicFrame(
-                f"{joint}_RPDO1",
-                pdo_cob_id("rpdo", 1, node),
-                rpdo_length,
-                fd=fd,
-                role="rpdo",
-                joint=joint,
+        for kind, length in (("rpdo", rpdo_length), ("tpdo", tpdo_length)):
+            frames.append(
+                CyclicFrame(
+                    f"{joint}_{kind.upper()}1",
+                    pdo_cob_id(kind, 1, node),  # type: ignore[arg-type]
+                    length,
+                    fd=fd,
+                    role=kind,  # type: ignore[arg-type]
+                    joint=joint,
+                )
             )
-        )
-        frames.append(
-            CyclicFrame(
-                f"{joint}_TPDO1",
-                pdo_cob_id("tpdo", 1, node),
-                tpdo_length,
-                fd=fd,
-                role="tpdo",
-                joint=joint,
-            )
-        )
         for number, length in enumerate(telemetry, 2):
             frames.append(
                 CyclicFrame(

@@ -61,7 +61,8 @@ from hdhil.canopen.pdo import PdoLayout
 from hdhil.canopen.sdo import SDO_RX_BASE, SDO_TX_BASE
 from hdhil.canopen.sync import SYNC_COB_ID
 from hdhil.core.errors import UserError
-from hdhil.dbc import MAPPINGS, database, eds_path, node_ids
+from hdhil.dbc import MAPPINGS, MAX_TRUTH_JOINTS, TRUTH_BASE, database, eds_path, node_ids
+from hdhil.dbc import truth_frame_id as _truth_frame_id
 
 __all__ = [
     "MAX_TRUTH_JOINTS",
@@ -75,11 +76,6 @@ __all__ = [
     "truth_frame_id",
 ]
 
-#: The ground-truth frames' 29-bit identifiers: ``TRUTH_BASE | joint_index << 4 | k``.
-TRUTH_BASE = 0x1F0000
-_TRUTH_SHIFT = 4
-#: Joints whose truth frames fit the scheme (bits 4-15 of the identifier).
-MAX_TRUTH_JOINTS = 1 << 12
 
 #: CiA 301 pre-defined connection set: the function code of RPDO/TPDO 1..4.
 _PDO_FUNCTION = {
@@ -170,9 +166,7 @@ def truth_frame_id(joint_index: int, template_id: int) -> int:
     ``truth.dbc``'s 0x1F0001..0x1F0003) of the rig's ``joint_index``-th joint."""
     if not 0 <= joint_index < MAX_TRUTH_JOINTS:
         raise UserError(f"a rig has at most {MAX_TRUTH_JOINTS} joints with ground truth")
-    if template_id & ~0xF != TRUTH_BASE:
-        raise ValueError(f"truth frame 0x{template_id:X} is not in 0x{TRUTH_BASE:X}..+0xF")
-    return template_id | joint_index << _TRUTH_SHIFT
+    return _truth_frame_id(joint_index, template_id)
 
 
 def _int(value: object) -> bool:

@@ -97,7 +97,61 @@ def export(out: Path, mapping: str = "raw") -> int:
     return text.count("\nBO_ ")
 
 
+def bus_outputs(out: Path, buses: list[str]) -> dict[str, Path]:
+    """Where each bus's database goes: ``out`` itself for one bus, else ``out``'s stem
+    with the bus's name (``rig.dbc`` -> ``rig-can0.dbc``, ``rig-can1.dbc``)."""
+    if len(buses) == 1:
+        return {buses[0]: out}
+    return {bus: out.with_name(f"{out.stem}-{bus}{out.suffix or '.dbc'}") for bus in buses}
+
+
+def export_scenario(out: Path, scenario: str, mapping: str = "raw") -> dict[str, tuple[Path, int]]:
+    """Write the database of each bus of ``scenario``'s rig (:mod:`hdhil.canopen.rigdb`,
+    from the object dictionaries and node-IDs): one DBC per bus (:func:`bus_outputs`),
+    all written or none. Returns, per bus, the file and its number of messages."""
+    import cantools
+
+    from hdhil.analysis.rigplan import scenario_databases
+    from hdhil.core.files import AtomicOutput, commit_outputs, discard_outputs
+    from hdhil.rig.scenario import load_scenario
+
+    databases = scenario_databases(load_scenario(scenario), mapping)
+    targets = bus_outputs(out, list(databases))
+    texts = {}
+    for bus, db in databases.items():
+        text = db.as_dbc_string()
+        cantools.database.load_string(text, database_format="dbc", strict=True)
+        texts[bus] = text
+    outputs = []
+    try:
+        for bus, path in targets.items():
+            if path.exists() and not path.is_file():
+                raise UserError(f"{path}: exists and is not a regular file")
+            check_output(path)
+            o = AtomicOutput(path, "", open_file=False, deferred=True)
+            outputs.append(o)
+            with o:
+                assert o.path is not None
+                try:
+                    o.path.write_text(texts[bus], encoding="cp1252", errors="strict",
+                                      newline="\r\n")  # fmt: skip
+                except (OSError, UnicodeEncodeError) as exc:
+                    reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+                    raise UserError(f"cannot write {path}: {reason}") from None
+        commit_outputs(outputs)
+    except BaseException:
+        discard_outputs(outputs)
+        raise
+    return {bus: (targets[bus], texts[bus].count("\nBO_ ")) for bus in databases}
+
+
 def run_export(args: argparse.Namespace) -> int:
+    if args.scenario is not None:
+        written = export_scenario(Path(args.out), args.scenario, args.mapping)
+        for bus, (path, n) in written.items():
+            print(f"hdhil dbc export: bus {bus}: {n} messages (its frames and its joints' "
+                  f"ground truth) in {path}")  # fmt: skip
+        return 0
     n = export(Path(args.out), args.mapping)
     what = "" if args.mapping == "raw" else f", the drive's PDOs in the {args.mapping} mapping"
     print(f"hdhil dbc export: {n} messages (control bus and ground truth{what}) in {args.out}")
@@ -127,5 +181,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="NAME",
         help=f"the drive's PDO messages as this shipped mapping configures them "
         f"({', '.join(MAPPINGS)}; default raw, control.dbc as it is)",
+    )
+    e.add_argument(
+        "--scenario",
+        metavar="NAME",
+        help="the databases of this scenario's rig, generated from the drives' object "
+        "dictionaries and node-IDs: one DBC per bus (OUT's stem with the bus's name when "
+        "there are several)",
     )
     e.set_defaults(func=run_export)

@@ -62,10 +62,19 @@ class BusSpec:
     data_bitrate: int = 0
     #: The node-ID of the controller node on this bus (NMT master and SYNC producer).
     controller_node_id: int = 1
+    #: The controller's telemetry of each joint every this many SYNC cycles (decimated
+    #: telemetry; 1: every cycle), the joints' frames spread over the cycles between.
+    telemetry_every: int = 1
 
     def __post_init__(self) -> None:
-        if isinstance(self.bitrate, bool) or not 10_000 <= self.bitrate <= 8_000_000:
-            raise ValueError(f"bitrate must be 10000..8000000 bit/s, got {self.bitrate!r}")
+        if isinstance(self.bitrate, bool) or not 10_000 <= self.bitrate <= 1_000_000:
+            raise ValueError(
+                f"bitrate must be 10000..1000000 bit/s (ISO 11898-2), got {self.bitrate!r}"
+            )
+        if isinstance(self.telemetry_every, bool) or not 1 <= self.telemetry_every <= 1000:
+            raise ValueError(
+                f"telemetry_every must be 1..1000 cycles, got {self.telemetry_every!r}"
+            )
         if not isinstance(self.fd, bool):
             raise ValueError(f"fd must be true or false, got {self.fd!r}")
         if self.data_bitrate:
@@ -90,13 +99,21 @@ class JointSpec:
     name: str
     bus: str
     node_id: int
+    #: The node-ID of the controller node that runs this joint's loop (the bus's own
+    #: unless the joint names another: a controller node reports two joints' telemetry
+    #: in its four pre-defined TPDOs, docs/rigdb.md).
+    controller_node_id: int = 1
     #: The joint's own ``plant`` and ``firmware`` keys (what ``[joints.NAME]`` gave).
     plant_overrides: dict[str, Any] = field(default_factory=dict, compare=False)
     firmware_overrides: dict[str, Any] = field(default_factory=dict, compare=False)
 
     def to_data(self) -> dict[str, Any]:
         """The ``[joints.NAME]`` table of this joint (without its name)."""
-        data: dict[str, Any] = {"bus": self.bus, "node_id": self.node_id}
+        data: dict[str, Any] = {
+            "bus": self.bus,
+            "node_id": self.node_id,
+            "controller_node_id": self.controller_node_id,
+        }
         if self.plant_overrides:
             data["plant"] = self.plant_overrides
         if self.firmware_overrides:
@@ -113,6 +130,8 @@ class JointTable:
     bus: str = ""
     #: The drive's CANopen node-ID; 0: the lowest free one on its bus from 2.
     node_id: int = 0
+    #: The node-ID of the controller node that runs the joint; 0: the bus's.
+    controller_node_id: int = 0
     #: The joint's own ``[plant]`` keys, merged over the scenario's (same layout).
     plant: dict[str, Any] = field(default_factory=dict)
     #: The joint's own ``[firmware]`` keys, merged over the scenario's (same layout).
@@ -133,12 +152,47 @@ class UrdfJoint:
 class RobotSpec:
     """``[robot]``: the URDF whose actuated joints are the rig's joints."""
 
-    #: The URDF file (resolved against the scenario file when it loads).
+    #: A shipped robot by name (``arm7``, ``rehabexos``) or a URDF file (a path relative
+    #: to the scenario file that names it).
     urdf: str
 
     @property
+    def path(self) -> Path:
+        """The URDF file: a shipped robot's, or the path as resolved."""
+        if is_robot_name(self.urdf):
+            return shipped_robot(self.urdf)
+        return Path(self.urdf)
+
+    @property
     def joints(self) -> tuple[UrdfJoint, ...]:
-        return urdf_joints(Path(self.urdf))
+        return urdf_joints(self.path)
+
+
+def is_robot_name(urdf: str) -> bool:
+    """Whether ``urdf`` names a shipped robot rather than a file."""
+    return "/" not in urdf and "\\" not in urdf and not urdf.lower().endswith(".urdf")
+
+
+def shipped_robots() -> list[str]:
+    """Names of the shipped robots (``hdhil/hostsim/robots/*.urdf``), sorted."""
+    from importlib import resources
+
+    folder = resources.files("hdhil.hostsim") / "robots"
+    return sorted(
+        p.name.removesuffix(".urdf") for p in folder.iterdir() if p.name.endswith(".urdf")
+    )
+
+
+def shipped_robot(name: str) -> Path:
+    """The URDF file of a shipped robot; an unknown name is a one-line error."""
+    from importlib import resources
+
+    if name not in shipped_robots():
+        raise ConfigError(
+            f"robot.urdf: no shipped robot {name!r} (shipped: {', '.join(shipped_robots())}; "
+            "a file is named with its .urdf suffix)"
+        )
+    return Path(str(resources.files("hdhil.hostsim") / "robots" / f"{name}.urdf"))
 
 
 def _check_node_id(value: Any, key: str) -> None:
@@ -228,6 +282,7 @@ def parse_joints(
     bus_names = [name for name, _ in buses]
     specs = dict(buses)
     taken: dict[str, set[int]] = {b: {specs[b].controller_node_id} for b in bus_names}
+    controllers: dict[str, set[int]] = {b: set() for b in bus_names}
     chosen: list[tuple[str, str, int | None, dict[str, Any]]] = []
     for name in names:
         if not _NAME.match(name):
@@ -235,11 +290,11 @@ def parse_joints(
         table = joints.get(name, {})
         if not isinstance(table, dict):
             raise ConfigError(f"joints.{name}: expected a table, got {table!r}")
-        unknown_keys = sorted(set(table) - {"bus", "node_id", "plant", "firmware"})
+        known = {"bus", "node_id", "controller_node_id", "plant", "firmware"}
+        unknown_keys = sorted(set(table) - known)
         if unknown_keys:
             raise ConfigError(
-                f"unknown key joints.{name}.{unknown_keys[0]} "
-                "(known: bus, firmware, node_id, plant)"
+                f"unknown key joints.{name}.{unknown_keys[0]} (known: {', '.join(sorted(known))})"
             )
         bus = table.get("bus") or None
         if bus is None:
@@ -264,9 +319,22 @@ def parse_joints(
                     f"joints.{name}.node_id: node-ID {node_id} is already taken on bus {bus}"
                 )
             taken[bus].add(node_id)
-        chosen.append((name, bus, node_id, table))
+        controller = table.get("controller_node_id") or specs[bus].controller_node_id
+        try:
+            _check_node_id(controller, f"joints.{name}.controller_node_id")
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        controllers[bus].add(controller)
+        chosen.append((name, bus, node_id, table, controller))
+    for bus, ids in controllers.items():  # a controller node is no drive
+        clash = ids & {c[2] for c in chosen if c[1] == bus and c[2] is not None}
+        if clash:
+            raise ConfigError(
+                f"bus {bus}: node-ID {min(clash)} is both a drive and a controller node"
+            )
+        taken[bus] |= ids
     out = []
-    for name, bus, node_id, table in chosen:
+    for name, bus, node_id, table, controller in chosen:
         if node_id is None:  # the lowest free node-ID on the bus
             free = next((n for n in range(2, 128) if n not in taken[bus]), None)
             if free is None:
@@ -281,6 +349,7 @@ def parse_joints(
                 name,
                 bus,
                 node_id,
+                controller,
                 dict(table.get("plant", {})),
                 dict(table.get("firmware", {})),
             )

@@ -86,6 +86,8 @@ class NodeLoop:
     whether the producer expects a sensor frame this cycle (long timeout) or not (short;
     :func:`controller_expects_answer` for the firmware's controller).
     ``listeners`` are drained every ``listen_every`` cycles and while waiting.
+    ``more_buses``: further simulated buses on the same clock, each with its SYNC
+    producer (one process running a rig of several buses in lockstep).
 
     Time: with a ``pacer`` the cycle waits for its wall-clock deadline; otherwise, with a
     ``sim_clock``, that clock is set to ``k * period_s`` (simulated time) and its
@@ -110,6 +112,7 @@ class NodeLoop:
         pump: SimBus | None = None,
         pacer: Pacer | None = None,
         timeout_s: float | None = None,
+        more_buses: Sequence[tuple[SyncProducer, SimBus]] = (),
     ) -> None:
         if producer is not None and answers is None and pump is None:
             raise ValueError("a SYNC producer on a real bus needs its answer counter")
@@ -117,6 +120,8 @@ class NodeLoop:
             raise ValueError("node_time None reads the sim_clock, and there is none")
         if listen_every < 1:
             raise ValueError(f"listen_every must be >= 1, got {listen_every}")
+        if more_buses and (pump is None or producer is None):
+            raise ValueError("more simulated buses need the first one's pump and producer")
         self.nodes = tuple(nodes)
         self.producer = producer
         self.answers = answers
@@ -137,6 +142,10 @@ class NodeLoop:
         #: Per node, a test that its poll would find no frame (a plain ``CanNode`` on a
         #: ``simbus``), or None: always poll it.
         self._idle = tuple(_idle_test(node) for node in self.nodes)
+        #: Further simulated buses of the same clock, each with its SYNC producer (a rig
+        #: of several buses in one process): their SYNCs go out with the first bus's,
+        #: and a cycle completes when no bus had a frame requested in a round.
+        self.more_buses = tuple(more_buses)
 
     def now(self) -> float:
         """The time the nodes are handed now."""
@@ -174,6 +183,8 @@ class NodeLoop:
         bus = self.pump
         if producer is None:
             self._serve_slice()
+        elif self.more_buses:  # several simulated buses: the same, over all of them
+            self._pump_buses(producer, bus)  # type: ignore[arg-type]
         elif bus is not None:  # simulated bus: pump until a round requests no frame
             producer.send_sync()
             idle = self._idle
@@ -206,6 +217,23 @@ class NodeLoop:
         return sum(listener.poll() for listener in self.listeners)
 
     # ------------------------------------------------------------------ completion
+    def _pump_buses(self, producer: SyncProducer, first: SimBus) -> None:
+        """Every bus's SYNC, then rounds of polls until a round in which no bus had a
+        frame requested (the simulated buses deliver at once; each bus has its wire)."""
+        producer.send_sync()
+        buses = [first]
+        for more, bus in self.more_buses:
+            more.send_sync()
+            buses.append(bus)
+        nodes, idle = self.nodes, self._idle
+        while True:
+            before = sum(b.frames_requested for b in buses)
+            for node, node_idle in zip(nodes, idle, strict=True):
+                if node_idle is None or not node_idle():
+                    node.poll()
+            if sum(b.frames_requested for b in buses) == before:
+                break
+
     def _poll_all(self) -> int:
         n = 0
         for node in self.nodes:

@@ -28,7 +28,14 @@ from hdhil.core.files import load_toml, shipped_or_path
 from hdhil.firmware.config import FirmwareConfig, Law
 from hdhil.hostsim.plant import PlantConfig, check_step
 from hdhil.rig.faults import FaultConfig
-from hdhil.rig.layout import BusSpec, JointSpec, RobotSpec, parse_buses, parse_joints
+from hdhil.rig.layout import (
+    BusSpec,
+    JointSpec,
+    RobotSpec,
+    is_robot_name,
+    parse_buses,
+    parse_joints,
+)
 
 __all__ = [
     "BusConfig",
@@ -324,7 +331,11 @@ def scenario_file_data(
     except UserError as exc:
         raise ConfigError(str(exc)) from None
     robot = data.get("robot")
-    if isinstance(robot, dict) and isinstance(robot.get("urdf"), str):
+    if (
+        isinstance(robot, dict)
+        and isinstance(robot.get("urdf"), str)
+        and not is_robot_name(robot["urdf"])
+    ):
         # a URDF is named relative to the file that names it
         data = {**data, "robot": {**robot, "urdf": str(path.parent / robot["urdf"])}}
     header = data.get("scenario")
