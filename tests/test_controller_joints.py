@@ -177,6 +177,33 @@ def test_a_control_law_on_one_joint_sends_that_joints_control_telemetry_only():
     assert j1.diagnostics.control_frames_sent == 0 and j1.phase == j2.phase == "operational"
 
 
+def test_a_third_joint_runs_on_a_second_node_that_follows_the_buses_sync():
+    """rehabexos-fd's layout on a small scale: J1 and J2 on the bus's controller node 1,
+    J3 (drive 4) on controller node 6, which follows node 1's SYNC instead of producing
+    one; every frame at the identifier rigdb gives it."""
+    rig = [*RIG, RigDrive("J3", 4, controller_node_id=6)]
+    with BusHarness("t-joints-second", period_s=Ts) as harness:
+        ctrl = two_joints(harness)
+        second = harness.add(ControllerNode(harness.bus(), node_id=6, sync_producer=False,
+                                            joints=[JointSetup(RECOMMENDED, 4, "J3")]))  # fmt: skip
+        config = DriveConfig(sample_period_s=Ts, node_id=4, controller_node_id=6)
+        d4 = DriveNode(harness.bus(), Plant(PlantConfig(), 3), config)
+        for comm, cob in ((0x1400, 0x204), (0x1800, 0x184), (0x1801, 0x284)):
+            d4.services.write(comm, 1, d4.services.read(comm, 1) | 0x80000000)
+            d4.services.write(comm, 1, cob)
+        harness.add(d4)
+        run(harness, [ctrl, second, drive(harness, 2), drive(harness, 3), d4], 60)
+    assert [j.phase for j in (*ctrl.joints, *second.joints)] == ["operational"] * 3
+    assert d4.machine.state is State.OPERATION_ENABLED
+    assert sum(cob == 0x080 for _, cob, _ in harness.log) == 60  # node 1's SYNC only
+    assert second.joints[0].diagnostics.syncs_sent == 60
+    db = rig_databases(rig)["control"]
+    ids = {cob for _, cob, _ in harness.log}
+    for name in ("J3_CTRL_TPDO1", "J3_DRIVE_RPDO1", "HEARTBEAT_CTRL6", "J1_CTRL_TPDO1"):
+        assert db.get_message_by_name(name).frame_id in ids, name
+    assert ids <= {m.frame_id for m in db.messages}  # nothing rigdb does not name
+
+
 def test_a_drive_that_falls_silent_in_operation_stops_its_joint_only():
     with BusHarness("t-joints-silent", period_s=Ts) as harness:
         ctrl = two_joints(harness)

@@ -23,6 +23,7 @@ from hdhil.canopen.cia402 import State
 from hdhil.canopen.dcf import DcfConfigurator
 from hdhil.canopen.sdo import SdoClient
 from hdhil.canopen.services import CanopenServices, NmtState, ResetKind
+from hdhil.canopen.sync import SYNC_COB_ID
 from hdhil.dbc import eds_path
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller.codecs import LinkCodecs
@@ -92,7 +93,9 @@ class ControllerNode(CanNode):
     OPERATIONAL once no joint commands its drive.  ``phase`` is then the node's: the
     first of "wait-boot", "starting", "stopping", "operational" that a joint in service
     is in, else "safe" if a joint is, else "stopped"; ``boot_error`` is set when every
-    joint failed (each joint's in ``joints[r].boot_error``).
+    joint failed (each joint's in ``joints[r].boot_error``).  A further node on the bus
+    (``sync_producer=False``) serves the joints beyond two: it follows the SYNC it
+    receives (its joints' cycles start there) and commands its own drives only.
 
     The parts are attributes: ``services``, ``objects`` (OD values, live parameters) and
     ``joints``; joint 0's ``sequencer`` (start-up and stop), ``io`` (SYNC, sensor frame,
@@ -126,6 +129,7 @@ class ControllerNode(CanNode):
         joints: the joints of a node serving several (instead of ``config``,
             ``drive_node_id``, ``isr`` and ``drive_dcf``), in rank order; each joint's
             link defaults to :meth:`DriveLink.predefined` for its node-ID and rank.
+        sync_producer: this node produces the bus's SYNC (False: it follows it).
     """
 
     #: A walk step without statusword for this long reads the statusword by SDO.
@@ -150,6 +154,7 @@ class ControllerNode(CanNode):
         isr: InterruptHandlerModel | None = None,
         drive_dcf: str | Path | None = None,
         joints: Sequence[JointSetup] | None = None,
+        sync_producer: bool = True,
     ) -> None:
         setups, links = _joint_links(config, node_id, drive_node_id, isr, drive_dcf, joints)
         for link in links:
@@ -158,6 +163,8 @@ class ControllerNode(CanNode):
         super().__init__(bus)
         self.sync_overflow = sync_overflow
         self.node_id = node_id
+        #: This node produces the bus's SYNC (else it follows the SYNC it receives).
+        self.sync_producer = sync_producer
         self.boot_timeout_s = boot_timeout_s
         self.sensor_hold_cycles = sensor_hold_cycles
         #: Why the drives never booted (one line for the user); None otherwise.
@@ -194,6 +201,8 @@ class ControllerNode(CanNode):
         self.objects.store_control_pdo_validity()
         for joint in self.joints:
             self._route(joint)
+        if not sync_producer:
+            self.handle(SYNC_COB_ID, self._on_sync)
 
     def _route(self, joint: ControllerJoint) -> None:
         """A joint's frames to its parts.  Joint 0's PDO identifiers come from the object
@@ -345,6 +354,8 @@ class ControllerNode(CanNode):
         walk's statusword timeouts ("starting"/"stopping").  Returns True if a SYNC went
         out.
         """
+        if not self.sync_producer:
+            return False
         self.objects.apply_pending()
         joint = self._single
         if joint is None:
@@ -363,6 +374,25 @@ class ControllerNode(CanNode):
 
     def _send_sync_joints(self) -> bool:
         """``send_sync`` of a node of several joints: the checks per joint, one SYNC."""
+        serving = self._serving()
+        if not serving or not self.joints[0].io.send_sync_frame():
+            return False
+        for joint in serving:
+            joint.io.synced()
+        return True
+
+    def _on_sync(self, msg: can.Message) -> None:
+        """A node that follows the bus's SYNC: the SYNC starts its joints' cycle, after
+        the same checks as a SYNC of its own (in PRE-OPERATIONAL and OPERATIONAL)."""
+        if not self.services.sync_allowed:
+            return
+        self.objects.apply_pending()
+        for joint in self._serving():
+            joint.io.synced()
+
+    def _serving(self) -> list[ControllerJoint]:
+        """At a cycle boundary: each joint's sensor hold or walk watchdog; the joints
+        still in service."""
         serving = []
         for joint in self.joints:
             phase = joint.phase
@@ -376,11 +406,7 @@ class ControllerNode(CanNode):
             elif phase in FINAL:
                 continue
             serving.append(joint)
-        if not serving or not self.joints[0].io.send_sync_frame():
-            return False
-        for joint in serving:
-            joint.io.synced()
-        return True
+        return serving
 
     def request_stop(self, reason: str = "stop requested") -> None:
         """Walk the drives back (controlword 0x0007, then 0x0006), then NMT
