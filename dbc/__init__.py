@@ -179,6 +179,18 @@ class FrameCodec:
             )
         return self
 
+    def at(self, frame_id: int) -> FrameCodec:
+        """This codec with the same layout at identifier ``frame_id`` (a PDO whose COB-ID
+        the node's object dictionary sets, e.g. the drive's TPDO1 at node-ID 5, 0x185,
+        laid out as ``DRIVE_TPDO1``); itself when the identifier is its own."""
+        if frame_id == self.frame_id:
+            return self
+        other = object.__new__(FrameCodec)
+        for slot in FrameCodec.__slots__:
+            setattr(other, slot, getattr(self, slot))
+        other.frame_id = frame_id
+        return other
+
     def decode_named(self, data: bytes | bytearray) -> dict[str, float]:
         """Unpack a payload into ``{signal name: physical value}`` (tools, tests)."""
         return dict(zip(self.signal_names, self.decode(data), strict=True))
@@ -293,13 +305,33 @@ def codec(bus: BusName, message_name: str) -> FrameCodec:
 
 
 @cache
-def known_frames(bus: BusName) -> frozenset[tuple[int, bool]]:
-    """``(frame_id, is_extended_id)`` of every message in ``bus``'s DBC.
+def known_frames(
+    bus: BusName, drive_node_id: int | None = None, controller_node_id: int | None = None
+) -> frozenset[tuple[int, bool]]:
+    """``(frame_id, is_extended_id)`` of every message in ``bus``'s DBC; with a drive or
+    controller at another node-ID than the DBC's, each of that node's identifiers (base
+    + node-ID: PDOs, EMCY, SDO, heartbeat) at its node-ID instead.
 
     A node ignores known frames that are not addressed to it; anything else is unknown
     and counted in its diagnostics.
     """
-    return frozenset((m.frame_id, m.is_extended_frame) for m in database(bus).messages)
+    ids = node_ids(bus)
+    moved = {
+        old: new
+        for old, new in (
+            (ids.get("DRIVE"), drive_node_id),
+            (ids.get("CONTROLLER"), controller_node_id),
+        )
+        if old is not None and new is not None and new != old
+    }
+    frames = set()
+    for m in database(bus).messages:
+        fid = m.frame_id
+        node = fid & 0x7F
+        if moved and not m.is_extended_frame and fid & ~0x7F and node in moved:
+            fid = (fid & ~0x7F) + moved[node]
+        frames.add((fid, m.is_extended_frame))
+    return frozenset(frames)
 
 
 def _attribute(obj: object, name: str) -> object:

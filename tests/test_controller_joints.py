@@ -10,7 +10,7 @@ import pytest
 from conftest import BusHarness
 
 from hdhil.canopen.cia402 import State
-from hdhil.canopen.rigdb import RigDrive, drive_pdo_layouts, rig_databases
+from hdhil.canopen.rigdb import RigDrive, rig_databases
 from hdhil.core.dataconf import ConfigError
 from hdhil.firmware.config import FirmwareConfig, paper_config, recommended_config
 from hdhil.firmware.controller import ControllerNode, DriveLink, JointSetup
@@ -44,18 +44,10 @@ class Recording:
 
 
 def drive(harness: BusHarness, node_id: int, seed: int = 0) -> DriveNode:
-    """An emulated drive at ``node_id`` with the PDO identifiers rigdb gives it (CiA 301's
-    pre-defined connection set), set as a configuration tool would: not valid, the
-    COB-ID, valid again."""
+    """An emulated drive at ``node_id``: its PDO identifiers follow its node-ID (CiA 301's
+    pre-defined connection set, as rigdb numbers them)."""
     node = DriveNode(harness.bus(), Plant(PlantConfig(), seed),
                      DriveConfig(sample_period_s=Ts, node_id=node_id))  # fmt: skip
-    services = node.services
-    for (kind, number), layout in drive_pdo_layouts(RigDrive("", node_id)).items():
-        comm = (0x1400 if kind == "rpdo" else 0x1800) + number - 1
-        if not layout.valid:
-            continue
-        services.write(comm, 1, services.read(comm, 1) | 0x80000000)
-        services.write(comm, 1, layout.cob_id)
     return harness.add(node)
 
 
@@ -89,6 +81,11 @@ def test_two_joints_reach_operation_each_interrupt_on_its_own_frames_and_config(
     assert d3.machine.state is State.OPERATION_ENABLED
     assert j1.diagnostics.syncs_sent == j2.diagnostics.syncs_sent == 100
     assert sum(cob == 0x080 for _, cob, _ in harness.log) == 100  # one SYNC per cycle
+    # each drive sends at its own node-ID's identifiers, and the node knows every frame
+    # of both drives at theirs
+    sent = {cob for _, cob, _ in harness.log}
+    assert {0x182, 0x282, 0x183, 0x283, 0x202, 0x203} <= sent
+    assert ctrl.unknown_frames == {}
 
     db = rig_databases(RIG)["control"]
     log = harness.log
@@ -122,6 +119,17 @@ def replay(config: FirmwareConfig, samples: list[tuple[int, ...]]) -> list[bytes
         o = isr(AdcSample(*sample))
         out.append(codec.encode(o.T_meas, o.T_filtered, o.velocity, o.current))
     return out
+
+
+def test_the_node_knows_every_frame_of_each_of_its_drives_at_its_node_id():
+    """A tool's SDO request to drive 3 is a known frame to the node of drives 2 and 3
+    (not counted as unknown), one to a drive it does not serve is counted."""
+    with BusHarness("t-joints-known", period_s=Ts) as harness:
+        ctrl = two_joints(harness)
+        for cob in (0x603, 0x602, 0x604):
+            harness.send(cob, bytes((0x40, 0x41, 0x60, 0, 0, 0, 0, 0)))
+        harness.pump()
+    assert ctrl.unknown_frames == {0x604: 1}
 
 
 def test_a_drive_that_never_boots_leaves_the_other_joint_running_and_is_reported():
@@ -187,11 +195,7 @@ def test_a_third_joint_runs_on_a_second_node_that_follows_the_buses_sync():
         second = harness.add(ControllerNode(harness.bus(), node_id=6, sync_producer=False,
                                             joints=[JointSetup(RECOMMENDED, 4, "J3")]))  # fmt: skip
         config = DriveConfig(sample_period_s=Ts, node_id=4, controller_node_id=6)
-        d4 = DriveNode(harness.bus(), Plant(PlantConfig(), 3), config)
-        for comm, cob in ((0x1400, 0x204), (0x1800, 0x184), (0x1801, 0x284)):
-            d4.services.write(comm, 1, d4.services.read(comm, 1) | 0x80000000)
-            d4.services.write(comm, 1, cob)
-        harness.add(d4)
+        d4 = harness.add(DriveNode(harness.bus(), Plant(PlantConfig(), 3), config))
         run(harness, [ctrl, second, drive(harness, 2), drive(harness, 3), d4], 60)
     assert [j.phase for j in (*ctrl.joints, *second.joints)] == ["operational"] * 3
     assert d4.machine.state is State.OPERATION_ENABLED
@@ -311,6 +315,18 @@ def test_a_further_joint_has_the_predefined_link_of_its_rank():
     assert [names[c] for c in link.cob_ids] == [
         "J2_DRIVE_TPDO1", "J2_DRIVE_TPDO2", "J2_DRIVE_RPDO1", "J2_CTRL_TPDO1", "J2_CTRL_TPDO2"
     ]  # fmt: skip
+
+
+def test_joint_0s_own_link_gives_the_nodes_pdos_their_cob_ids():
+    link = DriveLink(2, 0x1A2, 0x2A2, 0x222, 0x1A1, 0x2A1)
+    with BusHarness("t-joints-link0", period_s=Ts) as harness:
+        ctrl = ControllerNode(harness.bus(), joints=[JointSetup(PAPER, 2, "J1", link=link)])
+    read = ctrl.services.read
+    assert [read(i, 1) & 0x7FF for i in (0x1400, 0x1401, 0x1802, 0x1800, 0x1801)] == [
+        0x1A2, 0x2A2, 0x222, 0x1A1, 0x2A1
+    ]  # fmt: skip
+    assert read(0x1801, 1) >> 31 == 1  # CTRL_TPDO2 still not valid without a law
+    assert ctrl.joints[0].link == link and ctrl.io.command_msg.arbitration_id == 0x222
 
 
 @pytest.mark.parametrize(

@@ -215,9 +215,13 @@ def test_nodes_take_pdo_identifiers_from_their_object_dictionary():
     od = canopen.import_od(str(eds_path("drive")), 2)
     assert pdo_cob_id(od, 0x1800, codec("control", "DRIVE_TPDO1")) == 0x182
     assert pdo_cob_id(od, 0x1400, codec("control", "DRIVE_RPDO1")) == 0x202
-    od[0x1800][1].default = 0x183  # an object dictionary edited out of step with the DBC
-    with pytest.raises(ValueError, match="does not match DRIVE_TPDO1"):
-        pdo_cob_id(od, 0x1800, codec("control", "DRIVE_TPDO1"))
+    # the identifier follows the node-ID ($NODEID+0x180 in the EDS), the DBC's layout stays
+    at5 = canopen.import_od(str(eds_path("drive")), 5)
+    assert pdo_cob_id(at5, 0x1800, codec("control", "DRIVE_TPDO1")) == 0x185
+    assert pdo_cob_id(at5, 0x1400, codec("control", "DRIVE_RPDO1")) == 0x205
+    at5[0x1A00][4].default = 0x21010008  # a mapping edited out of step with the DBC's layout
+    with pytest.raises(ValueError, match=r"DRIVE_TPDO1 in control\.dbc lays out 4 signal"):
+        pdo_cob_id(at5, 0x1800, codec("control", "DRIVE_TPDO1"))
 
 
 @pytest.mark.parametrize("node", sorted(NODE_IDS))

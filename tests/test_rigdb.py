@@ -155,10 +155,11 @@ def test_a_mapping_from_a_dcf_moves_to_the_drives_node_id(four):
 def test_a_cob_id_the_dcf_fixes_stays_and_two_drives_with_it_collide(tmp_path):
     text = dcf_path("drive-cst.dcf").read_text(encoding="utf-8")
     section = text.index("[1800sub1]")
-    value = text.index("DefaultValue=0x00000182", section)
+    old = "DefaultValue=$NODEID+0x180"
+    value = text.index(old, section)
     fixed = tmp_path / "fixed.dcf"
     fixed.write_text(
-        text[:value] + "DefaultValue=0x00000190" + text[value + 23 :], encoding="utf-8"
+        text[:value] + "DefaultValue=0x00000190" + text[value + len(old) :], encoding="utf-8"
     )
     one = rig_databases([RigDrive("J1", 3, dcf=fixed)])["control"]
     assert one.get_message_by_name("J1_DRIVE_TPDO1").frame_id == 0x190
@@ -335,9 +336,9 @@ def test_a_dcf_written_for_another_node_id_moves_with_the_drive(tmp_path):
         "node5.dcf",
         {
             ("[DeviceComissioning]", "NodeID=2"): "NodeID=5",
-            ("[1400sub1]", "0x00000202"): "0x00000205",
-            ("[1800sub1]", "0x00000182"): "0x00000185",
-            ("[1801sub1]", "0x00000282"): "0x00000285",
+            ("[1400sub1]", "$NODEID+0x200"): "0x00000205",
+            ("[1800sub1]", "$NODEID+0x180"): "0x00000185",
+            ("[1801sub1]", "$NODEID+0x280"): "0x00000285",
         },
     )
     layouts = drive_pdo_layouts(RigDrive("J1", 3, dcf=dcf))
@@ -350,7 +351,8 @@ def test_a_dcf_written_for_another_node_id_moves_with_the_drive(tmp_path):
 
 
 def test_a_pdo_the_dcf_turns_off_is_not_on_the_rig(tmp_path):
-    dcf = _edited_dcf(tmp_path, "quiet.dcf", {("[1801sub1]", "0x00000282"): "0x80000282"})
+    off = {("[1801sub1]", "$NODEID+0x280"): "$NODEID+0x80000280"}
+    dcf = _edited_dcf(tmp_path, "quiet.dcf", off)
     names = {m.name for m in rig_databases([RigDrive("J1", 2, dcf=dcf)])["control"].messages}
     assert "J1_DRIVE_TPDO1" in names and "J1_DRIVE_TPDO2" not in names
 

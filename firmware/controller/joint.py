@@ -18,16 +18,15 @@ would see a one-joint node: the same attributes, read without any indirection on
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from hdhil.can.node import pdo_cob_id
 from hdhil.canopen.cia402 import State
 from hdhil.canopen.dcf import DcfConfigurator, configuration_writes
 from hdhil.canopen.sdo import ABORT_DEVICE_STATE, SdoClient
 from hdhil.canopen.services import NmtCommand, NmtState, ResetKind
-from hdhil.dbc import FrameCodec
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.controller.codecs import LinkCodecs, default_codecs, mapped_codecs
 from hdhil.firmware.controller.cyclic import CyclicIo
@@ -53,7 +52,8 @@ class JointSetup:
     node-ID, a name for messages, its interrupt handler (None: the firmware's own,
     :class:`hdhil.firmware.isr.InterruptHandler`) and its link (None: the CiA 301
     pre-defined connection set for the node-ID and the joint's rank,
-    :meth:`DriveLink.predefined`, as :mod:`hdhil.canopen.rigdb` numbers the rig)."""
+    :meth:`DriveLink.predefined`, as :mod:`hdhil.canopen.rigdb` numbers the rig; joint
+    0's link sets the power-on COB-IDs of its PDOs in the node's object dictionary)."""
 
     config: FirmwareConfig
     node_id: int = 2
@@ -138,21 +138,38 @@ class ControllerJoint:
         #: CTRL_TPDO2 is valid (sent) only while a control law runs (COB-ID bit 31 clear).
         self.control_pdo_valid = self.config.control.active
         self.codecs = codecs
+        if self.rank == 0:  # the identifiers the object dictionary gave joint 0's PDOs
+            self.link = DriveLink(drive, codecs.sensor.frame_id, codecs.status.frame_id,
+                                  codecs.command.frame_id, codecs.telemetry.frame_id,
+                                  codecs.control_telemetry.frame_id)  # fmt: skip
 
     def _codecs(self) -> LinkCodecs:
         """Joint 0: ``control.dbc``'s codecs, or those of the mapping taken from the
-        drive's DCF (in the CST mapping no control law may be switched on later either).
-        A further joint: ``control.dbc``'s layouts on its link's identifiers."""
+        drive's DCF (in the CST mapping no control law may be switched on later either),
+        each at the identifier the node's object dictionary gives its PDO (RPDO1 0x1400,
+        RPDO2 0x1401, TPDO1-3 0x1800-0x1802: the node's own telemetry at its node-ID, the
+        drive's PDOs at the drive's), its layout checked against the one the node encodes
+        with.  A further joint: ``control.dbc``'s layouts at its link's identifiers."""
+        if self.rank:
+            return _on_link(default_codecs(), self.link)
         services = self.services
         if not self.mapped:
             codecs = default_codecs()
-            if self.link != DriveLink(self.drive_node_id):
-                codecs = _on_link(codecs, self.link)
-            return codecs
-        codecs = mapped_codecs(services.od, services.read, self.config.control.active)
-        if codecs.sensor_mapping == "cst":
-            services.add_validator(0x2420, 1, lambda law: ABORT_DEVICE_STATE if law else None)
-        return codecs
+        else:
+            codecs = mapped_codecs(services.od, services.read, self.config.control.active)
+            if codecs.sensor_mapping == "cst":
+                services.add_validator(0x2420, 1, lambda law: ABORT_DEVICE_STATE if law else None)
+        od, read = services.od, services.read
+        return replace(
+            codecs,
+            sensor=codecs.sensor.at(pdo_cob_id(od, 0x1400, codecs.sensor, read)),
+            status=codecs.status.at(pdo_cob_id(od, 0x1401, codecs.status, read)),
+            telemetry=codecs.telemetry.at(pdo_cob_id(od, 0x1800, codecs.telemetry, read)),
+            control_telemetry=codecs.control_telemetry.at(
+                pdo_cob_id(od, 0x1801, codecs.control_telemetry, read)
+            ),
+            command=codecs.command.at(pdo_cob_id(od, 0x1802, codecs.command, read)),
+        )
 
     # -------------------------------------------------------------- what parts use
 
@@ -237,18 +254,12 @@ def _no_mirror(_: int) -> None:
 
 
 def _on_link(codecs: LinkCodecs, link: DriveLink) -> LinkCodecs:
-    """``codecs`` with the frame identifiers of ``link``."""
+    """``codecs`` at the frame identifiers of ``link``."""
     return replace(
         codecs,
-        sensor=_with_id(codecs.sensor, link.sensor_cob_id),
-        command=_with_id(codecs.command, link.command_cob_id),
-        telemetry=_with_id(codecs.telemetry, link.telemetry_cob_id),
-        control_telemetry=_with_id(codecs.control_telemetry, link.control_cob_id),
-        status=_with_id(codecs.status, link.status_cob_id),
+        sensor=codecs.sensor.at(link.sensor_cob_id),
+        command=codecs.command.at(link.command_cob_id),
+        telemetry=codecs.telemetry.at(link.telemetry_cob_id),
+        control_telemetry=codecs.control_telemetry.at(link.control_cob_id),
+        status=codecs.status.at(link.status_cob_id),
     )
-
-
-def _with_id(codec: FrameCodec, frame_id: int) -> FrameCodec:
-    moved = copy.copy(codec)
-    moved.frame_id = frame_id
-    return moved

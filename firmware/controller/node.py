@@ -18,7 +18,7 @@ from pathlib import Path
 
 import can
 
-from hdhil.can.node import CanNode, pdo_cob_id
+from hdhil.can.node import CanNode
 from hdhil.canopen.cia402 import State
 from hdhil.canopen.dcf import DcfConfigurator
 from hdhil.canopen.sdo import SdoClient
@@ -36,7 +36,6 @@ from hdhil.firmware.controller.phases import COMMANDING, FINAL, Phase
 from hdhil.firmware.controller.sequencer import Sequencer
 from hdhil.firmware.controller.supervision import Supervision
 from hdhil.firmware.interrupt import InterruptHandlerModel
-from hdhil.firmware.parameters import store_value
 from hdhil.firmware.walk import Cia402Walk
 
 __all__ = ["ControllerNode"]
@@ -105,9 +104,13 @@ class ControllerNode(CanNode):
     0x1800-0x1802, the mirrors, the live parameters 0x2400-0x2430): joint 0's.  The
     node uses nothing but a python-can bus, so the same node drives the emulator on
     ``simbus`` or a real drive on SocketCAN/PCAN/Kvaser; it never subscribes to ground
-    truth.  PDO COB-IDs come from ``control.dbc`` (pre-defined connection set of nodes 1
-    and 2; :class:`~hdhil.firmware.controller.link.DriveLink` holds a joint's); other
-    node-IDs of a one-joint node move only the CiA 301 service frames.
+    truth.  PDO COB-IDs come from the object dictionaries at the node-IDs: joint 0's
+    from the node's, its telemetry at ``node_id``'s (``$NODEID+0x180``, ``$NODEID+0x280``
+    in its EDS) and the PDOs it exchanges with its drive at the drive's node-ID (the
+    drive's EDS or DCF there); a further joint's from its
+    :class:`~hdhil.firmware.controller.link.DriveLink` (by default CiA 301's pre-defined
+    connection set at its drive's node-ID and its rank, as :mod:`hdhil.canopen.rigdb`
+    numbers the rig).  The layouts are ``control.dbc``'s.
 
     Args:
         bus: the control bus (any python-can bus).
@@ -115,7 +118,7 @@ class ControllerNode(CanNode):
             with ``joints``.
         sync_overflow: SYNC counter overflow, object 0x1019 (CiA 301: 2..240 here).
         node_id: this node's CANopen node-ID.
-        drive_node_id: the drive's node-ID (NMT, heartbeat consumer, SDO client).
+        drive_node_id: the drive's node-ID (NMT, heartbeat consumer, SDO client, its PDOs).
         heartbeat_ms: heartbeat producer time (0x1017).
         drive_heartbeat_timeout_ms: heartbeat consumer time for each drive (0x1016).
         boot_timeout_s: how long ``boot`` waits for each drive's boot-up.
@@ -160,7 +163,9 @@ class ControllerNode(CanNode):
         for link in links:
             _check_arguments(sync_overflow, node_id, link.node_id, boot_timeout_s,
                              sensor_hold_cycles)  # fmt: skip
-        super().__init__(bus)
+        # the frames it knows: its drives' at their node-IDs, its own at its node-ID
+        drive_ids = tuple(link.node_id for link in links)
+        super().__init__(bus, drive_node_id=drive_ids, controller_node_id=node_id)
         self.sync_overflow = sync_overflow
         self.node_id = node_id
         #: This node produces the bus's SYNC (else it follows the SYNC it receives).
@@ -183,6 +188,10 @@ class ControllerNode(CanNode):
             heartbeat_producer_ms=heartbeat_ms,
             heartbeat_consumers={link.node_id: drive_heartbeat_timeout_ms for link in links},
         )
+        # joint 0's PDOs that pair with its drive's at the drive's COB-IDs (power-on values)
+        _address_drive(self.services, links[0].node_id, drive_dcf)
+        if setups[0].link is not None:
+            _address_link(self.services, links[0])
         #: The joints, in rank order (:class:`~hdhil.firmware.controller.joint.
         #: ControllerJoint`).
         self.joints: tuple[ControllerJoint, ...] = tuple(
@@ -205,23 +214,10 @@ class ControllerNode(CanNode):
             self.handle(SYNC_COB_ID, self._on_sync)
 
     def _route(self, joint: ControllerJoint) -> None:
-        """A joint's frames to its parts.  Joint 0's PDO identifiers come from the object
-        dictionary (RPDO1 0x1400, RPDO2 0x1401; the TPDOs 0x1800-0x1802), set to its link
-        when the link is not ``control.dbc``'s, and each checked against the layout the
-        node encodes with; a further joint's are its link's."""
+        """A joint's frames to its parts, at the identifiers of its codecs
+        (:meth:`ControllerJoint._codecs
+        <hdhil.firmware.controller.joint.ControllerJoint._codecs>`)."""
         codecs: LinkCodecs = joint.codecs
-        if joint.rank == 0:
-            od = self.services.od
-            pdos = ((0x1400, codecs.sensor), (0x1401, codecs.status),
-                    (0x1800, codecs.telemetry), (0x1802, codecs.command),
-                    (0x1801, codecs.control_telemetry))  # fmt: skip
-            if not joint.mapped and joint.link != DriveLink(joint.drive_node_id):
-                for comm_index, frame in pdos:
-                    cob = int(od[comm_index][1].default)  # type: ignore[index]
-                    store_value(self.services, comm_index, 1, cob & ~0x7FF | frame.frame_id)
-                    od[comm_index][1].default = cob & ~0x7FF | frame.frame_id  # type: ignore[index]
-            for comm_index, frame in pdos:
-                pdo_cob_id(od, comm_index, frame)
         self.handle(codecs.sensor.frame_id, joint.io.on_sensor_frame)
         self.handle(codecs.status.frame_id, joint.sequencer.on_statusword_frame)
         self.handle(joint.sdo.response_id, joint.sequencer.on_sdo_response)
@@ -484,7 +480,9 @@ def _joint_links(
             raise ValueError("a controller node needs a firmware configuration or joints")
         if not 1 <= drive_node_id <= 127 or drive_node_id == node_id:
             raise ValueError(f"drive node-ID must be 1..127 and not {node_id}, got {drive_node_id}")
-        return (JointSetup(config, drive_node_id, isr=isr),), (DriveLink(drive_node_id),)
+        return (JointSetup(config, drive_node_id, isr=isr),), (
+            DriveLink.predefined(drive_node_id, node_id),
+        )
     if config is not None or isr is not None or drive_dcf is not None or drive_node_id != 2:
         raise ValueError(
             "give a controller node its joints, or one joint's config, drive_node_id, "
@@ -544,3 +542,45 @@ def _check_arguments(
         isinstance(sensor_hold_cycles, int) and sensor_hold_cycles >= 1
     ):
         raise ValueError(f"sensor_hold_cycles must be an integer >= 1, got {sensor_hold_cycles}")
+
+
+#: The controller's PDOs that pair with the drive's: RPDO1 takes its TPDO1 (sensors),
+#: RPDO2 its TPDO2 (statusword), TPDO3 is its RPDO1 (command).
+_PEER_PDOS = ((0x1400, ("tpdo", 1)), (0x1401, ("tpdo", 2)), (0x1802, ("rpdo", 1)))
+
+
+def _address_drive(
+    services: CanopenServices, drive_node_id: int, drive_dcf: str | Path | None
+) -> None:
+    """Give the controller's PDOs that pair with the drive's the drive's COB-IDs as their
+    power-on values: the drive's EDS or DCF at its node-ID
+    (:func:`hdhil.canopen.rigdb.drive_pdo_layouts`; the pre-defined connection set moves
+    with the node-ID), each PDO's validity as this node's EDS sets it."""
+    from hdhil.canopen.rigdb import RigDrive, drive_pdo_layouts
+    from hdhil.core.errors import UserError
+
+    try:
+        layouts = drive_pdo_layouts(RigDrive("", drive_node_id, dcf=drive_dcf))
+    except UserError as exc:
+        raise ValueError(str(exc)) from None
+    for comm, key in _PEER_PDOS:
+        layout = layouts.get(key)
+        if layout is None:
+            continue
+        old = int(services.read(comm, 1))
+        new = (old & ~0x7FF) | layout.cob_id
+        if new != old:
+            services.set_power_on_value(comm, 1, new)
+
+
+def _address_link(services: CanopenServices, link: DriveLink) -> None:
+    """Joint 0's link given in its setup: its identifiers as the power-on COB-IDs of the
+    node's PDOs of joint 0 (sensor RPDO1, statusword RPDO2, command TPDO3, telemetry
+    TPDO1 and TPDO2), each PDO's validity as before."""
+    for comm, cob_id in ((0x1400, link.sensor_cob_id), (0x1401, link.status_cob_id),
+                         (0x1802, link.command_cob_id), (0x1800, link.telemetry_cob_id),
+                         (0x1801, link.control_cob_id)):  # fmt: skip
+        old = int(services.read(comm, 1))
+        new = (old & ~0x7FF) | cob_id
+        if new != old:
+            services.set_power_on_value(comm, 1, new)

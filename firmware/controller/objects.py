@@ -81,7 +81,12 @@ class ControllerObjects:
         """Give this node's PDOs the mapping of the drive's DCF (class docstring).  Raises
         ``ValueError`` for a mapping the controller cannot take."""
         services = self.node.services
-        drive_od, self.drive_layouts = dcf_layouts(drive_dcf, self.node.drive_node_id)
+        from hdhil.canopen.rigdb import RigDrive, drive_pdo_layouts
+
+        node_id = self.node.drive_node_id
+        drive_od, _ = dcf_layouts(drive_dcf, node_id)
+        # the drive's PDOs at its node-ID (the COB-IDs _address_drive gave this node's)
+        self.drive_layouts = drive_pdo_layouts(RigDrive("", node_id, dcf=drive_dcf))
         self.pdo_writes = peer_pdo_writes(services.od, services.read, drive_od, self.drive_layouts)
         for index, sub, value in self.pdo_writes:
             try:

@@ -174,17 +174,17 @@ class CyclicIO:
         )
         self._command = codec("control", "DRIVE_RPDO1").expect("DAC_cmd", "controlword", "cycle")
         self._status = codec("control", "DRIVE_TPDO2").expect("statusword")
-        self._sensor_msg = _message(self._sensor.frame_id, self._sensor.length)
-        self._od_controlword = index_of(services.od, CONTROLWORD_OBJECT)
-
-        # PDO defaults come from the object dictionary (RPDO1 0x1400, TPDO1/2 0x1800/1,
-        # checked against the DBC layouts: the DBC describes the default mapping); the live
+        # PDO defaults come from the object dictionary (RPDO1 0x1400, TPDO1/2 0x1800/1):
+        # their COB-IDs (from the node-ID, $NODEID+0x180 etc. in the EDS), their layouts
+        # checked against the DBC's (the DBC describes the default mapping); the live
         # PDOs are read from the OD's present values (load_pdos).
         od = services.od
+        self._command = self._command.at(pdo_cob_id(od, 0x1400, self._command))
+        self._sensor = self._sensor.at(pdo_cob_id(od, 0x1800, self._sensor))
+        self._status = self._status.at(pdo_cob_id(od, 0x1801, self._status))
+        self._sensor_msg = _message(self._sensor.frame_id, self._sensor.length)
+        self._od_controlword = index_of(services.od, CONTROLWORD_OBJECT)
         node.handle(self._sync.frame_id, self.on_sync)
-        pdo_cob_id(od, 0x1400, self._command)
-        pdo_cob_id(od, 0x1800, self._sensor)
-        pdo_cob_id(od, 0x1801, self._status)
         services.on_boot(self._on_remote_boot)
         # RPDO1's transmission type is the actuation setting: synchronous (type 1, taken
         # over at the next SYNC) or event-driven (255, taken over on receipt).

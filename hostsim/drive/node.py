@@ -149,9 +149,10 @@ class DriveNode(CanNode):
         ``plant`` is any :class:`hdhil.hostsim.plant_model.PlantModel`; the emulator's
         extras (0x2300 and the sensor faults of 0x2310) need the emulator's own
         :class:`hdhil.hostsim.plant.Plant` and are refused (SDO abort) for another model."""
-        super().__init__(bus)
+        cfg = config or DriveConfig()
+        super().__init__(bus, drive_node_id=cfg.node_id, controller_node_id=cfg.controller_node_id)
         self.plant = plant
-        self.config = cfg = config or DriveConfig()
+        self.config = cfg
         self.diagnostics = DriveDiagnostics()
         if isinstance(plant, Plant):  # its step map now, not in the middle of a cycle
             plant.prepare(cfg.sample_period_s)

@@ -386,8 +386,9 @@ def _raw_default(var: Any) -> str:
 
 
 def _pdo_record(obj: Any) -> str:
+    # a COB-ID relative to the node-ID ($NODEID+0x180) has no value without a node-ID
     entries = [f"{s.subindex}: {s.default_raw}" for s in obj.values()
-               if s.subindex > 0 and s.default not in (0, None)]  # fmt: skip
+               if s.subindex > 0 and (s.relative or s.default not in (0, None))]  # fmt: skip
     return ", ".join(entries) if entries else "all 0"
 
 

@@ -114,13 +114,14 @@ def resolve(
     mapping: str | None = None,
     drive_dcf: str | os.PathLike[str] | None = None,
     evaluate_from_s: float | None = None,
+    drive_node_id: int | None = None,
 ) -> Any:
     """The :class:`hdhil.rig.request.RunRequest` for ``scenario`` (a shipped name, a TOML
     file or a :class:`~hdhil.rig.scenario.Scenario`) with ``overrides`` (nested dicts in
     the scenario file's layout, or TOML files, in order), ``faults`` (``--fault`` flags:
     ``"control.loss_rate=0.05"``), a calibration file, a mapping (``"raw"``, ``"cst"``,
-    ``"cst-sensor"``) or a DCF, duration, seed and evaluation start; as ``hdhil run``
-    resolves its options."""
+    ``"cst-sensor"``) or a DCF, duration, seed, evaluation start and the drive's CANopen
+    node-ID (2..127; its PDO COB-IDs follow it); as ``hdhil run`` resolves its options."""
     from hdhil.rig.request import resolve as resolve_request
     from hdhil.rig.scenario import Scenario
 
@@ -148,6 +149,12 @@ def resolve(
         raise TypeError("faults must be a list of 'KEY=VALUE' strings")
     if mapping is not None and not isinstance(mapping, str):
         raise TypeError(f"mapping must be a str, got {type(mapping).__name__}")
+    layout = None
+    if drive_node_id is not None:
+        from hdhil.rig.factories import DriveSlot, RigLayout
+
+        drive_node_id = _number(drive_node_id, "drive_node_id", lo=2, hi=127, integer=True)
+        layout = RigLayout(1, (DriveSlot(int(drive_node_id)),))
     return resolve_request(
         scenario,
         overrides=items,
@@ -158,13 +165,14 @@ def resolve(
         duration_s=duration_s,
         seed=seed,
         evaluate_from_s=evaluate_from_s,
+        layout=layout,
     )
 
 
 #: The keyword settings :func:`run` hands to :func:`resolve`.
 _RESOLVE_SETTINGS = frozenset(
     {"duration_s", "seed", "overrides", "faults", "calibration", "mapping", "drive_dcf",
-     "evaluate_from_s"}
+     "evaluate_from_s", "drive_node_id"}
 )  # fmt: skip
 
 

@@ -107,6 +107,14 @@ def chirp_data_from_trace(
         "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
     )
     command = codec("control", "DRIVE_RPDO1").expect("DAC_cmd", "controlword", "cycle")
+    # a drive at another node-ID (the trace's sidecar layout): its frames at its identifiers
+    from hdhil.can.traces.sidecar import read_metadata
+    from hdhil.canopen.mapping import trace_node_ids
+    from hdhil.canopen.rigdb import predefined_cob_id
+
+    drive_id, _ = trace_node_ids(read_metadata(path) if Path(path).is_file() else None)
+    sensor = sensor.at(predefined_cob_id("tpdo", 1, drive_id))
+    command = command.at(predefined_cob_id("rpdo", 1, drive_id))
     adc, dac, cal = firmware.adc, firmware.dac, firmware.calibration
     ys: list[float] = []
     us: list[float] = []

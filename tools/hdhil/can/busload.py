@@ -14,6 +14,7 @@ their data phase at ``data_bitrate`` (bit-rate switching) when one is given.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from hdhil.can.bittiming import worst_case_fd_frame_bits, worst_case_frame_bits_for
 from hdhil.dbc import BusName, database
@@ -39,8 +40,11 @@ def schedule_load(
     bitrate: int = 1_000_000,
     sample_period_s: float = 1e-3,
     data_bitrate: int | None = None,
+    db: Any = None,
 ) -> ScheduleLoad:
-    """Worst-case load of ``bus``'s cyclic frames at ``bitrate``.
+    """Worst-case load of ``bus``'s cyclic frames at ``bitrate`` (``db``: a cantools
+    database of the bus in place of its DBC, e.g. a drive at another node-ID, whose
+    identifiers stuff differently).
 
     Messages whose cycle time equals the DBC's 1 ms base cycle run every sample period,
     so a slower loop (``sample_period_s`` > 1 ms) scales their period with it.
@@ -51,7 +55,7 @@ def schedule_load(
         raise ValueError(f"data bitrate must be > 0, got {data_bitrate}")
     frames = []
     load = 0.0
-    for msg in database(bus).messages:
+    for msg in (db if db is not None else database(bus)).messages:
         cycle_ms = msg.cycle_time
         if not cycle_ms:
             continue

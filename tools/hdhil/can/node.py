@@ -10,7 +10,7 @@ a real adapter alike.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import can
 
@@ -22,11 +22,24 @@ Handler = Callable[[can.Message], None]
 class CanNode:
     """Dispatches received frames of one bus to handlers."""
 
-    def __init__(self, bus: can.BusABC, bus_name: BusName = "control") -> None:
+    def __init__(
+        self,
+        bus: can.BusABC,
+        bus_name: BusName = "control",
+        *,
+        drive_node_id: int | Sequence[int] | None = None,
+        controller_node_id: int | None = None,
+    ) -> None:
         self.bus = bus
         self.unknown_frames: dict[int, int] = {}
         self.error_frames = 0
-        self._known = known_frames(bus_name)
+        # the DBC's frames, the drive's (or each drive's) and the controller's at their
+        # node-IDs
+        drives = drive_node_id if isinstance(drive_node_id, Sequence) else (drive_node_id,)
+        drives = drives or (None,)
+        self._known = known_frames(bus_name, drives[0], controller_node_id).union(
+            *(known_frames(bus_name, drive, controller_node_id) for drive in drives[1:])
+        )
         self._handlers: dict[tuple[int, bool], Handler] = {}
         #: The handlers of 11-bit identifiers by identifier alone (the 1 kHz frames).
         self._base_handlers: dict[int, Handler] = {}
@@ -76,18 +89,52 @@ class CanNode:
         return n
 
 
-def pdo_cob_id(od: object, comm_index: int, frame: FrameCodec) -> int:
+#: The dummy-mapping data types 0x0001..0x0007 and their sizes (CiA 301 §7.4.7.1): a
+#: mapping entry of one leaves a gap in the frame.
+_DUMMY_BITS = {0x1: 1, 0x2: 8, 0x3: 16, 0x4: 32, 0x5: 8, 0x6: 16, 0x7: 32}
+
+
+def _int_entry(od: object, index: int, sub: int, read: Callable[[int, int], int] | None) -> int:
+    if read is not None:
+        return int(read(index, sub))
+    return int(od[index][sub].default or 0)  # type: ignore[index]
+
+
+def pdo_cob_id(
+    od: object,
+    comm_index: int,
+    frame: FrameCodec,
+    read: Callable[[int, int], int] | None = None,
+) -> int:
     """The COB-ID of a PDO, read from the node's object dictionary.
 
     ``comm_index`` is the PDO's communication parameter (0x1400.. RPDO, 0x1800.. TPDO),
-    sub-index 1 (CiA 301; bit 31 = PDO not valid, bit 30 = no RTR, 11-bit identifier).
-    The node encodes the payload with ``frame``, the DBC's layout of the same PDO; if the
-    two disagree the node refuses to start instead of talking past its peer.
+    sub-index 1 (CiA 301; bit 31 = PDO not valid, bit 30 = no RTR, 11-bit identifier):
+    the object dictionary gives the identifier (the EDS's ``$NODEID+0x180`` etc. at the
+    node's node-ID, CiA 301's pre-defined connection set, or what a DCF or the node's
+    configuration set).  ``frame`` is the DBC's layout of the same PDO, whatever
+    identifier the DBC gives it: the node encodes the payload with it, so when the
+    object dictionary's mapping (``comm_index + 0x200``) lays out other signals (their
+    number, sizes or positions) the node refuses to start instead of talking past its
+    peer.  ``read(index, sub)`` reads the present values (default: the EDS defaults).
     """
-    cob_id = int(od[comm_index][1].default) & 0x7FF  # type: ignore[index]
-    if cob_id != frame.frame_id:
+    cob_id = _int_entry(od, comm_index, 1, read) & 0x7FF
+    mapping = comm_index + 0x200
+    count = _int_entry(od, mapping, 0, read)
+    fields = []
+    start = 0
+    for sub in range(1, count + 1):
+        entry = _int_entry(od, mapping, sub, read)
+        bits = entry & 0xFF
+        if (entry >> 16) not in _DUMMY_BITS:
+            fields.append((start, bits))
+        start += bits
+    signals = sorted((s.start, s.length) for s in frame.message.signals)
+    if fields != signals or start != 8 * frame.length:
         raise ValueError(
-            f"PDO 0x{comm_index:04X}: the object dictionary's COB-ID 0x{cob_id:03X} does not "
-            f"match {frame.name} (0x{frame.frame_id:03X}) in control.dbc"
+            f"PDO 0x{comm_index:04X} (COB-ID 0x{cob_id:03X}): the object dictionary maps "
+            f"{len(fields)} object(s) in {start // 8} bytes (bits {fields}), but "
+            f"{frame.name} in control.dbc lays out {len(signals)} signal(s) in "
+            f"{frame.length} bytes (bits {signals})"
         )
     return cob_id

@@ -47,6 +47,18 @@ def configuration_writes(path: str | Path, node_id: int) -> list[Write]:
     except Exception as exc:
         raise ValueError(f"{path}: not a readable DCF/EDS ({exc})") from None
     configured = _configured(od)
+    # Each COB-ID of the pre-defined connection set at the node's node-ID, whatever
+    # node-ID the file was written for (hdhil.canopen.rigdb.drive_pdo_layouts).
+    from hdhil.canopen.rigdb import RigDrive, drive_pdo_layouts
+    from hdhil.core.errors import UserError
+
+    try:
+        at_node = {
+            layout.comm_index: layout.cob_id
+            for layout in drive_pdo_layouts(RigDrive("", node_id, dcf=path)).values()
+        }
+    except UserError as exc:
+        raise ValueError(str(exc)) from None
 
     def data(var: ODVariable, value: object) -> bytes:
         try:
@@ -74,6 +86,7 @@ def configuration_writes(path: str | Path, node_id: int) -> list[Write]:
         mapping = comm + 0x200
         cob_var = od[comm][1]
         cob = cob_var.value if cob_var.value is not None else cob_var.default
+        cob = (cob & ~0x7FF) | at_node.get(comm, cob & 0x7FF)
         writes.append((comm, 1, data(cob_var, cob | PDO_NOT_VALID)))
         for (index, sub), var in sorted(configured.items()):
             if index == comm and sub != 1:

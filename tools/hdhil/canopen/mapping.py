@@ -45,6 +45,7 @@ __all__ = [
     "peer_pdo_writes",
     "raw_sensor_frames",
     "trace_decoder",
+    "trace_node_ids",
 ]
 
 Write = tuple[int, int, int]
@@ -307,11 +308,55 @@ def trace_decoder(trace: Path) -> Any:
     from hdhil.dbc import database
 
     meta = read_metadata(trace) if Path(trace).is_file() else None
+    drive_id, controller_id = trace_node_ids(meta)
+    if (drive_id, controller_id) != (2, 1):
+        return FrameDecoder(_layout_databases(meta or {}, drive_id, controller_id))
     pdos = (meta or {}).get("drive_pdos")
     if not pdos:
         return default_decoder()
     return FrameDecoder({"control": control_database(layouts_from_json(pdos)),
                          "truth": database("truth")})  # fmt: skip
+
+
+def trace_node_ids(meta: Mapping[str, Any] | None) -> tuple[int, int]:
+    """The drive's and the controller's node-IDs a trace's sidecar records (its
+    ``layout``, else its run request's); 2 and 1, the single-joint rig's, without."""
+    meta = meta or {}
+    layout = meta.get("layout")
+    if not isinstance(layout, dict):
+        request = meta.get("request")
+        layout = request.get("layout") if isinstance(request, dict) else None
+    if not isinstance(layout, dict):
+        return 2, 1
+    try:
+        drives = layout.get("drives") or [{}]
+        drive = int(drives[0].get("node_id", 2))
+        controller = int(layout.get("controller_node_id", 1))
+    except (AttributeError, TypeError, ValueError, IndexError, KeyError):
+        return 2, 1
+    ok = 1 <= drive <= 127 and 1 <= controller <= 127 and drive != controller
+    return (drive, controller) if ok else (2, 1)
+
+
+def _layout_databases(meta: Mapping[str, Any], drive_id: int, controller_id: int) -> Any:
+    """The databases of a trace's layout (:func:`hdhil.canopen.rigdb.
+    single_joint_databases`): the drive's shipped mapping by the sidecar's label, or its
+    DCF where the sidecar names one that is still there (else the default mapping)."""
+    from hdhil.canopen.rigdb import single_joint_databases
+
+    label = str(meta.get("mapping") or "raw")
+    dcf = None
+    if label not in MAPPINGS:
+        request = meta.get("request")
+        named = (
+            ((request or {}).get("mapping") or {}).get("dcf") if isinstance(request, dict) else None
+        )
+        dcf = str(named) if named and Path(str(named)).is_file() else None
+        label = "raw"
+    try:
+        return single_joint_databases(drive_id, controller_id, label, dcf)
+    except Exception as exc:  # UserError (a layout rigdb refuses) and the like
+        raise ValueError(f"the trace's layout cannot be decoded: {exc}") from None
 
 
 def raw_sensor_frames(trace: Path) -> str | None:

@@ -52,11 +52,10 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-import canopen
-
 from hdhil.canopen.emcy import EMCY_BASE
 from hdhil.canopen.mapping import control_database, mapping_database, mapping_dcf, od_layouts
 from hdhil.canopen.nmt import HEARTBEAT_BASE, NMT_COB_ID
+from hdhil.canopen.od import reference_od
 from hdhil.canopen.pdo import PdoLayout
 from hdhil.canopen.sdo import SDO_RX_BASE, SDO_TX_BASE
 from hdhil.canopen.sync import SYNC_COB_ID
@@ -72,6 +71,7 @@ __all__ = [
     "drive_pdo_layouts",
     "predefined_cob_id",
     "rig_databases",
+    "single_joint_databases",
     "truth_database",
     "truth_frame_id",
 ]
@@ -205,11 +205,11 @@ def _file_layouts(stamp: tuple[str, int, int]) -> tuple[int, dict[tuple[str, int
     """The node-ID the file ``stamp`` names was written for and its PDOs at that
     node-ID."""
     path = stamp[0]
-    try:
-        written_for = canopen.import_od(path).node_id
+    try:  # each parse kept on disk (hdhil.canopen.od): a node's start-up reads it too
+        written_for = reference_od(path).node_id
         node = written_for if _int(written_for) and 1 <= written_for <= 127 else None
         node = node or node_ids("control")["DRIVE"]
-        return node, od_layouts(canopen.import_od(path, node))
+        return node, od_layouts(reference_od(path, node))
     except Exception as exc:
         raise UserError(f"{path}: not a readable DCF/EDS ({exc})") from None
 
@@ -677,3 +677,23 @@ def truth_database(drives: Sequence[RigDrive], buses: Sequence[RigBus] = ()) -> 
         dbc_specifics=copy.deepcopy(truth.dbc),
         strict=True,
     )
+
+
+@cache
+def single_joint_databases(
+    drive_node_id: int = 2,
+    controller_node_id: int = 1,
+    mapping: str = "raw",
+    dcf: str | None = None,
+) -> dict[str, Any]:
+    """The databases of the single-joint rig with its drive at ``drive_node_id`` and the
+    controller at ``controller_node_id`` (the drive's ``mapping``, or its ``dcf``), split
+    as ``control.dbc`` and ``truth.dbc`` are: ``{"control": ..., "truth": ...}``, the
+    first :func:`rig_databases`'s bus without its 29-bit truth frames.  Shared: for
+    reading only.  A mistake in the layout is a one-line :class:`UserError`."""
+    drives = [RigDrive("", drive_node_id, mapping=mapping, dcf=dcf)]
+    buses = [RigBus(controller_node_id=controller_node_id)]
+    control = rig_databases(drives, buses)["control"]
+    control.messages[:] = [m for m in control.messages if not m.is_extended_frame]
+    control.refresh()
+    return {"control": control, "truth": truth_database(drives, buses)}

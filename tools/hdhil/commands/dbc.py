@@ -68,16 +68,25 @@ def merged_database(mapping: str = "raw") -> Any:
     )
 
 
-def merged_dbc_text(mapping: str = "raw") -> str:
-    """The merged database as DBC text, checked by loading it back."""
+def merged_dbc_text(mapping: str = "raw", drive_node_id: int = 2) -> str:
+    """The merged database as DBC text, checked by loading it back; with the drive at
+    another node-ID than 2, rigdb's database of that layout
+    (:func:`hdhil.canopen.rigdb.rig_databases`, the same messages at the drive's
+    identifiers)."""
     import cantools
 
-    text = merged_database(mapping).as_dbc_string()
+    if drive_node_id == 2:
+        db = merged_database(mapping)
+    else:
+        from hdhil.canopen.rigdb import RigDrive, rig_databases
+
+        db = rig_databases([RigDrive("", drive_node_id, mapping=mapping)])["control"]
+    text = db.as_dbc_string()
     cantools.database.load_string(text, database_format="dbc", strict=True)
     return text
 
 
-def export(out: Path, mapping: str = "raw") -> int:
+def export(out: Path, mapping: str = "raw", drive_node_id: int = 2) -> int:
     """Write the merged DBC to ``out`` (a temporary file renamed over it, so a failure
     leaves no half-written file; only a regular file is ever replaced), the drive's PDOs
     as the shipped ``mapping`` configures them.  Returns the number of messages written."""
@@ -87,7 +96,7 @@ def export(out: Path, mapping: str = "raw") -> int:
         raise UserError(f"{out}: exists and is not a regular file")
     check_output(out)  # a regular file or a new one, in an existing directory
     check_not_inputs([(out, "")], [(dbc_path(bus), "database") for bus in ("control", "truth")])
-    text = merged_dbc_text(mapping)
+    text = merged_dbc_text(mapping, drive_node_id)
     with atomic_path(out) as tmp:
         try:
             tmp.write_text(text, encoding="cp1252", errors="strict", newline="\r\n")
@@ -146,14 +155,21 @@ def export_scenario(out: Path, scenario: str, mapping: str = "raw") -> dict[str,
 
 
 def run_export(args: argparse.Namespace) -> int:
+    node = 2 if args.drive_node_id is None else args.drive_node_id
+    if node == 1:
+        raise UserError("drive node-ID 1 is the controller's: give the drive another (2..127)")
     if args.scenario is not None:
+        if args.drive_node_id is not None:
+            raise UserError("--scenario names its drives' node-IDs: leave out --drive-node-id")
         written = export_scenario(Path(args.out), args.scenario, args.mapping)
         for bus, (path, n) in written.items():
             print(f"hdhil dbc export: bus {bus}: {n} messages (its frames and its joints' "
                   f"ground truth) in {path}")  # fmt: skip
         return 0
-    n = export(Path(args.out), args.mapping)
+    n = export(Path(args.out), args.mapping, node)
     what = "" if args.mapping == "raw" else f", the drive's PDOs in the {args.mapping} mapping"
+    if node != 2:
+        what += f", the drive at node-ID {node}"
     print(f"hdhil dbc export: {n} messages (control bus and ground truth{what}) in {args.out}")
     return 0
 
@@ -189,4 +205,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "dictionaries and node-IDs: one DBC per bus (OUT's stem with the bus's name when "
         "there are several)",
     )
+    from hdhil.commands.options import add_drive_node_id_argument
+
+    add_drive_node_id_argument(e)
     e.set_defaults(func=run_export)

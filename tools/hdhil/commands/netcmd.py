@@ -24,9 +24,11 @@ from hdhil.canopen.nmt import COMMAND_NAMES as NMT_COMMAND_NAMES
 from hdhil.canopen.nmt import nmt_frame
 from hdhil.commands.options import (
     add_bus_options,
+    add_drive_node_id_argument,
     add_scenario_arguments,
     bus_named,
     check_outputs,
+    layout_from_args,
     open_bus,
     refuse_simbus,
     request_from_args,
@@ -151,6 +153,11 @@ def run_log(args: argparse.Namespace) -> int:
     control_config = resolve_bus_config(args)
     request = None if args.scenario is None else request_from_args(args, run_duration=False)
     metadata = log_metadata(control_config, request)
+    layout = layout_from_args(args)  # --drive-node-id: the trace decodes at that node-ID
+    if request is None and layout is not None:
+        metadata["layout"] = {"controller_node_id": layout.controller_node_id,
+                              "drives": [{"node_id": d.node_id, "bus": d.bus}
+                                         for d in layout.drives]}  # fmt: skip
     control = _control_bus(args)
     truth = None
     try:
@@ -254,6 +261,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         what="its [plant] and [faults]: sensors.*, and control.*/truth.* on the drive's own frames",
         duration_help="wall seconds to serve (default: until Ctrl-C / SIGTERM)",
     )
+    add_drive_node_id_argument(p, "--node-id", "the emulated drive's")
     p.set_defaults(func=run_emulate)
 
     p = sub.add_parser("firmware", help="run the controller firmware alone on a CAN interface")
@@ -263,6 +271,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         what="its [firmware], and [faults] control.* on the controller's own frames",
         duration_help="simulated seconds of operation (default: the scenario's)",
     )
+    add_drive_node_id_argument(p, whose="the drive's (an emulated or a real one)")
     pacing = p.add_mutually_exclusive_group()
     pacing.add_argument(
         "--lockstep",
@@ -295,6 +304,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "`hdhil evaluate` scores the trace with its settings",
         duration_help="wall seconds to record (default: until Ctrl-C / SIGTERM)",
     )
+    add_drive_node_id_argument(p, whose="the recorded drive's")
     p.set_defaults(func=run_log)
 
     p = sub.add_parser("sdo", help="read or write a node's object dictionary (SDO client)")

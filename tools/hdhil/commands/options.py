@@ -101,6 +101,42 @@ def add_scenario_arguments(
     )
 
 
+def add_drive_node_id_argument(
+    p: argparse.ArgumentParser, flag: str = "--drive-node-id", whose: str = "the drive's"
+) -> None:
+    """``--drive-node-id N`` (``hdhil run``, ``firmware``) or ``--node-id N``
+    (``emulate``): the drive's CANopen node-ID, 1..127 and not the controller's (1);
+    its PDO COB-IDs follow it (CiA 301 pre-defined connection set).  Read by
+    :func:`request_from_args` into the request's layout."""
+    from hdhil.core.numbers import arg_int
+
+    p.add_argument(
+        flag,
+        dest="drive_node_id",
+        type=arg_int(1, 127),
+        default=None,
+        metavar="N",
+        help=f"{whose} CANopen node-ID, 2..127 (default: 2); its PDOs, heartbeat, EMCY and "
+        "SDO identifiers follow it (CiA 301 pre-defined connection set)",
+    )
+
+
+def layout_from_args(args: argparse.Namespace) -> Any:
+    """The rig layout ``--drive-node-id``/``--node-id`` names (the controller at node-ID
+    1), or None without one; the controller's own node-ID is a one-line error."""
+    from hdhil.rig.factories import DriveSlot, RigLayout
+
+    node_id = getattr(args, "drive_node_id", None)
+    if node_id is None:
+        return None
+    controller = RigLayout().controller_node_id
+    if node_id == controller:
+        raise UserError(
+            f"drive node-ID {node_id} is the controller's: give the drive another (2..127)"
+        )
+    return RigLayout(controller, (DriveSlot(int(node_id)),))
+
+
 def request_from_args(
     args: argparse.Namespace, *, run_duration: bool = True, **settings: Any
 ) -> Any:
@@ -119,6 +155,7 @@ def request_from_args(
         drive_dcf=args.drive_dcf,
         duration_s=args.duration if run_duration else None,
         seed=args.seed,
+        layout=layout_from_args(args),
         **settings,
     )
 

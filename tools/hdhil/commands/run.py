@@ -11,6 +11,7 @@ from typing import Any
 
 from hdhil.commands.options import (
     add_bus_options,
+    add_drive_node_id_argument,
     add_scenario_arguments,
     bus_named,
     check_outputs,
@@ -41,6 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "filtered torque against ground truth.",
     )
     add_scenario_arguments(p)
+    add_drive_node_id_argument(p)
     p.add_argument(
         "--trace",
         default="hdhil-run.blf",

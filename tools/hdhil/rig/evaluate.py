@@ -156,6 +156,10 @@ class RecordingListener(can.Listener):
     CST mapping the sensor frame is decoded from the drive's EDS (torque actual 0x6077,
     position actual 0x6064) and the drive's rated torque 0x6076 is taken from the
     controller's SDO read of it at boot, as the firmware did.
+
+    ``drive_node_id``: the drive's CANopen node-ID (its sensor frame, statusword and SDO
+    answers at that node's identifiers: the pre-defined connection set, or the COB-IDs
+    ``drive_pdos`` records); the controller's telemetry is at ``controller_node_id``'s.
     """
 
     def __init__(
@@ -167,6 +171,8 @@ class RecordingListener(can.Listener):
         skip_s: float = 0.0,
         keep: bool = True,
         truth_after_sensor: bool = False,
+        drive_node_id: int = 2,
+        controller_node_id: int = 1,
     ) -> None:
         #: The rows recorded (all of them with ``keep``; without, those not yet scored).
         self.recording = Recording(sample_period_s)
@@ -200,6 +206,13 @@ class RecordingListener(can.Listener):
         self._truth_after = truth_after_sensor
         self._truth_t = -math.inf  # when the truth kept for the next sensor frame came
         self._status = codec("control", "DRIVE_TPDO2").expect("statusword")
+        sensor_id, status_id, sdo_id, tele_id = layout_frame_ids(
+            drive_pdos, drive_node_id, controller_node_id
+        )
+        self._sensor = self._sensor.at(sensor_id)
+        self._status = self._status.at(status_id)
+        self._sdo = self._sdo.at(sdo_id)
+        self._tele = self._tele.at(tele_id)
         self._enabled: bool | None = None  # unknown until a statusword is seen
         self._t = 0.0  # timestamp of the frame being handled
         self._last_sensor_t: float | None = None
@@ -219,7 +232,7 @@ class RecordingListener(can.Listener):
     def _use_mapping(self, drive_pdos: dict[str, Any]) -> None:
         from hdhil.canopen.mapping import control_database, layouts_from_json
 
-        db = control_database(layouts_from_json(drive_pdos))
+        db = control_database(_at_node_2(layouts_from_json(drive_pdos)))
         sensor = FrameCodec(db.get_message_by_name("DRIVE_TPDO1"), "control")
         names = sensor.signal_names
         if {"torque_actual_value", "position_actual_value"} <= set(names):
@@ -369,6 +382,47 @@ class RecordingListener(can.Listener):
         self._truth_t = self._t
 
 
+def _at_node_2(layouts: dict[Any, Any]) -> dict[Any, Any]:
+    """``layouts`` with each PDO of the pre-defined connection set at its COB-ID for node-ID
+    2, where ``control.dbc`` has its message (the layout by name; the identifier of a
+    drive at another node-ID comes from :func:`layout_frame_ids`)."""
+    from hdhil.canopen.rigdb import predefined_cob_id
+
+    return {
+        key: dataclasses.replace(lay, cob_id=predefined_cob_id(*key, 2))
+        if 1 <= key[1] <= 4
+        and lay.cob_id & 0x7F
+        and lay.cob_id == predefined_cob_id(*key, lay.cob_id & 0x7F)
+        else lay
+        for key, lay in layouts.items()
+    }
+
+
+def layout_frame_ids(
+    drive_pdos: dict[str, Any] | None, drive_node_id: int = 2, controller_node_id: int = 1
+) -> tuple[int, int, int, int]:
+    """The identifiers of the drive's sensor frame (TPDO1), statusword (TPDO2) and SDO
+    answers, and of the controller's telemetry (its TPDO1), for a drive at
+    ``drive_node_id`` and the controller at ``controller_node_id``: the CiA 301
+    pre-defined connection set (:func:`hdhil.canopen.rigdb.predefined_cob_id`), or the
+    COB-IDs ``drive_pdos`` (a sidecar's, :func:`hdhil.canopen.mapping.layouts_to_json`)
+    records for the drive's PDOs."""
+    from hdhil.canopen.mapping import layouts_from_json
+    from hdhil.canopen.rigdb import predefined_cob_id
+    from hdhil.canopen.sdo import SDO_TX_BASE
+
+    pdos = layouts_from_json(drive_pdos) if drive_pdos else {}
+
+    def cob(kind: str, number: int) -> int:
+        layout = pdos.get((kind, number))
+        return (
+            layout.cob_id if layout is not None else predefined_cob_id(kind, number, drive_node_id)
+        )
+
+    return (cob("tpdo", 1), cob("tpdo", 2), SDO_TX_BASE + drive_node_id,
+            predefined_cob_id("tpdo", 1, controller_node_id))  # fmt: skip
+
+
 @dataclass(frozen=True)
 class LiveEvaluationFactory:
     """A :class:`RecordingListener` scoring as it goes and keeping no rows, made where it
@@ -381,6 +435,8 @@ class LiveEvaluationFactory:
     drive_pdos: dict[str, Any] | None
     firmware: FirmwareConfig
     skip_s: float
+    drive_node_id: int = 2
+    controller_node_id: int = 1
 
     def __call__(self) -> RecordingListener:
         return RecordingListener(
@@ -389,6 +445,8 @@ class LiveEvaluationFactory:
             firmware=self.firmware,
             skip_s=self.skip_s,
             keep=False,
+            drive_node_id=self.drive_node_id,
+            controller_node_id=self.controller_node_id,
         )
 
 
@@ -398,12 +456,20 @@ def recording_from_trace(path: Path, sample_period_s: float = 1e-3) -> tuple[Rec
     without one)."""
     from hdhil.can.traces.reader import read_trace
     from hdhil.can.traces.sidecar import read_metadata
+    from hdhil.canopen.mapping import trace_node_ids
 
     meta = read_metadata(path) or {}
     # `hdhil log` records the drive's frames as it sends them, each sample's sensor frame
     # before its truth frames; `hdhil run`'s tap stamps the truth at the sample instant.
     after = meta.get("recorded_by") == "hdhil log"
-    listener = RecordingListener(sample_period_s, meta.get("drive_pdos"), truth_after_sensor=after)
+    drive_id, controller_id = trace_node_ids(meta)  # a drive at its node-ID's identifiers
+    listener = RecordingListener(
+        sample_period_s,
+        meta.get("drive_pdos"),
+        truth_after_sensor=after,
+        drive_node_id=drive_id,
+        controller_node_id=controller_id,
+    )
     with read_trace(path) as trace:
         for msg in trace:
             listener.on_message_received(msg)

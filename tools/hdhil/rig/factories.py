@@ -62,9 +62,11 @@ class DriveSlot:
 class RigLayout:
     """Who is on which bus: the controller's node-ID and the drives.
 
-    The shipped DBC and EDS files describe one drive at node-ID 2 and the controller at
-    node-ID 1 (their PDO COB-IDs); a node whose ID does not match its PDOs refuses to
-    start (:func:`hdhil.can.node.pdo_cob_id`)."""
+    Each node's PDO COB-IDs follow its node-ID (the EDS files' ``$NODEID+0x180`` etc.,
+    CiA 301's pre-defined connection set), the layouts stay the DBC's
+    (:func:`hdhil.can.node.pdo_cob_id`); the controller addresses its drive at the
+    drive's node-ID.  The run's scorers, its trace's sidecar and the tools that decode
+    the trace follow the layout."""
 
     controller_node_id: int = 1
     drives: tuple[DriveSlot, ...] = field(default_factory=lambda: (DriveSlot(),))

@@ -301,6 +301,19 @@ def _collect(summary: FilterSummary, chain: TorqueFilterChain) -> None:
     summary.covariance_resets = getattr(chain.kalman, "covariance_resets", 0)
 
 
+def _trace_ids(path: Path) -> tuple[int, int]:
+    """The identifiers of the drive's sensor frame and of the controller's telemetry in
+    the trace at ``path``: at the node-IDs its sidecar's layout records (the
+    single-joint rig's, 0x182 and 0x181, without one)."""
+    from hdhil.can.traces.sidecar import read_metadata
+    from hdhil.canopen.mapping import trace_node_ids
+    from hdhil.rig.evaluate import layout_frame_ids
+
+    drive, controller = trace_node_ids(read_metadata(path) if path.is_file() else None)
+    sensor, _status, _sdo, telemetry = layout_frame_ids(None, drive, controller)
+    return sensor, telemetry
+
+
 def _sensor_frames(path: Path, summary: FilterSummary) -> Iterator[tuple[float, tuple[int, ...]]]:
     """``(timestamp, (torque, tacho, current, encoder))`` of every DRIVE_TPDO1 frame."""
     from hdhil.can.traces.reader import read_trace
@@ -309,7 +322,7 @@ def _sensor_frames(path: Path, summary: FilterSummary) -> Iterator[tuple[float, 
     sensor = codec("control", "DRIVE_TPDO1").expect(
         "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
     )
-    frame_id = sensor.frame_id
+    frame_id = _trace_ids(Path(path))[0]
     length = sensor.length
     decode = sensor.decode
     trace = read_trace(path)
@@ -334,9 +347,8 @@ def _first_interrupt_time(path: Path) -> float | None:
     came while the controller was starting the drive or held the start-up output
     (``FirmwareConfig.startup_settle_s``, [Taghirad97] listing ``main()``)."""
     from hdhil.can.traces.reader import read_trace
-    from hdhil.dbc import codec
 
-    telemetry_id = codec("control", "CTRL_TPDO1").frame_id
+    telemetry_id = _trace_ids(Path(path))[1]
     trace = read_trace(path)
     with trace:
         t0 = trace.first_time or 0.0
@@ -361,11 +373,10 @@ def _control_frames(
     sensor = codec("control", "DRIVE_TPDO1").expect(
         "ADC_torque", "ADC_tacho", "ADC_current", "ENC_count"
     )
-    sensor_id = sensor.frame_id
+    sensor_id, telemetry_id = _trace_ids(Path(path))
     length = sensor.length
     decode = sensor.decode
     sync_id = codec("control", "SYNC").frame_id
-    telemetry_id = codec("control", "CTRL_TPDO1").frame_id
     channel: object = _UNSET
     trace = read_trace(path)
     with trace:

@@ -83,10 +83,19 @@ class RunResult:
         return d
 
 
-def frame_names() -> dict[tuple[int, int], str]:
+def frame_names(drive_node_id: int = 2, controller_node_id: int = 1) -> dict[tuple[int, int], str]:
+    """``(channel, identifier)`` -> ``"bus 0xID NAME"`` of every frame of the run's buses:
+    the project DBCs, or for a drive or controller at other node-IDs the database of that
+    layout (:func:`hdhil.canopen.rigdb.single_joint_databases`)."""
+    if (drive_node_id, controller_node_id) == (2, 1):
+        databases = {bus: database(bus) for bus in CHANNEL_NUMBER}
+    else:
+        from hdhil.canopen.rigdb import single_joint_databases
+
+        databases = single_joint_databases(drive_node_id, controller_node_id)
     names = {}
     for bus, channel in CHANNEL_NUMBER.items():
-        for msg in database(bus).messages:
+        for msg in databases[bus].messages:
             names[(channel, msg.frame_id)] = f"{bus} 0x{msg.frame_id:03X} {msg.name}"
     return names
 

@@ -147,7 +147,15 @@ def plan_run(
         )
     request.require_one_joint("a run")
     Ts = request.sample_period_s
-    load = schedule_load("control", request.bitrate, Ts)
+    layout = request.layout
+    db = None
+    if (layout.drives[0].node_id, layout.controller_node_id) != (2, 1):
+        from hdhil.canopen.rigdb import single_joint_databases
+
+        # the drive's and the controller's identifiers at their node-IDs
+        db = single_joint_databases(layout.drives[0].node_id, layout.controller_node_id)
+        db = db["control"]
+    load = schedule_load("control", request.bitrate, Ts, db=db)
     if load.worst_case_load > 1.0:
         raise ConfigError(
             f"the cyclic schedule needs {load.worst_case_load:.0%} of a "
@@ -386,7 +394,8 @@ def _result(
         if tracking is not None
         else None
     )
-    names = frame_names()
+    layout = plan.layout
+    names = frame_names(layout.drives[0].node_id, layout.controller_node_id)
     counter = listening.counter
     frames = {
         names.get(key, f"channel {key[0]} 0x{key[1]:X}"): n

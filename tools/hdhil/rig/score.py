@@ -25,6 +25,14 @@ if TYPE_CHECKING:
     from hdhil.hostsim.plant import LinkMotionConfig
 
 
+def _telemetry_id(number: int, controller_node_id: int) -> int:
+    """The controller's telemetry TPDO ``number`` at its node-ID (CiA 301 pre-defined
+    connection set, as its EDS sets it: ``$NODEID+0x180``, ``$NODEID+0x280``)."""
+    from hdhil.canopen.rigdb import predefined_cob_id
+
+    return predefined_cob_id("tpdo", number, controller_node_id)
+
+
 @dataclass(frozen=True)
 class TorqueScore:
     """RMS errors against the emulator's true transmitted torque ``T_true``."""
@@ -54,7 +62,9 @@ class TorqueScorer(can.Listener):
     the filter's start-up transient.  The default scores everything.
     """
 
-    def __init__(self, skip_s: float = 0.0, block_s: float = 60.0) -> None:
+    def __init__(
+        self, skip_s: float = 0.0, block_s: float = 60.0, controller_node_id: int = 1
+    ) -> None:
         self.skip_s = skip_s
         #: RMS filtered error per ``block_s`` of telemetry time (whether it drifts).
         self.block_s = block_s
@@ -64,6 +74,7 @@ class TorqueScorer(can.Listener):
         self._block_start: float | None = None
         self._block_end = block_s
         tele = codec("control", "CTRL_TPDO1").expect("T_meas", "T_filtered", "velocity", "current")
+        tele = tele.at(_telemetry_id(1, controller_node_id))
         truth = codec("truth", "TRUTH_TORQUE").expect("T_true", "T_ripple")
         self._tele_key = (tele.frame_id, False)
         self._truth_key = (truth.frame_id, True)
@@ -245,6 +256,7 @@ class TrackingScorer(can.Listener):
         friction_compensated: bool = False,
         sample_period_s: float = 1e-3,
         handle: LinkMotionConfig | None = None,
+        controller_node_id: int = 1,
     ) -> None:
         self.sample_period_s = sample_period_s
         self.skip_s = skip_s
@@ -260,6 +272,8 @@ class TrackingScorer(can.Listener):
         self._meas = codec("control", "CTRL_TPDO1").expect(
             "T_meas", "T_filtered", "velocity", "current"
         )
+        self._tele = self._tele.at(_telemetry_id(2, controller_node_id))
+        self._meas = self._meas.at(_telemetry_id(1, controller_node_id))
         self._motion = codec("truth", "TRUTH_MOTION").expect(
             "theta_motor", "theta_output", "omega_motor", "omega_output"
         )

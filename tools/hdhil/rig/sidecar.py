@@ -38,9 +38,15 @@ def mapping_metadata(dcf: Path | None, label: str, node_id: int = 2) -> dict[str
 def run_metadata(request: RunRequest) -> dict[str, Any]:
     """The sidecar entries of a run: where its settings came from, its mapping's PDOs
     and the whole request."""
-    node_id = request.layout.drives[0].node_id
+    layout = request.layout
+    node_id = layout.drives[0].node_id
     return {
         "scenario_source": request.sources.scenario,
+        # who is on the bus at which node-ID (hdhil.canopen.mapping.trace_decoder)
+        "layout": {
+            "controller_node_id": layout.controller_node_id,
+            "drives": [{"node_id": d.node_id, "bus": d.bus} for d in layout.drives],
+        },
         "overrides": list(request.sources.overrides),
         "calibration": request.sources.calibration,
         **mapping_metadata(request.mapping.dcf, request.mapping.label, node_id),

@@ -132,7 +132,12 @@ class StandaloneDrive:
         injector: FaultInjector,
     ) -> None:
         request.require_one_joint("hdhil emulate")
-        config = DriveConfig(sample_period_s=request.firmware.sample_period_s)
+        layout = request.layout  # the drive at its node-ID (hdhil emulate --node-id)
+        config = DriveConfig(
+            sample_period_s=request.firmware.sample_period_s,
+            node_id=layout.drives[0].node_id,
+            controller_node_id=layout.controller_node_id,
+        )
         self.injector = injector
         self.bus = _with_faults(bus, injector, "control", config.node_id)
         self.truth = _with_faults(truth, injector, "truth", config.node_id)
@@ -193,6 +198,7 @@ class StandaloneController:
                 self.bus,
                 request.firmware,
                 node_id=CONTROLLER_NODE_ID,
+                drive_node_id=request.layout.drives[0].node_id,  # --drive-node-id
                 boot_timeout_s=boot_timeout_s,
                 drive_dcf=request.mapping.dcf,
             )

@@ -286,7 +286,9 @@ def build_listeners(
 
     ``companions`` (``(temporary, target, label)``: the run's fault log) are renamed into
     place by the trace writer together with the trace and its sidecar."""
-    counter, scorer = FrameCounter(), TorqueScorer()
+    layout = plan.layout
+    drive_id, controller_id = layout.drives[0].node_id, layout.controller_node_id
+    counter, scorer = FrameCounter(), TorqueScorer(controller_node_id=controller_id)
     listeners: list[can.Listener] = [counter, scorer]
     tracking = recorder = None
     control = plan.firmware.control
@@ -297,6 +299,7 @@ def build_listeners(
             control.friction.active,
             plan.sample_period_s,
             plan.scenario.plant.link,
+            controller_node_id=controller_id,
         )
         listeners.append(tracking)
     scored = evaluate and "ripple" in plan.scenario.scored
@@ -319,7 +322,14 @@ def build_listeners(
         # A live evaluation that keeps no rows runs in the writer's process, on the frames
         # it writes (the same frames, in the same order), off the loop's core.
         offload = (
-            LiveEvaluationFactory(plan.sample_period_s, drive_pdos, plan.firmware, evaluate_skip_s)
+            LiveEvaluationFactory(
+                plan.sample_period_s,
+                drive_pdos,
+                plan.firmware,
+                evaluate_skip_s,
+                drive_id,
+                controller_id,
+            )
             if live and not keep_recording
             else None
         )
@@ -335,6 +345,8 @@ def build_listeners(
             firmware=plan.firmware if live else None,
             skip_s=evaluate_skip_s,
             keep=keep_recording or not live,
+            drive_node_id=drive_id,
+            controller_node_id=controller_id,
         )
         listeners.append(recorder)
     listeners += extra

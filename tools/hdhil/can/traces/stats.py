@@ -192,12 +192,18 @@ class StatsAccumulator:
         self.first = math.inf
         self.last = -math.inf
         # Cycle counters whose gaps show lost frames: (name, signal index, modulus).
+        # The command's identifier as the decoder has it (a drive at another node-ID).
+        by_name = self.decoder.by_name
+        command = by_name["DRIVE_RPDO1"][1].frame_id if "DRIVE_RPDO1" in by_name else None
+        command_codec = codec("control", "DRIVE_RPDO1")
+        command_codec = command_codec.at(command if command is not None else command_codec.frame_id)
         self._counters = {
             (codec("control", "SYNC").frame_id, False): ("SYNC.sync_counter", 0, 240),
-            (codec("control", "DRIVE_RPDO1").frame_id, False): ("DRIVE_RPDO1.cycle", 2, 256),
+            (command_codec.frame_id, False): ("DRIVE_RPDO1.cycle", 2, 256),
         }
-        self._counter_codecs = {key: codec("control", name.split(".")[0])
-                                for key, (name, *_rest) in self._counters.items()}  # fmt: skip
+        sync = codec("control", "SYNC")
+        self._counter_codecs = {(sync.frame_id, False): sync,
+                                (command_codec.frame_id, False): command_codec}  # fmt: skip
         # One track per (channel, sender's identifier, counter): frames logged on two
         # channels, or two senders of one counter, are never mixed into one sequence.
         self._tracks: dict[tuple[str, int, str], _CounterTrack] = {}
