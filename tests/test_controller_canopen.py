@@ -233,7 +233,8 @@ def test_communication_objects_per_the_services_table():
     assert od[0x1001].access_type == "ro"
     assert [od[0x1003][s].access_type for s in range(9)] == ["rw"] + ["ro"] * 8
     assert od[0x1014].default == 0x81
-    assert od[0x1016][0].default == 1 and od[0x1016][1].default == 0x000200FA
+    assert od[0x1016][0].default == 2 and od[0x1016][1].default == 0x000200FA
+    assert od[0x1016][2].default == 0  # a second drive (a node serving two joints)
     assert od[0x1017].default == 100
     assert (od[0x1019].default, od[0x1019].min, od[0x1019].max) == (240, 0, 240)
     assert od[0x1029][1].default == 1

@@ -25,7 +25,7 @@ from hdhil.firmware.stages import torque_command_per_mille
 from hdhil.firmware.walk import CONTROLWORD_ENABLE_OPERATION
 
 if TYPE_CHECKING:
-    from hdhil.firmware.controller.node import ControllerNode
+    from hdhil.firmware.controller.joint import ControllerJoint
 
 __all__ = ["CycleProbe", "CyclicIo"]
 
@@ -79,7 +79,7 @@ class CyclicIo:
     (:func:`hdhil.firmware.stages.torque_command_per_mille`).
     """
 
-    def __init__(self, node: ControllerNode, codecs: LinkCodecs) -> None:
+    def __init__(self, node: ControllerJoint, codecs: LinkCodecs) -> None:
         self.node = node
         self.bus = node.bus
         self.services = node.services
@@ -140,6 +140,24 @@ class CyclicIo:
         self.isr_ran = False
         self.diagnostics.syncs_sent += 1
         return True
+
+    def send_sync_frame(self) -> bool:
+        """The SYNC of a node of several joints, sent through joint 0's I/O (its probe):
+        True if it went out; every joint in service then starts its cycle (``synced``)."""
+        probe = self.probe
+        if probe is None:
+            return self.services.send_sync()
+        t = _now_ns()
+        if not self.services.send_sync():
+            return False
+        probe.on_sync_sent(t)
+        return True
+
+    def synced(self) -> None:
+        """The node's SYNC went out: a new cycle of this joint."""
+        self.sensor_seen = False
+        self.isr_ran = False
+        self.diagnostics.syncs_sent += 1
 
     def sensor_hold_ok(self) -> bool:
         """Sensor hold in "operational": False (and "safe") after ``sensor_hold_cycles``

@@ -1,39 +1,41 @@
-"""The controller node: the firmware's interrupt handler behind a CANopen link.
+"""The controller node: the firmware's interrupt handlers behind a CANopen link.
 
 :class:`ControllerNode` is composed of parts, as canopen composes a node of its services:
-the CANopen services (:class:`hdhil.canopen.services.CanopenServices`), its object
-dictionary (:mod:`.objects`), the boot and stop sequencer (:mod:`.sequencer`), the cyclic
-I/O of the 1 kHz path (:mod:`.cyclic`) and the supervision (:mod:`.supervision`).  The
-node builds and wires them, owns the link phase and its changes (including the way into
-"safe"), and keeps the entry points the runner drives: ``boot``, ``tick``, ``send_sync``,
-``request_stop`` and the frame handler.
+the CANopen services (:class:`hdhil.canopen.services.CanopenServices`) and its object
+dictionary (:mod:`.objects`), one per node, and per joint it serves
+(:class:`~hdhil.firmware.controller.joint.ControllerJoint`) the boot and stop sequencer
+(:mod:`.sequencer`), the cyclic I/O of the 1 kHz path (:mod:`.cyclic`) and the
+supervision (:mod:`.supervision`).  The node builds and wires them, produces the bus's
+SYNC, keeps its own NMT state, and keeps the entry points the runner drives: ``boot``,
+``tick``, ``send_sync``, ``request_stop`` and the frame handler.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from collections.abc import Sequence
 from pathlib import Path
 
 import can
 
-from hdhil.can.node import CanNode, pdo_cob_id
+from hdhil.can.node import CanNode
 from hdhil.canopen.cia402 import State
-from hdhil.canopen.dcf import DcfConfigurator, configuration_writes
-from hdhil.canopen.sdo import ABORT_DEVICE_STATE, SdoClient
-from hdhil.canopen.services import CanopenServices, NmtCommand, NmtState
+from hdhil.canopen.dcf import DcfConfigurator
+from hdhil.canopen.sdo import SdoClient
+from hdhil.canopen.services import CanopenServices, NmtState, ResetKind
+from hdhil.canopen.sync import SYNC_COB_ID
 from hdhil.dbc import eds_path
 from hdhil.firmware.config import FirmwareConfig
-from hdhil.firmware.controller.codecs import LinkCodecs, default_codecs, mapped_codecs
+from hdhil.firmware.controller.codecs import LinkCodecs
 from hdhil.firmware.controller.cyclic import CycleProbe, CyclicIo
 from hdhil.firmware.controller.diagnostics import ControllerDiagnostics
+from hdhil.firmware.controller.joint import ControllerJoint, JointSetup
+from hdhil.firmware.controller.link import MAX_JOINTS_PER_NODE, DriveLink
 from hdhil.firmware.controller.objects import ControllerObjects
-from hdhil.firmware.controller.phases import COMMANDING, FINAL, Phase, PhaseChange
+from hdhil.firmware.controller.phases import COMMANDING, FINAL, Phase
 from hdhil.firmware.controller.sequencer import Sequencer
 from hdhil.firmware.controller.supervision import Supervision
 from hdhil.firmware.interrupt import InterruptHandlerModel
-from hdhil.firmware.isr import InterruptHandler
-from hdhil.firmware.odlimits import check_od_limits
 from hdhil.firmware.walk import Cia402Walk
 
 __all__ = ["ControllerNode"]
@@ -45,21 +47,24 @@ _WAIT_BOOT = Phase.WAIT_BOOT
 _STARTING = Phase.STARTING
 _OPERATIONAL = Phase.OPERATIONAL
 _STOPPING = Phase.STOPPING
+_SAFE = Phase.SAFE
 _INITIALISING = NmtState.INITIALISING
+#: Which joint phase a node of several joints reports (the first found, in this order).
+_NODE_PHASE_ORDER = (_WAIT_BOOT, _STARTING, _STOPPING, _OPERATIONAL)
 
 
 class ControllerNode(CanNode):
     """SYNC producer, NMT master, CiA 402 controlling device and torque-sensing firmware
-    (CANopen node-ID 1).
+    (CANopen node-ID 1), for one joint or several on one bus.
 
     The controller is an NMT slave itself (boot-up 0x701, heartbeat producer 0x701 every
     100 ms, SDO server on 0x601/0x581, EMCY producer 0x081) and the NMT master, SYNC
-    producer and CiA 402 controlling device of the drive (node-ID 2, heartbeat consumer
-    with 250 ms).  The runner drives it without threads::
+    producer and CiA 402 controlling device of its drives (by default one, node-ID 2,
+    heartbeat consumer with 250 ms).  The runner drives it without threads::
 
-        controller.boot(now)                   # boot-up 0x701, wait for the drive's boot-up
+        controller.boot(now)                   # boot-up 0x701, wait for the drives' boot-ups
         every cycle k (now = k * Ts):
-            controller.tick(now)               # heartbeats, timeouts, sequencer, parameters
+            controller.tick(now)               # heartbeats, timeouts, sequencers, parameters
             if controller.boot_error: fail with it (one line)
             if controller.phase in ("stopped", "safe"): end the run
             controller.send_sync()             # False when no SYNC went out
@@ -75,25 +80,48 @@ class ControllerNode(CanNode):
     arbitration and the drive, already pre-operational, drops the PDO.  The controller
     goes PRE-OPERATIONAL itself, so its heartbeat reports it.
 
-    The parts are attributes: ``services``, ``objects`` (OD values, live parameters),
-    ``sequencer`` (start-up and stop), ``io`` (SYNC, sensor frame, command, telemetry)
-    and ``supervision`` (heartbeat, NMT, sensor EMCYs).  The node uses nothing but a
-    python-can bus, so the same node drives the emulator on ``simbus`` or a real drive
-    on SocketCAN/PCAN/Kvaser; it never subscribes to ground truth.  PDO COB-IDs come from
-    the object dictionaries at the node-IDs: its own telemetry at ``node_id``'s
-    (``$NODEID+0x180``, ``$NODEID+0x280`` in its EDS), the PDOs it exchanges with the
-    drive at ``drive_node_id``'s (the drive's EDS or DCF there); the layouts are
-    ``control.dbc``'s.
+    **Several joints** (``joints``, :class:`~hdhil.firmware.controller.joint.JointSetup`):
+    one node per bus serves up to two joints (CiA 301: one NMT master and one SYNC
+    producer per network; the pre-defined connection set gives the node four TPDOs, two
+    telemetry frames per joint, :mod:`hdhil.canopen.rigdb`).  Each joint has its own
+    firmware configuration and interrupt handler, link phase, sequencer, cyclic I/O,
+    supervision and diagnostics (``joints[r]``); a joint's interrupt handler runs when
+    that joint's sensor frame arrives.  The SYNC goes out once per cycle while any joint
+    is in service; a joint that ends in "safe" (its drive never booted, lost its
+    heartbeat, stopped sending) stops commanding its own drive only, and the node leaves
+    OPERATIONAL once no joint commands its drive.  ``phase`` is then the node's: the
+    first of "wait-boot", "starting", "stopping", "operational" that a joint in service
+    is in, else "safe" if a joint is, else "stopped"; ``boot_error`` is set when every
+    joint failed (each joint's in ``joints[r].boot_error``).  A further node on the bus
+    (``sync_producer=False``) serves the joints beyond two: it follows the SYNC it
+    receives (its joints' cycles start there) and commands its own drives only.
+
+    The parts are attributes: ``services``, ``objects`` (OD values, live parameters) and
+    ``joints``; joint 0's ``sequencer`` (start-up and stop), ``io`` (SYNC, sensor frame,
+    command, telemetry), ``supervision`` (heartbeat, NMT, sensor EMCYs), ``isr``,
+    ``config`` and ``diagnostics`` are the node's too, as in a node of one joint.  The
+    node's object dictionary holds one joint's entries (PDOs 0x1400-0x1401 and
+    0x1800-0x1802, the mirrors, the live parameters 0x2400-0x2430): joint 0's.  The
+    node uses nothing but a python-can bus, so the same node drives the emulator on
+    ``simbus`` or a real drive on SocketCAN/PCAN/Kvaser; it never subscribes to ground
+    truth.  PDO COB-IDs come from the object dictionaries at the node-IDs: joint 0's
+    from the node's, its telemetry at ``node_id``'s (``$NODEID+0x180``, ``$NODEID+0x280``
+    in its EDS) and the PDOs it exchanges with its drive at the drive's node-ID (the
+    drive's EDS or DCF there); a further joint's from its
+    :class:`~hdhil.firmware.controller.link.DriveLink` (by default CiA 301's pre-defined
+    connection set at its drive's node-ID and its rank, as :mod:`hdhil.canopen.rigdb`
+    numbers the rig).  The layouts are ``control.dbc``'s.
 
     Args:
         bus: the control bus (any python-can bus).
-        config: the firmware configuration (the scenario's); written into the OD.
+        config: the firmware configuration (the scenario's); written into the OD.  Not
+            with ``joints``.
         sync_overflow: SYNC counter overflow, object 0x1019 (CiA 301: 2..240 here).
         node_id: this node's CANopen node-ID.
-        drive_node_id: the drive's node-ID (NMT, heartbeat consumer, SDO client).
+        drive_node_id: the drive's node-ID (NMT, heartbeat consumer, SDO client, its PDOs).
         heartbeat_ms: heartbeat producer time (0x1017).
-        drive_heartbeat_timeout_ms: heartbeat consumer time for the drive (0x1016:1).
-        boot_timeout_s: how long ``boot`` waits for the drive's boot-up.
+        drive_heartbeat_timeout_ms: heartbeat consumer time for each drive (0x1016).
+        boot_timeout_s: how long ``boot`` waits for each drive's boot-up.
         sensor_hold_cycles: SYNCs without a sensor frame tolerated in "operational".
         isr: the interrupt handler (default: the firmware's own,
             :class:`hdhil.firmware.isr.InterruptHandler`).
@@ -101,6 +129,10 @@ class ControllerNode(CanNode):
             and gives its own PDOs the matching mapping (:mod:`.objects`, :mod:`.codecs`);
             in the CiA 402 CST mapping it reads the drive's rated torque 0x6076 before NMT
             start and the [Vertechy] control laws are refused.
+        joints: the joints of a node serving several (instead of ``config``,
+            ``drive_node_id``, ``isr`` and ``drive_dcf``), in rank order; each joint's
+            link defaults to :meth:`DriveLink.predefined` for its node-ID and rank.
+        sync_producer: this node produces the bus's SYNC (False: it follows it).
     """
 
     #: A walk step without statusword for this long reads the statusword by SDO.
@@ -113,7 +145,7 @@ class ControllerNode(CanNode):
     def __init__(
         self,
         bus: can.BusABC,
-        config: FirmwareConfig,
+        config: FirmwareConfig | None = None,
         sync_overflow: int = 240,
         *,
         node_id: int = 1,
@@ -124,99 +156,71 @@ class ControllerNode(CanNode):
         sensor_hold_cycles: int = 10,
         isr: InterruptHandlerModel | None = None,
         drive_dcf: str | Path | None = None,
+        joints: Sequence[JointSetup] | None = None,
+        sync_producer: bool = True,
     ) -> None:
-        _check_arguments(sync_overflow, node_id, drive_node_id, boot_timeout_s,
-                         sensor_hold_cycles)  # fmt: skip
-        super().__init__(bus, drive_node_id=drive_node_id, controller_node_id=node_id)
-        check_od_limits(config)  # every OD parameter representable in its entry
-        self.config = config
-        #: The interrupt handler (:class:`firmware.interrupt.InterruptHandlerModel`): the
-        #: firmware's own unless ``isr`` is given; the plausibility EMCYs and the SDO
-        #: parameters that retune stages need the firmware's own (``own_isr``).
-        self.isr: InterruptHandlerModel = InterruptHandler(config) if isr is None else isr
-        self.own_isr = isinstance(self.isr, InterruptHandler)
-        self.diagnostics = ControllerDiagnostics()
+        setups, links = _joint_links(config, node_id, drive_node_id, isr, drive_dcf, joints)
+        for link in links:
+            _check_arguments(sync_overflow, node_id, link.node_id, boot_timeout_s,
+                             sensor_hold_cycles)  # fmt: skip
+        # the frames it knows: its drives' at their node-IDs, its own at its node-ID
+        drive_ids = tuple(link.node_id for link in links)
+        super().__init__(bus, drive_node_id=drive_ids, controller_node_id=node_id)
         self.sync_overflow = sync_overflow
         self.node_id = node_id
-        self.drive_node_id = drive_node_id
+        #: This node produces the bus's SYNC (else it follows the SYNC it receives).
+        self.sync_producer = sync_producer
         self.boot_timeout_s = boot_timeout_s
         self.sensor_hold_cycles = sensor_hold_cycles
-        #: Why the drive never booted (one line for the user); None otherwise.
+        #: Why the drives never booted (one line for the user); None otherwise.
         self.boot_error: str | None = None
-        #: The link phase (:class:`Phase`; changed by the node's parts only).
+        #: The link phase (:class:`Phase`): the joint's, or the node's of several joints.
         self.phase = Phase.WAIT_BOOT
         #: The latest ``now`` given to ``boot``/``tick`` (s).
         self.now = 0.0
         #: True while the node changes its own NMT state (not a command of another master).
         self.own_nmt = False
-        #: The drive's motor rated torque 0x6076 (Nm), read by SDO at boot in the CiA 402
-        #: CST mapping; None in the raw mapping (or before the read).
-        self.rated_torque_Nm: float | None = None
 
         self.services = CanopenServices(
             bus,
             node_id,
             eds_path("controller"),
             heartbeat_producer_ms=heartbeat_ms,
-            heartbeat_consumers={drive_node_id: drive_heartbeat_timeout_ms},
+            heartbeat_consumers={link.node_id: drive_heartbeat_timeout_ms for link in links},
         )
-        _address_drive(self.services, drive_node_id, drive_dcf)
-        self.objects = objects = ControllerObjects(self)
-        self.supervision = Supervision(self)  # subscribes to the services' NMT events
-        #: The SDO client of the drive's server (DCF writes, statusword and rated torque).
-        self.sdo = SdoClient(bus, drive_node_id)
-        #: Boot-time configuration of the drive from its DCF (CiA 306), by SDO, after its
-        #: boot-up and before NMT start; None without a DCF.
-        self.configurator = (
-            DcfConfigurator(self.sdo, configuration_writes(drive_dcf, drive_node_id))
-            if drive_dcf is not None
-            else None
+        # joint 0's PDOs that pair with its drive's at the drive's COB-IDs (power-on values)
+        _address_drive(self.services, links[0].node_id, drive_dcf)
+        if setups[0].link is not None:
+            _address_link(self.services, links[0])
+        #: The joints, in rank order (:class:`~hdhil.firmware.controller.joint.
+        #: ControllerJoint`).
+        self.joints: tuple[ControllerJoint, ...] = tuple(
+            ControllerJoint(self, rank, setup, link, drive_dcf if rank == 0 else None)
+            for rank, (setup, link) in enumerate(zip(setups, links, strict=True))
         )
-        if drive_dcf is not None:
-            objects.take_drive_mapping(drive_dcf)  # ValueError: a mapping it cannot run
-        self.walk = Cia402Walk(drive_node_id, objects.mirror_controlword)
-        codecs = self._codecs()
-        #: Which sensor objects the drive sends: "raw" (the seed's ADC counts and encoder),
-        #: "cst" (CiA 402 torque actual 0x6077 and position actual 0x6064) or "cst-sensor"
-        #: (those and the joint-torque sensor 0x2102), as read from the live mapping.
-        self.sensor_mapping = codecs.sensor_mapping
-        self.sequencer = Sequencer(self, codecs.status)
-        self.io = CyclicIo(self, codecs)
-        #: CTRL_TPDO2 is valid (sent) only while a control law runs (COB-ID bit 31 clear).
-        self.control_pdo_valid = config.control.active
-        objects.store_control_pdo_validity()
-        self._route(codecs)
+        first = self.joints[0]
+        #: The only joint of a one-joint node (its cycle takes the shortest path).
+        self._single: ControllerJoint | None = first if len(self.joints) == 1 else None
+        #: Joint 0's diagnostics (every joint's: ``joints[r].diagnostics``).
+        self.diagnostics: ControllerDiagnostics = first.diagnostics
+        self.objects = ControllerObjects(self)  # joint 0's live parameters
+        for joint in self.joints:
+            joint.build()
+        self.services.on_reset(self._on_reset)
+        self.objects.store_control_pdo_validity()
+        for joint in self.joints:
+            self._route(joint)
+        if not sync_producer:
+            self.handle(SYNC_COB_ID, self._on_sync)
 
-    def _codecs(self) -> LinkCodecs:
-        """``control.dbc``'s codecs, or those of the mapping taken from the drive's DCF; in
-        the CST mapping no control law may be switched on later either.  Each at the
-        identifier the object dictionary gives its PDO (RPDO1 0x1400, RPDO2 0x1401, TPDO1-3
-        0x1800-0x1802: this node's own telemetry at its node-ID, the drive's PDOs at the
-        drive's), its layout checked against the one the node encodes with."""
-        services = self.services
-        if not self.objects.pdo_writes:
-            codecs = default_codecs()
-        else:
-            codecs = mapped_codecs(services.od, services.read, self.config.control.active)
-            if codecs.sensor_mapping == "cst":
-                services.add_validator(0x2420, 1, lambda law: ABORT_DEVICE_STATE if law else None)
-        od, read = services.od, services.read
-        return replace(
-            codecs,
-            sensor=codecs.sensor.at(pdo_cob_id(od, 0x1400, codecs.sensor, read)),
-            status=codecs.status.at(pdo_cob_id(od, 0x1401, codecs.status, read)),
-            telemetry=codecs.telemetry.at(pdo_cob_id(od, 0x1800, codecs.telemetry, read)),
-            control_telemetry=codecs.control_telemetry.at(
-                pdo_cob_id(od, 0x1801, codecs.control_telemetry, read)
-            ),
-            command=codecs.command.at(pdo_cob_id(od, 0x1802, codecs.command, read)),
-        )
-
-    def _route(self, codecs: LinkCodecs) -> None:
-        """Frames to the parts, at the identifiers of :meth:`_codecs`."""
-        self.handle(codecs.sensor.frame_id, self.io.on_sensor_frame)
-        self.handle(codecs.status.frame_id, self.sequencer.on_statusword_frame)
-        self.handle(self.sdo.response_id, self.sequencer.on_sdo_response)
+    def _route(self, joint: ControllerJoint) -> None:
+        """A joint's frames to its parts, at the identifiers of its codecs
+        (:meth:`ControllerJoint._codecs
+        <hdhil.firmware.controller.joint.ControllerJoint._codecs>`)."""
+        codecs: LinkCodecs = joint.codecs
+        self.handle(codecs.sensor.frame_id, joint.io.on_sensor_frame)
+        self.handle(codecs.status.frame_id, joint.sequencer.on_statusword_frame)
+        self.handle(joint.sdo.response_id, joint.sequencer.on_sdo_response)
 
     # ------------------------------------------------------------------ public API
 
@@ -224,78 +228,188 @@ class ControllerNode(CanNode):
     def probe(self) -> CycleProbe | None:
         """The instrumentation hook of the cycle
         (:class:`~hdhil.firmware.controller.cyclic.CycleProbe`): SYNC sent, sensor frame
-        received, interrupt run, command sent, each with its time stamp.  None (the
-        default) costs one check per event."""
-        return self.io.probe
+        received, interrupt run, command sent, each with its time stamp (joint 0's
+        frames).  None (the default) costs one check per event."""
+        return self.joints[0].io.probe
 
     @probe.setter
     def probe(self, probe: CycleProbe | None) -> None:
-        self.io.probe = probe
+        self.joints[0].io.probe = probe
 
     @property
     def done(self) -> bool:
-        """True once ``num_samples`` interrupts have run (listing: ``samplecount < numsamples``)."""
-        return self.isr.done
+        """True once every joint has run ``num_samples`` interrupts (listing:
+        ``samplecount < numsamples``)."""
+        return all(joint.isr.done for joint in self.joints)
 
     @property
     def drive_state(self) -> State | None:
-        """The drive's CiA 402 state from its latest statusword (None before the first)."""
-        return self.walk.drive_state
+        """Joint 0's drive's CiA 402 state from its latest statusword (None before)."""
+        return self.joints[0].walk.drive_state
 
     @property
     def controlword(self) -> int:
-        """The controlword the next DRIVE_RPDO1 carries."""
-        return self.walk.controlword
+        """The controlword joint 0's next DRIVE_RPDO1 carries."""
+        return self.joints[0].walk.controlword
+
+    # Joint 0's parts and values, as the node's (a node of one joint is that joint).
+
+    @property
+    def config(self) -> FirmwareConfig:
+        return self.joints[0].config
+
+    @config.setter
+    def config(self, config: FirmwareConfig) -> None:
+        self.joints[0].config = config
+
+    @property
+    def control_pdo_valid(self) -> bool:
+        return self.joints[0].control_pdo_valid
+
+    @control_pdo_valid.setter
+    def control_pdo_valid(self, valid: bool) -> None:
+        self.joints[0].control_pdo_valid = valid
+
+    @property
+    def isr(self) -> InterruptHandlerModel:
+        return self.joints[0].isr
+
+    @property
+    def own_isr(self) -> bool:
+        return self.joints[0].own_isr
+
+    @property
+    def drive_node_id(self) -> int:
+        return self.joints[0].drive_node_id
+
+    @property
+    def rated_torque_Nm(self) -> float | None:
+        return self.joints[0].rated_torque_Nm
+
+    @property
+    def sensor_mapping(self) -> str:
+        return self.joints[0].sensor_mapping
+
+    @property
+    def io(self) -> CyclicIo:
+        return self.joints[0].io
+
+    @property
+    def sequencer(self) -> Sequencer:
+        return self.joints[0].sequencer
+
+    @property
+    def supervision(self) -> Supervision:
+        return self.joints[0].supervision
+
+    @property
+    def walk(self) -> Cia402Walk:
+        return self.joints[0].walk
+
+    @property
+    def sdo(self) -> SdoClient:
+        return self.joints[0].sdo
+
+    @property
+    def configurator(self) -> DcfConfigurator | None:
+        return self.joints[0].configurator
 
     def boot(self, now: float) -> None:
         """Power-on (CiA 301 §7.3.2.2): boot-up message 0x701, PRE-OPERATIONAL, and, as NMT
-        master, start waiting ``boot_timeout_s`` for the drive's boot-up."""
+        master, start waiting ``boot_timeout_s`` for each drive's boot-up."""
         self.now = now
-        self.services.boot(now)
-        self.services.nmt.expect_boot(self.drive_node_id, now, self.boot_timeout_s)
-        self.set_phase(Phase.WAIT_BOOT, "power on: waiting for the drive's boot-up")
+        services = self.services
+        services.boot(now)
+        for joint in self.joints:
+            services.nmt.expect_boot(joint.drive_node_id, now, self.boot_timeout_s)
+            joint.set_phase(Phase.WAIT_BOOT, "power on: waiting for the drive's boot-up")
 
     def tick(self, now: float) -> None:
         """Once per cycle, before polling: heartbeat producer and consumer (may enter
-        "safe"), parameters written last cycle, the drive's boot-up wait and its timeout,
+        "safe"), parameters written last cycle, the drives' boot-up wait and its timeout,
         the sensors' error flags."""
         self.now = now
         services = self.services
         services.tick(now)
         self.objects.apply_pending()
-        if self.phase is _WAIT_BOOT and services.state is not _INITIALISING:
-            self.sequencer.await_drive()
-        if self.own_isr:  # our InterruptHandler: its plausibility and stuck-channel flags
-            self.supervision.check_sensors()
-        d = self.diagnostics
-        d.emcy_sent = services.emcy.sent
-        d.emcy_received = services.counters.emcy_received
+        for joint in self.joints:
+            if joint.phase is _WAIT_BOOT and services.state is not _INITIALISING:
+                joint.sequencer.await_drive()
+            if joint.own_isr:  # our InterruptHandler: its plausibility and stuck-channel flags
+                joint.supervision.check_sensors()
+            d = joint.diagnostics
+            d.emcy_sent = services.emcy.sent
+            d.emcy_received = services.counters.emcy_received
 
     def send_sync(self) -> bool:
         """Start a cycle: SYNC with the CiA 301 counter (1..overflow, then 1 again).
 
-        Sent in every phase but "stopped" and "safe", and only in an NMT state that allows
-        it (not before ``boot``).  At this cycle boundary the node also applies new
-        parameters, checks the sensor hold ("operational") and the walk's statusword
-        timeouts ("starting"/"stopping").  Returns True if a SYNC went out.
+        Sent while a joint is in a phase but "stopped" and "safe", and only in an NMT
+        state that allows it (not before ``boot``).  At this cycle boundary the node also
+        applies new parameters, checks each joint's sensor hold ("operational") and its
+        walk's statusword timeouts ("starting"/"stopping").  Returns True if a SYNC went
+        out.
         """
+        if not self.sync_producer:
+            return False
         self.objects.apply_pending()
-        phase = self.phase
+        joint = self._single
+        if joint is None:
+            return self._send_sync_joints()
+        phase = joint.phase
         if phase is _OPERATIONAL:
-            if not self.io.sensor_hold_ok():
+            if not joint.io.sensor_hold_ok():
                 return False
         elif phase is _STARTING or phase is _STOPPING:
-            self.sequencer.watchdog()
-            if self.phase in FINAL:
+            joint.sequencer.watchdog()
+            if joint.phase in FINAL:
                 return False
         elif phase in FINAL:
             return False
-        return self.io.send_sync()
+        return joint.io.send_sync()
+
+    def _send_sync_joints(self) -> bool:
+        """``send_sync`` of a node of several joints: the checks per joint, one SYNC."""
+        serving = self._serving()
+        if not serving or not self.joints[0].io.send_sync_frame():
+            return False
+        for joint in serving:
+            joint.io.synced()
+        return True
+
+    def _on_sync(self, msg: can.Message) -> None:
+        """A node that follows the bus's SYNC: the SYNC starts its joints' cycle, after
+        the same checks as a SYNC of its own (in PRE-OPERATIONAL and OPERATIONAL)."""
+        if not self.services.sync_allowed:
+            return
+        self.objects.apply_pending()
+        for joint in self._serving():
+            joint.io.synced()
+
+    def _serving(self) -> list[ControllerJoint]:
+        """At a cycle boundary: each joint's sensor hold or walk watchdog; the joints
+        still in service."""
+        serving = []
+        for joint in self.joints:
+            phase = joint.phase
+            if phase is _OPERATIONAL:
+                if not joint.io.sensor_hold_ok():
+                    continue
+            elif phase is _STARTING or phase is _STOPPING:
+                joint.sequencer.watchdog()
+                if joint.phase in FINAL:
+                    continue
+            elif phase in FINAL:
+                continue
+            serving.append(joint)
+        return serving
 
     def request_stop(self, reason: str = "stop requested") -> None:
-        """Walk the drive back (controlword 0x0007, then 0x0006), then NMT pre-operational
-        for the drive: phase "stopping", then "stopped".  No effect once stopping."""
-        self.sequencer.request_stop(reason)
+        """Walk the drives back (controlword 0x0007, then 0x0006), then NMT
+        pre-operational for each: phase "stopping", then "stopped".  No effect once
+        stopping."""
+        for joint in self.joints:
+            joint.sequencer.request_stop(reason)
 
     def on_message(self, msg: can.Message) -> None:
         """CiA 301 service frames go to the services first; SYNC/PDOs to the handlers."""
@@ -305,13 +419,29 @@ class ControllerNode(CanNode):
 
     # ------------------------------------------------------------ phases, faults
 
-    def set_phase(self, phase: Phase, reason: str) -> None:
-        """Enter ``phase`` (recorded in the diagnostics' phase history)."""
-        self.phase = phase
-        sequencer = self.sequencer
-        sequencer.phase_cycles = 0
-        sequencer.quiet_cycles = 0
-        self.diagnostics.phase_history.append(PhaseChange(self.now, phase, reason))
+    def commanding(self) -> bool:
+        """Whether a joint commands its drive (starting, operational or stopping)."""
+        return any(joint.phase in COMMANDING for joint in self.joints)
+
+    def joint_phase_changed(self) -> None:
+        """A joint changed its phase: the node's phase and boot error follow (class
+        docstring)."""
+        joint = self._single
+        if joint is not None:
+            self.phase = joint.phase
+            self.boot_error = joint.boot_error
+            return
+        phases = {j.phase for j in self.joints}
+        self.phase = next(
+            (p for p in _NODE_PHASE_ORDER if p in phases),
+            _SAFE if _SAFE in phases else Phase.STOPPED,
+        )
+        errors = [j.boot_error for j in self.joints]
+        self.boot_error = (
+            "; ".join(f"{j.name}: {e}" for j, e in zip(self.joints, errors, strict=True))
+            if all(errors)
+            else None
+        )
 
     def enter_nmt(self, state: NmtState) -> None:
         """The controller changes its own NMT state (not a command from another master)."""
@@ -325,19 +455,74 @@ class ControllerNode(CanNode):
             self.own_nmt = False
 
     def enter_safe(self, reason: str, emcy: int | None = None, manufacturer: bytes = b"") -> None:
-        """Stop commanding the drive for good (class docstring), with an EMCY if given."""
-        if self.phase is Phase.SAFE:
-            return
-        services = self.services
-        if emcy is not None:
-            services.emcy.raise_error(emcy, manufacturer=manufacturer)
-        if self.phase in COMMANDING and services.state is NmtState.OPERATIONAL:
-            services.nmt.command(NmtCommand.ENTER_PRE_OPERATIONAL, self.drive_node_id)
-        self.diagnostics.safe_reason = reason
-        self.set_phase(Phase.SAFE, reason)
-        if services.state is NmtState.OPERATIONAL:
-            self.enter_nmt(NmtState.PRE_OPERATIONAL)
-        self.diagnostics.emcy_sent = services.emcy.sent
+        """Stop commanding every drive for good (class docstring), with an EMCY if given."""
+        for joint in self.joints:
+            joint.enter_safe(reason, emcy, manufacturer)
+            emcy = None  # one EMCY for the node
+
+    def _on_reset(self, kind: ResetKind) -> None:
+        """NMT reset of the node by another master: every joint's supervision."""
+        for joint in self.joints:
+            joint.supervision.on_reset(kind)
+
+
+def _joint_links(
+    config: FirmwareConfig | None,
+    node_id: int,
+    drive_node_id: int,
+    isr: InterruptHandlerModel | None,
+    drive_dcf: str | Path | None,
+    joints: Sequence[JointSetup] | None,
+) -> tuple[tuple[JointSetup, ...], tuple[DriveLink, ...]]:
+    """The joints' setups and links: the one joint of the arguments, or ``joints``."""
+    if joints is None:
+        if config is None:
+            raise ValueError("a controller node needs a firmware configuration or joints")
+        if not 1 <= drive_node_id <= 127 or drive_node_id == node_id:
+            raise ValueError(f"drive node-ID must be 1..127 and not {node_id}, got {drive_node_id}")
+        return (JointSetup(config, drive_node_id, isr=isr),), (
+            DriveLink.predefined(drive_node_id, node_id),
+        )
+    if config is not None or isr is not None or drive_dcf is not None or drive_node_id != 2:
+        raise ValueError(
+            "give a controller node its joints, or one joint's config, drive_node_id, "
+            "isr and drive_dcf; not both"
+        )
+    setups = tuple(joints)
+    if not setups:
+        raise ValueError("a controller node serves at least one joint")
+    if len(setups) > MAX_JOINTS_PER_NODE:
+        names = ", ".join(s.name or str(s.node_id) for s in setups)
+        raise ValueError(
+            f"one controller node reports the telemetry of at most {MAX_JOINTS_PER_NODE} "
+            f"joints (its four pre-defined TPDOs), got {len(setups)} ({names}): give the "
+            "others a controller node of their own"
+        )
+    for s in setups:
+        if s.node_id == node_id:
+            raise ValueError(f"drive node-ID must not be the controller's ({node_id})")
+        if s.link is not None and s.link.node_id != s.node_id:
+            raise ValueError(
+                f"joint {s.name or s.node_id}: its link addresses node {s.link.node_id}, "
+                f"its node-ID is {s.node_id}"
+            )
+    links = tuple(
+        s.link if s.link is not None else DriveLink.predefined(s.node_id, node_id, rank)
+        for rank, s in enumerate(setups)
+    )
+    ids = [link.node_id for link in links]
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"the joints' drives need distinct node-IDs, got {ids}")
+    cobs = [cob for link in links for cob in link.cob_ids]
+    if len(set(cobs)) != len(cobs):
+        raise ValueError("two joints' PDOs share an identifier")
+    periods = {s.config.sample_period_s for s in setups}
+    if len(periods) > 1:
+        raise ValueError(
+            "the joints of one controller node share its SYNC, so one sample period; got "
+            + ", ".join(f"{p:g} s" for p in sorted(periods))
+        )
+    return setups, links
 
 
 def _check_arguments(
@@ -384,5 +569,18 @@ def _address_drive(
             continue
         old = int(services.read(comm, 1))
         new = (old & ~0x7FF) | layout.cob_id
+        if new != old:
+            services.set_power_on_value(comm, 1, new)
+
+
+def _address_link(services: CanopenServices, link: DriveLink) -> None:
+    """Joint 0's link given in its setup: its identifiers as the power-on COB-IDs of the
+    node's PDOs of joint 0 (sensor RPDO1, statusword RPDO2, command TPDO3, telemetry
+    TPDO1 and TPDO2), each PDO's validity as before."""
+    for comm, cob_id in ((0x1400, link.sensor_cob_id), (0x1401, link.status_cob_id),
+                         (0x1802, link.command_cob_id), (0x1800, link.telemetry_cob_id),
+                         (0x1801, link.control_cob_id)):  # fmt: skip
+        old = int(services.read(comm, 1))
+        new = (old & ~0x7FF) | cob_id
         if new != old:
             services.set_power_on_value(comm, 1, new)

@@ -66,7 +66,8 @@ class ControllerObjects:
         self.controlword_index = index_of(services.od, CONTROLWORD_OBJECT)
         self.period_us = round(node.config.sample_period_s * 1e6)
         self.store_comm_values()
-        services.make_sync_producer()
+        if node.sync_producer:
+            services.make_sync_producer()
         self.parameters = LiveParameters(services, lambda: node.config, self._on_parameter)
         self.parameters.store(node.config)
         self.parameters.enabled = node.own_isr
@@ -123,8 +124,8 @@ class ControllerObjects:
         node = self.node
         self.store_comm_values()
         sync = node.services.sync
-        assert sync is not None
-        sync.configure(overflow=node.sync_overflow, cob_id=sync.cob_id)
+        if sync is not None:
+            sync.configure(overflow=node.sync_overflow, cob_id=sync.cob_id)
         if kind == "node":
             self.parameters.store(self.parameters.pending or node.config)
         self.store_control_pdo_validity()

@@ -24,7 +24,7 @@ from hdhil.firmware.isr import InterruptHandler
 from hdhil.firmware.walk import CONTROLWORD_ENABLE_OPERATION, WalkStep
 
 if TYPE_CHECKING:
-    from hdhil.firmware.controller.node import ControllerNode
+    from hdhil.firmware.controller.joint import ControllerJoint
 
 __all__ = ["Sequencer"]
 
@@ -69,16 +69,14 @@ class Sequencer:
     can still be inspected, but takes no PDOs); the controller goes PRE-OPERATIONAL too.
     """
 
-    def __init__(self, node: ControllerNode, status: FrameCodec) -> None:
+    def __init__(self, node: ControllerJoint, status: FrameCodec) -> None:
         self.node = node
         self.status = status
         #: The drive's statusword in the drive's EDS (what the SDO client reads).
         self.drive_statusword_index = eds_index(str(eds_path("drive")), STATUSWORD_OBJECT)
         # 0x6076, looked up by name in the drive's EDS when a mapping may need it
         self.rated_index = (
-            eds_index(str(eds_path("drive")), "motor_rated_torque")
-            if node.objects.pdo_writes
-            else 0
+            eds_index(str(eds_path("drive")), "motor_rated_torque") if node.mapped else 0
         )
         self.rated_requested = False
         self.configure_deadline = 0.0
@@ -225,7 +223,7 @@ class Sequencer:
     def on_statusword(self, statusword: int) -> None:
         node = self.node
         self.quiet_cycles = 0
-        node.objects.mirror_statusword(statusword)
+        node.mirror_statusword(statusword)
         if not node.walk.on_statusword(statusword):
             node.diagnostics.invalid_statuswords += 1
             return

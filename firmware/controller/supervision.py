@@ -15,7 +15,7 @@ from hdhil.canopen.services import EmcyCode, NmtState, ResetKind
 from hdhil.firmware.controller.phases import COMMANDING, FINAL, Phase
 
 if TYPE_CHECKING:
-    from hdhil.firmware.controller.node import ControllerNode
+    from hdhil.firmware.controller.joint import ControllerJoint
 
 __all__ = ["Supervision"]
 
@@ -37,16 +37,19 @@ class Supervision:
     channels (:class:`hdhil.firmware.stages.StuckChannels`) are announced the same way.
     """
 
-    def __init__(self, node: ControllerNode) -> None:
+    def __init__(self, node: ControllerJoint) -> None:
         self.node = node
         self.plausibility_revision = 0
         self.stuck_revision = 0
         self.plausibility_emcy: set[int] = set()  # EMCY codes of active sensor errors
+        #: In a node of several joints the sensor EMCYs name the joint's drive: its
+        #: node-ID in manufacturer byte 4 (bytes 0-3 as in a node of one joint).
+        several = len(node.controller.joints) > 1
+        self.emcy_tag = bytes((node.drive_node_id,)) if several else b""
         services = node.services
         services.on_boot(self.on_boot)
         services.on_heartbeat_lost(self.on_heartbeat_lost)
-        services.on_state_change(self.on_nmt_state)
-        services.on_reset(self.on_reset)
+        services.on_state_change(self.on_nmt_state)  # on_reset: called by the node
 
     # ------------------------------------------------------------ NMT, heartbeat
 
@@ -80,8 +83,8 @@ class Supervision:
         node = self.node
         if node.own_nmt or node.phase in FINAL or new is NmtState.INITIALISING:
             return
-        monitor = node.services.heartbeat_consumer.monitored.get(node.drive_node_id)
-        if monitor is not None and monitor.status == "lost" and monitor.lost_at == node.now:
+        if any(m.status == "lost" and m.lost_at == node.now
+               for m in node.services.heartbeat_consumer.monitored.values()):  # fmt: skip
             return  # 0x1029 error behaviour on heartbeat loss: on_heartbeat_lost follows
         if new is NmtState.STOPPED or (old is NmtState.OPERATIONAL and node.phase in COMMANDING):
             node.enter_safe(f"NMT {new.name} commanded by another master")
@@ -90,7 +93,7 @@ class Supervision:
         """NMT reset of the controller by another master: OD values back to what the node
         runs, then "safe"."""
         node = self.node
-        node.objects.restore_after_reset(kind)
+        node.restore_after_reset(kind)
         if node.phase not in FINAL:
             node.enter_safe(f"NMT reset ({kind}) of the controller by another master")
 
@@ -105,6 +108,11 @@ class Supervision:
         stuck = isr.stuck
         if stuck is not None and stuck.revision != self.stuck_revision:
             self.report_stuck(stuck)
+
+    def manufacturer(self, data: bytes) -> bytes:
+        """A sensor EMCY's manufacturer bytes, with the joint's tag in a node of several."""
+        tag = self.emcy_tag
+        return data.ljust(4, b"\0") + tag if tag else data
 
     def report_stuck(self, stuck: Any) -> None:
         """An EMCY when a channel gets stuck, cleared when it reads again; the diagnostic
@@ -121,9 +129,9 @@ class Supervision:
             (EmcyCode.TACHO_FAULT, 2, stuck.tacho_stuck),
         ):
             if flag:
-                emcy.raise_error(code, manufacturer=bytes((channel,)))
+                emcy.raise_error(code, manufacturer=self.manufacturer(bytes((channel,))))
             else:
-                emcy.clear(code, bytes((channel,)))
+                emcy.clear(code, self.manufacturer(bytes((channel,))))
 
     def report_plausibility(self) -> None:
         """The plausibility stage's counters into the diagnostics, and its error flags on
@@ -152,7 +160,7 @@ class Supervision:
         ):
             if error and code not in active:
                 active.add(code)
-                emcy.raise_error(code)
+                emcy.raise_error(code, manufacturer=self.manufacturer(b""))
             elif not error and code in active:
                 active.discard(code)
-                emcy.clear(code, b"")  # not the stuck tacho's 0x7301
+                emcy.clear(code, self.manufacturer(b""))  # not the stuck tacho's 0x7301

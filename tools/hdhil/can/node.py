@@ -10,7 +10,7 @@ a real adapter alike.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import can
 
@@ -27,14 +27,19 @@ class CanNode:
         bus: can.BusABC,
         bus_name: BusName = "control",
         *,
-        drive_node_id: int | None = None,
+        drive_node_id: int | Sequence[int] | None = None,
         controller_node_id: int | None = None,
     ) -> None:
         self.bus = bus
         self.unknown_frames: dict[int, int] = {}
         self.error_frames = 0
-        # the DBC's frames, the drive's and the controller's at their node-IDs
-        self._known = known_frames(bus_name, drive_node_id, controller_node_id)
+        # the DBC's frames, the drive's (or each drive's) and the controller's at their
+        # node-IDs
+        drives = drive_node_id if isinstance(drive_node_id, Sequence) else (drive_node_id,)
+        drives = drives or (None,)
+        self._known = known_frames(bus_name, drives[0], controller_node_id).union(
+            *(known_frames(bus_name, drive, controller_node_id) for drive in drives[1:])
+        )
         self._handlers: dict[tuple[int, bool], Handler] = {}
         #: The handlers of 11-bit identifiers by identifier alone (the 1 kHz frames).
         self._base_handlers: dict[int, Handler] = {}

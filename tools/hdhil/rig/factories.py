@@ -31,8 +31,9 @@ from typing import Literal, Protocol
 import can
 
 from hdhil.can.groups import GroupChannel
+from hdhil.core.dataconf import ConfigError
 from hdhil.firmware.config import FirmwareConfig
-from hdhil.firmware.controller import ControllerNode
+from hdhil.firmware.controller import ControllerNode, JointSetup
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant
 from hdhil.rig.faults import FaultInjector
@@ -95,6 +96,9 @@ class NodeSite:
     faults: FaultInjector | None = None
     #: The node-IDs of the drives (what the controller addresses).
     drive_node_ids: tuple[int, ...] = ()
+    #: Each drive's joint, in the order of ``drive_node_ids``: its name and firmware
+    #: configuration (:func:`layout_joints`); empty: the run's configuration for each.
+    joint_configs: tuple[tuple[str, FirmwareConfig], ...] = ()
 
     def drive_config(self) -> DriveConfig:
         """The drive node's settings for this site (period, actuation, node-IDs)."""
@@ -122,14 +126,49 @@ class DriveFactory(Protocol):
         ...
 
 
+def layout_joints(scenario: Scenario, layout: RigLayout) -> tuple[tuple[str, FirmwareConfig], ...]:
+    """The joint of each drive of ``layout``, in its order: the name and firmware
+    configuration (filter, law, gains, calibration) of the scenario's joint with the
+    drive's node-ID (``Scenario.joint_configs``); for a single-joint scenario, the
+    scenario's firmware for every drive.  A drive no joint of the scenario has is a
+    one-line :class:`ConfigError`."""
+    if not scenario.is_rig:
+        return tuple(("", scenario.firmware) for _ in layout.drives)
+    out = []
+    for slot in layout.drives:
+        found = [
+            (joint.name, fw)
+            for joint, (_, fw) in zip(scenario.joints, scenario.joint_configs, strict=True)
+            if joint.node_id == slot.node_id
+        ]
+        if len(found) != 1:
+            names = ", ".join(name for name, _ in found) or "none"
+            raise ConfigError(
+                f"the layout's drive at node-ID {slot.node_id} must be one joint of scenario "
+                f"{scenario.name} (joints with that node-ID: {names})"
+            )
+        out.append(found[0])
+    return tuple(out)
+
+
 def scenario_controller(site: NodeSite, config: FirmwareConfig) -> ControllerNode:
-    """The firmware's controller node with its own interrupt handler."""
+    """The firmware's controller node with its own interrupt handler per joint: one
+    joint, or each drive of the layout as a joint with its own configuration
+    (``site.joint_configs``) on one node (one NMT master and SYNC producer per bus)."""
     drives: Sequence[int] = site.drive_node_ids or (2,)
-    if len(drives) != 1:
-        raise ValueError(
-            f"the firmware's controller drives one joint; the layout has drives {list(drives)}"
-        )
-    return ControllerNode(site.bus, config, node_id=site.node_id, drive_node_id=drives[0])
+    joints = site.joint_configs or tuple(("", config) for _ in drives)
+    if len(joints) != len(drives):
+        raise ConfigError(f"{len(joints)} joint configurations for drives {list(drives)}")
+    if len(drives) == 1:
+        return ControllerNode(site.bus, joints[0][1], node_id=site.node_id,
+                              drive_node_id=drives[0])  # fmt: skip
+    setups = [
+        JointSetup(cfg, node_id, name) for node_id, (name, cfg) in zip(drives, joints, strict=True)
+    ]
+    try:
+        return ControllerNode(site.bus, node_id=site.node_id, joints=setups)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def dcf_controller(drive_dcf: Path) -> ControllerFactory:
@@ -141,7 +180,7 @@ def dcf_controller(drive_dcf: Path) -> ControllerFactory:
         drives: Sequence[int] = site.drive_node_ids or (2,)
         if len(drives) != 1:
             raise ValueError(
-                f"the firmware's controller drives one joint; the layout has drives {list(drives)}"
+                f"a drive DCF configures one joint's drive; the layout has drives {list(drives)}"
             )
         return ControllerNode(
             site.bus, config, node_id=site.node_id, drive_node_id=drives[0], drive_dcf=drive_dcf

@@ -31,7 +31,7 @@ from hdhil.firmware.config import Law
 from hdhil.firmware.controller import ControllerNode
 from hdhil.hostsim.drive import DriveNode
 from hdhil.rig.evaluate import LiveEvaluationFactory, RecordingListener
-from hdhil.rig.factories import ControllerFactory, DriveFactory, NodeSite
+from hdhil.rig.factories import ControllerFactory, DriveFactory, NodeSite, layout_joints
 from hdhil.rig.faults import FaultInjector
 from hdhil.rig.score import TorqueScorer, TrackingScorer
 
@@ -220,6 +220,7 @@ def build_nodes(
         actuation=plan.actuation,  # type: ignore[arg-type]
         faults=injector,
         drive_node_ids=drive_ids,
+        joint_configs=layout_joints(plan.request.scenario, layout),
     )
     controller = controller_factory(site, plan.firmware)
     drives = []
