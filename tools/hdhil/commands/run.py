@@ -45,9 +45,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_drive_node_id_argument(p)
     p.add_argument(
         "--trace",
-        default="hdhil-run.blf",
+        default=None,
         help="trace file; format from the extension: .blf .asc .log .csv .trc "
-        "(default: %(default)s; '' for none)",
+        f"(default: {DEFAULT_TRACE}; '' for none; a rig of several joints writes none yet)",
     )
     p.add_argument(
         "--start-time",
@@ -143,6 +143,9 @@ def _control_bus(
     return interface, resolved.get("channel"), int(resolved["bitrate"]), factory
 
 
+#: The trace of a single-joint run when ``--trace`` is not given.
+DEFAULT_TRACE = "hdhil-run.blf"
+
 #: How often (in samples) a run on a terminal moves its progress bar.
 PROGRESS_EVERY_SAMPLES = 200
 
@@ -183,6 +186,33 @@ def parse_start_time(text: str | None) -> float | None:
     return value
 
 
+def _run_rig(
+    args: argparse.Namespace,
+    request: Any,
+    interface: str,
+) -> int:
+    """``hdhil run`` of a rig of several joints (:mod:`hdhil.rig.rigrun`)."""
+    from hdhil.rig.rigrun import check_rig_options, format_rig_result, run_rig
+
+    check_rig_options(request, interface=interface, realtime=args.realtime,
+                      compare_laws=args.compare_laws, fault_log=args.fault_log,
+                      trace=args.trace)  # fmt: skip
+    with stop_on_signals() as stop:
+        result = run_rig(request, stop_requested=stop.is_set)
+    if args.json:
+        jsonout.dump(result.as_dict(), sys.stdout, indent=2)
+        print()
+    else:
+        print(format_rig_result(result))
+    if result.interrupted:
+        return 130
+    if result.verdict is not None:
+        print(f"hdhil: run stopped in {result.verdict['phase']}: {result.verdict['reason']}",
+              file=sys.stderr)  # fmt: skip
+        return 1
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     if args.compare_laws and (args.mapping or args.drive_dcf):
         raise UserError("--compare-laws runs the default mapping; leave out --drive-dcf/--mapping")
@@ -190,7 +220,11 @@ def run(args: argparse.Namespace) -> int:
     request = request_from_args(
         args, evaluate_from_s=args.skip, actuation=args.actuation, bitrate=bitrate
     )
-    trace = Path(args.trace) if args.trace else None
+    if request.scenario.is_rig:  # checked before anything is written
+        return _run_rig(args, request, interface)
+    trace = (
+        Path(args.trace if args.trace is not None else DEFAULT_TRACE) if args.trace != "" else None
+    )
     traces = [trace] if trace is not None else []
     if trace is not None and args.compare_laws:
         from hdhil.rig.laws import compared_traces
