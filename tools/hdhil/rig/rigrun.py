@@ -430,6 +430,7 @@ def _run(
         name: {"channel": bus_channel(i), "bitrate": spec.bitrate, "fd": spec.fd,
                "joints": [j.spec.name for j in joints if j.spec.bus == name]}
         for i, (name, spec) in enumerate(buses.items())
+        if any(j.spec.bus == name for j in joints)
     }  # fmt: skip
     return RigResult(
         scenario=s.name,
@@ -482,8 +483,8 @@ def format_rig_result(r: RigResult) -> str:
         f"  real-time factor   {r.real_time_factor:.1f}x",
         "  buses              "
         + "; ".join(
-            f"{name} (channel {b['channel']}): {', '.join(b['joints'])}, "
-            f"{r.frames.get(name, 0)} frames"
+            f"{name} (channel {b['channel']}{', FD' if b['fd'] else ''}): "
+            f"{', '.join(b['joints'])}, {r.frames.get(name, 0)} frames"
             for name, b in r.buses.items()
         ),
         "  per joint (RMS error of the raw and the filtered torque against the true torque, "
@@ -506,6 +507,11 @@ def format_rig_result(r: RigResult) -> str:
         what = "filtered RMS error" if key == "rms_error_filtered" else "|e|≤0.5 Nm share"
         value = f"{w['value']:.4f} Nm" if key == "rms_error_filtered" else f"{w['value']:.1%}"
         lines.append(f"  worst joint        {w['joint']} by {what}: {value}")
+    if any(b["fd"] for b in r.buses.values()):
+        lines.append(
+            "  CAN FD             an FD bus carries the joints' classical frames, timed at its "
+            "arbitration bit rate (no FD packing, no data phase yet)"
+        )
     lines.append(f"  evaluation         {r.evaluation}")
     if r.verdict is not None:
         lines.append(f"  verdict            {r.verdict['phase']}: {r.verdict['reason']}")
