@@ -108,11 +108,11 @@ def test_hdhil_run_prints_a_row_per_joint_and_json(
     from hdhil.cli import main
 
     monkeypatch.chdir(tmp_path)
-    assert main(["run", "--scenario", str(TWO), "--duration", "0.1"]) == 0
+    assert main(["run", "--scenario", str(TWO), "--duration", "0.1", "--trace", ""]) == 0
     out = capsys.readouterr().out
     assert "2 joints on 1 bus(es)" in out and "worst joint" in out
-    assert not list(tmp_path.glob("*.blf"))  # a rig writes no trace yet
-    assert main(["run", "--scenario", str(TWO), "--duration", "0.1", "--json"]) == 0
+    assert not list(tmp_path.glob("*.blf"))
+    assert main(["run", "--scenario", str(TWO), "--duration", "0.1", "--json", "--trace", ""]) == 0
     data = json.loads(capsys.readouterr().out)
     assert [j["name"] for j in data["joints"]] == ["A", "B"]
     assert data["worst_joint"]["rms_error_filtered"]["joint"] in ("A", "B")

@@ -45,9 +45,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_drive_node_id_argument(p)
     p.add_argument(
         "--trace",
-        default=None,
+        default="hdhil-run.blf",
         help="trace file; format from the extension: .blf .asc .log .csv .trc "
-        f"(default: {DEFAULT_TRACE}; '' for none; a rig of several joints writes none yet)",
+        "(default: %(default)s; '' for none)",
     )
     p.add_argument(
         "--start-time",
@@ -143,9 +143,6 @@ def _control_bus(
     return interface, resolved.get("channel"), int(resolved["bitrate"]), factory
 
 
-#: The trace of a single-joint run when ``--trace`` is not given.
-DEFAULT_TRACE = "hdhil-run.blf"
-
 #: How often (in samples) a run on a terminal moves its progress bar.
 PROGRESS_EVERY_SAMPLES = 200
 
@@ -190,15 +187,17 @@ def _run_rig(
     args: argparse.Namespace,
     request: Any,
     interface: str,
+    trace: Path | None,
 ) -> int:
     """``hdhil run`` of a rig of several joints (:mod:`hdhil.rig.rigrun`)."""
     from hdhil.rig.rigrun import check_rig_options, format_rig_result, run_rig
 
     check_rig_options(request, interface=interface, realtime=args.realtime,
-                      compare_laws=args.compare_laws, fault_log=args.fault_log,
-                      trace=args.trace)  # fmt: skip
+                      compare_laws=args.compare_laws, fault_log=args.fault_log)  # fmt: skip
+    check_outputs(run_outputs([trace] if trace else [], None), scenario_inputs(args))
     with stop_on_signals() as stop:
-        result = run_rig(request, stop_requested=stop.is_set)
+        result = run_rig(request, trace=trace, start_time=parse_start_time(args.start_time),
+                         stop_requested=stop.is_set)  # fmt: skip
     if args.json:
         jsonout.dump(result.as_dict(), sys.stdout, indent=2)
         print()
@@ -220,11 +219,9 @@ def run(args: argparse.Namespace) -> int:
     request = request_from_args(
         args, evaluate_from_s=args.skip, actuation=args.actuation, bitrate=bitrate
     )
-    if request.scenario.is_rig:  # checked before anything is written
-        return _run_rig(args, request, interface)
-    trace = (
-        Path(args.trace if args.trace is not None else DEFAULT_TRACE) if args.trace != "" else None
-    )
+    trace = Path(args.trace) if args.trace else None
+    if request.scenario.is_rig:
+        return _run_rig(args, request, interface, trace)
     traces = [trace] if trace is not None else []
     if trace is not None and args.compare_laws:
         from hdhil.rig.laws import compared_traces

@@ -30,6 +30,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import can
@@ -102,6 +103,7 @@ class RigResult:
     #: Per-cycle wall time of the loop in operation (us).
     us_per_cycle: float = math.nan
     evaluation: str = "candidate filters are not evaluated for a rig of several joints"
+    trace: str | None = None
     #: What the scenario scores (:attr:`hdhil.rig.scenario.Scenario.scored`): the torque
     #: columns are the ripple filter's only with ``ripple``.
     scored: tuple[str, ...] = ("ripple",)
@@ -170,11 +172,10 @@ def check_rig_options(
     realtime: bool = False,
     compare_laws: bool = False,
     fault_log: Any = None,
-    trace: Any = None,
 ) -> None:
     """Refuse, with one line (:class:`ConfigError`), what a rig of several joints does not
     take yet: another interface than ``simbus``, real time, ``--compare-laws``, a fault
-    log, a trace, injected faults, a drive DCF or mapping."""
+    log, injected faults, a drive DCF or mapping."""
     name = request.scenario.name
     what = None
     if interface != "simbus":
@@ -185,8 +186,6 @@ def check_rig_options(
         what = "--compare-laws"
     elif fault_log is not None:
         what = "--fault-log"
-    elif trace:
-        what = "a trace (--trace; '' for none)"
     if what is not None:
         raise ConfigError(
             f"scenario {name} lays out {len(request.scenario.joints)} joints: a rig of several "
@@ -206,10 +205,15 @@ def _check(request: RunRequest) -> None:
 def run_rig(
     request: RunRequest,
     *,
+    trace: Path | None = None,
+    start_time: float | None = None,
     stop_requested: Callable[[], bool] | None = None,
 ) -> RigResult:
     """Run the rig of ``request``'s scenario for its duration, lockstep on the simulated
-    buses, and score every joint (module docstring)."""
+    buses, and score every joint (module docstring). ``trace``: every bus on its channel
+    (:func:`bus_channel`) and the truth, with a sidecar that records the layout
+    (:func:`rig_metadata`); ``start_time`` the Unix time of simulated time 0 (default
+    now, to the millisecond)."""
     s = request.scenario
     if not s.is_rig:
         raise ConfigError(f"scenario {s.name} is a single joint: hdhil.rig.runner runs it")
@@ -236,13 +240,64 @@ def run_rig(
         opened.append(bus)
         return bus  # type: ignore[no-any-return]
 
+    writer = None
+    if trace is not None:
+        from hdhil.can.traces.writer import WriterProcess
+
+        if start_time is None:
+            start_time = round(time.time(), 3)  # whole ms: the resolution of BLF's date
+        writer = WriterProcess(trace, time_offset=start_time,
+                               metadata=rig_metadata(request, start_time))  # fmt: skip
     blas = threadpool_limits(limits=1)
+    completed = False
     try:
-        return _run(request, joints, buses, clock, handle, opened, stop_requested)
+        result = _run(request, joints, buses, clock, handle, opened, stop_requested, writer)
+        if writer is not None:
+            writer.stop()  # the trace and its sidecar renamed into place
+            result.trace = str(trace)
+        completed = True
+        return result
     finally:
+        if writer is not None and not completed:
+            writer.abort()  # no trace of a run that failed
         for bus in opened:
             bus.shutdown()
         blas.restore_original_limits()
+
+
+def rig_metadata(request: RunRequest, start_time: float) -> dict[str, Any]:
+    """A rig trace's sidecar: the run's settings, the channel of each bus and of the truth,
+    and the layout (``rig``: buses and joints) that :func:`hdhil.canopen.mapping.
+    trace_decoder` decodes the trace with."""
+    import datetime
+
+    from hdhil.rig.sidecar import run_metadata
+
+    s = request.scenario
+    when = datetime.datetime.fromtimestamp(start_time, tz=datetime.timezone.utc)
+    channels = {name: bus_channel(i) for i, (name, _) in enumerate(s.buses)}
+    return {
+        "scenario": s.name, "seed": request.seed,
+        "duration_s": request.cycles * request.sample_period_s,
+        "sample_period_s": request.sample_period_s, "start_time": start_time,
+        "start_time_utc": when.isoformat(timespec="milliseconds").replace("+00:00", "Z"),
+        "time_offset_s": start_time, "interface": "simbus", "actuation": request.actuation,
+        "channels": {**channels, "truth": CHANNEL_NUMBER["truth"]},
+        "rig": {
+            "buses": [
+                {"name": name, "channel": channels[name], "bitrate": spec.bitrate, "fd": spec.fd,
+                 "data_bitrate": spec.data_bitrate,
+                 "controller_node_id": spec.controller_node_id}
+                for name, spec in s.buses
+            ],
+            "joints": [
+                {"name": j.name, "bus": j.bus, "node_id": j.node_id,
+                 "controller_node_id": j.controller_node_id, "joint_index": k}
+                for k, j in enumerate(s.joints)
+            ],
+        },
+        **run_metadata(request),
+    }  # fmt: skip
 
 
 def _run(
@@ -253,6 +308,7 @@ def _run(
     handle: Callable[[str, int, int | None], SimBus],
     opened: list[Any],
     stop_requested: Callable[[], bool] | None,
+    writer: can.Listener | None,
 ) -> RigResult:
     s = request.scenario
     Ts = request.sample_period_s
@@ -344,6 +400,8 @@ def _run(
                 )
                 listeners.append(OnChannels(j.tracking, channels))
         tapped[bus_channel(index)] = handle(name, index, None)
+    if writer is not None:
+        listeners.insert(0, writer)  # it sees every frame as it came
     tap = BusTap(dict(sorted(tapped.items())), listeners)
     if arm is not None:
         ordered = [j.drive for j in joints]
@@ -513,6 +571,8 @@ def format_rig_result(r: RigResult) -> str:
             "arbitration bit rate (no FD packing, no data phase yet)"
         )
     lines.append(f"  evaluation         {r.evaluation}")
+    if r.trace:
+        lines.append(f"  trace              {r.trace} (bus channels as listed, truth on channel 1)")
     if r.verdict is not None:
         lines.append(f"  verdict            {r.verdict['phase']}: {r.verdict['reason']}")
     return "\n".join(lines)
