@@ -527,9 +527,17 @@ def worst_joint(rows: list[RigJointResult], filtered: bool = True) -> dict[str, 
     return out
 
 
+def _num(value: float | None, width: int, places: int, scale: float = 1.0) -> str:
+    """``value * scale`` in ``width`` columns with ``places`` decimals; ``-`` when there
+    is none (no samples, or not scored)."""
+    if value is None or math.isnan(value):
+        return f"{'-':>{width}}"
+    return f"{value * scale:{width}.{places}f}"
+
+
 def format_rig_result(r: RigResult) -> str:
     """The text report: the run, a row per joint, the worst joint."""
-    nan = math.nan
+    w = max([8, *(len(j.name) for j in r.joints)])
     lines = [
         f"hdhil run: scenario {r.scenario}, seed {r.seed}, lockstep on simbus, "
         f"{len(r.joints)} joints on {len(r.buses)} bus(es)"
@@ -547,7 +555,7 @@ def format_rig_result(r: RigResult) -> str:
         ),
         "  per joint (RMS error of the raw and the filtered torque against the true torque, "
         "with the ripple filter scored; e = T_meas − T_desired with a law)",
-        f"    {'joint':<8} {'bus':<6} {'node':>4} {'state':<18} {'samples':>7} "
+        f"    {'joint':<{w}} {'bus':<6} {'node':>4} {'state':<18} {'samples':>7} "
         f"{'RMS raw/Nm':>10} {'RMS filt/Nm':>11} {'filt/raw':>8} {'law':<6} "
         f"{'RMS e/Nm':>8} {'|e|≤0.5':>8}",
     ]
@@ -555,16 +563,17 @@ def format_rig_result(r: RigResult) -> str:
     for j in r.joints:
         t, k = (j.torque if filtered else {}), j.tracking or {}
         lines.append(
-            f"    {j.name:<8} {j.bus:<6} {j.node_id:>4} {j.drive_state:<18} {j.samples:>7} "
-            f"{t.get('rms_error_raw', nan):10.4f} {t.get('rms_error_filtered', nan):11.4f} "
-            f"{100 * t.get('filtered_to_raw', nan):7.1f}% {k.get('law', '-'):<6} "
-            f"{k.get('rms_error_measured', nan):8.3f} "
-            f"{100 * k.get('share_within_goal_measured', nan):7.1f}%"
+            f"    {j.name:<{w}} {j.bus:<6} {j.node_id:>4} {j.drive_state:<18} {j.samples:>7} "
+            f"{_num(t.get('rms_error_raw'), 10, 4)} {_num(t.get('rms_error_filtered'), 11, 4)} "
+            f"{_num(t.get('filtered_to_raw'), 7, 1, 100)}% {k.get('law', '-'):<6} "
+            f"{_num(k.get('rms_error_measured'), 8, 3)} "
+            f"{_num(k.get('share_within_goal_measured'), 7, 1, 100)}%"
         )
-    for key, w in r.worst_joint.items():
+    for key, worst in r.worst_joint.items():
         what = "filtered RMS error" if key == "rms_error_filtered" else "|e|≤0.5 Nm share"
-        value = f"{w['value']:.4f} Nm" if key == "rms_error_filtered" else f"{w['value']:.1%}"
-        lines.append(f"  worst joint        {w['joint']} by {what}: {value}")
+        v = worst["value"]
+        value = f"{v:.4f} Nm" if key == "rms_error_filtered" else f"{v:.1%}"
+        lines.append(f"  worst joint        {worst['joint']} by {what}: {value}")
     if any(b["fd"] for b in r.buses.values()):
         lines.append(
             "  CAN FD             an FD bus carries the joints' classical frames, timed at its "
