@@ -143,7 +143,15 @@ def test_runs_refuse_a_rig_with_one_line_and_exit_2(
 
     monkeypatch.chdir(tmp_path)
     path = write(tmp_path, "[joints.A]\n[joints.B]\n")
-    assert main(["run", "--scenario", str(path), "--duration", "0.01"]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "lays out 2 joint(s) on 1 bus(es)" in err
-    assert "hdhil plan" in err and not list(tmp_path.glob("*.blf"))
+    # hdhil run takes a rig in lockstep on simbus (tests/test_rig_run.py), not yet in real
+    # time or on another interface
+    for extra in (["--realtime"], ["--interface", "virtual"]):
+        assert main(["run", "--scenario", str(path), "--duration", "0.01", *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "lays out 2 joints" in err
+        assert not list(tmp_path.glob("*.blf"))
+    from hdhil.rig.request import resolve
+    from hdhil.rig.runner import run_lockstep
+
+    with pytest.raises(ConfigError, match=r"lays out 2 joint\(s\) on 1 bus\(es\)"):
+        run_lockstep(resolve(path, duration_s=0.01))

@@ -35,6 +35,7 @@ class DriveConfig:
     producer's counter overflow (its 0x1019; 0 = SYNC without counter).
     ``quick_stop_time_s`` is the torque ramp-down time of a quick stop (0x605A 1-8) and
     of a fault reaction (0x605E 1-4); 0 turns the torque off at once.
+    ``truth_joint_index``: the joint whose ground truth the drive publishes.
     """
 
     sample_period_s: float = 1e-3
@@ -46,6 +47,9 @@ class DriveConfig:
     command_hold_cycles: int = 10
     sync_overflow: int = 240
     quick_stop_time_s: float = 0.0
+    #: The drive's joint in a rig of several: its truth frames at that joint's
+    #: identifiers (:func:`hdhil.dbc.truth_frame_id`; 0: ``truth.dbc``'s).
+    truth_joint_index: int = 0
 
     def __post_init__(self) -> None:
         if not 0 < self.sample_period_s <= 1:

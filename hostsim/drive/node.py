@@ -158,7 +158,7 @@ class DriveNode(CanNode):
             plant.prepare(cfg.sample_period_s)
         #: The node's time: the ``now`` of the latest :meth:`boot` or :meth:`tick`.
         self.now = 0.0
-        self.truth_publisher = TruthPublisher(truth_bus)
+        self.truth_publisher = TruthPublisher(truth_bus, cfg.truth_joint_index)
 
         # CiA 301 services on the drive's object dictionary.
         consumers = (

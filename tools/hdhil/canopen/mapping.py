@@ -308,6 +308,8 @@ def trace_decoder(trace: Path) -> Any:
     from hdhil.dbc import database
 
     meta = read_metadata(trace) if Path(trace).is_file() else None
+    if isinstance((meta or {}).get("rig"), dict):
+        return rig_decoder(meta["rig"])  # type: ignore[index]
     drive_id, controller_id = trace_node_ids(meta)
     if (drive_id, controller_id) != (2, 1):
         return FrameDecoder(_layout_databases(meta or {}, drive_id, controller_id))
@@ -316,6 +318,38 @@ def trace_decoder(trace: Path) -> Any:
         return default_decoder()
     return FrameDecoder({"control": control_database(layouts_from_json(pdos)),
                          "truth": database("truth")})  # fmt: skip
+
+
+def rig_decoder(rig: Mapping[str, Any]) -> Any:
+    """The decoder of a rig's trace (:class:`hdhil.can.traces.decode.ChannelDecoder`) from
+    its sidecar's ``rig`` entry (buses with their channels, joints): each bus's channel
+    with the bus's database, the truth's channel 1 with every joint's truth
+    (:func:`hdhil.canopen.rigdb.rig_databases`, :func:`~hdhil.canopen.rigdb.
+    truth_database`).  ``ValueError`` for an entry that does not describe a layout."""
+    from hdhil.can.traces.decode import ChannelDecoder
+    from hdhil.canopen.rigdb import RigBus, RigDrive, rig_databases, truth_database
+    from hdhil.core.errors import UserError
+    from hdhil.dbc import CHANNEL_NUMBER
+
+    try:
+        buses = [
+            RigBus(str(b["name"]), int(b["controller_node_id"]), int(b["bitrate"]),
+                   bool(b["fd"]), int(b["data_bitrate"]))
+            for b in rig["buses"]
+        ]  # fmt: skip
+        channels = {str(b["name"]): int(b["channel"]) for b in rig["buses"]}
+        drives = [
+            RigDrive(str(j["name"]), int(j["node_id"]), str(j["bus"]),
+                     controller_node_id=int(j["controller_node_id"]))
+            for j in rig["joints"]
+        ]  # fmt: skip
+        databases = rig_databases(drives, buses)
+        truth = truth_database(drives, buses)
+    except (KeyError, TypeError, ValueError, UserError) as exc:
+        raise ValueError(f"the sidecar's rig layout cannot be read ({exc})") from None
+    by_channel = {channels[name]: (name, db) for name, db in databases.items()}
+    by_channel[CHANNEL_NUMBER["truth"]] = ("truth", truth)
+    return ChannelDecoder(by_channel)
 
 
 def trace_node_ids(meta: Mapping[str, Any] | None) -> tuple[int, int]:

@@ -81,6 +81,8 @@ def run(args: argparse.Namespace) -> int:
     _check_out(args.out)
     check_outputs([(args.out, "--out")], [*trace_inputs(args.trace), *scenario_inputs(args)])
     request = request_for_trace(args.trace, args.scenario)
+    if request is not None:
+        request.require_one_joint("hdhil plot")
     scenario = request.scenario if request is not None else None
     if args.figure == "fig8":
         return _run_fig8(args, scenario)

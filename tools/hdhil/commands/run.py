@@ -183,6 +183,35 @@ def parse_start_time(text: str | None) -> float | None:
     return value
 
 
+def _run_rig(
+    args: argparse.Namespace,
+    request: Any,
+    interface: str,
+    trace: Path | None,
+) -> int:
+    """``hdhil run`` of a rig of several joints (:mod:`hdhil.rig.rigrun`)."""
+    from hdhil.rig.rigrun import check_rig_options, format_rig_result, run_rig
+
+    check_rig_options(request, interface=interface, realtime=args.realtime,
+                      compare_laws=args.compare_laws, fault_log=args.fault_log)  # fmt: skip
+    check_outputs(run_outputs([trace] if trace else [], None), scenario_inputs(args))
+    with stop_on_signals() as stop:
+        result = run_rig(request, trace=trace, start_time=parse_start_time(args.start_time),
+                         stop_requested=stop.is_set)  # fmt: skip
+    if args.json:
+        jsonout.dump(result.as_dict(), sys.stdout, indent=2)
+        print()
+    else:
+        print(format_rig_result(result))
+    if result.interrupted:
+        return 130
+    if result.verdict is not None:
+        print(f"hdhil: run stopped in {result.verdict['phase']}: {result.verdict['reason']}",
+              file=sys.stderr)  # fmt: skip
+        return 1
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     if args.compare_laws and (args.mapping or args.drive_dcf):
         raise UserError("--compare-laws runs the default mapping; leave out --drive-dcf/--mapping")
@@ -191,6 +220,8 @@ def run(args: argparse.Namespace) -> int:
         args, evaluate_from_s=args.skip, actuation=args.actuation, bitrate=bitrate
     )
     trace = Path(args.trace) if args.trace else None
+    if request.scenario.is_rig:
+        return _run_rig(args, request, interface, trace)
     traces = [trace] if trace is not None else []
     if trace is not None and args.compare_laws:
         from hdhil.rig.laws import compared_traces

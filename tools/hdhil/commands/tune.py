@@ -102,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
     from hdhil.rig.sidecar import request_for_trace
 
     request = request_for_trace(args.trace, args.scenario)
+    if request is not None:
+        request.require_one_joint("hdhil tune")
     scenario = request.scenario if request is not None else None
     fw = scenario.firmware if scenario is not None else FirmwareConfig()
     rec, damage = recording_from_trace(args.trace, fw.sample_period_s)

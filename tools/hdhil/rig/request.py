@@ -99,8 +99,9 @@ class RunRequest:
         if s.is_rig:
             raise ConfigError(
                 f"scenario {s.name} lays out {len(s.joints)} joint(s) on "
-                f"{len(s.buses)} bus(es): {what} emulates the single-joint rig only; "
-                f"hdhil plan and hdhil dbc export --scenario take this layout"
+                f"{len(s.buses)} bus(es): {what} takes the single-joint rig only; "
+                f"hdhil run (lockstep on simbus), hdhil plan and hdhil dbc export --scenario "
+                f"take this layout"
             )
 
     @property

@@ -145,7 +145,7 @@ def plan_run(
             f"run_lockstep takes a RunRequest (hdhil.rig.request.resolve), got "
             f"{type(request).__name__}"
         )
-    request.require_one_joint("a run")
+    request.require_one_joint("run_lockstep (hdhil.rig.rigrun.run_rig runs a rig)")
     Ts = request.sample_period_s
     layout = request.layout
     db = None

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import can
 
@@ -31,6 +31,15 @@ def _telemetry_id(number: int, controller_node_id: int) -> int:
     from hdhil.canopen.rigdb import predefined_cob_id
 
     return predefined_cob_id("tpdo", number, controller_node_id)
+
+
+def _truth_at(frame: Any, joint_index: int) -> Any:
+    """A truth codec at the identifier of the rig's ``joint_index``-th joint."""
+    if not joint_index:
+        return frame
+    from hdhil.dbc import truth_frame_id
+
+    return frame.at(truth_frame_id(joint_index, frame.frame_id))
 
 
 @dataclass(frozen=True)
@@ -59,11 +68,19 @@ class TorqueScorer(can.Listener):
     """Accumulates raw and filtered torque errors from telemetry and truth frames.
 
     ``skip_s``: telemetry before this time (trace time) is not scored, e.g. to leave out
-    the filter's start-up transient.  The default scores everything.
+    the filter's start-up transient.  The default scores everything.  A joint of a rig:
+    ``telemetry_id`` its ``CTRL_TPDO1`` (the controller's TPDO1 at ``controller_node_id``
+    by default) and ``joint_index`` its truth (:func:`hdhil.dbc.truth_frame_id`).
     """
 
     def __init__(
-        self, skip_s: float = 0.0, block_s: float = 60.0, controller_node_id: int = 1
+        self,
+        skip_s: float = 0.0,
+        block_s: float = 60.0,
+        controller_node_id: int = 1,
+        *,
+        telemetry_id: int | None = None,
+        joint_index: int = 0,
     ) -> None:
         self.skip_s = skip_s
         #: RMS filtered error per ``block_s`` of telemetry time (whether it drifts).
@@ -74,8 +91,8 @@ class TorqueScorer(can.Listener):
         self._block_start: float | None = None
         self._block_end = block_s
         tele = codec("control", "CTRL_TPDO1").expect("T_meas", "T_filtered", "velocity", "current")
-        tele = tele.at(_telemetry_id(1, controller_node_id))
-        truth = codec("truth", "TRUTH_TORQUE").expect("T_true", "T_ripple")
+        tele = tele.at(telemetry_id or _telemetry_id(1, controller_node_id))
+        truth = _truth_at(codec("truth", "TRUTH_TORQUE").expect("T_true", "T_ripple"), joint_index)
         self._tele_key = (tele.frame_id, False)
         self._truth_key = (truth.frame_id, True)
         self._tele = tele
@@ -257,6 +274,9 @@ class TrackingScorer(can.Listener):
         sample_period_s: float = 1e-3,
         handle: LinkMotionConfig | None = None,
         controller_node_id: int = 1,
+        *,
+        telemetry_ids: tuple[int, int] | None = None,
+        joint_index: int = 0,
     ) -> None:
         self.sample_period_s = sample_period_s
         self.skip_s = skip_s
@@ -272,11 +292,19 @@ class TrackingScorer(can.Listener):
         self._meas = codec("control", "CTRL_TPDO1").expect(
             "T_meas", "T_filtered", "velocity", "current"
         )
-        self._tele = self._tele.at(_telemetry_id(2, controller_node_id))
-        self._meas = self._meas.at(_telemetry_id(1, controller_node_id))
+        tpdo1, tpdo2 = telemetry_ids or (
+            _telemetry_id(1, controller_node_id),
+            _telemetry_id(2, controller_node_id),
+        )
+        self._tele = self._tele.at(tpdo2)
+        self._meas = self._meas.at(tpdo1)
         self._motion = codec("truth", "TRUTH_MOTION").expect(
             "theta_motor", "theta_output", "omega_motor", "omega_output"
         )
+        if joint_index:
+            self._truth = _truth_at(self._truth, joint_index)
+            self._joint = _truth_at(self._joint, joint_index)
+            self._motion = _truth_at(self._motion, joint_index)
         self._keys = {
             (self._meas.frame_id, False): self._on_measured,
             (self._tele.frame_id, False): self._on_tele,

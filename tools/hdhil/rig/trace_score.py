@@ -57,6 +57,8 @@ def score_trace(
     damage note of its reader ("" for an intact trace). ``scenario`` replaces the run
     recorded in the sidecar; ``skip_s`` the run's evaluation start."""
     request = request_for_trace(trace, scenario)
+    if request is not None:
+        request.require_one_joint("hdhil evaluate")  # a rig's scores: hdhil run
     fw = request.firmware if request is not None else FirmwareConfig()
     scored = request.scenario.scored if request is not None else ("ripple", "tracking")
     if skip_s is None:

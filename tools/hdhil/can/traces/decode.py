@@ -19,7 +19,7 @@ from __future__ import annotations
 import enum
 import re
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import can
@@ -321,6 +321,38 @@ class FrameDecoder:
 
 
 _DEFAULT_DECODER: FrameDecoder | None = None
+
+
+class ChannelDecoder(FrameDecoder):
+    """A decoder for a trace whose channels carry databases that share identifiers (the
+    buses of a rig of several joints: each numbers its nodes alike): ``channels`` maps a
+    channel number to its bus name and database.  A frame is decoded with its channel's
+    database and labelled with that bus's name; a frame of another channel with the
+    first definition of its identifier.  ``lookup`` and ``by_name`` hold every bus's
+    messages (the first definition of a shared identifier) for ``--id`` and columns."""
+
+    def __init__(self, channels: Mapping[int, tuple[str, Database]]) -> None:
+        self._by_channel = {ch: FrameDecoder({name: db}) for ch, (name, db) in channels.items()}
+        self._bus_name = {ch: name for ch, (name, _) in channels.items()}
+        self.databases = {name: db for name, db in channels.values()}
+        self.lookup = {}
+        self.formats = {}
+        self.by_name = {}
+        for decoder in self._by_channel.values():
+            for key, entry in decoder.lookup.items():
+                self.lookup.setdefault(key, entry)
+            for name, formats in decoder.formats.items():
+                self.formats.setdefault(name, formats)
+            for name, entry in decoder.by_name.items():
+                self.by_name.setdefault(name, entry)
+        self.name_width = max([len("ERROR FRAME"), *map(len, self.by_name)])
+
+    def classify(self, msg: can.Message, decode: bool = True) -> DecodedFrame:
+        decoder = self._by_channel.get(msg.channel)  # type: ignore[arg-type]
+        if decoder is None:
+            return super().classify(msg, decode)
+        frame = decoder.classify(msg, decode)
+        return replace(frame, bus=self._bus_name[msg.channel])  # type: ignore[index]
 
 
 def default_decoder() -> FrameDecoder:

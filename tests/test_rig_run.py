@@ -1,0 +1,160 @@
+"""``hdhil run`` of a rig of several joints: lockstep on the simulated buses, in one
+process (hdhil.rig.rigrun).
+
+Expected values come from the single-joint run (a joint of a rig of independent plants
+is the single-joint rig with the same seed), from the ripple filter's purpose (filtered
+below raw) and from repetition (the same seed, the same figures).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+
+import pytest
+
+from hdhil.rig.request import resolve
+from hdhil.rig.rigrun import format_rig_result, run_rig
+
+TWO = Path(__file__).parent / "data" / "rig-two-joints.toml"
+
+
+def _figures(result) -> dict:
+    d = result.as_dict()
+    for key in ("wall_s", "us_per_cycle", "real_time_factor"):
+        del d[key]
+    return d
+
+
+@pytest.mark.slow
+def test_two_joints_on_one_bus_run_in_lockstep_and_score() -> None:
+    """Both drives reach operation enabled, each joint is scored from its own telemetry
+    and truth, the ripple filter brings each joint's error below its raw error, and the
+    same seed gives the same figures twice."""
+    first = run_rig(resolve(TWO, duration_s=0.3, seed=5))
+    assert first.verdict is None and not first.interrupted
+    assert first.cycles == 300 and first.simulated_s == pytest.approx(0.3)
+    assert [j.name for j in first.joints] == ["A", "B"]
+    for j in first.joints:
+        assert j.drive_state == "OPERATION_ENABLED" and j.bus == "can0"
+        t = j.torque
+        assert t["samples"] >= 300
+        assert t["rms_error_filtered"] < t["rms_error_raw"]
+    assert [j.node_id for j in first.joints] == [2, 3]
+    # each joint its own noise stream: the two joints' errors differ
+    a, b = (j.torque for j in first.joints)
+    assert a["rms_error_raw"] != b["rms_error_raw"]
+    assert first.worst_joint["rms_error_filtered"]["joint"] in ("A", "B")
+    again = run_rig(resolve(TWO, duration_s=0.3, seed=5))
+    assert _figures(again) == _figures(first)
+    text = format_rig_result(first)
+    assert "worst joint" in text and "candidate filters are not evaluated" in text
+    assert (
+        sum(line.startswith("    A ") or line.startswith("    B ") for line in text.splitlines())
+        == 2
+    )
+
+
+@pytest.mark.slow
+def test_a_joint_of_independent_plants_is_the_single_joint_rig() -> None:
+    """Joint A of a rig of independent plants (no [robot]) is the single-joint run of its
+    scenario with the same seed: the same torque errors to the last bit (its frames at
+    the single joint's identifiers, its truth at joint index 0, its plant's noise stream
+    the seed)."""
+    from hdhil.rig.runner import run_lockstep
+
+    # B's filter as A's: the paper's filter starts its interrupts 16 samples later, and
+    # the rig runs until every joint has run its samples
+    same = {"joints": {"B": {"firmware": {"ripple": {"mode": "recommended"}}}}}
+    rig = run_rig(resolve(TWO, overrides=[same], duration_s=0.2, seed=9))
+    single = run_lockstep(resolve("free-motion", duration_s=0.2, seed=9), evaluate=False)
+    a = rig.joints[0].torque
+    assert a["samples"] == single.torque["samples"]
+    for key in ("rms_true", "rms_error_raw", "rms_error_filtered", "max_error_raw"):
+        assert a[key] == single.torque[key], key
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("mujoco") is None, reason="the arm extra")
+def test_rehabexos_runs_every_joint_in_operation() -> None:
+    """The four joints of rehabexos on two buses, the arm's plant moved once a cycle:
+    every joint reaches operation and gets its tracking row (the share of |e| <= 0.5 Nm
+    on the measured torque, printed per joint)."""
+    result = run_rig(resolve("rehabexos", duration_s=1.0, evaluate_from_s=0.0))
+    assert result.verdict is None and result.cycles == 1000
+    assert [j.name for j in result.joints] == ["J1", "J2", "J3", "J4"]
+    assert [j.bus for j in result.joints] == ["can0", "can0", "can1", "can1"]
+    assert result.buses["can1"]["channel"] == 2
+    for j in result.joints:
+        assert j.drive_state == "OPERATION_ENABLED"
+        assert j.tracking is not None and j.tracking["samples"] > 900
+        assert 0.0 <= j.tracking["share_within_goal_measured"] <= 1.0
+    worst = result.worst_joint["share_within_goal_measured"]
+    assert worst["value"] == min(j.tracking["share_within_goal_measured"] for j in result.joints)
+    text = format_rig_result(result)
+    for j in result.joints:
+        share = 100 * j.tracking["share_within_goal_measured"]
+        row = next(line for line in text.splitlines() if line.startswith(f"    {j.name} "))
+        assert f"{share:7.1f}%" in row and not math.isnan(share)
+
+
+@pytest.mark.slow
+def test_hdhil_run_prints_a_row_per_joint_and_json(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import json
+
+    from hdhil.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", "--scenario", str(TWO), "--duration", "0.1", "--trace", ""]) == 0
+    out = capsys.readouterr().out
+    assert "2 joints on 1 bus(es)" in out and "worst joint" in out
+    assert not list(tmp_path.glob("*.blf"))
+    assert main(["run", "--scenario", str(TWO), "--duration", "0.1", "--json", "--trace", ""]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert [j["name"] for j in data["joints"]] == ["A", "B"]
+    assert data["worst_joint"]["rms_error_filtered"]["joint"] in ("A", "B")
+
+
+@pytest.mark.slow
+def test_a_rig_trace_has_a_channel_per_bus_and_decodes_by_joint(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two buses: each on its own channel (0 and 2, the truth on 1), the sidecar records
+    the layout, and the trace decodes with the rig's databases by joint name on each
+    channel (the same identifier, a different joint); the same seed and start time give
+    the same bytes."""
+    from hdhil.can.traces.reader import read_trace
+    from hdhil.canopen.mapping import trace_decoder
+
+    two_buses = {
+        "buses": {"can1": {"bitrate": 1_000_000}},
+        "joints": {"A": {"bus": "can0"}, "B": {"bus": "can1", "node_id": 2}},
+    }
+    request = resolve(TWO, overrides=[two_buses], duration_s=0.05, seed=4)
+    traces = [tmp_path / f"rig{k}.blf" for k in range(2)]
+    for path in traces:
+        result = run_rig(request, trace=path, start_time=1.7e9)
+        assert result.trace == str(path) and result.verdict is None
+    assert traces[0].read_bytes() == traces[1].read_bytes()
+    decoder = trace_decoder(traces[0])
+    seen: dict[tuple[str, str], int] = {}
+    trace = read_trace(traces[0])
+    try:
+        for msg in trace:
+            frame = decoder.classify(msg)
+            key = (frame.bus, frame.message or "?")
+            seen[key] = seen.get(key, 0) + 1
+    finally:
+        trace.close()
+    assert seen[("can0", "A_DRIVE_TPDO1")] >= 50 and seen[("can1", "B_DRIVE_TPDO1")] >= 50
+    assert seen[("truth", "B_TRUTH_TORQUE")] >= 50
+    assert not any(name == "?" for _, name in seen)
+    # the single-joint tools refuse a rig's trace with one line (its scores: hdhil run)
+    from hdhil.cli import main
+
+    assert main(["evaluate", str(traces[0])]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "hdhil evaluate takes the single-joint rig only" in err
