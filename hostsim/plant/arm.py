@@ -39,9 +39,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from hdhil.core.converter import Converter
 from hdhil.hostsim.plant.config import PlantConfig
-from hdhil.hostsim.plant.model import Plant
+from hdhil.hostsim.plant.model import ConfiguredConverters, Plant
 from hdhil.hostsim.plant.multibody import LinkDynamics, Wrench
 from hdhil.hostsim.plant.stability import MAX_HELD_SLOPE_STEP, NonFiniteStateError
 from hdhil.hostsim.plant.truth import Truth
@@ -420,7 +419,7 @@ class _StepConstants:
         self.current_decay = decay**s
 
 
-class ArmJoint:
+class ArmJoint(ConfiguredConverters):
     """One joint of an :class:`ArmPlant` behind
     :class:`~hdhil.hostsim.plant_model.PlantModel`, the plant of one ``DriveNode``.
 
@@ -438,21 +437,6 @@ class ArmJoint:
         self.name = arm.names[k]
         self.cfg = arm.cfgs[k]
         self._t = 0.0
-
-    @property
-    def adc(self) -> Converter:
-        """The joint's sensor ADC (``cfg.adc``)."""
-        return self.cfg.adc
-
-    @property
-    def dac(self) -> Converter:
-        """The joint's command converter (``cfg.dac``)."""
-        return self.cfg.dac
-
-    @property
-    def max_motor_torque_Nm(self) -> float:
-        """Motor torque at the current limit, output-referred (``cfg.max_motor_torque_Nm``)."""
-        return self.cfg.max_motor_torque_Nm
 
     @property
     def time(self) -> float:

@@ -50,7 +50,30 @@ def _encoder_count(counts: float) -> int:
     return math.floor(counts) % ENCODER_MODULUS if math.isfinite(counts) else 0
 
 
-class Plant:
+class ConfiguredConverters:
+    """The converters and torque limit a drive node reads from a plant
+    (:class:`hostsim.plant_model.PlantModel`), as its ``cfg`` (a
+    :class:`~hdhil.hostsim.plant.config.PlantConfig`) gives them."""
+
+    cfg: PlantConfig
+
+    @property
+    def adc(self) -> Converter:
+        """The sensors' ADC (``cfg.adc``)."""
+        return self.cfg.adc
+
+    @property
+    def dac(self) -> Converter:
+        """The converter of the drive's command input (``cfg.dac``)."""
+        return self.cfg.dac
+
+    @property
+    def max_motor_torque_Nm(self) -> float:
+        """Motor torque at the current limit, output-referred (``cfg.max_motor_torque_Nm``)."""
+        return self.cfg.max_motor_torque_Nm
+
+
+class Plant(ConfiguredConverters):
     """The drive emulator's physics, advanced in zero-order-hold steps.
 
     Integration (per sub-step of ``h = dt / substeps``): the linear part (current
@@ -471,23 +494,6 @@ class Plant:
         if self.faults is not None:
             return self.faults.apply(self._t, counts, lo, hi, lsb)
         return counts
-
-    # ------------------------------------------------------------------ converters
-    # (what the drive node reads through :class:`hostsim.plant_model.PlantModel`)
-    @property
-    def adc(self) -> Converter:
-        """The sensors' ADC (``cfg.adc``)."""
-        return self.cfg.adc
-
-    @property
-    def dac(self) -> Converter:
-        """The converter of the drive's command input (``cfg.dac``)."""
-        return self.cfg.dac
-
-    @property
-    def max_motor_torque_Nm(self) -> float:
-        """Motor torque at the current limit, output-referred (``cfg.max_motor_torque_Nm``)."""
-        return self.cfg.max_motor_torque_Nm
 
     # ------------------------------------------------------------------ clock and truth
     @property
