@@ -62,6 +62,9 @@ __all__ = [
 ]
 
 
+#: Seconds a broken pool's workers are given to end before the campaign judges how
+#: they ended (:meth:`_LocalPool.lost_to_a_signal`).
+LOST_WORKER_WAIT_S = 1.0
 #: Seconds a local worker has to end after SIGTERM when the campaign is interrupted
 #: before it is killed (SIGKILL): a stopped (SIGSTOP) or hung worker ends after this.
 WORKER_GRACE_S = 1.0
@@ -174,7 +177,11 @@ class _LocalPool(cf.ProcessPoolExecutor):
         """Whether the workers that have ended (the pool is broken) were all stopped by
         a signal meant to stop them (SIGTERM, SIGHUP, SIGINT), none crashed or killed
         (SIGKILL, also the out-of-memory killer's)."""
-        procs = (getattr(self, "_processes", None) or {}).values()
+        procs = list((getattr(self, "_processes", None) or {}).values())
+        # The pool reports itself broken as soon as a worker's pipe closes, which can be
+        # before that worker is reaped: its exit code is read once it has ended (the
+        # broken pool ends the others too), within LOST_WORKER_WAIT_S.
+        _wait_ended(procs, LOST_WORKER_WAIT_S)
         ended = [p.exitcode for p in procs if p.exitcode is not None]
         return bool(ended) and all(code in _STOPPED_EXITS for code in ended)
 
