@@ -276,6 +276,26 @@ class FrameCodec:
         self.decode: Callable[[bytes | bytearray], tuple[float, ...]] = namespace["decode"]
 
 
+#: CiA 301's pre-defined connection set: the function code of RPDO/TPDO 1..4, to which a
+#: node's PDO COB-ID adds its node-ID.
+PDO_FUNCTION_CODES = {
+    ("tpdo", 1): 0x180,
+    ("rpdo", 1): 0x200,
+    ("tpdo", 2): 0x280,
+    ("rpdo", 2): 0x300,
+    ("tpdo", 3): 0x380,
+    ("rpdo", 3): 0x400,
+    ("tpdo", 4): 0x480,
+    ("rpdo", 4): 0x500,
+}
+
+
+def predefined_cob_id(kind: str, number: int, node_id: int) -> int:
+    """The COB-ID CiA 301's pre-defined connection set gives RPDO/TPDO ``number``
+    (1..4) of node ``node_id`` (``kind`` ``"rpdo"`` or ``"tpdo"``)."""
+    return PDO_FUNCTION_CODES[(kind, number)] + node_id
+
+
 #: The ground-truth frames' 29-bit identifiers: ``TRUTH_BASE | joint_index << 4 | k``
 #: (``truth.dbc`` holds joint 0's, k = 1..3; :mod:`hdhil.canopen.rigdb` numbers a rig's).
 TRUTH_BASE = 0x1F0000

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from hdhil.canopen.rigdb import predefined_cob_id
+from hdhil.dbc import predefined_cob_id
 
 __all__ = ["MAX_JOINTS_PER_NODE", "DriveLink"]
 

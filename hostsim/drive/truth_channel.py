@@ -43,7 +43,6 @@ class TruthPublisher:
             can.Message(arbitration_id=i, is_extended_id=True, dlc=c.length, check=False)
             for i, c in zip(self.ids, self._codecs, strict=True)
         )
-        self._ids = self.ids
 
     @property
     def bus(self) -> can.BusABC | None:
@@ -73,7 +72,7 @@ class TruthPublisher:
         d_motion = motion.encode(th_m % TWO_PI, th_o % TWO_PI, w_m, w_o)
         d_joint = joint.encode(tau_ext, tau_d, tau_m, tau_m_cmd)
         if self._send_group is not None:
-            self._send_group(self._ids, True, (d_torque, d_motion, d_joint))
+            self._send_group(self.ids, True, (d_torque, d_motion, d_joint))
             return
         m_torque, m_motion, m_joint = self._msgs
         m_torque.data, m_motion.data, m_joint.data = d_torque, d_motion, d_joint

@@ -29,7 +29,7 @@ import numpy as np
 from scipy import signal
 
 from hdhil.core.errors import UserError
-from hdhil.dbc import codec
+from hdhil.dbc import codec, predefined_cob_id
 from hdhil.firmware.config import FirmwareConfig
 from hdhil.firmware.stages import adc_read, calibrate
 from hdhil.hostsim.plant import PlantConfig
@@ -110,7 +110,6 @@ def chirp_data_from_trace(
     # a drive at another node-ID (the trace's sidecar layout): its frames at its identifiers
     from hdhil.can.traces.sidecar import read_metadata
     from hdhil.canopen.mapping import trace_node_ids
-    from hdhil.canopen.rigdb import predefined_cob_id
 
     drive_id, _ = trace_node_ids(read_metadata(path) if Path(path).is_file() else None)
     sensor = sensor.at(predefined_cob_id("tpdo", 1, drive_id))

@@ -39,6 +39,7 @@ from hdhil.can.bittiming import (
     worst_case_frame_bits_for,
 )
 from hdhil.can.busload import LOAD_LIMIT
+from hdhil.dbc import predefined_cob_id
 
 #: What a frame is in the schedule; the suggestions move, pack and decimate by it.
 FrameRole = Literal["sync", "rpdo", "tpdo", "telemetry", "other"]
@@ -61,8 +62,7 @@ def pdo_cob_id(kind: Literal["rpdo", "tpdo"], number: int, node_id: int) -> int:
         raise ValueError(f"the predefined connection set has PDOs 1 to 4, not {number}")
     if not 1 <= node_id <= 127:
         raise ValueError(f"a CANopen node-ID is 1 to 127, not {node_id}")
-    base = 0x180 if kind == "tpdo" else 0x200
-    return base + 0x100 * (number - 1) + node_id
+    return predefined_cob_id(kind, number, node_id)
 
 
 @dataclass(frozen=True)

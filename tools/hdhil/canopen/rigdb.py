@@ -60,7 +60,16 @@ from hdhil.canopen.pdo import PdoLayout
 from hdhil.canopen.sdo import SDO_RX_BASE, SDO_TX_BASE
 from hdhil.canopen.sync import SYNC_COB_ID
 from hdhil.core.errors import UserError
-from hdhil.dbc import MAPPINGS, MAX_TRUTH_JOINTS, TRUTH_BASE, database, eds_path, node_ids
+from hdhil.dbc import (
+    MAPPINGS,
+    MAX_TRUTH_JOINTS,
+    PDO_FUNCTION_CODES,
+    TRUTH_BASE,
+    database,
+    eds_path,
+    node_ids,
+    predefined_cob_id,
+)
 from hdhil.dbc import truth_frame_id as _truth_frame_id
 
 __all__ = [
@@ -77,17 +86,6 @@ __all__ = [
 ]
 
 
-#: CiA 301 pre-defined connection set: the function code of RPDO/TPDO 1..4.
-_PDO_FUNCTION = {
-    ("tpdo", 1): 0x180,
-    ("rpdo", 1): 0x200,
-    ("tpdo", 2): 0x280,
-    ("rpdo", 2): 0x300,
-    ("tpdo", 3): 0x380,
-    ("rpdo", 3): 0x400,
-    ("tpdo", 4): 0x480,
-    ("rpdo", 4): 0x500,
-}
 _SERVICE_BASES = (EMCY_BASE, HEARTBEAT_BASE, SDO_TX_BASE, SDO_RX_BASE)
 _IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 #: Joint and bus names (as a scenario's ``[joints.NAME]`` and ``[buses.NAME]``); in DBC
@@ -155,12 +153,6 @@ class _Joint:
     controller_id: int
 
 
-def predefined_cob_id(kind: str, number: int, node_id: int) -> int:
-    """The COB-ID CiA 301's pre-defined connection set gives RPDO/TPDO ``number``
-    (1..4) of node ``node_id`` (``kind`` ``"rpdo"`` or ``"tpdo"``)."""
-    return _PDO_FUNCTION[(kind, number)] + node_id
-
-
 def truth_frame_id(joint_index: int, template_id: int) -> int:
     """The 29-bit identifier of a ground-truth frame (``template_id``, one of
     ``truth.dbc``'s 0x1F0001..0x1F0003) of the rig's ``joint_index``-th joint."""
@@ -219,7 +211,7 @@ def _rebased(
 ) -> dict[tuple[str, int], PdoLayout]:
     out = {}
     for key, layout in layouts.items():
-        if key in _PDO_FUNCTION and layout.cob_id == predefined_cob_id(*key, written_for):
+        if key in PDO_FUNCTION_CODES and layout.cob_id == predefined_cob_id(*key, written_for):
             layout = replace(layout, cob_id=predefined_cob_id(*key, node_id))
         out[key] = layout
     return out
@@ -244,7 +236,9 @@ def _at_template(
     :func:`drive_pdo_layouts`)."""
     node = node_ids("control")["DRIVE"]
     return {
-        key: replace(lay, cob_id=predefined_cob_id(*key, node)) if key in _PDO_FUNCTION else lay
+        key: replace(lay, cob_id=predefined_cob_id(*key, node))
+        if key in PDO_FUNCTION_CODES
+        else lay
         for key, lay in layouts.items()
     }
 

@@ -31,7 +31,7 @@ from typing import Any
 import can
 import numpy as np
 
-from hdhil.dbc import FrameCodec, codec
+from hdhil.dbc import FrameCodec, codec, predefined_cob_id
 from hdhil.firmware.baselines import ButterworthLowPass, TrackingNotchBank
 from hdhil.firmware.config import FirmwareConfig, paper_config, recommended_config
 from hdhil.firmware.interrupt import CstSample
@@ -386,8 +386,6 @@ def _at_node_2(layouts: dict[Any, Any]) -> dict[Any, Any]:
     """``layouts`` with each PDO of the pre-defined connection set at its COB-ID for node-ID
     2, where ``control.dbc`` has its message (the layout by name; the identifier of a
     drive at another node-ID comes from :func:`layout_frame_ids`)."""
-    from hdhil.canopen.rigdb import predefined_cob_id
-
     return {
         key: dataclasses.replace(lay, cob_id=predefined_cob_id(*key, 2))
         if 1 <= key[1] <= 4
@@ -404,11 +402,10 @@ def layout_frame_ids(
     """The identifiers of the drive's sensor frame (TPDO1), statusword (TPDO2) and SDO
     answers, and of the controller's telemetry (its TPDO1), for a drive at
     ``drive_node_id`` and the controller at ``controller_node_id``: the CiA 301
-    pre-defined connection set (:func:`hdhil.canopen.rigdb.predefined_cob_id`), or the
+    pre-defined connection set (:func:`hdhil.dbc.predefined_cob_id`), or the
     COB-IDs ``drive_pdos`` (a sidecar's, :func:`hdhil.canopen.mapping.layouts_to_json`)
     records for the drive's PDOs."""
     from hdhil.canopen.mapping import layouts_from_json
-    from hdhil.canopen.rigdb import predefined_cob_id
     from hdhil.canopen.sdo import SDO_TX_BASE
 
     pdos = layouts_from_json(drive_pdos) if drive_pdos else {}

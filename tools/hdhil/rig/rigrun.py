@@ -46,6 +46,7 @@ from hdhil.firmware.controller import ControllerNode, JointSetup
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
 from hdhil.rig.layout import BusSpec, JointSpec
+from hdhil.rig.loop import NodeLoop
 from hdhil.rig.request import RunRequest
 from hdhil.rig.score import TorqueScorer, TrackingScorer
 
@@ -269,18 +270,15 @@ def rig_metadata(request: RunRequest, start_time: float) -> dict[str, Any]:
     """A rig trace's sidecar: the run's settings, the channel of each bus and of the truth,
     and the layout (``rig``: buses and joints) that :func:`hdhil.canopen.mapping.
     trace_decoder` decodes the trace with."""
-    import datetime
-
-    from hdhil.rig.sidecar import run_metadata
+    from hdhil.rig.sidecar import run_metadata, utc_text
 
     s = request.scenario
-    when = datetime.datetime.fromtimestamp(start_time, tz=datetime.timezone.utc)
     channels = {name: bus_channel(i) for i, (name, _) in enumerate(s.buses)}
     return {
         "scenario": s.name, "seed": request.seed,
         "duration_s": request.cycles * request.sample_period_s,
         "sample_period_s": request.sample_period_s, "start_time": start_time,
-        "start_time_utc": when.isoformat(timespec="milliseconds").replace("+00:00", "Z"),
+        "start_time_utc": utc_text(start_time),
         "time_offset_s": start_time, "interface": "simbus", "actuation": request.actuation,
         "channels": {**channels, "truth": CHANNEL_NUMBER["truth"]},
         "rig": {
@@ -406,8 +404,6 @@ def _run(
     if arm is not None:
         ordered = [j.drive for j in joints]
         arm.input_source = lambda: [d.io.step_V for d in ordered]  # type: ignore[union-attr]
-    from hdhil.rig.loop import NodeLoop
-
     (first, first_bus), *more = producers
     loop = NodeLoop(
         [*drives, *controllers],
@@ -481,9 +477,7 @@ def _run(
                 tracking=tracked,
             )
         )
-    frames = {}
-    for name, counter in counters.items():
-        frames[name] = counter.total
+    frames = {name: counter.total for name, counter in counters.items()}
     bus_info = {
         name: {"channel": bus_channel(i), "bitrate": spec.bitrate, "fd": spec.fd,
                "joints": [j.spec.name for j in joints if j.spec.bus == name]}

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 import can
 
 from hdhil.can.groups import FrameGroup
-from hdhil.dbc import codec
+from hdhil.dbc import codec, predefined_cob_id, truth_frame_id
 
 if TYPE_CHECKING:
     from hdhil.hostsim.plant import LinkMotionConfig
@@ -28,17 +28,12 @@ if TYPE_CHECKING:
 def _telemetry_id(number: int, controller_node_id: int) -> int:
     """The controller's telemetry TPDO ``number`` at its node-ID (CiA 301 pre-defined
     connection set, as its EDS sets it: ``$NODEID+0x180``, ``$NODEID+0x280``)."""
-    from hdhil.canopen.rigdb import predefined_cob_id
-
     return predefined_cob_id("tpdo", number, controller_node_id)
 
 
 def _truth_at(frame: Any, joint_index: int) -> Any:
-    """A truth codec at the identifier of the rig's ``joint_index``-th joint."""
-    if not joint_index:
-        return frame
-    from hdhil.dbc import truth_frame_id
-
+    """A truth codec at the identifier of the rig's ``joint_index``-th joint (joint 0:
+    ``truth.dbc``'s own, the codec itself)."""
     return frame.at(truth_frame_id(joint_index, frame.frame_id))
 
 
@@ -301,10 +296,9 @@ class TrackingScorer(can.Listener):
         self._motion = codec("truth", "TRUTH_MOTION").expect(
             "theta_motor", "theta_output", "omega_motor", "omega_output"
         )
-        if joint_index:
-            self._truth = _truth_at(self._truth, joint_index)
-            self._joint = _truth_at(self._joint, joint_index)
-            self._motion = _truth_at(self._motion, joint_index)
+        self._truth = _truth_at(self._truth, joint_index)
+        self._joint = _truth_at(self._joint, joint_index)
+        self._motion = _truth_at(self._motion, joint_index)
         self._keys = {
             (self._meas.frame_id, False): self._on_measured,
             (self._tele.frame_id, False): self._on_tele,

@@ -20,6 +20,15 @@ from hdhil.rig.request import RunRequest, resolve
 __all__ = ["mapping_metadata", "request_for_trace", "run_metadata"]
 
 
+def utc_text(unix_s: float) -> str:
+    """``unix_s`` as an ISO 8601 UTC date and time, to the millisecond (a sidecar's
+    ``start_time_utc``)."""
+    import datetime
+
+    when = datetime.datetime.fromtimestamp(unix_s, tz=datetime.timezone.utc)
+    return when.isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
 def mapping_metadata(dcf: Path | None, label: str, node_id: int = 2) -> dict[str, Any]:
     """What a sidecar records about a mapping from a DCF: its label, the DCF's name and
     the drive's PDOs (so ``evaluate`` and ``dump`` decode the trace); empty for the

@@ -34,19 +34,12 @@ from hdhil.rig.evaluate import LiveEvaluationFactory, RecordingListener
 from hdhil.rig.factories import ControllerFactory, DriveFactory, NodeSite, layout_joints
 from hdhil.rig.faults import FaultInjector
 from hdhil.rig.score import TorqueScorer, TrackingScorer
+from hdhil.rig.sidecar import utc_text
 
 if TYPE_CHECKING:
     from hdhil.rig.runner import RunPlan
 
 _run_ids = itertools.count(1)
-
-
-def _utc(unix_s: float) -> str:
-    """``unix_s`` as an ISO 8601 UTC date and time, to the millisecond."""
-    import datetime
-
-    when = datetime.datetime.fromtimestamp(unix_s, tz=datetime.timezone.utc)
-    return when.isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 class CycleStampedTap:
@@ -313,7 +306,7 @@ def build_listeners(
             "duration_s": plan.cycles * plan.sample_period_s,
             "sample_period_s": plan.sample_period_s,
             "start_time": start_time if plan.clock_time else None,
-            "start_time_utc": _utc(start_time) if plan.clock_time else None,
+            "start_time_utc": utc_text(start_time) if plan.clock_time else None,
             "time_offset_s": offset, "interface": plan.interface or "python-can configuration",
             "bitrate": plan.bitrate, "actuation": plan.actuation,
             "channels": dict(CHANNEL_NUMBER), "control_law": control.law.name.lower(),
