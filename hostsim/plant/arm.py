@@ -39,6 +39,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 import numpy as np
+from scipy.linalg.lapack import dposv
 
 from hdhil.hostsim.plant.config import LinkMotionConfig, PlantConfig
 from hdhil.hostsim.plant.model import ConfiguredConverters, Plant
@@ -144,6 +145,9 @@ class ArmPlant:
         self._wrenches: tuple[Wrench, ...] | None = None
         self._person = _Person([c.link for c in joints]) if any(
             c.link.active for c in joints) else None  # fmt: skip
+        # the links' viscous terms to ground: the bearings' and the person's damping (the
+        # latter's pull, D dtheta_p, is a held torque: _Person.pull)
+        self._viscous = self._bl if self._person is None else self._bl + self._person.damping
         self._consts: dict[float, _StepConstants] = {}
         # state: twist (output-referred), motor velocity (output-referred), link
         # velocity, current, link angle; the current command; the amplifier input
@@ -263,7 +267,9 @@ class ArmPlant:
         mass = link.mass_matrix(self._q)
         rhs = c.rhs0.copy()
         rhs[:, 2 * n : 3 * n] = 2.0 * mass
-        sig_l = np.linalg.inv(mass + c.diag) @ rhs
+        _, sig_l, info = dposv(mass + c.diag, rhs)  # symmetric positive definite
+        if info:
+            sig_l = np.linalg.solve(mass + c.diag, rhs)
         phi = c.phi0 + c.rows * sig_l[c.tiled]
         # the motor torque of each sub-step: the exact mean of the lagging current
         i_gap = self._i - i_cmd
@@ -286,8 +292,8 @@ class ArmPlant:
             f = link.free_torques(q + a * wl, wl, wrenches)
             if loads is not None:
                 f += loads
-            if person is not None:  # the person's impedance at the predicted midpoint
-                f -= person.stiffness * (q + a * wl) + person.damping * wl
+            if person is not None:  # the person's spring at the predicted midpoint
+                f -= person.stiffness * (q + a * wl)
             if profiles is not None:
                 f += [0.0 if p is None else p(t0 + j * h) for p in profiles]
             z[4 * n : 5 * n] = torques[j]
@@ -406,16 +412,26 @@ class _Person:
     intent."""
 
     def __init__(self, motions: Sequence[LinkMotionConfig]) -> None:
-        self.motions = tuple(motions)
         self.stiffness = np.array([m.stiffness_Nm_per_rad for m in motions])
         self.damping = np.array([m.damping_Nms_per_rad for m in motions])
         self.weight = np.array([1.0 if m.holds_weight else 0.0 for m in motions])
+        # every joint's sinusoids (LinkMotionConfig.components) as rows, zero-padded
+        comps = [m.components() if m.active else () for m in motions]
+        width = max(1, *(len(c) for c in comps))
+        self._amp, self._omega, self._phase = (np.zeros((len(comps), width)) for _ in range(3))
+        for k, c in enumerate(comps):
+            for i, (a, w, p) in enumerate(c):
+                self._amp[k, i], self._omega[k, i], self._phase[k, i] = a, w, p
+        self._rate = self._amp * self._omega
+        self._offset = np.array([math.radians(m.offset_deg) if m.active else 0.0 for m in motions])
 
     def intent(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """The intended link angles and velocities (rad, rad/s) at time ``t``."""
-        q = [m.angle(t) if m.active else 0.0 for m in self.motions]
-        qd = [m.velocity(t) if m.active else 0.0 for m in self.motions]
-        return np.array(q), np.array(qd)
+        """The intended link angles and velocities (rad, rad/s) at time ``t``
+        (:meth:`LinkMotionConfig.angle` and ``velocity`` of every joint at once)."""
+        x = self._omega * t + self._phase
+        return self._offset + (self._amp * np.sin(x)).sum(axis=1), (self._rate * np.cos(x)).sum(
+            axis=1
+        )
 
     def pull(self, t: float) -> np.ndarray:
         """The part of the impedance that does not depend on the arm's state:
@@ -444,6 +460,8 @@ class _StepConstants:
     ``z = [d, w_m, w_l, q, tau_m, f]``: ``x+ = phi z`` with ``phi = phi0 + rows *
     [sigma_l; sigma_l; sigma_l; sigma_l]``, ``sigma_l = (M + diag)^-1 rhs``, where only
     ``rhs``'s ``w_l`` columns (``2 M``) depend on the pose.
+    ``b_l`` is every viscous term of the link to ground: the bearings' ``b_load`` and a
+    wearing person's damping (:class:`_Person`).
     """
 
     def __init__(self, arm: ArmPlant, dt: float) -> None:
@@ -454,7 +472,7 @@ class _StepConstants:
         g = a * (k * a + arm._c)
         dm = jm + a * (k * a + arm._c + arm._bm)
         beta = g / dm
-        self.diag = np.diag(a * arm._bl + g * (1.0 - beta))
+        self.diag = np.diag(a * arm._viscous + g * (1.0 - beta))
         eye, zeros = np.eye(n), np.zeros((n, n))
         # columns: d, w_m, w_l, q, tau_m, f (w_l's 2 M is set per step)
         self.rhs0 = np.hstack(
