@@ -660,9 +660,10 @@ def format_rig_evaluation(ev: dict[str, Any]) -> str:
     """``hdhil evaluate`` of a rig's trace (:func:`hdhil.rig.trace_score.score_rig_trace`):
     the table per joint and the worst joint, as ``hdhil run`` printed them."""
     rows = [JointScores(**j) for j in ev["joints"]]
+    tracked = f"; tracking scored from {ev['skip_s']:g} s" if "tracking" in ev["scored"] else ""
     lines = [
         f"hdhil evaluate: scenario {ev['scenario']}, seed {ev['seed']}, {len(rows)} joints on "
-        f"{len(ev['buses'])} bus(es); tracking scored from {ev['skip_s']:g} s",
+        f"{len(ev['buses'])} bus(es){tracked}",
         "  buses              "
         + "; ".join(
             f"{name} (channel {b['channel']}): {', '.join(b['joints'])}"
