@@ -180,6 +180,7 @@ def test_realtime_section_can_be_left_out(report: dict, monkeypatch) -> None:
     for name in ("bench_lockstep_all", "bench_stages", "bench_filter", "bench_realtime"):
         monkeypatch.setattr(bench, name, fail if name == "bench_realtime" else lambda s: [])
     monkeypatch.setattr(bench, "bench_memory", lambda s: {})
+    monkeypatch.setattr(bench, "bench_joints_section", lambda s: {})
     import hdhil.analysis.speed as speed
 
     whole = {"median": {"peak_rss_MB": 1.0}, "duration_s": 1.0, "long_duration_s": 3.0,
@@ -289,6 +290,25 @@ def test_speed_section(report: dict) -> None:
     text = format_bench(report)
     assert "Speed goals" in text and "Whole command by stage" in text and "Cost model" in text
     assert "N joints per 1 ms cycle" in text
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.realtime
+def test_joints_section(report: dict) -> None:
+    """The loop's cost for 1, 2, 4, 7 joints, its growth verdict, the rigs' whole
+    command against their goals (judged, not asserted)."""
+    j = report["joints"]
+    independent = [r for r in j["loop"] if r["plant"] == "independent"]
+    assert [r["joints"] for r in independent] == [1, 2, 4, 7]
+    for r in j["loop"]:
+        assert _positive(r["cpu_us"]) and _positive(r["wall_us"])
+        assert r["cpu_us_per_joint"] == pytest.approx(r["cpu_us"] / r["joints"])
+    lin = j["linearity"]
+    assert lin["met"] == (lin["worst_ratio"] <= lin["tolerance"])
+    for r in j["whole"]:
+        assert r["met"] == (r["real_time_factor"] >= r["goal"])
+    assert "Loop cost by joint count" in format_bench(report)
 
 
 def test_realtime_s_zero_leaves_the_real_time_section_out(monkeypatch) -> None:

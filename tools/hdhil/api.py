@@ -297,7 +297,9 @@ def evaluate_trace(
 ) -> dict[str, Any]:
     """Score the firmware's filter and the alternatives against the ground truth in a
     trace, as ``hdhil evaluate --json`` does: with the run recorded in the trace's sidecar
-    (or ``scenario``), from its evaluation start unless ``skip_s`` is given."""
+    (or ``scenario``), from its evaluation start unless ``skip_s`` is given.  A rig's
+    trace: its scores per joint (``joints``) and its worst joint (``worst_joint``), as
+    its run's result has them."""
     from hdhil.rig.trace_score import score_trace
 
     trace = _path_arg(path, "path", optional=False)

@@ -674,9 +674,14 @@ def run_benchmarks(
     - **speed**: the main job as a whole process by stage, python-can's ``virtual`` bus
       carrying the same frames as the loop's reference, the cost model (CPU per cycle as
       fixed + per joint + per frame) and the speed goals' verdicts
-      (:mod:`hdhil.analysis.speed`).
+      (:mod:`hdhil.analysis.speed`);
+    - **joints**: the lockstep loop's CPU and wall time per cycle and per joint for 1, 2,
+      4 and 7 joints of independent plants (and the shipped rigs with the arm's plant),
+      whether it grows no faster than linearly, and ``hdhil run`` of ``rehabexos`` and
+      ``arm7`` as whole processes against their speed goals
+      (:mod:`hdhil.analysis.rig_speed`; ``hdhil bench --only joints`` runs it alone).
 
-    ``quick`` shrinks every section (CI and the tests); the default takes about four
+    ``quick`` shrinks every section (CI and the tests); the default takes about six
     minutes on a 2-core machine, one of them the real-time run.
     """
     if quick:
@@ -722,6 +727,8 @@ def run_benchmarks(
                      and r["interface"] == "simbus"), None)  # fmt: skip
     first = next(r for r in startup["rows"] if r["figure"] == "run_first_cycle")
     goals = speed_goals(speed["whole"], loop_row, speed["reference"], first["median"])
+    section("joints")
+    joints = bench_joints_section(s)
     section("done")
     return {
         "started": started,
@@ -747,6 +754,7 @@ def run_benchmarks(
         "startup": startup,
         "speed": speed,
         "goals": goals,
+        "joints": joints,
         "wall_s": time.perf_counter() - wall0,
     }
 
@@ -819,7 +827,51 @@ def format_bench(report: dict[str, Any]) -> str:
         from hdhil.analysis.speed import format_speed_section
 
         lines += ["", *format_speed_section(report["speed"], report["goals"])]
+    if report.get("joints"):
+        from hdhil.analysis.rig_speed import format_joints_section
+
+        lines += ["", *format_joints_section(report["joints"])]
     return "\n".join(lines)
+
+
+def bench_joints_section(s: BenchSettings) -> dict[str, Any]:
+    """The joints section (:mod:`hdhil.analysis.rig_speed`): the loop's cost for 1, 2, 4
+    and 7 joints in runs of at most 2 s, and the rigs' whole command for the speed
+    section's ``whole_duration_s``, ``whole_runs`` times (once in the quick version)."""
+    from hdhil.analysis.rig_speed import bench_joints
+
+    runs = 1 if s.mode == "quick" else s.whole_runs
+    return bench_joints(min(s.duration_s, 2.0), s.repeat, s.whole_duration_s, runs)
+
+
+def run_joints_only(
+    duration_s: float = 10.0, repeat: int = 3, quick: bool = False
+) -> dict[str, Any]:
+    """The joints section alone (``hdhil bench --only joints``): a report with the
+    machine, the settings and ``joints``, which :func:`format_joints_only` prints."""
+    s = BenchSettings.quick(duration_s, repeat) if quick else BenchSettings.full(duration_s, repeat)
+    started = time.strftime("%Y-%m-%d %H:%M:%S")
+    wall0 = time.perf_counter()
+    joints = bench_joints_section(s)
+    return {"started": started, "mode": s.mode, "only": "joints", "machine": machine_facts(),
+            "settings": {"duration_s": s.duration_s, "repeat": s.repeat,
+                         "whole_duration_s": s.whole_duration_s, "whole_runs": s.whole_runs},
+            "joints": joints, "wall_s": time.perf_counter() - wall0}  # fmt: skip
+
+
+def format_joints_only(report: dict[str, Any]) -> str:
+    """The text report of :func:`run_joints_only`."""
+    from hdhil.analysis.rig_speed import format_joints_section
+
+    m = report["machine"]
+    return "\n".join([
+        f"hdhil bench --only joints ({report['mode']} run, {report['started']}, "
+        f"{report['wall_s']:.0f} s)",
+        f"machine: {m['cpu']}, {m['cores']} cores ({m['cores_usable']} usable), "
+        f"{m['implementation']} {m['python']}, {m['platform']}",
+        "",
+        *format_joints_section(report["joints"]),
+    ])  # fmt: skip
 
 
 def format_memory_section(mem: dict[str, Any]) -> list[str]:

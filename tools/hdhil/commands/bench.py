@@ -4,7 +4,8 @@ campaign and start-up figures, as medians with their spread
 
 This module reads the options, shows progress per section and prints the report or
 JSON.  ``--quick`` shrinks every section (CI and the tests); the default takes about
-four minutes on a 2-core machine.  Exit codes: 0 done, 2 input error (one line).
+six minutes on a 2-core machine.  ``--only joints`` runs the joints section alone.
+Exit codes: 0 done, 2 input error (one line).
 """
 
 from __future__ import annotations
@@ -41,6 +42,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="process starts per start-up figure (default 7, --quick 2)",
     )  # fmt: skip
     p.add_argument("--quick", action="store_true", help="a short version of every section (CI)")
+    p.add_argument(
+        "--only", choices=("joints",), default=None,
+        help="run one section alone (joints: the loop's cost for 1, 2, 4, 7 joints and the "
+        "rigs' whole command)",
+    )  # fmt: skip
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     add_quiet_argument(p)
     p.set_defaults(func=run)
@@ -58,9 +64,19 @@ def run(args: argparse.Namespace) -> int:
     startup_runs = getattr(args, "startup_runs", None)
     if startup_runs is not None and startup_runs < 1:
         raise UserError(f"--startup-runs must be >= 1, got {startup_runs}")
+    if getattr(args, "only", None) == "joints":
+        from hdhil.analysis.benchmarks import format_joints_only, run_joints_only
+
+        report = run_joints_only(duration, repeat, quick=quick)
+        if args.json:
+            jsonout.dump(report, sys.stdout, indent=2)
+            print()
+        else:
+            print(format_joints_only(report))
+        return 0
     sections = [
         "lockstep", "stages", "filter", "memory", "real time", "campaign", "start-up", "speed",
-        "done",
+        "joints", "done",
     ]  # fmt: skip
     with progress(args, len(sections) - 1, "hdhil bench", "section") as bar:
 

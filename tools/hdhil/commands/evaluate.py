@@ -2,7 +2,8 @@
 
 The scoring is :func:`hdhil.rig.trace_score.score_trace` (the run's request from the
 trace's sidecar, the same evaluation and tracking score a live run uses); this module
-prints the headline and the table or JSON. Exit codes: 0 done, 1 done on a damaged
+prints the headline and the table or JSON, for a rig's trace the table per joint and
+the worst joint. Exit codes: 0 done, 1 done on a damaged
 trace, 2 input error (one line).
 """
 
@@ -51,6 +52,10 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         jsonout.dump(ev, sys.stdout, indent=2)
         print()
+    elif "joints" in ev:  # a rig's trace: a row per joint, as hdhil run printed it
+        from hdhil.rig.rigrun import format_rig_evaluation
+
+        print(format_rig_evaluation(ev))
     else:
         print(format_headline(ev["headline"]))
         if "candidates" in ev:

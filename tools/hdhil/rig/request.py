@@ -100,8 +100,8 @@ class RunRequest:
             raise ConfigError(
                 f"scenario {s.name} lays out {len(s.joints)} joint(s) on "
                 f"{len(s.buses)} bus(es): {what} takes the single-joint rig only; "
-                f"hdhil run (lockstep on simbus), hdhil plan and hdhil dbc export --scenario "
-                f"take this layout"
+                f"hdhil run (lockstep on simbus), hdhil evaluate of its trace, hdhil plan and "
+                f"hdhil dbc export --scenario take this layout"
             )
 
     @property

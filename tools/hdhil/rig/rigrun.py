@@ -18,9 +18,13 @@ the torque scorer (the joint's telemetry at its link's identifiers against its t
 and, with a control law, the tracking scorer. Frames of two buses share identifiers (the
 pre-defined connection set numbers each bus alike), so each bus is scored on its own.
 
-What a rig does not take yet (one-line :class:`ConfigError`): a trace, real time, an
-interface other than ``simbus``, injected faults, a drive DCF or mapping, and the
-evaluation of candidate filters (the result says so).
+The scorers of a joint (:func:`joint_scoring`) are also those that score its trace
+(``hdhil evaluate``, :func:`hdhil.rig.trace_score.score_rig_trace`), fed the trace's
+frames of the joint's bus and the truth: the same figures as the run's.
+
+What a rig does not take yet (one-line :class:`ConfigError`): real time, an interface
+other than ``simbus``, injected faults, a drive DCF or mapping, and the evaluation of
+candidate filters (the result says so).
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,14 +47,29 @@ from hdhil.core.dataconf import ConfigError
 from hdhil.dbc import CHANNEL_NUMBER
 from hdhil.firmware.config import FirmwareConfig, Law
 from hdhil.firmware.controller import ControllerNode, JointSetup
+from hdhil.firmware.controller.link import DriveLink
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
 from hdhil.rig.layout import BusSpec, JointSpec
 from hdhil.rig.loop import NodeLoop
 from hdhil.rig.request import RunRequest
+from hdhil.rig.scenario import Scenario
 from hdhil.rig.score import TorqueScorer, TrackingScorer
 
-__all__ = ["RigJointResult", "RigResult", "bus_channel", "format_rig_result", "run_rig"]
+__all__ = [
+    "JointScores",
+    "JointScoring",
+    "RigJointResult",
+    "RigResult",
+    "bus_channel",
+    "format_joint_table",
+    "format_rig_evaluation",
+    "format_rig_result",
+    "joint_links",
+    "joint_scoring",
+    "run_rig",
+    "worst_joint",
+]
 
 #: The tap drains its queues every this many cycles (as the single-joint run's).
 TAP_EVERY_CYCLES = 16
@@ -79,6 +98,21 @@ class RigJointResult:
     joint_index: int
     drive_state: str
     samples: int
+    torque: dict[str, float]
+    tracking: dict[str, Any] | None = None
+
+
+@dataclass
+class JointScores:
+    """One joint's scores read back from a trace (:func:`hdhil.rig.trace_score.
+    score_rig_trace`): a :class:`RigJointResult` without what only the run knows (the
+    drive's state, the interrupts run)."""
+
+    name: str
+    bus: str
+    node_id: int
+    controller_node_id: int
+    joint_index: int
     torque: dict[str, float]
     tracking: dict[str, Any] | None = None
 
@@ -153,6 +187,75 @@ class OnChannels(can.Listener):
                 self.listener.on_message_received(msg)
 
 
+def scored_channels(bus_index: int) -> frozenset[int]:
+    """The channels a joint on the rig's ``bus_index``-th bus is scored from: its bus's
+    and the truth's."""
+    return frozenset((bus_channel(bus_index), CHANNEL_NUMBER["truth"]))
+
+
+def joint_links(scenario: Scenario) -> list[DriveLink]:
+    """Each joint's link in the layout's order: its drive's PDOs and the telemetry of its
+    controller node, the joint's rank at that node its place among the node's joints on
+    its bus (as :func:`run_rig` gives them), in CiA 301's pre-defined connection set (a
+    rig runs the raw mapping only)."""
+    ranks: dict[tuple[str, int], int] = {}
+    links = []
+    for spec in scenario.joints:
+        key = (spec.bus, spec.controller_node_id)
+        rank = ranks[key] = ranks.get(key, -1) + 1
+        try:
+            links.append(DriveLink.predefined(spec.node_id, spec.controller_node_id, rank))
+        except ValueError as exc:
+            raise ConfigError(f"joint {spec.name}: {exc}") from None
+    return links
+
+
+@dataclass
+class JointScoring:
+    """One joint's scorers: its torque against its truth and, with a control law, its
+    tracking; fed its bus's frames and the truth (:meth:`listeners`)."""
+
+    torque: TorqueScorer
+    tracking: TrackingScorer | None
+    law: str | None
+
+    def listeners(self, channels: frozenset[int]) -> list[can.Listener]:
+        """The scorers, each handed the frames of ``channels`` only (:class:`OnChannels`)."""
+        scorers: list[can.Listener] = [self.torque]
+        if self.tracking is not None:
+            scorers.append(self.tracking)
+        return [OnChannels(scorer, channels) for scorer in scorers]
+
+    def results(self) -> tuple[dict[str, float], dict[str, Any] | None]:
+        """The torque figures and the tracking figures (None without a law)."""
+        torque = self.torque.result().as_dict()
+        if self.tracking is None:
+            return torque, None
+        return torque, {"law": self.law, **self.tracking.result().as_dict()}
+
+
+def joint_scoring(request: RunRequest, index: int, link: DriveLink, skip_s: float) -> JointScoring:
+    """The scorers of the rig's ``index``-th joint at ``link``'s telemetry identifiers and
+    the joint's truth: the run's (:func:`run_rig`) and its trace's
+    (:func:`hdhil.rig.trace_score.score_rig_trace`). The tracking counts from ``skip_s``
+    (the run's evaluation start), the torque from the first frame."""
+    plant, fw = request.scenario.joint_configs[index]
+    torque = TorqueScorer(telemetry_id=link.telemetry_cob_id, joint_index=index)
+    control = fw.control
+    if control.law == Law.NONE:
+        return JointScoring(torque, None, None)
+    tracking = TrackingScorer(
+        control.joint.Jl / control.joint.Jm,
+        skip_s,
+        control.friction.active,
+        request.sample_period_s,
+        plant.link,
+        telemetry_ids=(link.telemetry_cob_id, link.control_cob_id),
+        joint_index=index,
+    )
+    return JointScoring(torque, tracking, control.law.name.lower())
+
+
 @dataclass
 class _Joint:
     spec: JointSpec
@@ -162,8 +265,7 @@ class _Joint:
     drive: DriveNode | None = None
     controller: ControllerNode | None = None
     rank: int = 0
-    scorer: TorqueScorer | None = None
-    tracking: TrackingScorer | None = None
+    scoring: JointScoring | None = None
 
 
 def check_rig_options(
@@ -377,26 +479,14 @@ def _run(
                 producers.append((node, bus))
             for rank, j in enumerate(served):
                 j.controller, j.rank = node, rank
-        channels = frozenset((bus_channel(index), CHANNEL_NUMBER["truth"]))
+        channels = scored_channels(index)
         counters[name] = counter = FrameCounter()
         listeners.append(OnChannels(counter, frozenset((bus_channel(index),))))
         for j in on_bus:
             assert j.controller is not None
-            link = j.controller.joints[j.rank].link
-            j.scorer = TorqueScorer(telemetry_id=link.telemetry_cob_id, joint_index=j.index)
-            listeners.append(OnChannels(j.scorer, channels))
-            control = j.firmware.control
-            if control.law != Law.NONE:
-                j.tracking = TrackingScorer(
-                    control.joint.Jl / control.joint.Jm,
-                    request.evaluate_from_s,
-                    control.friction.active,
-                    Ts,
-                    j.plant.link,
-                    telemetry_ids=(link.telemetry_cob_id, link.control_cob_id),
-                    joint_index=j.index,
-                )
-                listeners.append(OnChannels(j.tracking, channels))
+            j.scoring = joint_scoring(request, j.index, j.controller.joints[j.rank].link,
+                                      request.evaluate_from_s)  # fmt: skip
+            listeners += j.scoring.listeners(channels)
         tapped[bus_channel(index)] = handle(name, index, None)
     if writer is not None:
         listeners.insert(0, writer)  # it sees every frame as it came
@@ -457,13 +547,8 @@ def _run(
     done = min(isr.samplecount for isr in isrs)
     rows = []
     for j in joints:
-        assert j.scorer is not None and j.controller is not None
-        torque = j.scorer.result().as_dict()
-        tracked = (
-            {"law": j.firmware.control.law.name.lower(), **j.tracking.result().as_dict()}
-            if j.tracking is not None
-            else None
-        )
+        assert j.scoring is not None and j.controller is not None
+        torque, tracked = j.scoring.results()
         rows.append(
             RigJointResult(
                 name=j.spec.name,
@@ -504,7 +589,9 @@ def _run(
     )
 
 
-def worst_joint(rows: list[RigJointResult], filtered: bool = True) -> dict[str, Any]:
+def worst_joint(
+    rows: Sequence[RigJointResult | JointScores], filtered: bool = True
+) -> dict[str, Any]:
     """The worst joint by each figure: the largest filtered RMS torque error (with the
     ripple filter scored, ``filtered``) and, with a law, the smallest share of
     ``|e| <= 0.5 Nm`` on the measured torque."""
@@ -529,9 +616,67 @@ def _num(value: float | None, width: int, places: int, scale: float = 1.0) -> st
     return f"{value * scale:{width}.{places}f}"
 
 
+def format_joint_table(
+    rows: Sequence[RigJointResult | JointScores],
+    scored: Sequence[str],
+    worst: dict[str, Any],
+    *,
+    state: bool = False,
+) -> list[str]:
+    """The per-joint table of ``hdhil run`` and ``hdhil evaluate`` of a rig: a row per
+    joint (with ``state``, the drive's state and the interrupts it ran, which only a run
+    knows) with its scores, then the worst joint (:func:`worst_joint`)."""
+    w = max([8, *(len(j.name) for j in rows)])
+    ran = f" {'state':<18} {'samples':>7}" if state else ""
+    lines = [
+        "  per joint (RMS error of the raw and the filtered torque against the true torque, "
+        "with the ripple filter scored; e = T_meas − T_desired with a law)",
+        f"    {'joint':<{w}} {'bus':<6} {'node':>4}{ran} "
+        f"{'RMS raw/Nm':>10} {'RMS filt/Nm':>11} {'filt/raw':>8} {'law':<6} "
+        f"{'RMS e/Nm':>8} {'|e|≤0.5':>8}",
+    ]
+    filtered = "ripple" in scored
+    for j in rows:
+        t, k = (j.torque if filtered else {}), j.tracking or {}
+        ran = ""
+        if state and isinstance(j, RigJointResult):
+            ran = f" {j.drive_state:<18} {j.samples:>7}"
+        lines.append(
+            f"    {j.name:<{w}} {j.bus:<6} {j.node_id:>4}{ran} "
+            f"{_num(t.get('rms_error_raw'), 10, 4)} {_num(t.get('rms_error_filtered'), 11, 4)} "
+            f"{_num(t.get('filtered_to_raw'), 7, 1, 100)}% {k.get('law', '-'):<6} "
+            f"{_num(k.get('rms_error_measured'), 8, 3)} "
+            f"{_num(k.get('share_within_goal_measured'), 7, 1, 100)}%"
+        )
+    for key, wj in worst.items():
+        what = "filtered RMS error" if key == "rms_error_filtered" else "|e|≤0.5 Nm share"
+        v = wj["value"]
+        value = f"{v:.4f} Nm" if key == "rms_error_filtered" else f"{v:.1%}"
+        lines.append(f"  worst joint        {wj['joint']} by {what}: {value}")
+    return lines
+
+
+def format_rig_evaluation(ev: dict[str, Any]) -> str:
+    """``hdhil evaluate`` of a rig's trace (:func:`hdhil.rig.trace_score.score_rig_trace`):
+    the table per joint and the worst joint, as ``hdhil run`` printed them."""
+    rows = [JointScores(**j) for j in ev["joints"]]
+    tracked = f"; tracking scored from {ev['skip_s']:g} s" if "tracking" in ev["scored"] else ""
+    lines = [
+        f"hdhil evaluate: scenario {ev['scenario']}, seed {ev['seed']}, {len(rows)} joints on "
+        f"{len(ev['buses'])} bus(es){tracked}",
+        "  buses              "
+        + "; ".join(
+            f"{name} (channel {b['channel']}): {', '.join(b['joints'])}"
+            for name, b in ev["buses"].items()
+        ),
+        *format_joint_table(rows, ev["scored"], ev["worst_joint"]),
+        f"  evaluation         {RigResult.evaluation}",
+    ]
+    return "\n".join(lines)
+
+
 def format_rig_result(r: RigResult) -> str:
     """The text report: the run, a row per joint, the worst joint."""
-    w = max([8, *(len(j.name) for j in r.joints)])
     lines = [
         f"hdhil run: scenario {r.scenario}, seed {r.seed}, lockstep on simbus, "
         f"{len(r.joints)} joints on {len(r.buses)} bus(es)"
@@ -547,27 +692,8 @@ def format_rig_result(r: RigResult) -> str:
             f"{', '.join(b['joints'])}, {r.frames.get(name, 0)} frames"
             for name, b in r.buses.items()
         ),
-        "  per joint (RMS error of the raw and the filtered torque against the true torque, "
-        "with the ripple filter scored; e = T_meas − T_desired with a law)",
-        f"    {'joint':<{w}} {'bus':<6} {'node':>4} {'state':<18} {'samples':>7} "
-        f"{'RMS raw/Nm':>10} {'RMS filt/Nm':>11} {'filt/raw':>8} {'law':<6} "
-        f"{'RMS e/Nm':>8} {'|e|≤0.5':>8}",
+        *format_joint_table(r.joints, r.scored, r.worst_joint, state=True),
     ]
-    filtered = "ripple" in r.scored
-    for j in r.joints:
-        t, k = (j.torque if filtered else {}), j.tracking or {}
-        lines.append(
-            f"    {j.name:<{w}} {j.bus:<6} {j.node_id:>4} {j.drive_state:<18} {j.samples:>7} "
-            f"{_num(t.get('rms_error_raw'), 10, 4)} {_num(t.get('rms_error_filtered'), 11, 4)} "
-            f"{_num(t.get('filtered_to_raw'), 7, 1, 100)}% {k.get('law', '-'):<6} "
-            f"{_num(k.get('rms_error_measured'), 8, 3)} "
-            f"{_num(k.get('share_within_goal_measured'), 7, 1, 100)}%"
-        )
-    for key, worst in r.worst_joint.items():
-        what = "filtered RMS error" if key == "rms_error_filtered" else "|e|≤0.5 Nm share"
-        v = worst["value"]
-        value = f"{v:.4f} Nm" if key == "rms_error_filtered" else f"{v:.1%}"
-        lines.append(f"  worst joint        {worst['joint']} by {what}: {value}")
     if any(b["fd"] for b in r.buses.values()):
         lines.append(
             "  CAN FD             an FD bus carries the joints' classical frames, timed at its "
