@@ -38,6 +38,8 @@ def _score_cells(text: str, names: tuple[str, ...], skip: int) -> dict[str, list
     before it: joint, bus, node and for a run state and samples)."""
     out = {}
     for line in text.splitlines():
+        if line.startswith("  worst joint"):
+            break  # the table ends; per-joint lines below are the candidate filters
         cells = line.split()
         if line.startswith("    ") and cells and cells[0] in names:
             out[cells[0]] = cells[skip:]

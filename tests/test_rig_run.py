@@ -49,10 +49,10 @@ def test_two_joints_on_one_bus_run_in_lockstep_and_score() -> None:
     again = run_rig(resolve(TWO, duration_s=0.3, seed=5))
     assert _figures(again) == _figures(first)
     text = format_rig_result(first)
-    assert "worst joint" in text and "candidate filters are not evaluated" in text
-    assert (
+    assert "worst joint" in text and "candidate filters  per joint" in text
+    assert (  # a row in the table and a line of candidate filters each
         sum(line.startswith("    A ") or line.startswith("    B ") for line in text.splitlines())
-        == 2
+        == 4
     )
 
 
@@ -61,18 +61,30 @@ def test_a_joint_of_independent_plants_is_the_single_joint_rig() -> None:
     """Joint A of a rig of independent plants (no [robot]) is the single-joint run of its
     scenario with the same seed: the same torque errors to the last bit (its frames at
     the single joint's identifiers, its truth at joint index 0, its plant's noise stream
-    the seed)."""
+    the seed), and the same evaluation of the candidate filters."""
     from hdhil.rig.runner import run_lockstep
 
     # B's filter as A's: the paper's filter starts its interrupts 16 samples later, and
     # the rig runs until every joint has run its samples
     same = {"joints": {"B": {"firmware": {"ripple": {"mode": "recommended"}}}}}
-    rig = run_rig(resolve(TWO, overrides=[same], duration_s=0.2, seed=9))
-    single = run_lockstep(resolve("free-motion", duration_s=0.2, seed=9), evaluate=False)
+    rig = run_rig(resolve(TWO, overrides=[same], duration_s=0.5, seed=9))
+    single = run_lockstep(resolve("free-motion", duration_s=0.5, seed=9))
     a = rig.joints[0].torque
     assert a["samples"] == single.torque["samples"]
     for key in ("rms_true", "rms_error_raw", "rms_error_filtered", "max_error_raw"):
         assert a[key] == single.torque[key], key
+    ev, expected = rig.joints[0].evaluation, single.evaluation
+    assert ev is not None and expected is not None and ev["samples"] == expected["samples"] > 0
+    assert [(c["name"], c["rms_error"]) for c in ev["candidates"]] == [
+        (c["name"], c["rms_error"]) for c in expected["candidates"]
+    ]
+    assert rig.joints[1].evaluation["candidates"] != ev["candidates"]  # B: its own joint
+    text = format_rig_result(rig)
+    firmware = next(c for c in ev["candidates"] if c["name"].startswith("firmware"))
+    assert f"A        firmware (recommended) {firmware['rms_error']:.4f} Nm" in text
+    assert (
+        run_rig(resolve(TWO, duration_s=0.05, seed=9), evaluate=False).joints[0].evaluation is None
+    )
 
 
 @pytest.mark.slow

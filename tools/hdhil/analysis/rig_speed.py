@@ -103,7 +103,7 @@ def loop_cost_us(request: RunRequest) -> tuple[float, float, int]:
         wall.append(time.perf_counter())
         return False
 
-    r = run_rig(request, stop_requested=at_cycle)
+    r = run_rig(request, stop_requested=at_cycle, evaluate=False)  # the loop alone
     if r.interrupted:  # the hook never asks to stop: Ctrl-C ended the run; end the bench
         raise KeyboardInterrupt
     if r.verdict is not None or len(cpu) < 2:

@@ -197,7 +197,7 @@ def _run_rig(
     check_outputs(run_outputs([trace] if trace else [], None), scenario_inputs(args))
     with stop_on_signals() as stop:
         result = run_rig(request, trace=trace, start_time=parse_start_time(args.start_time),
-                         stop_requested=stop.is_set)  # fmt: skip
+                         stop_requested=stop.is_set, evaluate=args.evaluate)  # fmt: skip
     if args.json:
         jsonout.dump(result.as_dict(), sys.stdout, indent=2)
         print()

@@ -31,7 +31,7 @@ from typing import Any
 import can
 import numpy as np
 
-from hdhil.dbc import FrameCodec, codec, predefined_cob_id
+from hdhil.dbc import FrameCodec, codec, predefined_cob_id, truth_frame_id
 from hdhil.firmware.baselines import ButterworthLowPass, TrackingNotchBank
 from hdhil.firmware.config import FirmwareConfig, paper_config, recommended_config
 from hdhil.firmware.interrupt import CstSample
@@ -159,7 +159,10 @@ class RecordingListener(can.Listener):
 
     ``drive_node_id``: the drive's CANopen node-ID (its sensor frame, statusword and SDO
     answers at that node's identifiers: the pre-defined connection set, or the COB-IDs
-    ``drive_pdos`` records); the controller's telemetry is at ``controller_node_id``'s.
+    ``drive_pdos`` records); the controller's telemetry is at ``controller_node_id``'s,
+    or at ``telemetry_id`` (a rig's controller serving several joints,
+    :class:`hdhil.firmware.controller.link.DriveLink`).  ``joint_index``: the rig's joint
+    whose truth frames count (:func:`hdhil.dbc.truth_frame_id`; 0, a single joint's).
     """
 
     def __init__(
@@ -173,6 +176,8 @@ class RecordingListener(can.Listener):
         truth_after_sensor: bool = False,
         drive_node_id: int = 2,
         controller_node_id: int = 1,
+        telemetry_id: int | None = None,
+        joint_index: int = 0,
     ) -> None:
         #: The rows recorded (all of them with ``keep``; without, those not yet scored).
         self.recording = Recording(sample_period_s)
@@ -212,7 +217,13 @@ class RecordingListener(can.Listener):
         self._sensor = self._sensor.at(sensor_id)
         self._status = self._status.at(status_id)
         self._sdo = self._sdo.at(sdo_id)
-        self._tele = self._tele.at(tele_id)
+        self._tele = self._tele.at(tele_id if telemetry_id is None else telemetry_id)
+        self._truth_torque = self._truth_torque.at(
+            truth_frame_id(joint_index, self._truth_torque.frame_id)
+        )
+        self._truth_motion = self._truth_motion.at(
+            truth_frame_id(joint_index, self._truth_motion.frame_id)
+        )
         self._enabled: bool | None = None  # unknown until a statusword is seen
         self._t = 0.0  # timestamp of the frame being handled
         self._last_sensor_t: float | None = None

@@ -14,17 +14,18 @@ every bus's SYNC in the same cycle.
 Each bus has its own truth channel (frame groups, in-process) on which its drives send
 their joint's truth at the joint's identifiers (:func:`hdhil.dbc.truth_frame_id`, the
 joint's index in the layout), and its own host tap with a frame counter and, per joint,
-the torque scorer (the joint's telemetry at its link's identifiers against its truth)
-and, with a control law, the tracking scorer. Frames of two buses share identifiers (the
-pre-defined connection set numbers each bus alike), so each bus is scored on its own.
+the torque scorer (the joint's telemetry at its link's identifiers against its truth),
+with a control law the tracking scorer, and unless ``evaluate`` is off the candidate
+filters of a single joint's evaluation, scored as the frames come. Frames of two buses
+share identifiers (the pre-defined connection set numbers each bus alike), so each bus
+is scored on its own.
 
 The scorers of a joint (:func:`joint_scoring`) are also those that score its trace
 (``hdhil evaluate``, :func:`hdhil.rig.trace_score.score_rig_trace`), fed the trace's
 frames of the joint's bus and the truth: the same figures as the run's.
 
 What a rig does not take yet (one-line :class:`ConfigError`): real time, an interface
-other than ``simbus``, injected faults, a drive DCF or mapping, and the evaluation of
-candidate filters (the result says so).
+other than ``simbus``, injected faults, a drive DCF or mapping.
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ from hdhil.firmware.controller import ControllerNode, JointSetup
 from hdhil.firmware.controller.link import DriveLink
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
+from hdhil.rig.evaluate import RecordingListener
 from hdhil.rig.layout import BusSpec, JointSpec
 from hdhil.rig.loop import NodeLoop
 from hdhil.rig.request import RunRequest
@@ -100,6 +102,9 @@ class RigJointResult:
     samples: int
     torque: dict[str, float]
     tracking: dict[str, Any] | None = None
+    #: The candidate filters against the joint's truth (:func:`hdhil.rig.evaluate.evaluate`'s
+    #: dict), None when not evaluated.
+    evaluation: dict[str, Any] | None = None
 
 
 @dataclass
@@ -115,6 +120,7 @@ class JointScores:
     joint_index: int
     torque: dict[str, float]
     tracking: dict[str, Any] | None = None
+    evaluation: dict[str, Any] | None = None
 
 
 @dataclass
@@ -137,7 +143,8 @@ class RigResult:
     verdict: dict[str, Any] | None = None
     #: Per-cycle wall time of the loop in operation (us).
     us_per_cycle: float = math.nan
-    evaluation: str = "candidate filters are not evaluated for a rig of several joints"
+    #: Whether the candidate filters were evaluated per joint (:attr:`RigJointResult.evaluation`).
+    evaluated: bool = False
     trace: str | None = None
     #: What the scenario scores (:attr:`hdhil.rig.scenario.Scenario.scored`): the torque
     #: columns are the ripple filter's only with ``ripple``.
@@ -218,13 +225,21 @@ class JointScoring:
     torque: TorqueScorer
     tracking: TrackingScorer | None
     law: str | None
+    #: The candidate filters' evaluation, scored as the frames come (None: not evaluated).
+    candidates: RecordingListener | None = None
 
     def listeners(self, channels: frozenset[int]) -> list[can.Listener]:
         """The scorers, each handed the frames of ``channels`` only (:class:`OnChannels`)."""
         scorers: list[can.Listener] = [self.torque]
         if self.tracking is not None:
             scorers.append(self.tracking)
+        if self.candidates is not None:
+            scorers.append(self.candidates)
         return [OnChannels(scorer, channels) for scorer in scorers]
+
+    def evaluation(self) -> dict[str, Any] | None:
+        """The candidate filters' evaluation (None when not evaluated)."""
+        return None if self.candidates is None else self.candidates.result()
 
     def results(self) -> tuple[dict[str, float], dict[str, Any] | None]:
         """The torque figures and the tracking figures (None without a law)."""
@@ -234,16 +249,30 @@ class JointScoring:
         return torque, {"law": self.law, **self.tracking.result().as_dict()}
 
 
-def joint_scoring(request: RunRequest, index: int, link: DriveLink, skip_s: float) -> JointScoring:
+def joint_scoring(
+    request: RunRequest, index: int, link: DriveLink, skip_s: float, *, candidates: bool = False
+) -> JointScoring:
     """The scorers of the rig's ``index``-th joint at ``link``'s telemetry identifiers and
     the joint's truth: the run's (:func:`run_rig`) and its trace's
     (:func:`hdhil.rig.trace_score.score_rig_trace`). The tracking counts from ``skip_s``
-    (the run's evaluation start), the torque from the first frame."""
+    (the run's evaluation start), the torque from the first frame. With ``candidates``,
+    also the candidate filters of a single joint's evaluation
+    (:class:`~hdhil.rig.evaluate.RecordingListener` with the joint's firmware, scoring
+    as it goes from ``skip_s``)."""
     plant, fw = request.scenario.joint_configs[index]
+    spec = request.scenario.joints[index]
     torque = TorqueScorer(telemetry_id=link.telemetry_cob_id, joint_index=index)
+    evaluation = (
+        RecordingListener(
+            request.sample_period_s, firmware=fw, skip_s=skip_s, keep=False,
+            drive_node_id=spec.node_id, telemetry_id=link.telemetry_cob_id, joint_index=index,
+        )
+        if candidates
+        else None
+    )  # fmt: skip
     control = fw.control
     if control.law == Law.NONE:
-        return JointScoring(torque, None, None)
+        return JointScoring(torque, None, None, evaluation)
     tracking = TrackingScorer(
         control.joint.Jl / control.joint.Jm,
         skip_s,
@@ -253,7 +282,7 @@ def joint_scoring(request: RunRequest, index: int, link: DriveLink, skip_s: floa
         telemetry_ids=(link.telemetry_cob_id, link.control_cob_id),
         joint_index=index,
     )
-    return JointScoring(torque, tracking, control.law.name.lower())
+    return JointScoring(torque, tracking, control.law.name.lower(), evaluation)
 
 
 @dataclass
@@ -311,12 +340,13 @@ def run_rig(
     trace: Path | None = None,
     start_time: float | None = None,
     stop_requested: Callable[[], bool] | None = None,
+    evaluate: bool = True,
 ) -> RigResult:
     """Run the rig of ``request``'s scenario for its duration, lockstep on the simulated
     buses, and score every joint (module docstring). ``trace``: every bus on its channel
     (:func:`bus_channel`) and the truth, with a sidecar that records the layout
     (:func:`rig_metadata`); ``start_time`` the Unix time of simulated time 0 (default
-    now, to the millisecond)."""
+    now, to the millisecond); ``evaluate``: the candidate filters per joint too."""
     s = request.scenario
     if not s.is_rig:
         raise ConfigError(f"scenario {s.name} is a single joint: hdhil.rig.runner runs it")
@@ -354,7 +384,8 @@ def run_rig(
     blas = threadpool_limits(limits=1)
     completed = False
     try:
-        result = _run(request, joints, buses, clock, handle, opened, stop_requested, writer)
+        result = _run(request, joints, buses, clock, handle, opened, stop_requested, writer,
+                      evaluate)  # fmt: skip
         if writer is not None:
             writer.stop()  # the trace and its sidecar renamed into place
             result.trace = str(trace)
@@ -409,6 +440,7 @@ def _run(
     opened: list[Any],
     stop_requested: Callable[[], bool] | None,
     writer: can.Listener | None,
+    evaluate: bool,
 ) -> RigResult:
     s = request.scenario
     Ts = request.sample_period_s
@@ -485,7 +517,7 @@ def _run(
         for j in on_bus:
             assert j.controller is not None
             j.scoring = joint_scoring(request, j.index, j.controller.joints[j.rank].link,
-                                      request.evaluate_from_s)  # fmt: skip
+                                      request.evaluate_from_s, candidates=evaluate)  # fmt: skip
             listeners += j.scoring.listeners(channels)
         tapped[bus_channel(index)] = handle(name, index, None)
     if writer is not None:
@@ -560,6 +592,7 @@ def _run(
                 samples=j.controller.joints[j.rank].isr.samplecount,
                 torque=torque,
                 tracking=tracked,
+                evaluation=j.scoring.evaluation(),
             )
         )
     frames = {name: counter.total for name, counter in counters.items()}
@@ -586,6 +619,7 @@ def _run(
         verdict=verdict,
         us_per_cycle=wall / operation * 1e6 if operation else math.nan,
         scored=tuple(s.scored),
+        evaluated=evaluate,
     )
 
 
@@ -656,6 +690,39 @@ def format_joint_table(
     return lines
 
 
+def format_candidates(rows: Sequence[RigJointResult | JointScores], evaluated: bool) -> list[str]:
+    """The candidate filters per joint, one line each: the firmware's filter and the best
+    candidate by RMS error against the joint's true torque, each with its share of raw's
+    (every candidate in ``--json``, as :func:`hdhil.rig.evaluate.evaluate` gives them)."""
+    if not evaluated:
+        return ["  evaluation         candidate filters not evaluated (--no-evaluate)"]
+    skips = {r.evaluation["skip_s"] for r in rows if r.evaluation is not None}
+    since = f" from {min(skips):g} s" if skips else ""
+    lines = [f"  candidate filters  per joint, RMS error against the true torque{since} "
+             "(% of raw); every candidate in --json"]  # fmt: skip
+    width = max([8, *(len(r.name) for r in rows)])
+
+    def cell(c: dict[str, Any]) -> str:
+        return f"{c['name']} {c['rms_error']:.4f} Nm ({100 * c['rms_ratio']:.1f} %)"
+
+    for r in rows:
+        ev = r.evaluation or {}
+        scored = [c for c in ev.get("candidates") or () if not math.isnan(c["rms_error"])]
+        if not ev.get("samples") or not scored:
+            lines.append(f"    {r.name:<{width}} no samples with ground truth{since}")
+            continue
+        firmware = next((c for c in scored if c["name"].startswith("firmware")), None)
+        best = min(scored, key=lambda c: c["rms_error"])
+        if firmware is None:
+            text = f"best: {cell(best)}"
+        elif f"{best['rms_error']:.4f}" == f"{firmware['rms_error']:.4f}":
+            text = f"{cell(firmware)}, the best"
+        else:
+            text = f"{cell(firmware)}; best: {cell(best)}"
+        lines.append(f"    {r.name:<{width}} {text}")
+    return lines
+
+
 def format_rig_evaluation(ev: dict[str, Any]) -> str:
     """``hdhil evaluate`` of a rig's trace (:func:`hdhil.rig.trace_score.score_rig_trace`):
     the table per joint and the worst joint, as ``hdhil run`` printed them."""
@@ -670,7 +737,7 @@ def format_rig_evaluation(ev: dict[str, Any]) -> str:
             for name, b in ev["buses"].items()
         ),
         *format_joint_table(rows, ev["scored"], ev["worst_joint"]),
-        f"  evaluation         {RigResult.evaluation}",
+        *format_candidates(rows, bool(ev.get("evaluated", True))),
     ]
     return "\n".join(lines)
 
@@ -699,7 +766,7 @@ def format_rig_result(r: RigResult) -> str:
             "  CAN FD             an FD bus carries the joints' classical frames, timed at its "
             "arbitration bit rate (no FD packing, no data phase yet)"
         )
-    lines.append(f"  evaluation         {r.evaluation}")
+    lines += format_candidates(r.joints, r.evaluated)
     if r.trace:
         lines.append(f"  trace              {r.trace} (bus channels as listed, truth on channel 1)")
     if r.verdict is not None:

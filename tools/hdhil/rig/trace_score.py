@@ -116,7 +116,7 @@ def score_rig_trace(
     scorings = []
     deliver = []
     for index, (spec, link) in enumerate(zip(s.joints, joint_links(s), strict=True)):
-        scoring = joint_scoring(request, index, link, skip)
+        scoring = joint_scoring(request, index, link, skip, candidates=True)
         scorings.append(scoring)
         deliver += [x.on_frames for x in scoring.listeners(scored_channels(bus_index[spec.bus]))]
     with read_trace(trace) as frames:
@@ -134,7 +134,7 @@ def score_rig_trace(
     for index, (spec, scoring) in enumerate(zip(s.joints, scorings, strict=True)):
         torque, tracking = scoring.results()
         rows.append(JointScores(spec.name, spec.bus, spec.node_id, spec.controller_node_id,
-                                index, torque, tracking))  # fmt: skip
+                                index, torque, tracking, scoring.evaluation()))  # fmt: skip
     if not any(r.torque["samples"] for r in rows):
         raise UserError(
             f"{trace}: no joint's telemetry with its ground truth (CTRL_TPDO1 and "
