@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import can
 import numpy as np
 import pytest
 
@@ -13,15 +14,18 @@ from hdhil.can.traces.reader import read_trace
 from hdhil.can.traces.sidecar import read_metadata
 from hdhil.canopen.mapping import trace_decoder
 from hdhil.cli import main
-from hdhil.rig.evaluate import rig_recordings_from_trace
+from hdhil.dbc import codec
+from hdhil.rig.evaluate import RecordingListener, _BusFrames, rig_recordings_from_trace
 
-pytest.importorskip("mujoco", reason="the arm extra (hdhil[arm]): rehabexos's URDF")
-pytestmark = pytest.mark.slow  # a rig's run and a figure of four rows
+
+def _arm() -> None:
+    pytest.importorskip("mujoco", reason="the arm extra (hdhil[arm]): rehabexos's URDF")
 
 
 @pytest.fixture(scope="module")
 def rig_trace(tmp_path_factory) -> Path:
     """0.3 s of rehabexos (four joints on two buses), traced."""
+    _arm()
     trace = tmp_path_factory.mktemp("rigplot") / "rig.blf"
     code = main(["run", "--scenario", "rehabexos", "--duration", "0.3", "--trace", str(trace)])
     assert code == 0
@@ -41,6 +45,7 @@ def _by_name(trace: Path) -> dict[str, list[dict[str, float]]]:
     return out
 
 
+@pytest.mark.slow  # a rig's run and a figure of four rows
 def test_each_joint_is_read_at_its_own_frames_and_truth(rig_trace):
     meta = read_metadata(rig_trace)
     joints, damage = rig_recordings_from_trace(rig_trace, meta["rig"])
@@ -66,6 +71,7 @@ def test_each_joint_is_read_at_its_own_frames_and_truth(rig_trace):
     assert len({float(np.nanmean(j.recording.column("T_true"))) for j in joints}) == 4
 
 
+@pytest.mark.slow  # a rig's run and a figure of four rows
 def test_the_figure_has_a_row_per_joint_headed_by_its_name(rig_trace, tmp_path, monkeypatch):
     import hdhil.commands.plot as plot
 
@@ -92,9 +98,11 @@ def test_the_figure_has_a_row_per_joint_headed_by_its_name(rig_trace, tmp_path, 
         assert "torque (N·m)" in labels
 
 
+@pytest.mark.slow  # a rig's run and a figure of four rows
 def test_misalignment_in_one_joint_draws_its_figs_10_and_11(tmp_path, monkeypatch):
     import hdhil.commands.plot as plot
 
+    _arm()
     override = tmp_path / "mis.toml"
     override.write_text("[joints.J2.plant.ripple]\nmisalignment_pp_Nm = 2.0\n")
     trace = tmp_path / "mis.blf"
@@ -112,6 +120,7 @@ def test_misalignment_in_one_joint_draws_its_figs_10_and_11(tmp_path, monkeypatc
     assert with_10 == ["joint J2"]
 
 
+@pytest.mark.slow  # a rig's run and a figure of four rows
 def test_what_a_rig_trace_is_not_drawn_with_is_one_line(rig_trace, tmp_path, capsys):
     out = tmp_path / "x.png"
     for args, words in (
@@ -124,3 +133,31 @@ def test_what_a_rig_trace_is_not_drawn_with_is_one_line(rig_trace, tmp_path, cap
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and words in err, (args, err)
     assert not out.exists()
+
+
+def test_a_sample_takes_the_truth_stamped_before_its_buss_sync():
+    """A drive's truth of a sample is stamped before its bus's SYNC of that sample. On a
+    loaded bus the SYNC comes late, and the next sample's truth is stamped between it
+    and the sensor frame answering it, which must not take that one."""
+    truth = codec("truth", "TRUTH_TORQUE")
+    sensor = codec("control", "DRIVE_TPDO1")
+    raw = sensor.encode_named(ADC_torque=100, ADC_tacho=0, ADC_current=0, ENC_count=0)
+    frames = [
+        can.Message(timestamp=(k + 0.941) * 1e-3, arbitration_id=truth.frame_id,
+                    is_extended_id=True, channel=1,
+                    data=truth.encode_named(T_true=float(k), T_ripple=0.0))
+        for k in range(4)
+    ]  # fmt: skip
+    for sync_ms in (0.999, 2.849, 3.849):  # the second and third SYNC 0.85 ms late
+        frames += [
+            can.Message(timestamp=sync_ms * 1e-3, arbitration_id=0x080, channel=0, data=b"",
+                        is_extended_id=False),
+            can.Message(timestamp=(sync_ms + 0.2) * 1e-3, arbitration_id=sensor.frame_id,
+                        is_extended_id=False, channel=0, data=raw),
+        ]  # fmt: skip
+    frames.sort(key=lambda m: m.timestamp)
+    bus = _BusFrames()
+    bus.listeners.append(lis := RecordingListener(1e-3))
+    for msg in frames:
+        (bus.on_truth if msg.channel == 1 else bus.on_frame)(msg)
+    assert lis.recording.column("T_true").tolist() == [0.0, 1.0, 2.0]

@@ -32,6 +32,7 @@ from typing import Any
 import can
 import numpy as np
 
+from hdhil.can.schedule import SYNC_COB_ID
 from hdhil.dbc import FrameCodec, codec, predefined_cob_id, truth_frame_id
 from hdhil.firmware.baselines import ButterworthLowPass, TrackingNotchBank
 from hdhil.firmware.config import FirmwareConfig, paper_config, recommended_config
@@ -507,6 +508,38 @@ def in_time_order(
         yield heapq.heappop(heap)[2]
 
 
+class _BusFrames:
+    """A rig bus's joints (:class:`RecordingListener`) fed from its channel and the truth,
+    each sample with the truth of its SYNC: the truth a drive sends for a sample is
+    stamped before the bus's SYNC of that sample, and a SYNC sent early in the cycle
+    (a loaded bus) can have the next sample's truth stamped between it and the sensor
+    frames. So truth frames are handed on at the bus's next SYNC (at once on a bus whose
+    trace shows no SYNC)."""
+
+    def __init__(self) -> None:
+        self.listeners: list[RecordingListener] = []
+        self._held: list[can.Message] = []
+        self._synced = False
+
+    def on_truth(self, msg: can.Message) -> None:
+        if self._synced:
+            self._held.append(msg)
+        else:
+            self._deliver(msg)
+
+    def on_frame(self, msg: can.Message) -> None:
+        if msg.arbitration_id == SYNC_COB_ID and not msg.is_extended_id:
+            self._synced = True
+            for held in self._held:
+                self._deliver(held)
+            self._held.clear()
+        self._deliver(msg)
+
+    def _deliver(self, msg: can.Message) -> None:
+        for lis in self.listeners:
+            lis.on_message_received(msg)
+
+
 @dataclass(frozen=True)
 class JointRecording:
     """One joint of a rig's trace (:func:`rig_recordings_from_trace`): where it sits in
@@ -559,14 +592,18 @@ def rig_recordings_from_trace(
             listeners.append((channels[bus], listener))
     except (KeyError, TypeError, ValueError, UserError) as exc:
         raise ValueError(f"the sidecar's rig layout cannot be read ({exc})") from None
-    truth = CHANNEL_NUMBER["truth"]
-    by_channel: dict[int, list[RecordingListener]] = {truth: [lis for _, lis in listeners]}
+    buses_of: dict[int, _BusFrames] = {}
     for channel, lis in listeners:
-        by_channel.setdefault(channel, []).append(lis)
+        buses_of.setdefault(channel, _BusFrames()).listeners.append(lis)
+    every = list(buses_of.values())
+    truth = CHANNEL_NUMBER["truth"]
     with read_trace(path) as trace:
         for msg in in_time_order(trace):
-            for lis in by_channel.get(msg.channel, ()):  # type: ignore[call-overload]
-                lis.on_message_received(msg)
+            if msg.channel == truth:
+                for bus_frames in every:
+                    bus_frames.on_truth(msg)
+            elif (bus_frames := buses_of.get(msg.channel)) is not None:  # type: ignore[arg-type]
+                bus_frames.on_frame(msg)
         damage = "; ".join(d.describe(str(path)) for d in trace.damage)
     out = [
         JointRecording(name, bus, node, index, lis.recording)
