@@ -17,11 +17,18 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from hdhil.analysis.paper_figures import Fig8Data, make_calibration_figure, make_fig8
-from hdhil.analysis.ripple_figures import PlotData, has_misalignment, make_figure, steady_start
+from hdhil.analysis.ripple_figures import (
+    JointRow,
+    PlotData,
+    has_misalignment,
+    make_figure,
+    make_rig_figure,
+    steady_start,
+)
 from hdhil.core.plotlabels import key_label, split_unit
 from hdhil.rig.campaign_file import Axis, Campaign
-from hdhil.rig.campaign_metrics import METRIC_WORDS, METRICS, Criterion
-from hdhil.rig.campaign_report import is_categorical, plot_files
+from hdhil.rig.campaign_metrics import JOINT_METRICS, METRIC_WORDS, METRICS, Criterion
+from hdhil.rig.campaign_report import axis_words, is_categorical, metric_words, plot_files
 
 Ts = 1e-3
 #: "quantity (unit)" or a dimensionless quantity alone; units never in brackets, after a
@@ -76,6 +83,13 @@ def test_every_campaign_metric_has_words() -> None:
     assert set(METRIC_WORDS) == set(METRICS)
     for name in METRICS:
         assert "_" not in key_label(name, METRIC_WORDS), name
+    for name in JOINT_METRICS:  # a rig's, per joint and for the worst joint
+        for metric in (f"joints.J3.{name}", f"worst.{name}"):
+            words = metric_words(metric)
+            assert "_" not in words and ("J3" in words or "worst joint" in words), words
+    assert axis_words("joints.J3.firmware.control.torque_limit_Nm") == (
+        "J3: control torque limit (N·m)"
+    )
 
 
 # -------------------------------------------------------------------------- Fig. 8
@@ -195,6 +209,17 @@ def test_one_axis_per_quantity() -> None:
 def test_ripple_figure_legends_clear_of_data() -> None:
     fig = make_figure(_plot_data(True), "title", misalignment=True, steady_from_s=4.0)
     _assert_legends_clear_of_data(fig)
+
+
+@pytest.mark.slow
+def test_rig_figure_rows_labelled_and_legends_clear_of_data() -> None:
+    rows = [JointRow("joint A: bus can0", _plot_data(False)),
+            JointRow("joint B: bus can1", _plot_data(True), True, 4.0)]  # fmt: skip
+    fig = make_rig_figure(rows, "title")
+    _assert_notation(fig)
+    _assert_legends_clear_of_data(fig)
+    assert [sub._suptitle.get_text() for sub in fig.subfigs] == [r.heading for r in rows]
+    assert sum(ax.get_title().startswith("Fig. 10") for ax in fig.axes) == 1  # joint B's
 
 
 # ----------------------------------------------------------------- calibration figure

@@ -30,10 +30,13 @@ from hdhil.firmware.isr import TorqueFilterChain
 __all__ = [
     "FORMATS",
     "SPECTRUM_WINDOW_S",
+    "JointRow",
     "PlotData",
+    "configs_have_misalignment",
     "flat_velocity_window",
     "has_misalignment",
     "make_figure",
+    "make_rig_figure",
     "plot_data",
     "ripple_peaks",
     "spectrum_peaks",
@@ -244,8 +247,15 @@ def has_misalignment(scenario: Any) -> bool:
     """Whether a scenario (:class:`hdhil.rig.scenario.Scenario`) contains misalignment:
     the plant's misalignment torque or a firmware oscillator at the output angle.  Figs.
     10-11 are drawn only then."""
-    plant = scenario.plant.ripple.misalignment_pp_Nm > 0.0
-    return plant or any(o.source == "output" for o in scenario.firmware.ripple.oscillators)
+    return configs_have_misalignment(scenario.plant, scenario.firmware)
+
+
+def configs_have_misalignment(plant: Any, firmware: FirmwareConfig) -> bool:
+    """:func:`has_misalignment` of one joint's plant and firmware configuration (a
+    joint of a rig: :attr:`hdhil.rig.scenario.Scenario.joint_configs`)."""
+    if plant.ripple.misalignment_pp_Nm > 0.0:
+        return True
+    return any(o.source == "output" for o in firmware.ripple.oscillators)
 
 
 def steady_start(data: PlotData, steady_from_s: float | None = None) -> float:
@@ -307,8 +317,85 @@ def make_figure(
     close = grid[1, 1].subgridspec(2, 1, hspace=0.0)
     ax_zm = fig.add_subplot(close[0])
     ax_zo = fig.add_subplot(close[1], sharex=ax_zm)
-    t = data.t
     span = _window_samples(data, window)
+
+    _draw_panels(ax_tv, ax_sp, ax_f9, ax_zm, ax_zo, data, span)
+
+    # Figs. 10-11: misalignment vs output angle, before and after filtering.
+    if with_mis:
+        ax_m10 = fig.add_subplot(grid[2, :])
+        after = grid[3, :].subgridspec(1, 2, width_ratios=(1, 3))
+        _draw_misalignment(
+            ax_m10,
+            fig.add_subplot(after[0]),
+            fig.add_subplot(after[1]),
+            data,
+            steady_start(data, steady_from_s),
+        )
+    return fig
+
+
+@dataclass
+class JointRow:
+    """One joint's row of :func:`make_rig_figure`: its heading (the joint's name and
+    where it sits), its signals, whether its scenario contains misalignment
+    (:func:`has_misalignment` of the joint's configuration) and where its steady part
+    starts (s; None: :func:`steady_start` finds it)."""
+
+    heading: str
+    data: PlotData
+    misalignment: bool = False
+    steady_from_s: float | None = None
+
+
+#: Height (in) of one joint's row of :func:`make_rig_figure` (twice that with the
+#: misalignment panels) and the figure's width.
+ROW_HEIGHT_IN = 4.4
+RIG_WIDTH_IN = 24.0
+
+
+def make_rig_figure(
+    rows: list[JointRow], title: str, window: tuple[float, float] | None = None
+) -> Figure:
+    """The figure of a rig of several joints: one row per joint, headed by the joint's
+    name, with the panels :func:`make_figure` draws for one joint side by side (Fig. 8's
+    measured torque and velocity and its spectrum, Fig. 9 and its close-up) and, for a
+    joint whose configuration contains misalignment, Figs. 10 and 11 in a second line of
+    its row. ``window`` (T0, T1) in s: every joint's spectrum window, else each joint's
+    own flattest window (:func:`flat_velocity_window`)."""
+    if not rows:
+        raise UserError("no joint to plot")
+    spans = [_window_samples(row.data, window) for row in rows]  # checked before drawing
+    heights = [2 if row.misalignment else 1 for row in rows]
+    fig = Figure(figsize=(RIG_WIDTH_IN, ROW_HEIGHT_IN * sum(heights) + 0.9),
+                 layout="constrained")  # fmt: skip
+    fig.suptitle(title, fontsize=14)
+    subs = fig.subfigures(len(rows), 1, squeeze=False, height_ratios=heights)[:, 0]
+    for sub, row, span in zip(subs, rows, spans, strict=True):
+        sub.suptitle(row.heading, fontsize=13, fontweight="bold", x=0.01, ha="left")
+        grid = sub.add_gridspec(2 if row.misalignment else 1, 4,
+                                width_ratios=(1.1, 1.0, 1.1, 1.15))  # fmt: skip
+        close = grid[0, 3].subgridspec(2, 1, hspace=0.0)
+        ax_zm = sub.add_subplot(close[0])
+        ax_zo = sub.add_subplot(close[1], sharex=ax_zm)
+        axes = [sub.add_subplot(grid[0, k]) for k in range(3)]
+        _draw_panels(*axes, ax_zm, ax_zo, row.data, span, close_up_cols=1)
+        if row.misalignment:
+            after = grid[1, 2:].subgridspec(1, 2, width_ratios=(1, 3))
+            _draw_misalignment(sub.add_subplot(grid[1, :2]), sub.add_subplot(after[0]),
+                               sub.add_subplot(after[1]), row.data,
+                               steady_start(row.data, row.steady_from_s))  # fmt: skip
+    return fig
+
+
+def _draw_panels(
+    ax_tv: Any, ax_sp: Any, ax_f9: Any, ax_zm: Any, ax_zo: Any,
+    data: PlotData, span: tuple[int, int] | None, close_up_cols: int = 3,
+) -> None:  # fmt: skip
+    """Figs. 8 and 9 (:func:`make_figure`) on their axes: the torque and velocity, the
+    spectrum, the measured against the filtered torque and its close-up (its legend in
+    ``close_up_cols`` columns)."""
+    t = data.t
 
     # Fig. 8 top: measured torque and velocity, each on its own axis.
     ax_tv.plot(t, data.T_meas, label="measured torque (left axis)", **_FILT)
@@ -360,32 +447,22 @@ def make_figure(
     )
     h, lab = ax_zm.get_legend_handles_labels()
     h2, lab2 = ax_zo.get_legend_handles_labels()
-    _legend_below(ax_zo, h + h2, lab + lab2, below=-0.34)  # a half-height axes
+    _legend_below(ax_zo, h + h2, lab + lab2, below=-0.34, ncols=close_up_cols)  # half height
     for ax in (ax_zm, ax_zo):
         ax.grid(alpha=0.3)
 
-    # Figs. 10-11: misalignment vs output angle, before and after filtering.
-    if with_mis:
-        ax_m10 = fig.add_subplot(grid[2, :])
-        after = grid[3, :].subgridspec(1, 2, width_ratios=(1, 3))
-        _draw_misalignment(
-            ax_m10,
-            fig.add_subplot(after[0]),
-            fig.add_subplot(after[1]),
-            data,
-            steady_start(data, steady_from_s),
-        )
-    return fig
 
-
-def _legend_below(ax: Any, handles: Any = None, labels: Any = None, below: float = -0.16) -> None:
+def _legend_below(
+    ax: Any, handles: Any = None, labels: Any = None, below: float = -0.16, ncols: int = 3
+) -> None:
     """The axes' legend under it, outside the data (the constrained layout makes room);
-    ``below``: its top in axes heights under the axes' bottom edge (clear of the x label)."""
+    ``below``: its top in axes heights under the axes' bottom edge (clear of the x label);
+    at most ``ncols`` columns."""
     if handles is None:
         handles, labels = ax.get_legend_handles_labels()
     if handles:
         ax.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, below),
-                  ncols=min(3, len(handles)), fontsize=8, frameon=False)  # fmt: skip
+                  ncols=min(ncols, len(handles)), fontsize=8, frameon=False)  # fmt: skip
 
 
 def _fit_ylim(ax: Any, curves: list[np.ndarray | None], margin: float = 0.06) -> None:

@@ -17,6 +17,7 @@ from typing import Any
 from matplotlib.figure import Figure
 
 from hdhil.analysis.ripple_figures import FORMATS, has_misalignment, make_figure, plot_data
+from hdhil.can.traces.sidecar import read_metadata
 from hdhil.core.errors import UserError
 from hdhil.core.files import atomic_path, check_output, display_name
 from hdhil.core.numbers import arg_seconds
@@ -73,7 +74,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``hdhil plot``: 0 written, 1 written from a damaged trace (2 via UserError)."""
-    from hdhil.can.traces.sidecar import read_metadata
     from hdhil.commands.options import check_outputs, scenario_inputs, trace_inputs
     from hdhil.rig.evaluate import recording_from_trace
     from hdhil.rig.sidecar import request_for_trace
@@ -81,8 +81,9 @@ def run(args: argparse.Namespace) -> int:
     _check_out(args.out)
     check_outputs([(args.out, "--out")], [*trace_inputs(args.trace), *scenario_inputs(args)])
     request = request_for_trace(args.trace, args.scenario)
-    if request is not None:
-        request.require_one_joint("hdhil plot")
+    meta = read_metadata(args.trace) or {}
+    if isinstance(meta.get("rig"), dict) or (request is not None and request.scenario.is_rig):
+        return _run_rig(args, request, meta)
     scenario = request.scenario if request is not None else None
     if args.figure == "fig8":
         return _run_fig8(args, scenario)
@@ -91,12 +92,7 @@ def run(args: argparse.Namespace) -> int:
     data = plot_data(rec, fw)
     name = scenario.name if scenario else "(firmware defaults)"
     truth = "with ground truth" if data.T_true is not None else "no ground truth"
-    meta = read_metadata(args.trace) or {}
-    run = ""
-    if meta.get("seed") is not None:
-        run += f", seed {meta['seed']}"
-    if meta.get("start_time_utc"):
-        run += f", recorded {meta['start_time_utc']}"
+    run = _run_words(meta)
     trace_name = display_name(args.trace.name)  # a figure's text must be valid Unicode
     title = (
         f"{trace_name}: scenario {name}{run}, {len(data)} samples, {data.mode} filter, "
@@ -110,6 +106,75 @@ def run(args: argparse.Namespace) -> int:
         misalignment=has_misalignment(scenario) if scenario is not None else None,
         steady_from_s=scenario.evaluate_from_s if scenario is not None else None,
     )
+    return _save(fig, args.out, damage)
+
+
+def _run_words(meta: dict[str, Any]) -> str:
+    """The run's seed and start time from the trace's sidecar, for a figure's title."""
+    run = ""
+    if meta.get("seed") is not None:
+        run += f", seed {meta['seed']}"
+    if meta.get("start_time_utc"):
+        run += f", recorded {meta['start_time_utc']}"
+    return run
+
+
+def _run_rig(args: argparse.Namespace, request: Any, meta: dict[str, Any]) -> int:
+    """``hdhil plot`` of a rig's trace: one row per joint (:func:`hdhil.analysis.
+    ripple_figures.make_rig_figure`), each joint decoded at its own identifiers on its
+    bus's channel with its own truth (:func:`hdhil.rig.evaluate.rig_recordings_from_trace`)
+    and drawn with its own firmware configuration."""
+    from hdhil.analysis.ripple_figures import JointRow, configs_have_misalignment, make_rig_figure
+    from hdhil.rig.evaluate import rig_recordings_from_trace
+    from hdhil.rig.rigrun import rig_metadata
+
+    if args.figure == "fig8":
+        raise UserError(
+            f"{display_name(str(args.trace))}: --figure fig8 draws one joint's torque-control "
+            "run; a rig's trace is drawn per joint by the default figure (--figure ripple)"
+        )
+    if request is None or not request.scenario.is_rig:
+        given = f"scenario {request.name} is a single joint" if request else "no scenario"
+        raise UserError(
+            f"{display_name(str(args.trace))}: the trace's sidecar lays out a rig of several "
+            f"joints, but {given}; give the rig's scenario (--scenario) or leave it out"
+        )
+    scenario = request.scenario
+    rig = meta["rig"] if isinstance(meta.get("rig"), dict) else rig_metadata(request, 0.0)["rig"]
+    try:
+        joints, damage = rig_recordings_from_trace(
+            args.trace, rig, scenario.firmware.sample_period_s
+        )
+    except ValueError as exc:
+        raise UserError(f"{display_name(str(args.trace))}: {exc}") from None
+    configs = {j.name: cfg for j, cfg in zip(scenario.joints, scenario.joint_configs, strict=True)}
+    rows = []
+    for joint in joints:
+        if joint.name not in configs:
+            raise UserError(
+                f"{display_name(str(args.trace))}: joint {joint.name} of the trace is not a "
+                f"joint of scenario {scenario.name} ({', '.join(configs)})"
+            )
+        plant, fw = configs[joint.name]
+        try:
+            data = plot_data(joint.recording, fw)
+        except UserError as exc:
+            raise UserError(f"joint {joint.name}: {exc}") from None
+        truth = "with ground truth" if data.T_true is not None else "no ground truth"
+        rows.append(JointRow(
+            f"joint {joint.name}: bus {joint.bus}, node-ID {joint.node_id}; {len(data)} "
+            f"samples, {data.mode} filter, {truth}",
+            data, configs_have_misalignment(plant, fw), scenario.evaluate_from_s or None,
+        ))  # fmt: skip
+    buses = sorted({j.bus for j in joints})
+    title = (
+        f"{display_name(args.trace.name)}: scenario {scenario.name}{_run_words(meta)}, "
+        f"{len(rows)} joints on {len(buses)} bus{'es' if len(buses) != 1 else ''} "
+        f"({', '.join(buses)}), one row per joint\n"
+        "after [Taghirad97] (Taghirad, CIM-TR-97-06) Figs. 8-11"
+    )
+    window = tuple(args.window) if args.window is not None else None
+    fig = make_rig_figure(rows, title, window)  # type: ignore[arg-type]
     return _save(fig, args.out, damage)
 
 

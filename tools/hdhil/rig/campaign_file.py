@@ -21,7 +21,7 @@ from hdhil.core.dataconf import ConfigError, from_dict
 from hdhil.core.errors import UserError
 from hdhil.core.files import load_toml, shipped_or_path
 from hdhil.core.numbers import MAX_SECONDS, check_number
-from hdhil.rig.campaign_metrics import METRICS, Criterion
+from hdhil.rig.campaign_metrics import Criterion, known_metrics, metric_kind
 
 __all__ = ["MAX_VARIANTS", "Axis", "Campaign", "list_campaigns", "load_campaign", "printable"]
 
@@ -64,7 +64,29 @@ class Campaign:
     @property
     def plot_metrics(self) -> list[str]:
         names = [c.metric for c in self.criteria] + list(self.plots)
-        return [n for i, n in enumerate(names) if n not in names[:i] and METRICS[n].kind != "bool"]
+        return [n for i, n in enumerate(names) if n not in names[:i] and metric_kind(n) != "bool"]
+
+    @property
+    def joint_names(self) -> list[str]:
+        """The joints the axes, criteria and plots name (``joints.NAME...``), in order:
+        each must be a joint of every base scenario (:mod:`hdhil.rig.campaign_variants`)."""
+        from hdhil.rig.campaign_metrics import split_joint_metric
+
+        names = [key.split(".")[1] for key in self.axis_keys if key.startswith("joints.")]
+        for metric in [c.metric for c in self.criteria] + list(self.plots):
+            split = split_joint_metric(metric)
+            if split is not None and split[0] is not None:
+                names.append(split[0])
+        return [n for i, n in enumerate(names) if n not in names[:i]]
+
+    @property
+    def names_joints(self) -> bool:
+        """Whether the axes, criteria or plots name a joint or the worst joint: the
+        campaign then takes rigs of several joints only."""
+        from hdhil.rig.campaign_metrics import split_joint_metric
+
+        metrics = [c.metric for c in self.criteria] + list(self.plots)
+        return bool(self.joint_names) or any(split_joint_metric(m) for m in metrics)
 
 
 @dataclass(frozen=True)
@@ -230,10 +252,8 @@ def _campaign_from_dict(data: dict[str, Any], path: Path) -> Campaign:
         scenarios.append(str(path.parent / name) if looks_like_path else name)
     criteria = tuple(Criterion.parse(c, "campaign.criteria") for c in header.criteria)
     for name in header.plots:
-        if name not in METRICS:
-            raise ConfigError(
-                f"campaign.plots: unknown metric {name!r} (known: {', '.join(METRICS)})"
-            )
+        if metric_kind(name) is None:
+            raise ConfigError(f"campaign.plots: unknown metric {name!r} ({known_metrics()})")
     lazy_axes = _flatten_axes(data.get("axes", {}), "axes")
     zips_data = data.get("zip", [])
     if not isinstance(zips_data, list):
@@ -258,9 +278,16 @@ def _campaign_from_dict(data: dict[str, Any], path: Path) -> Campaign:
             "plant",
             "firmware",
             "faults",
+            "joints",
         ):
             raise ConfigError(
-                f"axis {key}: not a scenario key (seed, scenario.*, plant.*, firmware.*, faults.*)"
+                f"axis {key}: not a scenario key (seed, scenario.*, plant.*, firmware.*, "
+                "faults.*, joints.NAME.*)"
+            )
+        if key.startswith("joints.") and len(key.split(".")) < 3:
+            raise ConfigError(
+                f"axis {key}: a joint's key is joints.NAME.KEY (e.g. "
+                "joints.J3.firmware.control.torque_limit_Nm), NAME a joint of the scenario"
             )
     _check_size(scenarios, lazy_axes, zips)
     axes = tuple(a.build() for a in lazy_axes)

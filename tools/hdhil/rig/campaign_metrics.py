@@ -24,13 +24,21 @@ if TYPE_CHECKING:
     from hdhil.rig.campaign_variants import Variant
 
 __all__ = [
+    "JOINT_METRICS",
     "METRICS",
     "METRIC_WORDS",
     "Criterion",
+    "JointMetric",
     "Metric",
     "format_value",
+    "joint_columns",
+    "joint_metrics_of",
     "judge",
+    "known_metrics",
+    "metric_kind",
+    "metric_words",
     "metrics_of",
+    "split_joint_metric",
     "stop_reason",
 ]
 
@@ -176,9 +184,143 @@ METRIC_WORDS: dict[str, str] = {
 }
 
 
+@dataclass(frozen=True)
+class JointMetric:
+    """A figure of one joint of a rig: where it comes from in the joint's entry of
+    ``hdhil run --json``'s ``joints``, its kind, its words and which way is worse
+    (``max``: the largest value is the worst joint's; ``min``: the smallest)."""
+
+    source: str
+    kind: str
+    words: str
+    worse: str = "max"
+
+    def get(self, joint: dict[str, Any]) -> Any:
+        return _get(self.source)(joint)
+
+
+#: Every figure a rig reports per joint (``hdhil run --json`` of a scenario with
+#: ``[joints]``: its ``joints`` list). A campaign names joint ``J3``'s as
+#: ``joints.J3.METRIC`` and the worst joint's as ``worst.METRIC`` (:func:`metric_kind`).
+JOINT_METRICS: dict[str, JointMetric] = {
+    "samples": JointMetric("samples", "int", "control cycles", "min"),
+    "filtered_rms_err_whole_run_Nm": JointMetric(
+        "torque.rms_error_filtered", "float", "filtered RMS error"
+    ),
+    "filtered_max_err_whole_run_Nm": JointMetric(
+        "torque.max_error_filtered", "float", "filtered max error"
+    ),
+    "raw_rms_err_whole_run_Nm": JointMetric("torque.rms_error_raw", "float", "raw RMS error"),
+    "true_rms_whole_run_Nm": JointMetric("torque.rms_true", "float", "RMS of the true torque"),
+    "filtered_to_raw_whole_run": JointMetric(
+        "torque.filtered_to_raw", "float", "RMS error, filtered / raw"
+    ),
+    "max_abs_e_Nm": JointMetric("tracking.max_abs_error", "float", "max |e|"),
+    "rms_e_Nm": JointMetric("tracking.rms_error", "float", "RMS e"),
+    "rms_e_measured_Nm": JointMetric(
+        "tracking.rms_error_measured", "float", "RMS e on the measured torque"
+    ),
+    "share_within_goal_measured": JointMetric(
+        "tracking.share_within_goal_measured", "float", "share of |e| ≤ 0.5 N·m", "min"
+    ),
+}
+
+#: The prefixes of a joint's metric and of the worst joint's.
+JOINT_PREFIX = "joints."
+WORST_PREFIX = "worst."
+
+
+def split_joint_metric(name: str) -> tuple[str | None, str] | None:
+    """``joints.J3.rms_e_Nm`` as ``("J3", "rms_e_Nm")``, ``worst.rms_e_Nm`` as
+    ``(None, "rms_e_Nm")``; None for any other name (a metric of :data:`METRICS`, or
+    not a metric)."""
+    if name.startswith(WORST_PREFIX):
+        metric = name[len(WORST_PREFIX) :]
+        return (None, metric) if metric in JOINT_METRICS else None
+    if name.startswith(JOINT_PREFIX):
+        joint, _, metric = name[len(JOINT_PREFIX) :].rpartition(".")
+        return (joint, metric) if joint and metric in JOINT_METRICS else None
+    return None
+
+
+def metric_kind(name: str) -> str | None:
+    """The kind (``float``, ``int``, ``bool``) of a metric a campaign may name: one of
+    :data:`METRICS`, a joint's (``joints.NAME.METRIC``) or the worst joint's
+    (``worst.METRIC``) of :data:`JOINT_METRICS`; None for an unknown name."""
+    if name in METRICS:
+        return METRICS[name].kind
+    split = split_joint_metric(name)
+    return JOINT_METRICS[split[1]].kind if split is not None else None
+
+
+def metric_words(name: str) -> str | None:
+    """A metric in words (None: unknown), for the campaign plots."""
+    if name in METRIC_WORDS:
+        return METRIC_WORDS[name]
+    split = split_joint_metric(name)
+    if split is None:
+        return None
+    joint, metric = split
+    return f"{JOINT_METRICS[metric].words}, " + (f"joint {joint}" if joint else "worst joint")
+
+
+def joint_columns(joints: Iterable[str]) -> list[str]:
+    """The result columns of a rig's joints, named ``joints``: each joint's metrics,
+    then the worst joint's, each followed by the name of the joint it is
+    (``worst.METRIC.joint``); none without joints (a single-joint campaign)."""
+    names = list(joints)
+    if not names:
+        return []
+    cols = [f"{JOINT_PREFIX}{j}.{m}" for j in names for m in JOINT_METRICS]
+    for m in JOINT_METRICS:
+        cols += [f"{WORST_PREFIX}{m}", f"{WORST_PREFIX}{m}.joint"]
+    return cols
+
+
+def joint_metrics_of(result: dict[str, Any]) -> dict[str, Any]:
+    """A rig's per-joint metrics (:data:`JOINT_METRICS`) from its ``hdhil run --json``
+    result: ``joints.NAME.METRIC`` for every joint, and ``worst.METRIC`` with
+    ``worst.METRIC.joint`` over the joints that report it (the first in the layout's
+    order on a tie). Empty for a single joint's result."""
+    joints = result.get("joints")
+    if not isinstance(joints, list):
+        return {}
+    out: dict[str, Any] = {}
+    for name, m in JOINT_METRICS.items():
+        worst: tuple[Any, str] | None = None
+        for joint in joints:
+            value = m.get(joint)
+            out[f"{JOINT_PREFIX}{joint['name']}.{name}"] = value
+            if not isinstance(value, (int, float)) or isinstance(value, bool):
+                continue
+            if isinstance(value, float) and math.isnan(value):
+                continue
+            if worst is None or (value > worst[0] if m.worse == "max" else value < worst[0]):
+                worst = (value, str(joint["name"]))
+        out[f"{WORST_PREFIX}{name}"] = None if worst is None else worst[0]
+        out[f"{WORST_PREFIX}{name}.joint"] = None if worst is None else worst[1]
+    return out
+
+
+def _rig_metric(name: str, result: dict[str, Any]) -> Any:
+    """A metric of :data:`METRICS` for a rig's result: what a rig reports for the run
+    as a whole (its time, its cycles, its frames on every bus); None for the rest."""
+    if name in ("simulated_s", "cycles"):
+        return result.get(name)
+    if name == "frames_total":
+        return int(sum((result.get("frames") or {}).values()))
+    return None
+
+
 def metrics_of(result: dict[str, Any], planned_cycles: int) -> dict[str, Any]:
-    """Every metric of :data:`METRICS` for one run's result (None: not reported)."""
-    out = {name: m.get(result) for name, m in METRICS.items()}
+    """Every metric of :data:`METRICS` for one run's result (None: not reported) and,
+    for a rig of several joints, its metrics per joint and for the worst joint
+    (:func:`joint_metrics_of`)."""
+    if isinstance(result.get("joints"), list):
+        out = {name: _rig_metric(name, result) for name in METRICS}
+        out.update(joint_metrics_of(result))
+    else:
+        out = {name: m.get(result) for name, m in METRICS.items()}
     out["stopped_early"] = int(result["cycles"]) < planned_cycles
     return out
 
@@ -204,7 +346,7 @@ def stop_reason(result: dict[str, Any], planned_cycles: int) -> str:
 
 # ----------------------------------------------------------------------------- criteria
 
-_CRITERION = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(<=|>=|==|!=|<|>)\s*(\S.*?)\s*$")
+_CRITERION = re.compile(r"^\s*([A-Za-z_][\w.\-]*)\s*(<=|>=|==|!=|<|>)\s*(\S.*?)\s*$")
 _OPS: dict[str, Callable[[Any, Any], bool]] = {
     "<": lambda a, b: a < b,
     "<=": lambda a, b: a <= b,
@@ -234,11 +376,9 @@ class Criterion:
                 f"{where}: {text!r} is not 'METRIC OP VALUE' (OP one of < <= > >= == !=)"
             )
         metric, op, raw = m.groups()
-        if metric not in METRICS:
-            raise ConfigError(
-                f"{where}: unknown metric {metric!r} in {text!r} (known: {', '.join(METRICS)})"
-            )
-        kind = METRICS[metric].kind
+        kind = metric_kind(metric)
+        if kind is None:
+            raise ConfigError(f"{where}: unknown metric {metric!r} in {text!r} ({known_metrics()})")
         value: float | bool
         if raw in ("true", "false"):
             if kind != "bool" or op not in ("==", "!="):
@@ -281,6 +421,14 @@ class Criterion:
             if self.op in ("<", "<=")
             else float(self.value) - float(actual)
         )
+
+
+def known_metrics() -> str:
+    """The metrics a campaign may name, for an error message."""
+    return (
+        f"known: {', '.join(METRICS)}; for a rig of several joints {JOINT_PREFIX}NAME.METRIC "
+        f"and {WORST_PREFIX}METRIC with METRIC one of {', '.join(JOINT_METRICS)}"
+    )
 
 
 def format_value(value: Any) -> str:

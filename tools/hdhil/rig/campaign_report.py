@@ -22,7 +22,8 @@ from typing import Any
 from hdhil.core.plotlabels import axis_label, key_label, split_unit
 from hdhil.rig.campaign import CampaignRun, Record, _write_atomic
 from hdhil.rig.campaign_file import Campaign
-from hdhil.rig.campaign_metrics import METRIC_WORDS, METRICS, format_value
+from hdhil.rig.campaign_metrics import METRICS, format_value, joint_columns
+from hdhil.rig.campaign_metrics import metric_words as words_of_metric
 from hdhil.rig.campaign_variants import Variant
 
 #: Variants listed per criterion under "worst variants".
@@ -41,12 +42,25 @@ def _cell(value: Any) -> str:
     return str(value)
 
 
-def columns(campaign: Campaign) -> list[str]:
+def joint_names(variants: Sequence[Variant]) -> list[str]:
+    """The joints of a campaign's rigs, in the order they first appear (none for a
+    campaign of single joints): the per-joint columns of ``results.csv``."""
+    names: list[str] = []
+    for v in variants:
+        names += [j for j in v.joints if j not in names]
+    return names
+
+
+def columns(campaign: Campaign, joints: Sequence[str] = ()) -> list[str]:
+    """``results.csv``'s columns; with the ``joints`` of a campaign's rigs, each joint's
+    metrics and the worst joint's after the run's (:func:`~hdhil.rig.campaign_metrics.
+    joint_columns`)."""
     axis = campaign.axis_keys
     head = ["variant", "scenario", *axis]
     if "seed" not in axis:
         head.append("seed")
-    return [*head, *METRICS, *(c.text for c in campaign.criteria), "status", "reason", "digest"]
+    return [*head, *METRICS, *joint_columns(joints), *(c.text for c in campaign.criteria),
+            "status", "reason", "digest"]  # fmt: skip
 
 
 def rows(campaign: Campaign, records: dict[str, Record]) -> list[dict[str, Any]]:
@@ -59,6 +73,7 @@ def rows(campaign: Campaign, records: dict[str, Record]) -> list[dict[str, Any]]
         row.update({k: v.values.get(k) for k in campaign.axis_keys})
         row["seed"] = v.seed
         row.update({m: rec.metrics.get(m) for m in METRICS})
+        row.update({m: rec.metrics.get(m) for m in joint_columns(v.joints)})
         for c in campaign.criteria:
             row[c.text] = (
                 "error" if rec.error is not None else "pass" if rec.verdicts.get(c.text) else "fail"
@@ -70,10 +85,12 @@ def rows(campaign: Campaign, records: dict[str, Record]) -> list[dict[str, Any]]
     return out
 
 
-def results_csv(campaign: Campaign, table: list[dict[str, Any]]) -> bytes:
+def results_csv(
+    campaign: Campaign, table: list[dict[str, Any]], joints: Sequence[str] = ()
+) -> bytes:
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    head = columns(campaign)
+    head = columns(campaign, joints)
     writer.writerow(head)
     for row in table:
         writer.writerow([_cell(row.get(c)) for c in head])
@@ -90,7 +107,9 @@ def timings_csv(records: dict[str, Record]) -> bytes:
     return buf.getvalue().encode()
 
 
-def write_parquet(path: Path, campaign: Campaign, table: list[dict[str, Any]]) -> str | None:
+def write_parquet(
+    path: Path, campaign: Campaign, table: list[dict[str, Any]], joints: Sequence[str] = ()
+) -> str | None:
     """``results.parquet`` through pyarrow; returns why not when it cannot."""
     try:
         import pyarrow as pa
@@ -98,7 +117,7 @@ def write_parquet(path: Path, campaign: Campaign, table: list[dict[str, Any]]) -
     except ImportError:
         return "pyarrow is not installed (pip install 'hdhil[cluster]'): no results.parquet"
     data: dict[str, list[Any]] = {}
-    for col in columns(campaign):
+    for col in columns(campaign, joints):
         values = [row.get(col) for row in table]
         present = [x for x in values if x is not None]
         if present and all(isinstance(x, bool) for x in present):
@@ -152,12 +171,17 @@ def axis_words(axis: str) -> str:
     """A campaign axis as an axis label: words and unit (:data:`AXIS_WORDS`)."""
     if _is_fraction(axis):
         return axis_label(AXIS_WORDS.get(axis) or key_label(axis), "%")
+    if axis.startswith("joints.") and axis.count(".") >= 2:  # joints.NAME.KEY: the joint's
+        _, joint, key = axis.split(".", 2)
+        return f"{joint}: {key_label(key, AXIS_WORDS)}"
     return key_label(axis, AXIS_WORDS)
 
 
 def metric_words(metric: str) -> str:
-    """A metric as an axis label: its words and unit (:data:`METRIC_WORDS`)."""
-    return key_label(metric, METRIC_WORDS)
+    """A metric as an axis label: its words and unit (:data:`METRIC_WORDS`; a joint's
+    metric: :func:`hdhil.rig.campaign_metrics.metric_words`)."""
+    words = words_of_metric(metric)
+    return key_label(metric, {metric: words} if words else None)
 
 
 def plot_files(campaign: Campaign, table: list[dict[str, Any]], plots: Path) -> list[Path]:
@@ -246,15 +270,20 @@ def plot_files(campaign: Campaign, table: list[dict[str, Any]], plots: Path) -> 
                 ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{100.0 * v:g}"))
             ax.set_xlabel(axis_words(axis))
             ax.set_ylabel(metric_words(metric))
-            what = f"{_words_of(metric, METRIC_WORDS)} over {_words_of(axis)}"
+            what = f"{words_of_metric(metric) or metric} over {_words_of(axis)}"
             ax.set_title(f"{campaign.name}: {what}", fontsize=9)
             ax.grid(True, alpha=0.3)
             ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-            path = plots / f"{metric}-over-{axis.replace('.', '_')}.png"
+            path = plots / f"{_file_part(metric)}-over-{_file_part(axis.replace('.', '_'))}.png"
             fig.savefig(path)
             plt.close(fig)
             files.append(path)
     return files
+
+
+def _file_part(name: str) -> str:
+    """A metric or axis as part of a file name: a joint's name may hold any character."""
+    return "".join(c if c.isalnum() or c in "._-" else "_" for c in name)
 
 
 def _value_words(axis: str | None, value: Any) -> str:
@@ -269,6 +298,9 @@ def _words_of(key: str | None, words: dict[str, str] | None = None) -> str:
     if key is None:
         return ""
     words = AXIS_WORDS if words is None else words
+    if words is AXIS_WORDS and key.startswith("joints.") and key.count(".") >= 2:
+        _, joint, rest = key.split(".", 2)
+        return f"{joint}'s {_words_of(rest)}"
     return words.get(key) or key_label(split_unit(key)[0])
 
 
@@ -404,10 +436,11 @@ def write_outputs(campaign: Campaign, variants: Sequence[Variant], run: Campaign
                   out: Path) -> dict[str, Any]:  # fmt: skip
     """Write every output file from the records; returns the summary with the paths."""
     table = rows(campaign, run.records)
-    _write_atomic(out / "results.csv", results_csv(campaign, table))
+    joints = joint_names(variants)
+    _write_atomic(out / "results.csv", results_csv(campaign, table, joints))
     _write_atomic(out / "timings.csv", timings_csv(run.records))
     notes = []
-    why = write_parquet(out / "results.parquet", campaign, table)
+    why = write_parquet(out / "results.parquet", campaign, table, joints)
     if why:
         notes.append(why)
     if run.interrupted:  # drawing takes longer than the rest: the campaign is ending

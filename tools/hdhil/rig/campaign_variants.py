@@ -23,7 +23,8 @@ from typing import Any
 from hdhil.core.dataconf import ConfigError, merge
 from hdhil.rig.campaign_file import Campaign, printable
 from hdhil.rig.campaign_metrics import format_value
-from hdhil.rig.scenario import scenario_data, scenario_file_data, scenario_from_dict
+from hdhil.rig.rigrun import check_rig_options
+from hdhil.rig.scenario import Scenario, scenario_data, scenario_file_data, scenario_from_dict
 from hdhil.rig.variant import RunSettings, request_of
 
 __all__ = ["Variant", "digest_of", "expand"]
@@ -39,6 +40,8 @@ class Variant:
     settings: RunSettings
     planned_cycles: int
     digest: str
+    #: The joints of the variant's rig, in the layout's order (empty: a single joint).
+    joints: tuple[str, ...] = ()
 
     @property
     def seed(self) -> int:
@@ -78,6 +81,27 @@ def digest_of(settings: RunSettings) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+def _check_joints(campaign: Campaign, base: str, scenario: Scenario) -> None:
+    """Refuse a base scenario that lacks a joint the campaign names (an axis
+    ``joints.NAME.*``, a metric ``joints.NAME.*``), or a single joint where the campaign
+    names joints or the worst joint: an axis naming a joint the scenario does not have
+    would add one."""
+    if not campaign.names_joints:
+        return
+    if not scenario.is_rig:
+        raise ConfigError(
+            f"scenario {scenario.name} is a single joint: axes and metrics of a joint "
+            "(joints.NAME.*, worst.*) take a rig of several joints"
+        )
+    names = [j.name for j in scenario.joints]
+    for name in campaign.joint_names:
+        if name not in names:
+            raise ConfigError(
+                f"joint {printable(name)} is not a joint of scenario {scenario.name} "
+                f"({', '.join(names)})"
+            )
+
+
 def expand(campaign: Campaign) -> list[Variant]:
     """Every variant of the campaign in order (scenarios, then the axes as written, the
     last varying fastest), each built and validated as ``hdhil run`` would build it."""
@@ -96,7 +120,7 @@ def expand(campaign: Campaign) -> list[Variant]:
     # A scenario is read, validated and resolved once per base file and once per set of
     # overrides: variants that differ only in the seed share its plain data (one dict).
     files: dict[str, tuple[str, dict[str, Any]]] = {}
-    resolved: dict[tuple[str, str], tuple[dict[str, Any], int]] = {}
+    resolved: dict[tuple[str, str], tuple[dict[str, Any], int, tuple[str, ...]]] = {}
     suffix = f".{campaign.trace_format}" if campaign.keep_trace else None
     for base in campaign.scenarios:
         for point in points:
@@ -117,6 +141,7 @@ def expand(campaign: Campaign) -> list[Variant]:
                     if base not in files:
                         path, raw = scenario_file_data(base)
                         files[base] = (str(path), raw)
+                        _check_joints(campaign, base, scenario_from_dict(raw, str(path)))
                     source, raw = files[base]
                     scenario = scenario_from_dict(merge(raw, overrides), source)
                     data = scenario_data(scenario)
@@ -124,9 +149,12 @@ def expand(campaign: Campaign) -> list[Variant]:
                         raise ConfigError("the scenario does not survive its plain-data form")
                     # What the worker will resolve; the seed (checked in the file, as
                     # ``resolve`` checks it) does not change the cycles planned.
-                    planned = request_of(RunSettings(data, campaign.duration_s)).cycles
-                    resolved[key] = (data, planned)
-                data, planned = resolved[key]
+                    request = request_of(RunSettings(data, campaign.duration_s))
+                    if scenario.is_rig:  # what a rig's run refuses, before anything runs
+                        check_rig_options(request)
+                    joints = tuple(j.name for j in scenario.joints)
+                    resolved[key] = (data, request.cycles, joints)
+                data, planned, joints = resolved[key]
                 settings = RunSettings(data, campaign.duration_s, seed, suffix)
             except ConfigError as exc:
                 raise ConfigError(f"{where}: {printable(str(exc))}") from None
@@ -134,5 +162,5 @@ def expand(campaign: Campaign) -> list[Variant]:
             if digest in seen:
                 raise ConfigError(f"{where}: same settings as variant {seen[digest]}")
             seen[digest] = vid
-            variants.append(Variant(vid, base, dict(point), settings, planned, digest))
+            variants.append(Variant(vid, base, dict(point), settings, planned, digest, joints))
     return variants

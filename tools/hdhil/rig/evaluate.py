@@ -20,10 +20,11 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import heapq
 import math
 import textwrap
 from array import array
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,7 @@ from typing import Any
 import can
 import numpy as np
 
+from hdhil.can.schedule import SYNC_COB_ID
 from hdhil.dbc import FrameCodec, codec, predefined_cob_id, truth_frame_id
 from hdhil.firmware.baselines import ButterworthLowPass, TrackingNotchBank
 from hdhil.firmware.config import FirmwareConfig, paper_config, recommended_config
@@ -159,10 +161,11 @@ class RecordingListener(can.Listener):
 
     ``drive_node_id``: the drive's CANopen node-ID (its sensor frame, statusword and SDO
     answers at that node's identifiers: the pre-defined connection set, or the COB-IDs
-    ``drive_pdos`` records); the controller's telemetry is at ``controller_node_id``'s,
-    or at ``telemetry_id`` (a rig's controller serving several joints,
-    :class:`hdhil.firmware.controller.link.DriveLink`).  ``joint_index``: the rig's joint
-    whose truth frames count (:func:`hdhil.dbc.truth_frame_id`; 0, a single joint's).
+    ``drive_pdos`` records); the controller's telemetry is at ``controller_node_id``'s.
+    A joint of a rig (:func:`rig_recordings_from_trace`): ``telemetry_id`` the identifier
+    of the controller's telemetry of the joint (its TPDO1 for the first joint a node
+    serves, TPDO3 for the second), ``truth_joint_index`` the joint's truth identifiers
+    (:func:`hdhil.dbc.truth_frame_id`).
     """
 
     def __init__(
@@ -177,7 +180,7 @@ class RecordingListener(can.Listener):
         drive_node_id: int = 2,
         controller_node_id: int = 1,
         telemetry_id: int | None = None,
-        joint_index: int = 0,
+        truth_joint_index: int = 0,
     ) -> None:
         #: The rows recorded (all of them with ``keep``; without, those not yet scored).
         self.recording = Recording(sample_period_s)
@@ -218,12 +221,11 @@ class RecordingListener(can.Listener):
         self._status = self._status.at(status_id)
         self._sdo = self._sdo.at(sdo_id)
         self._tele = self._tele.at(tele_id if telemetry_id is None else telemetry_id)
-        self._truth_torque = self._truth_torque.at(
-            truth_frame_id(joint_index, self._truth_torque.frame_id)
-        )
-        self._truth_motion = self._truth_motion.at(
-            truth_frame_id(joint_index, self._truth_motion.frame_id)
-        )
+        if truth_joint_index:
+            self._truth_torque, self._truth_motion = (
+                c.at(truth_frame_id(truth_joint_index, c.frame_id))
+                for c in (self._truth_torque, self._truth_motion)
+            )
         self._enabled: bool | None = None  # unknown until a statusword is seen
         self._t = 0.0  # timestamp of the frame being handled
         self._last_sensor_t: float | None = None
@@ -483,6 +485,131 @@ def recording_from_trace(path: Path, sample_period_s: float = 1e-3) -> tuple[Rec
             listener.on_message_received(msg)
         damage = "; ".join(d.describe(str(path)) for d in trace.damage)
     return listener.recording, damage
+
+
+#: How far (s) a rig trace's frames may stand out of time order: the run's tap hands the
+#: trace writer each channel's frames in turns, every :data:`hdhil.rig.rigrun.
+#: TAP_EVERY_CYCLES` cycles (16 ms at 1 kHz), so a truth frame may follow sensor frames
+#: sent after it.
+REORDER_S = 0.1
+
+
+def in_time_order(
+    frames: Iterable[can.Message], slack_s: float = REORDER_S
+) -> Iterator[can.Message]:
+    """``frames`` by timestamp (stable), for frames at most ``slack_s`` out of order:
+    a frame is handed on once a frame ``slack_s`` later has been read."""
+    heap: list[tuple[float, int, can.Message]] = []
+    for seq, msg in enumerate(frames):
+        heapq.heappush(heap, (msg.timestamp, seq, msg))
+        while heap[0][0] < msg.timestamp - slack_s:
+            yield heapq.heappop(heap)[2]
+    while heap:
+        yield heapq.heappop(heap)[2]
+
+
+class _BusFrames:
+    """A rig bus's joints (:class:`RecordingListener`) fed from its channel and the truth,
+    each sample with the truth of its SYNC: the truth a drive sends for a sample is
+    stamped before the bus's SYNC of that sample, and a SYNC sent early in the cycle
+    (a loaded bus) can have the next sample's truth stamped between it and the sensor
+    frames. So truth frames are handed on at the bus's next SYNC (at once on a bus whose
+    trace shows no SYNC)."""
+
+    def __init__(self) -> None:
+        self.listeners: list[RecordingListener] = []
+        self._held: list[can.Message] = []
+        self._synced = False
+
+    def on_truth(self, msg: can.Message) -> None:
+        if self._synced:
+            self._held.append(msg)
+        else:
+            self._deliver(msg)
+
+    def on_frame(self, msg: can.Message) -> None:
+        if msg.arbitration_id == SYNC_COB_ID and not msg.is_extended_id:
+            self._synced = True
+            for held in self._held:
+                self._deliver(held)
+            self._held.clear()
+        self._deliver(msg)
+
+    def _deliver(self, msg: can.Message) -> None:
+        for lis in self.listeners:
+            lis.on_message_received(msg)
+
+
+@dataclass(frozen=True)
+class JointRecording:
+    """One joint of a rig's trace (:func:`rig_recordings_from_trace`): where it sits in
+    the layout and its :class:`Recording`."""
+
+    name: str
+    bus: str
+    node_id: int
+    joint_index: int
+    recording: Recording
+
+
+def rig_recordings_from_trace(
+    path: Path, rig: dict[str, Any], sample_period_s: float = 1e-3
+) -> tuple[list[JointRecording], str]:
+    """Read a rig's trace (``hdhil run --trace`` of a scenario with ``[joints]``) into a
+    recording per joint, in the layout's order, in one pass; returns them and a damage
+    description ('' if clean). ``rig``: the sidecar's ``rig`` entry (buses with their
+    channels, joints). Each joint takes the frames of its bus's channel at the
+    identifiers the rig's database gives its messages by name (as ``hdhil dump`` decodes
+    them: ``J1_DRIVE_TPDO1``, ``J1_CTRL_TPDO1``, :func:`hdhil.canopen.rigdb.
+    rig_databases`) and its own truth on the truth channel. ``ValueError`` for a ``rig``
+    entry that does not describe a layout."""
+    from hdhil.can.traces.reader import read_trace
+    from hdhil.canopen.rigdb import RigBus, RigDrive, rig_databases
+    from hdhil.core.errors import UserError
+    from hdhil.dbc import CHANNEL_NUMBER
+
+    try:
+        buses = [
+            RigBus(str(b["name"]), int(b["controller_node_id"]), int(b["bitrate"]),
+                   bool(b["fd"]), int(b["data_bitrate"]))
+            for b in rig["buses"]
+        ]  # fmt: skip
+        channels = {str(b["name"]): int(b["channel"]) for b in rig["buses"]}
+        joints = [
+            (str(j["name"]), str(j["bus"]), int(j["node_id"]), int(j["controller_node_id"]),
+             int(j["joint_index"]))
+            for j in rig["joints"]
+        ]  # fmt: skip
+        drives = [RigDrive(name, node, bus, controller_node_id=cid)
+                  for name, bus, node, cid, _ in joints]  # fmt: skip
+        databases = rig_databases(drives, buses)
+        listeners = []
+        for name, bus, node, cid, index in joints:
+            tele = databases[bus].get_message_by_name(f"{name}_CTRL_TPDO1").frame_id
+            listener = RecordingListener(sample_period_s, drive_node_id=node,
+                                         controller_node_id=cid, telemetry_id=tele,
+                                         truth_joint_index=index)  # fmt: skip
+            listeners.append((channels[bus], listener))
+    except (KeyError, TypeError, ValueError, UserError) as exc:
+        raise ValueError(f"the sidecar's rig layout cannot be read ({exc})") from None
+    buses_of: dict[int, _BusFrames] = {}
+    for channel, lis in listeners:
+        buses_of.setdefault(channel, _BusFrames()).listeners.append(lis)
+    every = list(buses_of.values())
+    truth = CHANNEL_NUMBER["truth"]
+    with read_trace(path) as trace:
+        for msg in in_time_order(trace):
+            if msg.channel == truth:
+                for bus_frames in every:
+                    bus_frames.on_truth(msg)
+            elif (bus_frames := buses_of.get(msg.channel)) is not None:  # type: ignore[arg-type]
+                bus_frames.on_frame(msg)
+        damage = "; ".join(d.describe(str(path)) for d in trace.damage)
+    out = [
+        JointRecording(name, bus, node, index, lis.recording)
+        for (name, bus, node, _, index), (_, lis) in zip(joints, listeners, strict=True)
+    ]
+    return out, damage
 
 
 @dataclass(frozen=True)

@@ -265,7 +265,8 @@ def joint_scoring(
     evaluation = (
         RecordingListener(
             request.sample_period_s, firmware=fw, skip_s=skip_s, keep=False,
-            drive_node_id=spec.node_id, telemetry_id=link.telemetry_cob_id, joint_index=index,
+            drive_node_id=spec.node_id, telemetry_id=link.telemetry_cob_id,
+            truth_joint_index=index,
         )
         if candidates
         else None

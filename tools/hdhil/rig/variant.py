@@ -17,6 +17,7 @@ from typing import Any
 
 from hdhil.can.traces.sidecar import metadata_path
 from hdhil.rig.request import RunRequest, resolve
+from hdhil.rig.rigrun import run_rig
 from hdhil.rig.runner import run_lockstep
 from hdhil.rig.scenario import scenario_from_dict
 
@@ -24,7 +25,9 @@ __all__ = ["WALL_CLOCK_KEYS", "RunSettings", "request_of", "run_settings"]
 
 #: Keys of ``hdhil run --json`` that measure the host, not the run: left out of a
 #: variant's stored result so that the same variant gives the same record anywhere.
-WALL_CLOCK_KEYS = ("wall_s", "real_time_factor", "realtime", "trace", "start_time")
+WALL_CLOCK_KEYS = (
+    "wall_s", "real_time_factor", "realtime", "trace", "start_time", "us_per_cycle",
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -57,13 +60,19 @@ def run_settings(settings: RunSettings) -> tuple[dict[str, Any], bytes | None, b
     its sidecar JSON's bytes (None without a trace).
 
     The variant is resolved as ``hdhil run`` resolves its options
-    (:func:`hdhil.rig.request.resolve`). Raises what the run raises (a configuration the
+    (:func:`hdhil.rig.request.resolve`) and run as ``hdhil run`` runs it: a rig of several
+    joints by :func:`hdhil.rig.rigrun.run_rig`, a single joint by
+    :func:`hdhil.rig.runner.run_lockstep`. Raises what the run raises (a configuration the
     runner refuses, a drive that never reaches operation): the caller records it.
     """
     request = request_of(settings)
     with tempfile.TemporaryDirectory(prefix="hdhil-variant-") as tmp:
         trace = Path(tmp) / f"trace{settings.trace_suffix}" if settings.trace_suffix else None
-        result = run_lockstep(request, trace=trace, evaluate=True, keep_recording=False)
+        result: Any
+        if request.scenario.is_rig:  # as `hdhil run` runs a rig: lockstep, every joint
+            result = run_rig(request, trace=trace)
+        else:
+            result = run_lockstep(request, trace=trace, evaluate=True, keep_recording=False)
         data = sidecar = None
         if trace is not None and trace.is_file():
             data = trace.read_bytes()
