@@ -151,7 +151,8 @@ def test_rehabexos_one_firmware_per_bus_against_one_emulator_in_real_time(netns)
         assert sorted(joints) == (["J1", "J2"] if name == "can0" else ["J3", "J4"])
         for joint, row in joints.items():
             print(f"  {joint}: {row['samples']} samples, {row['phase']}, "
-                  f"{row['drive_state']}, tracking {row['tracking']}")  # fmt: skip
+                  f"{row['drive_state']}, tracking {row['tracking']}"
+                  + (f", {row['safe_reason']}" if "safe_reason" in row else ""))  # fmt: skip
             assert row["samples"] > 0, (joint, row)  # reached operation
             assert row["tracking"]["telemetry_frames"] > 0
         assert rt["cycles"] > 0 and rt["floor"]["cycles"] > 0

@@ -17,7 +17,6 @@ Used by ``hdhil run`` (lockstep on ``simbus``, network lockstep on another inter
 
 from __future__ import annotations
 
-import select
 import time
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol, runtime_checkable
@@ -147,8 +146,6 @@ class NodeLoop:
         #: of several buses in one process): their SYNCs go out with the first bus's,
         #: and a cycle completes when no bus had a frame requested in a round.
         self.more_buses = tuple(more_buses)
-        #: The nodes' file descriptors for a loop without producer (:meth:`_filenos`).
-        self._fds: list[int] | None = None
 
     def now(self) -> float:
         """The time the nodes are handed now."""
@@ -292,33 +289,9 @@ class NodeLoop:
                 self.drain()
             return
         deadline = time.monotonic() + RECV_SLICE_S
-        filenos = self._filenos()
-        while (left := deadline - time.monotonic()) > 0:
+        while time.monotonic() < deadline:
             if not self._poll_all():
-                if filenos:  # several sockets: wait on all of them, not by polling
-                    select.select(filenos, [], [], left)
-                else:
-                    time.sleep(IDLE_SLEEP_S)
-
-    def _filenos(self) -> list[int]:
-        """The file descriptors of the nodes' buses when the loop handles nothing else
-        and every bus has one (``udp_multicast``, SocketCAN), else none (computed once)."""
-        cached = self._fds
-        if cached is None:
-            fds = []
-            if not self.listeners:
-                for node in self.nodes:
-                    try:
-                        fd = node.bus.fileno()
-                    except (AttributeError, NotImplementedError, OSError):
-                        fds = []
-                        break
-                    if not isinstance(fd, int) or fd < 0:
-                        fds = []
-                        break
-                    fds.append(fd)
-            cached = self._fds = fds
-        return cached
+                time.sleep(IDLE_SLEEP_S)
 
 
 def _idle_test(node: LoopNode) -> Callable[[], bool] | None:

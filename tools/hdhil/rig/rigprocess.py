@@ -30,6 +30,7 @@ truth bus.
 from __future__ import annotations
 
 import math
+import select
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -46,7 +47,7 @@ from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant
 from hdhil.hostsim.plant.arm import ArmJoint, ArmPlant
 from hdhil.rig.layout import JointSpec
-from hdhil.rig.loop import NodeLoop
+from hdhil.rig.loop import IDLE_SLEEP_S, RECV_SLICE_S, NodeLoop
 from hdhil.rig.realtime import RealtimeConfig, RealtimeLoop
 from hdhil.rig.request import RunRequest
 from hdhil.rig.session import end_session, start_session
@@ -181,11 +182,39 @@ class RigDrives:
             self.arm.input_source = lambda: [0.0 if d is None else d.io.step_V for d in held]
 
     def serve(self, stop: Callable[[], bool], duration_s: float | None = None) -> None:
-        """Boot every drive and serve them until ``stop()`` or ``duration_s`` wall seconds."""
+        """Boot every drive and serve them until ``stop()`` or ``duration_s`` wall seconds.
+
+        The drives take one frame each in turn, so a backlog (the process was held off
+        the CPU; the clock drive steps the arm for each SYNC) is worked off by all of
+        them together, not one drive's after another's; their timers run every
+        :data:`~hdhil.rig.loop.RECV_SLICE_S`. With nothing waiting the process sleeps
+        on the handles' sockets where they have them (``select``), else briefly."""
+        drives = self.drives
         t_end = time.monotonic() + duration_s if duration_s else math.inf
-        loop = NodeLoop(self.drives, node_time=time.monotonic)
-        loop.boot()
-        loop.run(stop, lambda: time.monotonic() >= t_end)
+        fds = _filenos(self.buses)
+        now = time.monotonic()
+        for drive in drives:
+            drive.boot(now)
+        next_tick = now
+        while not stop():
+            now = time.monotonic()
+            if now >= t_end:
+                break
+            if now >= next_tick:
+                for drive in drives:
+                    drive.tick(now)
+                next_tick = now + RECV_SLICE_S
+            handled = False
+            for drive in drives:
+                msg = drive.bus.recv(0)
+                if msg is not None:
+                    drive.on_message(msg)
+                    handled = True
+            if not handled:
+                if fds:
+                    select.select(fds, [], [], max(0.0, min(next_tick, t_end) - now))
+                else:
+                    time.sleep(IDLE_SLEEP_S)
 
     def summary(self) -> dict[str, Any]:
         """The JSON summary: per joint its drive's counters and states, the arm's
@@ -210,6 +239,21 @@ class RigDrives:
         if verdict is not None:
             out["verdict"] = verdict
         return out
+
+
+def _filenos(buses: Sequence[can.BusABC]) -> list[int]:
+    """The buses' file descriptors when every bus has one (``udp_multicast``, SocketCAN),
+    else none."""
+    fds = []
+    for bus in buses:
+        try:
+            fd = bus.fileno()
+        except (AttributeError, NotImplementedError, OSError):
+            return []
+        if not isinstance(fd, int) or fd < 0:
+            return []
+        fds.append(fd)
+    return fds
 
 
 class JointTelemetry(can.Listener):
@@ -459,6 +503,7 @@ class RigController:
         if self.pacer is not None:
             out["realtime"] = self.pacer.result()
         short = [name for name, r in joints.items() if r["samples"] < self.request.cycles]
+        short.sort(key=lambda name: "safe_reason" not in joints[name])  # the cause first
         if short and not stopped:
             row = joints[short[0]]
             out["verdict"] = {
