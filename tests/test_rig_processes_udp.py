@@ -156,3 +156,31 @@ def test_rehabexos_one_firmware_per_bus_against_one_emulator_in_real_time(netns)
             assert row["samples"] > 0, (joint, row)  # reached operation
             assert row["tracking"]["telemetry_frames"] > 0
         assert rt["cycles"] > 0 and rt["floor"]["cycles"] > 0
+
+
+ISOLATION = textwrap.dedent(
+    """
+    import sys
+    import can
+    from hdhil.can.multicast import own_group_only
+
+    a, b = (can.Bus(interface="udp_multicast", channel=g) for g in sys.argv[1:3])
+    other = can.Bus(interface="udp_multicast", channel=sys.argv[2])
+    print(own_group_only(a), own_group_only(b))
+    other.send(can.Message(arbitration_id=0x182, data=b"x", is_extended_id=False))
+    print(b.recv(2.0) is not None, a.recv(0.5) is not None)
+    for bus in (a, b, other):
+        bus.shutdown()
+    """
+)
+
+
+def test_a_rig_bus_handle_receives_its_own_multicast_group_only(netns):
+    """Two buses' groups in one namespace share python-can's port: a handle limited by
+    ``own_group_only`` receives a frame of its own group and none of the other's."""
+    run = subprocess.run(
+        ["ip", "netns", "exec", netns, sys.executable, "-c", ISOLATION, *GROUPS.values()],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["True", "True", "True", "False"]

@@ -5,9 +5,9 @@ BUS`` on buses the command opened (any python-can interface, one channel per bus
 
 :class:`RigDrives` serves the drives of the buses it is given (or one joint's drive),
 each :class:`~hdhil.hostsim.drive.DriveNode` at its node-ID on a bus handle of its own,
-all in one node loop. Each drive's plant is its own :class:`~hdhil.hostsim.plant.Plant`,
-or, for a scenario with a ``[robot]``, its joint of the one
-:class:`~hdhil.hostsim.plant.arm.ArmPlant` this process owns. The arm couples every
+served in turn in one process (:meth:`RigDrives.serve`). Each drive's plant is its
+own :class:`~hdhil.hostsim.plant.Plant`, or, for a scenario with a ``[robot]``, its
+joint of the one :class:`~hdhil.hostsim.plant.arm.ArmPlant` this process owns. The arm couples every
 joint, so it cannot be split between processes: its clock is the first drive served
 (:class:`CoupledJoint`): each SYNC that drive receives advances the whole arm by the
 period (by the missed periods too) with every joint's held amplifier input, and the
@@ -128,7 +128,7 @@ class CoupledJoint(ArmJoint):
 
 class RigDrives:
     """The drives of ``joints`` (:func:`served_joints`), each on a bus handle that
-    ``open_bus(bus_name)`` opens, served in one node loop (module docstring)."""
+    ``open_bus(bus_name)`` opens, served in turn by :meth:`serve` (module docstring)."""
 
     def __init__(self, request: RunRequest, joints: Sequence[JointSpec], open_bus: OpenBus) -> None:
         check_rig_process(request, "emulate")
