@@ -74,9 +74,138 @@ def _truth_bus(args: argparse.Namespace) -> can.BusABC | None:
     return bus
 
 
+def _rig_buses(args: argparse.Namespace, command: str) -> dict[str, str | None] | None:
+    """``--bus NAME[=CHANNEL]`` (repeatable for emulate) as ``{name: channel or None}``;
+    None when no ``--bus`` was given."""
+    given = getattr(args, "rig_bus", None)
+    if not given:
+        return None
+    buses: dict[str, str | None] = {}
+    for text in given if isinstance(given, list) else [given]:
+        name, sep, channel = text.partition("=")
+        if not name or (sep and not channel):
+            raise UserError(f"bad --bus {text!r}: use NAME or NAME=CHANNEL, e.g. can0=239.0.0.1")
+        if name in buses:
+            raise UserError(f"--bus {name} is given twice")
+        buses[name] = channel if sep else None
+    if len(buses) > 1 and None in buses.values():
+        raise UserError(f"hdhil {command} serves several buses on channels of their own: give "
+                        "each its channel, --bus NAME=CHANNEL")  # fmt: skip
+    return buses
+
+
+def _rig_request(args: argparse.Namespace, command: str) -> Any:
+    """The request the scenario options name; for a rig, served by bus (``--bus``,
+    ``--node``), what the rig's process does not take is a one-line error."""
+    request = request_from_args(args)
+    buses = _rig_buses(args, command)
+    joint = getattr(args, "rig_joint", None)
+    if not request.scenario.is_rig:
+        if buses is not None or joint is not None:
+            raise UserError(f"--bus and --node take a scenario of several joints; "
+                            f"{request.name} is a single joint")  # fmt: skip
+        return request
+    s = request.scenario
+    if buses is None and joint is None:
+        raise UserError(
+            f"scenario {s.name} lays out {len(s.joints)} joints on bus(es) "
+            f"{', '.join(n for n, _ in s.buses)}: give --bus NAME"
+            + (" (or --node JOINT)" if command == "emulate" else "")
+        )
+    for flag, given in (("--fault", args.fault), ("--fault-log", args.fault_log),
+                        ("--node-id/--drive-node-id", args.drive_node_id),
+                        ("--truth-interface", bus_named(args, "truth"))):  # fmt: skip
+        if given:
+            raise UserError(f"hdhil {command} --bus: a rig of several joints runs without {flag}")
+    return request
+
+
+def _bus_opener(args: argparse.Namespace, channels: dict[str, str | None]) -> Any:
+    """Opens a handle on a rig's bus by name: the bus options, with the bus's own channel
+    where ``--bus NAME=CHANNEL`` gave one; a udp_multicast handle receives its own group
+    only (:func:`hdhil.can.multicast.own_group_only`). Every handle opened is kept in the
+    opener's ``opened``."""
+    from hdhil.can.multicast import own_group_only
+
+    opened: list[can.BusABC] = []
+
+    def open_named(name: str) -> can.BusABC:
+        ns = argparse.Namespace(**vars(args))
+        channel = channels.get(name)
+        if channel is not None:
+            ns.channel = channel
+        bus, _ = open_bus(ns, f"bus {name}")
+        own_group_only(bus)
+        opened.append(bus)
+        return bus
+
+    open_named.opened = opened  # type: ignore[attr-defined]
+    return open_named
+
+
+def _shutdown(buses: list[can.BusABC]) -> None:
+    for bus in buses:
+        bus.shutdown()
+
+
+def _emulate_rig(args: argparse.Namespace, request: Any) -> int:
+    from hdhil.rig.rigprocess import RigDrives, served_joints
+
+    channels = _rig_buses(args, "emulate") or {}
+    joints = served_joints(request, list(channels), args.rig_joint)
+    if not channels:  # --node alone: its bus on the bus options' channel
+        channels = {joints[0].bus: None}
+    opener = _bus_opener(args, channels)
+    try:
+        drives = RigDrives(request, joints, opener)
+        if drives.passive:
+            print(f"hdhil: emulate: the arm of {request.name} couples joints "
+                  f"{', '.join(drives.passive)} that this process does not serve: they stay in "
+                  "the arm with their amplifiers off (serve every bus of the arm in one "
+                  "process: --bus NAME=CHANNEL for each)", file=sys.stderr)  # fmt: skip
+        with stop_on_signals() as stop:
+            drives.serve(stop.is_set, args.duration)
+        summary = drives.summary()
+        print(jsonout.dumps(summary))
+    finally:
+        _shutdown(opener.opened)
+    return _verdict_exit("emulate", summary)
+
+
+def _firmware_rig(args: argparse.Namespace, request: Any) -> int:
+    from hdhil.rig.realtime import RealtimeConfig
+    from hdhil.rig.rigprocess import RigController
+
+    channels = _rig_buses(args, "firmware") or {}
+    if len(channels) != 1:
+        raise UserError("hdhil firmware runs the controller of one bus: give one --bus NAME")
+    (bus,) = channels
+    opener = _bus_opener(args, channels)
+    try:
+        pacing = RealtimeConfig(spin_us=args.spin_us, floor_s=args.floor_s)
+        ctrl = RigController(request, bus, opener, args.boot_timeout, pacing)
+        with stop_on_signals() as stop:
+            failed = ctrl.boot(stop.is_set)
+            for line in ctrl.recovery:
+                print(f"hdhil: firmware: {line}", file=sys.stderr)
+            if failed is not None:
+                print(jsonout.dumps(failed))
+                return _verdict_exit("firmware", failed)
+            ctrl.run(stop.is_set, realtime=not args.lockstep)
+        summary = ctrl.summary(stopped=stop.is_set())
+        print(jsonout.dumps(summary))
+        if stop.is_set():
+            return 130
+        return _verdict_exit("firmware", summary)
+    finally:
+        _shutdown(opener.opened)
+
+
 def run_emulate(args: argparse.Namespace) -> int:
     refuse_simbus(args, "emulate", truth=True)
-    request = request_from_args(args)
+    request = _rig_request(args, "emulate")
+    if request.scenario.is_rig:
+        return _emulate_rig(args, request)
     check_outputs(run_outputs([], args.fault_log), scenario_inputs(args))
     injector = drive_faults(request, args.fault, args.fault_log, truth=bus_named(args, "truth"))
     bus = truth = None
@@ -98,7 +227,11 @@ def run_emulate(args: argparse.Namespace) -> int:
 
 def run_firmware(args: argparse.Namespace) -> int:
     refuse_simbus(args, "firmware")
-    request = request_from_args(args)
+    request = _rig_request(args, "firmware")
+    if request.scenario.is_rig:
+        return _firmware_rig(args, request)
+    if args.floor_s or args.spin_us is not None:
+        raise UserError("--floor-s and --spin-us take a rig's controller (--bus)")
     check_outputs(run_outputs([], args.fault_log), scenario_inputs(args))
     injector = controller_faults(request, args.fault, args.fault_log)
     bus = None
@@ -262,6 +395,21 @@ def register(sub: argparse._SubParsersAction) -> None:
         duration_help="wall seconds to serve (default: until Ctrl-C / SIGTERM)",
     )
     add_drive_node_id_argument(p, "--node-id", "the emulated drive's")
+    rig = p.add_argument_group("a rig of several joints (docs/several-joints.md)")
+    rig.add_argument(
+        "--bus",
+        dest="rig_bus",
+        action="append",
+        metavar="NAME[=CHANNEL]",
+        help="serve the drives of the scenario's bus NAME, on CHANNEL (default: --channel); "
+        "repeat for several buses of one arm, each on its own channel",
+    )
+    rig.add_argument(
+        "--node",
+        dest="rig_joint",
+        metavar="JOINT",
+        help="serve the drive of joint JOINT alone (on its bus's channel)",
+    )
     p.set_defaults(func=run_emulate)
 
     p = sub.add_parser("firmware", help="run the controller firmware alone on a CAN interface")
@@ -291,6 +439,28 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=arg_seconds(hi=3600.0),
         default=2.0,
         help="seconds to wait for the drive's boot-up",
+    )
+    rig = p.add_argument_group("a rig of several joints (docs/several-joints.md)")
+    rig.add_argument(
+        "--bus",
+        dest="rig_bus",
+        metavar="NAME[=CHANNEL]",
+        help="run the controller nodes of the scenario's bus NAME, on CHANNEL (default: --channel)",
+    )
+    rig.add_argument(
+        "--floor-s",
+        type=arg_seconds(lo_open=False, hi=3600.0),
+        default=0.0,
+        help="with --bus, in real time: after the run, measure the machine floor (the bare "
+        "sleep+spin loop) for this many seconds, reported beside the run's SYNC jitter",
+    )
+    rig.add_argument(
+        "--spin-us",
+        type=arg_seconds(lo_open=False, hi=1e6),
+        default=None,
+        help="with --bus, in real time: the spin window before each SYNC in µs (default: "
+        "60%% of the period within the RT budget); smaller leaves the CPU to the other "
+        "processes of the rig",
     )
     p.set_defaults(func=run_firmware)
 
