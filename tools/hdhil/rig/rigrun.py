@@ -194,6 +194,47 @@ class OnChannels(can.Listener):
                 self.listener.on_message_received(msg)
 
 
+@dataclass(frozen=True)
+class RigEvaluationFactory:
+    """The candidate filters of every joint, evaluated in the trace writer's process
+    (``child_listener`` of :class:`hdhil.can.traces.writer.WriterProcess`) on the frames
+    it writes, off the loop's core, as :class:`hdhil.rig.evaluate.LiveEvaluationFactory`
+    does for one joint.  Per joint: its firmware, the evaluation start, its drive's
+    node-ID, its telemetry identifier, its index and its channels (its bus and the
+    truth).  The listener's result: each joint's evaluation, in the layout's order."""
+
+    sample_period_s: float
+    joints: tuple[tuple[FirmwareConfig, float, int, int, int, frozenset[int]], ...]
+
+    def __call__(self) -> _RigEvaluation:
+        return _RigEvaluation(self)
+
+
+class _RigEvaluation(can.Listener):
+    def __init__(self, factory: RigEvaluationFactory) -> None:
+        self.recorders = [
+            RecordingListener(
+                factory.sample_period_s, firmware=fw, skip_s=skip, keep=False,
+                drive_node_id=node_id, telemetry_id=telemetry_id, truth_joint_index=index,
+            )
+            for fw, skip, node_id, telemetry_id, index, _ in factory.joints
+        ]  # fmt: skip
+        self._feeds = [
+            OnChannels(r, joint[5]) for r, joint in zip(self.recorders, factory.joints, strict=True)
+        ]
+
+    def on_message_received(self, msg: can.Message) -> None:
+        for feed in self._feeds:
+            feed.on_message_received(msg)
+
+    def on_frames(self, frames: list[Any]) -> None:
+        for feed in self._feeds:
+            feed.on_frames(frames)
+
+    def result(self) -> list[dict[str, Any]]:
+        return [r.result() for r in self.recorders]
+
+
 def scored_channels(bus_index: int) -> frozenset[int]:
     """The channels a joint on the rig's ``bus_index``-th bus is scored from: its bus's
     and the truth's."""
@@ -381,23 +422,52 @@ def run_rig(
         if start_time is None:
             start_time = round(time.time(), 3)  # whole ms: the resolution of BLF's date
         writer = WriterProcess(trace, time_offset=start_time,
-                               metadata=rig_metadata(request, start_time))  # fmt: skip
+                               metadata=rig_metadata(request, start_time),
+                               child_listener=_offload(request) if evaluate else None)  # fmt: skip
+    offloaded = writer is not None and writer.child_listening
     blas = threadpool_limits(limits=1)
     completed = False
     try:
         result = _run(request, joints, buses, clock, handle, opened, stop_requested, writer,
-                      evaluate)  # fmt: skip
+                      evaluate and not offloaded)  # fmt: skip
+        result.evaluated = evaluate
         if writer is not None:
             writer.stop()  # the trace and its sidecar renamed into place
             result.trace = str(trace)
+            if offloaded:
+                if result.interrupted:
+                    writer.discard_child_result()
+                else:
+                    for row, ev in zip(result.joints, writer.child_result(), strict=True):
+                        row.evaluation = ev
         completed = True
         return result
     finally:
-        if writer is not None and not completed:
-            writer.abort()  # no trace of a run that failed
+        if writer is not None:
+            if not completed:
+                writer.abort()  # no trace of a run that failed
+            writer.discard_child_result()  # a no-op once the result was taken
         for bus in opened:
             bus.shutdown()
         blas.restore_original_limits()
+
+
+def _offload(request: RunRequest) -> RigEvaluationFactory | None:
+    """The candidate filters of every joint for the trace writer's process (None when
+    the scenario does not score the ripple filter)."""
+    s = request.scenario
+    if "ripple" not in s.scored:
+        return None
+    bus_index = {name: i for i, (name, _) in enumerate(s.buses)}
+    return RigEvaluationFactory(
+        request.sample_period_s,
+        tuple(
+            (fw, request.evaluate_from_s, spec.node_id, link.telemetry_cob_id, index,
+             scored_channels(bus_index[spec.bus]))
+            for index, (spec, (_, fw), link) in enumerate(
+                zip(s.joints, s.joint_configs, joint_links(s), strict=True))
+        ),
+    )  # fmt: skip
 
 
 def rig_metadata(request: RunRequest, start_time: float) -> dict[str, Any]:
@@ -518,7 +588,8 @@ def _run(
         for j in on_bus:
             assert j.controller is not None
             j.scoring = joint_scoring(request, j.index, j.controller.joints[j.rank].link,
-                                      request.evaluate_from_s, candidates=evaluate)  # fmt: skip
+                                      request.evaluate_from_s,
+                                      candidates=evaluate and "ripple" in s.scored)  # fmt: skip
             listeners += j.scoring.listeners(channels)
         tapped[bus_channel(index)] = handle(name, index, None)
     if writer is not None:
@@ -697,6 +768,8 @@ def format_candidates(rows: Sequence[RigJointResult | JointScores], evaluated: b
     (every candidate in ``--json``, as :func:`hdhil.rig.evaluate.evaluate` gives them)."""
     if not evaluated:
         return ["  evaluation         candidate filters not evaluated (--no-evaluate)"]
+    if all(r.evaluation is None for r in rows):
+        return []  # the rig does not score the ripple filter (a control law's tracking)
     skips = {r.evaluation["skip_s"] for r in rows if r.evaluation is not None}
     since = f" from {min(skips):g} s" if skips else ""
     lines = [f"  candidate filters  per joint, RMS error against the true torque{since} "

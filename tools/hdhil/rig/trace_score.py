@@ -116,7 +116,7 @@ def score_rig_trace(
     scorings = []
     deliver = []
     for index, (spec, link) in enumerate(zip(s.joints, joint_links(s), strict=True)):
-        scoring = joint_scoring(request, index, link, skip, candidates=True)
+        scoring = joint_scoring(request, index, link, skip, candidates="ripple" in s.scored)
         scorings.append(scoring)
         deliver += [x.on_frames for x in scoring.listeners(scored_channels(bus_index[spec.bus]))]
     with read_trace(trace) as frames:
