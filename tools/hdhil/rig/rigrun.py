@@ -108,6 +108,9 @@ class RigResult:
     #: What the scenario scores (:attr:`hdhil.rig.scenario.Scenario.scored`): the torque
     #: columns are the ripple filter's only with ``ripple``.
     scored: tuple[str, ...] = ("ripple",)
+    #: The torque and tracking scores start at this time in operation (s): the run's
+    #: ``evaluate_from_s``.
+    evaluate_from_s: float = 0.0
 
     @property
     def real_time_factor(self) -> float:
@@ -311,6 +314,8 @@ def _run(
     s = request.scenario
     Ts = request.sample_period_s
     seed = request.seed
+    # the torque scores leave out the first interrupts, as the single-joint evaluation
+    skip_samples = round(request.evaluate_from_s / Ts)
     # -- the plants: the arm's joints, or one plant per joint
     plants: list[Any]
     arm = None
@@ -323,7 +328,10 @@ def _run(
                 LinkDynamics.from_urdf(s.robot.path),
                 [j.plant for j in joints],
                 [seed + j.index for j in joints],
+                [j.spec.start_rad for j in joints],
             )
+            arm.rest_under_load()
+            arm.apply_brakes()
             arm.prepare(Ts)
         except ValueError as exc:
             raise ConfigError(f"scenario {s.name}: {exc}") from None
@@ -383,7 +391,8 @@ def _run(
         for j in on_bus:
             assert j.controller is not None
             link = j.controller.joints[j.rank].link
-            j.scorer = TorqueScorer(telemetry_id=link.telemetry_cob_id, joint_index=j.index)
+            j.scorer = TorqueScorer(telemetry_id=link.telemetry_cob_id, joint_index=j.index,
+                                    skip_samples=skip_samples)  # fmt: skip
             listeners.append(OnChannels(j.scorer, channels))
             control = j.firmware.control
             if control.law != Law.NONE:
@@ -437,6 +446,9 @@ def _run(
             if stop_requested is not None and stop_requested():
                 interrupted = True
                 break
+            if arm is not None and arm.braked and min(isr.samplecount for isr in isrs) >= 2:
+                # every drive applies its controller's command: the brakes let go
+                arm.release_brakes()
             if any(c.phase != "operational" for c in controllers):
                 nodes = ", ".join(f"node {c.node_id} {c.phase}" for c in controllers)
                 verdict = {"phase": "operation",
@@ -501,6 +513,7 @@ def _run(
         verdict=verdict,
         us_per_cycle=wall / operation * 1e6 if operation else math.nan,
         scored=tuple(s.scored),
+        evaluate_from_s=request.evaluate_from_s,
     )
 
 
@@ -547,8 +560,9 @@ def format_rig_result(r: RigResult) -> str:
             f"{', '.join(b['joints'])}, {r.frames.get(name, 0)} frames"
             for name, b in r.buses.items()
         ),
-        "  per joint (RMS error of the raw and the filtered torque against the true torque, "
-        "with the ripple filter scored; e = T_meas − T_desired with a law)",
+        f"  per joint from {r.evaluate_from_s:g} s (RMS error of the raw and the filtered "
+        "torque against the true torque, with the ripple filter scored; e = T_meas − "
+        "T_desired with a law)",
         f"    {'joint':<{w}} {'bus':<6} {'node':>4} {'state':<18} {'samples':>7} "
         f"{'RMS raw/Nm':>10} {'RMS filt/Nm':>11} {'filt/raw':>8} {'law':<6} "
         f"{'RMS e/Nm':>8} {'|e|≤0.5':>8}",
