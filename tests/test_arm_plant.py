@@ -20,6 +20,7 @@ from hdhil.hostsim.plant import (
     AmplifierConfig,
     DriveTrainConfig,
     GravityConfig,
+    LinkMotionConfig,
     LoadTorqueConfig,
     NonFiniteStateError,
     Plant,
@@ -242,6 +243,98 @@ def test_two_joint_arm_holds_against_gravity(tmp_path: Path) -> None:
     for _ in range(100):
         arm.advance(volts, DT)
     assert np.abs(arm.q - q0).max() > 0.02
+
+
+def _worn(stroke: LinkMotionConfig) -> PlantConfig:
+    """A frictionless joint with a lightly damped flexspline, its motor unpowered, and a
+    person's ``stroke`` on its link."""
+    return replace(_frictionless(PlantConfig(), c_flex=5.0), link=stroke)
+
+
+def test_person_holds_the_arm_through_their_impedance(tmp_path: Path) -> None:
+    """A person holding a two-link arm at a posture (kind hold) with a joint stiffness
+    and damping, motors off: the arm settles where the person's spring balances the
+    rest, found here from the statics alone (brentq on the link's gravity).  Carrying
+    the weight, a 2 Nm load on joint 0 deflects it by 2 Nm / K and joint 1 not at all;
+    not carrying it, the arm sags to where K (q_p - q) equals gravity.  The truth's
+    tau_l is the person's torque, here the load's negative plus, carrying, gravity's."""
+    from scipy.optimize import brentq
+
+    link = _two_link(tmp_path)
+    k, d = 40.0, 8.0
+    posture = LinkMotionConfig(
+        kind="hold", offset_deg=20.0, stiffness_Nm_per_rad=k, damping_Nms_per_rad=d,
+        holds_weight=True,
+    )  # fmt: skip
+    qp = math.radians(20.0)
+    arm = ArmPlant(link, [_worn(posture), _worn(posture)], [1, 2])
+    assert arm.q == pytest.approx([qp, qp], abs=1e-15)  # starts where the person holds it
+    arm.set_load_torque(0, 2.0)
+    for _ in range(4000):
+        arm.advance([0.0, 0.0], DT)
+    assert arm.q == pytest.approx([qp + 2.0 / k, qp], abs=1e-6)
+    assert np.abs(arm.qd).max() < 1e-6
+    held = link.gravity(arm.q)
+    assert [arm.truth(j).tau_l_Nm for j in range(2)] == pytest.approx(
+        [2.0 + (k * (qp - arm.q[0]) + held[0]), k * (qp - arm.q[1]) + held[1]], abs=1e-6
+    )
+    assert arm.truth(0).tau_l_Nm - 2.0 == pytest.approx(-2.0 + held[0], abs=1e-5)
+    # not carrying the weight: each joint sags until the spring holds the links
+    light = replace(posture, holds_weight=False)
+    arm = ArmPlant(link, [_worn(light), _worn(light)], [1, 2])
+    for _ in range(6000):
+        arm.advance([0.0, 0.0], DT)
+    assert np.abs(arm.qd).max() < 1e-6
+    q1 = arm.q[1]
+    q0 = brentq(lambda x: k * (qp - x) - link.gravity(np.array([x, q1]))[0], -1.0, 1.0)
+    assert arm.q[0] == pytest.approx(q0, abs=1e-6)
+    assert k * (qp - q1) == pytest.approx(link.gravity(arm.q)[1], abs=1e-4)
+    assert abs(arm.q[0] - qp) > 0.05  # it did sag
+
+
+def test_person_moves_the_arm_along_their_stroke(tmp_path: Path) -> None:
+    """A stiff person moving both joints along the person-like stroke (the
+    lqg-experiment's kind) carries the arm with it: it starts on the stroke, moving with
+    it, and follows it within the lag of the impedance; the person's torque in the
+    truth is K (q_p - q) + D (qd_p - qd) + the weight."""
+    link = _two_link(tmp_path)
+    k, d = 400.0, 20.0
+    strokes = [
+        LinkMotionConfig(kind="person", amplitude_deg=30.0, motion_seed=s, horizon_s=4.0,
+                         stiffness_Nm_per_rad=k, damping_Nms_per_rad=d, holds_weight=True)
+        for s in (1, 2)
+    ]  # fmt: skip
+    arm = ArmPlant(link, [_worn(s) for s in strokes], [1, 2])
+    assert arm.q == pytest.approx([s.angle(0.0) for s in strokes], abs=1e-15)
+    assert arm.qd == pytest.approx([s.velocity(0.0) for s in strokes], abs=1e-15)
+    worst = 0.0
+    for _ in range(2000):
+        arm.advance([0.0, 0.0], DT)
+        t = arm.time
+        qp = np.array([s.angle(t) for s in strokes])
+        worst = max(worst, float(np.abs(arm.q - qp).max()))
+    assert 0.0 < worst < 0.02  # 30 deg strokes followed within about a degree
+    qdp = np.array([s.velocity(arm.time) for s in strokes])
+    expected = k * (qp - arm.q) + d * (qdp - arm.qd) + link.gravity(arm.q)
+    assert [arm.truth(j).tau_l_Nm for j in range(2)] == pytest.approx(expected, abs=1e-9)
+
+
+def test_person_refusals(tmp_path: Path) -> None:
+    link = _two_link(tmp_path)
+    imposed = _worn(LinkMotionConfig(kind="sine", amplitude_deg=10.0))
+    with pytest.raises(ValueError, match="a person moves it through an impedance"):
+        ArmPlant(link, [imposed, imposed], [1, 2])
+    bearing = _worn(
+        LinkMotionConfig(kind="hold", stiffness_Nm_per_rad=10.0, bearing_coulomb_Nm=1.0)
+    )
+    with pytest.raises(ValueError, match=r"coulomb_load, not plant\.link\.bearing_coulomb_Nm"):
+        ArmPlant(link, [bearing, bearing], [1, 2])
+    with pytest.raises(ValueError, match="for a joint of an arm"):
+        Plant(_worn(LinkMotionConfig(kind="hold", stiffness_Nm_per_rad=10.0)), 1)
+    with pytest.raises(ValueError, match="kind hold, sine or person"):
+        LinkMotionConfig(holds_weight=True)
+    with pytest.raises(ValueError, match="stiffness_Nm_per_rad"):
+        LinkMotionConfig(kind="hold", stiffness_Nm_per_rad=-1.0)
 
 
 # ------------------------------------------------------------------ energy

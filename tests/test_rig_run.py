@@ -79,18 +79,19 @@ def test_a_joint_of_independent_plants_is_the_single_joint_rig() -> None:
 @pytest.mark.slow
 @pytest.mark.skipif(importlib.util.find_spec("mujoco") is None, reason="the arm extra")
 def test_rehabexos_runs_every_joint_in_operation() -> None:
-    """The four joints of rehabexos on two buses, the arm's plant moved once a cycle:
-    every joint reaches operation and gets its tracking row (the share of |e| <= 0.5 Nm
-    on the measured torque, printed per joint)."""
-    result = run_rig(resolve("rehabexos", duration_s=1.0, evaluate_from_s=0.0))
-    assert result.verdict is None and result.cycles == 1000
+    """The four joints of rehabexos on two buses, the arm's plant moved once a cycle, a
+    person wearing it: every joint reaches operation and gets its tracking row (the
+    share of |e| <= 0.5 Nm on the measured torque after the first second, printed per
+    joint), and every joint meets the goal of 95 %."""
+    result = run_rig(resolve("rehabexos", duration_s=3.0))
+    assert result.verdict is None and result.cycles == 3000
     assert [j.name for j in result.joints] == ["J1", "J2", "J3", "J4"]
     assert [j.bus for j in result.joints] == ["can0", "can0", "can1", "can1"]
     assert result.buses["can1"]["channel"] == 2
     for j in result.joints:
         assert j.drive_state == "OPERATION_ENABLED"
-        assert j.tracking is not None and j.tracking["samples"] > 900
-        assert 0.0 <= j.tracking["share_within_goal_measured"] <= 1.0
+        assert j.tracking is not None and 1990 <= j.tracking["samples"] <= 2010
+        assert j.tracking["share_within_goal_measured"] >= 0.95, j.name
     worst = result.worst_joint["share_within_goal_measured"]
     assert worst["value"] == min(j.tracking["share_within_goal_measured"] for j in result.joints)
     text = format_rig_result(result)

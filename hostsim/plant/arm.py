@@ -36,10 +36,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 
 import numpy as np
 
-from hdhil.hostsim.plant.config import PlantConfig
+from hdhil.hostsim.plant.config import LinkMotionConfig, PlantConfig
 from hdhil.hostsim.plant.model import ConfiguredConverters, Plant
 from hdhil.hostsim.plant.multibody import LinkDynamics, Wrench
 from hdhil.hostsim.plant.stability import MAX_HELD_SLOPE_STEP, NonFiniteStateError
@@ -71,7 +72,9 @@ class ArmPlant:
     ``drivetrain.b_load`` and ``coulomb_load`` are the output bearings' friction on
     each joint; a ``load`` profile and :meth:`set_load_torque` add a torque at the
     joint's output.  ``seeds``: one noise stream per joint, as :class:`Plant`'s.
-    ``q0``: the link angles at time 0 (rad; zeros by default), at rest, no twist.
+    ``q0``: the link angles at time 0 (rad), at rest, no twist; by default zeros, or
+    where the person's motion is at time 0 and moving with it when a person wears the
+    arm (``link`` of kind hold, sine or person with an impedance: :class:`_Person`).
     """
 
     def __init__(
@@ -88,8 +91,17 @@ class ArmPlant:
                 f"{len(joints)} plant configurations and {len(seeds)} seeds"
             )
         for name, cfg in zip(link.names, joints, strict=True):
-            if cfg.link.active:
-                raise ValueError(f"joint {name}: its link is the arm's, not a prescribed motion")
+            if cfg.link.active and not cfg.link.worn:
+                raise ValueError(
+                    f"joint {name}: an arm's link moves with the arm; a person moves it "
+                    "through an impedance (plant.link stiffness_Nm_per_rad or "
+                    "damping_Nms_per_rad > 0)"
+                )
+            if cfg.link.bearing_coulomb_Nm:
+                raise ValueError(
+                    f"joint {name}: an arm's output bearings are plant.drivetrain b_load and "
+                    "coulomb_load, not plant.link.bearing_coulomb_Nm"
+                )
             if cfg.gravity.mgl_Nm != 0.0:
                 raise ValueError(f"joint {name}: gravity comes from the URDF; plant.gravity is off")
         if len({cfg.substeps for cfg in joints}) != 1:
@@ -99,7 +111,10 @@ class ArmPlant:
         self.names = link.names
         self.size = n
         self._substeps = joints[0].substeps
-        self._sensors = [_JointSensors(cfg, seed) for cfg, seed in zip(joints, seeds, strict=True)]
+        self._sensors = [
+            _JointSensors(replace(cfg, link=LinkMotionConfig()), seed)
+            for cfg, seed in zip(joints, seeds, strict=True)
+        ]
 
         def col(values: Sequence[float]) -> np.ndarray:
             return np.array(values, dtype=np.float64)
@@ -127,12 +142,17 @@ class ArmPlant:
         self._profiles = [None if c.load.kind == "none" else c.load.value for c in joints]
         self._tau_load = np.zeros(n)
         self._wrenches: tuple[Wrench, ...] | None = None
+        self._person = _Person([c.link for c in joints]) if any(
+            c.link.active for c in joints) else None  # fmt: skip
         self._consts: dict[float, _StepConstants] = {}
         # state: twist (output-referred), motor velocity (output-referred), link
         # velocity, current, link angle; the current command; the amplifier input
-        q = np.zeros(n) if q0 is None else np.array(q0, dtype=np.float64).reshape(n)
         self._d, self._wm, self._wl, self._i, self._q = (np.zeros(n) for _ in range(5))
-        self._q = q
+        if q0 is not None:
+            self._q = np.array(q0, dtype=np.float64).reshape(n)
+        elif self._person is not None:  # where the person holds it, moving with them
+            self._q, self._wl = self._person.intent(0.0)
+            self._wm = self._wl.copy()
         self._i_cmd = np.zeros(n)
         self._volts = np.zeros(n)
         self._t = 0.0
@@ -287,6 +307,12 @@ class ArmPlant:
         z = np.concatenate([self._d, self._wm, self._wl, self._q, self._kt, self._kt])
         wl, q = z[2 * n : 3 * n], z[3 * n : 4 * n]
         loads = self._tau_load if self._tau_load.any() else None
+        person = self._person
+        if person is not None:  # the intent at the step's midpoint, the weight at its start
+            pull = person.pull(self._t + 0.5 * dt)
+            if person.weight.any():
+                pull = pull + person.weight * link.gravity(self._q)
+            loads = pull if loads is None else loads + pull
         profiles = self._profiles if any(p is not None for p in self._profiles) else None
         coulomb, slopes, friction = self._coulomb, self._inv_eps2, self._coulomb2
         velocities, held = z[n : 3 * n], z[4 * n :]  # (w_m, w_l) and (tau_m, f) as views
@@ -296,6 +322,8 @@ class ArmPlant:
             f = link.free_torques(q + a * wl, wl, wrenches)
             if loads is not None:
                 f += loads
+            if person is not None:  # the person's impedance at the predicted midpoint
+                f -= person.stiffness * (q + a * wl) + person.damping * wl
             if profiles is not None:
                 f += [0.0 if p is None else p(t0 + j * h) for p in profiles]
             z[4 * n : 5 * n] = torques[j]
@@ -352,9 +380,12 @@ class ArmPlant:
             tau_l += [0.0 if p is None else p(self._t) for p in self._profiles]
             if self._wrenches:
                 tau_l += link.external_torques(q, self._wrenches)
+            holding = link.gravity(q)
+            if self._person is not None:
+                tau_l += self._person.torque(self._t, q, wl, holding)
             qdd = link.forward_dynamics(q, wl, transmitted + friction + tau_l, self._wrenches)
             tau_ext = np.diag(link.mass_matrix(q)) * qdd - transmitted
-            lt = self._link_truth = (-link.gravity(q), tau_l, friction, qdd, tau_ext)
+            lt = self._link_truth = (-holding, tau_l, friction, qdd, tau_ext)
         return lt
 
     def truth(self, joint: int) -> Truth:
@@ -406,6 +437,37 @@ class ArmPlant:
         """A copy of the (N, 5) state: twist, reduced motor velocity, link velocity,
         current, link angle (:attr:`PlantBank.state`'s columns)."""
         return np.stack([self._d, self._wm, self._wl, self._i, self._q], axis=1)
+
+
+class _Person:
+    """The person who wears the arm (:class:`LinkMotionConfig`'s docstring): per joint,
+    the intended motion ``theta_p(t)``, a stiffness and a damping about it, and whether
+    they carry the links' weight.  Joints of kind ``none`` have zero impedance and
+    intent."""
+
+    def __init__(self, motions: Sequence[LinkMotionConfig]) -> None:
+        self.motions = tuple(motions)
+        self.stiffness = np.array([m.stiffness_Nm_per_rad for m in motions])
+        self.damping = np.array([m.damping_Nms_per_rad for m in motions])
+        self.weight = np.array([1.0 if m.holds_weight else 0.0 for m in motions])
+
+    def intent(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """The intended link angles and velocities (rad, rad/s) at time ``t``."""
+        q = [m.angle(t) if m.active else 0.0 for m in self.motions]
+        qd = [m.velocity(t) if m.active else 0.0 for m in self.motions]
+        return np.array(q), np.array(qd)
+
+    def pull(self, t: float) -> np.ndarray:
+        """The part of the impedance that does not depend on the arm's state:
+        ``K theta_p(t) + D dtheta_p(t)``, Nm."""
+        q, qd = self.intent(t)
+        return self.stiffness * q + self.damping * qd
+
+    def torque(self, t: float, q: np.ndarray, qd: np.ndarray, holding: np.ndarray) -> np.ndarray:
+        """The person's torque on the links at time ``t`` and state ``(q, qd)``, Nm;
+        ``holding`` the torques that hold the links still at ``q``
+        (:meth:`LinkDynamics.gravity`)."""
+        return self.pull(t) - self.stiffness * q - self.damping * qd + self.weight * holding
 
 
 class _StepConstants:

@@ -390,6 +390,16 @@ class LinkMotionConfig:
     0 (the default) makes the two the same.  Only with a prescribed motion: on a free
     link the output bearings' friction is the drive train's ``b_load`` and
     ``coulomb_load``, which move the link.
+
+    In an arm (:class:`~hdhil.hostsim.plant.arm.ArmPlant`, a ``[robot]`` scenario) the
+    motion is a person's intent, not imposed: the person wears the arm and pulls each
+    joint towards it through a joint impedance, ``tau_p = stiffness_Nm_per_rad
+    (theta_p - theta_l) + damping_Nms_per_rad (dtheta_p - dtheta_l)``, plus, with
+    ``holds_weight``, the gravity torque that holds the arm's links still (a person
+    carries the weight of their own arm).  ``tau_p`` is the environment's torque on the
+    link (``Truth.tau_l_Nm``).  A single joint's link follows the motion exactly, so
+    these three are for arms only (:class:`~hdhil.hostsim.plant.model.Plant` refuses
+    them).
     """
 
     kind: LinkMotionKind = "none"
@@ -404,6 +414,12 @@ class LinkMotionConfig:
     bearing_coulomb_Nm: float = 0.0
     #: rad/s of the link: the width of ``tanh`` in the bearing friction.
     bearing_smoothing_radps: float = 0.01
+    #: Nm/rad: in an arm, the stiffness of the person who moves the link (docs/multibody.md).
+    stiffness_Nm_per_rad: float = 0.0
+    #: Nm s/rad: in an arm, the person's damping about the motion's velocity.
+    damping_Nms_per_rad: float = 0.0
+    #: In an arm: the person also carries the links' weight (their own arm's).
+    holds_weight: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in ("none", "hold", "sine", "person"):
@@ -420,8 +436,19 @@ class LinkMotionConfig:
                 "max_velocity_radps": ">0",
                 "bearing_coulomb_Nm": ">=0",
                 "bearing_smoothing_radps": ">0",
+                "stiffness_Nm_per_rad": ">=0",
+                "damping_Nms_per_rad": ">=0",
             },
         )
+        if not isinstance(self.holds_weight, bool):
+            raise ValueError(
+                f"LinkMotionConfig.holds_weight must be true or false, got {self.holds_weight!r}"
+            )
+        if self.kind == "none" and (self.worn or self.holds_weight):
+            raise ValueError(
+                "LinkMotionConfig: stiffness_Nm_per_rad, damping_Nms_per_rad and holds_weight "
+                "are a person's, who moves the link: kind hold, sine or person"
+            )
         if self.bearing_coulomb_Nm and self.kind == "none":
             raise ValueError(
                 "LinkMotionConfig.bearing_coulomb_Nm is for a prescribed motion (kind hold, "
@@ -465,6 +492,12 @@ class LinkMotionConfig:
     def active(self) -> bool:
         """True when the link follows the prescription (kind other than ``none``)."""
         return self.kind != "none"
+
+    @property
+    def worn(self) -> bool:
+        """True when a person pulls the link through an impedance (in an arm) rather
+        than imposing the motion exactly."""
+        return self.stiffness_Nm_per_rad > 0.0 or self.damping_Nms_per_rad > 0.0
 
     @property
     def amplitude_rad(self) -> float:

@@ -128,6 +128,12 @@ class Plant(ConfiguredConverters):
         # gravity and prescribed link motion ([Vertechy])
         self._mgl = cfg.gravity.mgl_Nm
         self._g_off = math.radians(cfg.gravity.offset_deg)
+        if cfg.link.worn or cfg.link.holds_weight:
+            raise ValueError(
+                "plant.link stiffness_Nm_per_rad, damping_Nms_per_rad and holds_weight are "
+                "for a joint of an arm (a [robot] scenario); a single joint's link follows "
+                "its motion exactly"
+            )
         self._link = cfg.link if cfg.link.active else None
         self._person_maps: dict[float, tuple[np.ndarray, np.ndarray]] = {}
         if self._link is not None:
