@@ -109,6 +109,7 @@ __all__ = [
     "PlausibilityConfig",
     "ReferenceConfig",
     "RippleFilterConfig",
+    "SpeedLoopConfig",
     "Wave",
     "paper_config",
     "recommended_config",

@@ -109,12 +109,14 @@ class SpeedLoopConfig:
         V(k) = reference(k) + kp (w_ref(k) - vel(k)) + I(k),
         I(k+1) = clip(I(k) + ki Ts (w_ref(k) - vel(k)), -full scale, +full scale)
 
-    with ``w_ref`` 0 before ``start_s`` (the loop holds the joint at rest), rising
-    linearly to ``setpoint_radps`` over ``ramp_s`` (a constant acceleration instead of
-    a torque step) and held from then on.  ``kp`` sets the loop's bandwidth, about ``kp
-    gear_ratio Kt / J`` rad/s on a joint of inertia ``J`` (output-referred, motor and
-    link), which must stay far below the ripple's 2x motor velocity so the loop does not
-    feed the ripple back into the torque.  Off (the listing) while ``kp`` and ``ki``
+    with ``w_ref`` 0 before ``start_s`` (the loop holds the joint at rest), rising to
+    ``setpoint_radps`` over ``ramp_s`` along a raised cosine, ``w_ref = setpoint (1 -
+    cos(pi t / ramp_s)) / 2`` (an acceleration that rises and falls smoothly instead of
+    a torque step), and held from then on.  ``kp`` sets the loop's bandwidth, about
+    ``kp N² Kt g / J`` rad/s on a joint of inertia ``J`` (output-referred, motor and
+    link; ``N`` the gear ratio, ``Kt`` the torque constant, ``g`` the amplifier's A/V),
+    which must stay far below the ripple's 2x motor velocity so the loop does not feed
+    the ripple back into the torque.  Off (the listing) while ``kp`` and ``ki``
     are 0.
     """
 
@@ -122,7 +124,7 @@ class SpeedLoopConfig:
     setpoint_radps: float = 0.0
     #: When the set point steps from 0 to ``setpoint_radps`` (s).
     start_s: float = 0.0
-    #: How long the set point takes to rise from 0 to ``setpoint_radps`` (s).
+    #: How long the set point takes to rise from 0 to ``setpoint_radps`` (s; 0: a step).
     ramp_s: float = 0.0
     #: Proportional gain (V per rad/s of motor speed error).
     kp_V_per_radps: float = 0.0

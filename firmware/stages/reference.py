@@ -146,7 +146,7 @@ class SpeedLoop:
         # the ramp: the set point rises by ``_rate`` per sample until sample ``_k_end``
         ramp = max(1, round(cfg.ramp_s / sample_period_s))
         self._k_end = self._k_start + ramp
-        self._rate = cfg.setpoint_radps / ramp
+        self._rate = math.pi / ramp  # the ramp's phase per sample
         self._kp = cfg.kp_V_per_radps
         self._ki_ts = cfg.ki_V_per_rad * sample_period_s
         self._limit = limit_V
@@ -160,8 +160,10 @@ class SpeedLoop:
         """The loop's voltage at sample ``k`` for the measured ``velocity`` (rad/s)."""
         if k >= self._k_end:
             setpoint = self._setpoint
-        else:
-            setpoint = max(0, k - self._k_start + 1) * self._rate
+        elif k < self._k_start:
+            setpoint = 0.0
+        else:  # a raised cosine: the acceleration rises and falls smoothly
+            setpoint = self._setpoint * 0.5 * (1.0 - math.cos((k - self._k_start + 1) * self._rate))
         error = setpoint - velocity
         if not math.isfinite(error):  # a skipped sample: hold the integrator
             return self._i

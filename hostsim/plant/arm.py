@@ -220,6 +220,12 @@ class ArmPlant:
         """Release the brakes: from the next :meth:`advance` on the arm moves."""
         self.braked = False
 
+    @property
+    def worn(self) -> bool:
+        """Whether a person wears the arm (a joint's ``link`` is a person's motion): it
+        starts where they hold it, moving with them, rather than at rest."""
+        return self._person is not None
+
     def set_load_torque(self, joint: int, torque_Nm: float) -> None:
         """A torque on joint ``joint``'s output (Nm, positive forward), held until
         changed: :meth:`Plant.set_load_torque` for one joint of the arm."""

@@ -138,7 +138,8 @@ class JointTable:
     #: The node-ID of the controller node that runs the joint; 0: the bus's.
     controller_node_id: int = 0
     #: The joint's angle at time 0 (rad; a ``[robot]`` rig only, inside the URDF's
-    #: limits): the arm starts at rest in this pose. 0: the URDF's zero.
+    #: limits): the arm starts at rest in this pose. 0 on every joint: the URDF's zero,
+    #: or where the person who wears the arm holds it.
     start_rad: float = 0.0
     #: The joint's own ``[plant]`` keys, merged over the scenario's (same layout).
     plant: dict[str, Any] = field(default_factory=dict)

@@ -11,12 +11,17 @@ SYNC with every drive's held input) when the scenario names a ``[robot]``, else 
 :class:`hostsim.plant.Plant`. One node loop (:class:`hdhil.rig.loop.NodeLoop`) sends
 every bus's SYNC in the same cycle.
 
+A free arm starts at rest under its weight in its joints' ``start_rad`` pose, its
+brakes on until every joint's command reaches its drive (:meth:`ArmPlant.rest_under_load`,
+:meth:`ArmPlant.apply_brakes`); an arm a person wears starts where they hold it.
+
 Each bus has its own truth channel (frame groups, in-process) on which its drives send
 their joint's truth at the joint's identifiers (:func:`hdhil.dbc.truth_frame_id`, the
 joint's index in the layout), and its own host tap with a frame counter and, per joint,
 the torque scorer (the joint's telemetry at its link's identifiers against its truth)
-and, with a control law, the tracking scorer. Frames of two buses share identifiers (the
-pre-defined connection set numbers each bus alike), so each bus is scored on its own.
+and, with a control law, the tracking scorer, both from the run's ``evaluate_from_s``.
+Frames of two buses share identifiers (the pre-defined connection set numbers each bus
+alike), so each bus is scored on its own.
 
 What a rig does not take yet (one-line :class:`ConfigError`): a trace, real time, an
 interface other than ``simbus``, injected faults, a drive DCF or mapping, and the
@@ -328,10 +333,11 @@ def _run(
                 LinkDynamics.from_urdf(s.robot.path),
                 [j.plant for j in joints],
                 [seed + j.index for j in joints],
-                [j.spec.start_rad for j in joints],
+                start if any(start := [j.spec.start_rad for j in joints]) else None,
             )
-            arm.rest_under_load()
-            arm.apply_brakes()
+            if not arm.worn:  # a free arm rests under its weight, braked until operation
+                arm.rest_under_load()
+                arm.apply_brakes()
             arm.prepare(Ts)
         except ValueError as exc:
             raise ConfigError(f"scenario {s.name}: {exc}") from None
