@@ -75,6 +75,8 @@ class ArmPlant:
     ``q0``: the link angles at time 0 (rad), at rest, no twist; by default zeros, or
     where the person's motion is at time 0 and moving with it when a person wears the
     arm (``link`` of kind hold, sine or person with an impedance: :class:`_Person`).
+    :meth:`rest_under_load` puts a free arm at rest under its weight instead, and
+    :meth:`apply_brakes` holds it there until :meth:`release_brakes`.
     """
 
     def __init__(
