@@ -122,7 +122,7 @@ class SpeedLoopConfig:
 
     #: Motor speed set point from ``start_s`` on (rad/s, at the motor, the tachometer's).
     setpoint_radps: float = 0.0
-    #: When the set point steps from 0 to ``setpoint_radps`` (s).
+    #: When the set point starts to rise from 0 to ``setpoint_radps`` (s).
     start_s: float = 0.0
     #: How long the set point takes to rise from 0 to ``setpoint_radps`` (s; 0: a step).
     ramp_s: float = 0.0
