@@ -38,6 +38,7 @@ from hdhil.firmware.stages import (
     LowPass,
     ReferenceGenerator,
     SensorPlausibility,
+    SpeedLoop,
     StuckChannels,
     VelocityIntegrator,
     dac_write,
@@ -382,6 +383,13 @@ class InterruptHandler:
         self.chain = TorqueFilterChain(cfg)
         self.reference = ReferenceGenerator(cfg.reference, cfg.sample_period_s)
         self.control = TorqueControl(cfg) if cfg.control.active else None
+        #: The motor-speed PI loop added to the reference (:class:`SpeedLoop`; not in the
+        #: listing), None when off or with a control law.
+        self.speed: SpeedLoop | None = (
+            SpeedLoop(cfg.speed, cfg.sample_period_s, cfg.dac.full_scale_V)
+            if cfg.speed.active and self.control is None
+            else None
+        )
         self._feedback_filtered = cfg.control.feedback == "T_filtered"
         self.samplecount = 0  # listing: int samplecount = 0;
         plausibility = cfg.plausibility
@@ -500,6 +508,8 @@ class InterruptHandler:
             self.source.reset()
         if self.control is not None:
             self.control.reset()
+        if self.speed is not None:
+            self.speed.reset()
         if self.stuck is not None:
             self.stuck.reset()
         self.samplecount = 0
@@ -528,6 +538,8 @@ class InterruptHandler:
         if control is None:
             # ref_fl = reference_generation(wavetype);
             ref_fl = self.reference.value(k)
+            if self.speed is not None:  # not in the listing: the motor-speed loop
+                ref_fl += self.speed.step(k, chain.velocity)
             if stamp is not None:
                 stamp(6)
             # write_dac0( ref_fl );

@@ -32,7 +32,8 @@ def test_two_joints_on_one_bus_run_in_lockstep_and_score() -> None:
     """Both drives reach operation enabled, each joint is scored from its own telemetry
     and truth, the ripple filter brings each joint's error below its raw error, and the
     same seed gives the same figures twice."""
-    first = run_rig(resolve(TWO, duration_s=0.3, seed=5))
+    # scored from the start (the scenario's evaluate_from_s is free-motion's 0.3 s)
+    first = run_rig(resolve(TWO, duration_s=0.3, seed=5, evaluate_from_s=0.0))
     assert first.verdict is None and not first.interrupted
     assert first.cycles == 300 and first.simulated_s == pytest.approx(0.3)
     assert [j.name for j in first.joints] == ["A", "B"]
@@ -46,7 +47,7 @@ def test_two_joints_on_one_bus_run_in_lockstep_and_score() -> None:
     a, b = (j.torque for j in first.joints)
     assert a["rms_error_raw"] != b["rms_error_raw"]
     assert first.worst_joint["rms_error_filtered"]["joint"] in ("A", "B")
-    again = run_rig(resolve(TWO, duration_s=0.3, seed=5))
+    again = run_rig(resolve(TWO, duration_s=0.3, seed=5, evaluate_from_s=0.0))
     assert _figures(again) == _figures(first)
     text = format_rig_result(first)
     assert "worst joint" in text and "candidate filters  per joint" in text
@@ -67,8 +68,8 @@ def test_a_joint_of_independent_plants_is_the_single_joint_rig() -> None:
     # B's filter as A's: the paper's filter starts its interrupts 16 samples later, and
     # the rig runs until every joint has run its samples
     same = {"joints": {"B": {"firmware": {"ripple": {"mode": "recommended"}}}}}
-    rig = run_rig(resolve(TWO, overrides=[same], duration_s=0.5, seed=9))
-    single = run_lockstep(resolve("free-motion", duration_s=0.5, seed=9))
+    rig = run_rig(resolve(TWO, overrides=[same], duration_s=0.5, seed=9, evaluate_from_s=0.0))
+    single = run_lockstep(resolve("free-motion", duration_s=0.5, seed=9, evaluate_from_s=0.0))
     a = rig.joints[0].torque
     assert a["samples"] == single.torque["samples"]
     for key in ("rms_true", "rms_error_raw", "rms_error_filtered", "max_error_raw"):
@@ -136,11 +137,12 @@ def test_hdhil_run_prints_a_row_per_joint_and_json(
     from hdhil.cli import main
 
     monkeypatch.chdir(tmp_path)
-    assert main(["run", "--scenario", str(TWO), "--duration", "0.1", "--trace", ""]) == 0
+    run = ["run", "--scenario", str(TWO), "--duration", "0.1", "--skip", "0", "--trace", ""]
+    assert main(run) == 0
     out = capsys.readouterr().out
     assert "2 joints on 1 bus(es)" in out and "worst joint" in out
     assert not list(tmp_path.glob("*.blf"))
-    assert main(["run", "--scenario", str(TWO), "--duration", "0.1", "--json", "--trace", ""]) == 0
+    assert main([*run, "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
     assert [j["name"] for j in data["joints"]] == ["A", "B"]
     assert data["worst_joint"]["rms_error_filtered"]["joint"] in ("A", "B")

@@ -44,7 +44,7 @@ from hdhil.firmware.config.plausibility import (
     PLAUSIBLE_TACHO_NOISE_RADPS,
     PlausibilityConfig,
 )
-from hdhil.firmware.config.reference import ReferenceConfig, Wave
+from hdhil.firmware.config.reference import ReferenceConfig, SpeedLoopConfig, Wave
 from hdhil.firmware.config.ripple import (
     LISTING_A1_RIPPLE,
     LISTING_A2_RIPPLE,
@@ -109,6 +109,7 @@ __all__ = [
     "PlausibilityConfig",
     "ReferenceConfig",
     "RippleFilterConfig",
+    "SpeedLoopConfig",
     "Wave",
     "paper_config",
     "recommended_config",

@@ -18,7 +18,7 @@ from hdhil.core.dataconf import check_fields
 from hdhil.firmware.config.calibration import Calibration
 from hdhil.firmware.config.control import ControlConfig
 from hdhil.firmware.config.plausibility import PlausibilityConfig
-from hdhil.firmware.config.reference import ReferenceConfig
+from hdhil.firmware.config.reference import ReferenceConfig, SpeedLoopConfig
 from hdhil.firmware.config.ripple import FilterMode, Oscillator, RippleFilterConfig
 
 __all__ = [
@@ -68,6 +68,9 @@ class FirmwareConfig:
     - ``plausibility``: bounds on velocity and encoder changes per sample
       (:class:`PlausibilityConfig`, not in the papers); on by default, off in paper
       mode unless ``plausibility.enabled = true`` (:attr:`plausibility_active`).
+    - ``speed``: a PI loop on the motor speed added to the reference voltage
+      (:class:`SpeedLoopConfig`, not in the papers); off by default, ignored with a
+      control law.
     """
 
     sample_period_s: float = 1e-3
@@ -83,6 +86,7 @@ class FirmwareConfig:
     control: ControlConfig = field(default_factory=ControlConfig)
     plausibility: PlausibilityConfig = field(default_factory=PlausibilityConfig)
     startup_settle_s: float | None = None
+    speed: SpeedLoopConfig = field(default_factory=SpeedLoopConfig)
 
     def __post_init__(self) -> None:
         s = self.startup_settle_s
@@ -109,6 +113,7 @@ class FirmwareConfig:
             ("dac", Converter),
             ("control", ControlConfig),
             ("plausibility", PlausibilityConfig),
+            ("speed", SpeedLoopConfig),
         ):
             if not isinstance(getattr(self, name), expected):
                 raise ValueError(f"{name} must be a {expected.__name__}")

@@ -16,6 +16,7 @@ from hdhil.core.dataconf import check_fields
 
 __all__ = [
     "ReferenceConfig",
+    "SpeedLoopConfig",
     "Wave",
 ]
 
@@ -92,3 +93,52 @@ class ReferenceConfig:
             raise ValueError(
                 f"reference.step_time_s must be a finite number >= 0, got {self.step_time_s!r}"
             )
+
+
+@dataclass(frozen=True)
+class SpeedLoopConfig:
+    """A PI loop on the motor speed, added to the reference voltage (not in the papers).
+
+    [Taghirad97]'s free-motion experiment drives the amplifier with a constant voltage
+    and the motor settles where its friction balances the torque; on a joint of an arm
+    under gravity the same voltage gives no steady speed (a gravity torque change of
+    1 Nm moves the balance by 0.59 rad/s at the output, 59 rad/s at the motor, with the
+    default drivetrain's 1.7 Nm s/rad), and the arm falls.  The loop holds the motor
+    speed the ripple filter needs, from the firmware's own tachometer velocity::
+
+        V(k) = reference(k) + kp (w_ref(k) - vel(k)) + I(k),
+        I(k+1) = clip(I(k) + ki Ts (w_ref(k) - vel(k)), -full scale, +full scale)
+
+    with ``w_ref`` 0 before ``start_s`` (the loop holds the joint at rest), rising to
+    ``setpoint_radps`` over ``ramp_s`` along a raised cosine, ``w_ref = setpoint (1 -
+    cos(pi t / ramp_s)) / 2`` (an acceleration that rises and falls smoothly instead of
+    a torque step), and held from then on.  ``kp`` sets the loop's bandwidth, about
+    ``kp N² Kt g / J`` rad/s on a joint of inertia ``J`` (output-referred, motor and
+    link; ``N`` the gear ratio, ``Kt`` the torque constant, ``g`` the amplifier's A/V),
+    which must stay far below the ripple's 2x motor velocity so the loop does not feed
+    the ripple back into the torque.  Off (the listing) while ``kp`` and ``ki``
+    are 0.
+    """
+
+    #: Motor speed set point from ``start_s`` on (rad/s, at the motor, the tachometer's).
+    setpoint_radps: float = 0.0
+    #: When the set point starts to rise from 0 to ``setpoint_radps`` (s).
+    start_s: float = 0.0
+    #: How long the set point takes to rise from 0 to ``setpoint_radps`` (s; 0: a step).
+    ramp_s: float = 0.0
+    #: Proportional gain (V per rad/s of motor speed error).
+    kp_V_per_radps: float = 0.0
+    #: Integral gain (V per rad of integrated motor speed error).
+    ki_V_per_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        check_fields(
+            self,
+            {"setpoint_radps": "finite", "start_s": ">=0", "ramp_s": ">=0", "kp_V_per_radps": ">=0",
+             "ki_V_per_rad": ">=0"},
+        )  # fmt: skip
+
+    @property
+    def active(self) -> bool:
+        """Whether the loop runs (a gain above 0)."""
+        return self.kp_V_per_radps > 0.0 or self.ki_V_per_rad > 0.0

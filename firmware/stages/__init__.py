@@ -32,7 +32,7 @@ from hdhil.firmware.stages.motion import (
     tustin_differentiator,
 )
 from hdhil.firmware.stages.plausibility import SensorPlausibility
-from hdhil.firmware.stages.reference import ReferenceGenerator
+from hdhil.firmware.stages.reference import ReferenceGenerator, SpeedLoop
 from hdhil.firmware.stages.sources import AdcSource, CstSource
 from hdhil.firmware.stages.stuck import StuckChannels
 from hdhil.firmware.stages.torque import expected_torque, filtered_torque, torque_error
@@ -45,6 +45,7 @@ __all__ = [
     "LowPass",
     "ReferenceGenerator",
     "SensorPlausibility",
+    "SpeedLoop",
     "StuckChannels",
     "VelocityIntegrator",
     "adc_read",

@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import math
 
-from hdhil.firmware.config import ReferenceConfig, Wave
+from hdhil.firmware.config import ReferenceConfig, SpeedLoopConfig, Wave
 
 __all__ = [
     "ReferenceGenerator",
+    "SpeedLoop",
 ]
 
 
@@ -128,3 +129,45 @@ class ReferenceGenerator:
             return b + A * tri
         # Wave.SAWTOOTH
         return b + A * (2.0 * p - 1.0)
+
+
+class SpeedLoop:
+    """The motor-speed PI loop of :class:`~hdhil.firmware.config.SpeedLoopConfig` (not in
+    the papers): ``step(k, velocity)`` is the voltage it adds to the reference at sample
+    k, from the tachometer velocity (rad/s).  The integrator is clipped to the DAC's full
+    scale (``limit_V``), so a saturated command does not wind it up."""
+
+    __slots__ = ("_i", "_k_end", "_k_start", "_ki_ts", "_kp", "_limit", "_rate", "_setpoint")
+
+    def __init__(self, cfg: SpeedLoopConfig, sample_period_s: float, limit_V: float) -> None:
+        self._setpoint = cfg.setpoint_radps
+        # the first sample at or after start_s (to within 1e-9 of a sample, as the step)
+        self._k_start = math.ceil(cfg.start_s / sample_period_s - 1e-9)
+        # the ramp: the set point rises by ``_rate`` per sample until sample ``_k_end``
+        ramp = max(1, round(cfg.ramp_s / sample_period_s))
+        self._k_end = self._k_start + ramp
+        self._rate = math.pi / ramp  # the ramp's phase per sample
+        self._kp = cfg.kp_V_per_radps
+        self._ki_ts = cfg.ki_V_per_rad * sample_period_s
+        self._limit = limit_V
+        self._i = 0.0
+
+    def reset(self) -> None:
+        """Back to rest: the integrator emptied."""
+        self._i = 0.0
+
+    def step(self, k: int, velocity: float) -> float:
+        """The loop's voltage at sample ``k`` for the measured ``velocity`` (rad/s)."""
+        if k >= self._k_end:
+            setpoint = self._setpoint
+        elif k < self._k_start:
+            setpoint = 0.0
+        else:  # a raised cosine: the acceleration rises and falls smoothly
+            setpoint = self._setpoint * 0.5 * (1.0 - math.cos((k - self._k_start + 1) * self._rate))
+        error = setpoint - velocity
+        if not math.isfinite(error):  # a skipped sample: hold the integrator
+            return self._i
+        out = self._i + self._kp * error
+        limit = self._limit
+        self._i = min(limit, max(-limit, self._i + self._ki_ts * error))
+        return out

@@ -76,6 +76,8 @@ class ArmPlant:
     ``q0``: the link angles at time 0 (rad), at rest, no twist; by default zeros, or
     where the person's motion is at time 0 and moving with it when a person wears the
     arm (``link`` of kind hold, sine or person with an impedance: :class:`_Person`).
+    :meth:`rest_under_load` puts a free arm at rest under its weight instead, and
+    :meth:`apply_brakes` holds it there until :meth:`release_brakes`.
     """
 
     def __init__(
@@ -161,6 +163,9 @@ class ArmPlant:
         self._volts = np.zeros(n)
         self._t = 0.0
         self._t_carry = 0.0
+        #: The motors' holding brakes are applied: :meth:`advance` moves the clock and
+        #: the currents, not the mechanics (:meth:`release_brakes`).
+        self.braked = False
         self._link_truth: tuple[np.ndarray, ...] | None = None
         #: Where :meth:`ArmJoint.advance` takes the N amplifier inputs when the arm has
         #: not been advanced for the cycle yet (``docs/multibody.md``); None: the rig
@@ -191,6 +196,41 @@ class ArmPlant:
         self._wm = self._wl.copy()
         self._i_cmd = self._i.copy()
         self._sync_sensors()
+
+    def rest_under_load(self) -> None:
+        """Put the arm at rest at its present angles as it rests under its own weight:
+        each flexspline twisted by the static torque its link needs, ``twist = -f / k``
+        with ``f`` the link torques at rest (gravity, wrenches, load torques), so the links
+        start in equilibrium instead of dropping onto untwisted flexsplines and ringing
+        at the joint mode.  Motors and links still, the currents unchanged; the clock
+        does not move."""
+        n = self.size
+        f = self.link.free_torques(self._q, np.zeros(n), self._wrenches)
+        f += self._tau_load
+        f += [0.0 if p is None else p(self._t) for p in self._profiles]
+        self._d = -f / self._k
+        self._wm = np.zeros(n)
+        self._wl = np.zeros(n)
+        self._sync_sensors()
+
+    def apply_brakes(self) -> None:
+        """Hold every motor with its brake (a robot's holding brakes while its drives
+        are not yet in operation): :meth:`advance` keeps the arm where it is, the
+        currents following their commands, until :meth:`release_brakes`."""
+        self.braked = True
+        self._wm = np.zeros(self.size)
+        self._wl = np.zeros(self.size)
+        self._sync_sensors()
+
+    def release_brakes(self) -> None:
+        """Release the brakes: from the next :meth:`advance` on the arm moves."""
+        self.braked = False
+
+    @property
+    def worn(self) -> bool:
+        """Whether a person wears the arm (a joint's ``link`` is a person's motion): it
+        starts where they hold it, moving with them, rather than at rest."""
+        return self._person is not None
 
     def set_load_torque(self, joint: int, torque_Nm: float) -> None:
         """A torque on joint ``joint``'s output (Nm, positive forward), held until
@@ -263,6 +303,10 @@ class ArmPlant:
         n, a, h = self.size, c.a, c.h
         link, wrenches = self.link, self._wrenches
         i_cmd = np.clip(self._gain * u, -self._ilim, self._ilim)
+        if self.braked:  # the brakes hold the motors: nothing moves, the currents follow
+            self._i = i_cmd + (self._i - i_cmd) * c.current_decay
+            self._finish_step(i_cmd, u, dt)
+            return
         # the sub-step map with M(q) held: x+ = phi @ [x, tau_m, f], x = [d, w_m, w_l, q]
         mass = link.mass_matrix(self._q)
         rhs = c.rhs0.copy()
@@ -310,6 +354,10 @@ class ArmPlant:
             raise NonFiniteStateError(self._t + dt, bad)
         self._d, self._wm, self._wl, self._q = x[:n], x[n : 2 * n], x[2 * n : 3 * n], x[3 * n :]
         self._i = i
+        self._finish_step(i_cmd, u, dt)
+
+    def _finish_step(self, i_cmd: np.ndarray, u: np.ndarray, dt: float) -> None:
+        """The end of every step: the held command and input, the clock, the sensors."""
         self._i_cmd = i_cmd
         self._volts = u
         y = dt - self._t_carry

@@ -23,6 +23,7 @@ mistake is one :class:`~hdhil.core.dataconf.ConfigError` naming the key.
 
 from __future__ import annotations
 
+import math
 import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
@@ -103,6 +104,8 @@ class JointSpec:
     #: unless the joint names another: a controller node reports two joints' telemetry
     #: in its four pre-defined TPDOs, docs/rigdb.md).
     controller_node_id: int = 1
+    #: The joint's angle at time 0 (rad), the arm at rest there: a ``[robot]`` rig's.
+    start_rad: float = 0.0
     #: The joint's own ``plant`` and ``firmware`` keys (what ``[joints.NAME]`` gave).
     plant_overrides: dict[str, Any] = field(default_factory=dict, compare=False)
     firmware_overrides: dict[str, Any] = field(default_factory=dict, compare=False)
@@ -114,6 +117,8 @@ class JointSpec:
             "node_id": self.node_id,
             "controller_node_id": self.controller_node_id,
         }
+        if self.start_rad:
+            data["start_rad"] = self.start_rad
         if self.plant_overrides:
             data["plant"] = self.plant_overrides
         if self.firmware_overrides:
@@ -132,6 +137,10 @@ class JointTable:
     node_id: int = 0
     #: The node-ID of the controller node that runs the joint; 0: the bus's.
     controller_node_id: int = 0
+    #: The joint's angle at time 0 (rad; a ``[robot]`` rig only, inside the URDF's
+    #: limits): the arm starts at rest in this pose. 0 on every joint: the URDF's zero,
+    #: or where the person who wears the arm holds it.
+    start_rad: float = 0.0
     #: The joint's own ``[plant]`` keys, merged over the scenario's (same layout).
     plant: dict[str, Any] = field(default_factory=dict)
     #: The joint's own ``[firmware]`` keys, merged over the scenario's (same layout).
@@ -232,6 +241,36 @@ def urdf_joints(path: Path) -> tuple[UrdfJoint, ...]:
     return tuple(joints)
 
 
+def _check_start(name: str, start: Any, robot: RobotSpec | None) -> None:
+    """``joints.NAME.start_rad``: a finite angle, of a ``[robot]``'s joint, inside the
+    URDF's limits (a revolute joint's ``<limit lower upper>``); else one-line error."""
+    key = f"joints.{name}.start_rad"
+    if isinstance(start, bool) or not isinstance(start, (int, float)) or not math.isfinite(start):
+        raise ConfigError(f"{key}: expected a finite angle in rad, got {start!r}")
+    if not start:
+        return
+    if robot is None:
+        raise ConfigError(f"{key}: a start pose is a [robot] rig's (the arm's joint angles)")
+    limits = urdf_limits(robot.path).get(name)
+    if limits is not None and not limits[0] <= start <= limits[1]:
+        raise ConfigError(
+            f"{key}: {start:g} rad is outside the URDF's limits {limits[0]:g}..{limits[1]:g} rad"
+        )
+
+
+def urdf_limits(path: Path) -> dict[str, tuple[float, float]]:
+    """The position limits (rad) of a URDF's revolute joints (``<limit lower upper>``),
+    by joint name; a continuous joint has none."""
+    out = {}
+    for element in ET.parse(path).getroot().findall("joint"):
+        limit = element.find("limit")
+        if element.get("type") == "revolute" and limit is not None:
+            lower, upper = limit.get("lower"), limit.get("upper")
+            if lower is not None and upper is not None:
+                out[element.get("name", "")] = (float(lower), float(upper))
+    return out
+
+
 def parse_buses(buses: Any, bus_defaults: dict[str, Any]) -> tuple[tuple[str, BusSpec], ...]:
     """``[buses.NAME]`` tables (None: the one bus of ``[bus]``) as (name, spec) pairs."""
     if buses is None:
@@ -290,7 +329,7 @@ def parse_joints(
         table = joints.get(name, {})
         if not isinstance(table, dict):
             raise ConfigError(f"joints.{name}: expected a table, got {table!r}")
-        known = {"bus", "node_id", "controller_node_id", "plant", "firmware"}
+        known = {"bus", "node_id", "controller_node_id", "start_rad", "plant", "firmware"}
         unknown_keys = sorted(set(table) - known)
         if unknown_keys:
             raise ConfigError(
@@ -325,6 +364,7 @@ def parse_joints(
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         controllers[bus].add(controller)
+        _check_start(name, table.get("start_rad", 0.0), robot)
         chosen.append((name, bus, node_id, table, controller))
     for bus, ids in controllers.items():  # a controller node is no drive
         clash = ids & {c[2] for c in chosen if c[1] == bus and c[2] is not None}
@@ -350,6 +390,7 @@ def parse_joints(
                 bus,
                 node_id,
                 controller,
+                float(table.get("start_rad", 0.0)),
                 dict(table.get("plant", {})),
                 dict(table.get("firmware", {})),
             )

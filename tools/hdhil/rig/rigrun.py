@@ -11,14 +11,18 @@ SYNC with every drive's held input) when the scenario names a ``[robot]``, else 
 :class:`hostsim.plant.Plant`. One node loop (:class:`hdhil.rig.loop.NodeLoop`) sends
 every bus's SYNC in the same cycle.
 
+A free arm starts at rest under its weight in its joints' ``start_rad`` pose, its
+brakes on until every joint's command reaches its drive (:meth:`ArmPlant.rest_under_load`,
+:meth:`ArmPlant.apply_brakes`); an arm a person wears starts where they hold it.
+
 Each bus has its own truth channel (frame groups, in-process) on which its drives send
 their joint's truth at the joint's identifiers (:func:`hdhil.dbc.truth_frame_id`, the
 joint's index in the layout), and its own host tap with a frame counter and, per joint,
-the torque scorer (the joint's telemetry at its link's identifiers against its truth),
-with a control law the tracking scorer, and unless ``evaluate`` is off the candidate
-filters of a single joint's evaluation, scored as the frames come. Frames of two buses
-share identifiers (the pre-defined connection set numbers each bus alike), so each bus
-is scored on its own.
+the torque scorer (the joint's telemetry at its link's identifiers against its truth)
+and, with a control law, the tracking scorer, both from the run's ``evaluate_from_s``,
+and unless ``evaluate`` is off the candidate filters of a single joint's evaluation,
+scored as the frames come. Frames of two buses share identifiers (the pre-defined
+connection set numbers each bus alike), so each bus is scored on its own.
 
 The scorers of a joint (:func:`joint_scoring`) are also those that score its trace
 (``hdhil evaluate``, :func:`hdhil.rig.trace_score.score_rig_trace`), fed the trace's
@@ -149,6 +153,9 @@ class RigResult:
     #: What the scenario scores (:attr:`hdhil.rig.scenario.Scenario.scored`): the torque
     #: columns are the ripple filter's only with ``ripple``.
     scored: tuple[str, ...] = ("ripple",)
+    #: The torque and tracking scores start at this time in operation (s): the run's
+    #: ``evaluate_from_s``.
+    evaluate_from_s: float = 0.0
 
     @property
     def real_time_factor(self) -> float:
@@ -296,13 +303,14 @@ def joint_scoring(
     """The scorers of the rig's ``index``-th joint at ``link``'s telemetry identifiers and
     the joint's truth: the run's (:func:`run_rig`) and its trace's
     (:func:`hdhil.rig.trace_score.score_rig_trace`). The tracking counts from ``skip_s``
-    (the run's evaluation start), the torque from the first frame. With ``candidates``,
+    (the run's evaluation start), the torque from as many interrupts in. With ``candidates``,
     also the candidate filters of a single joint's evaluation
     (:class:`~hdhil.rig.evaluate.RecordingListener` with the joint's firmware, scoring
     as it goes from ``skip_s``)."""
     plant, fw = request.scenario.joint_configs[index]
     spec = request.scenario.joints[index]
-    torque = TorqueScorer(telemetry_id=link.telemetry_cob_id, joint_index=index)
+    torque = TorqueScorer(telemetry_id=link.telemetry_cob_id, joint_index=index,
+                          skip_samples=round(skip_s / request.sample_period_s))  # fmt: skip
     evaluation = (
         RecordingListener(
             request.sample_period_s, firmware=fw, skip_s=skip_s, keep=False,
@@ -516,6 +524,8 @@ def _run(
     s = request.scenario
     Ts = request.sample_period_s
     seed = request.seed
+    # the torque scores leave out the first interrupts, as the single-joint evaluation
+    skip_samples = round(request.evaluate_from_s / Ts)
     # -- the plants: the arm's joints, or one plant per joint
     plants: list[Any]
     arm = None
@@ -528,7 +538,11 @@ def _run(
                 LinkDynamics.from_urdf(s.robot.path),
                 [j.plant for j in joints],
                 [seed + j.index for j in joints],
+                start if any(start := [j.spec.start_rad for j in joints]) else None,
             )
+            if not arm.worn:  # a free arm rests under its weight, braked until operation
+                arm.rest_under_load()
+                arm.apply_brakes()
             arm.prepare(Ts)
         except ValueError as exc:
             raise ConfigError(f"scenario {s.name}: {exc}") from None
@@ -631,6 +645,9 @@ def _run(
             if stop_requested is not None and stop_requested():
                 interrupted = True
                 break
+            if arm is not None and arm.braked and min(isr.samplecount for isr in isrs) >= 2:
+                # every drive applies its controller's command: the brakes let go
+                arm.release_brakes()
             if any(c.phase != "operational" for c in controllers):
                 nodes = ", ".join(f"node {c.node_id} {c.phase}" for c in controllers)
                 verdict = {"phase": "operation",
@@ -692,6 +709,7 @@ def _run(
         us_per_cycle=wall / operation * 1e6 if operation else math.nan,
         scored=tuple(s.scored),
         evaluated=evaluate,
+        evaluate_from_s=request.evaluate_from_s,
     )
 
 
@@ -726,6 +744,7 @@ def format_joint_table(
     rows: Sequence[RigJointResult | JointScores],
     scored: Sequence[str],
     worst: dict[str, Any],
+    since_s: float,
     *,
     state: bool = False,
 ) -> list[str]:
@@ -735,8 +754,8 @@ def format_joint_table(
     w = max([8, *(len(j.name) for j in rows)])
     ran = f" {'state':<18} {'samples':>7}" if state else ""
     lines = [
-        "  per joint (RMS error of the raw and the filtered torque against the true torque, "
-        "with the ripple filter scored; e = T_meas − T_desired with a law)",
+        f"  per joint from {since_s:g} s (RMS error of the raw and the filtered torque against "
+        "the true torque, with the ripple filter scored; e = T_meas − T_desired with a law)",
         f"    {'joint':<{w}} {'bus':<6} {'node':>4}{ran} "
         f"{'RMS raw/Nm':>10} {'RMS filt/Nm':>11} {'filt/raw':>8} {'law':<6} "
         f"{'RMS e/Nm':>8} {'|e|≤0.5':>8}",
@@ -810,7 +829,7 @@ def format_rig_evaluation(ev: dict[str, Any]) -> str:
             f"{name} (channel {b['channel']}): {', '.join(b['joints'])}"
             for name, b in ev["buses"].items()
         ),
-        *format_joint_table(rows, ev["scored"], ev["worst_joint"]),
+        *format_joint_table(rows, ev["scored"], ev["worst_joint"], ev["skip_s"]),
         *format_candidates(rows, bool(ev.get("evaluated", True))),
     ]
     return "\n".join(lines)
@@ -833,7 +852,7 @@ def format_rig_result(r: RigResult) -> str:
             f"{', '.join(b['joints'])}, {r.frames.get(name, 0)} frames"
             for name, b in r.buses.items()
         ),
-        *format_joint_table(r.joints, r.scored, r.worst_joint, state=True),
+        *format_joint_table(r.joints, r.scored, r.worst_joint, r.evaluate_from_s, state=True),
     ]
     if any(b["fd"] for b in r.buses.values()):
         lines.append(

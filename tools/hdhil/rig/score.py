@@ -63,7 +63,9 @@ class TorqueScorer(can.Listener):
     """Accumulates raw and filtered torque errors from telemetry and truth frames.
 
     ``skip_s``: telemetry before this time (trace time) is not scored, e.g. to leave out
-    the filter's start-up transient.  The default scores everything.  A joint of a rig:
+    the filter's start-up transient; ``skip_samples``: nor are the first this many
+    telemetry frames (the first interrupts in operation, one frame each).  The defaults
+    score everything.  A joint of a rig:
     ``telemetry_id`` its ``CTRL_TPDO1`` (the controller's TPDO1 at ``controller_node_id``
     by default) and ``joint_index`` its truth (:func:`hdhil.dbc.truth_frame_id`).
     """
@@ -76,8 +78,12 @@ class TorqueScorer(can.Listener):
         *,
         telemetry_id: int | None = None,
         joint_index: int = 0,
+        skip_samples: int = 0,
     ) -> None:
         self.skip_s = skip_s
+        self.skip_samples = skip_samples
+        #: Telemetry frames seen, scored or not.
+        self.telemetry_frames = 0
         #: RMS filtered error per ``block_s`` of telemetry time (whether it drifts).
         self.block_s = block_s
         self.block_rms: list[float] = []
@@ -115,7 +121,12 @@ class TorqueScorer(can.Listener):
             self.velocity_final = velocity
             if abs(velocity) > abs(self.velocity_peak):
                 self.velocity_peak = velocity
-            if self._T_true is None or msg.timestamp < self.skip_s:
+            self.telemetry_frames += 1
+            if (
+                self._T_true is None
+                or msg.timestamp < self.skip_s
+                or self.telemetry_frames <= self.skip_samples
+            ):
                 return
             T_true = self._T_true
             # Each truth frame scores one telemetry frame: a cycle whose truth is missing
