@@ -67,7 +67,7 @@ def test_evaluate_of_a_rig_trace_prints_the_runs_torque_figures_per_joint(
     """A rig scored on the ripple filter (free-motion's joints, B with the paper's
     filter): every joint's torque figures, printed cells and the worst joint are the
     run's."""
-    request = resolve(TWO, overrides=[TWO_BUSES], duration_s=0.3, seed=5)
+    request = resolve(TWO, overrides=[TWO_BUSES], duration_s=0.3, seed=5, evaluate_from_s=0.0)
     result, ev, text = _run_and_evaluate(request, tmp_path, capsys)
     assert [j["name"] for j in ev["joints"]] == ["A", "B"]
     assert ev["buses"] == {"can0": {"channel": 0, "joints": ["A"]},

@@ -204,17 +204,11 @@ class JointMetric:
 #: ``joints.J3.METRIC`` and the worst joint's as ``worst.METRIC`` (:func:`metric_kind`).
 JOINT_METRICS: dict[str, JointMetric] = {
     "samples": JointMetric("samples", "int", "control cycles", "min"),
-    "filtered_rms_err_whole_run_Nm": JointMetric(
-        "torque.rms_error_filtered", "float", "filtered RMS error"
-    ),
-    "filtered_max_err_whole_run_Nm": JointMetric(
-        "torque.max_error_filtered", "float", "filtered max error"
-    ),
-    "raw_rms_err_whole_run_Nm": JointMetric("torque.rms_error_raw", "float", "raw RMS error"),
-    "true_rms_whole_run_Nm": JointMetric("torque.rms_true", "float", "RMS of the true torque"),
-    "filtered_to_raw_whole_run": JointMetric(
-        "torque.filtered_to_raw", "float", "RMS error, filtered / raw"
-    ),
+    "filtered_rms_err_Nm": JointMetric("torque.rms_error_filtered", "float", "filtered RMS error"),
+    "filtered_max_err_Nm": JointMetric("torque.max_error_filtered", "float", "filtered max error"),
+    "raw_rms_err_Nm": JointMetric("torque.rms_error_raw", "float", "raw RMS error"),
+    "true_rms_Nm": JointMetric("torque.rms_true", "float", "RMS of the true torque"),
+    "filtered_to_raw": JointMetric("torque.filtered_to_raw", "float", "RMS error, filtered / raw"),
     "max_abs_e_Nm": JointMetric("tracking.max_abs_error", "float", "max |e|"),
     "rms_e_Nm": JointMetric("tracking.rms_error", "float", "RMS e"),
     "rms_e_measured_Nm": JointMetric(

@@ -524,8 +524,6 @@ def _run(
     s = request.scenario
     Ts = request.sample_period_s
     seed = request.seed
-    # the torque scores leave out the first interrupts, as the single-joint evaluation
-    skip_samples = round(request.evaluate_from_s / Ts)
     # -- the plants: the arm's joints, or one plant per joint
     plants: list[Any]
     arm = None
