@@ -25,8 +25,15 @@ from pathlib import Path
 from typing import Any
 
 from hdhil.can.schedule import BusPlan, BusSchedule, CyclicFrame, FrameRole, fd_pack, plan_bus
-from hdhil.canopen.rigdb import RigBus, RigDrive, rig_databases, truth_database
-from hdhil.rig.layout import DEFAULT_BUS, BusSpec
+from hdhil.canopen.rigdb import (
+    RigBus,
+    RigDrive,
+    is_telemetry,
+    rig_databases,
+    telemetry_phases,
+    truth_database,
+)
+from hdhil.rig.layout import DEFAULT_BUS, BusSpec, rigdb_layout
 from hdhil.rig.scenario import Scenario
 
 #: Ground-truth frames a joint sends each cycle on the simulated truth channel.
@@ -43,15 +50,7 @@ def rig_layout(
     if not scenario.is_rig:
         bus = RigBus(DEFAULT_BUS, 1, scenario.bus.bitrate)
         return [RigDrive("", 2, DEFAULT_BUS, mapping, dcf)], [bus]
-    buses = [
-        RigBus(name, spec.controller_node_id, spec.bitrate, spec.fd, spec.data_bitrate)
-        for name, spec in scenario.buses
-    ]
-    drives = [
-        RigDrive(j.name, j.node_id, j.bus, mapping, dcf, j.controller_node_id)
-        for j in scenario.joints
-    ]
-    return drives, buses
+    return rigdb_layout(scenario.joints, scenario.buses, mapping, dcf)
 
 
 def scenario_databases(
@@ -71,7 +70,7 @@ def _bus_specs(scenario: Scenario) -> dict[str, BusSpec]:
 def _role(name: str) -> FrameRole:
     if name == "SYNC":
         return "sync"
-    if "CTRL_TPDO" in name:
+    if is_telemetry(name):
         return "telemetry"
     if "DRIVE_TPDO" in name:
         return "tpdo"
@@ -103,19 +102,20 @@ def bus_schedule(
 ) -> BusSchedule:
     """The cyclic schedule of one bus from its database: every message with a cycle time
     (``GenMsgCycleTime`` in base cycles of one SYNC period) but the ground truth, the
-    telemetry every ``spec.telemetry_every`` cycles spread over them; FD-packed on an FD
-    bus."""
+    telemetry every ``spec.telemetry_every`` cycles spread over them
+    (:func:`hdhil.canopen.rigdb.telemetry_phases`, the cycles the controller nodes send
+    them in); FD-packed on an FD bus."""
     frames = []
-    telemetry = 0
+    every = spec.telemetry_every
+    phases = telemetry_phases(database, every)
     for msg in database.messages:
         if not msg.cycle_time or msg.name in truth:
             continue
         role = _role(msg.name)
         period, offset = int(msg.cycle_time), 0
-        if role == "telemetry" and spec.telemetry_every > 1:
-            period *= spec.telemetry_every
-            offset = telemetry % spec.telemetry_every
-            telemetry += 1
+        if role == "telemetry" and every > 1:
+            period *= every
+            offset = phases[msg.frame_id]
         joint = _joint_of(msg.name, joints)
         frames.append(
             CyclicFrame(

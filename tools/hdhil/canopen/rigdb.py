@@ -81,6 +81,7 @@ __all__ = [
     "predefined_cob_id",
     "rig_databases",
     "single_joint_databases",
+    "telemetry_phases",
     "truth_database",
     "truth_frame_id",
 ]
@@ -94,6 +95,8 @@ _NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.-]*")
 #: The arbitration phase's bit rate at most (ISO 11898-2), classical or FD.
 _MAX_NOMINAL_BITRATE = 1_000_000
 _MAX_DATA_BITRATE = 12_000_000
+#: A controller's telemetry of a joint (``CTRL_TPDO1``, ``J1_CTRL_TPDO2``, ...).
+_TELEMETRY = re.compile(r"(?:^|_)CTRL_TPDO\d+$")
 
 
 @dataclass(frozen=True)
@@ -691,3 +694,31 @@ def single_joint_databases(
     control.messages[:] = [m for m in control.messages if not m.is_extended_frame]
     control.refresh()
     return {"control": control, "truth": truth_database(drives, buses)}
+
+
+def is_telemetry(name: str) -> bool:
+    """Whether the message ``name`` of a rig's database is a controller's telemetry of a
+    joint (``CTRL_TPDOn``, with the joint's prefix on a rig)."""
+    return _TELEMETRY.search(name) is not None
+
+
+def telemetry_phases(db: Any, every: int) -> dict[int, int]:
+    """Decimated telemetry (a bus's ``telemetry_every``): the cycle each telemetry frame
+    of the bus database ``db`` goes in, by identifier.  The k-th joint with telemetry in
+    the database (:func:`is_telemetry`, joints in the order of their first telemetry
+    message) sends all its telemetry frames in the SYNC cycles c with c % ``every`` ==
+    k % ``every``: the joints spread round robin over the cycles, each joint's frames in
+    one cycle (its measured torque and its desired torque of one sample, as the
+    tracking score pairs them).  The planner (:mod:`hdhil.analysis.rigplan`) and the
+    controller nodes of a rig run (:mod:`hdhil.rig.rigrun`) both take them from here."""
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise ValueError(f"telemetry_every must be an integer >= 1, got {every!r}")
+    joints: dict[str, int] = {}
+    out = {}
+    for message in db.messages:
+        match = _TELEMETRY.search(message.name) if message.cycle_time else None
+        if match is None:
+            continue
+        joint = joints.setdefault(message.name[: match.start()], len(joints))
+        out[message.frame_id] = joint % every
+    return out

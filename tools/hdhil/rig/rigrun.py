@@ -42,10 +42,10 @@ from hdhil.can.traces.tap import BusTap, FrameCounter
 from hdhil.core.dataconf import ConfigError
 from hdhil.dbc import CHANNEL_NUMBER
 from hdhil.firmware.config import FirmwareConfig, Law
-from hdhil.firmware.controller import ControllerNode, JointSetup
+from hdhil.firmware.controller import ControllerNode, DriveLink, JointSetup
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
-from hdhil.rig.layout import BusSpec, JointSpec
+from hdhil.rig.layout import BusSpec, JointSpec, rigdb_layout
 from hdhil.rig.loop import NodeLoop
 from hdhil.rig.request import RunRequest
 from hdhil.rig.score import TorqueScorer, TrackingScorer
@@ -330,6 +330,10 @@ def _run(
         plants = [arm.joint(j.index) for j in joints]
     else:
         plants = [Plant(j.plant, seed + j.index) for j in joints]
+    # -- the buses' databases: the cycles of decimated telemetry (as the planner has them)
+    from hdhil.canopen.rigdb import rig_databases, telemetry_phases
+
+    databases = rig_databases(*rigdb_layout(s.joints, s.buses))
     # -- per bus: truth channel, drives, controller nodes, tap
     truth = GroupChannel(clock, CHANNEL_NUMBER["truth"], f"rig{id(clock)}-truth")
     opened.append(truth)
@@ -362,9 +366,18 @@ def _run(
                 " (the node that produces the bus's SYNC)"
             )
         producer: ControllerNode | None = None
+        every = spec.telemetry_every
+        phases = telemetry_phases(databases[name], every) if every > 1 else {}
         for cid in ids:
             served = [j for j in on_bus if j.spec.controller_node_id == cid]
-            setups = [JointSetup(j.firmware, j.spec.node_id, j.spec.name) for j in served]
+            setups = []
+            for rank, j in enumerate(served):
+                link = DriveLink.predefined(j.spec.node_id, cid, rank)
+                setups.append(JointSetup(
+                    j.firmware, j.spec.node_id, j.spec.name, link=link, telemetry_every=every,
+                    telemetry_phases=(phases.get(link.telemetry_cob_id, 0),
+                                      phases.get(link.control_cob_id, 0)),
+                ))  # fmt: skip
             bus = handle(name, index, cid)
             try:
                 node = ControllerNode(bus, node_id=cid, joints=setups,

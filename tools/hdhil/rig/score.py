@@ -253,7 +253,10 @@ class TrackingScorer(can.Listener):
     the observer estimates tau_lg = tau_l + tau_g instead.  Only telemetry at or after
     ``skip_s`` counts, from the first telemetry frame (the first sample in operation).
     The measured torque of the same sample comes from ``CTRL_TPDO1`` (sent before
-    ``CTRL_TPDO2``), the estimate's error from ``CTRL_TPDO2.e_hat``.
+    ``CTRL_TPDO2``; none when the cycle has no ``CTRL_TPDO1``, as with decimated
+    telemetry whose two frames go in different cycles), the estimate's error from
+    ``CTRL_TPDO2.e_hat``.  Decimated telemetry is scored from the frames present, each
+    against the truth of its own cycle (truth frames come every cycle).
     ``handle`` (the scenario's :class:`~hdhil.hostsim.plant.LinkMotionConfig`) gives
     the handle torque the external-torque estimate is scored against
     (:meth:`~hdhil.hostsim.plant.LinkMotionConfig.handle_torque`); None: ``tau_ext``.
@@ -330,6 +333,9 @@ class TrackingScorer(can.Listener):
 
     def _on_truth(self, msg: can.Message) -> None:
         self._T_true = self._truth.decode(msg.data)[0]
+        # a new cycle's truth: a measured torque of an earlier cycle is not this one's
+        # (decimated telemetry can send CTRL_TPDO1 and CTRL_TPDO2 in different cycles)
+        self._T_meas = None
 
     def _on_joint(self, msg: can.Message) -> None:
         tau_ext, tau_d, _tau_m, tau_m_cmd = self._joint.decode(msg.data)
