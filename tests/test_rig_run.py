@@ -209,3 +209,50 @@ def test_decimated_telemetry_is_sent_in_the_planned_cycles_at_the_planned_load(
         assert not math.isnan(j.tracking["rms_error_measured"])
     phases = {f.offset_cycles for f in telemetry.values()}
     assert phases == {0, 1}  # A's frames in cycle 0 of ten, B's in cycle 1
+
+
+FD = Path(__file__).parent / "data" / "rig-fd.toml"
+
+
+@pytest.mark.slow
+def test_an_fd_bus_runs_with_packed_frames_at_the_planned_load(tmp_path: Path) -> None:
+    """On a CAN FD bus the drives' sensor frames go in one FD frame and the commands in
+    another (FD_DRIVE_TPDO1, FD_DRIVE_RPDO1, bit-rate switching), the telemetry as FD
+    frames; both joints run and are scored; the trace decodes every joint's signals from
+    the packed frame by name, and its worst-case load of the planned frames (hdhil dump
+    --stats, FD phases at their bit rates) is the planner's."""
+    from hdhil.analysis.rigplan import plan_scenario
+    from hdhil.can.traces.reader import read_trace
+    from hdhil.can.traces.stats import StatsAccumulator
+    from hdhil.canopen.mapping import trace_decoder
+
+    request = resolve(FD, duration_s=0.2, seed=2, evaluate_from_s=0.0)
+    trace = tmp_path / "fd.blf"
+    result = run_rig(request, trace=trace, start_time=1.7e9)
+    assert result.verdict is None
+    for j in result.joints:
+        assert j.drive_state == "OPERATION_ENABLED" and j.samples == 200
+        assert 15 <= j.torque["samples"] <= 21 and j.tracking["samples"] >= 15
+    plan = plan_scenario(request.scenario).buses[0]
+    planned = {t.frame.can_id: t.frame for t in plan.frames}
+    decoder = trace_decoder(trace)
+    stats = StatsAccumulator(decoder=decoder)
+    seen: dict[str, int] = {}
+    with read_trace(trace) as frames:
+        for msg in frames:
+            frame = decoder.classify(msg)
+            stats.add(frame)
+            if msg.channel != 0:
+                continue
+            seen[frame.message or "?"] = seen.get(frame.message or "?", 0) + 1
+            if frame.message == "FD_DRIVE_TPDO1":
+                assert msg.is_fd and msg.bitrate_switch and len(msg.data) == 16
+                assert {"A_ADC_torque", "B_ENC_count"} <= set(frame.signals)
+            if frame.message is not None and "CTRL_TPDO" in frame.message:
+                assert msg.is_fd and msg.bitrate_switch
+    assert seen["FD_DRIVE_TPDO1"] >= 200 and seen["FD_DRIVE_RPDO1"] >= 200
+    assert "?" not in seen and not [n for n in seen if n.endswith("DRIVE_TPDO1") and "FD" not in n]
+    ids = stats.result()["ids"]
+    measured = sum(e["load_percent"] for e in ids if e["bus"] == "fd0" and e["id"] in planned)
+    assert measured == pytest.approx(plan.load * 100, abs=0.2)
+    assert "FD_DRIVE_TPDO1" in format_rig_result(result)

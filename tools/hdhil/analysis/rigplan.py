@@ -7,7 +7,8 @@ every frame of every bus from the object dictionaries: what ``hdhil dbc export
 time; the ground truth exists only in simulation and is left out) are that bus's
 schedule (:mod:`hdhil.can.schedule`): the SYNC, each drive's sensor PDO and command,
 and the controller's telemetry of each joint, decimated when the bus says so
-(``telemetry_every``), packed per direction into FD frames on a CAN FD bus. Each bus is
+(``telemetry_every``), on a CAN FD bus the drives' PDOs packed per direction into FD
+frames as the database has them. Each bus is
 planned against the 60 % limit with suggestions computed from its numbers when it is
 over.
 
@@ -24,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hdhil.can.schedule import BusPlan, BusSchedule, CyclicFrame, FrameRole, fd_pack, plan_bus
+from hdhil.can.schedule import BusPlan, BusSchedule, CyclicFrame, FrameRole, plan_bus
 from hdhil.canopen.rigdb import (
     RigBus,
     RigDrive,
@@ -104,7 +105,10 @@ def bus_schedule(
     (``GenMsgCycleTime`` in base cycles of one SYNC period) but the ground truth, the
     telemetry every ``spec.telemetry_every`` cycles spread over them
     (:func:`hdhil.canopen.rigdb.telemetry_phases`, the cycles the controller nodes send
-    them in); FD-packed on an FD bus."""
+    them in).  On an FD bus the database has the drives' PDOs packed into FD frames
+    (:func:`hdhil.canopen.rigdb.rig_packing`) and the telemetry as FD frames; each
+    message its database's format, with bit-rate switching when the bus has a data bit
+    rate."""
     frames = []
     every = spec.telemetry_every
     phases = telemetry_phases(database, every)
@@ -124,16 +128,17 @@ def bus_schedule(
                 msg.length,
                 period_cycles=period,
                 offset_cycles=offset,
+                fd=bool(msg.is_fd),
+                brs=bool(spec.data_bitrate),
                 extended=msg.is_extended_frame,
                 role=role,
                 joint=joint,
             )
         )
     data_bitrate = spec.data_bitrate or (spec.bitrate if spec.fd else None)
-    schedule = BusSchedule(
+    return BusSchedule(
         name, tuple(frames), spec.bitrate, data_bitrate if spec.fd else None, sample_period_s
     )
-    return fd_pack(schedule, data_bitrate) if spec.fd else schedule
 
 
 @dataclass(frozen=True)

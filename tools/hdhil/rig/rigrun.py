@@ -18,9 +18,15 @@ the torque scorer (the joint's telemetry at its link's identifiers against its t
 and, with a control law, the tracking scorer. Frames of two buses share identifiers (the
 pre-defined connection set numbers each bus alike), so each bus is scored on its own.
 
-What a rig does not take yet (one-line :class:`ConfigError`): a trace, real time, an
-interface other than ``simbus``, injected faults, a drive DCF or mapping, and the
-evaluation of candidate filters (the result says so).
+On a CAN FD bus the joints' cyclic PDOs are packed per direction into FD frames
+(:mod:`hdhil.rig.fdpack`: the bus's database has the packed layouts, a gateway node
+sends them) and the telemetry goes as FD frames, with bit-rate switching when the bus
+has a data bit rate.  A bus's ``telemetry_every`` decimates the telemetry
+(:func:`hdhil.canopen.rigdb.telemetry_phases`).
+
+What a rig does not take yet (one-line :class:`ConfigError`): real time, an interface
+other than ``simbus``, injected faults, a drive DCF or mapping, and the evaluation of
+candidate filters (the result says so).
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ from hdhil.firmware.config import FirmwareConfig, Law
 from hdhil.firmware.controller import ControllerNode, DriveLink, JointSetup
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
+from hdhil.rig.fdpack import FdGateway, PackingBus
 from hdhil.rig.layout import BusSpec, JointSpec, rigdb_layout
 from hdhil.rig.loop import NodeLoop
 from hdhil.rig.request import RunRequest
@@ -237,6 +244,7 @@ def run_rig(
             clock=clock,
             trace_channel=bus_channel(index),
             node_id=node_id,
+            data_bitrate=(spec.data_bitrate or None) if spec.fd else None,
         )
         opened.append(bus)
         return bus  # type: ignore[no-any-return]
@@ -248,7 +256,8 @@ def run_rig(
         if start_time is None:
             start_time = round(time.time(), 3)  # whole ms: the resolution of BLF's date
         writer = WriterProcess(trace, time_offset=start_time,
-                               metadata=rig_metadata(request, start_time))  # fmt: skip
+                               metadata=rig_metadata(request, start_time),
+                               fd=any(spec.fd for spec in buses.values()))  # fmt: skip
     blas = threadpool_limits(limits=1)
     completed = False
     try:
@@ -331,9 +340,10 @@ def _run(
     else:
         plants = [Plant(j.plant, seed + j.index) for j in joints]
     # -- the buses' databases: the cycles of decimated telemetry (as the planner has them)
-    from hdhil.canopen.rigdb import rig_databases, telemetry_phases
+    from hdhil.canopen.rigdb import is_telemetry, rig_packing, telemetry_phases
 
-    databases = rig_databases(*rigdb_layout(s.joints, s.buses))
+    databases, packing = rig_packing(*rigdb_layout(s.joints, s.buses))
+    gateways: list[FdGateway] = []
     # -- per bus: truth channel, drives, controller nodes, tap
     truth = GroupChannel(clock, CHANNEL_NUMBER["truth"], f"rig{id(clock)}-truth")
     opened.append(truth)
@@ -347,6 +357,17 @@ def _run(
         on_bus = [j for j in joints if j.spec.bus == name]
         if not on_bus:
             continue
+        gateway: FdGateway | None = None
+        if packing.get(name):  # an FD bus: the joints' PDOs packed (hdhil.rig.fdpack)
+            fd_ids = [m.frame_id for m in databases[name].messages
+                      if m.is_fd and is_telemetry(m.name)]  # fmt: skip
+            gateway = FdGateway(handle(name, index, None), packing[name], fd_ids,
+                                brs=bool(spec.data_bitrate))  # fmt: skip
+            gateways.append(gateway)
+
+        def packed(bus: SimBus, gateway: FdGateway | None = gateway) -> Any:
+            return bus if gateway is None else PackingBus(bus, gateway)
+
         for j in on_bus:
             cfg = DriveConfig(
                 sample_period_s=Ts,
@@ -355,8 +376,8 @@ def _run(
                 controller_node_id=j.spec.controller_node_id,
                 truth_joint_index=j.index,
             )
-            j.drive = DriveNode(handle(name, index, j.spec.node_id), plants[j.index], cfg,
-                                truth_bus=truth)  # type: ignore[arg-type]  # fmt: skip
+            j.drive = DriveNode(packed(handle(name, index, j.spec.node_id)), plants[j.index],
+                                cfg, truth_bus=truth)  # type: ignore[arg-type]  # fmt: skip
             drives.append(j.drive)
         ids = sorted({j.spec.controller_node_id for j in on_bus},
                      key=lambda cid: (cid != spec.controller_node_id, cid))  # fmt: skip
@@ -380,7 +401,7 @@ def _run(
                 ))  # fmt: skip
             bus = handle(name, index, cid)
             try:
-                node = ControllerNode(bus, node_id=cid, joints=setups,
+                node = ControllerNode(packed(bus), node_id=cid, joints=setups,
                                       sync_producer=cid == spec.controller_node_id)  # fmt: skip
             except ValueError as exc:
                 raise ConfigError(f"bus {name}: {exc}") from None
@@ -419,7 +440,7 @@ def _run(
         arm.input_source = lambda: [d.io.step_V for d in ordered]  # type: ignore[union-attr]
     (first, first_bus), *more = producers
     loop = NodeLoop(
-        [*drives, *controllers],
+        [*drives, *controllers, *gateways],  # the gateways after the nodes of each round
         producer=first,
         listeners=[tap],
         listen_every=TAP_EVERY_CYCLES,
@@ -583,8 +604,8 @@ def format_rig_result(r: RigResult) -> str:
         lines.append(f"  worst joint        {worst['joint']} by {what}: {value}")
     if any(b["fd"] for b in r.buses.values()):
         lines.append(
-            "  CAN FD             an FD bus carries the joints' classical frames, timed at its "
-            "arbitration bit rate (no FD packing, no data phase yet)"
+            "  CAN FD             on an FD bus each direction's cyclic PDOs of its joints go in "
+            "one FD frame (FD_DRIVE_TPDO1, FD_DRIVE_RPDO1), the telemetry as FD frames"
         )
     lines.append(f"  evaluation         {r.evaluation}")
     if r.trace:
