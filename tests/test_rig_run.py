@@ -201,6 +201,8 @@ def test_decimated_telemetry_is_sent_in_the_planned_cycles_at_the_planned_load(
     ids = stats.result()["ids"]
     measured = sum(e["load_percent"] for e in ids if e["bus"] == "can0" and e["id"] in planned)
     assert measured == pytest.approx(plan.load * 100, abs=0.2)
+    # the run's own figure: the planned frames and the service frames on top
+    assert plan.load < result.buses["can0"]["worst_case_load"] < plan.load + 0.03
     for j in result.joints:
         assert 15 <= j.torque["samples"] <= 21  # 200 cycles, one in ten
         assert j.tracking is not None and 15 <= j.tracking["samples"] <= 21
@@ -255,4 +257,5 @@ def test_an_fd_bus_runs_with_packed_frames_at_the_planned_load(tmp_path: Path) -
     ids = stats.result()["ids"]
     measured = sum(e["load_percent"] for e in ids if e["bus"] == "fd0" and e["id"] in planned)
     assert measured == pytest.approx(plan.load * 100, abs=0.2)
+    assert plan.load < result.buses["fd0"]["worst_case_load"] < plan.load + 0.03
     assert "FD_DRIVE_TPDO1" in format_rig_result(result)

@@ -512,9 +512,11 @@ def _run(
             )
         )
     frames = {name: counter.total for name, counter in counters.items()}
+    span = loop.k * Ts
     bus_info = {
         name: {"channel": bus_channel(i), "bitrate": spec.bitrate, "fd": spec.fd,
-               "joints": [j.spec.name for j in joints if j.spec.bus == name]}
+               "joints": [j.spec.name for j in joints if j.spec.bus == name],
+               "worst_case_load": bus_load(counters[name].counts, databases[name], spec, span)}
         for i, (name, spec) in enumerate(buses.items())
         if any(j.spec.bus == name for j in joints)
     }  # fmt: skip
@@ -536,6 +538,32 @@ def _run(
         us_per_cycle=wall / operation * 1e6 if operation else math.nan,
         scored=tuple(s.scored),
     )
+
+
+def bus_load(
+    counts: dict[tuple[int, int], int], database: Any, spec: BusSpec, span_s: float
+) -> float:
+    """The worst-case load of a bus over a run: each frame the run sent on it (``counts``
+    by channel and identifier) at its worst-case time for its identifier, length and
+    format in the bus's ``database`` (:func:`hdhil.can.schedule.worst_case_seconds`: FD
+    phases at their bit rates), summed over the run's ``span_s``.  What ``hdhil dump
+    --stats`` gives the bus's trace; the plan's figure plus the service frames (NMT,
+    heartbeats, EMCY, SDO, the statusword PDO).  An identifier the database does not
+    know counts with the worst case of an 8-byte classical frame."""
+    from hdhil.can.schedule import CyclicFrame, worst_case_seconds
+
+    if span_s <= 0:
+        return math.nan
+    by_id = {m.frame_id: m for m in database.messages if not m.is_extended_frame}
+    data_bitrate = (spec.data_bitrate or None) if spec.fd else None
+    busy = 0.0
+    for (_channel, frame_id), n in counts.items():
+        m = by_id.get(frame_id)
+        fd = bool(m is not None and m.is_fd)
+        frame = CyclicFrame("", frame_id, m.length if m is not None else 8, fd=fd,
+                            brs=data_bitrate is not None)  # fmt: skip
+        busy += n * worst_case_seconds(frame, spec.bitrate, data_bitrate)
+    return busy / span_s
 
 
 def worst_joint(rows: list[RigJointResult], filtered: bool = True) -> dict[str, Any]:
@@ -578,7 +606,8 @@ def format_rig_result(r: RigResult) -> str:
         "  buses              "
         + "; ".join(
             f"{name} (channel {b['channel']}{', FD' if b['fd'] else ''}): "
-            f"{', '.join(b['joints'])}, {r.frames.get(name, 0)} frames"
+            f"{', '.join(b['joints'])}, {r.frames.get(name, 0)} frames, worst-case load "
+            f"{b['worst_case_load'] * 100:.1f} %"
             for name, b in r.buses.items()
         ),
         "  per joint (RMS error of the raw and the filtered torque against the true torque, "
