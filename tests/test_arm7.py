@@ -184,11 +184,12 @@ def test_an_arm_at_rest_under_its_weight_stays_put_and_brakes_hold_it(tmp_path: 
 # ------------------------------------------------------------------ the goal
 
 
-def _decode(trace: Path, dbcs: dict[str, Path], skip: int) -> dict[str, tuple[float, float]]:
+def _decode(trace: Path, dbcs: dict[str, Path], skip_s: float) -> dict[str, tuple[float, float]]:
     """Each joint's (raw, filtered) RMS torque error from the trace alone, as a logger
     computes it: the joint's CTRL_TPDO1 on its bus's channel paired with the latest
     TRUTH_TORQUE of the joint on the truth channel (each truth frame used once), the
-    joint's first ``skip`` telemetry frames left out."""
+    joint's telemetry in the first ``skip_s`` after its first frame left out (to half a
+    1 ms period: the telemetry is decimated, every 10th cycle)."""
     import can
     import cantools
 
@@ -203,7 +204,7 @@ def _decode(trace: Path, dbcs: dict[str, Path], skip: int) -> dict[str, tuple[fl
         tele_ids[(channels[j["bus"]], tele)] = name
     bus_of = {j["name"]: j["bus"] for j in side["rig"]["joints"]}
     truth: dict[str, float | None] = dict.fromkeys(bus_of)
-    seen = dict.fromkeys(bus_of, 0)
+    first: dict[str, float | None] = dict.fromkeys(bus_of)
     sums = {name: [0, 0.0, 0.0] for name in bus_of}
     with can.BLFReader(str(trace)) as frames:
         for msg in frames:
@@ -215,9 +216,11 @@ def _decode(trace: Path, dbcs: dict[str, Path], skip: int) -> dict[str, tuple[fl
             name = tele_ids.get((msg.channel, msg.arbitration_id))
             if name is None:
                 continue
-            seen[name] += 1
+            start = first[name]
+            if start is None:
+                start = first[name] = msg.timestamp
             true = truth[name]
-            if true is None or seen[name] <= skip:
+            if true is None or msg.timestamp - start < skip_s - 0.5e-3:
                 continue
             truth[name] = None
             d = dbs[bus_of[name]].decode_message(msg.arbitration_id, msg.data)
@@ -247,7 +250,7 @@ def test_arm7_filters_every_joint_to_a_tenth_of_its_raw_error(
     assert "per joint from 0.3 s" in printed
     buses = {"can0", "can1", "can2", "can3"}
     figures = _decode(tmp_path / "arm7.blf", {b: tmp_path / f"rig-{b}.dbc" for b in buses},
-                      skip=300)  # fmt: skip
+                      skip_s=0.3)  # fmt: skip
     assert len(figures) == 7
     for name, (raw, filtered) in figures.items():
         assert filtered <= 0.10 * raw, (name, raw, filtered)

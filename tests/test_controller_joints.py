@@ -393,3 +393,14 @@ def test_the_scenario_controller_of_one_drive_is_the_single_joint_controller():
         ctrl = scenario_controller(site, scenario.firmware)
     assert len(ctrl.joints) == 1 and ctrl.config is scenario.firmware
     assert ctrl.joints[0].link == DriveLink()
+
+
+def test_decimated_telemetry_settings_are_checked() -> None:
+    """A joint's telemetry every N >= 1 cycles, each frame's phase a cycle 0..N-1."""
+    from hdhil.firmware.config import FirmwareConfig
+    from hdhil.firmware.controller import JointSetup
+
+    assert JointSetup(FirmwareConfig(), telemetry_every=10, telemetry_phases=(9, 0))
+    for every, phases in ((0, (0, 0)), (4, (4, 0)), (4, (0, -1)), (True, (0, 0))):
+        with pytest.raises(ValueError, match="telemetry"):
+            JointSetup(FirmwareConfig(), telemetry_every=every, telemetry_phases=phases)

@@ -388,6 +388,34 @@ def test_lowpass_of_the_section_v_estimates() -> None:
         LowPass(500.0, Ts)
 
 
+def test_the_tracking_score_pairs_the_measured_torque_of_the_same_cycle_only() -> None:
+    """Decimated telemetry: a cycle with CTRL_TPDO1 but no CTRL_TPDO2, then a cycle with
+    CTRL_TPDO2 only. The measured torque of the first cycle is not scored against the
+    second cycle's desired torque (each truth frame starts a cycle); e on the truth and
+    on the estimate still score from the CTRL_TPDO2 present."""
+    from hdhil.dbc import codec
+    from hdhil.rig.score import TrackingScorer
+
+    tele1, tele2 = codec("control", "CTRL_TPDO1"), codec("control", "CTRL_TPDO2")
+    truth, joint = codec("truth", "TRUTH_TORQUE"), codec("truth", "TRUTH_JOINT")
+    scorer = TrackingScorer(0.28, friction_compensated=True)
+
+    def frame(c, t, *values):
+        return can.Message(timestamp=t, arbitration_id=c.frame_id,
+                           is_extended_id=c.is_extended_id, data=c.encode(*values))  # fmt: skip
+
+    for k in range(2):
+        scorer.on_message_received(frame(truth, k * 1e-3, 1.0, 0.0))
+        scorer.on_message_received(frame(joint, k * 1e-3, 0.0, 0.0, 0.0, 0.0))
+        if k == 0:
+            scorer.on_message_received(frame(tele1, 0.0, 5.0, 5.0, 0.0, 0.0))
+        else:
+            scorer.on_message_received(frame(tele2, 1e-3, 0.0, 0.0, 1.0, 0.0))
+    r = scorer.result()
+    assert r.samples == 1 and r.max_abs_error == pytest.approx(0.0, abs=1e-3)
+    assert math.isnan(r.rms_error_measured)
+
+
 def test_the_tracking_score_has_e_on_the_true_measured_and_estimated_torque() -> None:
     """Each telemetry sample scores e = torque − T_desired three times: on the truth of
     its instant, on the measured torque of its CTRL_TPDO1 (once: a sample whose measured

@@ -142,7 +142,7 @@ def test_a_rig_variant_is_what_hdhil_run_json_prints_for_the_same_settings(tmp_p
     by_name = {j["name"]: j for j in printed["joints"]}
     for name, joint in by_name.items():
         assert int(row[f"joints.{name}.samples"]) == joint["samples"] == 1200
-        assert joint["torque"]["samples"] >= 190  # from 1 s
+        assert 15 <= joint["torque"]["samples"] <= 25  # from 1 s, telemetry every 10th cycle
         rms = joint["torque"]["rms_error_filtered"]
         assert float(row[f"joints.{name}.filtered_rms_err_Nm"]) == rms
     worst = max(by_name.values(), key=lambda j: j["torque"]["rms_error_filtered"])

@@ -93,8 +93,9 @@ def test_a_joint_of_independent_plants_is_the_single_joint_rig() -> None:
 def test_rehabexos_runs_every_joint_in_operation() -> None:
     """The four joints of rehabexos on two buses, the arm's plant moved once a cycle, a
     person wearing it: every joint reaches operation and gets its tracking row (the
-    share of |e| <= 0.5 Nm on the measured torque after the first second, printed per
-    joint), and every joint meets the goal of 95 %."""
+    share of |e| <= 0.5 Nm on the measured torque after the first second, from the
+    telemetry of every 10th cycle, printed per joint), and every joint meets the goal
+    of 95 %."""
     result = run_rig(resolve("rehabexos", duration_s=3.0))
     assert result.verdict is None and result.cycles == 3000
     assert [j.name for j in result.joints] == ["J1", "J2", "J3", "J4"]
@@ -102,7 +103,8 @@ def test_rehabexos_runs_every_joint_in_operation() -> None:
     assert result.buses["can1"]["channel"] == 2
     for j in result.joints:
         assert j.drive_state == "OPERATION_ENABLED"
-        assert j.tracking is not None and 1990 <= j.tracking["samples"] <= 2010
+        # the buses' telemetry every 10th cycle (telemetry_every): scored from those
+        assert j.tracking is not None and 195 <= j.tracking["samples"] <= 205
         assert j.tracking["share_within_goal_measured"] >= 0.95, j.name
     worst = result.worst_joint["share_within_goal_measured"]
     assert worst["value"] == min(j.tracking["share_within_goal_measured"] for j in result.joints)
@@ -180,3 +182,103 @@ def test_a_rig_trace_has_a_channel_per_bus_and_decodes_by_joint(tmp_path: Path) 
     assert seen[("can0", "A_DRIVE_TPDO1")] >= 50 and seen[("can1", "B_DRIVE_TPDO1")] >= 50
     assert seen[("truth", "B_TRUTH_TORQUE")] >= 50
     assert not any(name == "?" for _, name in seen)
+
+
+DECIMATED = Path(__file__).parent / "data" / "rig-decimated.toml"
+
+
+@pytest.mark.slow
+def test_decimated_telemetry_is_sent_in_the_planned_cycles_at_the_planned_load(
+    tmp_path: Path,
+) -> None:
+    """A bus's telemetry_every: the controller nodes (the SYNC producer and a node that
+    follows its SYNC) send each telemetry frame every 10th cycle, in the cycle the
+    planner gives it; the trace's worst-case load of the planned frames (hdhil dump
+    --stats) is the planner's; every joint is scored from the telemetry present."""
+    from hdhil.analysis.rigplan import plan_scenario
+    from hdhil.can.traces.reader import read_trace
+    from hdhil.can.traces.stats import StatsAccumulator
+    from hdhil.canopen.mapping import trace_decoder
+
+    request = resolve(DECIMATED, duration_s=0.2, seed=3, evaluate_from_s=0.0)
+    trace = tmp_path / "rig.blf"
+    result = run_rig(request, trace=trace, start_time=1.7e9)
+    assert result.verdict is None
+    plan = plan_scenario(request.scenario).buses[0]
+    planned = {t.frame.can_id: t.frame for t in plan.frames}
+    telemetry = {i: f for i, f in planned.items() if f.role == "telemetry"}
+    assert len(telemetry) == 4 and {f.period_cycles for f in telemetry.values()} == {10}
+    cycle, cycles_of = -1, {i: set() for i in telemetry}
+    decoder = trace_decoder(trace)
+    stats = StatsAccumulator(decoder=decoder)
+    with read_trace(trace) as frames:
+        for msg in frames:
+            stats.add(decoder.classify(msg, decode=False))
+            if msg.channel != 0:
+                continue
+            if msg.arbitration_id == 0x080:
+                cycle += 1
+            elif msg.arbitration_id in telemetry:
+                cycles_of[msg.arbitration_id].add(cycle % 10)
+    assert cycles_of == {i: {f.offset_cycles} for i, f in telemetry.items()}
+    ids = stats.result()["ids"]
+    measured = sum(e["load_percent"] for e in ids if e["bus"] == "can0" and e["id"] in planned)
+    assert measured == pytest.approx(plan.load * 100, abs=0.2)
+    # the run's own figure: the planned frames and the service frames on top
+    assert plan.load < result.buses["can0"]["worst_case_load"] < plan.load + 0.03
+    for j in result.joints:
+        assert 15 <= j.torque["samples"] <= 21  # 200 cycles, one in ten
+        assert j.tracking is not None and 15 <= j.tracking["samples"] <= 21
+        # a joint's CTRL_TPDO1 and CTRL_TPDO2 go in one cycle: its measured torque is
+        # scored against the desired torque of the same sample
+        assert not math.isnan(j.tracking["rms_error_measured"])
+    phases = {f.offset_cycles for f in telemetry.values()}
+    assert phases == {0, 1}  # A's frames in cycle 0 of ten, B's in cycle 1
+
+
+FD = Path(__file__).parent / "data" / "rig-fd.toml"
+
+
+@pytest.mark.slow
+def test_an_fd_bus_runs_with_packed_frames_at_the_planned_load(tmp_path: Path) -> None:
+    """On a CAN FD bus the drives' sensor frames go in one FD frame and the commands in
+    another (FD_DRIVE_TPDO1, FD_DRIVE_RPDO1, bit-rate switching), the telemetry as FD
+    frames; both joints run and are scored; the trace decodes every joint's signals from
+    the packed frame by name, and its worst-case load of the planned frames (hdhil dump
+    --stats, FD phases at their bit rates) is the planner's."""
+    from hdhil.analysis.rigplan import plan_scenario
+    from hdhil.can.traces.reader import read_trace
+    from hdhil.can.traces.stats import StatsAccumulator
+    from hdhil.canopen.mapping import trace_decoder
+
+    request = resolve(FD, duration_s=0.2, seed=2, evaluate_from_s=0.0)
+    trace = tmp_path / "fd.blf"
+    result = run_rig(request, trace=trace, start_time=1.7e9)
+    assert result.verdict is None
+    for j in result.joints:
+        assert j.drive_state == "OPERATION_ENABLED" and j.samples == 200
+        assert 15 <= j.torque["samples"] <= 21 and j.tracking["samples"] >= 15
+    plan = plan_scenario(request.scenario).buses[0]
+    planned = {t.frame.can_id: t.frame for t in plan.frames}
+    decoder = trace_decoder(trace)
+    stats = StatsAccumulator(decoder=decoder)
+    seen: dict[str, int] = {}
+    with read_trace(trace) as frames:
+        for msg in frames:
+            frame = decoder.classify(msg)
+            stats.add(frame)
+            if msg.channel != 0:
+                continue
+            seen[frame.message or "?"] = seen.get(frame.message or "?", 0) + 1
+            if frame.message == "FD_DRIVE_TPDO1":
+                assert msg.is_fd and msg.bitrate_switch and len(msg.data) == 16
+                assert {"A_ADC_torque", "B_ENC_count"} <= set(frame.signals)
+            if frame.message is not None and "CTRL_TPDO" in frame.message:
+                assert msg.is_fd and msg.bitrate_switch
+    assert seen["FD_DRIVE_TPDO1"] >= 200 and seen["FD_DRIVE_RPDO1"] >= 200
+    assert "?" not in seen and not [n for n in seen if n.endswith("DRIVE_TPDO1") and "FD" not in n]
+    ids = stats.result()["ids"]
+    measured = sum(e["load_percent"] for e in ids if e["bus"] == "fd0" and e["id"] in planned)
+    assert measured == pytest.approx(plan.load * 100, abs=0.2)
+    assert plan.load < result.buses["fd0"]["worst_case_load"] < plan.load + 0.03
+    assert "FD_DRIVE_TPDO1" in format_rig_result(result)

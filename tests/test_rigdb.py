@@ -363,7 +363,8 @@ def test_names_from_a_urdf_and_a_can_fd_bus(tmp_path):
     still decode after a round trip through a .dbc file."""
     drives = [RigDrive("shoulder.flex", 2, "fd0"), RigDrive("elbow-1", 3, "fd0")]
     db = rig_databases(drives, [RigBus("fd0", fd=True, data_bitrate=5_000_000)])["fd0"]
-    assert "shoulder_flex_DRIVE_TPDO1" in [m.name for m in db.messages]
+    packed = db.get_message_by_name("FD_DRIVE_TPDO1")  # the sensors packed (FD bus)
+    assert "shoulder_flex_ADC_torque" in [s.name for s in packed.signals]
     assert db.get_node_by_name("elbow_1_DRIVE").dbc.attributes["NodeId"].value == 3
     assert db.buses[0].fd_baudrate == 5_000_000
     assert "CAN FD at 1 Mbit/s, data phase 5 Mbit/s" in db.buses[0].comment
@@ -401,3 +402,44 @@ def test_the_drives_truth_publisher_sends_the_rigs_truth_identifiers() -> None:
     torque = db.decode_message(sent[0].arbitration_id, sent[0].data)
     assert torque["T_true"] == pytest.approx(truth.T_true_Nm, abs=1e-3)
     assert TruthPublisher(None).ids == (0x1F0001, 0x1F0002, 0x1F0003)  # joint 0: truth.dbc's
+
+
+def test_an_fd_bus_packs_each_cyclic_drive_pdo_of_its_joints_into_one_fd_frame(tmp_path):
+    """On a CAN FD bus the joints' sensor PDOs share FD_DRIVE_TPDO1 and their commands
+    FD_DRIVE_RPDO1 (at the first joint's identifiers, the joints one after another, each
+    joint's signals under its name), generated from the joints' own layouts: a payload
+    encoded by a joint's own message decodes by name from the packed frame, also after a
+    round trip through a .dbc file. The telemetry is FD; 64 bytes hold eight joints'
+    sensors, a ninth starts a second frame."""
+    from hdhil.canopen.rigdb import rig_packing
+
+    names = [f"J{k}" for k in range(1, 10)]
+    drives = [RigDrive(n, k + 2, "fd0", controller_node_id=1 + 20 * (k // 2))
+              for k, n in enumerate(names)]  # fmt: skip
+    buses = [RigBus("fd0", fd=True, data_bitrate=5_000_000)]
+    dbs, packing = rig_packing(drives, buses)
+    db = dbs["fd0"]
+    classical = rig_databases(drives, [RigBus("fd0")])["fd0"]
+    listed = [m.name for m in db.messages]
+    assert not [n for n in listed if n.startswith("J") and "DRIVE_" in n and "PDO1" in n]
+    tpdo = db.get_message_by_name("FD_DRIVE_TPDO1")
+    assert tpdo.is_fd and tpdo.frame_id == 0x182 and tpdo.length == 64
+    second = db.get_message_by_name("FD_DRIVE_TPDO1_2")
+    assert second.frame_id == 0x182 + 8 and second.length == 8
+    rpdo = db.get_message_by_name("FD_DRIVE_RPDO1")
+    assert rpdo.is_fd and rpdo.frame_id == 0x202 and rpdo.length == 48  # 45 bytes padded
+    assert db.get_message_by_name("J5_CTRL_TPDO1").is_fd
+    layout = {p.name: p for p in packing["fd0"]}["FD_DRIVE_TPDO1"]
+    assert [m.joint for m in layout.members] == names[:8]
+    assert [m.offset for m in layout.members] == [8 * k for k in range(8)]
+    # joint 4's own sensor frame, placed at its offset, decodes by its name
+    own = classical.get_message_by_name("J4_DRIVE_TPDO1")
+    values = {"ADC_torque": 1234, "ADC_tacho": -56, "ADC_current": 78, "ENC_count": 4321}
+    payload = bytearray(64)
+    payload[24:32] = own.encode(values)
+    path = tmp_path / "fd0.dbc"
+    cantools.database.dump_file(db, str(path))
+    loaded = cantools.database.load_file(str(path))
+    decoded = loaded.decode_message(0x182, bytes(payload))
+    assert {k: decoded[f"J4_{k}"] for k in values} == pytest.approx(values)
+    assert loaded.get_message_by_name("FD_DRIVE_TPDO1").is_fd

@@ -355,3 +355,26 @@ def test_drain_into_takes_what_dispatch_takes(filtered):
     assert got[0] == got[1]
     assert sorted(i for i, _ in got[1][1:]) == ([0x101, 0x182, 0x182] if filtered
                                                  else [0x80, 0x101, 0x182, 0x182])  # fmt: skip
+
+
+def test_an_fd_frame_takes_its_phases_at_their_bit_rates():
+    """A CAN FD frame with bit-rate switching on a channel with a data bit rate: its time
+    on the wire is the exact FD frame time (arbitration at the nominal, data at the data
+    bit rate), a classical frame's as before."""
+    from hdhil.can.bittiming import frame_seconds
+
+    clock = SimClock(0.0)
+    a = can.Bus(interface="simbus", channel="t-fd", clock=clock, data_bitrate=5_000_000)
+    b = can.Bus(interface="simbus", channel="t-fd")
+    try:
+        fd = can.Message(arbitration_id=0x182, data=bytes(range(32)), is_extended_id=False,
+                         is_fd=True, bitrate_switch=True)  # fmt: skip
+        a.send(fd)
+        got = b.recv(0)
+        expected = frame_seconds(fd, 1_000_000, 5_000_000)
+        assert got.is_fd and got.bitrate_switch and bytes(got.data) == bytes(range(32))
+        assert got.timestamp == pytest.approx(expected)
+        assert expected < 110e-6  # a classical bus would need four frames of 8 bytes
+    finally:
+        a.shutdown()
+        b.shutdown()

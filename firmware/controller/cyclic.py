@@ -12,7 +12,7 @@ real-time statistics at the cost of one ``None`` check per event when there is n
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Protocol, cast
+from typing import TYPE_CHECKING, Any, Protocol, cast
 
 import can
 
@@ -99,6 +99,10 @@ class CyclicIo:
         self.command_msg = _message(self.command.frame_id, self.command.length)
         self.telemetry_msg = _message(self.telemetry.frame_id, self.telemetry.length)
         self.control_msg = _message(self.control_telemetry.frame_id, self.control_telemetry.length)
+        #: Decimated telemetry: every ``telemetry_every`` cycles, at the joint's phases.
+        self.telemetry_every = node.telemetry_every
+        self.telemetry_phases = node.telemetry_phases
+        self.decimated = self.telemetry_every > 1
         #: The instrumentation hook (:class:`CycleProbe`), None when not instrumented.
         self.probe: CycleProbe | None = None
         self.sensor_seen = True
@@ -239,7 +243,9 @@ class CyclicIo:
         self.send_command(out.dac_counts, CONTROLWORD_ENABLE_OPERATION, out.reference_V)
         send = self.bus.send
         telemetry_msg = self.telemetry_msg
-        if node.control_pdo_valid:
+        if self.decimated:
+            self._send_decimated(out)
+        elif node.control_pdo_valid:
             telemetry_msg.data = self.telemetry.encode(
                 out.T_meas, out.tau_s_hat, out.velocity, out.current
             )
@@ -256,6 +262,26 @@ class CyclicIo:
             send(telemetry_msg)
         if isr.done:
             node.request_stop(f"num_samples = {node.config.num_samples} reached")
+
+    def _send_decimated(self, out: Any) -> None:
+        """Decimated telemetry (:class:`~hdhil.firmware.controller.joint.JointSetup`):
+        each telemetry frame only in its own cycles of every ``telemetry_every``."""
+        node = self.node
+        cycle = self.diagnostics.syncs_sent - 1  # this SYNC cycle, from 0
+        every = self.telemetry_every
+        tele_phase, control_phase = self.telemetry_phases
+        valid = node.control_pdo_valid
+        if cycle % every == tele_phase:
+            self.telemetry_msg.data = self.telemetry.encode(
+                out.T_meas, out.tau_s_hat if valid else out.T_filtered, out.velocity, out.current
+            )
+            self.bus.send(self.telemetry_msg)
+        if valid and cycle % every == control_phase:
+            self.control_msg.data = self.control_telemetry.encode(
+                out.dtau_s_hat, out.tau_lgd_hat, out.tau_sD, out.e_hat
+            )
+            self.bus.send(self.control_msg)
+            self.diagnostics.control_frames_sent += 1
 
     # ----------------------------------------------------------------- command
 

@@ -53,13 +53,34 @@ class JointSetup:
     :class:`hdhil.firmware.isr.InterruptHandler`) and its link (None: the CiA 301
     pre-defined connection set for the node-ID and the joint's rank,
     :meth:`DriveLink.predefined`, as :mod:`hdhil.canopen.rigdb` numbers the rig; joint
-    0's link sets the power-on COB-IDs of its PDOs in the node's object dictionary)."""
+    0's link sets the power-on COB-IDs of its PDOs in the node's object dictionary).
+
+    ``telemetry_every``: the joint's telemetry (``CTRL_TPDO1``, ``CTRL_TPDO2``) goes out
+    in every this many SYNC cycles only (decimated telemetry, a bus's
+    ``telemetry_every``), ``CTRL_TPDO1`` in the cycles c with c % ``telemetry_every`` ==
+    ``telemetry_phases[0]``, ``CTRL_TPDO2`` with ``telemetry_phases[1]`` (c counts the
+    joint's SYNC cycles from 0; :func:`hdhil.canopen.rigdb.telemetry_phases` gives a
+    rig's phases): what a synchronous TPDO of CiA 301 transmission type
+    ``telemetry_every`` (1..240) does.  The interrupt runs every cycle all the same."""
 
     config: FirmwareConfig
     node_id: int = 2
     name: str = ""
     isr: InterruptHandlerModel | None = None
     link: DriveLink | None = None
+    telemetry_every: int = 1
+    telemetry_phases: tuple[int, int] = (0, 0)
+
+    def __post_init__(self) -> None:
+        every = self.telemetry_every
+        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+            raise ValueError(f"telemetry every >= 1 SYNC cycles, got {every!r}")
+        if len(self.telemetry_phases) != 2 or not all(
+            0 <= p < every for p in self.telemetry_phases
+        ):
+            raise ValueError(
+                f"telemetry phases must be two cycles 0..{every - 1}, got {self.telemetry_phases!r}"
+            )
 
 
 class ControllerJoint:
@@ -90,6 +111,8 @@ class ControllerJoint:
         #: The interrupt handler (:class:`firmware.interrupt.InterruptHandlerModel`): the
         #: firmware's own unless the setup gives one; the plausibility EMCYs and the SDO
         #: parameters that retune stages need the firmware's own (``own_isr``).
+        self.telemetry_every = setup.telemetry_every
+        self.telemetry_phases = setup.telemetry_phases
         self.isr: InterruptHandlerModel = (
             InterruptHandler(setup.config) if setup.isr is None else setup.isr
         )

@@ -7,7 +7,8 @@ every frame of every bus from the object dictionaries: what ``hdhil dbc export
 time; the ground truth exists only in simulation and is left out) are that bus's
 schedule (:mod:`hdhil.can.schedule`): the SYNC, each drive's sensor PDO and command,
 and the controller's telemetry of each joint, decimated when the bus says so
-(``telemetry_every``), packed per direction into FD frames on a CAN FD bus. Each bus is
+(``telemetry_every``), on a CAN FD bus the drives' PDOs packed per direction into FD
+frames as the database has them. Each bus is
 planned against the 60 % limit with suggestions computed from its numbers when it is
 over.
 
@@ -24,9 +25,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hdhil.can.schedule import BusPlan, BusSchedule, CyclicFrame, FrameRole, fd_pack, plan_bus
-from hdhil.canopen.rigdb import RigBus, RigDrive, rig_databases, truth_database
-from hdhil.rig.layout import DEFAULT_BUS, BusSpec
+from hdhil.can.schedule import BusPlan, BusSchedule, CyclicFrame, FrameRole, plan_bus
+from hdhil.canopen.rigdb import (
+    RigBus,
+    RigDrive,
+    is_telemetry,
+    rig_databases,
+    telemetry_phases,
+    truth_database,
+)
+from hdhil.rig.layout import DEFAULT_BUS, BusSpec, rigdb_layout
 from hdhil.rig.scenario import Scenario
 
 #: Ground-truth frames a joint sends each cycle on the simulated truth channel.
@@ -43,15 +51,7 @@ def rig_layout(
     if not scenario.is_rig:
         bus = RigBus(DEFAULT_BUS, 1, scenario.bus.bitrate)
         return [RigDrive("", 2, DEFAULT_BUS, mapping, dcf)], [bus]
-    buses = [
-        RigBus(name, spec.controller_node_id, spec.bitrate, spec.fd, spec.data_bitrate)
-        for name, spec in scenario.buses
-    ]
-    drives = [
-        RigDrive(j.name, j.node_id, j.bus, mapping, dcf, j.controller_node_id)
-        for j in scenario.joints
-    ]
-    return drives, buses
+    return rigdb_layout(scenario.joints, scenario.buses, mapping, dcf)
 
 
 def scenario_databases(
@@ -71,7 +71,7 @@ def _bus_specs(scenario: Scenario) -> dict[str, BusSpec]:
 def _role(name: str) -> FrameRole:
     if name == "SYNC":
         return "sync"
-    if "CTRL_TPDO" in name:
+    if is_telemetry(name):
         return "telemetry"
     if "DRIVE_TPDO" in name:
         return "tpdo"
@@ -103,19 +103,23 @@ def bus_schedule(
 ) -> BusSchedule:
     """The cyclic schedule of one bus from its database: every message with a cycle time
     (``GenMsgCycleTime`` in base cycles of one SYNC period) but the ground truth, the
-    telemetry every ``spec.telemetry_every`` cycles spread over them; FD-packed on an FD
-    bus."""
+    telemetry every ``spec.telemetry_every`` cycles spread over them
+    (:func:`hdhil.canopen.rigdb.telemetry_phases`, the cycles the controller nodes send
+    them in).  On an FD bus the database has the drives' PDOs packed into FD frames
+    (:func:`hdhil.canopen.rigdb.rig_packing`) and the telemetry as FD frames; each
+    message its database's format, with bit-rate switching when the bus has a data bit
+    rate."""
     frames = []
-    telemetry = 0
+    every = spec.telemetry_every
+    phases = telemetry_phases(database, every)
     for msg in database.messages:
         if not msg.cycle_time or msg.name in truth:
             continue
         role = _role(msg.name)
         period, offset = int(msg.cycle_time), 0
-        if role == "telemetry" and spec.telemetry_every > 1:
-            period *= spec.telemetry_every
-            offset = telemetry % spec.telemetry_every
-            telemetry += 1
+        if role == "telemetry" and every > 1:
+            period *= every
+            offset = phases[msg.frame_id]
         joint = _joint_of(msg.name, joints)
         frames.append(
             CyclicFrame(
@@ -124,16 +128,17 @@ def bus_schedule(
                 msg.length,
                 period_cycles=period,
                 offset_cycles=offset,
+                fd=bool(msg.is_fd),
+                brs=bool(spec.data_bitrate),
                 extended=msg.is_extended_frame,
                 role=role,
                 joint=joint,
             )
         )
     data_bitrate = spec.data_bitrate or (spec.bitrate if spec.fd else None)
-    schedule = BusSchedule(
+    return BusSchedule(
         name, tuple(frames), spec.bitrate, data_bitrate if spec.fd else None, sample_period_s
     )
-    return fd_pack(schedule, data_bitrate) if spec.fd else schedule
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 import can
 
-from hdhil.can.bittiming import frame_bits
+from hdhil.can.bittiming import frame_bits, frame_seconds
 from hdhil.dbc import worst_case_frame_bits
 
 if TYPE_CHECKING:
@@ -56,16 +56,20 @@ class SimClock:
 
 
 class _Channel:
-    __slots__ = ("_held_sender", "bitrate", "buses", "busy_until", "clock", "delivered",
+    __slots__ = ("_held_sender", "bitrate", "buses", "busy_until", "clock", "data_bitrate",
+                 "delivered",
                  "faults", "frames", "inflight", "label", "latest_request", "lock", "name",
                  "pending", "receivers", "seq", "timing", "waiting")  # fmt: skip
 
     def __init__(self, name: str, clock: SimClock, bitrate: int, label: str | int,
-                 timing: str) -> None:  # fmt: skip
+                 timing: str, data_bitrate: int | None = None) -> None:  # fmt: skip
         self.name = name
         self.label = label
         self.clock = clock
         self.bitrate = bitrate
+        #: The data phase's bit rate of FD frames with bit-rate switching (None: the
+        #: nominal one).
+        self.data_bitrate = data_bitrate
         self.timing = timing if bitrate else "none"
         self.busy_until = 0.0
         self.buses: list[SimBus] = []
@@ -153,8 +157,12 @@ class _Channel:
                 start, item = self._next()
             msg = item[4]
             if exact and not msg.is_error_frame:  # the snapshot's data is bytes (hashable)
-                end = start + frame_bits(msg.arbitration_id, msg.is_extended_id,
-                                         msg.is_remote_frame, msg.data) / self.bitrate  # fmt: skip
+                if msg.is_fd:
+                    end = start + frame_seconds(msg, self.bitrate, self.data_bitrate)
+                else:
+                    bits = frame_bits(msg.arbitration_id, msg.is_extended_id,
+                                      msg.is_remote_frame, msg.data)  # fmt: skip
+                    end = start + bits / self.bitrate
             elif timing != "none":
                 end = start + self.bits(msg) / self.bitrate
             else:
@@ -332,6 +340,7 @@ class SimBus(can.BusABC):
         timing: str = "exact",
         faults: ChannelFaults | None = None,
         node_id: int | None = None,
+        data_bitrate: int | None = None,
         **kwargs: Any,
     ) -> None:
         name = str(channel)
@@ -345,7 +354,7 @@ class SimBus(can.BusABC):
                     raise ValueError(
                         f"simbus timing must be 'exact' or 'worst-case', got {timing!r}"
                     )
-                ch = _Channel(name, clock or SimClock(), bitrate, label, timing)
+                ch = _Channel(name, clock or SimClock(), bitrate, label, timing, data_bitrate)
                 _channels[name] = ch
             elif clock is not None and clock is not ch.clock:
                 raise ValueError(f"simbus channel {name!r} already runs on another clock")

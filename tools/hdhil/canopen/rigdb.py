@@ -30,6 +30,10 @@ exactly, :func:`hdhil.commands.dbc.merged_database`):
   29-bit identifiers ``0x1F0000 | j << 4 | k`` (k = 1 torque, 2 motion, 3 joint), so
   joint 0 keeps ``truth.dbc``'s 0x1F0001..0x1F0003 and 4096 joints fit.
 
+On a CAN FD bus each cyclic drive PDO of the joints (sensors, command) is one packed FD
+frame, ``FD_DRIVE_TPDO1`` and ``FD_DRIVE_RPDO1``, at the first joint's identifier, and
+the joints' telemetry is FD (:func:`rig_packing` gives the packing as well).
+
 Names: a joint's messages and its drive node carry the joint name as a prefix
 (``J1_DRIVE_TPDO1``, ``J1_CTRL_TPDO1``, ``J1_TRUTH_TORQUE``, node ``J1_DRIVE``; a ``.``
 or ``-`` of the name written ``_``); an empty joint name keeps the single-joint names
@@ -75,12 +79,16 @@ from hdhil.dbc import truth_frame_id as _truth_frame_id
 __all__ = [
     "MAX_TRUTH_JOINTS",
     "TRUTH_BASE",
+    "PackedMember",
+    "PackedPdo",
     "RigBus",
     "RigDrive",
     "drive_pdo_layouts",
     "predefined_cob_id",
     "rig_databases",
+    "rig_packing",
     "single_joint_databases",
+    "telemetry_phases",
     "truth_database",
     "truth_frame_id",
 ]
@@ -94,6 +102,8 @@ _NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.-]*")
 #: The arbitration phase's bit rate at most (ISO 11898-2), classical or FD.
 _MAX_NOMINAL_BITRATE = 1_000_000
 _MAX_DATA_BITRATE = 12_000_000
+#: A controller's telemetry of a joint (``CTRL_TPDO1``, ``J1_CTRL_TPDO2``, ...).
+_TELEMETRY = re.compile(r"(?:^|_)CTRL_TPDO\d+$")
 
 
 @dataclass(frozen=True)
@@ -102,8 +112,8 @@ class RigBus:
     and NMT master; drives use it unless they name their own), its (arbitration-phase)
     bit rate, 1 Mbit/s at most, and whether it is a CAN FD bus (``data_bitrate``: the
     data phase's bit rate with bit-rate switching, 0 for none).  On an FD bus the
-    database says so (``BusType`` "CAN FD"); its messages stay the classical frames of
-    the single-joint layout, which an FD bus carries as they are."""
+    database says so (``BusType`` "CAN FD"); on it the joints' cyclic drive PDOs are
+    packed into FD frames and their telemetry is FD (:func:`_fd_packed`)."""
 
     name: str = "control"
     controller_node_id: int = 1
@@ -449,7 +459,7 @@ def _bus_comment(
     speed = _speed(bus.bitrate)
     if bus.fd:
         data = f", data phase {_speed(bus.data_bitrate)}" if bus.data_bitrate else ""
-        speed = f"CAN FD at {speed}{data} (classical frames)"
+        speed = f"CAN FD at {speed}{data} (cyclic PDOs packed into FD frames)"
     text = template.replace(legacy, f"{ctrl}, {drives}, {speed}")
     if bus.name != "control":
         text = text.replace(
@@ -510,7 +520,122 @@ def _unique(messages: Sequence[Any], where: str) -> None:
         names.add(message.name)
 
 
-def _bus_database(bus: RigBus, joints: Sequence[_Joint]) -> Any:
+@dataclass(frozen=True)
+class PackedMember:
+    """One joint's frame inside a packed FD frame: the joint, the message it stands for
+    (its name and identifier on a classical bus), its first byte and its length."""
+
+    joint: str
+    name: str
+    frame_id: int
+    offset: int
+    length: int
+
+
+@dataclass(frozen=True)
+class PackedPdo:
+    """A CAN FD frame that carries one cyclic PDO of several joints of an FD bus, one
+    after another (:func:`_fd_packed`): its name and identifier in the bus's database,
+    its length on the wire (an FD length) and its members in order."""
+
+    name: str
+    frame_id: int
+    length: int
+    members: tuple[PackedMember, ...]
+
+
+#: The most bytes an FD frame carries.
+_FD_MAX = 64
+
+
+def _fd_length(n: int) -> int:
+    from hdhil.can.bittiming import fd_length
+
+    return int(fd_length(n))
+
+
+def _fd_packed(
+    messages: list[Any], origin: Mapping[int, tuple[_Joint, str, Role]]
+) -> tuple[list[Any], list[PackedPdo]]:
+    """An FD bus's messages: each cyclic drive PDO of the joints (``DRIVE_TPDO1``, the
+    sensors, and ``DRIVE_RPDO1``, the command, with a cycle time) packed into CAN FD
+    frames, the joints' payloads one after another in layout order, at most 64 bytes a
+    frame and a joint's payload never split (as :func:`hdhil.can.schedule.fd_pack` plans
+    them): ``FD_DRIVE_TPDO1`` (``FD_DRIVE_TPDO1_2``, ... when 64 bytes do not hold them
+    all) at the identifier of its first joint's frame, each joint's signals under its
+    name prefix (``J1_ADC_torque``).  The joints' cyclic telemetry becomes FD frames of
+    its own.  The packed frames' layouts are generated from the joints' own messages,
+    so cantools decodes every joint's signals by name."""
+    from cantools.database.can import Message
+
+    groups: dict[str, list[Any]] = {}
+    for message in messages:
+        joint, template, role = origin.get(id(message), (None, "", ("",)))
+        if joint is None:
+            continue
+        if role[0] == "telemetry" and message.cycle_time:
+            message.is_fd = True
+        elif role[0] == "pdo" and message.cycle_time:
+            groups.setdefault(template, []).append(message)
+    packed_ids = {id(m) for group in groups.values() for m in group}
+    out: list[Any] = []
+    done: set[str] = set()
+    packing: list[PackedPdo] = []
+    for message in messages:
+        if id(message) not in packed_ids:
+            out.append(message)
+            continue
+        template = origin[id(message)][1]
+        if template in done:
+            continue
+        done.add(template)
+        chunks: list[list[Any]] = [[]]
+        for member in groups[template]:
+            if chunks[-1] and sum(m.length for m in chunks[-1]) + member.length > _FD_MAX:
+                chunks.append([])
+            chunks[-1].append(member)
+        for k, chunk in enumerate(chunks):
+            name = f"FD_{template}" + (f"_{k + 1}" if k else "")
+            members, signals, offset = [], [], 0
+            for member in chunk:
+                joint = origin[id(member)][0]
+                for signal in member.signals:
+                    copied = copy.deepcopy(signal)
+                    copied.name = f"{joint.prefix}{signal.name}"
+                    copied.start += 8 * offset
+                    signals.append(copied)
+                members.append(PackedMember(joint.drive.joint, member.name, member.frame_id,
+                                            offset, member.length))  # fmt: skip
+                offset += member.length
+            first = chunk[0]
+            joints = ", ".join(m.joint for m in members)
+            comment = (
+                f"CAN FD frame with the {template} of joints {joints}, in this order "
+                f"({first.length} bytes each): the cyclic PDO of the joints packed into one "
+                "frame, sent with bit-rate switching."
+            )
+            senders = _nodes([s for m in chunk for s in m.senders], {})
+            packed = Message(
+                frame_id=first.frame_id,
+                name=name,
+                length=_fd_length(offset),
+                signals=signals,
+                comment=comment,
+                senders=senders,
+                cycle_time=first.cycle_time,
+                send_type=first.send_type,
+                dbc_specifics=copy.deepcopy(first.dbc),
+                is_fd=True,
+                strict=True,
+            )
+            out.append(packed)
+            packing.append(PackedPdo(name, first.frame_id, packed.length, tuple(members)))
+    return out, packing
+
+
+def _bus_database(
+    bus: RigBus, joints: Sequence[_Joint], packing: list[PackedPdo] | None = None
+) -> Any:
     from cantools.database.can import Bus, Database
 
     ids = node_ids("control")
@@ -572,6 +697,8 @@ def _bus_database(bus: RigBus, joints: Sequence[_Joint]) -> Any:
         return _message(message, frame_id, names[message.name], to, names, renumber)
 
     messages: list[Any] = []
+    #: Each joint's message: its joint, its name in the single-joint database, its role.
+    origin: dict[int, tuple[_Joint, str, Role]] = {}
     placed: set[tuple[int, str]] = set()
     for message in reference.messages:
         role = roles[message.frame_id]
@@ -598,12 +725,18 @@ def _bus_database(bus: RigBus, joints: Sequence[_Joint]) -> Any:
                     mine = matches[0]
                 placed.add((joint.index, mine.name))
                 messages.append(joint_message(joint, mine, role))
+                origin[id(messages[-1])] = (joint, mine.name, role)
     for joint in joints:  # PDOs a joint's mapping has and the first joint's has not
         own, own_roles = templates[joint.index]
         for message in own.messages:
             role = own_roles[message.frame_id]
             if role[0] == "pdo" and (joint.index, message.name) not in placed:
                 messages.append(joint_message(joint, message, role))
+                origin[id(messages[-1])] = (joint, message.name, role)
+    if bus.fd:
+        messages, packed = _fd_packed(messages, origin)
+        if packing is not None:
+            packing.extend(packed)
     messages += _truth_messages(joints)
     _unique(messages, f"bus {bus.name}")
 
@@ -646,13 +779,24 @@ def rig_databases(drives: Sequence[RigDrive], buses: Sequence[RigBus] = ()) -> d
     every bus has the defaults of :class:`RigBus`): every frame on the bus and the
     ground truth of its joints, named and numbered as the module says.  A mistake in
     the layout is a one-line :class:`UserError`."""
+    return rig_packing(drives, buses)[0]
+
+
+def rig_packing(
+    drives: Sequence[RigDrive], buses: Sequence[RigBus] = ()
+) -> tuple[dict[str, Any], dict[str, tuple[PackedPdo, ...]]]:
+    """:func:`rig_databases` and, per bus, its FD-packed PDOs (:class:`PackedPdo`; none
+    on a classical bus): which joint frames each packed frame carries, where."""
     by_bus, joints = _check_layout(drives, buses)
     out = {}
+    packed: dict[str, tuple[PackedPdo, ...]] = {}
     for name, bus in by_bus.items():
         on_bus = [j for j in joints if j.drive.bus == name]
         if on_bus:
-            out[name] = _bus_database(bus, on_bus)
-    return out
+            packing: list[PackedPdo] = []
+            out[name] = _bus_database(bus, on_bus, packing)
+            packed[name] = tuple(packing)
+    return out, packed
 
 
 def truth_database(drives: Sequence[RigDrive], buses: Sequence[RigBus] = ()) -> Any:
@@ -691,3 +835,31 @@ def single_joint_databases(
     control.messages[:] = [m for m in control.messages if not m.is_extended_frame]
     control.refresh()
     return {"control": control, "truth": truth_database(drives, buses)}
+
+
+def is_telemetry(name: str) -> bool:
+    """Whether the message ``name`` of a rig's database is a controller's telemetry of a
+    joint (``CTRL_TPDOn``, with the joint's prefix on a rig)."""
+    return _TELEMETRY.search(name) is not None
+
+
+def telemetry_phases(db: Any, every: int) -> dict[int, int]:
+    """Decimated telemetry (a bus's ``telemetry_every``): the cycle each telemetry frame
+    of the bus database ``db`` goes in, by identifier.  The k-th joint with telemetry in
+    the database (:func:`is_telemetry`, joints in the order of their first telemetry
+    message) sends all its telemetry frames in the SYNC cycles c with c % ``every`` ==
+    k % ``every``: the joints spread round robin over the cycles, each joint's frames in
+    one cycle (its measured torque and its desired torque of one sample, as the
+    tracking score pairs them).  The planner (:mod:`hdhil.analysis.rigplan`) and the
+    controller nodes of a rig run (:mod:`hdhil.rig.rigrun`) both take them from here."""
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise ValueError(f"telemetry_every must be an integer >= 1, got {every!r}")
+    joints: dict[str, int] = {}
+    out = {}
+    for message in db.messages:
+        match = _TELEMETRY.search(message.name) if message.cycle_time else None
+        if match is None:
+            continue
+        joint = joints.setdefault(message.name[: match.start()], len(joints))
+        out[message.frame_id] = joint % every
+    return out

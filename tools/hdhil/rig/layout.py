@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import re
 import xml.etree.ElementTree as ET
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,6 +38,7 @@ __all__ = [
     "JointSpec",
     "RobotSpec",
     "UrdfJoint",
+    "rigdb_layout",
     "urdf_joints",
 ]
 
@@ -396,3 +398,25 @@ def parse_joints(
             )
         )
     return tuple(out)
+
+
+def rigdb_layout(
+    joints: Sequence[JointSpec],
+    buses: Sequence[tuple[str, BusSpec]],
+    mapping: str = "raw",
+    dcf: Path | None = None,
+) -> tuple[list[Any], list[Any]]:
+    """A rig's joints and buses as :mod:`hdhil.canopen.rigdb` takes them
+    (:class:`~hdhil.canopen.rigdb.RigDrive`, :class:`~hdhil.canopen.rigdb.RigBus`), each
+    drive with the shipped ``mapping`` or the drive's ``dcf``: the layout its databases,
+    the planner and the rig run number the frames from."""
+    from hdhil.canopen.rigdb import RigBus, RigDrive
+
+    rig_buses = [
+        RigBus(name, spec.controller_node_id, spec.bitrate, spec.fd, spec.data_bitrate)
+        for name, spec in buses
+    ]
+    drives = [
+        RigDrive(j.name, j.node_id, j.bus, mapping, dcf, j.controller_node_id) for j in joints
+    ]
+    return drives, rig_buses

@@ -24,6 +24,12 @@ and unless ``evaluate`` is off the candidate filters of a single joint's evaluat
 scored as the frames come. Frames of two buses share identifiers (the pre-defined
 connection set numbers each bus alike), so each bus is scored on its own.
 
+On a CAN FD bus the joints' cyclic PDOs are packed per direction into FD frames
+(:mod:`hdhil.rig.fdpack`: the bus's database has the packed layouts, a gateway node
+sends them) and the telemetry goes as FD frames, with bit-rate switching when the bus
+has a data bit rate.  A bus's ``telemetry_every`` decimates the telemetry
+(:func:`hdhil.canopen.rigdb.telemetry_phases`).
+
 The scorers of a joint (:func:`joint_scoring`) are also those that score its trace
 (``hdhil evaluate``, :func:`hdhil.rig.trace_score.score_rig_trace`), fed the trace's
 frames of the joint's bus and the truth: the same figures as the run's.
@@ -51,12 +57,12 @@ from hdhil.can.traces.tap import BusTap, FrameCounter
 from hdhil.core.dataconf import ConfigError
 from hdhil.dbc import CHANNEL_NUMBER
 from hdhil.firmware.config import FirmwareConfig, Law
-from hdhil.firmware.controller import ControllerNode, JointSetup
-from hdhil.firmware.controller.link import DriveLink
+from hdhil.firmware.controller import ControllerNode, DriveLink, JointSetup
 from hdhil.hostsim.drive import DriveConfig, DriveNode
 from hdhil.hostsim.plant import Plant, PlantConfig
 from hdhil.rig.evaluate import RecordingListener
-from hdhil.rig.layout import BusSpec, JointSpec
+from hdhil.rig.fdpack import FdGateway, PackingBus
+from hdhil.rig.layout import BusSpec, JointSpec, rigdb_layout
 from hdhil.rig.loop import NodeLoop
 from hdhil.rig.request import RunRequest
 from hdhil.rig.scenario import Scenario
@@ -310,7 +316,8 @@ def joint_scoring(
     plant, fw = request.scenario.joint_configs[index]
     spec = request.scenario.joints[index]
     torque = TorqueScorer(telemetry_id=link.telemetry_cob_id, joint_index=index,
-                          skip_samples=round(skip_s / request.sample_period_s))  # fmt: skip
+                          skip_from_first_s=skip_s,
+                          sample_period_s=request.sample_period_s)  # fmt: skip
     evaluation = (
         RecordingListener(
             request.sample_period_s, firmware=fw, skip_s=skip_s, keep=False,
@@ -419,6 +426,7 @@ def run_rig(
             clock=clock,
             trace_channel=bus_channel(index),
             node_id=node_id,
+            data_bitrate=(spec.data_bitrate or None) if spec.fd else None,
         )
         opened.append(bus)
         return bus  # type: ignore[no-any-return]
@@ -431,7 +439,8 @@ def run_rig(
             start_time = round(time.time(), 3)  # whole ms: the resolution of BLF's date
         writer = WriterProcess(trace, time_offset=start_time,
                                metadata=rig_metadata(request, start_time),
-                               child_listener=_offload(request) if evaluate else None)  # fmt: skip
+                               child_listener=_offload(request) if evaluate else None,
+                               fd=any(spec.fd for spec in buses.values()))  # fmt: skip
     offloaded = writer is not None and writer.child_listening
     blas = threadpool_limits(limits=1)
     completed = False
@@ -547,6 +556,11 @@ def _run(
         plants = [arm.joint(j.index) for j in joints]
     else:
         plants = [Plant(j.plant, seed + j.index) for j in joints]
+    # -- the buses' databases: the cycles of decimated telemetry (as the planner has them)
+    from hdhil.canopen.rigdb import is_telemetry, rig_packing, telemetry_phases
+
+    databases, packing = rig_packing(*rigdb_layout(s.joints, s.buses))
+    gateways: list[FdGateway] = []
     # -- per bus: truth channel, drives, controller nodes, tap
     truth = GroupChannel(clock, CHANNEL_NUMBER["truth"], f"rig{id(clock)}-truth")
     opened.append(truth)
@@ -560,6 +574,17 @@ def _run(
         on_bus = [j for j in joints if j.spec.bus == name]
         if not on_bus:
             continue
+        gateway: FdGateway | None = None
+        if packing.get(name):  # an FD bus: the joints' PDOs packed (hdhil.rig.fdpack)
+            fd_ids = [m.frame_id for m in databases[name].messages
+                      if m.is_fd and is_telemetry(m.name)]  # fmt: skip
+            gateway = FdGateway(handle(name, index, None), packing[name], fd_ids,
+                                brs=bool(spec.data_bitrate))  # fmt: skip
+            gateways.append(gateway)
+
+        def packed(bus: SimBus, gateway: FdGateway | None = gateway) -> Any:
+            return bus if gateway is None else PackingBus(bus, gateway)
+
         for j in on_bus:
             cfg = DriveConfig(
                 sample_period_s=Ts,
@@ -568,8 +593,8 @@ def _run(
                 controller_node_id=j.spec.controller_node_id,
                 truth_joint_index=j.index,
             )
-            j.drive = DriveNode(handle(name, index, j.spec.node_id), plants[j.index], cfg,
-                                truth_bus=truth)  # type: ignore[arg-type]  # fmt: skip
+            j.drive = DriveNode(packed(handle(name, index, j.spec.node_id)), plants[j.index],
+                                cfg, truth_bus=truth)  # type: ignore[arg-type]  # fmt: skip
             drives.append(j.drive)
         ids = sorted({j.spec.controller_node_id for j in on_bus},
                      key=lambda cid: (cid != spec.controller_node_id, cid))  # fmt: skip
@@ -579,12 +604,21 @@ def _run(
                 " (the node that produces the bus's SYNC)"
             )
         producer: ControllerNode | None = None
+        every = spec.telemetry_every
+        phases = telemetry_phases(databases[name], every) if every > 1 else {}
         for cid in ids:
             served = [j for j in on_bus if j.spec.controller_node_id == cid]
-            setups = [JointSetup(j.firmware, j.spec.node_id, j.spec.name) for j in served]
+            setups = []
+            for rank, j in enumerate(served):
+                link = DriveLink.predefined(j.spec.node_id, cid, rank)
+                setups.append(JointSetup(
+                    j.firmware, j.spec.node_id, j.spec.name, link=link, telemetry_every=every,
+                    telemetry_phases=(phases.get(link.telemetry_cob_id, 0),
+                                      phases.get(link.control_cob_id, 0)),
+                ))  # fmt: skip
             bus = handle(name, index, cid)
             try:
-                node = ControllerNode(bus, node_id=cid, joints=setups,
+                node = ControllerNode(packed(bus), node_id=cid, joints=setups,
                                       sync_producer=cid == spec.controller_node_id)  # fmt: skip
             except ValueError as exc:
                 raise ConfigError(f"bus {name}: {exc}") from None
@@ -612,7 +646,7 @@ def _run(
         arm.input_source = lambda: [d.io.step_V for d in ordered]  # type: ignore[union-attr]
     (first, first_bus), *more = producers
     loop = NodeLoop(
-        [*drives, *controllers],
+        [*drives, *controllers, *gateways],  # the gateways after the nodes of each round
         producer=first,
         listeners=[tap],
         listen_every=TAP_EVERY_CYCLES,
@@ -683,9 +717,11 @@ def _run(
             )
         )
     frames = {name: counter.total for name, counter in counters.items()}
+    span = loop.k * Ts
     bus_info = {
         name: {"channel": bus_channel(i), "bitrate": spec.bitrate, "fd": spec.fd,
-               "joints": [j.spec.name for j in joints if j.spec.bus == name]}
+               "joints": [j.spec.name for j in joints if j.spec.bus == name],
+               "worst_case_load": bus_load(counters[name].counts, databases[name], spec, span)}
         for i, (name, spec) in enumerate(buses.items())
         if any(j.spec.bus == name for j in joints)
     }  # fmt: skip
@@ -709,6 +745,32 @@ def _run(
         evaluated=evaluate,
         evaluate_from_s=request.evaluate_from_s,
     )
+
+
+def bus_load(
+    counts: dict[tuple[int, int], int], database: Any, spec: BusSpec, span_s: float
+) -> float:
+    """The worst-case load of a bus over a run: each frame the run sent on it (``counts``
+    by channel and identifier) at its worst-case time for its identifier, length and
+    format in the bus's ``database`` (:func:`hdhil.can.schedule.worst_case_seconds`: FD
+    phases at their bit rates), summed over the run's ``span_s``.  What ``hdhil dump
+    --stats`` gives the bus's trace; the plan's figure plus the service frames (NMT,
+    heartbeats, EMCY, SDO, the statusword PDO).  An identifier the database does not
+    know counts with the worst case of an 8-byte classical frame."""
+    from hdhil.can.schedule import CyclicFrame, worst_case_seconds
+
+    if span_s <= 0:
+        return math.nan
+    by_id = {m.frame_id: m for m in database.messages if not m.is_extended_frame}
+    data_bitrate = (spec.data_bitrate or None) if spec.fd else None
+    busy = 0.0
+    for (_channel, frame_id), n in counts.items():
+        m = by_id.get(frame_id)
+        fd = bool(m is not None and m.is_fd)
+        frame = CyclicFrame("", frame_id, m.length if m is not None else 8, fd=fd,
+                            brs=data_bitrate is not None)  # fmt: skip
+        busy += n * worst_case_seconds(frame, spec.bitrate, data_bitrate)
+    return busy / span_s
 
 
 def worst_joint(
@@ -789,8 +851,9 @@ def format_candidates(rows: Sequence[RigJointResult | JointScores], evaluated: b
         return []  # the rig does not score the ripple filter (a control law's tracking)
     skips = {r.evaluation["skip_s"] for r in rows if r.evaluation is not None}
     since = f" from {min(skips):g} s" if skips else ""
-    lines = [f"  candidate filters  per joint, RMS error against the true torque{since} "
-             "(% of raw); every candidate in --json"]  # fmt: skip
+    lines = [f"  candidate filters  per joint{since}, each replayed on every sample (the "
+             "firmware's own on its telemetry's): RMS error against the true torque (% of "
+             "raw's on every sample); every candidate in --json"]  # fmt: skip
     width = max([8, *(len(r.name) for r in rows)])
 
     def cell(c: dict[str, Any]) -> str:
@@ -847,15 +910,16 @@ def format_rig_result(r: RigResult) -> str:
         "  buses              "
         + "; ".join(
             f"{name} (channel {b['channel']}{', FD' if b['fd'] else ''}): "
-            f"{', '.join(b['joints'])}, {r.frames.get(name, 0)} frames"
+            f"{', '.join(b['joints'])}, {r.frames.get(name, 0)} frames, worst-case load "
+            f"{b['worst_case_load'] * 100:.1f} %"
             for name, b in r.buses.items()
         ),
         *format_joint_table(r.joints, r.scored, r.worst_joint, r.evaluate_from_s, state=True),
     ]
     if any(b["fd"] for b in r.buses.values()):
         lines.append(
-            "  CAN FD             an FD bus carries the joints' classical frames, timed at its "
-            "arbitration bit rate (no FD packing, no data phase yet)"
+            "  CAN FD             on an FD bus each direction's cyclic PDOs of its joints go in "
+            "one FD frame (FD_DRIVE_TPDO1, FD_DRIVE_RPDO1), the telemetry as FD frames"
         )
     lines += format_candidates(r.joints, r.evaluated)
     if r.trace:

@@ -63,11 +63,13 @@ class TorqueScorer(can.Listener):
     """Accumulates raw and filtered torque errors from telemetry and truth frames.
 
     ``skip_s``: telemetry before this time (trace time) is not scored, e.g. to leave out
-    the filter's start-up transient; ``skip_samples``: nor are the first this many
-    telemetry frames (the first interrupts in operation, one frame each).  The defaults
-    score everything.  A joint of a rig:
-    ``telemetry_id`` its ``CTRL_TPDO1`` (the controller's TPDO1 at ``controller_node_id``
-    by default) and ``joint_index`` its truth (:func:`hdhil.dbc.truth_frame_id`).
+    the filter's start-up transient; ``skip_from_first_s``: nor is telemetry less than
+    this long after the first telemetry frame (the first interrupt in operation; within
+    half a ``sample_period_s``, as :class:`TrackingScorer` counts it, so that decimated
+    telemetry starts where every-cycle telemetry would).  The defaults score everything.
+    A joint of a rig: ``telemetry_id`` its ``CTRL_TPDO1`` (the controller's TPDO1 at
+    ``controller_node_id`` by default) and ``joint_index`` its truth
+    (:func:`hdhil.dbc.truth_frame_id`).
     """
 
     def __init__(
@@ -78,10 +80,14 @@ class TorqueScorer(can.Listener):
         *,
         telemetry_id: int | None = None,
         joint_index: int = 0,
-        skip_samples: int = 0,
+        skip_from_first_s: float = 0.0,
+        sample_period_s: float = 1e-3,
     ) -> None:
         self.skip_s = skip_s
-        self.skip_samples = skip_samples
+        #: Telemetry before this time (the first frame's plus ``skip_from_first_s``, less
+        #: half a period) is not scored; set by the first telemetry frame.
+        self._scored_from = -math.inf if not skip_from_first_s else math.inf
+        self._skip_from_first = skip_from_first_s - 0.5 * sample_period_s
         #: Telemetry frames seen, scored or not.
         self.telemetry_frames = 0
         #: RMS filtered error per ``block_s`` of telemetry time (whether it drifts).
@@ -122,10 +128,12 @@ class TorqueScorer(can.Listener):
             if abs(velocity) > abs(self.velocity_peak):
                 self.velocity_peak = velocity
             self.telemetry_frames += 1
+            if self.telemetry_frames == 1 and self._scored_from == math.inf:
+                self._scored_from = msg.timestamp + self._skip_from_first
             if (
                 self._T_true is None
                 or msg.timestamp < self.skip_s
-                or self.telemetry_frames <= self.skip_samples
+                or msg.timestamp < self._scored_from
             ):
                 return
             T_true = self._T_true
@@ -264,7 +272,10 @@ class TrackingScorer(can.Listener):
     the observer estimates tau_lg = tau_l + tau_g instead.  Only telemetry at or after
     ``skip_s`` counts, from the first telemetry frame (the first sample in operation).
     The measured torque of the same sample comes from ``CTRL_TPDO1`` (sent before
-    ``CTRL_TPDO2``), the estimate's error from ``CTRL_TPDO2.e_hat``.
+    ``CTRL_TPDO2``; none when the cycle has no ``CTRL_TPDO1``, as with decimated
+    telemetry whose two frames go in different cycles), the estimate's error from
+    ``CTRL_TPDO2.e_hat``.  Decimated telemetry is scored from the frames present, each
+    against the truth of its own cycle (truth frames come every cycle).
     ``handle`` (the scenario's :class:`~hdhil.hostsim.plant.LinkMotionConfig`) gives
     the handle torque the external-torque estimate is scored against
     (:meth:`~hdhil.hostsim.plant.LinkMotionConfig.handle_torque`); None: ``tau_ext``.
@@ -341,6 +352,9 @@ class TrackingScorer(can.Listener):
 
     def _on_truth(self, msg: can.Message) -> None:
         self._T_true = self._truth.decode(msg.data)[0]
+        # a new cycle's truth: a measured torque of an earlier cycle is not this one's
+        # (decimated telemetry can send CTRL_TPDO1 and CTRL_TPDO2 in different cycles)
+        self._T_meas = None
 
     def _on_joint(self, msg: can.Message) -> None:
         tau_ext, tau_d, _tau_m, tau_m_cmd = self._joint.decode(msg.data)

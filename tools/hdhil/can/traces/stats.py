@@ -17,7 +17,12 @@ from typing import Any
 
 import can
 
-from hdhil.can.bittiming import frame_bits, worst_case_frame_bits_for
+from hdhil.can.bittiming import (
+    fd_frame_bits,
+    frame_bits,
+    worst_case_fd_frame_bits,
+    worst_case_frame_bits_for,
+)
 from hdhil.can.busload import LOAD_LIMIT
 from hdhil.can.traces.decode import (
     UNKNOWN_BUS,
@@ -47,6 +52,8 @@ class _IdStats:
     m2_period: float = 0.0
     min_period: float = math.inf
     max_period: float = -math.inf
+    #: A CAN FD frame (its data phase at the bus's data bit rate when it has one).
+    fd: bool = False
 
     def add(self, time: float, payload: int, malformed: bool) -> None:
         if self.count:
@@ -148,6 +155,8 @@ class _BusStats:
     actual_bits: int = 0
     unknown_frames: int = 0
     unknown_ids: set[tuple[bool, int]] = field(default_factory=set)
+    #: Time on the wire of its CAN FD frames (s; its classical frames: ``actual_bits``).
+    actual_fd_s: float = 0.0
     malformed: int = 0
     errors: int = 0
     remote: int = 0
@@ -185,6 +194,13 @@ class StatsAccumulator:
             raise ValueError(f"bitrate must be > 0, got {bitrate}")
         self.bitrate = bitrate
         self.decoder = decoder or default_decoder()
+        #: Per bus label, the data phase's bit rate of its FD frames (its database's FD
+        #: bit rate, bit-rate switching); a bus without one times them at ``bitrate``.
+        self._data_rates: dict[str, int] = {}
+        for name, db in getattr(self.decoder, "databases", {}).items():
+            rate = db.buses[0].fd_baudrate if getattr(db, "buses", None) else None
+            if rate:
+                self._data_rates[name] = int(rate)
         self._ids: dict[tuple[str, bool, int], _IdStats] = {}
         self._buses: dict[str, _BusStats] = {}
         self.counts = {kind: 0 for kind in FrameKind}
@@ -285,14 +301,22 @@ class StatsAccumulator:
             stats = self._ids[key] = _IdStats(
                 label, frame.arbitration_id, frame.is_extended_id, frame.message
             )
+        definition = frame.definition
+        fd = len(frame.data) > 8 or (definition is not None and bool(definition.is_fd))
         if stats is not None:
             payload = 0 if frame.kind is FrameKind.REMOTE else len(frame.data)
             stats.add(t, payload, frame.kind is FrameKind.MALFORMED)
+            stats.fd = stats.fd or fd
         else:
             self.unlisted += 1
         remote = frame.kind is FrameKind.REMOTE
         ident = (frame.arbitration_id, frame.is_extended_id)
-        bus.actual_bits += frame_bits(*ident, remote, bytes(frame.data[:8]))
+        if fd and not remote and len(frame.data) <= 64:
+            rate = self._data_rates.get(label)
+            bits = fd_frame_bits(*ident, bytes(frame.data), brs=rate is not None)
+            bus.actual_fd_s += bits.seconds(self.bitrate, rate or self.bitrate)
+        else:
+            bus.actual_bits += frame_bits(*ident, remote, bytes(frame.data[:8]))
         if frame.kind is FrameKind.DECODED and ident in self._counters:
             self._count(frame, label)
 
@@ -340,23 +364,32 @@ class StatsAccumulator:
             # a payload longer than a classical frame's, or an identifier out of its
             # range (a damaged trace): the bound for any identifier
             valid = key[2] < (1 << (29 if s.is_extended_id else 11))
-            bits = (
-                worst_case_frame_bits_for(key[2], s.is_extended_id, s.payload)
-                if s.payload <= 8 and valid
-                else worst_case_frame_bits(s.payload, s.is_extended_id)
-            )
+            seconds = None
+            if s.fd and valid and s.payload <= 64:  # FD: its phases at their bit rates
+                rate = self._data_rates.get(s.bus)
+                fd_bits = worst_case_fd_frame_bits(
+                    s.payload, s.is_extended_id, brs=rate is not None, arbitration_id=key[2]
+                )
+                bits = fd_bits.total
+                seconds = fd_bits.seconds(self.bitrate, rate or self.bitrate)
+            elif s.payload <= 8 and valid:
+                bits = worst_case_frame_bits_for(key[2], s.is_extended_id, s.payload)
+            else:
+                bits = worst_case_frame_bits(s.payload, s.is_extended_id)
+            if seconds is None:
+                seconds = bits / self.bitrate
             span = s.last - s.first
             if s.count >= 2 and span > 0:
                 rate = (s.count - 1) / span
                 mean = s.mean_period
                 std = math.sqrt(max(s.m2_period, 0.0) / s.n_periods)
                 jmax = max(s.max_period - mean, mean - s.min_period)
-                load = rate * bits / self.bitrate * 100.0
+                load = rate * seconds * 100.0
                 period_ms, std_us, jmax_us = mean * 1e3, std * 1e6, jmax * 1e6
             else:
                 rate = period_ms = std_us = jmax_us = load = None
             loads[s.bus] = loads.get(s.bus, 0.0) + _bus_share(
-                load, s.count, span, bits / self.bitrate * 100.0, bus_spans.get(s.bus, 0.0)
+                load, s.count, span, seconds * 100.0, bus_spans.get(s.bus, 0.0)
             )
             ids.append(
                 {
@@ -373,7 +406,7 @@ class StatsAccumulator:
                     "jitter_max_us": jmax_us,
                     "payload_bytes": s.payload,
                     "worst_case_bits": bits,
-                    "frame_time_us": bits / self.bitrate * 1e6,
+                    "frame_time_us": seconds * 1e6,
                     "load_percent": load,
                 }
             )
@@ -387,7 +420,9 @@ class StatsAccumulator:
                 "frames": b.frames,
                 "load_percent": load,
                 "actual_load_percent": (
-                    b.actual_bits / self.bitrate / span * 100.0 if span > 0 else None
+                    (b.actual_bits / self.bitrate + b.actual_fd_s) / span * 100.0
+                    if span > 0
+                    else None
                 ),
                 "over_limit": load > LOAD_LIMIT * 100.0,
                 "unknown_ids": len(b.unknown_ids),

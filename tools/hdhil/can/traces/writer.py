@@ -124,6 +124,9 @@ WRITER_EXIT_TIMEOUT_S = 120.0
 #: One frame on the pipe: timestamp, identifier, extended, remote, error frame, received,
 #: DLC, channel number, payload (up to 8 bytes, with its length: a Pascal string).
 _RECORD = struct.Struct("<dI????BB9p")
+#: A record of a run with CAN FD frames (``WriterProcess(fd=True)``): the same fields
+#: with a payload of up to 64 bytes, then the frame's FD and bit-rate-switch flags.
+_FD_RECORD = struct.Struct("<dI????BB65p??")
 #: The fields of a record, read from a frame in one call (tools, tests).
 _FIELDS = operator.attrgetter("timestamp", "arbitration_id", "is_extended_id", "is_remote_frame",
                               "is_error_frame", "is_rx", "dlc", "channel", "data")  # fmt: skip
@@ -157,6 +160,25 @@ def _group_records(group: FrameGroup) -> bytes:
     pack = _RECORD.pack
     return b"".join([pack(ts, i, extended, False, False, True, len(d), channel, d)
                      for i, d in zip(ids, payloads, strict=True)])  # fmt: skip
+
+
+def _fd_records(frames: Iterable[can.Message | FrameGroup]) -> list[bytes]:
+    """:func:`_records` in the FD format (:data:`_FD_RECORD`)."""
+    pack = _FD_RECORD.pack
+    out = []
+    for msg in frames:
+        if msg.__class__ is FrameGroup:
+            ts, channel, ids, extended, payloads = msg  # type: ignore[misc]
+            out.append(b"".join([pack(ts, i, extended, False, False, True, len(d), channel, d,
+                                      False, False)
+                                 for i, d in zip(ids, payloads, strict=True)]))  # fmt: skip
+        else:
+            out.append(_fd_pack(msg))  # type: ignore[arg-type]
+    return out
+
+
+def _fd_pack(msg: can.Message) -> bytes:
+    return _FD_RECORD.pack(*_FIELDS(msg), msg.is_fd, msg.bitrate_switch)
 
 
 _Record = tuple[float, int, bool, bool, bool, bool, int, int, bytes]
@@ -197,7 +219,8 @@ class _ChildListening:
     asked for its result.  An exception in it is kept for the parent (the trace is
     written on regardless) and the listener is fed no more."""
 
-    def __init__(self, factory: ChildListenerFactory) -> None:
+    def __init__(self, factory: ChildListenerFactory, fd: bool = False) -> None:
+        self.fd = fd
         self.error: str | None = None
         self.listener: Any = None
         self._feed: Callable[[list[FrameRecord]], None] | None = None
@@ -216,7 +239,10 @@ class _ChildListening:
         if self._feed is None:
             return
         try:
-            self._feed(list(map(FrameRecord._make, _RECORD.iter_unpack(batch))))
+            if self.fd:
+                self._feed([FrameRecord._make(r[:9]) for r in _FD_RECORD.iter_unpack(batch)])
+            else:
+                self._feed(list(map(FrameRecord._make, _RECORD.iter_unpack(batch))))
         except Exception as exc:
             self.error = _failure("the trace writer's child listener failed", exc)
             self._feed = None
@@ -267,6 +293,22 @@ def _message_fast(f: _Record, offset: float) -> can.Message:
 #: One record back into a :class:`can.Message` for the writer: field by field while
 #: python-can's Message has exactly the fields filled here, else by its constructor.
 _message = _message_fast if received_copy is _snapshot_fast else _message_checked
+
+
+def _fd_batch_writer(writer: can.Listener, offset: float) -> Callable[[bytes], int]:
+    """:func:`_batch_writer` for records in the FD format: a message per record."""
+    on_message = writer.on_message_received
+
+    def each_message(batch: bytes) -> int:
+        n = 0
+        for record in _FD_RECORD.iter_unpack(batch):
+            msg = _message_checked(record[:9], offset)  # type: ignore[arg-type]
+            msg.is_fd, msg.bitrate_switch = record[9], record[10]
+            on_message(msg)
+            n += 1
+        return n
+
+    return each_message
 
 
 def _batch_writer(writer: can.Listener, offset: float) -> Callable[[bytes], int]:
@@ -324,6 +366,7 @@ def _writer_main(
     metadata: dict[str, Any] | None,
     child_listener: ChildListenerFactory | None = None,
     companions: tuple[tuple[str, str, str], ...] = (),
+    fd: bool = False,
 ) -> None:
     """The child: open the writer, write every batch until the pipe closes, close the file
     and rename it into place.
@@ -364,8 +407,8 @@ def _writer_main(
         status.send(("error", f"cannot write trace {shown}: {text}"))
         return
     status.send(("ready", None))
-    write_batch = _batch_writer(writer, offset)
-    listening = _ChildListening(child_listener) if child_listener is not None else None
+    write_batch = (_fd_batch_writer if fd else _batch_writer)(writer, offset)
+    listening = _ChildListening(child_listener, fd) if child_listener is not None else None
     written = 0
     error: str | None = None
     try:
@@ -495,7 +538,8 @@ class WriterProcess(can.Listener):
     def __init__(self, path: Path, time_offset: float = 0.0,
                  metadata: dict[str, Any] | None = None,
                  child_listener: ChildListenerFactory | None = None,
-                 companions: tuple[tuple[Path, Path, str], ...] = ()) -> None:  # fmt: skip
+                 companions: tuple[tuple[Path, Path, str], ...] = (),
+                 fd: bool = False) -> None:  # fmt: skip
         check_trace_path(path)  # the sidecar's name too: it is written after the trace
         target = check_output(path, "trace")
         assert target is not None
@@ -504,6 +548,10 @@ class WriterProcess(can.Listener):
         self._failure: str | None = None  # why handing on frames failed
         self.time_offset = time_offset
         self.sent = 0
+        #: CAN FD frames (up to 64 bytes) are handed on whole: a wider record per frame.
+        self.fd = fd
+        self._records = _fd_records if fd else _records
+        self._record_size = (_FD_RECORD if fd else _RECORD).size
         self._batch = bytearray()
         self._batched = 0
         self._batch_started = 0.0
@@ -525,7 +573,7 @@ class WriterProcess(can.Listener):
             target=_writer_main,
             args=(str(self._tmp), str(target), str(path), frames_r, status_w, frames_w,
                   time_offset, metadata, child_listener,
-                  tuple((str(t), str(d), w) for t, d, w in companions)),
+                  tuple((str(t), str(d), w) for t, d, w in companions), fd),
             daemon=False, name=f"hdhil trace writer {path.name}",
         )  # fmt: skip
         # Signals stay blocked across the fork: a Ctrl-C reaching the whole process group
@@ -565,7 +613,7 @@ class WriterProcess(can.Listener):
         as the run's tap stamps it."""
         if not self._batch:
             self._batch_started = time.monotonic()
-        self._batch += _pack(*_FIELDS(msg))
+        self._batch += _pack(*_FIELDS(msg)) if not self.fd else _fd_pack(msg)
         self._batched += 1
         if self._batched >= BATCH_FRAMES or (
             self._batched & 31 == 0 and time.monotonic() - self._batch_started > BATCH_MAX_AGE_S
@@ -582,16 +630,16 @@ class WriterProcess(can.Listener):
             self._batch_started = time.monotonic()
         pending = iter(frames)
         try:
-            packed = b"".join(_records(pending))
+            packed = b"".join(self._records(pending))
         except BaseException:
             # A signal handler raised (Ctrl-C) while a frame was read, or a frame does not
             # fit a record: the frames before that one are kept, as they were handed over.
             kept = frames[: max(len(frames) - operator.length_hint(pending) - 1, 0)]
-            self._batch += b"".join(_records(kept))
-            self._batched = len(self._batch) // _RECORD.size
+            self._batch += b"".join(self._records(kept))
+            self._batched = len(self._batch) // self._record_size
             raise
         self._batch += packed
-        self._batched += len(packed) // _RECORD.size  # frames (a group holds several)
+        self._batched += len(packed) // self._record_size  # frames (a group holds several)
         if (
             self._batched >= BATCH_FRAMES
             or time.monotonic() - self._batch_started > BATCH_MAX_AGE_S
@@ -617,7 +665,7 @@ class WriterProcess(can.Listener):
                 raise WriterError(self._failure) from None
             # Counted from the bytes (fixed-size records, each appended whole): a Ctrl-C
             # between appending a frame and counting it cannot make the two disagree.
-            self.sent += len(self._batch) // _RECORD.size
+            self.sent += len(self._batch) // self._record_size
             self._batch = bytearray()
             self._batched = 0
 
