@@ -140,6 +140,13 @@ def test_hdhil_run_prints_a_row_per_joint_and_json(
 
     monkeypatch.chdir(tmp_path)
     run = ["run", "--scenario", str(TWO), "--duration", "0.1", "--skip", "0", "--trace", ""]
+    # two joints with telemetry every cycle need 105.7 % of the bus: refused as by hdhil
+    # plan, one line, exit 2, before anything runs
+    assert main(run) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "bus can0 needs 105.7 %" in err and "hdhil plan" in err
+    (tmp_path / "decimated.toml").write_text("[buses.can0]\ntelemetry_every = 10\n")
+    run += ["--override", "decimated.toml"]
     assert main(run) == 0
     out = capsys.readouterr().out
     assert "2 joints on 1 bus(es)" in out and "worst joint" in out

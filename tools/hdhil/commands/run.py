@@ -190,10 +190,14 @@ def _run_rig(
     trace: Path | None,
 ) -> int:
     """``hdhil run`` of a rig of several joints (:mod:`hdhil.rig.rigrun`)."""
+    from hdhil.analysis.rigplan import plan_scenario
     from hdhil.rig.rigrun import check_rig_options, format_rig_result, run_rig
 
     check_rig_options(request, interface=interface, realtime=args.realtime,
                       compare_laws=args.compare_laws, fault_log=args.fault_log)  # fmt: skip
+    refusal = plan_scenario(request.scenario).refusal()  # a bus over 60 %: as hdhil plan
+    if refusal is not None:
+        raise UserError(f"{refusal} (hdhil plan --scenario {request.scenario.name})")
     check_outputs(run_outputs([trace] if trace else [], None), scenario_inputs(args))
     with stop_on_signals() as stop:
         result = run_rig(request, trace=trace, start_time=parse_start_time(args.start_time),
