@@ -43,7 +43,7 @@ def test_growth_verdict_compares_each_joints_cost_with_one_joints() -> None:
     linear = [_row(n, 20.0 + 50.0 * n) for n in (1, 2, 4, 7)] + [_row(7, 9e9, "arm", "arm7")]
     v = linearity(linear)
     assert v["met"] is True and v["worst_ratio"] == 1.0
-    assert v["ratios"][7] == pytest.approx((20 + 350) / 7 / 70)
+    assert v["ratios"]["7"] == pytest.approx((20 + 350) / 7 / 70)
     assert v["per_joint_us"] == pytest.approx(50.0) and v["fixed_us"] == pytest.approx(20.0)
     # a cost growing with N squared: the ratio climbs past the tolerance
     square = [_row(n, 50.0 * n + 10.0 * n * n) for n in (1, 2, 4, 7)]

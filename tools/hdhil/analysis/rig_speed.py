@@ -168,14 +168,15 @@ def _request_short(request: RunRequest) -> RunRequest:
 
 def linearity(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The growth verdict over the rows of independent plants (:func:`bench_joint_loop`):
-    CPU per joint at each N over one joint's (``ratios``, by N), the largest of them,
+    CPU per joint at each N over one joint's (``ratios``, by N written out: the JSON
+    report's keys), the largest of them,
     ``met`` when it is at most :data:`LINEAR_TOLERANCE`, and the least-squares line
     ``cpu = fixed + N * per_joint`` (µs). None without a one-joint row."""
     rows = sorted((r for r in rows if r["plant"] == "independent"), key=lambda r: r["joints"])
     one = next((r for r in rows if r["joints"] == 1), None)
     if one is None or one["cpu_us"] <= 0:
         return {"met": None, "ratios": {}, "worst_ratio": None, "tolerance": LINEAR_TOLERANCE}
-    ratios = {r["joints"]: r["cpu_us_per_joint"] / one["cpu_us"] for r in rows}
+    ratios = {str(r["joints"]): r["cpu_us_per_joint"] / one["cpu_us"] for r in rows}
     worst = max(ratios.values())
     out: dict[str, Any] = {
         "ratios": ratios,
@@ -287,7 +288,9 @@ def format_joints_section(j: dict[str, Any]) -> list[str]:
     )  # fmt: skip
     lin = j["linearity"]
     if lin.get("worst_ratio") is not None:
-        ratios = ", ".join(f"N={n}: {v:.2f}" for n, v in sorted(lin["ratios"].items()))
+        ratios = ", ".join(
+            f"N={n}: {v:.2f}" for n, v in sorted(lin["ratios"].items(), key=lambda kv: int(kv[0]))
+        )
         fit = (
             f"; least squares: {lin['fixed_us']:.0f} us + N x {lin['per_joint_us']:.1f} us"
             if "per_joint_us" in lin
