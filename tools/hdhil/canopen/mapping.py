@@ -320,16 +320,14 @@ def trace_decoder(trace: Path) -> Any:
                          "truth": database("truth")})  # fmt: skip
 
 
-def rig_decoder(rig: Mapping[str, Any]) -> Any:
-    """The decoder of a rig's trace (:class:`hdhil.can.traces.decode.ChannelDecoder`) from
-    its sidecar's ``rig`` entry (buses with their channels, joints): each bus's channel
-    with the bus's database, the truth's channel 1 with every joint's truth
-    (:func:`hdhil.canopen.rigdb.rig_databases`, :func:`~hdhil.canopen.rigdb.
-    truth_database`).  ``ValueError`` for an entry that does not describe a layout."""
-    from hdhil.can.traces.decode import ChannelDecoder
-    from hdhil.canopen.rigdb import RigBus, RigDrive, rig_databases, truth_database
-    from hdhil.core.errors import UserError
-    from hdhil.dbc import CHANNEL_NUMBER
+def rig_sidecar_layout(
+    rig: Mapping[str, Any],
+) -> tuple[list[Any], dict[str, int], list[Any], list[int]]:
+    """A rig's layout from its trace's sidecar ``rig`` entry: the buses
+    (:class:`hdhil.canopen.rigdb.RigBus`), each bus's channel, the drives
+    (:class:`~hdhil.canopen.rigdb.RigDrive`, the layout's order) and each joint's truth
+    index.  ``ValueError`` for an entry that does not describe a layout."""
+    from hdhil.canopen.rigdb import RigBus, RigDrive
 
     try:
         buses = [
@@ -343,6 +341,25 @@ def rig_decoder(rig: Mapping[str, Any]) -> Any:
                      controller_node_id=int(j["controller_node_id"]))
             for j in rig["joints"]
         ]  # fmt: skip
+        indices = [int(j["joint_index"]) for j in rig["joints"]]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"the sidecar's rig layout cannot be read ({exc})") from None
+    return buses, channels, drives, indices
+
+
+def rig_decoder(rig: Mapping[str, Any]) -> Any:
+    """The decoder of a rig's trace (:class:`hdhil.can.traces.decode.ChannelDecoder`) from
+    its sidecar's ``rig`` entry (buses with their channels, joints): each bus's channel
+    with the bus's database, the truth's channel 1 with every joint's truth
+    (:func:`hdhil.canopen.rigdb.rig_databases`, :func:`~hdhil.canopen.rigdb.
+    truth_database`).  ``ValueError`` for an entry that does not describe a layout."""
+    from hdhil.can.traces.decode import ChannelDecoder
+    from hdhil.canopen.rigdb import rig_databases, truth_database
+    from hdhil.core.errors import UserError
+    from hdhil.dbc import CHANNEL_NUMBER
+
+    buses, channels, drives, _ = rig_sidecar_layout(rig)
+    try:
         databases = rig_databases(drives, buses)
         truth = truth_database(drives, buses)
     except (KeyError, TypeError, ValueError, UserError) as exc:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import struct
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -184,19 +185,7 @@ def _firmware_rig(args: argparse.Namespace, request: Any) -> int:
     try:
         pacing = RealtimeConfig(spin_us=args.spin_us, floor_s=args.floor_s)
         ctrl = RigController(request, bus, opener, args.boot_timeout, pacing)
-        with stop_on_signals() as stop:
-            failed = ctrl.boot(stop.is_set)
-            for line in ctrl.recovery:
-                print(f"hdhil: firmware: {line}", file=sys.stderr)
-            if failed is not None:
-                print(jsonout.dumps(failed))
-                return _verdict_exit("firmware", failed)
-            ctrl.run(stop.is_set, realtime=not args.lockstep)
-        summary = ctrl.summary(stopped=stop.is_set())
-        print(jsonout.dumps(summary))
-        if stop.is_set():
-            return 130
-        return _verdict_exit("firmware", summary)
+        return _serve_controller(ctrl, args, lambda: ctrl.recovery)
     finally:
         _shutdown(opener.opened)
 
@@ -238,23 +227,35 @@ def run_firmware(args: argparse.Namespace) -> int:
     try:
         bus = _control_bus(args)
         ctrl = StandaloneController(request, bus, injector, args.boot_timeout)
-        with stop_on_signals() as stop:
-            failed = ctrl.boot(stop.is_set)
-            if ctrl.recovery is not None:
-                print(f"hdhil: firmware: {ctrl.recovery}", file=sys.stderr)
-            if failed is not None:  # no boot-up (or no SDO answer): a stop, told as a verdict
-                print(jsonout.dumps(failed))
-                return _verdict_exit("firmware", failed)
-            ctrl.run(stop.is_set, realtime=not args.lockstep)
-        summary = ctrl.summary(stopped=stop.is_set())
-        print(jsonout.dumps(summary))
-        if stop.is_set():
-            return 130
-        return _verdict_exit("firmware", summary)
+        return _serve_controller(
+            ctrl, args, lambda: [] if ctrl.recovery is None else [ctrl.recovery]
+        )
     finally:
         if bus is not None:
             bus.shutdown()
         injector.log.close()
+
+
+def _serve_controller(
+    ctrl: Any, args: argparse.Namespace, recovery: Callable[[], list[str]]
+) -> int:
+    """Boot ``ctrl`` (a single joint's or a rig bus's controller), run it until its
+    duration, a verdict or Ctrl-C/SIGTERM, print its JSON summary; the exit code. A boot
+    that fails (no boot-up, no SDO answer) is a stop, told as a verdict; ``recovery``
+    gives the lines of what the boot recovered from."""
+    with stop_on_signals() as stop:
+        failed = ctrl.boot(stop.is_set)
+        for line in recovery():
+            print(f"hdhil: firmware: {line}", file=sys.stderr)
+        if failed is not None:
+            print(jsonout.dumps(failed))
+            return _verdict_exit("firmware", failed)
+        ctrl.run(stop.is_set, realtime=not args.lockstep)
+    summary = ctrl.summary(stopped=stop.is_set())
+    print(jsonout.dumps(summary))
+    if stop.is_set():
+        return 130
+    return _verdict_exit("firmware", summary)
 
 
 def _verdict_exit(command: str, summary: dict[str, Any]) -> int:

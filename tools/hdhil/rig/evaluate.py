@@ -564,24 +564,15 @@ def rig_recordings_from_trace(
     rig_databases`) and its own truth on the truth channel. ``ValueError`` for a ``rig``
     entry that does not describe a layout."""
     from hdhil.can.traces.reader import read_trace
-    from hdhil.canopen.rigdb import RigBus, RigDrive, rig_databases
+    from hdhil.canopen.mapping import rig_sidecar_layout
+    from hdhil.canopen.rigdb import rig_databases
     from hdhil.core.errors import UserError
     from hdhil.dbc import CHANNEL_NUMBER
 
+    buses, channels, drives, indices = rig_sidecar_layout(rig)
+    joints = [(d.joint, d.bus, d.node_id, d.controller_node_id, index)
+              for d, index in zip(drives, indices, strict=True)]  # fmt: skip
     try:
-        buses = [
-            RigBus(str(b["name"]), int(b["controller_node_id"]), int(b["bitrate"]),
-                   bool(b["fd"]), int(b["data_bitrate"]))
-            for b in rig["buses"]
-        ]  # fmt: skip
-        channels = {str(b["name"]): int(b["channel"]) for b in rig["buses"]}
-        joints = [
-            (str(j["name"]), str(j["bus"]), int(j["node_id"]), int(j["controller_node_id"]),
-             int(j["joint_index"]))
-            for j in rig["joints"]
-        ]  # fmt: skip
-        drives = [RigDrive(name, node, bus, controller_node_id=cid)
-                  for name, bus, node, cid, _ in joints]  # fmt: skip
         databases = rig_databases(drives, buses)
         listeners = []
         for name, bus, node, cid, index in joints:
