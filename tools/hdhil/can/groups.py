@@ -38,6 +38,13 @@ class FrameGroup(NamedTuple):
     extended: bool
     payloads: tuple[bytes, ...]
 
+    @property
+    def arbitration_id(self) -> tuple[int, ...]:
+        """The identifiers, under a message's name for its identifier: a batch's
+        ``(channel, arbitration_id)`` are read alike from messages and groups (the
+        frame counter's keys)."""
+        return self.ids
+
 
 _new_message = object.__new__
 
