@@ -453,10 +453,11 @@ class Plant(ConfiguredConverters):
         saturated, encoder glitches, tacho spikes; :mod:`hdhil.hostsim.sensor_faults`).
         """
         pos = self._noise_pos
-        if pos + 3 > len(self._noise):
-            self._noise = self._rng.standard_normal(_NOISE_BLOCK).tolist()
+        noise = self._noise
+        if pos + 3 > len(noise):
+            noise = self._noise = self._rng.standard_normal(_NOISE_BLOCK).tolist()
             pos = 0
-        n_torque, n_tacho, n_current = self._noise[pos : pos + 3]
+        n_torque, n_tacho, n_current = noise[pos], noise[pos + 1], noise[pos + 2]
         self._noise_pos = pos + 3
         cfg = self.cfg
         s = cfg.sensors
