@@ -267,8 +267,8 @@ class CyclicIO:
             emulator.apply()
         plant = self.plant
         machine = node.machine
+        dt = (1 + missed) * self._Ts
         if self._plant_started:
-            dt = (1 + missed) * self._Ts
             try:
                 plant.advance(self.step_V, dt)
             except ArithmeticError as exc:  # NonFiniteStateError, or a plug-in's overflow
@@ -277,7 +277,7 @@ class CyclicIO:
         else:
             self._plant_started = True
         sample = self.sample = plant.sample()
-        self._cst.update_position(sample[3], (1 + missed) * self._Ts)
+        self._cst.update_position(sample[3], dt)
         if services.state is not _INITIALISING:
             truth = plant.truth()
             self._check_sensors(sample, truth)

@@ -294,13 +294,13 @@ class Plant(ConfiguredConverters):
             tl = tau_load - cl * tanh(wl * inv_eps)
             if mgl:
                 tl += mgl * sin(q_out + g_off)
-            d, wm, wl, q_out, i = (
-                dd * d + dm * wm + dl * wl + di * i + du + dtm * tm + dtl * tl,
-                md * d + mm * wm + ml * wl + mi * i + mu + mtm * tm + mtl * tl,
-                ld * d + lm * wm + ll * wl + li * i + lu + ltm * tm + ltl * tl,
-                q_out + qd * d + qm * wm + ql * wl + qi * i + qu + qtm * tm + qtl * tl,
-                ii * i + iu,
-            )
+            # the new state from the old one (no tuple built per substep)
+            d_new = dd * d + dm * wm + dl * wl + di * i + du + dtm * tm + dtl * tl
+            wm_new = md * d + mm * wm + ml * wl + mi * i + mu + mtm * tm + mtl * tl
+            wl_new = ld * d + lm * wm + ll * wl + li * i + lu + ltm * tm + ltl * tl
+            q_out = q_out + qd * d + qm * wm + ql * wl + qi * i + qu + qtm * tm + qtl * tl
+            i = ii * i + iu
+            d, wm, wl = d_new, wm_new, wl_new
         # NaN, an infinity or a state too large for the sensors to read (NaN < inf is
         # False): the step failed (:mod:`.stability`)
         if not (abs(d) + abs(wm) + abs(wl) + abs(i) + abs(q_out)) * self._state_scale < _INF:
@@ -459,10 +459,11 @@ class Plant(ConfiguredConverters):
         saturated, encoder glitches, tacho spikes; :mod:`hdhil.hostsim.sensor_faults`).
         """
         pos = self._noise_pos
-        if pos + 3 > len(self._noise):
-            self._noise = self._rng.standard_normal(_NOISE_BLOCK).tolist()
+        noise = self._noise
+        if pos + 3 > len(noise):
+            noise = self._noise = self._rng.standard_normal(_NOISE_BLOCK).tolist()
             pos = 0
-        n_torque, n_tacho, n_current = self._noise[pos : pos + 3]
+        n_torque, n_tacho, n_current = noise[pos], noise[pos + 1], noise[pos + 2]
         self._noise_pos = pos + 3
         cfg = self.cfg
         s = cfg.sensors

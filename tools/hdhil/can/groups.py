@@ -38,8 +38,16 @@ class FrameGroup(NamedTuple):
     extended: bool
     payloads: tuple[bytes, ...]
 
+    @property
+    def arbitration_id(self) -> tuple[int, ...]:
+        """The identifiers, under a message's name for its identifier: a batch's
+        ``(channel, arbitration_id)`` are read alike from messages and groups (the
+        frame counter's keys)."""
+        return self.ids
+
 
 _new_message = object.__new__
+_new_tuple = tuple.__new__
 
 
 def _group_messages_fast(group: FrameGroup) -> list[can.Message]:
@@ -117,7 +125,10 @@ class GroupChannel:
         now = self.clock.now
         if now > self._last:
             self._last = now
-        self._queue.append(FrameGroup(self._last, self.channel, ids, extended, payloads))
+        # Built by tuple.__new__, all fields in order: the NamedTuple's generated
+        # __new__ (keyword handling) is a call of its own.
+        self._queue.append(_new_tuple(FrameGroup, (self._last, self.channel, ids, extended,
+                                                   payloads)))  # fmt: skip
         self.frames_sent += len(ids)
 
     @property

@@ -169,12 +169,15 @@ class TorqueScorer(can.Listener):
         truth_key = self._truth_key
         truth_length = self._truth.length
         truth_decode = self._truth.decode
+        tele_id = self._tele_key[0]
         for msg in frames:
             if msg.__class__ is FrameGroup:
                 data = self._group_truth(msg)
                 if data is not None and len(data) == truth_length:
                     self._T_true = truth_decode(data)[0]
                 continue
+            if not msg.is_extended_id and msg.arbitration_id != tele_id:
+                continue  # most frames of a cycle: not a scored base frame
             key = (msg.arbitration_id, msg.is_extended_id)
             if key in keys:
                 if key == truth_key and len(msg.data) == truth_length:  # the common case

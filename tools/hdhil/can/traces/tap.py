@@ -11,6 +11,7 @@ identifiers.  Listeners get each poll's frames in one call where they can take t
 from __future__ import annotations
 
 import operator
+from collections import Counter
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -24,33 +25,36 @@ class FrameCounter(can.Listener):
     """Counts frames per (channel, identifier)."""
 
     def __init__(self) -> None:
-        self.counts: dict[tuple[int, int], int] = {}
+        #: Per (channel, identifier) of a message, or (channel, identifiers) of a frame
+        #: group (:attr:`FrameGroup.arbitration_id`): a batch is counted in one pass.
+        self._counts: Counter[tuple[int, int | tuple[int, ...]]] = Counter()
+
+    @property
+    def counts(self) -> dict[tuple[int, int], int]:
+        """Frames per (channel, identifier)."""
+        counts: dict[tuple[int, int], int] = {}
+        for (channel, ident), n in self._counts.items():
+            for arbitration_id in ident if ident.__class__ is tuple else (ident,):
+                key = (channel, arbitration_id)
+                counts[key] = counts.get(key, 0) + n
+        return counts
 
     def on_message_received(self, msg: can.Message) -> None:
-        key = (msg.channel, msg.arbitration_id)
-        self.counts[key] = self.counts.get(key, 0) + 1
+        self._counts[(msg.channel, msg.arbitration_id)] += 1
 
     #: :meth:`on_frames` takes :class:`FrameGroup` items (:class:`BusTap`).
     takes_frame_groups = True
 
     def on_frames(self, frames: list[can.Message | FrameGroup]) -> None:
-        counts = self.counts
-        get = counts.get
-        for msg in frames:
-            if msg.__class__ is FrameGroup:
-                channel = msg.channel
-                for arbitration_id in msg.ids:
-                    key = (channel, arbitration_id)
-                    counts[key] = get(key, 0) + 1
-                continue
-            key = (msg.channel, msg.arbitration_id)
-            counts[key] = get(key, 0) + 1
+        self._counts.update(map(_frame_key, frames))
 
     @property
     def total(self) -> int:
         return sum(self.counts.values())
 
 
+#: A frame's key in :attr:`FrameCounter._counts` (a frame group's identifiers: a tuple).
+_frame_key = operator.attrgetter("channel", "arbitration_id")
 _timestamp = operator.attrgetter("timestamp")
 
 
