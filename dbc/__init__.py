@@ -276,6 +276,9 @@ class FrameCodec:
         self.decode: Callable[[bytes | bytearray], tuple[float, ...]] = namespace["decode"]
 
 
+#: The SYNC's COB-ID in CiA 301's pre-defined connection set (object 0x1005's default).
+SYNC_COB_ID = 0x080
+
 #: CiA 301's pre-defined connection set: the function code of RPDO/TPDO 1..4, to which a
 #: node's PDO COB-ID adds its node-ID.
 PDO_FUNCTION_CODES = {

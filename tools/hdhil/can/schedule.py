@@ -39,13 +39,11 @@ from hdhil.can.bittiming import (
     worst_case_frame_bits_for,
 )
 from hdhil.can.busload import LOAD_LIMIT
-from hdhil.dbc import predefined_cob_id
+from hdhil.dbc import SYNC_COB_ID, predefined_cob_id
 
 #: What a frame is in the schedule; the suggestions move, pack and decimate by it.
 FrameRole = Literal["sync", "rpdo", "tpdo", "telemetry", "other"]
 
-#: CiA 301 SYNC COB-ID.
-SYNC_COB_ID = 0x080
 #: Data bit rate assumed for FD packing on a bus that has none (the 1/5 Mbit/s pairing).
 DEFAULT_DATA_BITRATE = 5_000_000
 #: Hyperperiods longer than this are not walked cycle by cycle: the busiest cycle is

@@ -11,11 +11,9 @@ from dataclasses import dataclass, field
 import can
 
 from hdhil.canopen.clock import TIME_EPSILON
+from hdhil.dbc import SYNC_COB_ID
 
 __all__ = ["SYNC_COB_ID", "SyncMonitor", "SyncProducer"]
-
-#: Default SYNC COB-ID (object 0x1005, CiA 301 pre-defined connection set).
-SYNC_COB_ID = 0x080
 
 
 class SyncProducer:

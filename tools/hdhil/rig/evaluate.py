@@ -32,8 +32,7 @@ from typing import Any
 import can
 import numpy as np
 
-from hdhil.can.schedule import SYNC_COB_ID
-from hdhil.dbc import FrameCodec, codec, predefined_cob_id, truth_frame_id
+from hdhil.dbc import SYNC_COB_ID, FrameCodec, codec, predefined_cob_id, truth_frame_id
 from hdhil.firmware.baselines import ButterworthLowPass, TrackingNotchBank
 from hdhil.firmware.config import FirmwareConfig, paper_config, recommended_config
 from hdhil.firmware.interrupt import CstSample
