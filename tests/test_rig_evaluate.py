@@ -70,8 +70,8 @@ def test_evaluate_of_a_rig_trace_prints_the_runs_torque_figures_per_joint(
     request = resolve(TWO, overrides=[TWO_BUSES], duration_s=0.3, seed=5, evaluate_from_s=0.0)
     result, ev, text = _run_and_evaluate(request, tmp_path, capsys)
     assert [j["name"] for j in ev["joints"]] == ["A", "B"]
-    assert ev["buses"] == {"can0": {"channel": 0, "joints": ["A"]},
-                           "can1": {"channel": 2, "joints": ["B"]}}  # fmt: skip
+    assert ev["buses"] == {"can0": {"channel": 0, "fd": False, "joints": ["A"]},
+                           "can1": {"channel": 2, "fd": False, "joints": ["B"]}}  # fmt: skip
     a, b = ev["joints"]
     assert a["torque"]["samples"] >= 300 and a["torque"] != b["torque"]
     run_rows = [{k: v for k, v in j.__dict__.items() if k not in ("drive_state", "samples")}

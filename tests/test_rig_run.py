@@ -288,4 +288,12 @@ def test_an_fd_bus_runs_with_packed_frames_at_the_planned_load(tmp_path: Path) -
     measured = sum(e["load_percent"] for e in ids if e["bus"] == "fd0" and e["id"] in planned)
     assert measured == pytest.approx(plan.load * 100, abs=0.2)
     assert plan.load < result.buses["fd0"]["worst_case_load"] < plan.load + 0.03
-    assert "FD_DRIVE_TPDO1" in format_rig_result(result)
+    text = format_rig_result(result)
+    assert "FD_DRIVE_TPDO1" in text
+    # the candidate filters read each joint's own sensor frame: not on a packing FD bus
+    assert "candidate filters not evaluated: an FD bus packs" in text
+    assert all(j.evaluation is None for j in result.joints)
+    from hdhil.rig.trace_score import score_rig_trace
+
+    ev, _ = score_rig_trace(trace, request)
+    assert ev["buses"]["fd0"]["fd"] and all(j["evaluation"] is None for j in ev["joints"])

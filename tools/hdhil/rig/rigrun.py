@@ -469,11 +469,18 @@ def run_rig(
         blas.restore_original_limits()
 
 
+def candidates_scored(scenario: Scenario) -> bool:
+    """Whether a rig's candidate filters are evaluated: it scores the ripple filter and no
+    bus packs its joints' sensor frames into FD frames (the evaluation reads each
+    joint's own sensor frame)."""
+    return "ripple" in scenario.scored and not any(spec.fd for _, spec in scenario.buses)
+
+
 def _offload(request: RunRequest) -> RigEvaluationFactory | None:
     """The candidate filters of every joint for the trace writer's process (None when
-    the scenario does not score the ripple filter)."""
+    they are not evaluated: :func:`candidates_scored`)."""
     s = request.scenario
-    if "ripple" not in s.scored:
+    if not candidates_scored(s):
         return None
     bus_index = {name: i for i, (name, _) in enumerate(s.buses)}
     return RigEvaluationFactory(
@@ -635,7 +642,7 @@ def _run(
             assert j.controller is not None
             j.scoring = joint_scoring(request, j.index, j.controller.joints[j.rank].link,
                                       request.evaluate_from_s,
-                                      candidates=evaluate and "ripple" in s.scored)  # fmt: skip
+                                      candidates=evaluate and candidates_scored(s))  # fmt: skip
             listeners += j.scoring.listeners(channels)
         tapped[bus_channel(index)] = handle(name, index, None)
     if writer is not None:
@@ -841,15 +848,22 @@ def format_joint_table(
     return lines
 
 
-def format_candidates(rows: Sequence[RigJointResult | JointScores], evaluated: bool) -> list[str]:
+def format_candidates(
+    rows: Sequence[RigJointResult | JointScores], evaluated: bool, fd: bool = False
+) -> list[str]:
     """The candidate filters per joint, one line each: the firmware's filter and the best
     candidate by RMS error against the joint's true torque, each with its share of raw's
-    (every candidate in ``--json``, as :func:`hdhil.rig.evaluate.evaluate` gives them)."""
+    (every candidate in ``--json``, as :func:`hdhil.rig.evaluate.evaluate` gives them).
+    ``fd``: the rig has an FD bus, whose packed sensor frames the evaluation does not read
+    (:func:`candidates_scored`)."""
     if not evaluated:
         return ["  evaluation         candidate filters not evaluated (--no-evaluate)"]
     if all(r.evaluation is None for r in rows):
+        if fd:
+            return ["  evaluation         candidate filters not evaluated: an FD bus packs the "
+                    "joints' sensor frames"]  # fmt: skip
         return []  # the rig does not score the ripple filter (a control law's tracking)
-    skips = {r.evaluation["skip_s"] for r in rows if r.evaluation is not None}
+    skips = {r.evaluation.get("skip_s") for r in rows if r.evaluation is not None} - {None}
     since = f" from {min(skips):g} s" if skips else ""
     lines = [f"  candidate filters  per joint{since}, each replayed on every sample (the "
              "firmware's own on its telemetry's): RMS error against the true torque (% of "
@@ -891,7 +905,9 @@ def format_rig_evaluation(ev: dict[str, Any]) -> str:
             for name, b in ev["buses"].items()
         ),
         *format_joint_table(rows, ev["scored"], ev["worst_joint"], ev["skip_s"]),
-        *format_candidates(rows, bool(ev.get("evaluated", True))),
+        *format_candidates(
+            rows, bool(ev.get("evaluated", True)), any(b.get("fd") for b in ev["buses"].values())
+        ),
     ]
     return "\n".join(lines)
 
@@ -921,7 +937,7 @@ def format_rig_result(r: RigResult) -> str:
             "  CAN FD             on an FD bus each direction's cyclic PDOs of its joints go in "
             "one FD frame (FD_DRIVE_TPDO1, FD_DRIVE_RPDO1), the telemetry as FD frames"
         )
-    lines += format_candidates(r.joints, r.evaluated)
+    lines += format_candidates(r.joints, r.evaluated, any(b["fd"] for b in r.buses.values()))
     if r.trace:
         lines.append(f"  trace              {r.trace} (bus channels as listed, truth on channel 1)")
     if r.verdict is not None:

@@ -104,6 +104,7 @@ def score_rig_trace(
     from hdhil.rig.rigrun import (
         JointScores,
         bus_channel,
+        candidates_scored,
         joint_links,
         joint_scoring,
         scored_channels,
@@ -113,10 +114,11 @@ def score_rig_trace(
     s = request.scenario
     skip = request.evaluate_from_s if skip_s is None else skip_s
     bus_index = {name: i for i, (name, _) in enumerate(s.buses)}
+    specs = dict(s.buses)
     scorings = []
     deliver = []
     for index, (spec, link) in enumerate(zip(s.joints, joint_links(s), strict=True)):
-        scoring = joint_scoring(request, index, link, skip, candidates="ripple" in s.scored)
+        scoring = joint_scoring(request, index, link, skip, candidates=candidates_scored(s))
         scorings.append(scoring)
         deliver += [x.on_frames for x in scoring.listeners(scored_channels(bus_index[spec.bus]))]
     with read_trace(trace) as frames:
@@ -145,7 +147,7 @@ def score_rig_trace(
         "seed": request.seed,
         "skip_s": skip,
         "scored": list(s.scored),
-        "buses": {name: {"channel": bus_channel(i),
+        "buses": {name: {"channel": bus_channel(i), "fd": specs[name].fd,
                          "joints": [j.name for j in s.joints if j.bus == name]}
                   for name, i in bus_index.items() if any(j.bus == name for j in s.joints)},
         "joints": [dict(r.__dict__) for r in rows],
