@@ -288,6 +288,9 @@ def test_an_fd_bus_runs_with_packed_frames_at_the_planned_load(tmp_path: Path) -
     measured = sum(e["load_percent"] for e in ids if e["bus"] == "fd0" and e["id"] in planned)
     assert measured == pytest.approx(plan.load * 100, abs=0.2)
     assert plan.load < result.buses["fd0"]["worst_case_load"] < plan.load + 0.03
+    # the truth channel carries every joint's truth, more than a bus could: no budget
+    truth = stats.result()["buses"]["truth"]
+    assert truth["load_percent"] > 60 and not truth["over_limit"]
     text = format_rig_result(result)
     assert "FD_DRIVE_TPDO1" in text
     # the candidate filters read each joint's own sensor frame: not on a packing FD bus

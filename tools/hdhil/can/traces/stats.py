@@ -346,7 +346,8 @@ class StatsAccumulator:
         than with the rate inside its burst),
         ``actual_load_percent`` (the frames' exact bits incl. real stuff bits,
         :mod:`hdhil.can.bittiming`, over the duration),
-        ``over_limit`` (load above ``load_limit_percent``), ``unknown_ids`` (distinct,
+        ``over_limit`` (load above ``load_limit_percent``; never the truth channel, which
+        exists only in simulation), ``unknown_ids`` (distinct,
         counted up to :data:`MAX_IDS`), ``unknown_frames``, ``malformed``,
         ``error_frames``, ``remote_frames``.  At most :data:`MAX_BUSES` buses are listed
         (frames of further channels under :data:`OTHER_BUS`).
@@ -424,7 +425,8 @@ class StatsAccumulator:
                     if span > 0
                     else None
                 ),
-                "over_limit": load > LOAD_LIMIT * 100.0,
+                # the truth channel exists only in simulation: no bus, no budget
+                "over_limit": name != "truth" and load > LOAD_LIMIT * 100.0,
                 "unknown_ids": len(b.unknown_ids),
                 "unknown_frames": b.unknown_frames,
                 "malformed": b.malformed,
@@ -488,6 +490,8 @@ def format_stats(stats: Mapping[str, Any]) -> str:
     kbit = stats["bitrate"] / 1000
     for bus, b in stats["buses"].items():
         flag = f"  OVER THE {stats['load_limit_percent']:.0f} % BUDGET" if b["over_limit"] else ""
+        if bus == "truth":
+            flag = "  (the simulation's ground truth, not a bus: no budget)"
         extras = [f"unknown IDs {b['unknown_ids']} ({b['unknown_frames']} frames)"]
         if b["malformed"]:
             extras.append(f"malformed {b['malformed']}")
