@@ -108,11 +108,11 @@ class ControllerJoint:
         self.bus = controller.bus
         self.services = controller.services
         self.config = setup.config
+        self.telemetry_every = setup.telemetry_every
+        self.telemetry_phases = setup.telemetry_phases
         #: The interrupt handler (:class:`firmware.interrupt.InterruptHandlerModel`): the
         #: firmware's own unless the setup gives one; the plausibility EMCYs and the SDO
         #: parameters that retune stages need the firmware's own (``own_isr``).
-        self.telemetry_every = setup.telemetry_every
-        self.telemetry_phases = setup.telemetry_phases
         self.isr: InterruptHandlerModel = (
             InterruptHandler(setup.config) if setup.isr is None else setup.isr
         )

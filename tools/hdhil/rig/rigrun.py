@@ -44,7 +44,7 @@ import itertools
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -100,37 +100,30 @@ def bus_channel(index: int) -> int:
 
 
 @dataclass
-class RigJointResult:
-    """One joint's figures: where it sits and its scores."""
+class JointScores:
+    """One joint's scores: where it sits, its torque and tracking figures and its
+    candidate filters' evaluation (:func:`hdhil.rig.evaluate.evaluate`'s dict, None when
+    not evaluated); read back from a trace by :func:`hdhil.rig.trace_score.
+    score_rig_trace`."""
 
     name: str
     bus: str
     node_id: int
     controller_node_id: int
     joint_index: int
-    drive_state: str
-    samples: int
     torque: dict[str, float]
     tracking: dict[str, Any] | None = None
-    #: The candidate filters against the joint's truth (:func:`hdhil.rig.evaluate.evaluate`'s
-    #: dict), None when not evaluated.
     evaluation: dict[str, Any] | None = None
 
 
 @dataclass
-class JointScores:
-    """One joint's scores read back from a trace (:func:`hdhil.rig.trace_score.
-    score_rig_trace`): a :class:`RigJointResult` without what only the run knows (the
-    drive's state, the interrupts run)."""
+class RigJointResult(JointScores):
+    """One joint's figures from a run: its :class:`JointScores` and what only the run
+    knows, the drive's state and the interrupts it ran."""
 
-    name: str
-    bus: str
-    node_id: int
-    controller_node_id: int
-    joint_index: int
-    torque: dict[str, float]
-    tracking: dict[str, Any] | None = None
-    evaluation: dict[str, Any] | None = None
+    _: KW_ONLY
+    drive_state: str
+    samples: int
 
 
 @dataclass
@@ -309,8 +302,8 @@ def joint_scoring(
     """The scorers of the rig's ``index``-th joint at ``link``'s telemetry identifiers and
     the joint's truth: the run's (:func:`run_rig`) and its trace's
     (:func:`hdhil.rig.trace_score.score_rig_trace`). The tracking counts from ``skip_s``
-    (the run's evaluation start), the torque from as many interrupts in. With ``candidates``,
-    also the candidate filters of a single joint's evaluation
+    (the run's evaluation start), the torque as long after its first telemetry frame.
+    With ``candidates``, also the candidate filters of a single joint's evaluation
     (:class:`~hdhil.rig.evaluate.RecordingListener` with the joint's firmware, scoring
     as it goes from ``skip_s``)."""
     plant, fw = request.scenario.joint_configs[index]
